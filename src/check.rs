@@ -1,0 +1,93 @@
+//! `mbfg check`: what a scene assembles to, in a few lines a person can read.
+
+use crate::dynamics;
+use crate::model::Model;
+use crate::scene::Scene;
+use std::fmt;
+
+/// The summary `mbfg check` prints.
+#[derive(Debug, Clone)]
+pub struct CheckReport {
+    pub file: String,
+    pub n: usize,
+    pub m: usize,
+    pub rank: usize,
+    pub dof: usize,
+    pub coordinates: Vec<String>,
+    pub independent: Vec<String>,
+    pub redundant: Vec<String>,
+    pub bodies: usize,
+    pub effects: Vec<String>,
+    /// max |Φ| at the assembled initial state.
+    pub initial_residual: f64,
+    pub kinetic_energy: f64,
+    pub potential_energy: f64,
+    /// max |q̈| at the initial state, or why it could not be computed.
+    pub initial_acceleration: Result<f64, String>,
+}
+
+impl CheckReport {
+    pub fn new(scene: &Scene, model: &Model) -> CheckReport {
+        let init = &model.initial;
+        CheckReport {
+            file: scene.file.clone(),
+            n: model.n(),
+            m: model.m(),
+            rank: model.active.len(),
+            dof: model.dof(),
+            coordinates: model.names.clone(),
+            independent: scene.independent.clone(),
+            redundant: model
+                .redundant
+                .iter()
+                .map(|&k| model.constraints[k].name.clone())
+                .collect(),
+            bodies: scene.bodies.len(),
+            effects: scene.effects.iter().map(|e| e.describe(scene)).collect(),
+            initial_residual: model.phi(&init.q).amax(),
+            kinetic_energy: model.kinetic_energy(&init.dq),
+            potential_energy: model.potential_energy(&init.q),
+            initial_acceleration: dynamics::lagrange(model, &init.q, &init.dq, 0.0)
+                .map(|s| s.ddq.amax())
+                .map_err(|e| e.to_string()),
+        }
+    }
+}
+
+impl fmt::Display for CheckReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "scene: {}", self.file)?;
+        writeln!(f, "n = {} coordinates: {}", self.n, self.coordinates.join(", "))?;
+        writeln!(
+            f,
+            "m = {} constraints (rank {}), {} bodies",
+            self.m, self.rank, self.bodies
+        )?;
+        if !self.redundant.is_empty() {
+            writeln!(f, "redundant constraints: {}", self.redundant.join("; "))?;
+        }
+        writeln!(f, "degrees of freedom: {}", self.dof)?;
+        if self.independent.is_empty() {
+            writeln!(f, "independent coordinates: none declared")?;
+        } else {
+            writeln!(f, "independent coordinates: {}", self.independent.join(", "))?;
+        }
+        if self.effects.is_empty() {
+            writeln!(f, "effects: none")?;
+        } else {
+            writeln!(f, "effects:")?;
+            for e in &self.effects {
+                writeln!(f, "  {e}")?;
+            }
+        }
+        writeln!(
+            f,
+            "initial state: max |Φ| = {:.2e}, kinetic energy {:.6} J, potential energy {:.6} J",
+            self.initial_residual, self.kinetic_energy, self.potential_energy
+        )?;
+        match &self.initial_acceleration {
+            Ok(a) => write!(f, "initial max |q̈| = {a:.6}"),
+            Err(e) => write!(f, "initial accelerations: {e}"),
+        }
+    }
+}

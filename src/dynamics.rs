@@ -1,0 +1,83 @@
+//! Classical forward dynamics, used by the factors and as a check on them:
+//! q̈ from the augmented (KKT) system with Lagrange multipliers, and z̈ by the
+//! R-matrix method (paper, section 2).
+
+use crate::error::{Error, Result};
+use crate::kinematics::{s_and_r, well_conditioned};
+use crate::model::Model;
+use nalgebra::{DMatrix, DVector};
+
+/// Accelerations and the multipliers of the independent (non-redundant) constraints.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LagrangeSolution {
+    pub ddq: DVector<f64>,
+    /// One multiplier per entry of `Model::active`.
+    pub lambda: DVector<f64>,
+}
+
+/// Solves [M Φ_qᵀ; Φ_q 0] [q̈; λ] = [Q; c] (paper, eq. "qDynSys"), with c = −Φ̇_q q̇
+/// and the redundant constraints left out so that the system is regular.
+pub fn lagrange(model: &Model, q: &DVector<f64>, dq: &DVector<f64>, t: f64) -> Result<LagrangeSolution> {
+    let n = model.n();
+    let rows = &model.active;
+    let m = rows.len();
+    let jac = model.jacobian(q);
+    let c = model.acceleration_rhs(q, dq);
+    let force = model.generalized_forces(q, dq, t)?;
+    let mut kkt = DMatrix::zeros(n + m, n + m);
+    kkt.view_mut((0, 0), (n, n)).copy_from(&model.mass);
+    let mut rhs = DVector::zeros(n + m);
+    rhs.rows_mut(0, n).copy_from(&force);
+    for (r, &k) in rows.iter().enumerate() {
+        for j in 0..n {
+            kkt[(n + r, j)] = jac[(k, j)];
+            kkt[(j, n + r)] = jac[(k, j)];
+        }
+        rhs[n + r] = c[k];
+    }
+    let lu = kkt.full_piv_lu();
+    if !well_conditioned(lu.u().diagonal().as_slice()) {
+        return Err(Error::Singular(
+            "the augmented (KKT) system is singular at this configuration: the constraints are dependent here or the mass matrix does not cover the free motion".into(),
+        ));
+    }
+    let x = lu
+        .solve(&rhs)
+        .ok_or_else(|| Error::Singular("augmented (KKT) system".into()))?;
+    Ok(LagrangeSolution {
+        ddq: x.rows(0, n).into_owned(),
+        lambda: x.rows(n, m).into_owned(),
+    })
+}
+
+/// Accelerations in independent coordinates by the R-matrix method.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RMatrixSolution {
+    /// z̈ = M̄⁻¹ Q̄, with M̄ = RᵀMR and Q̄ = Rᵀ(Q − M S c).
+    pub ddz: DVector<f64>,
+    /// q̈ = S c + R z̈.
+    pub ddq: DVector<f64>,
+}
+
+/// z̈ for the coordinates `independent` (indices in q) (paper, eq. "zDynSys").
+pub fn r_matrix(
+    model: &Model,
+    q: &DVector<f64>,
+    dq: &DVector<f64>,
+    t: f64,
+    independent: &[usize],
+) -> Result<RMatrixSolution> {
+    let (s, r) = s_and_r(model, q, independent)?;
+    let c_all = model.acceleration_rhs(q, dq);
+    let c = DVector::from_iterator(model.active.len(), model.active.iter().map(|&k| c_all[k]));
+    let force = model.generalized_forces(q, dq, t)?;
+    let sc = &s * &c;
+    let m_bar = r.transpose() * &model.mass * &r;
+    let q_bar = r.transpose() * (force - &model.mass * &sc);
+    let chol = m_bar.cholesky().ok_or_else(|| {
+        Error::Singular("the reduced mass matrix RᵀMR is not positive definite".into())
+    })?;
+    let ddz = chol.solve(&q_bar);
+    let ddq = sc + &r * &ddz;
+    Ok(RMatrixSolution { ddz, ddq })
+}

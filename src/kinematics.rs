@@ -1,0 +1,280 @@
+//! Kinematics: the position, velocity and acceleration problems, the rank of Φ_q and
+//! the choice of independent coordinates.
+
+use crate::error::{Error, Result};
+use crate::model::Model;
+use nalgebra::{DMatrix, DVector};
+
+/// Relative tolerance on singular values when deciding rank.
+const RANK_TOL: f64 = 1e-9;
+
+/// Outcome of a converged position problem.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionSolution {
+    pub iterations: usize,
+    /// max |Φ| at the solution.
+    pub residual: f64,
+}
+
+/// Tolerance on |Φ| for a model: its equations are quadratic in lengths, so scale
+/// with the square of the mechanism's size.
+pub fn position_tolerance(q: &DVector<f64>) -> f64 {
+    let s = q.amax().max(1.0);
+    1e-12 * s * s
+}
+
+/// Solves Φ(q) = 0 by damped Newton, moving every coordinate except those in `keep`.
+/// Each step is the least-norm correction, so redundant constraints do no harm.
+/// On failure, names the constraints left violated.
+pub fn solve_position(
+    model: &Model,
+    q: &mut DVector<f64>,
+    keep: &[usize],
+) -> Result<PositionSolution> {
+    const MAX_ITERATIONS: usize = 100;
+    let n = model.n();
+    let free: Vec<usize> = (0..n).filter(|i| !keep.contains(i)).collect();
+    let tol = position_tolerance(q);
+    let mut phi = model.phi(q);
+    let mut iterations = 0;
+    while phi.amax() > tol {
+        if iterations == MAX_ITERATIONS || free.is_empty() {
+            return Err(violated(model, &phi, tol, iterations));
+        }
+        iterations += 1;
+        let jac = model.jacobian(q);
+        let jf = DMatrix::from_fn(model.m(), free.len(), |r, c| jac[(r, free[c])]);
+        let svd = jf.svd(true, true);
+        let eps = RANK_TOL * svd.singular_values.max();
+        let Ok(step) = svd.solve(&(-&phi), eps) else {
+            return Err(violated(model, &phi, tol, iterations));
+        };
+        // Backtrack until |Φ| decreases.
+        let norm0 = phi.norm();
+        let mut alpha = 1.0;
+        loop {
+            let mut trial = q.clone();
+            for (k, &i) in free.iter().enumerate() {
+                trial[i] += alpha * step[k];
+            }
+            let phi_trial = model.phi(&trial);
+            if phi_trial.norm() < norm0 {
+                *q = trial;
+                phi = phi_trial;
+                break;
+            }
+            alpha *= 0.5;
+            if alpha < 1e-6 {
+                return Err(violated(model, &phi, tol, iterations));
+            }
+        }
+    }
+    Ok(PositionSolution {
+        iterations,
+        residual: phi.amax(),
+    })
+}
+
+fn violated(model: &Model, phi: &DVector<f64>, tol: f64, iterations: usize) -> Error {
+    let mut bad: Vec<(String, f64)> = phi
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| v.abs() > tol)
+        .map(|(k, v)| (model.constraints[k].name.clone(), v.abs()))
+        .collect();
+    bad.sort_by(|a, b| b.1.total_cmp(&a.1));
+    Error::PositionProblem {
+        violated: bad,
+        iterations,
+    }
+}
+
+/// Rank of Φ_q and the constraints that are linear combinations of earlier ones.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RankInfo {
+    pub rank: usize,
+    /// Indices of redundant constraints; the others are independent.
+    pub redundant: Vec<usize>,
+}
+
+/// Scans the rows of Φ_q in order, keeping those not in the span of the kept ones.
+pub fn constraint_rank(model: &Model, q: &DVector<f64>) -> RankInfo {
+    let jac = model.jacobian(q);
+    let mut basis: Vec<DVector<f64>> = Vec::new();
+    let mut redundant = Vec::new();
+    let scale = (0..jac.nrows())
+        .map(|r| jac.row(r).norm())
+        .fold(0.0, f64::max);
+    for r in 0..jac.nrows() {
+        let row = jac.row(r).transpose();
+        let residual = orthogonalize(&row, &basis);
+        let norm = residual.norm();
+        if norm > 1e-8 * row.norm().max(1e-300) && norm > 1e-14 * scale {
+            basis.push(residual / norm);
+        } else {
+            redundant.push(r);
+        }
+    }
+    RankInfo {
+        rank: basis.len(),
+        redundant,
+    }
+}
+
+/// Removes from v its components along an orthonormal basis (twice, for accuracy).
+fn orthogonalize(v: &DVector<f64>, basis: &[DVector<f64>]) -> DVector<f64> {
+    let mut r = v.clone();
+    for _ in 0..2 {
+        for b in basis {
+            let c = b.dot(&r);
+            r.axpy(-c, b, 1.0);
+        }
+    }
+    r
+}
+
+/// Chooses f = n − rank independent coordinates that make [Φ_q; B] best conditioned
+/// at q: at each step the coordinate whose unit vector lies farthest from the span of
+/// the constraint rows and the coordinates already chosen.
+pub fn choose_independent(model: &Model, q: &DVector<f64>) -> Vec<usize> {
+    let jac = model.jacobian(q);
+    let n = model.n();
+    let mut basis: Vec<DVector<f64>> = Vec::new();
+    for r in 0..jac.nrows() {
+        let row = orthogonalize(&jac.row(r).transpose(), &basis);
+        let norm = row.norm();
+        if norm > 1e-8 * jac.row(r).norm().max(1e-300) {
+            basis.push(row / norm);
+        }
+    }
+    let mut chosen = Vec::new();
+    while basis.len() < n {
+        let (best, residual) = (0..n)
+            .filter(|j| !chosen.contains(j))
+            .map(|j| (j, orthogonalize(&DVector::from_fn(n, |i, _| f64::from(i == j)), &basis)))
+            .max_by(|a, b| a.1.norm().total_cmp(&b.1.norm()))
+            .expect("fewer basis vectors than coordinates leaves a candidate");
+        let norm = residual.norm();
+        chosen.push(best);
+        basis.push(residual / norm);
+    }
+    chosen.sort_unstable();
+    chosen
+}
+
+/// [Φ_q (independent rows); B], where B selects the coordinates in `independent`.
+fn augmented(model: &Model, q: &DVector<f64>, independent: &[usize]) -> DMatrix<f64> {
+    let jac = model.jacobian(q);
+    let rows: Vec<usize> = model.active.clone();
+    let (m, n) = (rows.len(), model.n());
+    let mut a = DMatrix::zeros(m + independent.len(), n);
+    for (r, &k) in rows.iter().enumerate() {
+        a.row_mut(r).copy_from(&jac.row(k));
+    }
+    for (r, &j) in independent.iter().enumerate() {
+        a[(m + r, j)] = 1.0;
+    }
+    a
+}
+
+fn names(model: &Model, idx: &[usize]) -> String {
+    idx.iter()
+        .map(|&i| model.names[i].as_str())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Solves [Φ_q; B] x = [rhs; values] exactly, or says why it cannot.
+fn solve_augmented(
+    model: &Model,
+    q: &DVector<f64>,
+    independent: &[usize],
+    rhs: &DVector<f64>,
+    values: &[f64],
+    what: &str,
+) -> Result<DVector<f64>> {
+    let n = model.n();
+    let f = n - model.active.len();
+    if independent.len() != f {
+        return Err(Error::InvalidArgument(format!(
+            "the {what} problem needs {f} independent coordinate(s) (the degrees of freedom), got {} [{}]",
+            independent.len(),
+            names(model, independent)
+        )));
+    }
+    let a = augmented(model, q, independent);
+    let mut b = DVector::zeros(a.nrows());
+    for (r, &k) in model.active.iter().enumerate() {
+        b[r] = rhs[k];
+    }
+    b.rows_mut(model.active.len(), values.len())
+        .copy_from_slice(values);
+    let lu = a.full_piv_lu();
+    if !well_conditioned(lu.u().diagonal().as_slice()) {
+        return Err(Error::Singular(format!(
+            "the independent coordinates [{}] do not determine the {what} at this configuration",
+            names(model, independent)
+        )));
+    }
+    lu.solve(&b).ok_or_else(|| Error::Singular(format!("{what} problem")))
+}
+
+/// Whether the pivots of an LU factorization show a regular matrix.
+pub(crate) fn well_conditioned(pivots: &[f64]) -> bool {
+    let max = pivots.iter().fold(0.0f64, |m, p| m.max(p.abs()));
+    let min = pivots.iter().fold(f64::INFINITY, |m, p| m.min(p.abs()));
+    max > 0.0 && min > 1e-13 * max
+}
+
+/// The velocity problem: q̇ with Φ_q q̇ = 0 and the given independent velocities.
+pub fn solve_velocity(
+    model: &Model,
+    q: &DVector<f64>,
+    independent: &[usize],
+    dz: &[f64],
+) -> Result<DVector<f64>> {
+    let zero = DVector::zeros(model.m());
+    solve_augmented(model, q, independent, &zero, dz, "velocity")
+}
+
+/// The acceleration problem: q̈ with Φ_q q̈ = −Φ̇_q q̇ and the given independent
+/// accelerations.
+pub fn solve_acceleration(
+    model: &Model,
+    q: &DVector<f64>,
+    dq: &DVector<f64>,
+    independent: &[usize],
+    ddz: &[f64],
+) -> Result<DVector<f64>> {
+    let c = model.acceleration_rhs(q, dq);
+    solve_augmented(model, q, independent, &c, ddz, "acceleration")
+}
+
+/// The augmented matrix's inverse split as [S R] (paper, eq. "dq = Sb + R ż").
+pub fn s_and_r(
+    model: &Model,
+    q: &DVector<f64>,
+    independent: &[usize],
+) -> Result<(DMatrix<f64>, DMatrix<f64>)> {
+    let n = model.n();
+    let m = model.active.len();
+    if independent.len() + m != n {
+        return Err(Error::InvalidArgument(format!(
+            "{} independent coordinate(s) given for {} degrees of freedom",
+            independent.len(),
+            n - m
+        )));
+    }
+    let a = augmented(model, q, independent);
+    let lu = a.full_piv_lu();
+    if !well_conditioned(lu.u().diagonal().as_slice()) {
+        return Err(Error::Singular(format!(
+            "the independent coordinates [{}] do not determine the motion at this configuration",
+            names(model, independent)
+        )));
+    }
+    let inv = lu
+        .try_inverse()
+        .ok_or_else(|| Error::Singular("[Φ_q; B]".into()))?;
+    Ok((inv.columns(0, m).into_owned(), inv.columns(m, n - m).into_owned()))
+}

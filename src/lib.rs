@@ -1,0 +1,30 @@
+//! mbfg: planar multibody dynamics as factor graphs.
+//!
+//! A [`scene::Scene`] (read from YAML) is assembled into an immutable
+//! [`model::Model`]: coordinates q, constraints Φ(q), mass matrix M and the
+//! generalized forces of the scene's effects. [`kinematics`] and [`dynamics`] give the
+//! classical solutions (position, velocity and acceleration problems; q̈ from the KKT
+//! system and z̈ by the R-matrix method) on which the factor graphs build.
+
+pub mod check;
+pub mod dynamics;
+pub mod error;
+pub mod expr;
+pub mod kinematics;
+pub mod model;
+pub mod scene;
+
+pub use error::{Error, Result, SceneError};
+pub use model::Model;
+pub use scene::Scene;
+
+#[cfg(test)]
+mod send_sync {
+    fn assert_send_sync<T: Send + Sync>() {}
+
+    #[test]
+    fn model_and_scene_are_send_and_sync() {
+        assert_send_sync::<crate::Model>();
+        assert_send_sync::<crate::Scene>();
+    }
+}

@@ -1,0 +1,546 @@
+//! The assembled model: coordinate layout, constraints, mass matrix and forces, all
+//! read from a [`Scene`] once and immutable afterwards.
+//!
+//! q holds the x, y of every free point in scene order, then the relative
+//! coordinates. Fixed points are constants, not coordinates.
+
+pub mod constraints;
+pub mod forces;
+pub mod mass;
+
+use crate::error::{Error, Result};
+use crate::scene::{self, ConstraintKind, Effect, RelativeKind, Scene};
+use constraints::{Equation, MAX_LOCAL};
+use forces::Force;
+use nalgebra::{DMatrix, DVector};
+
+/// Where a point's coordinates live: in q (index of its x) or fixed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PointSlot {
+    Free(usize),
+    Fixed([f64; 2]),
+}
+
+/// One scalar constraint of the model, with its local coordinates.
+#[derive(Debug, Clone)]
+pub struct Constraint {
+    pub name: String,
+    pub equation: Equation,
+    /// For each local coordinate, its index in q, or `None` for a fixed point's.
+    index: [Option<usize>; MAX_LOCAL],
+    /// Values of the fixed local coordinates.
+    fixed: [f64; MAX_LOCAL],
+}
+
+impl Constraint {
+    fn new(name: String, equation: Equation, slots: &[Slot]) -> Self {
+        let mut index = [None; MAX_LOCAL];
+        let mut fixed = [0.0; MAX_LOCAL];
+        for (k, s) in slots.iter().enumerate() {
+            match *s {
+                Slot::Q(i) => index[k] = Some(i),
+                Slot::Const(v) => fixed[k] = v,
+            }
+        }
+        debug_assert_eq!(slots.len(), equation.len());
+        Constraint {
+            name,
+            equation,
+            index,
+            fixed,
+        }
+    }
+
+    /// Indices in q of the coordinates this constraint involves.
+    pub fn coordinates(&self) -> impl Iterator<Item = usize> + '_ {
+        self.index[..self.equation.len()].iter().flatten().copied()
+    }
+
+    /// The local vector u of positions.
+    pub fn gather(&self, q: &[f64], u: &mut [f64; MAX_LOCAL]) {
+        for k in 0..self.equation.len() {
+            u[k] = match self.index[k] {
+                Some(i) => q[i],
+                None => self.fixed[k],
+            };
+        }
+    }
+
+    /// The local vector of a velocity-like quantity (zero on fixed coordinates).
+    pub fn gather_rate(&self, v: &[f64], u: &mut [f64; MAX_LOCAL]) {
+        for k in 0..self.equation.len() {
+            u[k] = self.index[k].map_or(0.0, |i| v[i]);
+        }
+    }
+
+    /// Adds the local row `local` into `row` of `out` (shared coordinates add up).
+    fn scatter(&self, local: &[f64], out: &mut DMatrix<f64>, row: usize) {
+        for k in 0..self.equation.len() {
+            if let Some(i) = self.index[k] {
+                out[(row, i)] += local[k];
+            }
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Slot {
+    Q(usize),
+    Const(f64),
+}
+
+/// The assembled planar multibody model.
+#[derive(Debug, Clone)]
+pub struct Model {
+    pub scene: Scene,
+    /// Coordinate names in q order.
+    pub names: Vec<String>,
+    pub points: Vec<PointSlot>,
+    /// Index in q of the first relative coordinate.
+    pub relative_offset: usize,
+    pub constraints: Vec<Constraint>,
+    /// Constant mass matrix (zero on relative coordinates).
+    pub mass: DMatrix<f64>,
+    pub forces: Vec<Force>,
+    /// Indices in q of the independent coordinates the scene declares.
+    pub independent: Vec<usize>,
+    /// Constraints kept in the dynamics: all but the redundant ones.
+    pub active: Vec<usize>,
+    /// Constraints that are linear combinations of earlier ones at the initial state.
+    pub redundant: Vec<usize>,
+    /// The consistent initial state.
+    pub initial: State,
+}
+
+/// Positions and velocities.
+#[derive(Debug, Clone, PartialEq)]
+pub struct State {
+    pub q: DVector<f64>,
+    pub dq: DVector<f64>,
+}
+
+impl Model {
+    /// Assembles a validated scene.
+    pub fn new(scene: &Scene) -> Result<Model> {
+        let mut points = Vec::with_capacity(scene.points.len());
+        let mut n = 0;
+        for p in &scene.points {
+            if p.fixed {
+                points.push(PointSlot::Fixed([p.x, p.y]));
+            } else {
+                points.push(PointSlot::Free(n));
+                n += 2;
+            }
+        }
+        let relative_offset = n;
+        n += scene.coordinates.len();
+        let names = scene::coordinate_names(scene);
+
+        let mut model = Model {
+            scene: scene.clone(),
+            names,
+            points,
+            relative_offset,
+            constraints: Vec::new(),
+            mass: DMatrix::zeros(n, n),
+            forces: Vec::new(),
+            independent: Vec::new(),
+            active: Vec::new(),
+            redundant: Vec::new(),
+            initial: State {
+                q: DVector::zeros(n),
+                dq: DVector::zeros(n),
+            },
+        };
+        model.build_constraints();
+        model.build_mass();
+        model.forces = forces::assemble(&model)?;
+        model.independent = scene
+            .independent
+            .iter()
+            .map(|name| model.index_of(name))
+            .collect::<Option<Vec<_>>>()
+            .ok_or_else(|| Error::InvalidArgument("independent coordinate not in q".into()))?;
+        model.assemble_initial_state()?;
+        Ok(model)
+    }
+
+    /// The scene's approximate positions made consistent (keeping the independent
+    /// coordinates), the redundant constraints found there, and the velocities from
+    /// the independent ones (at rest when the scene gives none).
+    fn assemble_initial_state(&mut self) -> Result<()> {
+        let scene = &self.scene;
+        let mut q = DVector::zeros(self.n());
+        for (p, point) in scene.points.iter().enumerate() {
+            if let PointSlot::Free(i) = self.points[p] {
+                q[i] = point.x;
+                q[i + 1] = point.y;
+            }
+        }
+        for (k, c) in scene.coordinates.iter().enumerate() {
+            q[self.relative_offset + k] = c
+                .initial
+                .unwrap_or_else(|| scene::relative_value(&scene.points, &c.kind));
+        }
+        for (name, value) in &scene.initial_positions {
+            if let Some(i) = self.index_of(name) {
+                q[i] = *value;
+            }
+        }
+        crate::kinematics::solve_position(self, &mut q, &self.independent.clone())?;
+        let rank = crate::kinematics::constraint_rank(self, &q);
+        self.redundant = rank.redundant;
+        self.active = (0..self.m()).filter(|k| !self.redundant.contains(k)).collect();
+        let dq = if self.independent.is_empty() {
+            DVector::zeros(self.n())
+        } else {
+            let dz: Vec<f64> = self
+                .scene
+                .independent
+                .iter()
+                .map(|name| {
+                    self.scene
+                        .initial_velocities
+                        .iter()
+                        .find(|(n, _)| n == name)
+                        .map_or(0.0, |(_, v)| *v)
+                })
+                .collect();
+            crate::kinematics::solve_velocity(self, &q, &self.independent, &dz)?
+        };
+        self.initial = State { q, dq };
+        Ok(())
+    }
+
+    /// Degrees of freedom: n minus the rank of Φ_q.
+    pub fn dof(&self) -> usize {
+        self.n() - self.active.len()
+    }
+
+    /// Number of coordinates n.
+    pub fn n(&self) -> usize {
+        self.names.len()
+    }
+
+    /// Number of constraint equations m (redundant ones included).
+    pub fn m(&self) -> usize {
+        self.constraints.len()
+    }
+
+    pub fn index_of(&self, name: &str) -> Option<usize> {
+        self.names.iter().position(|c| c == name)
+    }
+
+    fn slot_point(&self, p: usize) -> [Slot; 2] {
+        match self.points[p] {
+            PointSlot::Free(i) => [Slot::Q(i), Slot::Q(i + 1)],
+            PointSlot::Fixed(r) => [Slot::Const(r[0]), Slot::Const(r[1])],
+        }
+    }
+
+    fn slots(&self, pts: &[usize], extra: Option<usize>) -> Vec<Slot> {
+        let mut s: Vec<Slot> = pts.iter().flat_map(|&p| self.slot_point(p)).collect();
+        s.extend(extra.map(Slot::Q));
+        s
+    }
+
+    /// Rigid-body distances (a body on k points gets 2k−3 equations), then the
+    /// equations of the relative coordinates, then the scene's explicit constraints.
+    fn build_constraints(&mut self) {
+        let scene = self.scene.clone();
+        let pname = |i: usize| scene.points[i].name.clone();
+        let mut out = Vec::new();
+        for body in &scene.bodies {
+            let pts = &body.points;
+            let distance = |a: usize, b: usize, length: f64| {
+                Constraint::new(
+                    format!("{}: distance({},{})", body.name, pname(a), pname(b)),
+                    Equation::Distance { length },
+                    &self.slots(&[a, b], None),
+                )
+            };
+            out.push(distance(pts[0], pts[1], body.length));
+            let p = |i: usize| [scene.points[i].x, scene.points[i].y];
+            for &c in &pts[2..] {
+                let (a, b) = (pts[0], pts[1]);
+                let (ra, rb, rc) = (p(a), p(b), p(c));
+                let cross = (rb[0] - ra[0]) * (rc[1] - ra[1]) - (rb[1] - ra[1]) * (rc[0] - ra[0]);
+                let dac = (rc[0] - ra[0]).hypot(rc[1] - ra[1]);
+                let dbc = (rc[0] - rb[0]).hypot(rc[1] - rb[1]);
+                if cross.abs() > 1e-9 * body.length * dac.max(dbc) {
+                    out.push(distance(a, c, dac));
+                    out.push(distance(b, c, dbc));
+                } else {
+                    // A point on the line of the first two: two distances would
+                    // leave it free across the line to first order.
+                    out.push(distance(a, c, dac));
+                    out.push(Constraint::new(
+                        format!("{}: on line({},{}) of {}", body.name, pname(a), pname(b), pname(c)),
+                        Equation::PointOnLine,
+                        &self.slots(&[c, a, b], None),
+                    ));
+                }
+            }
+        }
+        for (k, coord) in scene.coordinates.iter().enumerate() {
+            let qi = Some(self.relative_offset + k);
+            let len = |a: usize, b: usize| {
+                let (pa, pb) = (&scene.points[a], &scene.points[b]);
+                (pb.x - pa.x).hypot(pb.y - pa.y)
+            };
+            let (equation, pts): (Equation, Vec<usize>) = match coord.kind {
+                RelativeKind::AbsoluteAngle { from, to } => (
+                    Equation::AbsoluteAngle {
+                        length: self.rigid_length(from, to).unwrap_or(len(from, to)),
+                    },
+                    vec![from, to],
+                ),
+                RelativeKind::RelativeAngle { a, b } => (
+                    Equation::RelativeAngle {
+                        k: self.rigid_length(a[0], a[1]).unwrap_or(len(a[0], a[1]))
+                            * self.rigid_length(b[0], b[1]).unwrap_or(len(b[0], b[1])),
+                    },
+                    vec![a[0], a[1], b[0], b[1]],
+                ),
+                RelativeKind::Distance { point, along } => (
+                    Equation::DistanceAlong {
+                        length: self
+                            .rigid_length(along[0], along[1])
+                            .unwrap_or(len(along[0], along[1])),
+                    },
+                    vec![point, along[0], along[1]],
+                ),
+            };
+            out.push(Constraint::new(
+                format!("coordinate {}", coord.name),
+                equation,
+                &self.slots(&pts, qi),
+            ));
+        }
+        for c in &scene.constraints {
+            out.push(match c.kind {
+                ConstraintKind::Distance { points, length } => Constraint::new(
+                    c.name.clone(),
+                    Equation::Distance { length },
+                    &self.slots(&points, None),
+                ),
+                ConstraintKind::FixedSlider { point, line }
+                | ConstraintKind::MobileSlider { point, line } => Constraint::new(
+                    c.name.clone(),
+                    Equation::PointOnLine,
+                    &self.slots(&[point, line[0], line[1]], None),
+                ),
+            });
+        }
+        self.constraints = out;
+    }
+
+    /// The length a two-point body or explicit distance constraint keeps between a
+    /// and b (it may differ from the approximate initial positions).
+    fn rigid_length(&self, a: usize, b: usize) -> Option<f64> {
+        let same = |p: &[usize]| p.len() == 2 && ((p[0] == a && p[1] == b) || (p[0] == b && p[1] == a));
+        self.scene
+            .bodies
+            .iter()
+            .find(|body| same(&body.points))
+            .map(|body| body.length)
+            .or_else(|| {
+                self.scene.constraints.iter().find_map(|c| match c.kind {
+                    ConstraintKind::Distance { points, length } if same(&points) => Some(length),
+                    _ => None,
+                })
+            })
+    }
+
+    fn build_mass(&mut self) {
+        let scene = self.scene.clone();
+        for body in &scene.bodies {
+            let mb = mass::body_mass_matrix(body);
+            let slots = self.slots(&body.points[..2], None);
+            for (a, sa) in slots.iter().enumerate() {
+                for (b, sb) in slots.iter().enumerate() {
+                    if let (Slot::Q(i), Slot::Q(j)) = (sa, sb) {
+                        self.mass[(*i, *j)] += mb[a][b];
+                    }
+                }
+            }
+        }
+        for (p, point) in scene.points.iter().enumerate() {
+            if let (PointSlot::Free(i), m) = (self.points[p], point.mass) {
+                self.mass[(i, i)] += m;
+                self.mass[(i + 1, i + 1)] += m;
+            }
+        }
+    }
+
+    /// Position of point `p` at q.
+    pub fn point_position(&self, q: &[f64], p: usize) -> [f64; 2] {
+        match self.points[p] {
+            PointSlot::Free(i) => [q[i], q[i + 1]],
+            PointSlot::Fixed(r) => r,
+        }
+    }
+
+    /// Velocity of point `p`.
+    pub fn point_velocity(&self, dq: &[f64], p: usize) -> [f64; 2] {
+        match self.points[p] {
+            PointSlot::Free(i) => [dq[i], dq[i + 1]],
+            PointSlot::Fixed(_) => [0.0, 0.0],
+        }
+    }
+
+    /// Φ(q), all m equations.
+    pub fn phi(&self, q: &DVector<f64>) -> DVector<f64> {
+        let mut u = [0.0; MAX_LOCAL];
+        DVector::from_iterator(
+            self.m(),
+            self.constraints.iter().map(|c| {
+                c.gather(q.as_slice(), &mut u);
+                c.equation.phi(&u)
+            }),
+        )
+    }
+
+    /// Φ_q(q), m × n.
+    pub fn jacobian(&self, q: &DVector<f64>) -> DMatrix<f64> {
+        let mut out = DMatrix::zeros(self.m(), self.n());
+        let (mut u, mut g) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (row, c) in self.constraints.iter().enumerate() {
+            c.gather(q.as_slice(), &mut u);
+            c.equation.gradient(&u, &mut g);
+            c.scatter(&g, &mut out, row);
+        }
+        out
+    }
+
+    /// ∂(Φ_q v)/∂q = Φ_qq v, m × n. With v = q̇ this is Φ̇_q (and also ∂(Φ_q q̇)/∂q,
+    /// Appendix III); with v = q̈ it is the Φ_qq q̈ term of the factor Jacobians.
+    pub fn jacobian_derivative(&self, q: &DVector<f64>, v: &DVector<f64>) -> DMatrix<f64> {
+        let mut out = DMatrix::zeros(self.m(), self.n());
+        let (mut u, mut w, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (row, c) in self.constraints.iter().enumerate() {
+            c.gather(q.as_slice(), &mut u);
+            c.gather_rate(v.as_slice(), &mut w);
+            c.equation.hessian_times(&u, &w, &mut h);
+            c.scatter(&h, &mut out, row);
+        }
+        out
+    }
+
+    /// Φ̇_q = d(Φ_q)/dt at (q, q̇).
+    pub fn jacobian_dot(&self, q: &DVector<f64>, dq: &DVector<f64>) -> DMatrix<f64> {
+        self.jacobian_derivative(q, dq)
+    }
+
+    /// ∂(Φ̇_q q̇)/∂q, m × n: the second-order term of the acceleration equations.
+    pub fn jacobian_dot_times_rate_derivative(
+        &self,
+        q: &DVector<f64>,
+        dq: &DVector<f64>,
+    ) -> DMatrix<f64> {
+        let mut out = DMatrix::zeros(self.m(), self.n());
+        let (mut u, mut w, mut t) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (row, c) in self.constraints.iter().enumerate() {
+            c.gather(q.as_slice(), &mut u);
+            c.gather_rate(dq.as_slice(), &mut w);
+            c.equation.third_order(&u, &w, &mut t);
+            c.scatter(&t, &mut out, row);
+        }
+        out
+    }
+
+    /// c = −Φ̇_q q̇, the right-hand side of the acceleration equations Φ_q q̈ = c.
+    pub fn acceleration_rhs(&self, q: &DVector<f64>, dq: &DVector<f64>) -> DVector<f64> {
+        let (mut u, mut w, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        DVector::from_iterator(
+            self.m(),
+            self.constraints.iter().map(|c| {
+                c.gather(q.as_slice(), &mut u);
+                c.gather_rate(dq.as_slice(), &mut w);
+                c.equation.hessian_times(&u, &w, &mut h);
+                -(0..c.equation.len()).map(|k| h[k] * w[k]).sum::<f64>()
+            }),
+        )
+    }
+
+    /// Generalized forces Q(q, q̇, t) of the scene's effects.
+    pub fn generalized_forces(
+        &self,
+        q: &DVector<f64>,
+        dq: &DVector<f64>,
+        t: f64,
+    ) -> Result<DVector<f64>> {
+        let mut out = DVector::zeros(self.n());
+        for f in &self.forces {
+            f.add_to(self, q.as_slice(), dq.as_slice(), t, out.as_mut_slice())?;
+        }
+        Ok(out)
+    }
+
+    /// ∂Q/∂q and ∂Q/∂q̇ (n × n each), in closed form.
+    pub fn force_jacobians(
+        &self,
+        q: &DVector<f64>,
+        dq: &DVector<f64>,
+    ) -> Result<(DMatrix<f64>, DMatrix<f64>)> {
+        let n = self.n();
+        let (mut kq, mut kv) = (DMatrix::zeros(n, n), DMatrix::zeros(n, n));
+        for f in &self.forces {
+            f.add_jacobians(self, q.as_slice(), dq.as_slice(), &mut kq, &mut kv)?;
+        }
+        Ok((kq, kv))
+    }
+
+    /// Kinetic energy ½ q̇ᵀ M q̇.
+    pub fn kinetic_energy(&self, dq: &DVector<f64>) -> f64 {
+        0.5 * dq.dot(&(&self.mass * dq))
+    }
+
+    /// Potential energy of gravity and springs (zero when the scene has none).
+    pub fn potential_energy(&self, q: &DVector<f64>) -> f64 {
+        self.forces
+            .iter()
+            .map(|f| f.potential(self, q.as_slice()))
+            .sum()
+    }
+
+    /// Whether the scene has gravity.
+    pub fn has_gravity(&self) -> bool {
+        self.scene
+            .effects
+            .iter()
+            .any(|e| matches!(e, Effect::Gravity { .. }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    fn fourbar() -> Model {
+        let text = "
+points:
+  - {name: A, x: 0, y: 0, fixed: true}
+  - {name: P1, x: 1, y: 0}
+  - {name: P2, x: 1, y: 2}
+  - {name: B, x: 4, y: 0, fixed: true}
+bodies:
+  - {name: crank, points: [A, P1], mass: 1}
+  - {name: coupler, points: [P1, P2], mass: 2}
+  - {name: rocker, points: [P2, B], mass: 4}
+effects:
+  - {type: gravity, vector: [0, -9.81]}
+";
+        Model::new(&Scene::from_str(text, Path::new("fourbar.yaml")).unwrap()).unwrap()
+    }
+
+    #[test]
+    fn fourbar_layout() {
+        let m = fourbar();
+        assert_eq!(m.names, ["P1.x", "P1.y", "P2.x", "P2.y"]);
+        assert_eq!(m.m(), 3);
+        let q = DVector::from_vec(vec![1.0, 0.0, 1.0, 2.0]);
+        assert!(m.phi(&q).amax() < 1e-12);
+    }
+}

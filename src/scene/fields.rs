@@ -1,0 +1,294 @@
+//! Typed access to located YAML nodes, shared by both file formats: every failure is a
+//! [`SceneError`] naming the file, the line and the key path.
+
+use super::yaml::{Node, Value};
+use super::TimeFunction;
+use crate::error::SceneError;
+use crate::expr::{Expr, ExprError};
+
+/// Whether a document is an MBSE mechanism file (it has `planar_bodies`).
+pub fn is_mbse(root: &Node) -> bool {
+    match &root.value {
+        Value::Map(pairs) => pairs
+            .iter()
+            .any(|(k, _)| matches!(&k.value, Value::String(s) if s == "planar_bodies")),
+        _ => false,
+    }
+}
+
+/// What every reader carries: the file name and the parameters defined so far.
+pub struct Ctx<'a> {
+    pub file: &'a str,
+    pub params: Vec<(String, f64)>,
+}
+
+impl<'a> Ctx<'a> {
+    pub fn new(file: &'a str) -> Self {
+        Ctx {
+            file,
+            params: Vec::new(),
+        }
+    }
+
+    pub fn err(&self, line: u64, key: &str, message: impl Into<String>) -> SceneError {
+        SceneError {
+            file: self.file.to_string(),
+            line: (line > 0).then_some(line),
+            key: key.to_string(),
+            message: message.into(),
+        }
+    }
+
+    fn lookup<'b>(&'b self, extra: &'b [(&'b str, f64)]) -> impl Fn(&str) -> Option<f64> + 'b {
+        move |name: &str| {
+            extra
+                .iter()
+                .rev()
+                .find(|(n, _)| *n == name)
+                .map(|(_, v)| *v)
+                .or_else(|| {
+                    self.params
+                        .iter()
+                        .rev()
+                        .find(|(n, _)| n == name)
+                        .map(|(_, v)| *v)
+                })
+        }
+    }
+
+    /// A number: a YAML number or an expression over the parameters and `extra`.
+    pub fn num(&self, node: &Node, key: &str, extra: &[(&str, f64)]) -> Result<f64, SceneError> {
+        match &node.value {
+            Value::Number(v) if v.is_finite() => Ok(*v),
+            Value::Number(_) => Err(self.err(node.line, key, "must be a finite number")),
+            Value::String(text) => {
+                let expr = Expr::parse(text).map_err(|e| self.expr_err(node, key, text, e))?;
+                expr.eval(&self.lookup(extra))
+                    .map_err(|e| self.expr_err(node, key, text, e))
+            }
+            _ => Err(self.err(
+                node.line,
+                key,
+                format!("expected a number or an expression, found {}", node.kind()),
+            )),
+        }
+    }
+
+    /// A number that must be > 0.
+    pub fn positive(
+        &self,
+        node: &Node,
+        key: &str,
+        extra: &[(&str, f64)],
+    ) -> Result<f64, SceneError> {
+        let v = self.num(node, key, extra)?;
+        if v > 0.0 {
+            Ok(v)
+        } else {
+            Err(self.err(node.line, key, format!("must be positive, got {v}")))
+        }
+    }
+
+    /// A number that must be ≥ 0.
+    pub fn non_negative(&self, node: &Node, key: &str) -> Result<f64, SceneError> {
+        let v = self.num(node, key, &[])?;
+        if v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(self.err(node.line, key, format!("must not be negative, got {v}")))
+        }
+    }
+
+    /// A function of time: parameters are bound now, `t` stays free.
+    pub fn time_function(&self, node: &Node, key: &str) -> Result<TimeFunction, SceneError> {
+        let text = node.as_text().ok_or_else(|| {
+            self.err(
+                node.line,
+                key,
+                format!("expected a number or an expression in t, found {}", node.kind()),
+            )
+        })?;
+        let expr = Expr::parse(&text).map_err(|e| self.expr_err(node, key, &text, e))?;
+        let bound = expr
+            .bind(&["t"], &self.lookup(&[]))
+            .map_err(|e| self.expr_err(node, key, &text, e))?;
+        // Catch a function that is not finite at the start of the motion.
+        bound
+            .eval(&|n| (n == "t").then_some(0.0))
+            .map_err(|e| self.expr_err(node, key, &text, e))?;
+        Ok(TimeFunction::new(bound, text))
+    }
+
+    fn expr_err(&self, node: &Node, key: &str, text: &str, e: ExprError) -> SceneError {
+        let what = match e {
+            ExprError::Syntax { .. } => "malformed expression",
+            ExprError::Undefined(_) => "undefined name in expression",
+            ExprError::NotFinite => "expression is not finite",
+        };
+        self.err(node.line, key, format!("{what} '{text}': {e}"))
+    }
+
+    /// The `parameters` section: name → number or expression over earlier parameters.
+    pub fn read_parameters(&mut self, node: &Node) -> Result<(), SceneError> {
+        let Value::Map(pairs) = &node.value else {
+            return Err(self.err(node.line, "parameters", "expected a mapping name: value"));
+        };
+        for (k, v) in pairs {
+            let name = name_of(self, k, "parameters")?;
+            let key = format!("parameters.{name}");
+            if self.params.iter().any(|(n, _)| *n == name) {
+                return Err(self.err(k.line, &key, format!("duplicate parameter '{name}'")));
+            }
+            let value = self.num(v, &key, &[])?;
+            self.params.push((name, value));
+        }
+        Ok(())
+    }
+}
+
+/// A valid name: letters, digits, `_`, `-`, starting with a letter or `_`.
+pub fn name_of(ctx: &Ctx, node: &Node, key: &str) -> Result<String, SceneError> {
+    let Value::String(s) = &node.value else {
+        return Err(ctx.err(
+            node.line,
+            key,
+            format!("expected a name, found {}", node.kind()),
+        ));
+    };
+    let ok = s
+        .chars()
+        .next()
+        .is_some_and(|c| c.is_alphabetic() || c == '_')
+        && s.chars().all(|c| c.is_alphanumeric() || c == '_' || c == '-');
+    if ok {
+        Ok(s.clone())
+    } else {
+        Err(ctx.err(
+            node.line,
+            key,
+            format!("'{s}' is not a valid name (letters, digits, '_' and '-', starting with a letter)"),
+        ))
+    }
+}
+
+pub fn seq<'n>(ctx: &Ctx, node: &'n Node, key: &str) -> Result<&'n [Node], SceneError> {
+    match &node.value {
+        Value::Seq(items) => Ok(items),
+        _ => Err(ctx.err(
+            node.line,
+            key,
+            format!("expected a list, found {}", node.kind()),
+        )),
+    }
+}
+
+pub fn boolean(ctx: &Ctx, node: &Node, key: &str) -> Result<bool, SceneError> {
+    match node.value {
+        Value::Bool(b) => Ok(b),
+        _ => Err(ctx.err(
+            node.line,
+            key,
+            format!("expected true or false, found {}", node.kind()),
+        )),
+    }
+}
+
+/// A pair of numbers `[a, b]`.
+pub fn pair(
+    ctx: &Ctx,
+    node: &Node,
+    key: &str,
+    extra: &[(&str, f64)],
+) -> Result<[f64; 2], SceneError> {
+    let items = seq(ctx, node, key)?;
+    if items.len() != 2 {
+        return Err(ctx.err(
+            node.line,
+            key,
+            format!("expected two numbers [x, y], found {}", items.len()),
+        ));
+    }
+    Ok([
+        ctx.num(&items[0], &format!("{key}[0]"), extra)?,
+        ctx.num(&items[1], &format!("{key}[1]"), extra)?,
+    ])
+}
+
+/// The keys of one mapping, read one by one; keys never asked for are reported.
+pub struct Fields<'n> {
+    pub line: u64,
+    pub path: String,
+    pairs: &'n [(Node, Node)],
+    used: Vec<bool>,
+}
+
+impl<'n> Fields<'n> {
+    pub fn new(ctx: &Ctx, node: &'n Node, path: &str) -> Result<Fields<'n>, SceneError> {
+        let Value::Map(pairs) = &node.value else {
+            return Err(ctx.err(
+                node.line,
+                path,
+                format!("expected a mapping, found {}", node.kind()),
+            ));
+        };
+        for (k, _) in pairs {
+            if !matches!(k.value, Value::String(_)) {
+                return Err(ctx.err(k.line, path, format!("keys must be names, found {}", k.kind())));
+            }
+        }
+        Ok(Fields {
+            line: node.line,
+            path: path.to_string(),
+            pairs,
+            used: vec![false; pairs.len()],
+        })
+    }
+
+    /// The path of a key of this mapping, for messages.
+    pub fn key(&self, key: &str) -> String {
+        if self.path.is_empty() {
+            key.to_string()
+        } else {
+            format!("{}.{key}", self.path)
+        }
+    }
+
+    pub fn get(&mut self, key: &str) -> Option<&'n Node> {
+        for (i, (k, v)) in self.pairs.iter().enumerate() {
+            if matches!(&k.value, Value::String(s) if s == key) {
+                self.used[i] = true;
+                return Some(v);
+            }
+        }
+        None
+    }
+
+    pub fn has(&self, key: &str) -> bool {
+        self.pairs
+            .iter()
+            .any(|(k, _)| matches!(&k.value, Value::String(s) if s == key))
+    }
+
+    pub fn req(&mut self, ctx: &Ctx, key: &str) -> Result<&'n Node, SceneError> {
+        let line = self.line;
+        let path = self.key(key);
+        self.get(key)
+            .ok_or_else(|| ctx.err(line, &path, "missing required key"))
+    }
+
+    /// Fails on the first key that was never read, naming it and the allowed keys.
+    pub fn finish(self, ctx: &Ctx, allowed: &[&str]) -> Result<(), SceneError> {
+        for (i, (k, _)) in self.pairs.iter().enumerate() {
+            if !self.used[i] {
+                let name = k.as_text().unwrap_or_default();
+                let path = self.key(&name);
+                return Err(ctx.err(
+                    k.line,
+                    &path,
+                    format!("unknown key '{name}' (expected one of: {})", allowed.join(", ")),
+                ));
+            }
+        }
+        Ok(())
+    }
+}

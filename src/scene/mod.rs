@@ -1,0 +1,276 @@
+//! Scene files: the mechanism, its initial state and every effect that acts on it.
+//!
+//! Two formats are read. The mbfg scene format (named points, `bodies`, `coordinates`,
+//! `constraints`, `effects`, `independent`, `initial`; documented in
+//! `docs/scene-format.md`) and the MBSE mechanism format of the paper's C++ library
+//! (`points`, `planar_bodies`, `relative_coordinates`), which a scene may name with
+//! `mechanism: file.yaml`. Both end in the same validated [`Scene`], with every
+//! expression evaluated.
+
+mod build;
+mod fields;
+mod mbse;
+mod native;
+pub mod yaml;
+
+use crate::error::{Error, SceneError};
+use crate::expr::Expr;
+use std::path::Path;
+
+pub use build::{coordinate_names, relative_value};
+
+/// A named point of the mechanism, fixed or free.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Point {
+    pub name: String,
+    /// Initial (approximate, for free points) coordinates.
+    pub x: f64,
+    pub y: f64,
+    pub fixed: bool,
+    /// A point mass carried by the point, 0 when none.
+    pub mass: f64,
+}
+
+/// A rigid body on two or more points. Its frame has its origin at the first point
+/// and its x axis towards the second.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Body {
+    pub name: String,
+    /// Indices into [`Scene::points`].
+    pub points: Vec<usize>,
+    pub mass: f64,
+    /// Centre of mass in the body frame.
+    pub cog: [f64; 2],
+    /// Polar moment of inertia about the first point.
+    pub i0: f64,
+    /// Distance between the first two points, the frame's length scale. For a
+    /// two-point body this is the length its distance constraint keeps.
+    pub length: f64,
+}
+
+impl Body {
+    /// Moment of inertia about the centre of mass.
+    pub fn inertia_at_cog(&self) -> f64 {
+        self.i0 - self.mass * (self.cog[0].powi(2) + self.cog[1].powi(2))
+    }
+}
+
+/// A relative coordinate, added to q beside the point coordinates.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RelativeCoordinate {
+    pub name: String,
+    pub kind: RelativeKind,
+    /// Initial value, when the scene gives one; otherwise computed from the points.
+    pub initial: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RelativeKind {
+    /// Angle of the segment `from → to` against the global x axis (paper, Appendix III).
+    AbsoluteAngle { from: usize, to: usize },
+    /// Angle from segment `a` to segment `b`, counter-clockwise.
+    RelativeAngle { a: [usize; 2], b: [usize; 2] },
+    /// Distance of `point` from `along[0]`, measured along the segment `along`.
+    Distance { point: usize, along: [usize; 2] },
+}
+
+impl RelativeKind {
+    pub fn is_angle(&self) -> bool {
+        !matches!(self, RelativeKind::Distance { .. })
+    }
+}
+
+/// A constraint the scene declares explicitly (rigid-body distances are generated).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConstraintDef {
+    pub name: String,
+    pub kind: ConstraintKind,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ConstraintKind {
+    Distance { points: [usize; 2], length: f64 },
+    /// The point slides on the line through two fixed points.
+    FixedSlider { point: usize, line: [usize; 2] },
+    /// The point slides on the line through two points that move.
+    MobileSlider { point: usize, line: [usize; 2] },
+}
+
+/// A function of time from the scene: a constant or an expression in `t`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TimeFunction {
+    expr: Expr,
+    pub text: String,
+}
+
+impl TimeFunction {
+    pub fn constant(value: f64) -> Self {
+        TimeFunction {
+            expr: Expr::constant(value),
+            text: format!("{value}"),
+        }
+    }
+
+    pub(crate) fn new(expr: Expr, text: String) -> Self {
+        TimeFunction { expr, text }
+    }
+
+    /// Value at time `t`; a non-finite value (say `1/t` at 0) is reported as an error.
+    pub fn at(&self, t: f64) -> crate::Result<f64> {
+        if let Some(c) = self.expr.as_constant() {
+            return Ok(c);
+        }
+        self.expr.eval(&|n| (n == "t").then_some(t)).map_err(|e| {
+            Error::InvalidArgument(format!("'{}' at t = {t}: {e}", self.text))
+        })
+    }
+
+    pub fn is_constant(&self) -> bool {
+        self.expr.as_constant().is_some()
+    }
+}
+
+/// Something that acts on the mechanism. Nothing acts unless the scene names it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Effect {
+    /// Uniform gravity acting on every mass.
+    Gravity { vector: [f64; 2] },
+    /// A linear spring and/or damper between two points.
+    SpringDamper {
+        name: String,
+        points: [usize; 2],
+        stiffness: f64,
+        rest_length: f64,
+        damping: f64,
+    },
+    /// A rotational spring and/or damper on an angle coordinate.
+    RotationalSpringDamper {
+        name: String,
+        coordinate: usize,
+        stiffness: f64,
+        rest_angle: f64,
+        damping: f64,
+    },
+    /// A torque on an angle coordinate.
+    Torque {
+        name: String,
+        coordinate: usize,
+        value: TimeFunction,
+    },
+    /// A force at a point, in global axes.
+    Force {
+        name: String,
+        point: usize,
+        value: [TimeFunction; 2],
+    },
+}
+
+/// A validated scene.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scene {
+    /// The file it was read from, as named by the user.
+    pub file: String,
+    pub points: Vec<Point>,
+    pub bodies: Vec<Body>,
+    /// Indices into `coordinates` order are the relative coordinates' order in q.
+    pub coordinates: Vec<RelativeCoordinate>,
+    pub constraints: Vec<ConstraintDef>,
+    pub effects: Vec<Effect>,
+    /// Names of the coordinates declared independent (a subset of q's names).
+    pub independent: Vec<String>,
+    /// Initial values given for coordinates of q, by name (kept by the position problem
+    /// when the coordinate is independent).
+    pub initial_positions: Vec<(String, f64)>,
+    /// Initial velocities of independent coordinates, by name.
+    pub initial_velocities: Vec<(String, f64)>,
+}
+
+impl Scene {
+    /// Reads and validates a scene or MBSE mechanism file.
+    pub fn load(path: impl AsRef<Path>) -> crate::Result<Scene> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Scene::from_str(&text, path)
+    }
+
+    /// Parses scene text; `path` names the file in messages and resolves `mechanism:`.
+    pub fn from_str(text: &str, path: &Path) -> crate::Result<Scene> {
+        let file = path.display().to_string();
+        let root = yaml::parse(text).map_err(|e| SceneError {
+            file: file.clone(),
+            line: e.line,
+            key: String::new(),
+            message: format!("YAML syntax error: {}", e.message),
+        })?;
+        if fields::is_mbse(&root) {
+            Ok(mbse::read(&root, &file)?)
+        } else {
+            native::read(&root, &file, path.parent().unwrap_or(Path::new(".")))
+        }
+    }
+
+    pub fn point_index(&self, name: &str) -> Option<usize> {
+        self.points.iter().position(|p| p.name == name)
+    }
+
+    pub fn coordinate_index(&self, name: &str) -> Option<usize> {
+        self.coordinates.iter().position(|c| c.name == name)
+    }
+
+    /// Whether any effect is present that makes the scene non-conservative
+    /// (dampers, or forces and torques that vary in time).
+    pub fn is_conservative(&self) -> bool {
+        self.effects.iter().all(|e| match e {
+            Effect::Gravity { .. } => true,
+            Effect::SpringDamper { damping, .. }
+            | Effect::RotationalSpringDamper { damping, .. } => *damping == 0.0,
+            Effect::Torque { .. } | Effect::Force { .. } => false,
+        })
+    }
+}
+
+impl Effect {
+    /// A one-line description for `mbfg check`.
+    pub fn describe(&self, scene: &Scene) -> String {
+        let p = |i: usize| scene.points[i].name.as_str();
+        let c = |i: usize| scene.coordinates[i].name.as_str();
+        match self {
+            Effect::Gravity { vector } => format!("gravity ({}, {}) m/s²", vector[0], vector[1]),
+            Effect::SpringDamper {
+                name,
+                points,
+                stiffness,
+                rest_length,
+                damping,
+            } => format!(
+                "{name}: spring-damper {}–{}: k = {stiffness} N/m, rest length {rest_length} m, c = {damping} N·s/m",
+                p(points[0]),
+                p(points[1])
+            ),
+            Effect::RotationalSpringDamper {
+                name,
+                coordinate,
+                stiffness,
+                rest_angle,
+                damping,
+            } => format!(
+                "{name}: rotational spring-damper on {}: k = {stiffness} N·m/rad, rest angle {rest_angle} rad, c = {damping} N·m·s/rad",
+                c(*coordinate)
+            ),
+            Effect::Torque {
+                name,
+                coordinate,
+                value,
+            } => format!("{name}: torque on {} = {} N·m", c(*coordinate), value.text),
+            Effect::Force { name, point, value } => format!(
+                "{name}: force at {} = ({}, {}) N",
+                p(*point),
+                value[0].text,
+                value[1].text
+            ),
+        }
+    }
+}

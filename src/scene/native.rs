@@ -1,0 +1,561 @@
+//! The mbfg scene format (see `docs/scene-format.md`).
+
+use super::build::{self, BodySpec};
+use super::fields::{boolean, name_of, pair, seq, Ctx, Fields};
+use super::yaml::{Node, Value};
+use super::{ConstraintDef, ConstraintKind, Effect, Point, RelativeCoordinate, RelativeKind, Scene};
+use crate::error::{Error, SceneError};
+use std::path::Path;
+
+const TOP_KEYS: &[&str] = &[
+    "name",
+    "description",
+    "parameters",
+    "mechanism",
+    "points",
+    "bodies",
+    "coordinates",
+    "constraints",
+    "effects",
+    "independent",
+    "initial",
+];
+
+pub fn read(root: &Node, file: &str, dir: &Path) -> crate::Result<Scene> {
+    let mut ctx = Ctx::new(file);
+    let mut top = Fields::new(&ctx, root, "")?;
+    for k in ["name", "description"] {
+        if let Some(n) = top.get(k) {
+            if !matches!(n.value, Value::String(_)) {
+                return Err(ctx.err(n.line, k, "expected text").into());
+            }
+        }
+    }
+    let mut scene = if let Some(mech) = top.get("mechanism") {
+        for k in ["points", "bodies"] {
+            if top.has(k) {
+                return Err(ctx
+                    .err(top.line, k, "a scene naming a mechanism file takes its points and bodies from it")
+                    .into());
+            }
+        }
+        let Value::String(rel) = &mech.value else {
+            return Err(ctx.err(mech.line, "mechanism", "expected a file name").into());
+        };
+        let path = dir.join(rel);
+        let text = std::fs::read_to_string(&path).map_err(|source| {
+            Error::Scene(ctx.err(
+                mech.line,
+                "mechanism",
+                format!("cannot read '{}': {source}", path.display()),
+            ))
+        })?;
+        let mut base = Scene::from_str(&text, &path)?;
+        base.file = file.to_string();
+        if let Some(p) = top.get("parameters") {
+            ctx.read_parameters(p)?;
+        }
+        base
+    } else {
+        if let Some(p) = top.get("parameters") {
+            ctx.read_parameters(p)?;
+        }
+        let mut scene = empty(file);
+        read_points(&ctx, &mut scene, top.req(&ctx, "points")?)?;
+        if let Some(b) = top.get("bodies") {
+            read_bodies(&ctx, &mut scene, b)?;
+        }
+        scene
+    };
+    if let Some(n) = top.get("constraints") {
+        read_constraints(&ctx, &mut scene, n)?;
+    }
+    if let Some(n) = top.get("coordinates") {
+        read_coordinates(&ctx, &mut scene, n)?;
+    }
+    if let Some(n) = top.get("effects") {
+        read_effects(&ctx, &mut scene, n)?;
+    }
+    if let Some(n) = top.get("independent") {
+        read_independent(&ctx, &mut scene, n)?;
+    }
+    if let Some(n) = top.get("initial") {
+        read_initial(&ctx, &mut scene, n)?;
+    }
+    top.finish(&ctx, TOP_KEYS)?;
+    if scene.bodies.is_empty() && scene.points.iter().all(|p| p.mass == 0.0) {
+        return Err(ctx.err(root.line, "bodies", "the scene has no bodies and no point masses").into());
+    }
+    Ok(scene)
+}
+
+pub fn empty(file: &str) -> Scene {
+    Scene {
+        file: file.to_string(),
+        points: Vec::new(),
+        bodies: Vec::new(),
+        coordinates: Vec::new(),
+        constraints: Vec::new(),
+        effects: Vec::new(),
+        independent: Vec::new(),
+        initial_positions: Vec::new(),
+        initial_velocities: Vec::new(),
+    }
+}
+
+/// Resolves a point named in the scene.
+pub fn point_ref(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<usize, SceneError> {
+    let name = node.as_text().ok_or_else(|| {
+        ctx.err(node.line, key, format!("expected a point name, found {}", node.kind()))
+    })?;
+    scene
+        .point_index(&name)
+        .ok_or_else(|| ctx.err(node.line, key, format!("unknown point '{name}'")))
+}
+
+fn point_pair(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<[usize; 2], SceneError> {
+    let items = seq(ctx, node, key)?;
+    if items.len() != 2 {
+        return Err(ctx.err(node.line, key, format!("expected two points, found {}", items.len())));
+    }
+    Ok([
+        point_ref(ctx, scene, &items[0], key)?,
+        point_ref(ctx, scene, &items[1], key)?,
+    ])
+}
+
+fn check_unique(ctx: &Ctx, taken: &[&str], name: &str, line: u64, key: &str) -> Result<(), SceneError> {
+    if taken.contains(&name) {
+        return Err(ctx.err(line, key, format!("duplicate name '{name}'")));
+    }
+    Ok(())
+}
+
+fn read_points(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
+    let items = seq(ctx, node, "points")?;
+    if items.is_empty() {
+        return Err(ctx.err(node.line, "points", "no points defined"));
+    }
+    for (i, item) in items.iter().enumerate() {
+        let path = format!("points[{i}]");
+        let mut f = Fields::new(ctx, item, &path)?;
+        let name = name_of(ctx, f.req(ctx, "name")?, &f.key("name"))?;
+        let taken: Vec<&str> = scene.points.iter().map(|p| p.name.as_str()).collect();
+        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        let x = ctx.num(f.req(ctx, "x")?, &f.key("x"), &[])?;
+        let y = ctx.num(f.req(ctx, "y")?, &f.key("y"), &[])?;
+        let fixed = match f.get("fixed") {
+            Some(n) => boolean(ctx, n, &f.key("fixed"))?,
+            None => false,
+        };
+        let mass = match f.get("mass") {
+            Some(n) => ctx.positive(n, &f.key("mass"), &[])?,
+            None => 0.0,
+        };
+        f.finish(ctx, &["name", "x", "y", "fixed", "mass"])?;
+        scene.points.push(Point {
+            name,
+            x,
+            y,
+            fixed,
+            mass,
+        });
+    }
+    if scene.points.iter().all(|p| p.fixed) {
+        return Err(ctx.err(node.line, "points", "every point is fixed: nothing can move"));
+    }
+    Ok(())
+}
+
+fn read_bodies(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
+    for (i, item) in seq(ctx, node, "bodies")?.iter().enumerate() {
+        let path = format!("bodies[{i}]");
+        let mut f = Fields::new(ctx, item, &path)?;
+        let name = match f.get("name") {
+            Some(n) => name_of(ctx, n, &f.key("name"))?,
+            None => format!("body{i}"),
+        };
+        let taken: Vec<&str> = scene.bodies.iter().map(|b| b.name.as_str()).collect();
+        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        let pts_node = f.req(ctx, "points")?;
+        let points = seq(ctx, pts_node, &f.key("points"))?
+            .iter()
+            .map(|p| point_ref(ctx, scene, p, &f.key("points")))
+            .collect::<Result<Vec<_>, _>>()?;
+        if points.len() < 2 {
+            return Err(ctx.err(
+                pts_node.line,
+                &f.key("points"),
+                format!("body '{name}' needs 2 or more points, has {}", points.len()),
+            ));
+        }
+        let spec = body_spec(ctx, scene, &mut f, name, points, BodyStyle::Scene)?;
+        f.finish(ctx, &["name", "points", "mass", "length", "cog", "inertia", "I0"])?;
+        build::add_body(ctx, scene, item.line, &path, spec)?;
+    }
+    Ok(())
+}
+
+/// Which inertia keys a body uses: the scene format's `inertia` (about the centre of
+/// mass, with slender-rod defaults) or MBSE's mandatory `I0` (about the first point).
+#[derive(PartialEq)]
+pub enum BodyStyle {
+    Scene,
+    Mbse,
+}
+
+/// Reads mass, length, centre of mass and inertia of a body whose points are known.
+/// Expressions see `length` (and `L`), `auto` (in `length`), `lengthIJ` (1-based
+/// pairs), `index` and, once read, `mass` and `I0`.
+pub fn body_spec(
+    ctx: &Ctx,
+    scene: &Scene,
+    f: &mut Fields,
+    name: String,
+    points: Vec<usize>,
+    style: BodyStyle,
+) -> Result<BodySpec, SceneError> {
+    let index = scene.bodies.len() as f64;
+    let auto = build::distance(&scene.points, points[0], points[1]);
+    let mut pair_names: Vec<(String, f64)> = Vec::new();
+    for a in 0..points.len() {
+        for b in 0..points.len() {
+            if a != b {
+                let d = build::distance(&scene.points, points[a], points[b]);
+                pair_names.push((format!("length{}{}", a + 1, b + 1), d));
+            }
+        }
+    }
+    let mut vars: Vec<(&str, f64)> = pair_names.iter().map(|(n, v)| (n.as_str(), *v)).collect();
+    vars.push(("index", index));
+    let length = match f.get("length") {
+        // Bodies on 3 or more points are rigid as placed: MBSE ignores their length.
+        Some(_) if points.len() > 2 => auto,
+        Some(n) if matches!(&n.value, Value::String(s) if s.trim() == "auto") => auto,
+        Some(n) => {
+            let mut v = vars.clone();
+            v.push(("auto", auto));
+            ctx.positive(n, &f.key("length"), &v)?
+        }
+        None if style == BodyStyle::Mbse && points.len() == 2 => {
+            return Err(ctx.err(f.line, &f.key("length"), "missing required key (a number, an expression or auto)"))
+        }
+        None => auto,
+    };
+    vars.push(("length", length));
+    vars.push(("L", length));
+    let mass = ctx.positive(f.req(ctx, "mass")?, &f.key("mass"), &vars)?;
+    vars.push(("mass", mass));
+    let two_point = points.len() == 2;
+    let i0_node = f.get("I0");
+    let inertia_node = if style == BodyStyle::Scene { f.get("inertia") } else { None };
+    let cog = match f.get("cog") {
+        Some(n) => pair(ctx, n, &f.key("cog"), &vars)?,
+        None if two_point && style == BodyStyle::Scene => [0.5 * length, 0.0],
+        None => return Err(ctx.err(f.line, &f.key("cog"), format!("missing required key: body '{name}' on {} points needs its centre of mass", points.len()))),
+    };
+    let cog2 = cog[0] * cog[0] + cog[1] * cog[1];
+    let i0 = match (i0_node, inertia_node) {
+        (Some(_), Some(_)) => {
+            return Err(ctx.err(f.line, &f.key("inertia"), "give either inertia (about the centre of mass) or I0 (about the first point), not both"))
+        }
+        (Some(n), None) => ctx.positive(n, &f.key("I0"), &vars)?,
+        (None, Some(n)) => ctx.positive(n, &f.key("inertia"), &vars)? + mass * cog2,
+        (None, None) if two_point && style == BodyStyle::Scene => {
+            mass * length * length / 12.0 + mass * cog2
+        }
+        (None, None) => {
+            let k = if style == BodyStyle::Mbse { "I0" } else { "inertia" };
+            return Err(ctx.err(f.line, &f.key(k), format!("missing required key: body '{name}' needs its moment of inertia")));
+        }
+    };
+    Ok(BodySpec {
+        name,
+        points,
+        mass,
+        cog,
+        i0,
+        length,
+    })
+}
+
+fn read_constraints(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
+    for (i, item) in seq(ctx, node, "constraints")?.iter().enumerate() {
+        let path = format!("constraints[{i}]");
+        let mut f = Fields::new(ctx, item, &path)?;
+        let ty = type_of(ctx, &mut f)?;
+        let name = match f.get("name") {
+            Some(n) => name_of(ctx, n, &f.key("name"))?,
+            None => format!("{ty}{i}"),
+        };
+        let taken: Vec<&str> = scene.constraints.iter().map(|c| c.name.as_str()).collect();
+        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        let kind = match ty.as_str() {
+            "distance" => {
+                let points = point_pair(ctx, scene, f.req(ctx, "points")?, &f.key("points"))?;
+                let auto = build::distance(&scene.points, points[0], points[1]);
+                let length = match f.get("length") {
+                    None => auto,
+                    Some(n) if matches!(&n.value, Value::String(s) if s.trim() == "auto") => auto,
+                    Some(n) => ctx.positive(n, &f.key("length"), &[("auto", auto)])?,
+                };
+                if points[0] == points[1] || build::coincide(&scene.points, points[0], points[1]) {
+                    return Err(ctx.err(item.line, &f.key("points"), "the two points coincide"));
+                }
+                f.finish(ctx, &["type", "name", "points", "length"])?;
+                ConstraintKind::Distance { points, length }
+            }
+            "fixed_slider" | "mobile_slider" => {
+                let point = point_ref(ctx, scene, f.req(ctx, "point")?, &f.key("point"))?;
+                let line = point_pair(ctx, scene, f.req(ctx, "line")?, &f.key("line"))?;
+                let (point_key, line_key) = (f.key("point"), f.key("line"));
+                f.finish(ctx, &["type", "name", "point", "line"])?;
+                if scene.points[point].fixed {
+                    return Err(ctx.err(item.line, &point_key, format!("point '{}' is fixed: it cannot slide", scene.points[point].name)));
+                }
+                if line.contains(&point) || line[0] == line[1] || build::coincide(&scene.points, line[0], line[1]) {
+                    return Err(ctx.err(item.line, &line_key, "the line needs two distinct points other than the sliding one"));
+                }
+                let fixed_line = line.iter().all(|&p| scene.points[p].fixed);
+                if ty == "fixed_slider" {
+                    if !fixed_line {
+                        return Err(ctx.err(item.line, &line_key, "a fixed slider's line points must be fixed (use mobile_slider for a moving line)"));
+                    }
+                    ConstraintKind::FixedSlider { point, line }
+                } else {
+                    ConstraintKind::MobileSlider { point, line }
+                }
+            }
+            other => {
+                return Err(ctx.err(item.line, &f.key("type"), format!("unknown constraint type '{other}' (expected distance, fixed_slider or mobile_slider)")))
+            }
+        };
+        scene.constraints.push(ConstraintDef { name, kind });
+    }
+    Ok(())
+}
+
+fn type_of(ctx: &Ctx, f: &mut Fields) -> Result<String, SceneError> {
+    let n = f.req(ctx, "type")?;
+    n.as_text()
+        .ok_or_else(|| ctx.err(n.line, &f.key("type"), format!("expected a type name, found {}", n.kind())))
+}
+
+fn read_coordinates(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
+    for (i, item) in seq(ctx, node, "coordinates")?.iter().enumerate() {
+        let path = format!("coordinates[{i}]");
+        let mut f = Fields::new(ctx, item, &path)?;
+        let ty = type_of(ctx, &mut f)?;
+        let name = name_of(ctx, f.req(ctx, "name")?, &f.key("name"))?;
+        let mut taken: Vec<&str> = scene.coordinates.iter().map(|c| c.name.as_str()).collect();
+        taken.extend(scene.points.iter().map(|p| p.name.as_str()));
+        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        let (kind, allowed): (RelativeKind, &[&str]) = match ty.as_str() {
+            "angle" => {
+                let [from, to] = point_pair(ctx, scene, f.req(ctx, "points")?, &f.key("points"))?;
+                (RelativeKind::AbsoluteAngle { from, to }, &["type", "name", "points", "initial"])
+            }
+            "relative_angle" => {
+                let segs_node = f.req(ctx, "segments")?;
+                let segs = seq(ctx, segs_node, &f.key("segments"))?;
+                if segs.len() != 2 {
+                    return Err(ctx.err(segs_node.line, &f.key("segments"), "expected two segments [[A, B], [C, D]]"));
+                }
+                let a = point_pair(ctx, scene, &segs[0], &f.key("segments"))?;
+                let b = point_pair(ctx, scene, &segs[1], &f.key("segments"))?;
+                (RelativeKind::RelativeAngle { a, b }, &["type", "name", "segments", "initial"])
+            }
+            "distance" => {
+                let point = point_ref(ctx, scene, f.req(ctx, "point")?, &f.key("point"))?;
+                let along = point_pair(ctx, scene, f.req(ctx, "along")?, &f.key("along"))?;
+                (RelativeKind::Distance { point, along }, &["type", "name", "point", "along", "initial"])
+            }
+            other => {
+                return Err(ctx.err(item.line, &f.key("type"), format!("unknown coordinate type '{other}' (expected angle, relative_angle or distance)")))
+            }
+        };
+        build::check_relative(ctx, scene, item.line, &path, &kind)?;
+        let initial = match f.get("initial") {
+            Some(n) => Some(ctx.num(n, &f.key("initial"), &[])?),
+            None => None,
+        };
+        f.finish(ctx, allowed)?;
+        scene.coordinates.push(RelativeCoordinate { name, kind, initial });
+    }
+    Ok(())
+}
+
+fn angle_coordinate(ctx: &Ctx, scene: &Scene, f: &mut Fields) -> Result<usize, SceneError> {
+    let n = f.req(ctx, "coordinate")?;
+    let key = f.key("coordinate");
+    let name = n.as_text().unwrap_or_default();
+    let idx = scene
+        .coordinate_index(&name)
+        .ok_or_else(|| ctx.err(n.line, &key, format!("unknown coordinate '{name}' (effects act on relative coordinates)")))?;
+    if !scene.coordinates[idx].kind.is_angle() {
+        return Err(ctx.err(n.line, &key, format!("coordinate '{name}' is not an angle")));
+    }
+    Ok(idx)
+}
+
+fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
+    let mut names: Vec<String> = Vec::new();
+    for (i, item) in seq(ctx, node, "effects")?.iter().enumerate() {
+        let path = format!("effects[{i}]");
+        let mut f = Fields::new(ctx, item, &path)?;
+        let ty = type_of(ctx, &mut f)?;
+        let name = match f.get("name") {
+            Some(n) => name_of(ctx, n, &f.key("name"))?,
+            None => format!("{ty}{i}"),
+        };
+        let taken: Vec<&str> = names.iter().map(String::as_str).collect();
+        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        let effect = match ty.as_str() {
+            "gravity" => {
+                if scene.effects.iter().any(|e| matches!(e, Effect::Gravity { .. })) {
+                    return Err(ctx.err(item.line, &path, "gravity is given twice"));
+                }
+                let vector = pair(ctx, f.req(ctx, "vector")?, &f.key("vector"), &[])?;
+                f.finish(ctx, &["type", "name", "vector"])?;
+                Effect::Gravity { vector }
+            }
+            "spring_damper" => {
+                let points = point_pair(ctx, scene, f.req(ctx, "points")?, &f.key("points"))?;
+                if points[0] == points[1] {
+                    return Err(ctx.err(item.line, &f.key("points"), "a spring needs two different points"));
+                }
+                let stiffness = opt_non_negative(ctx, &mut f, "stiffness")?;
+                let damping = opt_non_negative(ctx, &mut f, "damping")?;
+                let auto = build::distance(&scene.points, points[0], points[1]);
+                let rest_length = match f.get("rest_length") {
+                    None => auto,
+                    Some(n) if matches!(&n.value, Value::String(s) if s.trim() == "auto") => auto,
+                    Some(n) => ctx.non_negative(n, &f.key("rest_length"))?,
+                };
+                f.finish(ctx, &["type", "name", "points", "stiffness", "rest_length", "damping"])?;
+                if stiffness == 0.0 && damping == 0.0 {
+                    return Err(ctx.err(item.line, &path, "a spring_damper needs a positive stiffness or damping"));
+                }
+                Effect::SpringDamper { name: name.clone(), points, stiffness, rest_length, damping }
+            }
+            "rotational_spring_damper" => {
+                let coordinate = angle_coordinate(ctx, scene, &mut f)?;
+                let stiffness = opt_non_negative(ctx, &mut f, "stiffness")?;
+                let damping = opt_non_negative(ctx, &mut f, "damping")?;
+                let rest_angle = match f.get("rest_angle") {
+                    Some(n) => ctx.num(n, &f.key("rest_angle"), &[])?,
+                    None if stiffness > 0.0 => {
+                        return Err(ctx.err(item.line, &f.key("rest_angle"), "missing required key (with a stiffness)"))
+                    }
+                    None => 0.0,
+                };
+                f.finish(ctx, &["type", "name", "coordinate", "stiffness", "rest_angle", "damping"])?;
+                if stiffness == 0.0 && damping == 0.0 {
+                    return Err(ctx.err(item.line, &path, "a rotational_spring_damper needs a positive stiffness or damping"));
+                }
+                Effect::RotationalSpringDamper { name: name.clone(), coordinate, stiffness, rest_angle, damping }
+            }
+            "torque" => {
+                let coordinate = angle_coordinate(ctx, scene, &mut f)?;
+                let value = ctx.time_function(f.req(ctx, "value")?, &f.key("value"))?;
+                f.finish(ctx, &["type", "name", "coordinate", "value"])?;
+                Effect::Torque { name: name.clone(), coordinate, value }
+            }
+            "force" => {
+                let point = point_ref(ctx, scene, f.req(ctx, "point")?, &f.key("point"))?;
+                if scene.points[point].fixed {
+                    return Err(ctx.err(item.line, &f.key("point"), format!("point '{}' is fixed: a force there does no work", scene.points[point].name)));
+                }
+                let v = f.req(ctx, "value")?;
+                let items = seq(ctx, v, &f.key("value"))?;
+                if items.len() != 2 {
+                    return Err(ctx.err(v.line, &f.key("value"), "expected [fx, fy]"));
+                }
+                let value = [
+                    ctx.time_function(&items[0], &f.key("value[0]"))?,
+                    ctx.time_function(&items[1], &f.key("value[1]"))?,
+                ];
+                f.finish(ctx, &["type", "name", "point", "value"])?;
+                Effect::Force { name: name.clone(), point, value }
+            }
+            other => {
+                return Err(ctx.err(item.line, &f.key("type"), format!("unknown effect type '{other}' (expected gravity, spring_damper, rotational_spring_damper, torque or force)")))
+            }
+        };
+        names.push(name);
+        scene.effects.push(effect);
+    }
+    Ok(())
+}
+
+fn opt_non_negative(ctx: &Ctx, f: &mut Fields, key: &str) -> Result<f64, SceneError> {
+    match f.get(key) {
+        Some(n) => ctx.non_negative(n, &f.key(key)),
+        None => Ok(0.0),
+    }
+}
+
+/// Checks that `name` is a coordinate of q.
+fn q_name(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<String, SceneError> {
+    let name = node.as_text().ok_or_else(|| ctx.err(node.line, key, format!("expected a coordinate name, found {}", node.kind())))?;
+    if build::coordinate_names(scene).contains(&name) {
+        return Ok(name);
+    }
+    let hint = match name.split_once('.') {
+        Some((p, _)) if scene.point_index(p).is_some_and(|i| scene.points[i].fixed) => {
+            format!(" (point '{p}' is fixed)")
+        }
+        _ => String::new(),
+    };
+    Err(ctx.err(node.line, key, format!("unknown coordinate '{name}'{hint}; coordinates are <point>.x, <point>.y of free points and relative coordinates")))
+}
+
+fn read_independent(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
+    for item in seq(ctx, node, "independent")? {
+        let name = q_name(ctx, scene, item, "independent")?;
+        if scene.independent.contains(&name) {
+            return Err(ctx.err(item.line, "independent", format!("duplicate name '{name}'")));
+        }
+        scene.independent.push(name);
+    }
+    Ok(())
+}
+
+fn read_initial(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
+    let mut f = Fields::new(ctx, node, "initial")?;
+    if let Some(n) = f.get("positions") {
+        for (name, value) in named_values(ctx, scene, n, "initial.positions")? {
+            scene.initial_positions.push((name, value));
+        }
+    }
+    if let Some(n) = f.get("velocities") {
+        let Value::Map(pairs) = &n.value else {
+            return Err(ctx.err(n.line, "initial.velocities", "expected a mapping coordinate: value"));
+        };
+        let values = named_values(ctx, scene, n, "initial.velocities")?;
+        for ((name, value), (k, _)) in values.into_iter().zip(pairs) {
+            if !scene.independent.contains(&name) {
+                return Err(ctx.err(k.line, &format!("initial.velocities.{name}"), "initial velocities are given for independent coordinates only; declare it in `independent`"));
+            }
+            scene.initial_velocities.push((name, value));
+        }
+    }
+    f.finish(ctx, &["positions", "velocities"])?;
+    Ok(())
+}
+
+fn named_values(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<Vec<(String, f64)>, SceneError> {
+    let Value::Map(pairs) = &node.value else {
+        return Err(ctx.err(node.line, key, "expected a mapping coordinate: value"));
+    };
+    let mut out: Vec<(String, f64)> = Vec::new();
+    for (k, v) in pairs {
+        let name = q_name(ctx, scene, k, key)?;
+        let path = format!("{key}.{name}");
+        if out.iter().any(|(n, _)| *n == name) {
+            return Err(ctx.err(k.line, &path, format!("duplicate name '{name}'")));
+        }
+        out.push((name, ctx.num(v, &path, &[])?));
+    }
+    Ok(out)
+}

@@ -1,0 +1,175 @@
+//! A YAML document as a tree of nodes that remember their line, so that every error
+//! about a scene can point at the line and the key at fault.
+//!
+//! Parsing is serde-saphyr's; this module only keeps its spans on every node.
+
+use serde::de::{self, Deserialize, Deserializer, MapAccess, SeqAccess, Visitor};
+use serde_saphyr::Spanned;
+use std::fmt;
+
+/// A YAML value with its 1-based source line (0 when unknown).
+#[derive(Debug, Clone)]
+pub struct Node {
+    pub value: Value,
+    pub line: u64,
+}
+
+#[derive(Debug, Clone)]
+pub enum Value {
+    Null,
+    Bool(bool),
+    Number(f64),
+    String(String),
+    Seq(Vec<Node>),
+    /// Key–value pairs in file order.
+    Map(Vec<(Node, Node)>),
+}
+
+impl Node {
+    pub fn kind(&self) -> &'static str {
+        match self.value {
+            Value::Null => "null",
+            Value::Bool(_) => "a boolean",
+            Value::Number(_) => "a number",
+            Value::String(_) => "a string",
+            Value::Seq(_) => "a list",
+            Value::Map(_) => "a mapping",
+        }
+    }
+
+    /// The node as text (a string, or a number written back as text).
+    pub fn as_text(&self) -> Option<String> {
+        match &self.value {
+            Value::String(s) => Some(s.clone()),
+            Value::Number(v) => Some(format!("{v}")),
+            _ => None,
+        }
+    }
+}
+
+/// A syntax error reported by the YAML parser: message and line.
+#[derive(Debug, Clone)]
+pub struct SyntaxError {
+    pub message: String,
+    pub line: Option<u64>,
+}
+
+/// Parses a whole YAML document into a located tree.
+pub fn parse(text: &str) -> Result<Node, SyntaxError> {
+    let options = serde_saphyr::options! {
+        duplicate_keys: serde_saphyr::options::DuplicateKeyPolicy::Error,
+        // YAML 1.2 booleans only: `y` and `n` are coordinates here, not yes and no.
+        strict_booleans: true,
+    };
+    match serde_saphyr::from_str_with_options::<Spanned<Raw>>(text, options) {
+        Ok(root) => Ok(located(root)),
+        Err(e) => {
+            let inner = e.without_snippet();
+            let line = e.location().map(|l| l.line()).filter(|&l| l > 0);
+            let message = inner
+                .to_string()
+                .lines()
+                .next()
+                .unwrap_or("invalid YAML")
+                .to_string();
+            Err(SyntaxError { message, line })
+        }
+    }
+}
+
+/// The node as parsed, before its span is attached.
+struct Raw(Value);
+
+fn located(s: Spanned<Raw>) -> Node {
+    Node {
+        value: s.value.0,
+        line: s.referenced.line(),
+    }
+}
+
+impl<'de> Deserialize<'de> for Raw {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_any(RawVisitor)
+    }
+}
+
+struct RawVisitor;
+
+impl<'de> Visitor<'de> for RawVisitor {
+    type Value = Raw;
+
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("any YAML value")
+    }
+    fn visit_unit<E: de::Error>(self) -> Result<Raw, E> {
+        Ok(Raw(Value::Null))
+    }
+    fn visit_none<E: de::Error>(self) -> Result<Raw, E> {
+        Ok(Raw(Value::Null))
+    }
+    fn visit_some<D: Deserializer<'de>>(self, d: D) -> Result<Raw, D::Error> {
+        Raw::deserialize(d)
+    }
+    fn visit_bool<E: de::Error>(self, v: bool) -> Result<Raw, E> {
+        Ok(Raw(Value::Bool(v)))
+    }
+    fn visit_i64<E: de::Error>(self, v: i64) -> Result<Raw, E> {
+        Ok(Raw(Value::Number(v as f64)))
+    }
+    fn visit_u64<E: de::Error>(self, v: u64) -> Result<Raw, E> {
+        Ok(Raw(Value::Number(v as f64)))
+    }
+    fn visit_f64<E: de::Error>(self, v: f64) -> Result<Raw, E> {
+        Ok(Raw(Value::Number(v)))
+    }
+    fn visit_str<E: de::Error>(self, v: &str) -> Result<Raw, E> {
+        Ok(Raw(Value::String(v.to_string())))
+    }
+    fn visit_string<E: de::Error>(self, v: String) -> Result<Raw, E> {
+        Ok(Raw(Value::String(v)))
+    }
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Raw, A::Error> {
+        let mut items = Vec::new();
+        while let Some(item) = seq.next_element::<Spanned<Raw>>()? {
+            items.push(located(item));
+        }
+        Ok(Raw(Value::Seq(items)))
+    }
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Raw, A::Error> {
+        let mut pairs = Vec::new();
+        while let Some(key) = map.next_key::<Spanned<Raw>>()? {
+            let value = map.next_value::<Spanned<Raw>>()?;
+            pairs.push((located(key), located(value)));
+        }
+        Ok(Raw(Value::Map(pairs)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nodes_keep_their_lines() {
+        let doc = parse("a: 1\nb:\n  - x\n  - {y: 2.5}\nc: (1/3)*m\n").unwrap();
+        let Value::Map(pairs) = &doc.value else {
+            panic!("not a map")
+        };
+        assert_eq!(pairs.len(), 3);
+        assert_eq!(pairs[0].0.line, 1);
+        let Value::Seq(items) = &pairs[1].1.value else {
+            panic!("not a seq")
+        };
+        assert_eq!(items[1].line, 4);
+        assert_eq!(pairs[2].1.as_text().unwrap(), "(1/3)*m");
+        assert_eq!(pairs[2].1.line, 5);
+    }
+
+    #[test]
+    fn syntax_errors_have_a_line() {
+        let e = parse("a: 1\nb: [1, 2\nc: 3\n").unwrap_err();
+        assert!(e.line.is_some(), "{e:?}");
+        let d = parse("a: 1\na: 2\n").unwrap_err();
+        assert!(d.message.to_lowercase().contains("duplicate"), "{d:?}");
+    }
+}
