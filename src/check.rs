@@ -57,11 +57,19 @@ impl CheckReport {
 impl fmt::Display for CheckReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         writeln!(f, "scene: {}", self.file)?;
-        writeln!(f, "n = {} coordinates: {}", self.n, self.coordinates.join(", "))?;
         writeln!(
             f,
-            "m = {} constraints (rank {}), {} bodies",
-            self.m, self.rank, self.bodies
+            "n = {} coordinates: {}",
+            self.n,
+            self.coordinates.join(", ")
+        )?;
+        writeln!(
+            f,
+            "m = {} constraints (rank {}), {} {}",
+            self.m,
+            self.rank,
+            self.bodies,
+            if self.bodies == 1 { "body" } else { "bodies" }
         )?;
         if !self.redundant.is_empty() {
             writeln!(f, "redundant constraints: {}", self.redundant.join("; "))?;
@@ -70,7 +78,11 @@ impl fmt::Display for CheckReport {
         if self.independent.is_empty() {
             writeln!(f, "independent coordinates: none declared")?;
         } else {
-            writeln!(f, "independent coordinates: {}", self.independent.join(", "))?;
+            writeln!(
+                f,
+                "independent coordinates: {}",
+                self.independent.join(", ")
+            )?;
         }
         if self.effects.is_empty() {
             writeln!(f, "effects: none")?;

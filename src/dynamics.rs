@@ -17,7 +17,12 @@ pub struct LagrangeSolution {
 
 /// Solves [M Φ_qᵀ; Φ_q 0] [q̈; λ] = [Q; c] (paper, eq. "qDynSys"), with c = −Φ̇_q q̇
 /// and the redundant constraints left out so that the system is regular.
-pub fn lagrange(model: &Model, q: &DVector<f64>, dq: &DVector<f64>, t: f64) -> Result<LagrangeSolution> {
+pub fn lagrange(
+    model: &Model,
+    q: &DVector<f64>,
+    dq: &DVector<f64>,
+    t: f64,
+) -> Result<LagrangeSolution> {
     let n = model.n();
     let rows = &model.active;
     let m = rows.len();

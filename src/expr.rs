@@ -399,10 +399,12 @@ impl Parser {
             }
         }
         let text: String = self.chars[start..self.pos].iter().collect();
-        text.parse::<f64>().map(Node::Num).map_err(|_| ExprError::Syntax {
-            at: start,
-            message: format!("malformed number '{text}'"),
-        })
+        text.parse::<f64>()
+            .map(Node::Num)
+            .map_err(|_| ExprError::Syntax {
+                at: start,
+                message: format!("malformed number '{text}'"),
+            })
     }
 }
 
@@ -453,7 +455,10 @@ mod tests {
         assert_eq!(b.names(), vec!["t".to_string()]);
         let v = b.eval(&|n| (n == "t").then_some(0.25)).unwrap();
         assert!((v - (2.0 * 0.5f64.sin() + 3.0)).abs() < 1e-15);
-        let c = Expr::parse("2*L").unwrap().bind(&["t"], &|_| Some(1.5)).unwrap();
+        let c = Expr::parse("2*L")
+            .unwrap()
+            .bind(&["t"], &|_| Some(1.5))
+            .unwrap();
         assert_eq!(c.as_constant(), Some(3.0));
     }
 }

@@ -151,7 +151,12 @@ pub fn choose_independent(model: &Model, q: &DVector<f64>) -> Vec<usize> {
     while basis.len() < n {
         let (best, residual) = (0..n)
             .filter(|j| !chosen.contains(j))
-            .map(|j| (j, orthogonalize(&DVector::from_fn(n, |i, _| f64::from(i == j)), &basis)))
+            .map(|j| {
+                (
+                    j,
+                    orthogonalize(&DVector::from_fn(n, |i, _| f64::from(i == j)), &basis),
+                )
+            })
             .max_by(|a, b| a.1.norm().total_cmp(&b.1.norm()))
             .expect("fewer basis vectors than coordinates leaves a candidate");
         let norm = residual.norm();
@@ -216,7 +221,8 @@ fn solve_augmented(
             names(model, independent)
         )));
     }
-    lu.solve(&b).ok_or_else(|| Error::Singular(format!("{what} problem")))
+    lu.solve(&b)
+        .ok_or_else(|| Error::Singular(format!("{what} problem")))
 }
 
 /// Whether the pivots of an LU factorization show a regular matrix.
@@ -276,5 +282,8 @@ pub fn s_and_r(
     let inv = lu
         .try_inverse()
         .ok_or_else(|| Error::Singular("[Φ_q; B]".into()))?;
-    Ok((inv.columns(0, m).into_owned(), inv.columns(m, n - m).into_owned()))
+    Ok((
+        inv.columns(0, m).into_owned(),
+        inv.columns(m, n - m).into_owned(),
+    ))
 }

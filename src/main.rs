@@ -7,7 +7,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Parser)]
-#[command(name = "mbfg", version, about = "Planar multibody dynamics as factor graphs")]
+#[command(
+    name = "mbfg",
+    version,
+    about = "Planar multibody dynamics as factor graphs"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -52,9 +52,7 @@ impl Equation {
                 let (dx, dy) = (u[2] - u[0], u[3] - u[1]);
                 dx * dx + dy * dy - length * length
             }
-            Equation::PointOnLine => {
-                (u[4] - u[2]) * (u[1] - u[3]) - (u[5] - u[3]) * (u[0] - u[2])
-            }
+            Equation::PointOnLine => (u[4] - u[2]) * (u[1] - u[3]) - (u[5] - u[3]) * (u[0] - u[2]),
             Equation::AbsoluteAngle { length } => {
                 let th = u[4];
                 if use_cos_form(th) {
@@ -224,7 +222,9 @@ mod tests {
     }
 
     fn rng(seed: &mut u64) -> f64 {
-        *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         ((*seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
     }
 
@@ -270,7 +270,11 @@ mod tests {
                 }
                 let mut g = vec![0.0; MAX_LOCAL];
                 eq.gradient(&u, &mut g);
-                close(&g[..n], &fd(&|x| eq.phi(x), &u, n), &format!("{eq:?} gradient"));
+                close(
+                    &g[..n],
+                    &fd(&|x| eq.phi(x), &u, n),
+                    &format!("{eq:?} gradient"),
+                );
 
                 let mut hv = vec![0.0; MAX_LOCAL];
                 eq.hessian_times(&u, &v, &mut hv);

@@ -171,7 +171,14 @@ impl Force {
     }
 
     /// Adds this effect's generalized force at (q, q̇, t) to `out`.
-    pub fn add_to(&self, model: &Model, q: &[f64], dq: &[f64], t: f64, out: &mut [f64]) -> Result<()> {
+    pub fn add_to(
+        &self,
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        t: f64,
+        out: &mut [f64],
+    ) -> Result<()> {
         match self {
             Force::Gravity { entries, .. } => {
                 for &(i, v) in entries {
@@ -266,9 +273,13 @@ impl Force {
                 // d = r₂ − r₁: ∂F₂/∂r₂ = A, ∂F₂/∂r₁ = −A, and F₁ = −F₂.
                 let slots = [model.points[points[0]], model.points[points[1]]];
                 for (ri, si) in [(0usize, -1.0), (1, 1.0)] {
-                    let PointSlot::Free(i) = slots[ri] else { continue };
+                    let PointSlot::Free(i) = slots[ri] else {
+                        continue;
+                    };
                     for (cj, sj) in [(0usize, -1.0), (1, 1.0)] {
-                        let PointSlot::Free(j) = slots[cj] else { continue };
+                        let PointSlot::Free(j) = slots[cj] else {
+                            continue;
+                        };
                         for r in 0..2 {
                             for col in 0..2 {
                                 kq[(i + r, j + col)] += si * sj * a[r][col];

@@ -50,8 +50,5 @@ pub fn body_gravity_force(body: &Body, g: [f64; 2]) -> [f64; 4] {
 pub fn body_cog_position(body: &Body, r1: [f64; 2], r2: [f64; 2]) -> [f64; 2] {
     let (a, b) = (body.cog[0] / body.length, body.cog[1] / body.length);
     let e = [r2[0] - r1[0], r2[1] - r1[1]];
-    [
-        r1[0] + a * e[0] - b * e[1],
-        r1[1] + a * e[1] + b * e[0],
-    ]
+    [r1[0] + a * e[0] - b * e[1], r1[1] + a * e[1] + b * e[0]]
 }

@@ -190,7 +190,9 @@ impl Model {
         crate::kinematics::solve_position(self, &mut q, &self.independent.clone())?;
         let rank = crate::kinematics::constraint_rank(self, &q);
         self.redundant = rank.redundant;
-        self.active = (0..self.m()).filter(|k| !self.redundant.contains(k)).collect();
+        self.active = (0..self.m())
+            .filter(|k| !self.redundant.contains(k))
+            .collect();
         let dq = if self.independent.is_empty() {
             DVector::zeros(self.n())
         } else {
@@ -275,7 +277,13 @@ impl Model {
                     // leave it free across the line to first order.
                     out.push(distance(a, c, dac));
                     out.push(Constraint::new(
-                        format!("{}: on line({},{}) of {}", body.name, pname(a), pname(b), pname(c)),
+                        format!(
+                            "{}: on line({},{}) of {}",
+                            body.name,
+                            pname(a),
+                            pname(b),
+                            pname(c)
+                        ),
                         Equation::PointOnLine,
                         &self.slots(&[c, a, b], None),
                     ));
@@ -338,7 +346,8 @@ impl Model {
     /// The length a two-point body or explicit distance constraint keeps between a
     /// and b (it may differ from the approximate initial positions).
     fn rigid_length(&self, a: usize, b: usize) -> Option<f64> {
-        let same = |p: &[usize]| p.len() == 2 && ((p[0] == a && p[1] == b) || (p[0] == b && p[1] == a));
+        let same =
+            |p: &[usize]| p.len() == 2 && ((p[0] == a && p[1] == b) || (p[0] == b && p[1] == a));
         self.scene
             .bodies
             .iter()
@@ -501,7 +510,7 @@ impl Model {
         self.forces
             .iter()
             .map(|f| f.potential(self, q.as_slice()))
-            .sum()
+            .fold(0.0, |a, b| a + b)
     }
 
     /// Whether the scene has gravity.

@@ -156,11 +156,7 @@ pub fn check_relative(
     for [a, b] in segments {
         let (na, nb) = (&scene.points[a].name, &scene.points[b].name);
         if a == b || coincide(&scene.points, a, b) {
-            return Err(ctx.err(
-                line,
-                key,
-                format!("segment '{na}'–'{nb}' has no length"),
-            ));
+            return Err(ctx.err(line, key, format!("segment '{na}'–'{nb}' has no length")));
         }
         if !rigid_pair(scene, a, b) {
             return Err(ctx.err(

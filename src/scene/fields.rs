@@ -105,7 +105,10 @@ impl<'a> Ctx<'a> {
             self.err(
                 node.line,
                 key,
-                format!("expected a number or an expression in t, found {}", node.kind()),
+                format!(
+                    "expected a number or an expression in t, found {}",
+                    node.kind()
+                ),
             )
         })?;
         let expr = Expr::parse(&text).map_err(|e| self.expr_err(node, key, &text, e))?;
@@ -159,14 +162,17 @@ pub fn name_of(ctx: &Ctx, node: &Node, key: &str) -> Result<String, SceneError> 
         .chars()
         .next()
         .is_some_and(|c| c.is_alphabetic() || c == '_')
-        && s.chars().all(|c| c.is_alphanumeric() || c == '_' || c == '-');
+        && s.chars()
+            .all(|c| c.is_alphanumeric() || c == '_' || c == '-');
     if ok {
         Ok(s.clone())
     } else {
         Err(ctx.err(
             node.line,
             key,
-            format!("'{s}' is not a valid name (letters, digits, '_' and '-', starting with a letter)"),
+            format!(
+                "'{s}' is not a valid name (letters, digits, '_' and '-', starting with a letter)"
+            ),
         ))
     }
 }
@@ -233,7 +239,11 @@ impl<'n> Fields<'n> {
         };
         for (k, _) in pairs {
             if !matches!(k.value, Value::String(_)) {
-                return Err(ctx.err(k.line, path, format!("keys must be names, found {}", k.kind())));
+                return Err(ctx.err(
+                    k.line,
+                    path,
+                    format!("keys must be names, found {}", k.kind()),
+                ));
             }
         }
         Ok(Fields {
@@ -285,7 +295,10 @@ impl<'n> Fields<'n> {
                 return Err(ctx.err(
                     k.line,
                     &path,
-                    format!("unknown key '{name}' (expected one of: {})", allowed.join(", ")),
+                    format!(
+                        "unknown key '{name}' (expected one of: {})",
+                        allowed.join(", ")
+                    ),
                 ));
             }
         }

@@ -27,7 +27,12 @@ pub fn read(root: &Node, file: &str) -> Result<Scene, SceneError> {
     }
     top.finish(
         &ctx,
-        &["parameters", "points", "planar_bodies", "relative_coordinates"],
+        &[
+            "parameters",
+            "points",
+            "planar_bodies",
+            "relative_coordinates",
+        ],
     )?;
     Ok(scene)
 }
@@ -61,7 +66,11 @@ fn read_points(ctx: &mut Ctx, scene: &mut Scene, node: &Node) -> Result<(), Scen
     }
     ctx.params.truncate(base);
     if scene.points.iter().all(|p| p.fixed) {
-        return Err(ctx.err(node.line, "points", "every point is fixed: nothing can move"));
+        return Err(ctx.err(
+            node.line,
+            "points",
+            "every point is fixed: nothing can move",
+        ));
     }
     Ok(())
 }
@@ -103,7 +112,14 @@ fn read_bodies(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneErr
                 format!("body {i} needs 2 or more points, has {}", points.len()),
             ));
         }
-        let spec = body_spec(ctx, scene, &mut f, format!("body{i}"), points, BodyStyle::Mbse)?;
+        let spec = body_spec(
+            ctx,
+            scene,
+            &mut f,
+            format!("body{i}"),
+            points,
+            BodyStyle::Mbse,
+        )?;
         f.finish(ctx, &["points", "length", "mass", "I0", "cog"])?;
         build::add_body(ctx, scene, item.line, &path, spec)?;
     }
@@ -120,7 +136,9 @@ fn read_relative(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneE
             return Err(ctx.err(
                 ty_node.line,
                 &f.key("type"),
-                format!("unknown relative coordinate type '{ty}' (expected RelativeAngleAbsoluteDOF)"),
+                format!(
+                    "unknown relative coordinate type '{ty}' (expected RelativeAngleAbsoluteDOF)"
+                ),
             ));
         }
         let pts_node = f.req(ctx, "points")?;

@@ -89,11 +89,20 @@ pub struct ConstraintDef {
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ConstraintKind {
-    Distance { points: [usize; 2], length: f64 },
+    Distance {
+        points: [usize; 2],
+        length: f64,
+    },
     /// The point slides on the line through two fixed points.
-    FixedSlider { point: usize, line: [usize; 2] },
+    FixedSlider {
+        point: usize,
+        line: [usize; 2],
+    },
     /// The point slides on the line through two points that move.
-    MobileSlider { point: usize, line: [usize; 2] },
+    MobileSlider {
+        point: usize,
+        line: [usize; 2],
+    },
 }
 
 /// A function of time from the scene: a constant or an expression in `t`.
@@ -120,9 +129,9 @@ impl TimeFunction {
         if let Some(c) = self.expr.as_constant() {
             return Ok(c);
         }
-        self.expr.eval(&|n| (n == "t").then_some(t)).map_err(|e| {
-            Error::InvalidArgument(format!("'{}' at t = {t}: {e}", self.text))
-        })
+        self.expr
+            .eval(&|n| (n == "t").then_some(t))
+            .map_err(|e| Error::InvalidArgument(format!("'{}' at t = {t}: {e}", self.text)))
     }
 
     pub fn is_constant(&self) -> bool {

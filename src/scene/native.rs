@@ -3,7 +3,9 @@
 use super::build::{self, BodySpec};
 use super::fields::{boolean, name_of, pair, seq, Ctx, Fields};
 use super::yaml::{Node, Value};
-use super::{ConstraintDef, ConstraintKind, Effect, Point, RelativeCoordinate, RelativeKind, Scene};
+use super::{
+    ConstraintDef, ConstraintKind, Effect, Point, RelativeCoordinate, RelativeKind, Scene,
+};
 use crate::error::{Error, SceneError};
 use std::path::Path;
 
@@ -35,12 +37,18 @@ pub fn read(root: &Node, file: &str, dir: &Path) -> crate::Result<Scene> {
         for k in ["points", "bodies"] {
             if top.has(k) {
                 return Err(ctx
-                    .err(top.line, k, "a scene naming a mechanism file takes its points and bodies from it")
+                    .err(
+                        top.line,
+                        k,
+                        "a scene naming a mechanism file takes its points and bodies from it",
+                    )
                     .into());
             }
         }
         let Value::String(rel) = &mech.value else {
-            return Err(ctx.err(mech.line, "mechanism", "expected a file name").into());
+            return Err(ctx
+                .err(mech.line, "mechanism", "expected a file name")
+                .into());
         };
         let path = dir.join(rel);
         let text = std::fs::read_to_string(&path).map_err(|source| {
@@ -84,7 +92,13 @@ pub fn read(root: &Node, file: &str, dir: &Path) -> crate::Result<Scene> {
     }
     top.finish(&ctx, TOP_KEYS)?;
     if scene.bodies.is_empty() && scene.points.iter().all(|p| p.mass == 0.0) {
-        return Err(ctx.err(root.line, "bodies", "the scene has no bodies and no point masses").into());
+        return Err(ctx
+            .err(
+                root.line,
+                "bodies",
+                "the scene has no bodies and no point masses",
+            )
+            .into());
     }
     Ok(scene)
 }
@@ -106,7 +120,11 @@ pub fn empty(file: &str) -> Scene {
 /// Resolves a point named in the scene.
 pub fn point_ref(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<usize, SceneError> {
     let name = node.as_text().ok_or_else(|| {
-        ctx.err(node.line, key, format!("expected a point name, found {}", node.kind()))
+        ctx.err(
+            node.line,
+            key,
+            format!("expected a point name, found {}", node.kind()),
+        )
     })?;
     scene
         .point_index(&name)
@@ -116,7 +134,11 @@ pub fn point_ref(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<usi
 fn point_pair(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<[usize; 2], SceneError> {
     let items = seq(ctx, node, key)?;
     if items.len() != 2 {
-        return Err(ctx.err(node.line, key, format!("expected two points, found {}", items.len())));
+        return Err(ctx.err(
+            node.line,
+            key,
+            format!("expected two points, found {}", items.len()),
+        ));
     }
     Ok([
         point_ref(ctx, scene, &items[0], key)?,
@@ -124,7 +146,13 @@ fn point_pair(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<[usize
     ])
 }
 
-fn check_unique(ctx: &Ctx, taken: &[&str], name: &str, line: u64, key: &str) -> Result<(), SceneError> {
+fn check_unique(
+    ctx: &Ctx,
+    taken: &[&str],
+    name: &str,
+    line: u64,
+    key: &str,
+) -> Result<(), SceneError> {
     if taken.contains(&name) {
         return Err(ctx.err(line, key, format!("duplicate name '{name}'")));
     }
@@ -162,7 +190,11 @@ fn read_points(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneErr
         });
     }
     if scene.points.iter().all(|p| p.fixed) {
-        return Err(ctx.err(node.line, "points", "every point is fixed: nothing can move"));
+        return Err(ctx.err(
+            node.line,
+            "points",
+            "every point is fixed: nothing can move",
+        ));
     }
     Ok(())
 }
@@ -190,7 +222,10 @@ fn read_bodies(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneErr
             ));
         }
         let spec = body_spec(ctx, scene, &mut f, name, points, BodyStyle::Scene)?;
-        f.finish(ctx, &["name", "points", "mass", "length", "cog", "inertia", "I0"])?;
+        f.finish(
+            ctx,
+            &["name", "points", "mass", "length", "cog", "inertia", "I0"],
+        )?;
         build::add_body(ctx, scene, item.line, &path, spec)?;
     }
     Ok(())
@@ -238,7 +273,11 @@ pub fn body_spec(
             ctx.positive(n, &f.key("length"), &v)?
         }
         None if style == BodyStyle::Mbse && points.len() == 2 => {
-            return Err(ctx.err(f.line, &f.key("length"), "missing required key (a number, an expression or auto)"))
+            return Err(ctx.err(
+                f.line,
+                &f.key("length"),
+                "missing required key (a number, an expression or auto)",
+            ))
         }
         None => auto,
     };
@@ -248,11 +287,24 @@ pub fn body_spec(
     vars.push(("mass", mass));
     let two_point = points.len() == 2;
     let i0_node = f.get("I0");
-    let inertia_node = if style == BodyStyle::Scene { f.get("inertia") } else { None };
+    let inertia_node = if style == BodyStyle::Scene {
+        f.get("inertia")
+    } else {
+        None
+    };
     let cog = match f.get("cog") {
         Some(n) => pair(ctx, n, &f.key("cog"), &vars)?,
         None if two_point && style == BodyStyle::Scene => [0.5 * length, 0.0],
-        None => return Err(ctx.err(f.line, &f.key("cog"), format!("missing required key: body '{name}' on {} points needs its centre of mass", points.len()))),
+        None => {
+            return Err(ctx.err(
+                f.line,
+                &f.key("cog"),
+                format!(
+                    "missing required key: body '{name}' on {} points needs its centre of mass",
+                    points.len()
+                ),
+            ))
+        }
     };
     let cog2 = cog[0] * cog[0] + cog[1] * cog[1];
     let i0 = match (i0_node, inertia_node) {
@@ -337,8 +389,13 @@ fn read_constraints(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
 
 fn type_of(ctx: &Ctx, f: &mut Fields) -> Result<String, SceneError> {
     let n = f.req(ctx, "type")?;
-    n.as_text()
-        .ok_or_else(|| ctx.err(n.line, &f.key("type"), format!("expected a type name, found {}", n.kind())))
+    n.as_text().ok_or_else(|| {
+        ctx.err(
+            n.line,
+            &f.key("type"),
+            format!("expected a type name, found {}", n.kind()),
+        )
+    })
 }
 
 fn read_coordinates(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
@@ -380,7 +437,11 @@ fn read_coordinates(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
             None => None,
         };
         f.finish(ctx, allowed)?;
-        scene.coordinates.push(RelativeCoordinate { name, kind, initial });
+        scene.coordinates.push(RelativeCoordinate {
+            name,
+            kind,
+            initial,
+        });
     }
     Ok(())
 }
@@ -389,9 +450,13 @@ fn angle_coordinate(ctx: &Ctx, scene: &Scene, f: &mut Fields) -> Result<usize, S
     let n = f.req(ctx, "coordinate")?;
     let key = f.key("coordinate");
     let name = n.as_text().unwrap_or_default();
-    let idx = scene
-        .coordinate_index(&name)
-        .ok_or_else(|| ctx.err(n.line, &key, format!("unknown coordinate '{name}' (effects act on relative coordinates)")))?;
+    let idx = scene.coordinate_index(&name).ok_or_else(|| {
+        ctx.err(
+            n.line,
+            &key,
+            format!("unknown coordinate '{name}' (effects act on relative coordinates)"),
+        )
+    })?;
     if !scene.coordinates[idx].kind.is_angle() {
         return Err(ctx.err(n.line, &key, format!("coordinate '{name}' is not an angle")));
     }
@@ -497,7 +562,13 @@ fn opt_non_negative(ctx: &Ctx, f: &mut Fields, key: &str) -> Result<f64, SceneEr
 
 /// Checks that `name` is a coordinate of q.
 fn q_name(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<String, SceneError> {
-    let name = node.as_text().ok_or_else(|| ctx.err(node.line, key, format!("expected a coordinate name, found {}", node.kind())))?;
+    let name = node.as_text().ok_or_else(|| {
+        ctx.err(
+            node.line,
+            key,
+            format!("expected a coordinate name, found {}", node.kind()),
+        )
+    })?;
     if build::coordinate_names(scene).contains(&name) {
         return Ok(name);
     }
@@ -530,7 +601,11 @@ fn read_initial(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
     }
     if let Some(n) = f.get("velocities") {
         let Value::Map(pairs) = &n.value else {
-            return Err(ctx.err(n.line, "initial.velocities", "expected a mapping coordinate: value"));
+            return Err(ctx.err(
+                n.line,
+                "initial.velocities",
+                "expected a mapping coordinate: value",
+            ));
         };
         let values = named_values(ctx, scene, n, "initial.velocities")?;
         for ((name, value), (k, _)) in values.into_iter().zip(pairs) {
@@ -544,7 +619,12 @@ fn read_initial(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
     Ok(())
 }
 
-fn named_values(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<Vec<(String, f64)>, SceneError> {
+fn named_values(
+    ctx: &Ctx,
+    scene: &Scene,
+    node: &Node,
+    key: &str,
+) -> Result<Vec<(String, f64)>, SceneError> {
     let Value::Map(pairs) = &node.value else {
         return Err(ctx.err(node.line, key, "expected a mapping coordinate: value"));
     };

@@ -1,0 +1,45 @@
+# mbfg — the two commands a fresh machine needs: `make report` and `make test`.
+SHELL := /bin/bash
+CARGO ?= cargo
+MBFG := target/release/mbfg
+SCENES := $(sort $(wildcard scenes/*.yaml))
+
+.PHONY: all build report test bench fmt lint clean
+
+all: build
+
+build:
+	$(CARGO) build --release
+
+# Until the validation reports exist, the report is the check of every scene.
+report: build
+	@mkdir -p reports
+	@set -e; for s in $(SCENES); do $(MBFG) check $$s; echo; done | tee reports/check.txt
+	@echo "wrote reports/check.txt"
+
+test:
+	$(CARGO) test --release
+	$(CARGO) build --release
+	@set -e; for s in $(SCENES); do $(MBFG) check $$s > /dev/null; done; echo "mbfg check: $(words $(SCENES)) scenes passed, 0 failed"
+
+bench:
+	$(CARGO) bench
+
+fmt:
+	$(CARGO) fmt --all
+
+lint:
+	$(CARGO) clippy --all-targets -- -D warnings
+
+clean:
+	$(CARGO) clean
+
+# The Python harness (reference generators, reports) lives in .venv with pinned
+# requirements; targets that need it depend on this one.
+.venv/.installed: harness/requirements.txt
+	python3 -m venv .venv
+	.venv/bin/pip install --quiet --upgrade pip
+	.venv/bin/pip install --quiet -r harness/requirements.txt
+	touch $@
+
+venv: .venv/.installed
