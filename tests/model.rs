@@ -1,0 +1,386 @@
+//! The assembled model against independent computations: constraint derivatives
+//! against finite differences, the mass matrix against rigid-body kinetic energy,
+//! forces against potential energy, and the two classical dynamics against each other.
+
+use mbfg::dynamics;
+use mbfg::kinematics;
+use mbfg::model::Model;
+use mbfg::scene::Scene;
+use nalgebra::{DMatrix, DVector};
+use std::path::PathBuf;
+
+fn scene_path(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name)
+}
+
+fn load(name: &str) -> Model {
+    let scene = Scene::load(scene_path(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
+    Model::new(&scene).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+const SUITE: &[&str] = &[
+    "fourbar.yaml",
+    "fourbar-theta.yaml",
+    "pendulum.yaml",
+    "double-pendulum.yaml",
+    "slider-crank.yaml",
+    "slotted-lever.yaml",
+    "spring-damper.yaml",
+    "pick-and-place.yaml",
+    "pick-and-place-mbse.yaml",
+];
+
+/// A small deterministic generator (no dependency for a few random numbers).
+struct Rng(u64);
+impl Rng {
+    fn uniform(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    }
+    fn vector(&mut self, n: usize, scale: f64) -> DVector<f64> {
+        DVector::from_fn(n, |_, _| scale * self.uniform())
+    }
+}
+
+/// Whether an angle coordinate sits near the switch between its two equation sets,
+/// where a finite-difference stencil could straddle both.
+fn near_angle_switch(model: &Model, q: &DVector<f64>) -> bool {
+    (model.relative_offset..model.n())
+        .any(|i| (q[i].sin().abs() - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-3)
+}
+
+/// A configuration near the initial one, perturbed (not on the constraint manifold:
+/// the derivative identities hold everywhere).
+fn random_configuration(model: &Model, rng: &mut Rng) -> DVector<f64> {
+    loop {
+        let q = &model.initial.q + rng.vector(model.n(), 0.3);
+        if !near_angle_switch(model, &q) {
+            return q;
+        }
+    }
+}
+
+/// Central-difference derivative of a matrix- or vector-valued function of q, column
+/// by column: returns d f / d q_j for every j.
+fn fd_columns(q: &DVector<f64>, f: &dyn Fn(&DVector<f64>) -> DVector<f64>) -> DMatrix<f64> {
+    let h = 1e-6;
+    let rows = f(q).len();
+    let mut out = DMatrix::zeros(rows, q.len());
+    for j in 0..q.len() {
+        let (mut up, mut dn) = (q.clone(), q.clone());
+        up[j] += h;
+        dn[j] -= h;
+        out.set_column(j, &((f(&up) - f(&dn)) / (2.0 * h)));
+    }
+    out
+}
+
+fn assert_close(a: &DMatrix<f64>, b: &DMatrix<f64>, rel: f64, what: &str) {
+    let scale = b.amax().max(1.0);
+    let err = (a - b).amax();
+    assert!(
+        err <= rel * scale,
+        "{what}: max difference {err:.3e} (scale {scale:.3e})\nclosed form:{a}\nfinite differences:{b}"
+    );
+}
+
+#[test]
+fn constraint_derivatives_match_finite_differences() {
+    let mut rng = Rng(11);
+    for name in SUITE {
+        let model = load(name);
+        for _ in 0..20 {
+            let q = random_configuration(&model, &mut rng);
+            let dq = rng.vector(model.n(), 1.0);
+            let v = rng.vector(model.n(), 1.0);
+
+            // Φ_q = ∂Φ/∂q.
+            let jac = model.jacobian(&q);
+            let fd = fd_columns(&q, &|x| model.phi(x));
+            assert_close(&jac, &fd, 1e-6, &format!("{name}: Φ_q"));
+
+            // Φ̇_q = d(Φ_q)/dt = Σ_j ∂Φ_q/∂q_j q̇_j, and ∂(Φ_q q̇)/∂q = Φ̇_q.
+            let jdot = model.jacobian_dot(&q, &dq);
+            let h = 1e-6;
+            let fd_dot =
+                (model.jacobian(&(&q + &dq * h)) - model.jacobian(&(&q - &dq * h))) / (2.0 * h);
+            assert_close(&jdot, &fd_dot, 1e-6, &format!("{name}: Φ̇_q"));
+            let fd_phiq_dq = fd_columns(&q, &|x| model.jacobian(x) * &dq);
+            assert_close(&jdot, &fd_phiq_dq, 1e-6, &format!("{name}: ∂(Φ_q q̇)/∂q"));
+
+            // ∂(Φ_q v)/∂q = Φ_qq v for any v (the Φ_qq q̈ term of the factors).
+            let jv = model.jacobian_derivative(&q, &v);
+            let fd_v = fd_columns(&q, &|x| model.jacobian(x) * &v);
+            assert_close(&jv, &fd_v, 1e-6, &format!("{name}: Φ_qq v"));
+
+            // ∂(Φ̇_q q̇)/∂q, with q̇ held constant.
+            let second = model.jacobian_dot_times_rate_derivative(&q, &dq);
+            let fd_second = fd_columns(&q, &|x| model.jacobian_dot(x, &dq) * &dq);
+            assert_close(&second, &fd_second, 1e-6, &format!("{name}: ∂(Φ̇_q q̇)/∂q"));
+
+            // c = −Φ̇_q q̇.
+            let c = model.acceleration_rhs(&q, &dq);
+            let c_ref = -(&jdot * &dq);
+            assert!(
+                (c - c_ref).amax() <= 1e-12 * jdot.amax().max(1.0),
+                "{name}: c"
+            );
+        }
+    }
+}
+
+/// Kinetic energy of a rigid body from its definition, ½ m |v_G|² + ½ I_G ω², for a
+/// velocity field generated by a random (v₁, ω).
+fn rigid_body_energy(body: &mbfg::scene::Body, r: &[[f64; 2]], v1: [f64; 2], omega: f64) -> f64 {
+    let (r1, r2) = (r[0], r[1]);
+    let e = [r2[0] - r1[0], r2[1] - r1[1]];
+    let len = e[0].hypot(e[1]);
+    let (ux, uy) = (e[0] / len, e[1] / len);
+    let rg = [
+        r1[0] + body.cog[0] * ux - body.cog[1] * uy,
+        r1[1] + body.cog[0] * uy + body.cog[1] * ux,
+    ];
+    let vg = [
+        v1[0] - omega * (rg[1] - r1[1]),
+        v1[1] + omega * (rg[0] - r1[0]),
+    ];
+    0.5 * body.mass * (vg[0] * vg[0] + vg[1] * vg[1]) + 0.5 * body.inertia_at_cog() * omega * omega
+}
+
+#[test]
+fn mass_matrix_gives_rigid_body_kinetic_energy() {
+    let mut rng = Rng(5);
+    for name in SUITE {
+        let model = load(name);
+        let q = &model.initial.q;
+        for body in &model.scene.bodies {
+            let r: Vec<[f64; 2]> = body
+                .points
+                .iter()
+                .map(|&p| model.point_position(q.as_slice(), p))
+                .collect();
+            let mb = mbfg::model::mass::body_mass_matrix(body);
+            for _ in 0..10 {
+                let v1 = [rng.uniform(), rng.uniform()];
+                let omega = 2.0 * rng.uniform();
+                let v2 = [
+                    v1[0] - omega * (r[1][1] - r[0][1]),
+                    v1[1] + omega * (r[1][0] - r[0][0]),
+                ];
+                let vb = [v1[0], v1[1], v2[0], v2[1]];
+                let t_matrix: f64 = (0..4)
+                    .map(|a| (0..4).map(|b| 0.5 * vb[a] * mb[a][b] * vb[b]).sum::<f64>())
+                    .sum();
+                let t_def = rigid_body_energy(body, &r, v1, omega);
+                assert!(
+                    (t_matrix - t_def).abs() <= 1e-12 * t_def.max(1e-3),
+                    "{name}, body {}: ½vᵀMv = {t_matrix}, rigid body {t_def}",
+                    body.name
+                );
+            }
+        }
+    }
+}
+
+/// The assembled M over a consistent velocity gives the sum of the bodies' energies.
+#[test]
+fn assembled_mass_matrix_sums_the_bodies() {
+    let mut rng = Rng(8);
+    for name in [
+        "fourbar-theta.yaml",
+        "pick-and-place.yaml",
+        "slider-crank.yaml",
+    ] {
+        let model = load(name);
+        let (q, dq) = random_state(&model, &model.independent, &mut rng);
+        let mut t_def = 0.0;
+        for body in &model.scene.bodies {
+            let r: Vec<[f64; 2]> = body
+                .points
+                .iter()
+                .map(|&p| model.point_position(q.as_slice(), p))
+                .collect();
+            let v: Vec<[f64; 2]> = body
+                .points
+                .iter()
+                .map(|&p| model.point_velocity(dq.as_slice(), p))
+                .collect();
+            let e = [r[1][0] - r[0][0], r[1][1] - r[0][1]];
+            let de = [v[1][0] - v[0][0], v[1][1] - v[0][1]];
+            let omega = (e[0] * de[1] - e[1] * de[0]) / (e[0] * e[0] + e[1] * e[1]);
+            t_def += rigid_body_energy(body, &r, v[0], omega);
+        }
+        for (p, point) in model.scene.points.iter().enumerate() {
+            let v = model.point_velocity(dq.as_slice(), p);
+            t_def += 0.5 * point.mass * (v[0] * v[0] + v[1] * v[1]);
+        }
+        let t_model = model.kinetic_energy(&dq);
+        assert!(
+            (t_model - t_def).abs() <= 1e-10 * t_def.max(1e-3),
+            "{name}: {t_model} vs {t_def}"
+        );
+    }
+}
+
+#[test]
+fn conservative_forces_are_minus_the_gradient_of_the_potential() {
+    let mut rng = Rng(3);
+    for name in SUITE {
+        let model = load(name);
+        if !model.scene.is_conservative() {
+            continue;
+        }
+        for _ in 0..10 {
+            let q = random_configuration(&model, &mut rng);
+            let zero = DVector::zeros(model.n());
+            let force = model.generalized_forces(&q, &zero, 0.0).unwrap();
+            let grad = fd_columns(&q, &|x| DVector::from_element(1, model.potential_energy(x)));
+            let err = (&force + grad.transpose()).amax();
+            assert!(
+                err <= 1e-6 * force.amax().max(1.0),
+                "{name}: Q + ∂V/∂q = {err:.3e}"
+            );
+        }
+    }
+}
+
+#[test]
+fn force_jacobians_match_finite_differences() {
+    let mut rng = Rng(9);
+    for name in ["spring-damper.yaml", "slotted-lever.yaml", "fourbar.yaml"] {
+        let model = load(name);
+        for _ in 0..10 {
+            let q = random_configuration(&model, &mut rng);
+            let dq = rng.vector(model.n(), 1.0);
+            let (kq, kv) = model.force_jacobians(&q, &dq).unwrap();
+            let fd_q = fd_columns(&q, &|x| model.generalized_forces(x, &dq, 0.3).unwrap());
+            let fd_v = fd_columns(&dq, &|v| model.generalized_forces(&q, v, 0.3).unwrap());
+            assert_close(&kq, &fd_q, 1e-6, &format!("{name}: ∂Q/∂q"));
+            assert_close(&kv, &fd_v, 1e-6, &format!("{name}: ∂Q/∂q̇"));
+        }
+    }
+}
+
+/// A consistent state away from the initial one: perturb the independent
+/// coordinates, close the position problem, give random independent velocities.
+fn random_state(
+    model: &Model,
+    independent: &[usize],
+    rng: &mut Rng,
+) -> (DVector<f64>, DVector<f64>) {
+    let mut q = model.initial.q.clone();
+    for &i in independent {
+        q[i] += 0.2 * rng.uniform();
+    }
+    kinematics::solve_position(model, &mut q, independent).expect("position problem");
+    let dz: Vec<f64> = independent.iter().map(|_| rng.uniform()).collect();
+    let dq = kinematics::solve_velocity(model, &q, independent, &dz).expect("velocity problem");
+    (q, dq)
+}
+
+#[test]
+fn lagrange_and_r_matrix_accelerations_agree() {
+    let mut rng = Rng(21);
+    for name in SUITE {
+        let model = load(name);
+        let independent = if model.independent.is_empty() {
+            kinematics::choose_independent(&model, &model.initial.q)
+        } else {
+            model.independent.clone()
+        };
+        assert_eq!(independent.len(), model.dof(), "{name}");
+        for _ in 0..10 {
+            let (q, dq) = random_state(&model, &independent, &mut rng);
+            let t = 0.1;
+            let kkt = dynamics::lagrange(&model, &q, &dq, t).unwrap();
+            let rm = dynamics::r_matrix(&model, &q, &dq, t, &independent).unwrap();
+            let err = (&kkt.ddq - &rm.ddq).amax();
+            assert!(
+                err <= 1e-10 * kkt.ddq.amax().max(1.0),
+                "{name}: |q̈_KKT − q̈_R| = {err:.3e}"
+            );
+            // Both satisfy the acceleration constraints, redundant rows included.
+            let resid = model.jacobian(&q) * &kkt.ddq - model.acceleration_rhs(&q, &dq);
+            assert!(
+                resid.amax() <= 1e-9,
+                "{name}: Φ_q q̈ − c = {:.3e}",
+                resid.amax()
+            );
+            // z̈ is q̈ restricted to the independent coordinates.
+            for (k, &i) in independent.iter().enumerate() {
+                assert!((rm.ddz[k] - kkt.ddq[i]).abs() <= 1e-10 * kkt.ddq.amax().max(1.0));
+            }
+        }
+    }
+}
+
+#[test]
+fn pendulum_acceleration_is_the_textbook_one() {
+    // Uniform rod hinged at one end, horizontal: θ̈ = −3g/(2L) cos θ = −14.715 rad/s².
+    let model = load("pendulum.yaml");
+    let s = dynamics::lagrange(&model, &model.initial.q, &model.initial.dq, 0.0).unwrap();
+    let theta = model.index_of("theta").unwrap();
+    assert!(
+        (s.ddq[theta] + 1.5 * 9.81).abs() < 1e-12,
+        "θ̈ = {}",
+        s.ddq[theta]
+    );
+}
+
+#[test]
+fn position_problem_keeps_independent_coordinates_and_closes() {
+    let model = load("fourbar-theta.yaml");
+    let theta = model.index_of("theta").unwrap();
+    let mut q = model.initial.q.clone();
+    q[theta] = 0.7;
+    let sol = kinematics::solve_position(&model, &mut q, &[theta]).unwrap();
+    assert_eq!(q[theta], 0.7);
+    assert!(model.phi(&q).amax() <= 1e-12 * 16.0, "{sol:?}");
+    // The crank tip sits at angle 0.7.
+    let (x, y) = (
+        q[model.index_of("P1.x").unwrap()],
+        q[model.index_of("P1.y").unwrap()],
+    );
+    assert!((y.atan2(x) - 0.7).abs() < 1e-12);
+    // Velocity and acceleration problems satisfy their equations.
+    let dq = kinematics::solve_velocity(&model, &q, &[theta], &[1.3]).unwrap();
+    assert!((model.jacobian(&q) * &dq).amax() < 1e-12);
+    assert_eq!(dq[theta], 1.3);
+    let ddq = kinematics::solve_acceleration(&model, &q, &dq, &[theta], &[-0.4]).unwrap();
+    let resid = model.jacobian(&q) * &ddq - model.acceleration_rhs(&q, &dq);
+    assert!(resid.amax() < 1e-11);
+}
+
+#[test]
+fn robot_has_one_redundant_constraint_and_two_dof_from_both_formats() {
+    let a = load("pick-and-place.yaml");
+    let b = load("pick-and-place-mbse.yaml");
+    for m in [&a, &b] {
+        assert_eq!(m.n(), 22);
+        assert_eq!(m.m(), 21);
+        assert_eq!(m.dof(), 2);
+        assert_eq!(m.redundant.len(), 1);
+    }
+    assert_eq!(a.names[..20], b.names[..20]);
+    assert!((&a.mass - &b.mass).amax() < 1e-12);
+    // Same dynamics from both descriptions.
+    let sa = dynamics::lagrange(&a, &a.initial.q, &a.initial.dq, 0.0).unwrap();
+    let sb = dynamics::lagrange(&b, &b.initial.q, &b.initial.dq, 0.0).unwrap();
+    assert!((sa.ddq - sb.ddq).amax() < 1e-12);
+}
+
+#[test]
+fn scene_without_effects_stays_at_rest() {
+    let mut scene = Scene::load(scene_path("fourbar.yaml")).unwrap();
+    scene.effects.clear();
+    let model = Model::new(&scene).unwrap();
+    assert!(model.forces.is_empty());
+    let s = dynamics::lagrange(&model, &model.initial.q, &model.initial.dq, 0.0).unwrap();
+    assert_eq!(s.ddq.amax(), 0.0);
+    assert_eq!(model.potential_energy(&model.initial.q), 0.0);
+}
