@@ -10,9 +10,13 @@ pub mod check;
 pub mod dynamics;
 pub mod error;
 pub mod expr;
+pub mod factors;
+pub mod graph;
 pub mod kinematics;
+pub mod linalg;
 pub mod model;
 pub mod scene;
+pub mod solver;
 
 pub use error::{Error, Result, SceneError};
 pub use model::Model;

@@ -4,7 +4,6 @@
 use super::{mass, Model, PointSlot};
 use crate::error::{Error, Result};
 use crate::scene::{Effect, TimeFunction};
-use nalgebra::DMatrix;
 
 /// One effect, ready to evaluate.
 #[derive(Debug, Clone)]
@@ -225,15 +224,16 @@ impl Force {
         Ok(())
     }
 
-    /// Adds ∂Q/∂q to `kq` and ∂Q/∂q̇ to `kv`.
+    /// Adds ∂Q/∂q to `kq` and ∂Q/∂q̇ to `kv` (row-major n × n).
     pub fn add_jacobians(
         &self,
         model: &Model,
         q: &[f64],
         dq: &[f64],
-        kq: &mut DMatrix<f64>,
-        kv: &mut DMatrix<f64>,
+        kq: &mut [f64],
+        kv: &mut [f64],
     ) -> Result<()> {
+        let n = model.n();
         match self {
             Force::SpringDamper {
                 name,
@@ -282,8 +282,8 @@ impl Force {
                         };
                         for r in 0..2 {
                             for col in 0..2 {
-                                kq[(i + r, j + col)] += si * sj * a[r][col];
-                                kv[(i + r, j + col)] += si * sj * b[r][col];
+                                kq[(i + r) * n + j + col] += si * sj * a[r][col];
+                                kv[(i + r) * n + j + col] += si * sj * b[r][col];
                             }
                         }
                     }
@@ -295,8 +295,8 @@ impl Force {
                 damping,
                 ..
             } => {
-                kq[(*index, *index)] -= stiffness;
-                kv[(*index, *index)] -= damping;
+                kq[index * n + index] -= stiffness;
+                kv[index * n + index] -= damping;
             }
             Force::Gravity { .. } | Force::Torque { .. } | Force::PointForce { .. } => {}
         }

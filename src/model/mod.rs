@@ -73,11 +73,11 @@ impl Constraint {
         }
     }
 
-    /// Adds the local row `local` into `row` of `out` (shared coordinates add up).
-    fn scatter(&self, local: &[f64], out: &mut DMatrix<f64>, row: usize) {
+    /// Adds the local row `local` into the global row `out` (shared coordinates add up).
+    fn scatter(&self, local: &[f64], out: &mut [f64]) {
         for k in 0..self.equation.len() {
             if let Some(i) = self.index[k] {
-                out[(row, i)] += local[k];
+                out[i] += local[k];
             }
         }
     }
@@ -398,42 +398,111 @@ impl Model {
         }
     }
 
+    /// Φ(q) into `out` (length m).
+    pub fn phi_into(&self, q: &[f64], out: &mut [f64]) {
+        let mut u = [0.0; MAX_LOCAL];
+        for (o, c) in out.iter_mut().zip(&self.constraints) {
+            c.gather(q, &mut u);
+            *o = c.equation.phi(&u);
+        }
+    }
+
+    /// Rows of a per-constraint local quantity scattered into a row-major m × n
+    /// matrix `out` (zeroed first). `local` gets (constraint, u, w, out-row).
+    fn rows_into(
+        &self,
+        q: &[f64],
+        v: Option<&[f64]>,
+        out: &mut [f64],
+        local: impl Fn(&Equation, &[f64], &[f64], &mut [f64]),
+    ) {
+        let n = self.n();
+        out[..self.m() * n].fill(0.0);
+        let (mut u, mut w, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (row, c) in self.constraints.iter().enumerate() {
+            c.gather(q, &mut u);
+            if let Some(v) = v {
+                c.gather_rate(v, &mut w);
+            }
+            local(&c.equation, &u, &w, &mut h);
+            c.scatter(&h, &mut out[row * n..(row + 1) * n]);
+        }
+    }
+
+    /// Φ_q(q) into a row-major m × n `out`.
+    pub fn jacobian_into(&self, q: &[f64], out: &mut [f64]) {
+        self.rows_into(q, None, out, |e, u, _, h| e.gradient(u, h));
+    }
+
+    /// ∂(Φ_q v)/∂q = Φ_qq v into a row-major m × n `out`. With v = q̇ this is Φ̇_q
+    /// (and also ∂(Φ_q q̇)/∂q, Appendix III); with v = q̈ it is the Φ_qq q̈ term of the
+    /// factor Jacobians.
+    pub fn jacobian_derivative_into(&self, q: &[f64], v: &[f64], out: &mut [f64]) {
+        self.rows_into(q, Some(v), out, |e, u, w, h| e.hessian_times(u, w, h));
+    }
+
+    /// ∂(Φ̇_q q̇)/∂q into a row-major m × n `out`.
+    pub fn third_order_into(&self, q: &[f64], dq: &[f64], out: &mut [f64]) {
+        self.rows_into(q, Some(dq), out, |e, u, w, h| e.third_order(u, w, h));
+    }
+
+    /// c = −Φ̇_q q̇ into `out` (length m).
+    pub fn acceleration_rhs_into(&self, q: &[f64], dq: &[f64], out: &mut [f64]) {
+        let (mut u, mut w, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (o, c) in out.iter_mut().zip(&self.constraints) {
+            c.gather(q, &mut u);
+            c.gather_rate(dq, &mut w);
+            c.equation.hessian_times(&u, &w, &mut h);
+            *o = -(0..c.equation.len()).map(|k| h[k] * w[k]).sum::<f64>();
+        }
+    }
+
+    /// Adds Σ_k λ_k ∂²Φ_k/∂q² over the active constraints (λ indexed like
+    /// `active`) to the row-major n × n `out`: the derivative of Φ_qᵀλ with λ fixed.
+    pub fn add_weighted_hessians(&self, q: &[f64], lambda: &[f64], out: &mut [f64]) {
+        let n = self.n();
+        let (mut u, mut e, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (&k, &l) in self.active.iter().zip(lambda) {
+            let c = &self.constraints[k];
+            c.gather(q, &mut u);
+            let len = c.equation.len();
+            for a in 0..len {
+                let Some(i) = c.index[a] else { continue };
+                e[..len].fill(0.0);
+                e[a] = 1.0;
+                c.equation.hessian_times(&u, &e, &mut h);
+                for b in 0..len {
+                    if let Some(j) = c.index[b] {
+                        out[j * n + i] += l * h[b];
+                    }
+                }
+            }
+        }
+    }
+
+    fn to_matrix(&self, rows: usize, data: &[f64]) -> DMatrix<f64> {
+        DMatrix::from_row_slice(rows, self.n(), data)
+    }
+
     /// Φ(q), all m equations.
     pub fn phi(&self, q: &DVector<f64>) -> DVector<f64> {
-        let mut u = [0.0; MAX_LOCAL];
-        DVector::from_iterator(
-            self.m(),
-            self.constraints.iter().map(|c| {
-                c.gather(q.as_slice(), &mut u);
-                c.equation.phi(&u)
-            }),
-        )
+        let mut out = DVector::zeros(self.m());
+        self.phi_into(q.as_slice(), out.as_mut_slice());
+        out
     }
 
     /// Φ_q(q), m × n.
     pub fn jacobian(&self, q: &DVector<f64>) -> DMatrix<f64> {
-        let mut out = DMatrix::zeros(self.m(), self.n());
-        let (mut u, mut g) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
-        for (row, c) in self.constraints.iter().enumerate() {
-            c.gather(q.as_slice(), &mut u);
-            c.equation.gradient(&u, &mut g);
-            c.scatter(&g, &mut out, row);
-        }
-        out
+        let mut out = vec![0.0; self.m() * self.n()];
+        self.jacobian_into(q.as_slice(), &mut out);
+        self.to_matrix(self.m(), &out)
     }
 
-    /// ∂(Φ_q v)/∂q = Φ_qq v, m × n. With v = q̇ this is Φ̇_q (and also ∂(Φ_q q̇)/∂q,
-    /// Appendix III); with v = q̈ it is the Φ_qq q̈ term of the factor Jacobians.
+    /// ∂(Φ_q v)/∂q = Φ_qq v, m × n (see [`Model::jacobian_derivative_into`]).
     pub fn jacobian_derivative(&self, q: &DVector<f64>, v: &DVector<f64>) -> DMatrix<f64> {
-        let mut out = DMatrix::zeros(self.m(), self.n());
-        let (mut u, mut w, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
-        for (row, c) in self.constraints.iter().enumerate() {
-            c.gather(q.as_slice(), &mut u);
-            c.gather_rate(v.as_slice(), &mut w);
-            c.equation.hessian_times(&u, &w, &mut h);
-            c.scatter(&h, &mut out, row);
-        }
-        out
+        let mut out = vec![0.0; self.m() * self.n()];
+        self.jacobian_derivative_into(q.as_slice(), v.as_slice(), &mut out);
+        self.to_matrix(self.m(), &out)
     }
 
     /// Φ̇_q = d(Φ_q)/dt at (q, q̇).
@@ -447,29 +516,16 @@ impl Model {
         q: &DVector<f64>,
         dq: &DVector<f64>,
     ) -> DMatrix<f64> {
-        let mut out = DMatrix::zeros(self.m(), self.n());
-        let (mut u, mut w, mut t) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
-        for (row, c) in self.constraints.iter().enumerate() {
-            c.gather(q.as_slice(), &mut u);
-            c.gather_rate(dq.as_slice(), &mut w);
-            c.equation.third_order(&u, &w, &mut t);
-            c.scatter(&t, &mut out, row);
-        }
-        out
+        let mut out = vec![0.0; self.m() * self.n()];
+        self.third_order_into(q.as_slice(), dq.as_slice(), &mut out);
+        self.to_matrix(self.m(), &out)
     }
 
     /// c = −Φ̇_q q̇, the right-hand side of the acceleration equations Φ_q q̈ = c.
     pub fn acceleration_rhs(&self, q: &DVector<f64>, dq: &DVector<f64>) -> DVector<f64> {
-        let (mut u, mut w, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
-        DVector::from_iterator(
-            self.m(),
-            self.constraints.iter().map(|c| {
-                c.gather(q.as_slice(), &mut u);
-                c.gather_rate(dq.as_slice(), &mut w);
-                c.equation.hessian_times(&u, &w, &mut h);
-                -(0..c.equation.len()).map(|k| h[k] * w[k]).sum::<f64>()
-            }),
-        )
+        let mut out = DVector::zeros(self.m());
+        self.acceleration_rhs_into(q.as_slice(), dq.as_slice(), out.as_mut_slice());
+        out
     }
 
     /// Generalized forces Q(q, q̇, t) of the scene's effects.
@@ -493,11 +549,11 @@ impl Model {
         dq: &DVector<f64>,
     ) -> Result<(DMatrix<f64>, DMatrix<f64>)> {
         let n = self.n();
-        let (mut kq, mut kv) = (DMatrix::zeros(n, n), DMatrix::zeros(n, n));
+        let (mut kq, mut kv) = (vec![0.0; n * n], vec![0.0; n * n]);
         for f in &self.forces {
             f.add_jacobians(self, q.as_slice(), dq.as_slice(), &mut kq, &mut kv)?;
         }
-        Ok((kq, kv))
+        Ok((self.to_matrix(n, &kq), self.to_matrix(n, &kv)))
     }
 
     /// Kinetic energy ½ q̇ᵀ M q̇.

@@ -29,6 +29,8 @@ pub struct BodySpec {
     pub mass: f64,
     pub cog: [f64; 2],
     pub i0: f64,
+    /// The line of `I0` when the file gives it (else the body's).
+    pub i0_line: u64,
     pub length: f64,
 }
 
@@ -113,7 +115,7 @@ pub fn add_body(
     let ig = body.inertia_at_cog();
     if ig < -1e-12 * body.i0.abs() {
         return Err(ctx.err(
-            line,
+            if spec.i0_line > 0 { spec.i0_line } else { line },
             &format!("{key}.I0"),
             format!(
                 "inertia about the first point ({}) is less than mass·|cog|² ({}): the inertia about the centre of mass would be negative",

@@ -34,8 +34,8 @@ impl<'a> Ctx<'a> {
         SceneError {
             file: self.file.to_string(),
             line: (line > 0).then_some(line),
-            key: key.to_string(),
-            message: message.into(),
+            key: one_line(key),
+            message: one_line(&message.into()),
         }
     }
 
@@ -147,6 +147,23 @@ impl<'a> Ctx<'a> {
         }
         Ok(())
     }
+}
+
+/// Text quoted from the file (a key, a type, an expression) may hold line breaks;
+/// an error is one line, so control characters are written escaped.
+fn one_line(text: &str) -> String {
+    if !text.chars().any(char::is_control) {
+        return text.to_string();
+    }
+    text.chars()
+        .map(|c| {
+            if c.is_control() {
+                c.escape_default().to_string()
+            } else {
+                c.to_string()
+            }
+        })
+        .collect()
 }
 
 /// A valid name: letters, digits, `_`, `-`, starting with a letter or `_`.

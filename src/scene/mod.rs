@@ -208,12 +208,7 @@ impl Scene {
     /// Parses scene text; `path` names the file in messages and resolves `mechanism:`.
     pub fn from_str(text: &str, path: &Path) -> crate::Result<Scene> {
         let file = path.display().to_string();
-        let root = yaml::parse(text).map_err(|e| SceneError {
-            file: file.clone(),
-            line: e.line,
-            key: String::new(),
-            message: format!("YAML syntax error: {}", e.message),
-        })?;
+        let root = parse_root(text, &file)?;
         if fields::is_mbse(&root) {
             Ok(mbse::read(&root, &file)?)
         } else {
@@ -239,6 +234,16 @@ impl Scene {
             Effect::Torque { .. } | Effect::Force { .. } => false,
         })
     }
+}
+
+/// Parses YAML text into a located tree; a syntax error names `file` and its line.
+fn parse_root(text: &str, file: &str) -> Result<yaml::Node, SceneError> {
+    yaml::parse(text).map_err(|e| SceneError {
+        file: file.to_string(),
+        line: e.line,
+        key: String::new(),
+        message: format!("YAML syntax error: {}", e.message),
+    })
 }
 
 impl Effect {

@@ -58,7 +58,21 @@ pub fn read(root: &Node, file: &str, dir: &Path) -> crate::Result<Scene> {
                 format!("cannot read '{}': {source}", path.display()),
             ))
         })?;
-        let mut base = Scene::from_str(&text, &path)?;
+        // Only an MBSE file: a scene as its own mechanism would be read forever.
+        let mech_file = path.display().to_string();
+        let mech_root = super::parse_root(&text, &mech_file)?;
+        if !super::fields::is_mbse(&mech_root) {
+            return Err(ctx
+                .err(
+                    mech.line,
+                    "mechanism",
+                    format!(
+                        "'{mech_file}' is not an MBSE mechanism file (it has no planar_bodies)"
+                    ),
+                )
+                .into());
+        }
+        let mut base = super::mbse::read(&mech_root, &mech_file)?;
         base.file = file.to_string();
         if let Some(p) = top.get("parameters") {
             ctx.read_parameters(p)?;
@@ -167,9 +181,10 @@ fn read_points(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneErr
     for (i, item) in items.iter().enumerate() {
         let path = format!("points[{i}]");
         let mut f = Fields::new(ctx, item, &path)?;
-        let name = name_of(ctx, f.req(ctx, "name")?, &f.key("name"))?;
+        let name_node = f.req(ctx, "name")?;
+        let name = name_of(ctx, name_node, &f.key("name"))?;
         let taken: Vec<&str> = scene.points.iter().map(|p| p.name.as_str()).collect();
-        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        check_unique(ctx, &taken, &name, name_node.line, &f.key("name"))?;
         let x = ctx.num(f.req(ctx, "x")?, &f.key("x"), &[])?;
         let y = ctx.num(f.req(ctx, "y")?, &f.key("y"), &[])?;
         let fixed = match f.get("fixed") {
@@ -203,12 +218,12 @@ fn read_bodies(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneErr
     for (i, item) in seq(ctx, node, "bodies")?.iter().enumerate() {
         let path = format!("bodies[{i}]");
         let mut f = Fields::new(ctx, item, &path)?;
-        let name = match f.get("name") {
-            Some(n) => name_of(ctx, n, &f.key("name"))?,
-            None => format!("body{i}"),
+        let (name, name_line) = match f.get("name") {
+            Some(n) => (name_of(ctx, n, &f.key("name"))?, n.line),
+            None => (format!("body{i}"), item.line),
         };
         let taken: Vec<&str> = scene.bodies.iter().map(|b| b.name.as_str()).collect();
-        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        check_unique(ctx, &taken, &name, name_line, &f.key("name"))?;
         let pts_node = f.req(ctx, "points")?;
         let points = seq(ctx, pts_node, &f.key("points"))?
             .iter()
@@ -327,6 +342,7 @@ pub fn body_spec(
         mass,
         cog,
         i0,
+        i0_line: i0_node.map_or(f.line, |n| n.line),
         length,
     })
 }
@@ -335,13 +351,13 @@ fn read_constraints(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
     for (i, item) in seq(ctx, node, "constraints")?.iter().enumerate() {
         let path = format!("constraints[{i}]");
         let mut f = Fields::new(ctx, item, &path)?;
-        let ty = type_of(ctx, &mut f)?;
-        let name = match f.get("name") {
-            Some(n) => name_of(ctx, n, &f.key("name"))?,
-            None => format!("{ty}{i}"),
+        let (ty, ty_line) = type_of(ctx, &mut f)?;
+        let (name, name_line) = match f.get("name") {
+            Some(n) => (name_of(ctx, n, &f.key("name"))?, n.line),
+            None => (format!("{ty}{i}"), item.line),
         };
         let taken: Vec<&str> = scene.constraints.iter().map(|c| c.name.as_str()).collect();
-        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        check_unique(ctx, &taken, &name, name_line, &f.key("name"))?;
         let kind = match ty.as_str() {
             "distance" => {
                 let points = point_pair(ctx, scene, f.req(ctx, "points")?, &f.key("points"))?;
@@ -379,7 +395,7 @@ fn read_constraints(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
                 }
             }
             other => {
-                return Err(ctx.err(item.line, &f.key("type"), format!("unknown constraint type '{other}' (expected distance, fixed_slider or mobile_slider)")))
+                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown constraint type '{other}' (expected distance, fixed_slider or mobile_slider)")))
             }
         };
         scene.constraints.push(ConstraintDef { name, kind });
@@ -387,26 +403,29 @@ fn read_constraints(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
     Ok(())
 }
 
-fn type_of(ctx: &Ctx, f: &mut Fields) -> Result<String, SceneError> {
+/// The `type` of an entry and the line it is on.
+fn type_of(ctx: &Ctx, f: &mut Fields) -> Result<(String, u64), SceneError> {
     let n = f.req(ctx, "type")?;
-    n.as_text().ok_or_else(|| {
+    let ty = n.as_text().ok_or_else(|| {
         ctx.err(
             n.line,
             &f.key("type"),
             format!("expected a type name, found {}", n.kind()),
         )
-    })
+    })?;
+    Ok((ty, n.line))
 }
 
 fn read_coordinates(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
     for (i, item) in seq(ctx, node, "coordinates")?.iter().enumerate() {
         let path = format!("coordinates[{i}]");
         let mut f = Fields::new(ctx, item, &path)?;
-        let ty = type_of(ctx, &mut f)?;
-        let name = name_of(ctx, f.req(ctx, "name")?, &f.key("name"))?;
+        let (ty, ty_line) = type_of(ctx, &mut f)?;
+        let name_node = f.req(ctx, "name")?;
+        let name = name_of(ctx, name_node, &f.key("name"))?;
         let mut taken: Vec<&str> = scene.coordinates.iter().map(|c| c.name.as_str()).collect();
         taken.extend(scene.points.iter().map(|p| p.name.as_str()));
-        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        check_unique(ctx, &taken, &name, name_node.line, &f.key("name"))?;
         let (kind, allowed): (RelativeKind, &[&str]) = match ty.as_str() {
             "angle" => {
                 let [from, to] = point_pair(ctx, scene, f.req(ctx, "points")?, &f.key("points"))?;
@@ -428,7 +447,7 @@ fn read_coordinates(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
                 (RelativeKind::Distance { point, along }, &["type", "name", "point", "along", "initial"])
             }
             other => {
-                return Err(ctx.err(item.line, &f.key("type"), format!("unknown coordinate type '{other}' (expected angle, relative_angle or distance)")))
+                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown coordinate type '{other}' (expected angle, relative_angle or distance)")))
             }
         };
         build::check_relative(ctx, scene, item.line, &path, &kind)?;
@@ -468,13 +487,13 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
     for (i, item) in seq(ctx, node, "effects")?.iter().enumerate() {
         let path = format!("effects[{i}]");
         let mut f = Fields::new(ctx, item, &path)?;
-        let ty = type_of(ctx, &mut f)?;
-        let name = match f.get("name") {
-            Some(n) => name_of(ctx, n, &f.key("name"))?,
-            None => format!("{ty}{i}"),
+        let (ty, ty_line) = type_of(ctx, &mut f)?;
+        let (name, name_line) = match f.get("name") {
+            Some(n) => (name_of(ctx, n, &f.key("name"))?, n.line),
+            None => (format!("{ty}{i}"), item.line),
         };
         let taken: Vec<&str> = names.iter().map(String::as_str).collect();
-        check_unique(ctx, &taken, &name, item.line, &f.key("name"))?;
+        check_unique(ctx, &taken, &name, name_line, &f.key("name"))?;
         let effect = match ty.as_str() {
             "gravity" => {
                 if scene.effects.iter().any(|e| matches!(e, Effect::Gravity { .. })) {
@@ -544,7 +563,7 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                 Effect::Force { name: name.clone(), point, value }
             }
             other => {
-                return Err(ctx.err(item.line, &f.key("type"), format!("unknown effect type '{other}' (expected gravity, spring_damper, rotational_spring_damper, torque or force)")))
+                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown effect type '{other}' (expected gravity, spring_damper, rotational_spring_damper, torque or force)")))
             }
         };
         names.push(name);

@@ -66,8 +66,10 @@ pub fn parse(text: &str) -> Result<Node, SyntaxError> {
         Err(e) => {
             let inner = e.without_snippet();
             let line = e.location().map(|l| l.line()).filter(|&l| l > 0);
+            // The user-facing wording: the default one gives advice on the
+            // parser's own API ("set DuplicateKeyPolicy in Options").
             let message = inner
-                .to_string()
+                .render_with_formatter(&serde_saphyr::UserMessageFormatter)
                 .lines()
                 .next()
                 .unwrap_or("invalid YAML")

@@ -1,0 +1,902 @@
+//! The factors of the paper's section 6, each with closed-form Jacobians.
+//!
+//! Generic: [`Prior`] (f_prior), [`Equality`] (f_eq), [`Euler`] (f_ei),
+//! [`Trapezoidal`] (f_ti). Dependent coordinates: [`PositionConstraints`] (f^d_pc),
+//! [`VelocityConstraints`] (f^d_vc), [`Dynamics`] (f^d_dyn). Independent coordinates:
+//! [`IndependentPosition`] (f^i_pc), [`IndependentVelocity`] (f^i_vc),
+//! [`IndependentAcceleration`] (f^i_ac), [`IndependentDynamics`] (f^i_dyn).
+//!
+//! The dynamics factors need ∂q̈/∂q and ∂q̈/∂q̇, which the paper took numerically. We
+//! differentiate the augmented system [M Φ_qᵀ; Φ_q 0][q̈; λ] = [Q; c] instead: with
+//! its LU factors already at hand for q̈, each Jacobian column costs one more pair of
+//! triangular solves, against a full re-factorization per column (two per column for
+//! central differences) for a numerical Jacobian — exact and several times cheaper.
+
+use crate::error::{Error, Result};
+use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::linalg::dense;
+use crate::model::Model;
+use std::sync::Arc;
+
+/// f_prior: e = x − x₀ on one variable.
+pub struct Prior {
+    name: String,
+    keys: [Key; 1],
+    target: Vec<f64>,
+    noise: Noise,
+}
+
+impl Prior {
+    pub fn new(kind: VarKind, target: Vec<f64>, noise: Noise) -> Self {
+        Prior {
+            name: format!("f_prior({})", kind.symbol()),
+            keys: [Key::now(kind)],
+            target,
+            noise,
+        }
+    }
+}
+
+impl Factor for Prior {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.target.len()
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        for (i, ri) in r.iter_mut().enumerate() {
+            *ri = x[0][i] - self.target[i];
+        }
+        if let Some(j) = jac {
+            identity(&mut j[0], self.dim(), 1.0);
+        }
+        Ok(())
+    }
+}
+
+/// Writes `scale`·I into a row-major d × d block.
+fn identity(block: &mut [f64], d: usize, scale: f64) {
+    block.fill(0.0);
+    for i in 0..d {
+        block[i * d + i] = scale;
+    }
+}
+
+/// f_eq: e = x_t − x_{t−1}, a soft link between consecutive steps.
+pub struct Equality {
+    name: String,
+    keys: [Key; 2],
+    dim: usize,
+    noise: Noise,
+}
+
+impl Equality {
+    pub fn new(kind: VarKind, dim: usize, noise: Noise) -> Self {
+        Equality {
+            name: format!("f_eq({})", kind.symbol()),
+            keys: [Key::before(kind), Key::now(kind)],
+            dim,
+            noise,
+        }
+    }
+}
+
+impl Factor for Equality {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.dim
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        for (i, ri) in r.iter_mut().enumerate() {
+            *ri = x[1][i] - x[0][i];
+        }
+        if let Some(j) = jac {
+            identity(&mut j[0], self.dim, -1.0);
+            identity(&mut j[1], self.dim, 1.0);
+        }
+        Ok(())
+    }
+}
+
+/// f_ei: e = x_t − x_{t−1} − Δt ẋ_{t−1}.
+pub struct Euler {
+    name: String,
+    keys: [Key; 3],
+    dim: usize,
+    dt: f64,
+    noise: Noise,
+}
+
+impl Euler {
+    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64, noise: Noise) -> Self {
+        Euler {
+            name: format!("f_ei({})", x.symbol()),
+            keys: [Key::before(x), Key::now(x), Key::before(dx)],
+            dim,
+            dt,
+            noise,
+        }
+    }
+}
+
+impl Factor for Euler {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.dim
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        for (i, ri) in r.iter_mut().enumerate() {
+            *ri = x[1][i] - x[0][i] - self.dt * x[2][i];
+        }
+        if let Some(j) = jac {
+            identity(&mut j[0], self.dim, -1.0);
+            identity(&mut j[1], self.dim, 1.0);
+            identity(&mut j[2], self.dim, -self.dt);
+        }
+        Ok(())
+    }
+}
+
+/// f_ti: e = x_t − x_{t−1} − Δt/2 (ẋ_{t−1} + ẋ_t).
+pub struct Trapezoidal {
+    name: String,
+    keys: [Key; 4],
+    dim: usize,
+    dt: f64,
+    noise: Noise,
+}
+
+impl Trapezoidal {
+    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64, noise: Noise) -> Self {
+        Trapezoidal {
+            name: format!("f_ti({})", x.symbol()),
+            keys: [Key::before(x), Key::now(x), Key::before(dx), Key::now(dx)],
+            dim,
+            dt,
+            noise,
+        }
+    }
+}
+
+impl Factor for Trapezoidal {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.dim
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        let h = 0.5 * self.dt;
+        for (i, ri) in r.iter_mut().enumerate() {
+            *ri = x[1][i] - x[0][i] - h * (x[2][i] + x[3][i]);
+        }
+        if let Some(j) = jac {
+            identity(&mut j[0], self.dim, -1.0);
+            identity(&mut j[1], self.dim, 1.0);
+            identity(&mut j[2], self.dim, -h);
+            identity(&mut j[3], self.dim, -h);
+        }
+        Ok(())
+    }
+}
+
+/// f^d_pc: e = Φ(q).
+pub struct PositionConstraints {
+    model: Arc<Model>,
+    keys: [Key; 1],
+    noise: Noise,
+}
+
+impl PositionConstraints {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        PositionConstraints {
+            model,
+            keys: [Key::now(VarKind::Q)],
+            noise,
+        }
+    }
+}
+
+impl Factor for PositionConstraints {
+    fn name(&self) -> &str {
+        "f^d_pc"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.model.m()
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        self.model.phi_into(x[0], r);
+        if let Some(j) = jac {
+            self.model.jacobian_into(x[0], &mut j[0]);
+        }
+        Ok(())
+    }
+}
+
+/// f^d_vc: e = Φ_q(q) q̇, with ∂e/∂q = Φ_qq q̇ = Φ̇_q and ∂e/∂q̇ = Φ_q.
+pub struct VelocityConstraints {
+    model: Arc<Model>,
+    keys: [Key; 2],
+    noise: Noise,
+}
+
+impl VelocityConstraints {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        VelocityConstraints {
+            model,
+            keys: [Key::now(VarKind::Q), Key::now(VarKind::Dq)],
+            noise,
+        }
+    }
+}
+
+impl Factor for VelocityConstraints {
+    fn name(&self) -> &str {
+        "f^d_vc"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.model.m()
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn scratch(&self) -> (usize, usize) {
+        (self.model.m() * self.model.n(), 0)
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        let a = &mut ws.reals[..m * n];
+        self.model.jacobian_into(x[0], a);
+        mat_vec(a, m, n, x[1], r);
+        if let Some(j) = jac {
+            self.model.jacobian_derivative_into(x[0], x[1], &mut j[0]);
+            j[1].copy_from_slice(a);
+        }
+        Ok(())
+    }
+}
+
+/// y = A x for a row-major rows × cols A.
+fn mat_vec(a: &[f64], rows: usize, cols: usize, x: &[f64], y: &mut [f64]) {
+    for i in 0..rows {
+        y[i] = (0..cols).map(|j| a[i * cols + j] * x[j]).sum();
+    }
+}
+
+/// Forward dynamics q̈(q, q̇, t) by the augmented system, and optionally its exact
+/// Jacobians, without allocating.
+///
+/// With K = [M A_ᵀ; A 0] (A: the active rows of Φ_q) and [q̈; λ] = K⁻¹[Q; c]:
+///   K [∂q̈/∂q; ∂λ/∂q] = [∂Q/∂q − ∂(Φ_qᵀλ)/∂q; −∂(Φ̇_q q̇)/∂q − Φ_qq q̈]
+///   K [∂q̈/∂q̇; ∂λ/∂q̇] = [∂Q/∂q̇; −2 Φ̇_q]
+/// (rows of the right-hand sides restricted to the active constraints).
+pub struct DynamicsKernel;
+
+/// Where the kernel's scratch lives inside `ws.reals`.
+struct KernelLayout {
+    n: usize,
+    ma: usize,
+    sol: usize,
+    tmp: usize,
+    mat: usize,
+    kq: usize,
+    kv: usize,
+    cols: usize,
+    c: usize,
+    end: usize,
+}
+
+impl KernelLayout {
+    fn new(model: &Model) -> Self {
+        let (n, m, ma) = (model.n(), model.m(), model.active.len());
+        let big = n + ma;
+        let sol = big * big;
+        let tmp = sol + big;
+        let mat = tmp + big;
+        let kq = mat + m * n;
+        let kv = kq + n * n;
+        let cols = kv + n * n;
+        let c = cols + 2 * n * big;
+        let end = c + m;
+        KernelLayout {
+            n,
+            ma,
+            sol,
+            tmp,
+            mat,
+            kq,
+            kv,
+            cols,
+            c,
+            end,
+        }
+    }
+}
+
+impl DynamicsKernel {
+    /// Scratch needed: (reals, indices).
+    pub fn scratch(model: &Model) -> (usize, usize) {
+        let l = KernelLayout::new(model);
+        (l.end, l.n + l.ma)
+    }
+
+    /// Computes q̈ into `ddq`; with `jac`, ∂q̈/∂q and ∂q̈/∂q̇ into the row-major n × n
+    /// blocks. `force`, when given, replaces the scene's Q (inverse dynamics).
+    #[allow(clippy::too_many_arguments)]
+    pub fn evaluate(
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        t: f64,
+        force: Option<&[f64]>,
+        ddq: &mut [f64],
+        jac: Option<(&mut [f64], &mut [f64])>,
+        reals: &mut [f64],
+        indices: &mut [usize],
+    ) -> Result<()> {
+        let l = KernelLayout::new(model);
+        let (n, ma) = (l.n, l.ma);
+        let big = n + ma;
+        let m = model.m();
+        let perm = &mut indices[..big];
+        let (kkt, rest) = reals[..l.end].split_at_mut(l.sol);
+        let (sol, rest) = rest.split_at_mut(l.tmp - l.sol);
+        let (tmp, rest) = rest.split_at_mut(l.mat - l.tmp);
+        let (mat, rest) = rest.split_at_mut(l.kq - l.mat);
+        let (kq, rest) = rest.split_at_mut(l.kv - l.kq);
+        let (kv, rest) = rest.split_at_mut(l.cols - l.kv);
+        let (cols, rest) = rest.split_at_mut(l.c - l.cols);
+        let c = &mut rest[..m];
+
+        // K = [M Aᵀ; A 0] and the right-hand side [Q; c].
+        model.jacobian_into(q, mat);
+        kkt.fill(0.0);
+        for i in 0..n {
+            for j in 0..n {
+                kkt[i * big + j] = model.mass[(i, j)];
+            }
+        }
+        for (r, &k) in model.active.iter().enumerate() {
+            for j in 0..n {
+                let a = mat[k * n + j];
+                kkt[(n + r) * big + j] = a;
+                kkt[j * big + n + r] = a;
+            }
+        }
+        sol.fill(0.0);
+        match force {
+            Some(f) => sol[..n].copy_from_slice(f),
+            None => {
+                for f in &model.forces {
+                    f.add_to(model, q, dq, t, &mut sol[..n])?;
+                }
+            }
+        }
+        model.acceleration_rhs_into(q, dq, c);
+        for (r, &k) in model.active.iter().enumerate() {
+            sol[n + r] = c[k];
+        }
+        dense::lu(kkt, big, perm).map_err(|_| {
+            Error::Singular("the augmented (KKT) system is singular: a singular configuration or dependent constraints".into())
+        })?;
+        dense::lu_solve(kkt, big, perm, sol, tmp);
+        ddq.copy_from_slice(&sol[..n]);
+        let Some((jq, jv)) = jac else {
+            return Ok(());
+        };
+
+        // Right-hand sides, column-major: n columns for q, then n for q̇.
+        kq.fill(0.0);
+        kv.fill(0.0);
+        if force.is_none() {
+            for f in &model.forces {
+                f.add_jacobians(model, q, dq, kq, kv)?;
+            }
+        }
+        // kq −= ∂(Φ_qᵀλ)/∂q, accumulated with −λ.
+        for (t, l) in tmp.iter_mut().zip(&sol[n..big]) {
+            *t = -l;
+        }
+        model.add_weighted_hessians(q, &tmp[..ma], kq);
+        // Bottom rows for q: −∂(Φ̇_q q̇)/∂q − Φ_qq q̈.
+        model.third_order_into(q, dq, mat);
+        for j in 0..n {
+            let col = &mut cols[j * big..(j + 1) * big];
+            for i in 0..n {
+                col[i] = kq[i * n + j];
+            }
+        }
+        let ddq_now: &[f64] = ddq;
+        for (r, &k) in model.active.iter().enumerate() {
+            for j in 0..n {
+                cols[j * big + n + r] = -mat[k * n + j];
+            }
+        }
+        model.jacobian_derivative_into(q, ddq_now, mat);
+        for (r, &k) in model.active.iter().enumerate() {
+            for j in 0..n {
+                cols[j * big + n + r] -= mat[k * n + j];
+            }
+        }
+        // Columns for q̇: [∂Q/∂q̇; −2 Φ̇_q].
+        model.jacobian_derivative_into(q, dq, mat);
+        for j in 0..n {
+            let col = &mut cols[(n + j) * big..(n + j + 1) * big];
+            for i in 0..n {
+                col[i] = kv[i * n + j];
+            }
+            for (r, &k) in model.active.iter().enumerate() {
+                col[n + r] = -2.0 * mat[k * n + j];
+            }
+        }
+        for j in 0..2 * n {
+            dense::lu_solve(kkt, big, perm, &mut cols[j * big..(j + 1) * big], tmp);
+        }
+        for i in 0..n {
+            for j in 0..n {
+                jq[i * n + j] = cols[j * big + i];
+                jv[i * n + j] = cols[(n + j) * big + i];
+            }
+        }
+        Ok(())
+    }
+}
+
+/// f^d_dyn: e = q̈(q, q̇, t) − q̈_t.
+pub struct Dynamics {
+    model: Arc<Model>,
+    keys: [Key; 3],
+    noise: Noise,
+}
+
+impl Dynamics {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        Dynamics {
+            model,
+            keys: [
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Ddq),
+            ],
+            noise,
+        }
+    }
+}
+
+impl Factor for Dynamics {
+    fn name(&self) -> &str {
+        "f^d_dyn"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.model.n()
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn scratch(&self) -> (usize, usize) {
+        DynamicsKernel::scratch(&self.model)
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let n = self.model.n();
+        match jac {
+            Some(j) => {
+                let (jq, rest) = j.split_at_mut(1);
+                let (jv, ja) = rest.split_at_mut(1);
+                DynamicsKernel::evaluate(
+                    &self.model,
+                    x[0],
+                    x[1],
+                    t,
+                    None,
+                    r,
+                    Some((&mut jq[0], &mut jv[0])),
+                    &mut ws.reals,
+                    &mut ws.indices,
+                )?;
+                identity(&mut ja[0], n, -1.0);
+            }
+            None => DynamicsKernel::evaluate(
+                &self.model,
+                x[0],
+                x[1],
+                t,
+                None,
+                r,
+                None,
+                &mut ws.reals,
+                &mut ws.indices,
+            )?,
+        }
+        for i in 0..n {
+            r[i] -= x[2][i];
+        }
+        Ok(())
+    }
+}
+
+/// f^i_pc: e = [Φ(q); q[idx] − z].
+pub struct IndependentPosition {
+    model: Arc<Model>,
+    keys: [Key; 2],
+    noise: Noise,
+}
+
+impl IndependentPosition {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        IndependentPosition {
+            model,
+            keys: [Key::now(VarKind::Q), Key::now(VarKind::Z)],
+            noise,
+        }
+    }
+}
+
+/// Writes the selection rows q[idx] − z: I_idx into `jq` rows m.., −I into `jz`.
+fn selection_rows(model: &Model, m: usize, jq: &mut [f64], jz: Option<&mut [f64]>) {
+    let (n, f) = (model.n(), model.independent.len());
+    jq[m * n..(m + f) * n].fill(0.0);
+    for (k, &i) in model.independent.iter().enumerate() {
+        jq[(m + k) * n + i] = 1.0;
+    }
+    if let Some(jz) = jz {
+        jz.fill(0.0);
+        for k in 0..f {
+            jz[(m + k) * f + k] = -1.0;
+        }
+    }
+}
+
+impl Factor for IndependentPosition {
+    fn name(&self) -> &str {
+        "f^i_pc"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.model.m() + self.model.independent.len()
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        self.model.phi_into(x[0], &mut r[..m]);
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[m + k] = x[0][i] - x[1][k];
+        }
+        if let Some(j) = jac {
+            let (jq, jz) = j.split_at_mut(1);
+            self.model.jacobian_into(x[0], &mut jq[0][..m * n]);
+            selection_rows(&self.model, m, &mut jq[0], Some(&mut jz[0]));
+        }
+        Ok(())
+    }
+}
+
+/// f^i_vc: e = [Φ_q q̇; q̇[idx] − ż].
+pub struct IndependentVelocity {
+    model: Arc<Model>,
+    keys: [Key; 3],
+    noise: Noise,
+}
+
+impl IndependentVelocity {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        IndependentVelocity {
+            model,
+            keys: [
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Dz),
+            ],
+            noise,
+        }
+    }
+}
+
+impl Factor for IndependentVelocity {
+    fn name(&self) -> &str {
+        "f^i_vc"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.model.m() + self.model.independent.len()
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn scratch(&self) -> (usize, usize) {
+        (self.model.m() * self.model.n(), 0)
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        let a = &mut ws.reals[..m * n];
+        self.model.jacobian_into(x[0], a);
+        mat_vec(a, m, n, x[1], &mut r[..m]);
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[m + k] = x[1][i] - x[2][k];
+        }
+        if let Some(j) = jac {
+            let (jq, rest) = j.split_at_mut(1);
+            let (jv, jz) = rest.split_at_mut(1);
+            self.model
+                .jacobian_derivative_into(x[0], x[1], &mut jq[0][..m * n]);
+            jq[0][m * n..].fill(0.0);
+            jv[0][..m * n].copy_from_slice(a);
+            selection_rows(&self.model, m, &mut jv[0], Some(&mut jz[0]));
+        }
+        Ok(())
+    }
+}
+
+/// f^i_ac: e = [Φ̇_q q̇ + Φ_q q̈; q̈[idx] − z̈].
+pub struct IndependentAcceleration {
+    model: Arc<Model>,
+    keys: [Key; 4],
+    noise: Noise,
+}
+
+impl IndependentAcceleration {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        IndependentAcceleration {
+            model,
+            keys: [
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Ddq),
+                Key::now(VarKind::Ddz),
+            ],
+            noise,
+        }
+    }
+}
+
+impl Factor for IndependentAcceleration {
+    fn name(&self) -> &str {
+        "f^i_ac"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.model.m() + self.model.independent.len()
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn scratch(&self) -> (usize, usize) {
+        (self.model.m() * self.model.n() + self.model.m(), 0)
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        let (q, dq, ddq, ddz) = (x[0], x[1], x[2], x[3]);
+        let (a, rest) = ws.reals.split_at_mut(m * n);
+        let c = &mut rest[..m];
+        self.model.jacobian_into(q, a);
+        self.model.acceleration_rhs_into(q, dq, c);
+        mat_vec(a, m, n, ddq, &mut r[..m]);
+        for k in 0..m {
+            r[k] -= c[k]; // Φ_q q̈ + Φ̇_q q̇ with Φ̇_q q̇ = −c
+        }
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[m + k] = ddq[i] - ddz[k];
+        }
+        if let Some(j) = jac {
+            let (jq, rest) = j.split_at_mut(1);
+            let (jv, rest) = rest.split_at_mut(1);
+            let (ja, jz) = rest.split_at_mut(1);
+            // ∂/∂q = ∂(Φ̇_q q̇)/∂q + Φ_qq q̈; ∂/∂q̇ = 2 Φ̇_q; ∂/∂q̈ = [Φ_q; I_idx].
+            ja[0][..m * n].copy_from_slice(a);
+            selection_rows(&self.model, m, &mut ja[0], Some(&mut jz[0]));
+            self.model.third_order_into(q, dq, &mut jq[0][..m * n]);
+            self.model.jacobian_derivative_into(q, ddq, a);
+            for (v, w) in jq[0][..m * n].iter_mut().zip(a.iter()) {
+                *v += w;
+            }
+            jq[0][m * n..].fill(0.0);
+            self.model
+                .jacobian_derivative_into(q, dq, &mut jv[0][..m * n]);
+            for v in &mut jv[0][..m * n] {
+                *v *= 2.0;
+            }
+            jv[0][m * n..].fill(0.0);
+        }
+        Ok(())
+    }
+}
+
+/// f^i_dyn: e = z̈(q, q̇, t) − z̈_t, with z̈ = q̈[idx] — the R-matrix result, computed
+/// through the augmented system (the two agree to round-off; tested in `tests/model.rs`).
+pub struct IndependentDynamics {
+    model: Arc<Model>,
+    keys: [Key; 3],
+    noise: Noise,
+}
+
+impl IndependentDynamics {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        IndependentDynamics {
+            model,
+            keys: [
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Ddz),
+            ],
+            noise,
+        }
+    }
+}
+
+impl Factor for IndependentDynamics {
+    fn name(&self) -> &str {
+        "f^i_dyn"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        self.model.independent.len()
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn scratch(&self) -> (usize, usize) {
+        let (r, i) = DynamicsKernel::scratch(&self.model);
+        let n = self.model.n();
+        (r + 2 * n * n + n, i)
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let n = self.model.n();
+        let f = self.model.independent.len();
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let (ddq, own) = own.split_at_mut(n);
+        let (jq, own) = own.split_at_mut(n * n);
+        let jv = &mut own[..n * n];
+        let want = jac.is_some();
+        let result = DynamicsKernel::evaluate(
+            &self.model,
+            x[0],
+            x[1],
+            t,
+            None,
+            ddq,
+            want.then_some((&mut *jq, &mut *jv)),
+            kernel,
+            &mut ws.indices,
+        );
+        result?;
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[k] = ddq[i] - x[2][k];
+        }
+        if let Some(j) = jac {
+            for (k, &i) in self.model.independent.iter().enumerate() {
+                j[0][k * n..(k + 1) * n].copy_from_slice(&jq[i * n..(i + 1) * n]);
+                j[1][k * n..(k + 1) * n].copy_from_slice(&jv[i * n..(i + 1) * n]);
+            }
+            identity(&mut j[2], f, -1.0);
+        }
+        Ok(())
+    }
+}

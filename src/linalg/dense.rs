@@ -1,0 +1,199 @@
+//! Small dense kernels that work in place on row-major slices, for the hot loops of
+//! the solver and the dynamics factors, where nalgebra's owning decompositions would
+//! allocate on every call.
+
+/// A dense factorization failed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DenseError {
+    /// Cholesky met a non-positive pivot at this row.
+    NotPositiveDefinite(usize),
+    /// LU met a (numerically) zero pivot at this column.
+    Singular(usize),
+}
+
+/// In-place lower Cholesky of the symmetric positive definite n×n matrix `a`
+/// (row-major, lower triangle read): afterwards a = L (upper triangle zeroed).
+pub fn cholesky(a: &mut [f64], n: usize) -> Result<(), DenseError> {
+    for j in 0..n {
+        let mut d = a[j * n + j];
+        for k in 0..j {
+            d -= a[j * n + k] * a[j * n + k];
+        }
+        if !(d > 0.0) || !d.is_finite() {
+            return Err(DenseError::NotPositiveDefinite(j));
+        }
+        let d = d.sqrt();
+        a[j * n + j] = d;
+        for i in j + 1..n {
+            let mut s = a[i * n + j];
+            for k in 0..j {
+                s -= a[i * n + k] * a[j * n + k];
+            }
+            a[i * n + j] = s / d;
+        }
+        for k in j + 1..n {
+            a[j * n + k] = 0.0;
+        }
+    }
+    Ok(())
+}
+
+/// Solves L y = b in place (L lower, from [`cholesky`]).
+pub fn solve_lower(l: &[f64], n: usize, b: &mut [f64]) {
+    for i in 0..n {
+        let mut s = b[i];
+        for k in 0..i {
+            s -= l[i * n + k] * b[k];
+        }
+        b[i] = s / l[i * n + i];
+    }
+}
+
+/// Solves Lᵀ x = y in place.
+pub fn solve_lower_transpose(l: &[f64], n: usize, b: &mut [f64]) {
+    for i in (0..n).rev() {
+        let mut s = b[i];
+        for k in i + 1..n {
+            s -= l[k * n + i] * b[k];
+        }
+        b[i] = s / l[i * n + i];
+    }
+}
+
+/// Solves (L Lᵀ) x = b in place.
+pub fn cholesky_solve(l: &[f64], n: usize, b: &mut [f64]) {
+    solve_lower(l, n, b);
+    solve_lower_transpose(l, n, b);
+}
+
+/// In-place LU with partial pivoting of the n×n matrix `a` (row-major): P a = L U
+/// with unit-diagonal L below and U on and above the diagonal; `perm[i]` is the
+/// original row now at row i. A pivot below `tol` × the largest entry is singular.
+pub fn lu(a: &mut [f64], n: usize, perm: &mut [usize]) -> Result<(), DenseError> {
+    let scale = a[..n * n].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let tol = 1e-14 * scale;
+    for (i, p) in perm.iter_mut().enumerate().take(n) {
+        *p = i;
+    }
+    for k in 0..n {
+        let mut piv = k;
+        let mut best = a[k * n + k].abs();
+        for i in k + 1..n {
+            let v = a[i * n + k].abs();
+            if v > best {
+                best = v;
+                piv = i;
+            }
+        }
+        if !(best > tol) {
+            return Err(DenseError::Singular(k));
+        }
+        if piv != k {
+            for j in 0..n {
+                a.swap(k * n + j, piv * n + j);
+            }
+            perm.swap(k, piv);
+        }
+        let d = a[k * n + k];
+        for i in k + 1..n {
+            let f = a[i * n + k] / d;
+            a[i * n + k] = f;
+            if f != 0.0 {
+                for j in k + 1..n {
+                    a[i * n + j] -= f * a[k * n + j];
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Solves A x = b with the factors of [`lu`]; `tmp` has length n.
+pub fn lu_solve(lu: &[f64], n: usize, perm: &[usize], b: &mut [f64], tmp: &mut [f64]) {
+    for i in 0..n {
+        tmp[i] = b[perm[i]];
+    }
+    for i in 0..n {
+        let mut s = tmp[i];
+        for k in 0..i {
+            s -= lu[i * n + k] * tmp[k];
+        }
+        tmp[i] = s;
+    }
+    for i in (0..n).rev() {
+        let mut s = tmp[i];
+        for k in i + 1..n {
+            s -= lu[i * n + k] * tmp[k];
+        }
+        tmp[i] = s / lu[i * n + i];
+    }
+    b[..n].copy_from_slice(&tmp[..n]);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::DMatrix;
+
+    fn random(n: usize, seed: u64) -> DMatrix<f64> {
+        let mut s = seed;
+        DMatrix::from_fn(n, n, |_, _| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        })
+    }
+
+    fn row_major(m: &DMatrix<f64>) -> Vec<f64> {
+        m.transpose().as_slice().to_vec()
+    }
+
+    #[test]
+    fn cholesky_matches_nalgebra() {
+        for n in [1, 3, 12, 30] {
+            let r = random(n, n as u64);
+            let a = &r * r.transpose() + DMatrix::identity(n, n);
+            let mut l = row_major(&a);
+            cholesky(&mut l, n).unwrap();
+            let b: Vec<f64> = (0..n).map(|i| i as f64 - 1.5).collect();
+            let mut x = b.clone();
+            cholesky_solve(&l, n, &mut x);
+            let expect = a
+                .clone()
+                .cholesky()
+                .unwrap()
+                .solve(&nalgebra::DVector::from_vec(b));
+            for i in 0..n {
+                assert!((x[i] - expect[i]).abs() < 1e-10 * expect.amax().max(1.0));
+            }
+        }
+        let mut bad = vec![1.0, 2.0, 2.0, 1.0];
+        assert_eq!(
+            cholesky(&mut bad, 2),
+            Err(DenseError::NotPositiveDefinite(1))
+        );
+    }
+
+    #[test]
+    fn lu_solves_general_systems() {
+        for n in [1, 4, 7, 25] {
+            let a = random(n, 100 + n as u64);
+            let mut f = row_major(&a);
+            let mut perm = vec![0; n];
+            lu(&mut f, n, &mut perm).unwrap();
+            let b: Vec<f64> = (0..n).map(|i| (i as f64).sin()).collect();
+            let mut x = b.clone();
+            let mut tmp = vec![0.0; n];
+            lu_solve(&f, n, &perm, &mut x, &mut tmp);
+            let r = &a * nalgebra::DVector::from_vec(x) - nalgebra::DVector::from_vec(b);
+            assert!(r.amax() < 1e-10, "n = {n}: residual {}", r.amax());
+        }
+        let mut singular = vec![1.0, 2.0, 2.0, 4.0];
+        let mut perm = vec![0; 2];
+        assert!(matches!(
+            lu(&mut singular, 2, &mut perm),
+            Err(DenseError::Singular(_))
+        ));
+    }
+}
