@@ -113,7 +113,7 @@ impl Noise {
     /// σ of hard factors: small enough that the solution satisfies them to round-off
     /// against soft factors of σ ≥ 1e-6, large enough to keep the normal equations
     /// well conditioned in double precision.
-    pub const HARD_SIGMA: f64 = 1e-9;
+    pub const HARD_SIGMA: f64 = 1e-6;
 
     /// 1/σ for row `i`.
     pub fn weight(&self, i: usize) -> f64 {

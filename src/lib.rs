@@ -11,11 +11,14 @@ pub mod dynamics;
 pub mod error;
 pub mod expr;
 pub mod factors;
+pub mod forward;
 pub mod graph;
 pub mod kinematics;
 pub mod linalg;
 pub mod model;
+pub mod reference;
 pub mod scene;
+pub mod smoother;
 pub mod solver;
 
 pub use error::{Error, Result, SceneError};

@@ -24,7 +24,8 @@ pub struct Settings {
     pub method: Method,
     pub max_iterations: usize,
     pub step_tolerance: f64,
-    /// LM's initial damping, relative to the diagonal of the normal equations.
+    /// LM's damping when a step first fails, relative to the diagonal of the normal
+    /// equations (solves start undamped).
     pub initial_damping: f64,
 }
 
@@ -34,7 +35,7 @@ impl Default for Settings {
             method: Method::LevenbergMarquardt,
             max_iterations: 50,
             step_tolerance: 1e-10,
-            initial_damping: 1e-6,
+            initial_damping: 1e-4,
         }
     }
 }
@@ -333,11 +334,9 @@ impl WindowSolver {
         let s = self.s;
         let n = (k1 - k0) * s;
         let lm = self.settings.method == Method::LevenbergMarquardt;
-        let mut mu = if lm {
-            self.settings.initial_damping
-        } else {
-            0.0
-        };
+        // Start undamped: with a good guess the Gauss-Newton step is accepted; damping
+        // (relative to diag H) is switched on only when a step fails to lower the cost.
+        let mut mu: f64 = 0.0;
         let mut nu = 2.0;
         let diverged = |cost: f64, iterations| SolveReport {
             iterations,
@@ -364,7 +363,7 @@ impl WindowSolver {
                 if !lm || mu > 1e16 {
                     return Ok(diverged(cost, iterations));
                 }
-                mu = (mu * 10.0).max(1e-9);
+                mu = (mu * 10.0).max(self.settings.initial_damping);
                 continue;
             }
             for i in 0..n {
@@ -380,6 +379,10 @@ impl WindowSolver {
                 window[i] = x + self.delta[i];
             }
             let trial = self.evaluate(graph, values, k0, k1, prior, Scope::Window, false);
+            if std::env::var("MBFG_DEBUG").is_ok() {
+                let dmax = self.delta[..n].iter().fold(0.0f64, |m, d| m.max(d.abs()));
+                eprintln!("k0 {k0} k1 {k1} it {iterations} mu {mu:.1e} cost {cost:.6e} trial {:?} |δ| {dmax:.3e} small {small}", trial);
+            }
             match trial {
                 Ok(c) if c <= cost || small || !lm => {
                     if small {
@@ -394,7 +397,7 @@ impl WindowSolver {
                         Ok(c) => c,
                         Err(_) => return Ok(diverged(f64::INFINITY, iterations)),
                     };
-                    mu *= 1.0 / 3.0;
+                    mu = if mu < 1e-12 { 0.0 } else { mu / 3.0 };
                     nu = 2.0;
                 }
                 _ => {
@@ -402,7 +405,7 @@ impl WindowSolver {
                     if !lm {
                         return Ok(diverged(cost, iterations));
                     }
-                    mu = (mu * nu).max(1e-9);
+                    mu = (mu * nu).max(self.settings.initial_damping);
                     nu *= 2.0;
                     if mu > 1e16 {
                         return Ok(diverged(cost, iterations));

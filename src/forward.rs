@@ -1,0 +1,482 @@
+//! Forward dynamics as factor graphs (paper, sections 4.1, 4.2 and 5): the graph in
+//! dependent coordinates (DC) and in independent coordinates (IC), and a simulation
+//! run over a horizon by the fixed-lag smoother or in batch.
+
+use crate::dynamics;
+use crate::error::{Error, Result};
+use crate::factors::*;
+use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
+use crate::model::Model;
+use crate::smoother::{self, Mode, Next};
+use crate::solver::{Settings, SolveReport, Termination};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// The coordinates the graph integrates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coordinates {
+    /// Dependent (natural) coordinates q.
+    Dependent,
+    /// Independent coordinates z ⊂ q, with q recovered by the position problem.
+    Independent,
+}
+
+/// The integrator factor between consecutive steps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Integrator {
+    Trapezoidal,
+    Euler,
+}
+
+/// Standard deviations of the factors. Constraint factors (f_pc, f_vc, f^i_ac) and
+/// the priors on the initial state are hard.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NoiseModels {
+    /// σ of the integrator of velocities into positions.
+    pub integrator_position: f64,
+    /// σ of the integrator of accelerations into velocities.
+    pub integrator_velocity: f64,
+    /// σ of f_dyn.
+    pub dynamics: f64,
+    /// σ of the weak f_eq between consecutive q (IC only).
+    pub equality: f64,
+    /// σ of the approximate prior on q₀ (IC), on its dependent entries.
+    pub initial_q: f64,
+}
+
+impl NoiseModels {
+    /// The values of the paper's Table 2.
+    pub fn paper() -> Self {
+        NoiseModels {
+            integrator_position: 1e-2,
+            integrator_velocity: 1e-2,
+            dynamics: 1e-4,
+            equality: 1e2,
+            initial_q: 1.0,
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        for (name, v) in [
+            ("integrator_position", self.integrator_position),
+            ("integrator_velocity", self.integrator_velocity),
+            ("dynamics", self.dynamics),
+            ("equality", self.equality),
+            ("initial_q", self.initial_q),
+        ] {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(Error::InvalidArgument(format!("noise σ {name} must be positive, got {v}")));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Default for NoiseModels {
+    /// The defaults that give the best accuracy (see `docs/accuracy.md`).
+    fn default() -> Self {
+        NoiseModels::paper()
+    }
+}
+
+/// Everything a forward run needs besides the model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ForwardOptions {
+    pub coordinates: Coordinates,
+    pub dt: f64,
+    pub t_end: f64,
+    pub mode: Mode,
+    pub integrator: Integrator,
+    pub noise: NoiseModels,
+    pub settings: Settings,
+    /// Go on after a step whose solve did not converge (it is still reported).
+    pub continue_on_failure: bool,
+}
+
+impl ForwardOptions {
+    pub fn new(coordinates: Coordinates, dt: f64, t_end: f64, mode: Mode) -> Self {
+        ForwardOptions {
+            coordinates,
+            dt,
+            t_end,
+            mode,
+            integrator: Integrator::Trapezoidal,
+            noise: NoiseModels::default(),
+            settings: Settings::default(),
+            continue_on_failure: false,
+        }
+    }
+
+    /// Number of steps including t = 0: t_k = k·dt for k = 0..=round(t_end/dt).
+    pub fn steps(&self) -> usize {
+        (self.t_end / self.dt).round() as usize + 1
+    }
+
+    /// Refuses options that make no sense, with the reason.
+    pub fn validate(&self, model: &Model) -> Result<()> {
+        let bad = |m: String| Err(Error::InvalidArgument(m));
+        if !(self.dt > 0.0 && self.dt.is_finite()) {
+            return bad(format!("the time step must be positive, got {}", self.dt));
+        }
+        if !(self.t_end.is_finite() && self.t_end >= self.dt) {
+            return bad(format!(
+                "the end time must be at least one step (dt = {}), got {}",
+                self.dt, self.t_end
+            ));
+        }
+        if let Mode::FixedLag(0) = self.mode {
+            return bad("the window must hold at least 1 step".into());
+        }
+        if self.coordinates == Coordinates::Independent {
+            if model.independent.is_empty() {
+                return bad(format!(
+                    "{}: independent coordinates (--coords ic) need `independent: [...]` in the scene",
+                    model.scene.file
+                ));
+            }
+            if model.independent.len() != model.dof() {
+                return bad(format!(
+                    "{}: {} independent coordinate(s) declared for {} degrees of freedom",
+                    model.scene.file,
+                    model.independent.len(),
+                    model.dof()
+                ));
+            }
+        }
+        self.noise.validate()?;
+        self.settings.validate()
+    }
+}
+
+/// The graph of a forward problem, with its layout.
+pub struct ForwardGraph {
+    pub graph: ChainGraph,
+    pub coordinates: Coordinates,
+    n: usize,
+    f: usize,
+}
+
+impl ForwardGraph {
+    /// Builds the DC or IC graph for `model` (initial priors from its initial state).
+    pub fn new(model: Arc<Model>, options: &ForwardOptions) -> Result<Self> {
+        options.validate(&model)?;
+        let (n, f) = (model.n(), model.independent.len());
+        let nm = options.noise;
+        let dt = options.dt;
+        let init = &model.initial;
+        let integrate = |x: VarKind, dx: VarKind, dim: usize, sigma: f64| -> Box<dyn Factor> {
+            match options.integrator {
+                Integrator::Trapezoidal => Box::new(Trapezoidal::new(x, dx, dim, dt, Noise::Isotropic(sigma))),
+                Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt, Noise::Isotropic(sigma))),
+            }
+        };
+        let graph = match options.coordinates {
+            Coordinates::Dependent => ChainGraph {
+                layout: Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]),
+                dt,
+                t0: 0.0,
+                step_factors: vec![
+                    Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
+                    Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)),
+                    Box::new(Dynamics::new(model.clone(), Noise::Isotropic(nm.dynamics))),
+                    integrate(VarKind::Q, VarKind::Dq, n, nm.integrator_position),
+                    integrate(VarKind::Dq, VarKind::Ddq, n, nm.integrator_velocity),
+                ],
+                initial_factors: vec![
+                    Box::new(Prior::new(VarKind::Q, init.q.as_slice().to_vec(), Noise::Hard)),
+                    Box::new(Prior::new(VarKind::Dq, init.dq.as_slice().to_vec(), Noise::Hard)),
+                ],
+            },
+            Coordinates::Independent => {
+                let z0: Vec<f64> = model.independent.iter().map(|&i| init.q[i]).collect();
+                let dz0: Vec<f64> = model.independent.iter().map(|&i| init.dq[i]).collect();
+                let mut sig = vec![nm.initial_q; n];
+                for &i in &model.independent {
+                    sig[i] = 1e-3 * nm.initial_q;
+                }
+                ChainGraph {
+                    layout: Layout::new(&[
+                        (VarKind::Q, n),
+                        (VarKind::Dq, n),
+                        (VarKind::Ddq, n),
+                        (VarKind::Z, f),
+                        (VarKind::Dz, f),
+                        (VarKind::Ddz, f),
+                    ]),
+                    dt,
+                    t0: 0.0,
+                    step_factors: vec![
+                        Box::new(IndependentPosition::new(model.clone(), Noise::Hard)),
+                        Box::new(IndependentVelocity::new(model.clone(), Noise::Hard)),
+                        Box::new(IndependentAcceleration::new(model.clone(), Noise::Hard)),
+                        Box::new(IndependentDynamics::new(model.clone(), Noise::Isotropic(nm.dynamics))),
+                        integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
+                        integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
+                        Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
+                    ],
+                    initial_factors: vec![
+                        Box::new(Prior::new(VarKind::Z, z0, Noise::Hard)),
+                        Box::new(Prior::new(VarKind::Dz, dz0, Noise::Hard)),
+                        Box::new(Prior::new(VarKind::Q, init.q.as_slice().to_vec(), Noise::Diagonal(sig))),
+                    ],
+                }
+            }
+        };
+        Ok(ForwardGraph {
+            graph,
+            coordinates: options.coordinates,
+            n,
+            f,
+        })
+    }
+
+    /// The initial guess of step 0: the model's initial state and its accelerations.
+    fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
+        let init = &model.initial;
+        let ddq = dynamics::lagrange(model, &init.q, &init.dq, 0.0)?.ddq;
+        let mut block = Vec::with_capacity(self.graph.layout.size());
+        block.extend_from_slice(init.q.as_slice());
+        block.extend_from_slice(init.dq.as_slice());
+        block.extend_from_slice(ddq.as_slice());
+        if self.coordinates == Coordinates::Independent {
+            for v in [&init.q, &init.dq, &ddq] {
+                block.extend(model.independent.iter().map(|&i| v[i]));
+            }
+        }
+        Ok(block)
+    }
+
+    /// Guess of step k from step k−1 by a Taylor step: x + Δt ẋ + Δt²/2 ẍ, ẋ + Δt ẍ, ẍ.
+    fn predict(&self, values: &mut [f64], k: usize) {
+        let s = self.graph.layout.size();
+        let dt = self.graph.dt;
+        let (prev, next) = values.split_at_mut(k * s);
+        let prev = &prev[(k - 1) * s..];
+        let next = &mut next[..s];
+        let triples: &[(usize, usize)] = if self.coordinates == Coordinates::Independent {
+            &[(0, self.n), (3 * self.n, self.f)]
+        } else {
+            &[(0, self.n)]
+        };
+        for &(off, d) in triples {
+            for i in 0..d {
+                let (x, v, a) = (prev[off + i], prev[off + d + i], prev[off + 2 * d + i]);
+                next[off + i] = x + dt * v + 0.5 * dt * dt * a;
+                next[off + d + i] = v + dt * a;
+                next[off + 2 * d + i] = a;
+            }
+        }
+    }
+}
+
+/// A simulated motion: for each time, q, q̇ and q̈ in model order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectory {
+    pub names: Vec<String>,
+    pub t: Vec<f64>,
+    /// Row-major samples × n.
+    pub q: Vec<f64>,
+    pub dq: Vec<f64>,
+    pub ddq: Vec<f64>,
+}
+
+impl Trajectory {
+    pub fn len(&self) -> usize {
+        self.t.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.t.is_empty()
+    }
+
+    pub fn n(&self) -> usize {
+        self.names.len()
+    }
+
+    pub fn q_at(&self, k: usize) -> &[f64] {
+        &self.q[k * self.n()..(k + 1) * self.n()]
+    }
+
+    pub fn dq_at(&self, k: usize) -> &[f64] {
+        &self.dq[k * self.n()..(k + 1) * self.n()]
+    }
+}
+
+/// A step whose solve did not converge.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepFailure {
+    pub step: usize,
+    pub t: f64,
+    pub report: SolveReport,
+}
+
+/// What a run reports beside its trajectory.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunSummary {
+    pub steps: usize,
+    pub wall_time: Duration,
+    /// Mean and max linear solves per window solve (per step for the smoother).
+    pub mean_iterations: f64,
+    pub max_iterations: usize,
+    /// max |Φ| and max |Φ_q q̇| over the trajectory.
+    pub worst_phi: f64,
+    pub worst_velocity_constraint: f64,
+    /// max |E(t) − E(0)| when the scene is conservative.
+    pub energy_drift: Option<f64>,
+    pub failures: Vec<StepFailure>,
+}
+
+/// Simulates the model's motion. `progress(done, total)` is called after each step.
+pub fn simulate(
+    model: Arc<Model>,
+    options: &ForwardOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(Trajectory, RunSummary)> {
+    let fg = ForwardGraph::new(model.clone(), options)?;
+    let steps = options.steps();
+    let s = fg.graph.layout.size();
+    let mut values = vec![0.0; steps * s];
+    values[..s].copy_from_slice(&fg.initial_block(&model)?);
+    let start = Instant::now();
+    let mut iterations: Vec<usize> = Vec::new();
+    let mut failures = Vec::new();
+    let mut completed = steps;
+    match options.mode {
+        Mode::FixedLag(window) => {
+            smoother::fixed_lag(
+                &fg.graph,
+                &mut values,
+                steps,
+                window,
+                options.settings,
+                |v, k| fg.predict(v, k),
+                |k, report, _| {
+                    iterations.push(report.iterations);
+                    progress(k + 1, steps);
+                    if report.termination != Termination::Converged {
+                        failures.push(StepFailure {
+                            step: k,
+                            t: fg.graph.time(k),
+                            report: *report,
+                        });
+                        if !options.continue_on_failure || report.termination == Termination::Diverged {
+                            completed = k + 1;
+                            return Next::Stop;
+                        }
+                    }
+                    Next::Continue
+                },
+            )?;
+        }
+        Mode::Batch => {
+            // Start from the one-step smoother's solution, then solve all at once.
+            let mut warm = options.clone();
+            warm.mode = Mode::FixedLag(1);
+            let (guess, summary) = simulate(model.clone(), &warm, &mut |_, _| {})?;
+            if !summary.failures.is_empty() {
+                let f = &summary.failures[0];
+                return Err(Error::InvalidArgument(format!(
+                    "the warm start for the batch solve failed at step {} (t = {}): {}",
+                    f.step, f.t, f.report.termination
+                )));
+            }
+            fill_from_trajectory(&fg, &model, &guess, &mut values);
+            let report = smoother::batch(&fg.graph, &mut values, steps, options.settings)?;
+            iterations.push(report.iterations);
+            progress(steps, steps);
+            if report.termination != Termination::Converged {
+                failures.push(StepFailure {
+                    step: steps - 1,
+                    t: fg.graph.time(steps - 1),
+                    report,
+                });
+            }
+        }
+    }
+    let wall_time = start.elapsed();
+    let trajectory = extract(&fg, &model, &values[..completed * s], completed);
+    let summary = summarize(&model, &trajectory, wall_time, &iterations, failures)?;
+    Ok((trajectory, summary))
+}
+
+fn fill_from_trajectory(fg: &ForwardGraph, model: &Model, tr: &Trajectory, values: &mut [f64]) {
+    let (n, s) = (fg.n, fg.graph.layout.size());
+    for k in 0..tr.len() {
+        let block = &mut values[k * s..(k + 1) * s];
+        block[..n].copy_from_slice(&tr.q[k * n..(k + 1) * n]);
+        block[n..2 * n].copy_from_slice(&tr.dq[k * n..(k + 1) * n]);
+        block[2 * n..3 * n].copy_from_slice(&tr.ddq[k * n..(k + 1) * n]);
+        if fg.coordinates == Coordinates::Independent {
+            for (j, src) in [&tr.q, &tr.dq, &tr.ddq].iter().enumerate() {
+                for (i, &c) in model.independent.iter().enumerate() {
+                    block[3 * n + j * fg.f + i] = src[k * n + c];
+                }
+            }
+        }
+    }
+}
+
+fn extract(fg: &ForwardGraph, model: &Model, values: &[f64], steps: usize) -> Trajectory {
+    let (n, s) = (fg.n, fg.graph.layout.size());
+    let mut tr = Trajectory {
+        names: model.names.clone(),
+        t: (0..steps).map(|k| fg.graph.time(k)).collect(),
+        q: Vec::with_capacity(steps * n),
+        dq: Vec::with_capacity(steps * n),
+        ddq: Vec::with_capacity(steps * n),
+    };
+    for k in 0..steps {
+        let b = &values[k * s..(k + 1) * s];
+        tr.q.extend_from_slice(&b[..n]);
+        tr.dq.extend_from_slice(&b[n..2 * n]);
+        tr.ddq.extend_from_slice(&b[2 * n..3 * n]);
+    }
+    tr
+}
+
+fn summarize(
+    model: &Model,
+    tr: &Trajectory,
+    wall_time: Duration,
+    iterations: &[usize],
+    failures: Vec<StepFailure>,
+) -> Result<RunSummary> {
+    let (n, m) = (model.n(), model.m());
+    let mut phi = vec![0.0; m];
+    let mut jac = vec![0.0; m * n];
+    let (mut worst_phi, mut worst_vel) = (0.0f64, 0.0f64);
+    let conservative = model.scene.is_conservative();
+    let mut e0 = None;
+    let mut drift = 0.0f64;
+    for k in 0..tr.len() {
+        let (q, dq) = (tr.q_at(k), tr.dq_at(k));
+        if !q.iter().chain(dq).all(|v| v.is_finite()) {
+            return Err(Error::Singular(format!("non-finite state at step {k}")));
+        }
+        model.phi_into(q, &mut phi);
+        model.jacobian_into(q, &mut jac);
+        worst_phi = phi.iter().fold(worst_phi, |w, v| w.max(v.abs()));
+        for r in 0..m {
+            let v: f64 = (0..n).map(|j| jac[r * n + j] * dq[j]).sum();
+            worst_vel = worst_vel.max(v.abs());
+        }
+        if conservative {
+            let qv = nalgebra::DVector::from_column_slice(q);
+            let dv = nalgebra::DVector::from_column_slice(dq);
+            let e = model.kinetic_energy(&dv) + model.potential_energy(&qv);
+            let e0 = *e0.get_or_insert(e);
+            drift = drift.max((e - e0).abs());
+        }
+    }
+    let total: usize = iterations.iter().sum();
+    Ok(RunSummary {
+        steps: tr.len(),
+        wall_time,
+        mean_iterations: total as f64 / iterations.len().max(1) as f64,
+        max_iterations: iterations.iter().copied().max().unwrap_or(0),
+        worst_phi,
+        worst_velocity_constraint: worst_vel,
+        energy_drift: conservative.then_some(drift),
+        failures,
+    })
+}

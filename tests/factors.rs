@@ -1,0 +1,969 @@
+//! Every factor's closed-form Jacobian blocks against central finite differences of
+//! its own residual, evaluated through the `Factor` trait exactly as the solver does;
+//! the dynamics factors against the classical solutions at consistent states; the
+//! exact Jacobians of the dynamics kernel off the constraint manifold; and evaluation
+//! leaving nothing behind in its workspace.
+
+use mbfg::dynamics;
+use mbfg::factors::{
+    Dynamics, DynamicsKernel, Equality, Euler, IndependentAcceleration, IndependentDynamics,
+    IndependentPosition, IndependentVelocity, PositionConstraints, Prior, Trapezoidal,
+    VelocityConstraints,
+};
+use mbfg::graph::{Factor, Key, Noise, VarKind, Workspace};
+use mbfg::kinematics;
+use mbfg::{Model, Scene};
+use nalgebra::DVector;
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// The scenes whose factors are checked: dependent coordinates only (fourbar), an
+/// angle coordinate (fourbar-theta), a redundant constraint and 2 dof
+/// (pick-and-place), velocity-dependent forces (spring-damper), a mobile slider and a
+/// torque (slotted-lever), a fixed slider (slider-crank).
+const SCENES: &[&str] = &[
+    "fourbar.yaml",
+    "fourbar-theta.yaml",
+    "pick-and-place.yaml",
+    "spring-damper.yaml",
+    "slotted-lever.yaml",
+    "slider-crank.yaml",
+];
+
+/// Time at which factors are evaluated (forces may depend on it).
+const T: f64 = 0.3;
+/// Relative finite-difference step, scaled by max(1, |x|).
+const FD_STEP: f64 = 1e-6;
+/// Largest accepted |closed form − finite differences| / max(1, |block|max).
+const FD_TOLERANCE: f64 = 1e-6;
+/// Random points per scene and factor.
+const TRIALS: usize = 5;
+
+fn scene_path(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name)
+}
+
+fn load(name: &str) -> Arc<Model> {
+    let scene = Scene::load(scene_path(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
+    Arc::new(Model::new(&scene).unwrap_or_else(|e| panic!("{name}: {e}")))
+}
+
+/// A small deterministic generator (no dependency for a few random numbers).
+struct Rng(u64);
+
+impl Rng {
+    /// Uniform in [−1, 1).
+    fn uniform(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    }
+
+    fn vector(&mut self, n: usize, scale: f64) -> Vec<f64> {
+        (0..n).map(|_| scale * self.uniform()).collect()
+    }
+}
+
+// ---------------------------------------------------------------------------------
+// Points at which factors are evaluated.
+// ---------------------------------------------------------------------------------
+
+/// Size of a variable of `kind` for `model`.
+fn size(model: &Model, kind: VarKind) -> usize {
+    match kind {
+        VarKind::Q | VarKind::Dq | VarKind::Ddq | VarKind::Force => model.n(),
+        VarKind::Z | VarKind::Dz | VarKind::Ddz => model.independent.len(),
+    }
+}
+
+/// Whether an angle coordinate sits near the switch between its two equation sets,
+/// where the residual is not smooth and a finite-difference stencil could straddle
+/// both.
+fn near_angle_switch(model: &Model, q: &[f64]) -> bool {
+    (model.relative_offset..model.n())
+        .any(|i| (q[i].sin().abs() - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-3)
+}
+
+/// A configuration near the initial one, randomly perturbed: not on the constraint
+/// manifold (the derivative identities hold anywhere), away from the angle switch.
+fn random_configuration(model: &Model, rng: &mut Rng, scale: f64) -> Vec<f64> {
+    loop {
+        let q: Vec<f64> = model
+            .initial
+            .q
+            .iter()
+            .map(|v| v + scale * rng.uniform())
+            .collect();
+        if !near_angle_switch(model, &q) {
+            return q;
+        }
+    }
+}
+
+/// Values of every variable kind at one time step.
+struct Step {
+    q: Vec<f64>,
+    dq: Vec<f64>,
+    ddq: Vec<f64>,
+    z: Vec<f64>,
+    dz: Vec<f64>,
+    ddz: Vec<f64>,
+    force: Vec<f64>,
+}
+
+impl Step {
+    /// q near the initial configuration, everything else random of order 1.
+    fn random(model: &Model, rng: &mut Rng) -> Step {
+        let (n, f) = (model.n(), model.independent.len());
+        Step {
+            q: random_configuration(model, rng, 0.2),
+            dq: rng.vector(n, 1.0),
+            ddq: rng.vector(n, 1.0),
+            z: rng.vector(f, 1.0),
+            dz: rng.vector(f, 1.0),
+            ddz: rng.vector(f, 1.0),
+            force: rng.vector(n, 1.0),
+        }
+    }
+
+    fn get(&self, kind: VarKind) -> &[f64] {
+        match kind {
+            VarKind::Q => &self.q,
+            VarKind::Dq => &self.dq,
+            VarKind::Ddq => &self.ddq,
+            VarKind::Z => &self.z,
+            VarKind::Dz => &self.dz,
+            VarKind::Ddz => &self.ddz,
+            VarKind::Force => &self.force,
+        }
+    }
+}
+
+/// The inputs of `factor`, one vector per key, from the values of its step (`now`)
+/// and of the step before.
+fn inputs(factor: &dyn Factor, now: &Step, before: &Step) -> Vec<Vec<f64>> {
+    factor
+        .keys()
+        .iter()
+        .map(|k| match k.lag {
+            0 => now.get(k.kind).to_vec(),
+            1 => before.get(k.kind).to_vec(),
+            lag => panic!("{}: key with lag {lag}", factor.name()),
+        })
+        .collect()
+}
+
+fn key_label(key: &Key) -> String {
+    match key.lag {
+        0 => format!("{}_t", key.kind.symbol()),
+        lag => format!("{}_(t-{lag})", key.kind.symbol()),
+    }
+}
+
+// ---------------------------------------------------------------------------------
+// Evaluation and the finite-difference check.
+// ---------------------------------------------------------------------------------
+
+/// Residual and (optionally) Jacobian blocks of one evaluation. The outputs are
+/// filled with NaN beforehand, so an entry the factor fails to write shows.
+struct Evaluation {
+    r: Vec<f64>,
+    jac: Option<Vec<Vec<f64>>>,
+}
+
+fn evaluate(
+    factor: &dyn Factor,
+    t: f64,
+    xs: &[Vec<f64>],
+    with_jacobians: bool,
+    ws: &mut Workspace,
+) -> Evaluation {
+    let dim = factor.dim();
+    let slices: Vec<&[f64]> = xs.iter().map(Vec::as_slice).collect();
+    let mut r = vec![f64::NAN; dim];
+    let mut jac: Option<Vec<Vec<f64>>> =
+        with_jacobians.then(|| xs.iter().map(|x| vec![f64::NAN; dim * x.len()]).collect());
+    factor
+        .evaluate(t, &slices, &mut r, jac.as_deref_mut(), ws)
+        .unwrap_or_else(|e| panic!("{}: evaluation failed: {e}", factor.name()));
+    Evaluation { r, jac }
+}
+
+fn workspace_for(factor: &dyn Factor) -> Workspace {
+    let (reals, indices) = factor.scratch();
+    Workspace::with_capacity(reals, indices)
+}
+
+fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+}
+
+/// Checks every Jacobian block of `factor` at the inputs `xs` against central finite
+/// differences of its residual, and that the residual does not depend on whether
+/// Jacobians are requested. Returns the largest relative error over the blocks.
+fn check_factor(name: &str, factor: &dyn Factor, xs: &[Vec<f64>], t: f64) -> f64 {
+    let dim = factor.dim();
+    assert_eq!(
+        factor.keys().len(),
+        xs.len(),
+        "{name}: one input per key expected"
+    );
+    assert!(
+        factor.noise().validate(dim).is_ok(),
+        "{name}: noise does not fit dimension {dim}"
+    );
+    let mut ws = workspace_for(factor);
+    let full = evaluate(factor, t, xs, true, &mut ws);
+    let jac = full.jac.expect("jacobians requested");
+    assert!(
+        full.r.iter().all(|v| v.is_finite()),
+        "{name}: residual not finite (or not written): {:?}",
+        full.r
+    );
+    for (k, block) in jac.iter().enumerate() {
+        if let Some(i) = block.iter().position(|v| !v.is_finite()) {
+            let n = xs[k].len();
+            panic!(
+                "{name}: ∂r/∂{} entry ({}, {}) not finite or never written",
+                key_label(&factor.keys()[k]),
+                i / n,
+                i % n
+            );
+        }
+    }
+    let plain = evaluate(factor, t, xs, false, &mut ws);
+    assert!(
+        same_bits(&plain.r, &full.r),
+        "{name}: residual without Jacobians {:?} differs from residual with them {:?}",
+        plain.r,
+        full.r
+    );
+
+    let mut worst = 0.0f64;
+    for (k, x) in xs.iter().enumerate() {
+        let cols = x.len();
+        let block = &jac[k];
+        let scale = block.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+        let mut fd = vec![0.0; dim * cols];
+        for j in 0..cols {
+            let h = FD_STEP * x[j].abs().max(1.0);
+            let (mut up, mut dn) = (xs.to_vec(), xs.to_vec());
+            up[k][j] = x[j] + h;
+            dn[k][j] = x[j] - h;
+            let step = up[k][j] - dn[k][j];
+            let ru = evaluate(factor, t, &up, false, &mut ws).r;
+            let rd = evaluate(factor, t, &dn, false, &mut ws).r;
+            for i in 0..dim {
+                fd[i * cols + j] = (ru[i] - rd[i]) / step;
+            }
+        }
+        let (mut err, mut at) = (0.0f64, 0);
+        for (e, (a, b)) in block.iter().zip(&fd).enumerate() {
+            let d = (a - b).abs();
+            if d > err || d.is_nan() {
+                err = d;
+                at = e;
+            }
+        }
+        let rel = err / scale;
+        assert!(
+            rel <= FD_TOLERANCE,
+            "{name}: ∂r/∂{} entry ({}, {}): closed form {:e} vs finite differences {:e} \
+             (relative error {rel:.3e}, block scale {scale:.3e})",
+            key_label(&factor.keys()[k]),
+            at / cols,
+            at % cols,
+            block[at],
+            fd[at]
+        );
+        worst = worst.max(rel);
+    }
+    worst
+}
+
+/// Largest relative error seen per factor, printed at the end of a test
+/// (`cargo test --release --test factors -- --nocapture`).
+#[derive(Default)]
+struct Errors(BTreeMap<String, f64>);
+
+impl Errors {
+    fn record(&mut self, label: &str, err: f64) {
+        let e = self.0.entry(label.to_string()).or_insert(0.0);
+        *e = e.max(err);
+    }
+
+    fn print(&self, title: &str) {
+        println!("{title}: largest relative error closed form vs finite differences");
+        for (label, err) in &self.0 {
+            println!("  {label:<28} {err:.2e}");
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------
+// The factors of a model.
+// ---------------------------------------------------------------------------------
+
+/// The generic factors (prior, equality, Euler, trapezoidal with two Δt) on every
+/// variable kind of `model`, with labels.
+fn generic_factors(model: &Model, rng: &mut Rng) -> Vec<(String, Box<dyn Factor>)> {
+    let mut kinds = vec![VarKind::Q, VarKind::Dq, VarKind::Ddq, VarKind::Force];
+    let mut rates = vec![(VarKind::Q, VarKind::Dq), (VarKind::Dq, VarKind::Ddq)];
+    if !model.independent.is_empty() {
+        kinds.extend([VarKind::Z, VarKind::Dz, VarKind::Ddz]);
+        rates.extend([(VarKind::Z, VarKind::Dz), (VarKind::Dz, VarKind::Ddz)]);
+    }
+    let mut out: Vec<(String, Box<dyn Factor>)> = Vec::new();
+    for &kind in &kinds {
+        let d = size(model, kind);
+        let prior = Prior::new(kind, rng.vector(d, 1.0), Noise::Isotropic(0.1));
+        out.push((prior.name().to_string(), Box::new(prior)));
+        let sigmas = (0..d).map(|i| 0.5 + 0.1 * i as f64).collect();
+        let eq = Equality::new(kind, d, Noise::Diagonal(sigmas));
+        out.push((eq.name().to_string(), Box::new(eq)));
+    }
+    for &(x, dx) in &rates {
+        let d = size(model, x);
+        for dt in [1e-3, 0.05] {
+            let ei = Euler::new(x, dx, d, dt, Noise::Hard);
+            out.push((format!("{} dt={dt}", ei.name()), Box::new(ei)));
+            let ti = Trapezoidal::new(x, dx, d, dt, Noise::Hard);
+            out.push((format!("{} dt={dt}", ti.name()), Box::new(ti)));
+        }
+    }
+    out
+}
+
+/// The model factors in dependent coordinates.
+fn dependent_factors(model: &Arc<Model>) -> Vec<Box<dyn Factor>> {
+    vec![
+        Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
+        Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)),
+        Box::new(Dynamics::new(model.clone(), Noise::Isotropic(1e-3))),
+    ]
+}
+
+/// The kinematic factors in independent coordinates (none without them).
+fn independent_kinematic_factors(model: &Arc<Model>) -> Vec<Box<dyn Factor>> {
+    if model.independent.is_empty() {
+        return Vec::new();
+    }
+    vec![
+        Box::new(IndependentPosition::new(model.clone(), Noise::Hard)),
+        Box::new(IndependentVelocity::new(model.clone(), Noise::Hard)),
+        Box::new(IndependentAcceleration::new(model.clone(), Noise::Hard)),
+    ]
+}
+
+/// Every factor of `model`, with labels.
+fn all_factors(model: &Arc<Model>, rng: &mut Rng) -> Vec<(String, Box<dyn Factor>)> {
+    let mut out = generic_factors(model, rng);
+    let mut own = dependent_factors(model);
+    own.extend(independent_kinematic_factors(model));
+    if !model.independent.is_empty() {
+        own.push(Box::new(IndependentDynamics::new(
+            model.clone(),
+            Noise::Isotropic(1e-3),
+        )));
+    }
+    out.extend(own.into_iter().map(|f| (f.name().to_string(), f)));
+    out
+}
+
+/// Runs `check_factor` on `factors` at TRIALS random points of every scene.
+fn check_family(
+    title: &str,
+    seed: u64,
+    factors: impl Fn(&Arc<Model>, &mut Rng) -> Vec<(String, Box<dyn Factor>)>,
+) -> Errors {
+    let mut rng = Rng(seed);
+    let mut errors = Errors::default();
+    let mut checked = 0;
+    for name in SCENES {
+        let model = load(name);
+        let list = factors(&model, &mut rng);
+        for _ in 0..TRIALS {
+            let now = Step::random(&model, &mut rng);
+            let before = Step::random(&model, &mut rng);
+            for (label, factor) in &list {
+                let xs = inputs(factor.as_ref(), &now, &before);
+                let err = check_factor(&format!("{name}: {label}"), factor.as_ref(), &xs, T);
+                errors.record(label, err);
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 0, "{title}: nothing checked");
+    errors.print(title);
+    errors
+}
+
+fn labelled(factors: Vec<Box<dyn Factor>>) -> Vec<(String, Box<dyn Factor>)> {
+    factors
+        .into_iter()
+        .map(|f| (f.name().to_string(), f))
+        .collect()
+}
+
+// ---------------------------------------------------------------------------------
+// Jacobians against finite differences, one test per factor family.
+// ---------------------------------------------------------------------------------
+
+#[test]
+fn generic_factors_match_finite_differences() {
+    let errors = check_family("generic factors", 1, |m, rng| generic_factors(m, rng));
+    // Prior, equality, Euler and trapezoidal on q, q̇ (and z, ż where present).
+    for label in [
+        "f_prior(q)",
+        "f_eq(dq)",
+        "f_ei(q) dt=0.001",
+        "f_ti(dq) dt=0.05",
+        "f_ti(z) dt=0.001",
+        "f_ei(dz) dt=0.05",
+    ] {
+        assert!(errors.0.contains_key(label), "{label} not checked");
+    }
+}
+
+#[test]
+fn constraint_factors_match_finite_differences() {
+    check_family("f^d_pc, f^d_vc", 2, |m, _| {
+        let mut list = labelled(dependent_factors(m));
+        list.retain(|(l, _)| l != "f^d_dyn");
+        list
+    });
+}
+
+#[test]
+fn dynamics_factor_matches_finite_differences() {
+    check_family("f^d_dyn", 3, |m, _| {
+        labelled(vec![Box::new(Dynamics::new(
+            m.clone(),
+            Noise::Isotropic(1e-3),
+        ))])
+    });
+}
+
+#[test]
+fn independent_kinematic_factors_match_finite_differences() {
+    let errors = check_family("f^i_pc, f^i_vc, f^i_ac", 4, |m, _| {
+        labelled(independent_kinematic_factors(m))
+    });
+    assert_eq!(errors.0.len(), 3);
+}
+
+#[test]
+fn independent_dynamics_factor_matches_finite_differences() {
+    let errors = check_family("f^i_dyn", 5, |m, _| {
+        if m.independent.is_empty() {
+            return Vec::new();
+        }
+        labelled(vec![Box::new(IndependentDynamics::new(
+            m.clone(),
+            Noise::Isotropic(1e-3),
+        ))])
+    });
+    assert_eq!(errors.0.len(), 1);
+}
+
+// ---------------------------------------------------------------------------------
+// The dynamics kernel and the constraint Hessians, directly.
+// ---------------------------------------------------------------------------------
+
+/// Central-difference Jacobian (row-major rows × x.len()) of a vector function.
+fn fd_jacobian(x: &[f64], f: &dyn Fn(&[f64]) -> Vec<f64>) -> Vec<f64> {
+    let rows = f(x).len();
+    let cols = x.len();
+    let mut out = vec![0.0; rows * cols];
+    for j in 0..cols {
+        let h = FD_STEP * x[j].abs().max(1.0);
+        let (mut up, mut dn) = (x.to_vec(), x.to_vec());
+        up[j] += h;
+        dn[j] -= h;
+        let step = up[j] - dn[j];
+        let (fu, fd) = (f(&up), f(&dn));
+        for i in 0..rows {
+            out[i * cols + j] = (fu[i] - fd[i]) / step;
+        }
+    }
+    out
+}
+
+/// max |a − b| / max(1, |a|max), asserted ≤ FD_TOLERANCE.
+fn assert_close(a: &[f64], b: &[f64], cols: usize, what: &str) -> f64 {
+    assert_eq!(a.len(), b.len(), "{what}: sizes");
+    let scale = a.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+    let (mut err, mut at) = (0.0f64, 0);
+    for (e, (x, y)) in a.iter().zip(b).enumerate() {
+        let d = (x - y).abs();
+        if d > err || d.is_nan() {
+            err = d;
+            at = e;
+        }
+    }
+    let rel = err / scale;
+    assert!(
+        rel <= FD_TOLERANCE,
+        "{what}: entry ({}, {}): closed form {:e} vs finite differences {:e} \
+         (relative error {rel:.3e}, scale {scale:.3e})",
+        at / cols,
+        at % cols,
+        a[at],
+        b[at]
+    );
+    rel
+}
+
+/// q̈ and, when asked for, (∂q̈/∂q, ∂q̈/∂q̇).
+type KernelOutput = (Vec<f64>, Option<(Vec<f64>, Vec<f64>)>);
+
+/// q̈ of the dynamics kernel and, with `jacobians`, ∂q̈/∂q and ∂q̈/∂q̇.
+fn kernel(
+    model: &Model,
+    q: &[f64],
+    dq: &[f64],
+    force: Option<&[f64]>,
+    jacobians: bool,
+) -> KernelOutput {
+    let n = model.n();
+    let (reals, indices) = DynamicsKernel::scratch(model);
+    let mut ws = Workspace::with_capacity(reals, indices);
+    let mut ddq = vec![f64::NAN; n];
+    let mut jq = vec![f64::NAN; n * n];
+    let mut jv = vec![f64::NAN; n * n];
+    DynamicsKernel::evaluate(
+        model,
+        q,
+        dq,
+        T,
+        force,
+        &mut ddq,
+        jacobians.then_some((&mut jq[..], &mut jv[..])),
+        &mut ws.reals,
+        &mut ws.indices,
+    )
+    .unwrap_or_else(|e| panic!("dynamics kernel: {e}"));
+    (ddq, jacobians.then_some((jq, jv)))
+}
+
+/// The kernel's ∂q̈/∂q and ∂q̈/∂q̇ hold anywhere, not only on the constraint manifold:
+/// checked at states far from it (|Φ(q)| and |Φ_q q̇| of order 1), with the scene's
+/// forces and with a given force vector (inverse dynamics), and q̈ itself against the
+/// KKT solution of `dynamics::lagrange` at the same inconsistent state.
+#[test]
+fn dynamics_kernel_jacobians_hold_off_the_constraint_manifold() {
+    let mut rng = Rng(6);
+    let mut errors = Errors::default();
+    for name in SCENES {
+        let model = load(name);
+        let n = model.n();
+        for _ in 0..TRIALS {
+            let q = random_configuration(&model, &mut rng, 0.3);
+            let dq = rng.vector(n, 1.0);
+            let qv = DVector::from_column_slice(&q);
+            let dqv = DVector::from_column_slice(&dq);
+            let phi = model.phi(&qv).amax();
+            let vel = (model.jacobian(&qv) * &dqv).amax();
+            assert!(
+                phi > 1e-3 && vel > 1e-3,
+                "{name}: state should be inconsistent (|Φ| = {phi:.1e}, |Φ_q q̇| = {vel:.1e})"
+            );
+            let given = rng.vector(n, 2.0);
+            for force in [None, Some(given.as_slice())] {
+                let what = match force {
+                    None => format!("{name}: kernel, scene forces"),
+                    Some(_) => format!("{name}: kernel, given force"),
+                };
+                let (ddq, jac) = kernel(&model, &q, &dq, force, true);
+                let (jq, jv) = jac.unwrap();
+                let (plain, _) = kernel(&model, &q, &dq, force, false);
+                assert!(
+                    same_bits(&plain, &ddq),
+                    "{what}: q̈ depends on whether Jacobians are requested"
+                );
+                let fd_q = fd_jacobian(&q, &|x| kernel(&model, x, &dq, force, false).0);
+                let fd_v = fd_jacobian(&dq, &|v| kernel(&model, &q, v, force, false).0);
+                let eq = assert_close(&jq, &fd_q, n, &format!("{what}: ∂q̈/∂q"));
+                let ev = assert_close(&jv, &fd_v, n, &format!("{what}: ∂q̈/∂q̇"));
+                let label = if force.is_none() {
+                    "kernel (scene forces)"
+                } else {
+                    "kernel (given force)"
+                };
+                errors.record(label, eq.max(ev));
+                if force.is_none() {
+                    let kkt = dynamics::lagrange(&model, &qv, &dqv, T)
+                        .unwrap_or_else(|e| panic!("{name}: lagrange: {e}"));
+                    let scale = kkt.ddq.amax().max(1.0);
+                    let err = ddq
+                        .iter()
+                        .zip(kkt.ddq.iter())
+                        .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+                    assert!(
+                        err <= 1e-9 * scale,
+                        "{name}: kernel q̈ vs lagrange q̈ off the manifold: {err:.3e}"
+                    );
+                }
+            }
+        }
+    }
+    errors.print("dynamics kernel off the manifold");
+}
+
+/// `add_weighted_hessians` adds ∂(Φ_qᵀλ)/∂q over the active constraints, with λ
+/// indexed like `model.active` (pick-and-place has a redundant constraint to skip).
+#[test]
+fn weighted_hessians_match_finite_differences_of_phi_q_transpose_lambda() {
+    let mut rng = Rng(7);
+    let mut errors = Errors::default();
+    for name in SCENES {
+        let model = load(name);
+        let n = model.n();
+        if *name == "pick-and-place.yaml" {
+            assert_eq!(model.redundant.len(), 1, "{name}: one redundant constraint");
+        }
+        for _ in 0..TRIALS {
+            let q = random_configuration(&model, &mut rng, 0.2);
+            let lambda = rng.vector(model.active.len(), 3.0);
+            let base = rng.vector(n * n, 1.0);
+            let mut out = base.clone();
+            model.add_weighted_hessians(&q, &lambda, &mut out);
+            let added: Vec<f64> = out.iter().zip(&base).map(|(a, b)| a - b).collect();
+            let phi_q_t_lambda = |x: &[f64]| -> Vec<f64> {
+                let jac = model.jacobian(&DVector::from_column_slice(x));
+                (0..n)
+                    .map(|i| {
+                        model
+                            .active
+                            .iter()
+                            .zip(&lambda)
+                            .map(|(&k, l)| jac[(k, i)] * l)
+                            .sum()
+                    })
+                    .collect()
+            };
+            let fd = fd_jacobian(&q, &phi_q_t_lambda);
+            let err = assert_close(&added, &fd, n, &format!("{name}: ∂(Φ_qᵀλ)/∂q"));
+            errors.record("add_weighted_hessians", err);
+        }
+    }
+    errors.print("Model::add_weighted_hessians");
+}
+
+// ---------------------------------------------------------------------------------
+// The dynamics factors against the classical solutions.
+// ---------------------------------------------------------------------------------
+
+/// A consistent state away from the initial one: perturb the independent
+/// coordinates, close the position problem, give random independent velocities.
+fn consistent_state(model: &Model, independent: &[usize], rng: &mut Rng) -> (Vec<f64>, Vec<f64>) {
+    let mut q = model.initial.q.clone();
+    for &i in independent {
+        q[i] += 0.2 * rng.uniform();
+    }
+    kinematics::solve_position(model, &mut q, independent).expect("position problem");
+    let dz: Vec<f64> = independent.iter().map(|_| rng.uniform()).collect();
+    let dq = kinematics::solve_velocity(model, &q, independent, &dz).expect("velocity problem");
+    (q.as_slice().to_vec(), dq.as_slice().to_vec())
+}
+
+fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
+}
+
+fn max_abs(a: &[f64]) -> f64 {
+    a.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
+/// At a consistent state, f^d_dyn at q̈_t = 0 is the KKT acceleration of
+/// `dynamics::lagrange`, f^i_dyn at z̈_t = 0 the R-matrix z̈, and the kinematic
+/// factors vanish at the matching values.
+#[test]
+fn dynamics_factors_give_the_classical_accelerations_at_consistent_states() {
+    let mut rng = Rng(8);
+    for name in SCENES {
+        let model = load(name);
+        let (n, f) = (model.n(), model.independent.len());
+        let independent = if model.independent.is_empty() {
+            kinematics::choose_independent(&model, &model.initial.q)
+        } else {
+            model.independent.clone()
+        };
+        assert_eq!(independent.len(), model.dof(), "{name}");
+        let dynamics_factor = Dynamics::new(model.clone(), Noise::Hard);
+        let independent_dynamics = IndependentDynamics::new(model.clone(), Noise::Hard);
+        for _ in 0..TRIALS {
+            let (q, dq) = consistent_state(&model, &independent, &mut rng);
+            let (qv, dqv) = (
+                DVector::from_column_slice(&q),
+                DVector::from_column_slice(&dq),
+            );
+            let kkt = dynamics::lagrange(&model, &qv, &dqv, T)
+                .unwrap_or_else(|e| panic!("{name}: lagrange: {e}"));
+            let scale = kkt.ddq.amax().max(1.0);
+
+            let zero = vec![0.0; n];
+            let xs = vec![q.clone(), dq.clone(), zero];
+            let mut ws = workspace_for(&dynamics_factor);
+            let r = evaluate(&dynamics_factor, T, &xs, false, &mut ws).r;
+            let err = max_abs_diff(&r, kkt.ddq.as_slice());
+            assert!(
+                err <= 1e-10 * scale,
+                "{name}: f^d_dyn(q̈_t = 0) − q̈_lagrange = {err:.3e} (scale {scale:.3e})"
+            );
+
+            // f^d_dyn vanishes at the KKT acceleration; so do the constraint factors.
+            let xs = vec![q.clone(), dq.clone(), kkt.ddq.as_slice().to_vec()];
+            let r = evaluate(&dynamics_factor, T, &xs, false, &mut ws).r;
+            assert!(
+                max_abs(&r) <= 1e-10 * scale,
+                "{name}: f^d_dyn at q̈_lagrange"
+            );
+            for factor in [
+                &PositionConstraints::new(model.clone(), Noise::Hard) as &dyn Factor,
+                &VelocityConstraints::new(model.clone(), Noise::Hard),
+            ] {
+                let xs = inputs_from(factor, &q, &dq, kkt.ddq.as_slice(), &independent);
+                let mut ws = workspace_for(factor);
+                let r = evaluate(factor, T, &xs, false, &mut ws).r;
+                let tol = 1e-10 * (1.0 + max_abs(&q).powi(2)) * (1.0 + max_abs(&dq));
+                assert!(
+                    max_abs(&r) <= tol,
+                    "{name}: {} = {:.3e} at a consistent state",
+                    factor.name(),
+                    max_abs(&r)
+                );
+            }
+
+            if f == 0 {
+                continue;
+            }
+            let rm = dynamics::r_matrix(&model, &qv, &dqv, T, &model.independent)
+                .unwrap_or_else(|e| panic!("{name}: r_matrix: {e}"));
+            let xs = vec![q.clone(), dq.clone(), vec![0.0; f]];
+            let mut ws = workspace_for(&independent_dynamics);
+            let r = evaluate(&independent_dynamics, T, &xs, false, &mut ws).r;
+            let err = max_abs_diff(&r, rm.ddz.as_slice());
+            assert!(
+                err <= 1e-10 * scale,
+                "{name}: f^i_dyn(z̈_t = 0) − z̈_R = {err:.3e} (scale {scale:.3e})"
+            );
+            for factor in independent_kinematic_factors(&model) {
+                let xs = inputs_from(factor.as_ref(), &q, &dq, kkt.ddq.as_slice(), &independent);
+                let mut ws = workspace_for(factor.as_ref());
+                let r = evaluate(factor.as_ref(), T, &xs, false, &mut ws).r;
+                let tol = 1e-9 * scale.max(max_abs(&q).powi(2));
+                assert!(
+                    max_abs(&r) <= tol,
+                    "{name}: {} = {:.3e} at a consistent state",
+                    factor.name(),
+                    max_abs(&r)
+                );
+            }
+        }
+    }
+}
+
+/// Inputs of a model factor at a consistent state: z, ż, z̈ taken from q, q̇, q̈.
+fn inputs_from(
+    factor: &dyn Factor,
+    q: &[f64],
+    dq: &[f64],
+    ddq: &[f64],
+    independent: &[usize],
+) -> Vec<Vec<f64>> {
+    let pick = |v: &[f64]| independent.iter().map(|&i| v[i]).collect::<Vec<_>>();
+    factor
+        .keys()
+        .iter()
+        .map(|k| match k.kind {
+            VarKind::Q => q.to_vec(),
+            VarKind::Dq => dq.to_vec(),
+            VarKind::Ddq => ddq.to_vec(),
+            VarKind::Z => pick(q),
+            VarKind::Dz => pick(dq),
+            VarKind::Ddz => pick(ddq),
+            VarKind::Force => panic!("{}: no force at a state", factor.name()),
+        })
+        .collect()
+}
+
+// ---------------------------------------------------------------------------------
+// Workspace hygiene.
+// ---------------------------------------------------------------------------------
+
+/// Evaluating a factor twice with the same workspace, after another evaluation at a
+/// different point or with the workspace filled with garbage, gives bit-identical
+/// outputs: nothing is carried over between evaluations.
+#[test]
+fn evaluation_leaves_no_state_in_the_workspace() {
+    let mut rng = Rng(9);
+    let mut count = 0;
+    for name in SCENES {
+        let model = load(name);
+        let a_now = Step::random(&model, &mut rng);
+        let a_before = Step::random(&model, &mut rng);
+        let b_now = Step::random(&model, &mut rng);
+        let b_before = Step::random(&model, &mut rng);
+        for (label, factor) in all_factors(&model, &mut rng) {
+            let factor = factor.as_ref();
+            let what = format!("{name}: {label}");
+            let xa = inputs(factor, &a_now, &a_before);
+            let xb = inputs(factor, &b_now, &b_before);
+            let mut ws = workspace_for(factor);
+            let first = evaluate(factor, T, &xa, true, &mut ws);
+            let same = |e: &Evaluation, when: &str| {
+                assert!(same_bits(&e.r, &first.r), "{what}: residual differs {when}");
+                let (j1, j2) = (e.jac.as_ref().unwrap(), first.jac.as_ref().unwrap());
+                for (k, (a, b)) in j1.iter().zip(j2).enumerate() {
+                    assert!(
+                        same_bits(a, b),
+                        "{what}: ∂r/∂{} differs {when}",
+                        key_label(&factor.keys()[k])
+                    );
+                }
+            };
+            let again = evaluate(factor, T, &xa, true, &mut ws);
+            same(&again, "on a second evaluation with the same workspace");
+            evaluate(factor, T, &xb, true, &mut ws);
+            evaluate(factor, T + 0.1, &xb, false, &mut ws);
+            let after = evaluate(factor, T, &xa, true, &mut ws);
+            same(&after, "after evaluations at another point");
+            ws.reals.fill(f64::NAN);
+            ws.indices.fill(usize::MAX / 2);
+            let dirty = evaluate(factor, T, &xa, true, &mut ws);
+            same(&dirty, "with a workspace full of garbage");
+            let plain = evaluate(factor, T, &xa, false, &mut ws);
+            assert!(
+                same_bits(&plain.r, &first.r),
+                "{what}: residual-only evaluation differs"
+            );
+            count += 1;
+        }
+    }
+    assert!(count > 0);
+}
+
+// ---------------------------------------------------------------------------------
+// The checker itself.
+// ---------------------------------------------------------------------------------
+
+/// A deliberate defect injected into a correct factor.
+#[derive(Clone, Copy, Debug)]
+enum Defect {
+    /// One entry of block `key` off by 1e-5 of the block's scale.
+    WrongEntry { key: usize },
+    /// One entry of block `key` left unwritten.
+    Unwritten { key: usize },
+    /// The residual-only evaluation off in its last digit.
+    ResidualOnly,
+}
+
+struct Defective {
+    inner: Box<dyn Factor>,
+    defect: Defect,
+}
+
+impl Factor for Defective {
+    fn name(&self) -> &str {
+        self.inner.name()
+    }
+    fn keys(&self) -> &[Key] {
+        self.inner.keys()
+    }
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    fn noise(&self) -> &Noise {
+        self.inner.noise()
+    }
+    fn scratch(&self) -> (usize, usize) {
+        self.inner.scratch()
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jacobians: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> mbfg::Result<()> {
+        match jacobians {
+            Some(jac) => {
+                self.inner.evaluate(t, x, r, Some(&mut *jac), ws)?;
+                match self.defect {
+                    Defect::WrongEntry { key } => {
+                        let block = &mut jac[key];
+                        let scale = block.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+                        let mid = block.len() / 2;
+                        block[mid] += 1e-5 * scale;
+                    }
+                    Defect::Unwritten { key } => {
+                        let mid = jac[key].len() / 2;
+                        jac[key][mid] = f64::NAN;
+                    }
+                    Defect::ResidualOnly => {}
+                }
+            }
+            None => {
+                self.inner.evaluate(t, x, r, None, ws)?;
+                if let Defect::ResidualOnly = self.defect {
+                    r[0] = r[0] * (1.0 + f64::EPSILON) + f64::MIN_POSITIVE;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `check_factor` rejects a Jacobian entry off by 1e-5 relative, an unwritten entry,
+/// and a residual that changes when Jacobians are not requested.
+#[test]
+fn checker_detects_defective_factors() {
+    let mut rng = Rng(10);
+    let model = load("pick-and-place.yaml");
+    let now = Step::random(&model, &mut rng);
+    let before = Step::random(&model, &mut rng);
+    type Build = fn(&Arc<Model>) -> Box<dyn Factor>;
+    let make: [(&str, Build); 3] = [
+        ("f^d_dyn", |m| {
+            Box::new(Dynamics::new(m.clone(), Noise::Hard))
+        }),
+        ("f^d_vc", |m| {
+            Box::new(VelocityConstraints::new(m.clone(), Noise::Hard))
+        }),
+        ("f^i_dyn", |m| {
+            Box::new(IndependentDynamics::new(m.clone(), Noise::Hard))
+        }),
+    ];
+    for (label, build) in make {
+        let keys = build(&model).keys().len();
+        let mut defects = vec![Defect::ResidualOnly];
+        for key in 0..keys {
+            defects.push(Defect::WrongEntry { key });
+            defects.push(Defect::Unwritten { key });
+        }
+        // The intact factor passes.
+        let intact = build(&model);
+        let xs = inputs(intact.as_ref(), &now, &before);
+        check_factor(label, intact.as_ref(), &xs, T);
+        for defect in defects {
+            let factor = Defective {
+                inner: build(&model),
+                defect,
+            };
+            let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                check_factor(label, &factor, &xs, T)
+            }))
+            .is_err();
+            assert!(caught, "{label}: {defect:?} not detected");
+        }
+    }
+}

@@ -1,0 +1,164 @@
+//! The fixed-lag smoother marginalizes for real: on a linear-Gaussian chain its newest
+//! estimate equals the batch solution of the graph up to that step, for every window.
+
+use mbfg::error::Result;
+use mbfg::factors::{Prior, Trapezoidal};
+use mbfg::graph::{ChainGraph, Factor, Key, Layout, Noise, VarKind, Workspace};
+use mbfg::smoother::{self, Next};
+use mbfg::solver::{Method, Settings, Termination};
+
+/// e = A x_t + B x_{t−1} − y(t): a linear factor coupling two steps, with a
+/// time-varying target so that every step carries different information.
+struct Linear {
+    keys: [Key; 2],
+    a: [[f64; 2]; 2],
+    b: [[f64; 2]; 2],
+    noise: Noise,
+}
+
+impl Factor for Linear {
+    fn name(&self) -> &str {
+        "linear"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        2
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn evaluate(&self, t: f64, x: &[&[f64]], r: &mut [f64], jac: Option<&mut [Vec<f64>]>, _ws: &mut Workspace) -> Result<()> {
+        let y = [(3.0 * t).sin(), (2.0 * t).cos() + t];
+        for i in 0..2 {
+            r[i] = self.a[i][0] * x[0][0] + self.a[i][1] * x[0][1] + self.b[i][0] * x[1][0] + self.b[i][1] * x[1][1] - y[i];
+        }
+        if let Some(j) = jac {
+            for i in 0..2 {
+                for k in 0..2 {
+                    j[0][i * 2 + k] = self.a[i][k];
+                    j[1][i * 2 + k] = self.b[i][k];
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A unary linear factor on the velocity: e = C v_t − w(t).
+struct Observe {
+    keys: [Key; 1],
+    noise: Noise,
+}
+
+impl Factor for Observe {
+    fn name(&self) -> &str {
+        "observe"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn dim(&self) -> usize {
+        1
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn evaluate(&self, t: f64, x: &[&[f64]], r: &mut [f64], jac: Option<&mut [Vec<f64>]>, _ws: &mut Workspace) -> Result<()> {
+        r[0] = x[0][0] - 2.0 * x[0][1] - (5.0 * t).sin();
+        if let Some(j) = jac {
+            j[0].copy_from_slice(&[1.0, -2.0]);
+        }
+        Ok(())
+    }
+}
+
+fn chain() -> ChainGraph {
+    ChainGraph {
+        layout: Layout::new(&[(VarKind::Q, 2), (VarKind::Dq, 2)]),
+        dt: 0.1,
+        t0: 0.0,
+        step_factors: vec![
+            Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, 2, 0.1, Noise::Isotropic(0.05))),
+            Box::new(Linear {
+                keys: [Key::now(VarKind::Q), Key::before(VarKind::Dq)],
+                a: [[1.0, 0.5], [-0.3, 2.0]],
+                b: [[0.2, -1.0], [0.7, 0.1]],
+                noise: Noise::Diagonal(vec![0.3, 0.7]),
+            }),
+            Box::new(Observe {
+                keys: [Key::now(VarKind::Dq)],
+                noise: Noise::Isotropic(0.2),
+            }),
+        ],
+        initial_factors: vec![
+            Box::new(Prior::new(VarKind::Q, vec![1.0, -0.5], Noise::Isotropic(0.1))),
+            Box::new(Prior::new(VarKind::Dq, vec![0.0, 0.3], Noise::Diagonal(vec![0.5, 0.25]))),
+        ],
+    }
+}
+
+fn settings() -> Settings {
+    Settings {
+        method: Method::GaussNewton,
+        ..Settings::default()
+    }
+}
+
+#[test]
+fn newest_smoother_estimate_equals_the_batch_solution() {
+    let graph = chain();
+    let s = graph.layout.size();
+    let steps = 25;
+    for window in [1, 2, 3, 5, 10, 30] {
+        let mut values = vec![0.0; steps * s];
+        let mut newest: Vec<Vec<f64>> = Vec::new();
+        smoother::fixed_lag(
+            &graph,
+            &mut values,
+            steps,
+            window,
+            settings(),
+            |v, k| {
+                let (prev, next) = v.split_at_mut(k * s);
+                next[..s].copy_from_slice(&prev[(k - 1) * s..]);
+            },
+            |k, report, v| {
+                assert_eq!(report.termination, Termination::Converged);
+                newest.push(v[k * s..(k + 1) * s].to_vec());
+                Next::Continue
+            },
+        )
+        .unwrap();
+        for k in 0..steps {
+            let mut batch = vec![0.0; (k + 1) * s];
+            let report = smoother::batch(&graph, &mut batch, k + 1, settings()).unwrap();
+            assert_eq!(report.termination, Termination::Converged);
+            let expect = &batch[k * s..];
+            for i in 0..s {
+                let err = (newest[k][i] - expect[i]).abs();
+                assert!(
+                    err <= 1e-10 * expect[i].abs().max(1.0),
+                    "window {window}, step {k}, unknown {i}: smoother {} vs batch {} (error {err:.2e})",
+                    newest[k][i],
+                    expect[i]
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn smoother_with_whole_horizon_window_reproduces_the_batch_everywhere() {
+    let graph = chain();
+    let s = graph.layout.size();
+    let steps = 12;
+    let mut values = vec![0.0; steps * s];
+    smoother::fixed_lag(&graph, &mut values, steps, steps, settings(), |_, _| {}, |_, _, _| Next::Continue).unwrap();
+    let mut batch = vec![0.0; steps * s];
+    smoother::batch(&graph, &mut batch, steps, settings()).unwrap();
+    for (a, b) in values.iter().zip(&batch) {
+        assert!((a - b).abs() < 1e-10 * b.abs().max(1.0));
+    }
+}
