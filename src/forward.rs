@@ -6,6 +6,7 @@ use crate::dynamics;
 use crate::error::{Error, Result};
 use crate::factors::*;
 use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
+
 use crate::model::Model;
 use crate::smoother::{self, Mode, Next};
 use crate::solver::{Settings, SolveReport, Termination};
@@ -42,6 +43,8 @@ pub struct NoiseModels {
     pub equality: f64,
     /// σ of the approximate prior on q₀ (IC), on its dependent entries.
     pub initial_q: f64,
+    /// σ of the factors to satisfy exactly (constraints, initial state).
+    pub hard: f64,
 }
 
 impl NoiseModels {
@@ -53,6 +56,7 @@ impl NoiseModels {
             dynamics: 1e-4,
             equality: 1e2,
             initial_q: 1.0,
+            hard: 1e-6,
         }
     }
 
@@ -63,9 +67,12 @@ impl NoiseModels {
             ("dynamics", self.dynamics),
             ("equality", self.equality),
             ("initial_q", self.initial_q),
+            ("hard", self.hard),
         ] {
             if !(v > 0.0 && v.is_finite()) {
-                return Err(Error::InvalidArgument(format!("noise σ {name} must be positive, got {v}")));
+                return Err(Error::InvalidArgument(format!(
+                    "noise σ {name} must be positive, got {v}"
+                )));
             }
         }
         Ok(())
@@ -164,9 +171,12 @@ impl ForwardGraph {
         let nm = options.noise;
         let dt = options.dt;
         let init = &model.initial;
+        let hard = Noise::Isotropic(nm.hard);
         let integrate = |x: VarKind, dx: VarKind, dim: usize, sigma: f64| -> Box<dyn Factor> {
             match options.integrator {
-                Integrator::Trapezoidal => Box::new(Trapezoidal::new(x, dx, dim, dt, Noise::Isotropic(sigma))),
+                Integrator::Trapezoidal => {
+                    Box::new(Trapezoidal::new(x, dx, dim, dt, Noise::Isotropic(sigma)))
+                }
                 Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt, Noise::Isotropic(sigma))),
             }
         };
@@ -176,15 +186,23 @@ impl ForwardGraph {
                 dt,
                 t0: 0.0,
                 step_factors: vec![
-                    Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
-                    Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)),
+                    Box::new(PositionConstraints::new(model.clone(), hard.clone())),
+                    Box::new(VelocityConstraints::new(model.clone(), hard.clone())),
                     Box::new(Dynamics::new(model.clone(), Noise::Isotropic(nm.dynamics))),
                     integrate(VarKind::Q, VarKind::Dq, n, nm.integrator_position),
                     integrate(VarKind::Dq, VarKind::Ddq, n, nm.integrator_velocity),
                 ],
                 initial_factors: vec![
-                    Box::new(Prior::new(VarKind::Q, init.q.as_slice().to_vec(), Noise::Hard)),
-                    Box::new(Prior::new(VarKind::Dq, init.dq.as_slice().to_vec(), Noise::Hard)),
+                    Box::new(Prior::new(
+                        VarKind::Q,
+                        init.q.as_slice().to_vec(),
+                        hard.clone(),
+                    )),
+                    Box::new(Prior::new(
+                        VarKind::Dq,
+                        init.dq.as_slice().to_vec(),
+                        hard.clone(),
+                    )),
                 ],
             },
             Coordinates::Independent => {
@@ -206,18 +224,25 @@ impl ForwardGraph {
                     dt,
                     t0: 0.0,
                     step_factors: vec![
-                        Box::new(IndependentPosition::new(model.clone(), Noise::Hard)),
-                        Box::new(IndependentVelocity::new(model.clone(), Noise::Hard)),
-                        Box::new(IndependentAcceleration::new(model.clone(), Noise::Hard)),
-                        Box::new(IndependentDynamics::new(model.clone(), Noise::Isotropic(nm.dynamics))),
+                        Box::new(IndependentPosition::new(model.clone(), hard.clone())),
+                        Box::new(IndependentVelocity::new(model.clone(), hard.clone())),
+                        Box::new(IndependentAcceleration::new(model.clone(), hard.clone())),
+                        Box::new(IndependentDynamics::new(
+                            model.clone(),
+                            Noise::Isotropic(nm.dynamics),
+                        )),
                         integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
                         integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
                         Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
                     ],
                     initial_factors: vec![
-                        Box::new(Prior::new(VarKind::Z, z0, Noise::Hard)),
-                        Box::new(Prior::new(VarKind::Dz, dz0, Noise::Hard)),
-                        Box::new(Prior::new(VarKind::Q, init.q.as_slice().to_vec(), Noise::Diagonal(sig))),
+                        Box::new(Prior::new(VarKind::Z, z0, hard.clone())),
+                        Box::new(Prior::new(VarKind::Dz, dz0, hard.clone())),
+                        Box::new(Prior::new(
+                            VarKind::Q,
+                            init.q.as_slice().to_vec(),
+                            Noise::Diagonal(sig),
+                        )),
                     ],
                 }
             }
@@ -359,7 +384,9 @@ pub fn simulate(
                             t: fg.graph.time(k),
                             report: *report,
                         });
-                        if !options.continue_on_failure || report.termination == Termination::Diverged {
+                        if !options.continue_on_failure
+                            || report.termination == Termination::Diverged
+                        {
                             completed = k + 1;
                             return Next::Stop;
                         }

@@ -22,7 +22,9 @@ pub fn minimal_coordinates_rk4(
 ) -> Result<Trajectory> {
     let sub = (dt / h).round() as usize;
     if sub == 0 || ((sub as f64) * h - dt).abs() > 1e-12 * dt {
-        return Err(Error::InvalidArgument(format!("dt = {dt} is not a multiple of h = {h}")));
+        return Err(Error::InvalidArgument(format!(
+            "dt = {dt} is not a multiple of h = {h}"
+        )));
     }
     let f = independent.len();
     let samples = (t_end / dt).round() as usize + 1;
@@ -38,7 +40,10 @@ pub fn minimal_coordinates_rk4(
         ddq: Vec::with_capacity(samples * model.n()),
     };
     // State derivative [ż; z̈] at (t, y); q is kept as the Newton start (the branch).
-    let mut rhs = |t: f64, y: &DVector<f64>, q: &mut DVector<f64>| -> Result<(DVector<f64>, DVector<f64>, DVector<f64>)> {
+    let rhs = |t: f64,
+               y: &DVector<f64>,
+               q: &mut DVector<f64>|
+     -> Result<(DVector<f64>, DVector<f64>, DVector<f64>)> {
         for (k, &i) in independent.iter().enumerate() {
             q[i] = y[k];
         }

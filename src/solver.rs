@@ -15,8 +15,9 @@ pub enum Method {
     LevenbergMarquardt,
 }
 
-/// Stopping rules. A solve stops when every component of the last step satisfies
-/// |δᵢ| ≤ `step_tolerance`·(1 + |xᵢ|) (converged), after `max_iterations` linear
+/// Stopping rules. A solve stops when an undamped step satisfies
+/// |δᵢ| ≤ `step_tolerance`·(1 + |xᵢ|) for every component, or is predicted to lower
+/// the cost by less than 1e-8 of itself plus 1e-20 (converged), after `max_iterations` linear
 /// solves (iteration limit), or when the cost is not finite or LM's damping exceeds
 /// 1e16 without progress (diverged).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -92,13 +93,62 @@ pub struct SolveReport {
     pub cost: f64,
 }
 
-/// A Gaussian prior on one step's block left by marginalization:
-/// ½ δᵀΛδ + bᵀδ with δ = x − x̄.
+/// A Gaussian prior on one step's block left by marginalization, in square-root form:
+/// ½‖R δ + e‖² with δ = x − x̄ (so Λ = RᵀR and b = Rᵀe). The cost of a prior with
+/// large information is a sum of squares, not a difference of large terms, so it
+/// stays accurate to round-off near the optimum.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LinearPrior {
-    pub lambda: Vec<f64>,
-    pub b: Vec<f64>,
+    /// Row-major rows × s.
+    pub r: Vec<f64>,
+    pub rows: usize,
+    pub e: Vec<f64>,
     pub xbar: Vec<f64>,
+}
+
+impl LinearPrior {
+    /// The square-root form of ½ δᵀΛδ + bᵀδ (up to a constant), from a symmetric
+    /// positive semi-definite Λ; directions without information are dropped.
+    pub fn from_information(lambda: &[f64], b: &[f64], xbar: Vec<f64>) -> LinearPrior {
+        let s = b.len();
+        let mut l = lambda.to_vec();
+        if dense::cholesky(&mut l, s).is_ok() {
+            // Λ = L Lᵀ: R = Lᵀ, e = L⁻¹ b.
+            let mut e = b.to_vec();
+            dense::solve_lower(&l, s, &mut e);
+            let mut r = vec![0.0; s * s];
+            for i in 0..s {
+                for j in 0..s {
+                    r[i * s + j] = l[j * s + i];
+                }
+            }
+            return LinearPrior {
+                r,
+                rows: s,
+                e,
+                xbar,
+            };
+        }
+        if std::env::var("MBFG_DEBUG").is_ok() {
+            eprintln!("prior: Λ not positive definite, eigen fallback");
+        }
+        // Semi-definite: Λ = V diag(w) Vᵀ, keep w > 0.
+        let m = nalgebra::DMatrix::from_row_slice(s, s, lambda);
+        let eig = m.symmetric_eigen();
+        let wmax = eig.eigenvalues.iter().fold(0.0f64, |a, w| a.max(*w));
+        let mut r = Vec::new();
+        let mut e = Vec::new();
+        for (k, &w) in eig.eigenvalues.iter().enumerate() {
+            if w > 1e-14 * wmax {
+                let v = eig.eigenvectors.column(k);
+                let sw = w.sqrt();
+                r.extend(v.iter().map(|x| sw * x));
+                e.push(v.iter().zip(b).map(|(x, y)| x * y).sum::<f64>() / sw);
+            }
+        }
+        let rows = e.len();
+        LinearPrior { r, rows, e, xbar }
+    }
 }
 
 /// Buffers of one factor: residual and Jacobian blocks.
@@ -142,10 +192,13 @@ pub struct WindowSolver {
     delta: Vec<f64>,
     damping: Vec<f64>,
     saved: Vec<f64>,
+    hd: Vec<f64>,
     step_buffers: Vec<FactorBuffers>,
     initial_buffers: Vec<FactorBuffers>,
     ws: Workspace,
     scratch: Vec<f64>,
+    /// Whitened rows [J over blocks k0, k0+1 | r] collected for marginalization.
+    rows: Vec<f64>,
 }
 
 impl WindowSolver {
@@ -178,6 +231,7 @@ impl WindowSolver {
             delta: vec![0.0; n],
             damping: vec![0.0; n],
             saved: vec![0.0; n],
+            hd: vec![0.0; n],
             step_buffers: graph
                 .step_factors
                 .iter()
@@ -190,6 +244,7 @@ impl WindowSolver {
                 .collect(),
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 2 * s],
+            rows: Vec::new(),
         })
     }
 
@@ -282,30 +337,42 @@ impl WindowSolver {
                     }
                     if linearize {
                         accumulate(&mut self.h, &mut self.g, graph, keys, step - k0, buf, s);
+                        if let Scope::Oldest = scope {
+                            collect_rows(&mut self.rows, graph, keys, step - k0, buf, s);
+                        }
                     }
                 }
             }
         }
         if let Some(p) = prior {
             let x = &values[k0 * s..(k0 + 1) * s];
-            let d = &mut self.scratch[..s];
+            let (d, res) = self.scratch.split_at_mut(s);
             for i in 0..s {
                 d[i] = x[i] - p.xbar[i];
             }
-            for i in 0..s {
-                let mut ld = 0.0;
-                for j in 0..s {
-                    ld += p.lambda[i * s + j] * d[j];
-                }
-                cost += 0.5 * d[i] * ld + p.b[i] * d[i];
-                if linearize {
-                    self.g[i] += ld + p.b[i];
+            let res = &mut res[..p.rows];
+            for (i, ri) in res.iter_mut().enumerate() {
+                let row = &p.r[i * s..(i + 1) * s];
+                *ri = p.e[i] + row.iter().zip(d.iter()).map(|(a, b)| a * b).sum::<f64>();
+                cost += 0.5 * *ri * *ri;
+            }
+            if linearize && matches!(scope, Scope::Oldest) {
+                for (i, &ri) in res.iter().enumerate() {
+                    self.rows.extend_from_slice(&p.r[i * s..(i + 1) * s]);
+                    self.rows.extend(std::iter::repeat_n(0.0, s));
+                    self.rows.push(ri);
                 }
             }
             if linearize {
                 let h0 = self.h.diag_mut(0);
-                for (a, l) in h0.iter_mut().zip(&p.lambda) {
-                    *a += l;
+                for (i, &ri) in res.iter().enumerate() {
+                    let row = &p.r[i * s..(i + 1) * s];
+                    for a in 0..s {
+                        self.g[a] += row[a] * ri;
+                        for b in 0..s {
+                            h0[a * s + b] += row[a] * row[b];
+                        }
+                    }
                 }
             }
         }
@@ -379,13 +446,24 @@ impl WindowSolver {
                 window[i] = x + self.delta[i];
             }
             let trial = self.evaluate(graph, values, k0, k1, prior, Scope::Window, false);
+            // Converged when an undamped step is small, or when the decrease the linear
+            // model predicts (−gᵀδ − ½δᵀHδ) is negligible against the cost. A small
+            // damped step proves nothing: damping alone can make it small.
+            self.h.multiply(&self.delta[..n], &mut self.hd[..n]);
+            let predicted: f64 = (0..n)
+                .map(|i| -self.g[i] * self.delta[i] - 0.5 * self.delta[i] * self.hd[i])
+                .sum();
+            let flat = predicted <= 1e-8 * cost.abs() + 1e-20;
+            let converged = (small || flat) && mu == 0.0;
+
             if std::env::var("MBFG_DEBUG").is_ok() {
                 let dmax = self.delta[..n].iter().fold(0.0f64, |m, d| m.max(d.abs()));
-                eprintln!("k0 {k0} k1 {k1} it {iterations} mu {mu:.1e} cost {cost:.6e} trial {:?} |δ| {dmax:.3e} small {small}", trial);
+                let gd: f64 = (0..n).map(|i| self.g[i] * self.delta[i]).sum();
+                eprintln!("k0 {k0} k1 {k1} it {iterations} mu {mu:.1e} cost {cost:.6e} trial {:?} |δ| {dmax:.3e} small {small} pred {predicted:.3e} gd {gd:.3e}", trial);
             }
             match trial {
-                Ok(c) if c <= cost || small || !lm => {
-                    if small {
+                Ok(c) if converged || c <= cost || !lm => {
+                    if converged {
                         return Ok(SolveReport {
                             iterations,
                             termination: Termination::Converged,
@@ -405,6 +483,12 @@ impl WindowSolver {
                     if !lm {
                         return Ok(diverged(cost, iterations));
                     }
+                    if small {
+                        // The damped step vanished without lowering the cost: try the
+                        // undamped one again.
+                        mu = 0.0;
+                        continue;
+                    }
                     mu = (mu * nu).max(self.settings.initial_damping);
                     nu *= 2.0;
                     if mu > 1e16 {
@@ -422,8 +506,11 @@ impl WindowSolver {
     }
 
     /// Marginalizes step k0 (with `prior` on it, if any) into a prior on step k0+1:
-    /// the factors touching k0 are linearized at `values`, and k0 is eliminated by
-    /// the Schur complement Λ = H₁₁ − H₁₀H₀₀⁻¹H₀₁, b = g₁ − H₁₀H₀₀⁻¹g₀.
+    /// the factors touching k0 are linearized at `values` and their whitened rows
+    /// [J₀ J₁ | r] reduced by a QR factorization; the rows left without k0 form the
+    /// square-root prior ½‖R₁₁ δ₁ + e₁‖². This is the Schur complement
+    /// Λ = H₁₁ − H₁₀H₀₀⁻¹H₀₁ of the normal equations, computed without squaring
+    /// their condition number (hard constraints make it large).
     pub fn marginalize(
         &mut self,
         graph: &ChainGraph,
@@ -432,56 +519,80 @@ impl WindowSolver {
         prior: Option<&LinearPrior>,
     ) -> Result<LinearPrior> {
         let s = self.s;
+        self.rows.clear();
         self.evaluate(graph, values, k0, k0 + 2, prior, Scope::Oldest, true)?;
-        let ss = s * s;
-        let (l0, rest) = self.scratch.split_at_mut(ss);
-        let (c, rest) = rest.split_at_mut(ss);
-        let (lambda, rest) = rest.split_at_mut(ss);
-        let y = &mut rest[..s];
-        l0.copy_from_slice(self.h.diag(0));
-        dense::cholesky(l0, s).map_err(|_| {
-            Error::Singular(format!(
-                "marginalizing step {k0}: its block of the normal equations is not positive definite"
-            ))
-        })?;
-        // C = H₁₀ L₀⁻ᵀ, row by row.
-        c.copy_from_slice(self.h.lower(1));
-        for r in 0..s {
-            dense::solve_lower(l0, s, &mut c[r * s..(r + 1) * s]);
-        }
-        let h11 = self.h.diag(1);
-        for i in 0..s {
-            for j in 0..s {
-                let mut acc = 0.0;
-                for t in 0..s {
-                    acc += c[i * s + t] * c[j * s + t];
+        let width = 2 * s + 1;
+        let nrows = self.rows.len() / width;
+        let mut a = nalgebra::DMatrix::from_row_slice(nrows, width, &self.rows);
+        // Householder QR of [J₀ J₁ | r], column by column; the augmented column
+        // carries Qᵀr along.
+        let cols = (2 * s).min(nrows);
+        for k in 0..cols {
+            let norm = a.view((k, k), (nrows - k, 1)).norm();
+            if norm == 0.0 {
+                continue;
+            }
+            let alpha = if a[(k, k)] > 0.0 { -norm } else { norm };
+            let mut v = a.view((k, k), (nrows - k, 1)).into_owned();
+            v[0] -= alpha;
+            let vnorm2 = v.norm_squared();
+            if vnorm2 == 0.0 {
+                continue;
+            }
+            for j in k..width {
+                let dot: f64 = (0..nrows - k).map(|i| v[i] * a[(k + i, j)]).sum();
+                let f = 2.0 * dot / vnorm2;
+                for i in 0..nrows - k {
+                    a[(k + i, j)] -= f * v[i];
                 }
-                lambda[i * s + j] = h11[i * s + j] - acc;
             }
         }
-        y.copy_from_slice(&self.g[..s]);
-        dense::solve_lower(l0, s, y);
-        let mut b = vec![0.0; s];
-        for i in 0..s {
-            let mut acc = 0.0;
-            for t in 0..s {
-                acc += c[i * s + t] * y[t];
+        // Rows s..2s of the triangle involve only block k0+1.
+        let rows = cols.saturating_sub(s);
+        let mut r = Vec::with_capacity(rows * s);
+        let mut e = Vec::with_capacity(rows);
+        for i in s..s + rows {
+            for j in 0..s {
+                r.push(a[(i, s + j)]);
             }
-            b[i] = self.g[s + i] - acc;
+            e.push(a[(i, 2 * s)]);
         }
-        // Symmetrize against round-off.
-        for i in 0..s {
-            for j in 0..i {
-                let a = 0.5 * (lambda[i * s + j] + lambda[j * s + i]);
-                lambda[i * s + j] = a;
-                lambda[j * s + i] = a;
-            }
+        if !r.iter().chain(&e).all(|v| v.is_finite()) {
+            return Err(Error::Singular(format!(
+                "marginalizing step {k0}: non-finite values"
+            )));
         }
         Ok(LinearPrior {
-            lambda: lambda.to_vec(),
-            b,
+            r,
+            rows,
+            e,
             xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),
         })
+    }
+}
+
+/// Appends a whitened factor's rows [J over blocks 0, 1 of the pair | r].
+fn collect_rows(
+    rows: &mut Vec<f64>,
+    graph: &ChainGraph,
+    keys: &[crate::graph::Key],
+    step: usize,
+    buf: &FactorBuffers,
+    s: usize,
+) {
+    let width = 2 * s + 1;
+    for r in 0..buf.r.len() {
+        let start = rows.len();
+        rows.extend(std::iter::repeat_n(0.0, width));
+        let row = &mut rows[start..];
+        for (a, k) in keys.iter().enumerate() {
+            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+            let block = step - k.lag;
+            for i in 0..d {
+                row[block * s + off + i] += buf.jac[a][r * d + i];
+            }
+        }
+        row[2 * s] = buf.r[r];
     }
 }
 

@@ -29,10 +29,21 @@ impl Factor for Linear {
     fn noise(&self) -> &Noise {
         &self.noise
     }
-    fn evaluate(&self, t: f64, x: &[&[f64]], r: &mut [f64], jac: Option<&mut [Vec<f64>]>, _ws: &mut Workspace) -> Result<()> {
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
         let y = [(3.0 * t).sin(), (2.0 * t).cos() + t];
         for i in 0..2 {
-            r[i] = self.a[i][0] * x[0][0] + self.a[i][1] * x[0][1] + self.b[i][0] * x[1][0] + self.b[i][1] * x[1][1] - y[i];
+            r[i] = self.a[i][0] * x[0][0]
+                + self.a[i][1] * x[0][1]
+                + self.b[i][0] * x[1][0]
+                + self.b[i][1] * x[1][1]
+                - y[i];
         }
         if let Some(j) = jac {
             for i in 0..2 {
@@ -65,7 +76,14 @@ impl Factor for Observe {
     fn noise(&self) -> &Noise {
         &self.noise
     }
-    fn evaluate(&self, t: f64, x: &[&[f64]], r: &mut [f64], jac: Option<&mut [Vec<f64>]>, _ws: &mut Workspace) -> Result<()> {
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
         r[0] = x[0][0] - 2.0 * x[0][1] - (5.0 * t).sin();
         if let Some(j) = jac {
             j[0].copy_from_slice(&[1.0, -2.0]);
@@ -80,7 +98,13 @@ fn chain() -> ChainGraph {
         dt: 0.1,
         t0: 0.0,
         step_factors: vec![
-            Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, 2, 0.1, Noise::Isotropic(0.05))),
+            Box::new(Trapezoidal::new(
+                VarKind::Q,
+                VarKind::Dq,
+                2,
+                0.1,
+                Noise::Isotropic(0.05),
+            )),
             Box::new(Linear {
                 keys: [Key::now(VarKind::Q), Key::before(VarKind::Dq)],
                 a: [[1.0, 0.5], [-0.3, 2.0]],
@@ -93,8 +117,16 @@ fn chain() -> ChainGraph {
             }),
         ],
         initial_factors: vec![
-            Box::new(Prior::new(VarKind::Q, vec![1.0, -0.5], Noise::Isotropic(0.1))),
-            Box::new(Prior::new(VarKind::Dq, vec![0.0, 0.3], Noise::Diagonal(vec![0.5, 0.25]))),
+            Box::new(Prior::new(
+                VarKind::Q,
+                vec![1.0, -0.5],
+                Noise::Isotropic(0.1),
+            )),
+            Box::new(Prior::new(
+                VarKind::Dq,
+                vec![0.0, 0.3],
+                Noise::Diagonal(vec![0.5, 0.25]),
+            )),
         ],
     }
 }
@@ -155,7 +187,16 @@ fn smoother_with_whole_horizon_window_reproduces_the_batch_everywhere() {
     let s = graph.layout.size();
     let steps = 12;
     let mut values = vec![0.0; steps * s];
-    smoother::fixed_lag(&graph, &mut values, steps, steps, settings(), |_, _| {}, |_, _, _| Next::Continue).unwrap();
+    smoother::fixed_lag(
+        &graph,
+        &mut values,
+        steps,
+        steps,
+        settings(),
+        |_, _| {},
+        |_, _, _| Next::Continue,
+    )
+    .unwrap();
     let mut batch = vec![0.0; steps * s];
     smoother::batch(&graph, &mut batch, steps, settings()).unwrap();
     for (a, b) in values.iter().zip(&batch) {
