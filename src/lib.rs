@@ -6,6 +6,11 @@
 //! classical solutions (position, velocity and acceleration problems; q̈ from the KKT
 //! system and z̈ by the R-matrix method) on which the factor graphs build.
 
+// `!(x > 0.0)` is written on purpose: it also rejects NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+// Index loops mirror the math of the small dense kernels.
+#![allow(clippy::needless_range_loop)]
+
 pub mod check;
 pub mod dynamics;
 pub mod error;
