@@ -18,6 +18,18 @@ use crate::linalg::dense;
 use crate::model::Model;
 use std::sync::Arc;
 
+/// The `keys` and `noise` methods every factor here answers from its own fields.
+macro_rules! key_and_noise_accessors {
+    () => {
+        fn keys(&self) -> &[Key] {
+            &self.keys
+        }
+        fn noise(&self) -> &Noise {
+            &self.noise
+        }
+    };
+}
+
 /// f_prior: e = x − x₀ on one variable.
 pub struct Prior {
     name: String,
@@ -41,14 +53,9 @@ impl Factor for Prior {
     fn name(&self) -> &str {
         &self.name
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.target.len()
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn evaluate(
         &self,
@@ -99,14 +106,9 @@ impl Factor for Equality {
     fn name(&self) -> &str {
         &self.name
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.dim
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn evaluate(
         &self,
@@ -152,14 +154,9 @@ impl Factor for Euler {
     fn name(&self) -> &str {
         &self.name
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.dim
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn evaluate(
         &self,
@@ -206,14 +203,9 @@ impl Factor for Trapezoidal {
     fn name(&self) -> &str {
         &self.name
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.dim
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn evaluate(
         &self,
@@ -258,14 +250,9 @@ impl Factor for PositionConstraints {
     fn name(&self) -> &str {
         "f^d_pc"
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.model.m()
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn evaluate(
         &self,
@@ -304,14 +291,9 @@ impl Factor for VelocityConstraints {
     fn name(&self) -> &str {
         "f^d_vc"
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.model.m()
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn scratch(&self) -> (usize, usize) {
         (self.model.m() * self.model.n(), 0)
@@ -547,14 +529,9 @@ impl Factor for Dynamics {
     fn name(&self) -> &str {
         "f^d_dyn"
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.model.n()
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn scratch(&self) -> (usize, usize) {
         DynamicsKernel::scratch(&self.model)
@@ -640,14 +617,9 @@ impl Factor for IndependentPosition {
     fn name(&self) -> &str {
         "f^i_pc"
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.model.m() + self.model.independent.len()
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn evaluate(
         &self,
@@ -696,14 +668,9 @@ impl Factor for IndependentVelocity {
     fn name(&self) -> &str {
         "f^i_vc"
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.model.m() + self.model.independent.len()
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn scratch(&self) -> (usize, usize) {
         (self.model.m() * self.model.n(), 0)
@@ -762,14 +729,9 @@ impl Factor for IndependentAcceleration {
     fn name(&self) -> &str {
         "f^i_ac"
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.model.m() + self.model.independent.len()
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn scratch(&self) -> (usize, usize) {
         (self.model.m() * self.model.n() + self.model.m(), 0)
@@ -845,14 +807,9 @@ impl Factor for IndependentDynamics {
     fn name(&self) -> &str {
         "f^i_dyn"
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.model.independent.len()
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn scratch(&self) -> (usize, usize) {
         let (r, i) = DynamicsKernel::scratch(&self.model);

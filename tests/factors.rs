@@ -15,7 +15,8 @@ use mbfg::kinematics;
 use mbfg::{Model, Scene};
 use nalgebra::DVector;
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+mod common;
+use common::{scene_path, Rng};
 use std::sync::Arc;
 
 /// The scenes whose factors are checked: dependent coordinates only (fourbar), an
@@ -40,33 +41,9 @@ const FD_TOLERANCE: f64 = 1e-6;
 /// Random points per scene and factor.
 const TRIALS: usize = 5;
 
-fn scene_path(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("scenes")
-        .join(name)
-}
-
 fn load(name: &str) -> Arc<Model> {
     let scene = Scene::load(scene_path(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
     Arc::new(Model::new(&scene).unwrap_or_else(|e| panic!("{name}: {e}")))
-}
-
-/// A small deterministic generator (no dependency for a few random numbers).
-struct Rng(u64);
-
-impl Rng {
-    /// Uniform in [−1, 1).
-    fn uniform(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
-    }
-
-    fn vector(&mut self, n: usize, scale: f64) -> Vec<f64> {
-        (0..n).map(|_| scale * self.uniform()).collect()
-    }
 }
 
 // ---------------------------------------------------------------------------------
@@ -122,12 +99,12 @@ impl Step {
         let (n, f) = (model.n(), model.independent.len());
         Step {
             q: random_configuration(model, rng, 0.2),
-            dq: rng.vector(n, 1.0),
-            ddq: rng.vector(n, 1.0),
-            z: rng.vector(f, 1.0),
-            dz: rng.vector(f, 1.0),
-            ddz: rng.vector(f, 1.0),
-            force: rng.vector(n, 1.0),
+            dq: rng.values(n, 1.0),
+            ddq: rng.values(n, 1.0),
+            z: rng.values(f, 1.0),
+            dz: rng.values(f, 1.0),
+            ddz: rng.values(f, 1.0),
+            force: rng.values(n, 1.0),
         }
     }
 
@@ -321,7 +298,7 @@ fn generic_factors(model: &Model, rng: &mut Rng) -> Vec<(String, Box<dyn Factor>
     let mut out: Vec<(String, Box<dyn Factor>)> = Vec::new();
     for &kind in &kinds {
         let d = size(model, kind);
-        let prior = Prior::new(kind, rng.vector(d, 1.0), Noise::Isotropic(0.1));
+        let prior = Prior::new(kind, rng.values(d, 1.0), Noise::Isotropic(0.1));
         out.push((prior.name().to_string(), Box::new(prior)));
         let sigmas = (0..d).map(|i| 0.5 + 0.1 * i as f64).collect();
         let eq = Equality::new(kind, d, Noise::Diagonal(sigmas));
@@ -564,7 +541,7 @@ fn dynamics_kernel_jacobians_hold_off_the_constraint_manifold() {
         let n = model.n();
         for _ in 0..TRIALS {
             let q = random_configuration(&model, &mut rng, 0.3);
-            let dq = rng.vector(n, 1.0);
+            let dq = rng.values(n, 1.0);
             let qv = DVector::from_column_slice(&q);
             let dqv = DVector::from_column_slice(&dq);
             let phi = model.phi(&qv).amax();
@@ -573,7 +550,7 @@ fn dynamics_kernel_jacobians_hold_off_the_constraint_manifold() {
                 phi > 1e-3 && vel > 1e-3,
                 "{name}: state should be inconsistent (|Φ| = {phi:.1e}, |Φ_q q̇| = {vel:.1e})"
             );
-            let given = rng.vector(n, 2.0);
+            let given = rng.values(n, 2.0);
             for force in [None, Some(given.as_slice())] {
                 let what = match force {
                     None => format!("{name}: kernel, scene forces"),
@@ -629,8 +606,8 @@ fn weighted_hessians_match_finite_differences_of_phi_q_transpose_lambda() {
         }
         for _ in 0..TRIALS {
             let q = random_configuration(&model, &mut rng, 0.2);
-            let lambda = rng.vector(model.active.len(), 3.0);
-            let base = rng.vector(n * n, 1.0);
+            let lambda = rng.values(model.active.len(), 3.0);
+            let base = rng.values(n * n, 1.0);
             let mut out = base.clone();
             model.add_weighted_hessians(&q, &lambda, &mut out);
             let added: Vec<f64> = out.iter().zip(&base).map(|(a, b)| a - b).collect();

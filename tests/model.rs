@@ -7,13 +7,8 @@ use mbfg::kinematics;
 use mbfg::model::Model;
 use mbfg::scene::Scene;
 use nalgebra::{DMatrix, DVector};
-use std::path::PathBuf;
-
-fn scene_path(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("scenes")
-        .join(name)
-}
+mod common;
+use common::{scene_path, Rng};
 
 fn load(name: &str) -> Model {
     let scene = Scene::load(scene_path(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
@@ -32,21 +27,6 @@ const SUITE: &[&str] = &[
     "pick-and-place-mbse.yaml",
 ];
 
-/// A small deterministic generator (no dependency for a few random numbers).
-struct Rng(u64);
-impl Rng {
-    fn uniform(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
-    }
-    fn vector(&mut self, n: usize, scale: f64) -> DVector<f64> {
-        DVector::from_fn(n, |_, _| scale * self.uniform())
-    }
-}
-
 /// Whether an angle coordinate sits near the switch between its two equation sets,
 /// where a finite-difference stencil could straddle both.
 fn near_angle_switch(model: &Model, q: &DVector<f64>) -> bool {
@@ -58,7 +38,7 @@ fn near_angle_switch(model: &Model, q: &DVector<f64>) -> bool {
 /// the derivative identities hold everywhere).
 fn random_configuration(model: &Model, rng: &mut Rng) -> DVector<f64> {
     loop {
-        let q = &model.initial.q + rng.vector(model.n(), 0.3);
+        let q = &model.initial.q + DVector::from_vec(rng.values(model.n(), 0.3));
         if !near_angle_switch(model, &q) {
             return q;
         }
@@ -96,8 +76,8 @@ fn constraint_derivatives_match_finite_differences() {
         let model = load(name);
         for _ in 0..20 {
             let q = random_configuration(&model, &mut rng);
-            let dq = rng.vector(model.n(), 1.0);
-            let v = rng.vector(model.n(), 1.0);
+            let dq = DVector::from_vec(rng.values(model.n(), 1.0));
+            let v = DVector::from_vec(rng.values(model.n(), 1.0));
 
             // Φ_q = ∂Φ/∂q.
             let jac = model.jacobian(&q);
@@ -256,7 +236,7 @@ fn force_jacobians_match_finite_differences() {
         let model = load(name);
         for _ in 0..10 {
             let q = random_configuration(&model, &mut rng);
-            let dq = rng.vector(model.n(), 1.0);
+            let dq = DVector::from_vec(rng.values(model.n(), 1.0));
             let (kq, kv) = model.force_jacobians(&q, &dq).unwrap();
             let fd_q = fd_columns(&q, &|x| model.generalized_forces(x, &dq, 0.3).unwrap());
             let fd_v = fd_columns(&dq, &|v| model.generalized_forces(&q, v, 0.3).unwrap());
