@@ -2,10 +2,18 @@
 //! Gauss-Newton or Levenberg-Marquardt on the block-tridiagonal normal equations, and
 //! the marginalization that turns the oldest step of a window into a Gaussian prior on
 //! the next one (the Schur complement of the linearized system).
+//!
+//! Hard factors ([`Noise::Hard`]) are not weighted: each iteration linearizes them per
+//! step, C_k δ_k = −c_k, and solves for δ_k = p_k + N_k y_k ([`NullSpace`]), so only
+//! the soft factors enter the normal equations in y. Weighting them by 1/σ² with a tiny
+//! σ instead squares a condition number that is already large: on a long four-bar
+//! run the soft information along the motion decays to ~1e-5 while 1/σ² = 1e12, and
+//! the window solves stall.
 
 use crate::error::{Error, Result};
-use crate::graph::{ChainGraph, Factor, Workspace};
+use crate::graph::{ChainGraph, Factor, Key, Noise, Workspace};
 use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
+use crate::linalg::nullspace::NullSpace;
 
 /// The nonlinear least-squares method.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -15,10 +23,11 @@ pub enum Method {
 }
 
 /// Stopping rules. A solve stops when an undamped step satisfies
-/// |δᵢ| ≤ `step_tolerance`·(1 + |xᵢ|) for every component, or is predicted to lower
-/// the cost by less than 1e-6 of itself plus 1e-20 (converged), after `max_iterations` linear
-/// solves (iteration limit), or when the cost is not finite or LM's damping exceeds
-/// 1e16 without progress (diverged).
+/// |δᵢ| ≤ `step_tolerance`·(1 + |xᵢ|) for every component, or restores the hard
+/// factors within that tolerance and either is predicted to lower the cost by less
+/// than 1e-12 of itself or fails to lower it while below 1e-6 relative or predicting
+/// less than 1e-6 of it (converged: the cost's round-off is reached), after `max_iterations` linear solves (iteration limit), or when the cost
+/// is not finite or LM's damping exceeds 1e16 without progress (diverged).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Settings {
     pub method: Method,
@@ -88,7 +97,8 @@ pub struct SolveReport {
     /// Linear solves performed.
     pub iterations: usize,
     pub termination: Termination,
-    /// ½ Σ‖whitened residual‖² at the returned estimate (prior included).
+    /// ½ Σ‖whitened residual‖² at the returned estimate (prior included; hard
+    /// factors weighted by 1/[`Noise::HARD_SIGMA`]).
     pub cost: f64,
 }
 
@@ -136,6 +146,43 @@ enum Scope {
     Oldest,
 }
 
+/// One factor at one step: `initial` factors come from `graph.initial_factors`.
+#[derive(Clone, Copy)]
+struct Instance {
+    initial: bool,
+    index: usize,
+    step: usize,
+}
+
+fn factor_of(graph: &ChainGraph, inst: Instance) -> &dyn Factor {
+    if inst.initial {
+        graph.initial_factors[inst.index].as_ref()
+    } else {
+        graph.step_factors[inst.index].as_ref()
+    }
+}
+
+/// What a pass over the hard factors computes.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum HardPass {
+    Linearize,
+    Cost,
+    Residuals,
+}
+
+fn is_hard(f: &dyn Factor) -> bool {
+    matches!(f.noise(), Noise::Hard)
+}
+
+/// The hard equations of one step, C δ = −c, and their reduction.
+struct HardBlock {
+    /// Row-major rows × s.
+    jac: Vec<f64>,
+    rhs: Vec<f64>,
+    rows: usize,
+    reduction: NullSpace,
+}
+
 /// A reusable solver for windows of up to `capacity` steps; it allocates once.
 pub struct WindowSolver {
     settings: Settings,
@@ -149,33 +196,59 @@ pub struct WindowSolver {
     hd: Vec<f64>,
     step_buffers: Vec<FactorBuffers>,
     initial_buffers: Vec<FactorBuffers>,
+    hard: Vec<HardBlock>,
+    /// A factor's Jacobian in reduced coordinates, per block it touches (lag 0, lag 1).
+    reduced: [Vec<f64>; 2],
+    /// A factor's residual linearized at x + p.
+    shifted: Vec<f64>,
+    instances: Vec<Instance>,
+    correction: Vec<f64>,
     ws: Workspace,
     scratch: Vec<f64>,
-    /// Whitened rows [J over blocks k0, k0+1 | r] collected for marginalization.
+    /// Whitened soft rows [J over blocks k0, k0+1 | r] collected for marginalization.
     rows: Vec<f64>,
 }
 
 impl WindowSolver {
     pub fn new(graph: &ChainGraph, capacity: usize, settings: Settings) -> Result<Self> {
         settings.validate()?;
-        for f in graph.step_factors.iter().chain(&graph.initial_factors) {
-            f.noise()
-                .validate(f.dim())
-                .map_err(|e| Error::InvalidArgument(format!("noise of {}: {e}", f.name())))?;
-            for k in f.keys() {
-                if graph.layout.slot(k.kind).is_none() || k.lag > 1 {
-                    return Err(Error::InvalidArgument(format!(
-                        "factor {} touches {}(lag {}), which the graph does not hold",
-                        f.name(),
-                        k.kind.symbol(),
-                        k.lag
-                    )));
+        let mut max_dim = 0;
+        let (mut hard_step, mut hard_initial) = (0, 0);
+        for (initial, list) in [(false, &graph.step_factors), (true, &graph.initial_factors)] {
+            for f in list {
+                f.noise()
+                    .validate(f.dim())
+                    .map_err(|e| Error::InvalidArgument(format!("noise of {}: {e}", f.name())))?;
+                for k in f.keys() {
+                    if graph.layout.slot(k.kind).is_none() || k.lag > 1 {
+                        return Err(Error::InvalidArgument(format!(
+                            "factor {} touches {}(lag {}), which the graph does not hold",
+                            f.name(),
+                            k.kind.symbol(),
+                            k.lag
+                        )));
+                    }
+                }
+                max_dim = max_dim.max(f.dim());
+                if is_hard(f.as_ref()) {
+                    if f.keys().iter().any(|k| k.lag > 0) {
+                        return Err(Error::InvalidArgument(format!(
+                            "hard factor {} spans two steps; hard factors must stay within one",
+                            f.name()
+                        )));
+                    }
+                    if initial {
+                        hard_initial += f.dim();
+                    } else {
+                        hard_step += f.dim();
+                    }
                 }
             }
         }
         let s = graph.layout.size();
         let capacity = capacity.max(2);
         let n = capacity * s;
+        let max_hard = hard_step + hard_initial;
         Ok(WindowSolver {
             settings,
             s,
@@ -196,6 +269,20 @@ impl WindowSolver {
                 .iter()
                 .map(|f| FactorBuffers::new(graph, f.as_ref()))
                 .collect(),
+            hard: (0..capacity)
+                .map(|_| HardBlock {
+                    jac: vec![0.0; max_hard * s],
+                    rhs: vec![0.0; max_hard],
+                    rows: 0,
+                    reduction: NullSpace::new(s, max_hard),
+                })
+                .collect(),
+            reduced: [vec![0.0; max_dim.max(s) * s], vec![0.0; max_dim.max(s) * s]],
+            shifted: vec![0.0; max_dim.max(s)],
+            instances: Vec::with_capacity(
+                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+            ),
+            correction: vec![0.0; s],
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 2 * s],
             rows: Vec::new(),
@@ -206,9 +293,157 @@ impl WindowSolver {
         &self.settings
     }
 
+    /// Lists the factor instances of a scope.
+    fn collect_instances(&mut self, graph: &ChainGraph, k0: usize, k1: usize, scope: Scope) {
+        self.instances.clear();
+        if k0 == 0 {
+            for index in 0..graph.initial_factors.len() {
+                self.instances.push(Instance {
+                    initial: true,
+                    index,
+                    step: 0,
+                });
+            }
+        }
+        for (index, factor) in graph.step_factors.iter().enumerate() {
+            let keys = factor.keys();
+            let max_lag = keys.iter().map(|k| k.lag).max().unwrap_or(0);
+            for step in k0 + max_lag..k1 {
+                if let Scope::Oldest = scope {
+                    if !keys.iter().any(|k| step - k.lag == k0) {
+                        continue;
+                    }
+                }
+                self.instances.push(Instance {
+                    initial: false,
+                    index,
+                    step,
+                });
+            }
+        }
+    }
+
+    /// Evaluates one factor instance into its buffers (residual not yet whitened).
+    fn evaluate_instance(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        inst: Instance,
+        linearize: bool,
+    ) -> Result<()> {
+        let s = self.s;
+        let factor = factor_of(graph, inst);
+        let buf = if inst.initial {
+            &mut self.initial_buffers[inst.index]
+        } else {
+            &mut self.step_buffers[inst.index]
+        };
+        let keys = factor.keys();
+        let mut xs: [&[f64]; 8] = [&[]; 8];
+        for (slot, k) in xs.iter_mut().zip(keys) {
+            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+            let base = (inst.step - k.lag) * s + off;
+            *slot = &values[base..base + d];
+        }
+        let t = graph.time(inst.step);
+        factor
+            .evaluate(
+                t,
+                &xs[..keys.len()],
+                &mut buf.r,
+                linearize.then_some(buf.jac.as_mut_slice()),
+                &mut self.ws,
+            )
+            .map_err(|e| match e {
+                Error::Singular(m) => Error::Singular(format!(
+                    "{} at step {} (t = {t}): {m}",
+                    factor.name(),
+                    inst.step
+                )),
+                other => other,
+            })
+    }
+
+    /// Evaluates the hard factors of the listed instances and returns their share of
+    /// the cost. `Linearize` writes each block's equations C δ = −c; `Residuals`
+    /// writes only −c (in the same row order) for a correction with the current C.
+    fn hard_pass(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        blocks: usize,
+        mode: HardPass,
+    ) -> Result<f64> {
+        let s = self.s;
+        let mut cost = 0.0;
+        for b in 0..blocks {
+            self.hard[b].rows = 0;
+        }
+        let linearize = mode == HardPass::Linearize;
+        for i in 0..self.instances.len() {
+            let inst = self.instances[i];
+            let factor = factor_of(graph, inst);
+            if !is_hard(factor) {
+                continue;
+            }
+            self.evaluate_instance(graph, values, inst, linearize)?;
+            let buf = if inst.initial {
+                &self.initial_buffers[inst.index]
+            } else {
+                &self.step_buffers[inst.index]
+            };
+            let w = Noise::Hard.weight(0);
+            cost += buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum::<f64>();
+            if mode == HardPass::Cost {
+                continue;
+            }
+            let block = &mut self.hard[inst.step - k0];
+            let row0 = block.rows;
+            let dim = factor.dim();
+            if linearize {
+                block.jac[row0 * s..(row0 + dim) * s].fill(0.0);
+                for (a, k) in factor.keys().iter().enumerate() {
+                    let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                    for r in 0..dim {
+                        let row = &mut block.jac[(row0 + r) * s + off..(row0 + r) * s + off + d];
+                        row.copy_from_slice(&buf.jac[a][r * d..(r + 1) * d]);
+                    }
+                }
+            }
+            for r in 0..dim {
+                block.rhs[row0 + r] = -buf.r[r];
+            }
+            block.rows += dim;
+        }
+        Ok(cost)
+    }
+
+    /// Second-order correction after a step: moves each block of the window back onto
+    /// its hard equations with the least-norm step of the current C. Without it a step
+    /// along the linearized constraints leaves an O(|δ|²) violation that the cost's
+    /// 1/σ_hard² weight makes look like a failure (the Maratos effect).
+    fn correct(&mut self, graph: &ChainGraph, values: &mut [f64], k0: usize, k1: usize) -> Result<()> {
+        let s = self.s;
+        let blocks = k1 - k0;
+        self.hard_pass(graph, values, k0, blocks, HardPass::Residuals)?;
+        for b in 0..blocks {
+            let block = &mut self.hard[b];
+            if block.rows == 0 {
+                continue;
+            }
+            block.reduction.solve(&block.rhs, &mut self.correction);
+            let x = &mut values[(k0 + b) * s..(k0 + b + 1) * s];
+            for (xi, c) in x.iter_mut().zip(&self.correction) {
+                *xi += c;
+            }
+        }
+        Ok(())
+    }
+
     /// Evaluates the factors of a scope at `values` (the whole trajectory, step-major)
-    /// and returns the cost; with `linearize`, also fills H and g for the blocks
-    /// k0..k1.
+    /// and returns the cost; with `linearize`, also reduces each block's hard
+    /// equations and fills H and g of the soft factors in reduced coordinates.
     #[allow(clippy::too_many_arguments)]
     fn evaluate(
         &mut self,
@@ -222,79 +457,74 @@ impl WindowSolver {
     ) -> Result<f64> {
         let s = self.s;
         let blocks = k1 - k0;
+        self.collect_instances(graph, k0, k1, scope);
+        // Hard factors first: their linearization defines each block's reduction.
+        let mode = if linearize {
+            HardPass::Linearize
+        } else {
+            HardPass::Cost
+        };
+        let mut cost = self.hard_pass(graph, values, k0, blocks, mode)?;
         if linearize {
+            for block in &mut self.hard[..blocks] {
+                block
+                    .reduction
+                    .reduce(&block.jac, &block.rhs[..block.rows], block.rows);
+            }
             self.h.reset(blocks);
             self.g[..blocks * s].fill(0.0);
         }
-        let mut cost = 0.0;
-        let initial = k0 == 0;
-        for (list, is_initial) in [(&graph.step_factors, false), (&graph.initial_factors, true)] {
-            if is_initial && !initial {
+        for i in 0..self.instances.len() {
+            let inst = self.instances[i];
+            let factor = factor_of(graph, inst);
+            if is_hard(factor) {
                 continue;
             }
-            for (fi, factor) in list.iter().enumerate() {
-                let steps: &[usize] = if is_initial { &[0] } else { &[] };
-                let range = if is_initial { 0..0 } else { k0..k1 };
-                for step in steps.iter().copied().chain(range) {
-                    let keys = factor.keys();
-                    let max_lag = keys.iter().map(|k| k.lag).max().unwrap_or(0);
-                    if step < k0 + max_lag {
-                        continue; // touches a step outside the window
-                    }
-                    if let Scope::Oldest = scope {
-                        let touches_oldest = keys.iter().any(|k| step - k.lag == k0);
-                        if !touches_oldest {
-                            continue;
+            self.evaluate_instance(graph, values, inst, linearize)?;
+            let buf = if inst.initial {
+                &mut self.initial_buffers[inst.index]
+            } else {
+                &mut self.step_buffers[inst.index]
+            };
+            let noise = factor.noise();
+            let keys = factor.keys();
+            for r in 0..factor.dim() {
+                let w = noise.weight(r);
+                buf.r[r] *= w;
+                cost += 0.5 * buf.r[r] * buf.r[r];
+                if linearize {
+                    for (a, k) in keys.iter().enumerate() {
+                        let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                        for v in &mut buf.jac[a][r * d..(r + 1) * d] {
+                            *v *= w;
                         }
                     }
-                    let buf = if is_initial {
-                        &mut self.initial_buffers[fi]
-                    } else {
-                        &mut self.step_buffers[fi]
-                    };
-                    let mut xs: [&[f64]; 8] = [&[]; 8];
-                    for (slot, k) in xs.iter_mut().zip(keys) {
-                        let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
-                        let base = (step - k.lag) * s + off;
-                        *slot = &values[base..base + d];
-                    }
-                    let t = graph.time(step);
-                    factor
-                        .evaluate(
-                            t,
-                            &xs[..keys.len()],
-                            &mut buf.r,
-                            linearize.then_some(buf.jac.as_mut_slice()),
-                            &mut self.ws,
-                        )
-                        .map_err(|e| match e {
-                            Error::Singular(m) => Error::Singular(format!(
-                                "{} at step {step} (t = {t}): {m}",
-                                factor.name()
-                            )),
-                            other => other,
-                        })?;
-                    let noise = factor.noise();
-                    let dim = factor.dim();
-                    for i in 0..dim {
-                        let w = noise.weight(i);
-                        buf.r[i] *= w;
-                        cost += 0.5 * buf.r[i] * buf.r[i];
-                        if linearize {
-                            for (ki, k) in keys.iter().enumerate() {
-                                let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
-                                for v in &mut buf.jac[ki][i * d..(i + 1) * d] {
-                                    *v *= w;
-                                }
-                            }
-                        }
-                    }
-                    if linearize {
-                        accumulate(&mut self.h, &mut self.g, graph, keys, step - k0, buf, s);
-                        if let Scope::Oldest = scope {
-                            collect_rows(&mut self.rows, graph, keys, step - k0, buf, s);
-                        }
-                    }
+                }
+            }
+            if linearize {
+                let step = inst.step - k0;
+                reduce_factor(
+                    &mut self.reduced,
+                    &mut self.shifted,
+                    &self.hard,
+                    graph,
+                    keys,
+                    step,
+                    buf,
+                    s,
+                );
+                let lagged = keys.iter().any(|k| k.lag == 1);
+                accumulate(
+                    &mut self.h,
+                    &mut self.g,
+                    &self.reduced,
+                    &self.shifted[..factor.dim()],
+                    step,
+                    lagged,
+                    s,
+                );
+                if let Scope::Oldest = scope {
+                    collect_rows(&mut self.rows, graph, keys, step, buf, s);
                 }
             }
         }
@@ -310,23 +540,52 @@ impl WindowSolver {
                 *ri = p.e[i] + row.iter().zip(d.iter()).map(|(a, b)| a * b).sum::<f64>();
                 cost += 0.5 * *ri * *ri;
             }
-            if linearize && matches!(scope, Scope::Oldest) {
-                for (i, &ri) in res.iter().enumerate() {
-                    self.rows.extend_from_slice(&p.r[i * s..(i + 1) * s]);
-                    self.rows.extend(std::iter::repeat_n(0.0, s));
-                    self.rows.push(ri);
-                }
-            }
             if linearize {
-                let h0 = self.h.diag_mut(0);
+                if let Scope::Oldest = scope {
+                    for (i, &ri) in res.iter().enumerate() {
+                        self.rows.extend_from_slice(&p.r[i * s..(i + 1) * s]);
+                        self.rows.extend(std::iter::repeat_n(0.0, s));
+                        self.rows.push(ri);
+                    }
+                }
+                // The prior's rows in reduced coordinates: R N₀ y + (e' + R p₀).
+                let red = &self.hard[0].reduction;
                 for (i, &ri) in res.iter().enumerate() {
                     let row = &p.r[i * s..(i + 1) * s];
-                    for a in 0..s {
-                        self.g[a] += row[a] * ri;
-                        for b in 0..s {
-                            h0[a * s + b] += row[a] * row[b];
+                    let out = &mut self.reduced[0][i * s..(i + 1) * s];
+                    out.fill(0.0);
+                    let mut shifted = ri;
+                    for (j, &v) in row.iter().enumerate() {
+                        if v == 0.0 {
+                            continue;
+                        }
+                        shifted += v * red.particular[j];
+                        let nrow = &red.basis[j * s..j * s + red.dim];
+                        for (o, nv) in out.iter_mut().zip(nrow) {
+                            *o += v * nv;
                         }
                     }
+                    self.shifted[i] = shifted;
+                }
+                let rows = p.rows;
+                accumulate(
+                    &mut self.h,
+                    &mut self.g,
+                    &self.reduced,
+                    &self.shifted[..rows],
+                    0,
+                    false,
+                    s,
+                );
+            }
+        }
+        if linearize {
+            // Directions the hard equations fix carry no unknown: pin their y to 0.
+            for b in 0..blocks {
+                let dim = self.hard[b].reduction.dim;
+                let diag = self.h.diag_mut(b);
+                for j in dim..s {
+                    diag[j * s + j] += 1.0;
                 }
             }
         }
@@ -391,23 +650,50 @@ impl WindowSolver {
                 self.delta[i] = -self.g[i];
             }
             self.chol.solve(&mut self.delta[..n]);
-            let window = &mut values[k0 * s..k1 * s];
-            self.saved[..n].copy_from_slice(window);
-            let mut small = true;
-            for i in 0..n {
-                let x = window[i];
-                small &= self.delta[i].abs() <= self.settings.step_tolerance * (1.0 + x.abs());
-                window[i] = x + self.delta[i];
-            }
-            let trial = self.evaluate(graph, values, k0, k1, prior, Scope::Window, false);
-            // Converged when an undamped step is small, or when the decrease the linear
-            // model predicts (−gᵀδ − ½δᵀHδ) is negligible against the cost. A small
-            // damped step proves nothing: damping alone can make it small.
+            // The decrease the linear model predicts for the soft factors in y:
+            // −gᵀy − ½yᵀHy.
             self.h.multiply(&self.delta[..n], &mut self.hd[..n]);
             let predicted: f64 = (0..n)
                 .map(|i| -self.g[i] * self.delta[i] - 0.5 * self.delta[i] * self.hd[i])
                 .sum();
-            let flat = predicted <= 1e-6 * cost.abs() + 1e-20;
+            let window = &mut values[k0 * s..k1 * s];
+            self.saved[..n].copy_from_slice(window);
+            // δ = p + N y per block; `largest` is max |δᵢ| / (1 + |xᵢ|).
+            let (mut largest, mut restored) = (0.0f64, true);
+            for b in 0..k1 - k0 {
+                let red = &self.hard[b].reduction;
+                let y = &self.delta[b * s..(b + 1) * s];
+                let x = &mut window[b * s..(b + 1) * s];
+                for i in 0..s {
+                    let p = red.particular[i];
+                    let nrow = &red.basis[i * s..i * s + red.dim];
+                    let step = p + nrow.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+                    let scale = 1.0 + x[i].abs();
+                    largest = largest.max(step.abs() / scale);
+                    restored &= p.abs() <= self.settings.step_tolerance * scale;
+                    x[i] += step;
+                }
+            }
+            let small = largest <= self.settings.step_tolerance;
+            let trial = match self.correct(graph, values, k0, k1) {
+                Ok(()) => self.evaluate(graph, values, k0, k1, prior, Scope::Window, false),
+                Err(e) => Err(e),
+            };
+            // Converged when an undamped step is small; or when it restores the hard
+            // factors and either the model predicts a decrease below 1e-12 of the cost,
+            // or the step fails to lower the cost while it is below 1e-6 (relative) or
+            // predicts less than 1e-6 of it: then the cost comparison only sees the
+            // residuals' round-off (their evaluation goes through a factorization),
+            // and what is left is a slow Gauss-Newton tail along a direction with
+            // little information. A small damped step proves nothing: damping alone
+            // can make it small.
+            let no_progress = match &trial {
+                Ok(c) => *c >= cost,
+                Err(_) => true,
+            };
+            let flat = restored
+                && (predicted <= 1e-12 * cost.abs()
+                    || (no_progress && (largest <= 1e-6 || predicted <= 1e-6 * cost.abs())));
             let converged = (small || flat) && mu == 0.0;
 
             match trial {
@@ -419,12 +705,17 @@ impl WindowSolver {
                             cost: c,
                         });
                     }
+                    // Where the model predicted the decrease well (ratio > 3/4), go back
+                    // to Gauss-Newton at once: damping relative to diag H all but
+                    // freezes directions with little information, and easing it off
+                    // by thirds costs a dozen iterations.
+                    let ratio = (cost - c) / predicted.max(f64::MIN_POSITIVE);
+                    mu = if ratio > 0.75 || mu < 1e-12 { 0.0 } else { mu / 3.0 };
                     // Relinearize at the accepted point.
                     cost = match self.evaluate(graph, values, k0, k1, prior, Scope::Window, true) {
                         Ok(c) => c,
                         Err(_) => return Ok(diverged(f64::INFINITY, iterations)),
                     };
-                    mu = if mu < 1e-12 { 0.0 } else { mu / 3.0 };
                     nu = 2.0;
                 }
                 _ => {
@@ -454,12 +745,12 @@ impl WindowSolver {
         })
     }
 
-    /// Marginalizes step k0 (with `prior` on it, if any) into a prior on step k0+1:
-    /// the factors touching k0 are linearized at `values` and their whitened rows
-    /// [J₀ J₁ | r] reduced by a QR factorization; the rows left without k0 form the
-    /// square-root prior ½‖R₁₁ δ₁ + e₁‖². This is the Schur complement
-    /// Λ = H₁₁ − H₁₀H₀₀⁻¹H₀₁ of the normal equations, computed without squaring
-    /// their condition number (hard constraints make it large).
+    /// Marginalizes step k0 (with `prior` on it, if any) into a prior on step k0+1.
+    /// The factors touching k0 are linearized at `values`; k0's hard equations fix
+    /// δ₀ = p₀ + N₀ y₀, and the whitened soft rows [J₀N₀ J₁ | r + J₀p₀] are reduced by
+    /// a QR factorization: the rows left without y₀ form the square-root prior
+    /// ½‖R₁₁ δ₁ + e₁‖². This is the Schur complement Λ = H₁₁ − H₁₀H₀₀⁻¹H₀₁ of the
+    /// reduced normal equations, computed without squaring their condition number.
     pub fn marginalize(
         &mut self,
         graph: &ChainGraph,
@@ -470,12 +761,33 @@ impl WindowSolver {
         let s = self.s;
         self.rows.clear();
         self.evaluate(graph, values, k0, k0 + 2, prior, Scope::Oldest, true)?;
-        let width = 2 * s + 1;
-        let nrows = self.rows.len() / width;
-        let mut a = nalgebra::DMatrix::from_row_slice(nrows, width, &self.rows);
-        // Householder QR of [J₀ J₁ | r], column by column; the augmented column
+        let raw = 2 * s + 1;
+        let nrows = self.rows.len() / raw;
+        let red = &self.hard[0].reduction;
+        let d0 = red.dim;
+        let width = d0 + s + 1;
+        let mut a = nalgebra::DMatrix::<f64>::zeros(nrows, width);
+        for i in 0..nrows {
+            let row = &self.rows[i * raw..(i + 1) * raw];
+            let mut shifted = row[2 * s];
+            for j in 0..s {
+                let v = row[j];
+                if v == 0.0 {
+                    continue;
+                }
+                shifted += v * red.particular[j];
+                for c in 0..d0 {
+                    a[(i, c)] += v * red.basis[j * s + c];
+                }
+            }
+            for j in 0..s {
+                a[(i, d0 + j)] = row[s + j];
+            }
+            a[(i, d0 + s)] = shifted;
+        }
+        // Householder QR of [J₀N₀ J₁ | r], column by column; the augmented column
         // carries Qᵀr along.
-        let cols = (2 * s).min(nrows);
+        let cols = (d0 + s).min(nrows);
         for k in 0..cols {
             let norm = a.view((k, k), (nrows - k, 1)).norm();
             if norm == 0.0 {
@@ -496,15 +808,15 @@ impl WindowSolver {
                 }
             }
         }
-        // Rows s..2s of the triangle involve only block k0+1.
-        let rows = cols.saturating_sub(s);
+        // Rows d0..d0+s of the triangle involve only block k0+1.
+        let rows = cols.saturating_sub(d0);
         let mut r = Vec::with_capacity(rows * s);
         let mut e = Vec::with_capacity(rows);
-        for i in s..s + rows {
+        for i in d0..d0 + rows {
             for j in 0..s {
-                r.push(a[(i, s + j)]);
+                r.push(a[(i, d0 + j)]);
             }
-            e.push(a[(i, 2 * s)]);
+            e.push(a[(i, d0 + s)]);
         }
         if !r.iter().chain(&e).all(|v| v.is_finite()) {
             return Err(Error::Singular(format!(
@@ -520,11 +832,112 @@ impl WindowSolver {
     }
 }
 
+/// A whitened soft factor in reduced coordinates: per block it touches (lag 0 into
+/// `reduced[0]`, lag 1 into `reduced[1]`) the rows J N (dim × s, padded with zeros
+/// past the block's null-space dimension), and the residual r + J p linearized at the
+/// point the hard equations' particular step leads to.
+#[allow(clippy::too_many_arguments)]
+fn reduce_factor(
+    reduced: &mut [Vec<f64>; 2],
+    shifted: &mut [f64],
+    hard: &[HardBlock],
+    graph: &ChainGraph,
+    keys: &[Key],
+    step: usize,
+    buf: &FactorBuffers,
+    s: usize,
+) {
+    let dim = buf.r.len();
+    reduced[0][..dim * s].fill(0.0);
+    reduced[1][..dim * s].fill(0.0);
+    shifted[..dim].copy_from_slice(&buf.r);
+    for (a, k) in keys.iter().enumerate() {
+        let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+        let red = &hard[step - k.lag].reduction;
+        let out = &mut reduced[k.lag];
+        let jac = &buf.jac[a];
+        for r in 0..dim {
+            let row = &mut out[r * s..r * s + red.dim];
+            for j in 0..d {
+                let v = jac[r * d + j];
+                if v == 0.0 {
+                    continue;
+                }
+                shifted[r] += v * red.particular[off + j];
+                let nrow = &red.basis[(off + j) * s..(off + j) * s + red.dim];
+                for (o, nv) in row.iter_mut().zip(nrow) {
+                    *o += v * nv;
+                }
+            }
+        }
+    }
+}
+
+/// Adds a reduced factor's JᵀJ and Jᵀr into the block-tridiagonal system: block
+/// `step` from `reduced[0]` and, when `lagged`, block `step − 1` from `reduced[1]`.
+fn accumulate(
+    h: &mut BlockTridiagonal,
+    g: &mut [f64],
+    reduced: &[Vec<f64>; 2],
+    r: &[f64],
+    step: usize,
+    lagged: bool,
+    s: usize,
+) {
+    let dim = r.len();
+    let parts: &[(usize, usize)] = if lagged {
+        &[(0, step), (1, step - 1)]
+    } else {
+        &[(0, step)]
+    };
+    for &(part, block) in parts {
+        let j = &reduced[part];
+        let gb = &mut g[block * s..(block + 1) * s];
+        for row in 0..dim {
+            let jr = &j[row * s..(row + 1) * s];
+            for (gi, v) in gb.iter_mut().zip(jr) {
+                *gi += v * r[row];
+            }
+        }
+        let hb = h.diag_mut(block);
+        for row in 0..dim {
+            let jr = &j[row * s..(row + 1) * s];
+            for (a, &va) in jr.iter().enumerate() {
+                if va == 0.0 {
+                    continue;
+                }
+                let out = &mut hb[a * s..(a + 1) * s];
+                for (o, vb) in out.iter_mut().zip(jr) {
+                    *o += va * vb;
+                }
+            }
+        }
+    }
+    if lagged {
+        // H[step][step−1] += J₀ᵀ J₁.
+        let (j0, j1) = (&reduced[0], &reduced[1]);
+        let hl = h.lower_mut(step);
+        for row in 0..dim {
+            let a_row = &j0[row * s..(row + 1) * s];
+            let b_row = &j1[row * s..(row + 1) * s];
+            for (a, &va) in a_row.iter().enumerate() {
+                if va == 0.0 {
+                    continue;
+                }
+                let out = &mut hl[a * s..(a + 1) * s];
+                for (o, vb) in out.iter_mut().zip(b_row) {
+                    *o += va * vb;
+                }
+            }
+        }
+    }
+}
+
 /// Appends a whitened factor's rows [J over blocks 0, 1 of the pair | r].
 fn collect_rows(
     rows: &mut Vec<f64>,
     graph: &ChainGraph,
-    keys: &[crate::graph::Key],
+    keys: &[Key],
     step: usize,
     buf: &FactorBuffers,
     s: usize,
@@ -542,53 +955,5 @@ fn collect_rows(
             }
         }
         row[2 * s] = buf.r[r];
-    }
-}
-
-/// Adds a whitened factor's JᵀJ and Jᵀr into the block-tridiagonal system; `step` is
-/// the factor's step relative to the window start.
-fn accumulate(
-    h: &mut BlockTridiagonal,
-    g: &mut [f64],
-    graph: &ChainGraph,
-    keys: &[crate::graph::Key],
-    step: usize,
-    buf: &FactorBuffers,
-    s: usize,
-) {
-    let dim = buf.r.len();
-    for (a, ka) in keys.iter().enumerate() {
-        let (oa, da) = graph.layout.slot(ka.kind).unwrap_or((0, 0));
-        let ba = step - ka.lag;
-        let ja = &buf.jac[a];
-        for i in 0..da {
-            let mut acc = 0.0;
-            for r in 0..dim {
-                acc += ja[r * da + i] * buf.r[r];
-            }
-            g[ba * s + oa + i] += acc;
-        }
-        for (b, kb) in keys.iter().enumerate() {
-            let bb = step - kb.lag;
-            if ba < bb {
-                continue; // the upper block is the transpose of a lower one
-            }
-            let (ob, db) = graph.layout.slot(kb.kind).unwrap_or((0, 0));
-            let jb = &buf.jac[b];
-            let block = if ba == bb {
-                h.diag_mut(ba)
-            } else {
-                h.lower_mut(ba)
-            };
-            for i in 0..da {
-                for j in 0..db {
-                    let mut acc = 0.0;
-                    for r in 0..dim {
-                        acc += ja[r * da + i] * jb[r * db + j];
-                    }
-                    block[(oa + i) * s + ob + j] += acc;
-                }
-            }
-        }
     }
 }
