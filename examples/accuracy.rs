@@ -1,93 +1,107 @@
-//! Four-bar accuracy and timing against the minimal-coordinate reference:
-//! `cargo run --release --example accuracy -- [dt] [windows...]`.
+//! The paper's four-bar (5 s from rest under gravity) against a minimal-coordinate
+//! RK4 reference: RMSE, wall time, iterations and constraint residuals for DC (scene
+//! `fourbar`) and IC (scene `fourbar-theta`) over N_w ∈ {1, 2, 5, 10} and batch.
+//!
+//! `cargo run --release --example accuracy -- [dt]`; environment:
+//! `TEND` (default 5), `ONLY` (e.g. `DependentFixedLag(1)`),
+//! `GRID="σ_iq,σ_iv,σ_dyn[,σ_eq[,σ_q0]];..."` sweeps noise models at N_w = 1 (or
+//! `WINDOW=n|batch`), DC or, with `IC=1`, IC.
 use mbfg::forward::{simulate, Coordinates, ForwardOptions};
 use mbfg::smoother::Mode;
 use mbfg::{reference, Model, Scene};
 use std::sync::Arc;
 
+fn load(path: &str) -> Arc<Model> {
+    Arc::new(Model::new(&Scene::load(path).expect("scene")).expect("model"))
+}
+
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let dt: f64 = args.get(1).map(|s| s.parse().unwrap()).unwrap_or(1e-3);
-    let scene = Scene::load(&std::env::var("SCENE").unwrap_or("scenes/fourbar-theta.yaml".into())).unwrap();
-    let model = Arc::new(Model::new(&scene).unwrap());
-    let ref_model = Model::new(&Scene::load("scenes/fourbar-theta.yaml").unwrap()).unwrap();
+    let dt: f64 = std::env::args()
+        .nth(1)
+        .map(|s| s.parse().expect("dt"))
+        .unwrap_or(1e-3);
     let t_end: f64 = std::env::var("TEND")
-        .map(|s| s.parse().unwrap())
+        .map(|s| s.parse().expect("TEND"))
         .unwrap_or(5.0);
+    let dc = load("scenes/fourbar.yaml");
+    let ic = load("scenes/fourbar-theta.yaml");
     let t0 = std::time::Instant::now();
-    let truth = reference::minimal_coordinates_rk4(
-        &ref_model,
-        &ref_model.independent,
-        dt,
-        t_end,
-        dt.min(1e-4) / 2.0,
-    )
-    .unwrap();
+    let truth =
+        reference::minimal_coordinates_rk4(&ic, &ic.independent, dt, t_end, dt.min(1e-4) / 2.0)
+            .expect("reference");
     eprintln!("reference: {:?}", t0.elapsed());
-    let pts: Vec<usize> = (0..4).collect();
-    let modes: Vec<Mode> = vec![
-        Mode::FixedLag(1),
-        Mode::FixedLag(2),
-        Mode::FixedLag(5),
-        Mode::FixedLag(10),
-        Mode::Batch,
-    ];
+    // x₁, y₁, x₂, y₂ come first in both scenes.
+    let points: Vec<usize> = (0..4).collect();
+    let run = |coords: Coordinates, mode: Mode, tweak: &dyn Fn(&mut ForwardOptions)| {
+        let model = if coords == Coordinates::Dependent {
+            dc.clone()
+        } else {
+            ic.clone()
+        };
+        let mut opts = ForwardOptions::new(coords, dt, t_end, mode);
+        opts.continue_on_failure = true;
+        tweak(&mut opts);
+        let (tr, s) = simulate(model, &opts, &mut |_, _| {}).expect("simulate");
+        for f in s.failures.iter().take(3) {
+            println!("  not converged: step {} (t = {:.3}): {:?}", f.step, f.t, f.report);
+        }
+        (reference::rmse_points(&tr, &truth, &points), s)
+    };
     if let Ok(grid) = std::env::var("GRID") {
-        // GRID="tiq,tiv,dyn;..." sweeps DC noise models at N_w = 1.
-        for triple in grid.split(';') {
-            let v: Vec<f64> = triple.split(',').map(|x| x.parse().unwrap()).collect();
-            let coords = if std::env::var("IC").is_ok() { Coordinates::Independent } else { Coordinates::Dependent };
-            let mut opts = ForwardOptions::new(coords, dt, t_end, Mode::FixedLag(1));
-            opts.noise.integrator_position = v[0];
-            opts.noise.integrator_velocity = v[1];
-            opts.noise.dynamics = v[2];
-            if let Some(e) = v.get(3) { opts.noise.equality = *e; }
-            if let Some(e) = v.get(4) { opts.noise.initial_q = *e; }
-            opts.continue_on_failure = true;
-            let (tr, s) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
-            let rmse = reference::rmse_points(&tr, &truth, &pts);
-            for f in s.failures.iter().take(3) {
-                println!("  failure at step {} t={:.3}: {:?}", f.step, f.t, f.report);
-            }
-            println!("{triple}: rmse {rmse:.3e} iters {:.2} failures {}", s.mean_iterations, s.failures.len());
+        let coords = if std::env::var("IC").is_ok() {
+            Coordinates::Independent
+        } else {
+            Coordinates::Dependent
+        };
+        for spec in grid.split(';') {
+            let v: Vec<f64> = spec.split(',').map(|x| x.parse().expect("σ")).collect();
+            let mode = match std::env::var("WINDOW").ok().as_deref() {
+                None => Mode::FixedLag(1),
+                Some("batch") => Mode::Batch,
+                Some(n) => Mode::FixedLag(n.parse().expect("WINDOW")),
+            };
+            let (rmse, s) = run(coords, mode, &|o| {
+                o.noise.integrator_position = v[0];
+                o.noise.integrator_velocity = v[1];
+                o.noise.dynamics = v[2];
+                if let Some(&e) = v.get(3) {
+                    o.noise.equality = e;
+                }
+                if let Some(&e) = v.get(4) {
+                    o.noise.initial_q = e;
+                }
+            });
+            println!(
+                "{spec}: rmse {rmse:.3e}  iterations {:.2}  failures {}",
+                s.mean_iterations,
+                s.failures.len()
+            );
         }
         return;
     }
+    let only = std::env::var("ONLY").ok();
     for coords in [Coordinates::Dependent, Coordinates::Independent] {
-        for mode in &modes {
-            let mut opts = ForwardOptions::new(coords, dt, t_end, *mode);
-            let env = |k: &str, d: f64| {
-                std::env::var(k)
-                    .ok()
-                    .map(|v| v.parse().unwrap())
-                    .unwrap_or(d)
-            };
-            opts.noise.integrator_position = env("TIQ", opts.noise.integrator_position);
-            opts.noise.integrator_velocity = env("TIV", opts.noise.integrator_velocity);
-            opts.noise.dynamics = env("DYN", opts.noise.dynamics);
-            opts.continue_on_failure = true;
-            if std::env::var("ONLY")
-                .map(|o| o != format!("{coords:?}{mode:?}"))
-                .unwrap_or(false)
-            {
+        for mode in [
+            Mode::FixedLag(1),
+            Mode::FixedLag(2),
+            Mode::FixedLag(5),
+            Mode::FixedLag(10),
+            Mode::Batch,
+        ] {
+            if only.as_ref().is_some_and(|o| *o != format!("{coords:?}{mode:?}")) {
                 continue;
             }
-            let (tr, s) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
-            for f in s.failures.iter().take(5) {
-                println!("  failure at step {} t={:.3}: {:?}", f.step, f.t, f.report);
-            }
-            if std::env::var("TRACE").is_ok() {
-                let mut phi = vec![0.0; model.m()];
-                for k in (0..tr.len()).step_by(50) {
-                    model.phi_into(tr.q_at(k), &mut phi);
-                    let p = phi.iter().fold(0.0f64, |a, b| a.max(b.abs()));
-                    let e: f64 = (0..4).map(|c| (tr.q_at(k)[c] - truth.q_at(k)[c]).abs()).fold(0.0, f64::max);
-                    println!("  t={:.3} |phi|={p:.2e} err={e:.2e} q={:?}", tr.t[k], &tr.q_at(k)[..4]);
-                }
-            }
-            let rmse = reference::rmse_points(&tr, &truth, &pts);
-            println!("{coords:?} {mode:?}: rmse {rmse:.3e}  time {:?}  iters {:.2}/{}  |Φ| {:.1e} |Φq q̇| {:.1e} drift {:.2e} failures {}",
-                s.wall_time, s.mean_iterations, s.max_iterations, s.worst_phi, s.worst_velocity_constraint, s.energy_drift.unwrap_or(0.0), s.failures.len());
+            let (rmse, s) = run(coords, mode, &|_| {});
+            println!(
+                "{coords:?} {mode:?}: rmse {rmse:.3e}  time {:?}  iterations {:.2}/{}  |Φ| {:.1e}  |Φq q̇| {:.1e}  drift {:.2e}  failures {}",
+                s.wall_time,
+                s.mean_iterations,
+                s.max_iterations,
+                s.worst_phi,
+                s.worst_velocity_constraint,
+                s.energy_drift.unwrap_or(0.0),
+                s.failures.len()
+            );
         }
     }
 }

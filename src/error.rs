@@ -57,6 +57,11 @@ pub enum Error {
     #[error("singular system: {0}")]
     Singular(String),
 
+    /// A data file (CSV) that cannot be read or written, or whose content is
+    /// malformed; the message names the file and, where possible, the line.
+    #[error("{0}")]
+    Data(String),
+
     /// An argument given to a library call is out of its domain.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),

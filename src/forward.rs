@@ -84,7 +84,7 @@ impl Default for NoiseModels {
     /// (3.4e-4 m against 2.6e-6 m). Kept weak, it still tells the branch apart.
     fn default() -> Self {
         NoiseModels {
-            equality: 1e4,
+            equality: 1e6,
             ..NoiseModels::paper()
         }
     }
@@ -392,7 +392,8 @@ pub fn simulate(
                         if !options.continue_on_failure
                             || report.termination == Termination::Diverged
                         {
-                            completed = k + 1;
+                            // The failed step is left out of the trajectory.
+                            completed = k;
                             return Next::Stop;
                         }
                     }

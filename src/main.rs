@@ -1,10 +1,15 @@
 //! The `mbfg` command line. Errors end with exit code 2 and one line on stderr.
 
-use clap::{Parser, Subcommand};
+use clap::{Parser, Subcommand, ValueEnum};
 use mbfg::check::CheckReport;
+use mbfg::forward::{self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary};
+use mbfg::smoother::Mode;
 use mbfg::{Error, Model, Scene};
-use std::path::PathBuf;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 #[derive(Parser)]
 #[command(
@@ -25,6 +30,73 @@ enum Command {
         /// Scene or MBSE mechanism file (YAML).
         scene: PathBuf,
     },
+    /// Forward dynamics: simulate the scene from its initial state and write the
+    /// trajectory as CSV (to --out, or to standard output).
+    #[command(allow_negative_numbers = true)]
+    Simulate {
+        /// Scene or MBSE mechanism file (YAML).
+        scene: PathBuf,
+        /// Dependent (natural) or independent coordinates.
+        #[arg(long, value_enum, default_value_t = CoordsArg::Dc)]
+        coords: CoordsArg,
+        /// Time step, in seconds.
+        #[arg(long)]
+        dt: f64,
+        /// End time, in seconds (the run starts at 0).
+        #[arg(long = "t-end")]
+        t_end: f64,
+        /// Fixed-lag smoother over the N newest steps [default: 1].
+        #[arg(long, value_name = "N", conflicts_with = "batch")]
+        window: Option<usize>,
+        /// Solve the whole horizon at once.
+        #[arg(long)]
+        batch: bool,
+        /// Linear solves allowed per window solve.
+        #[arg(long = "max-iterations", value_name = "K", default_value_t = 50)]
+        max_iterations: usize,
+        /// Trajectory CSV to write; the summary then goes to standard output.
+        #[arg(long, value_name = "FILE.csv")]
+        out: Option<PathBuf>,
+        /// Integrator factor between steps.
+        #[arg(long, value_enum, default_value_t = IntegratorArg::Trapezoidal)]
+        integrator: IntegratorArg,
+        /// Noise models: mbfg's defaults, or the paper's Table 2.
+        #[arg(long, value_enum, default_value_t = NoiseArg::Default)]
+        noise: NoiseArg,
+        /// Keep going after a step whose solve did not converge (it is reported).
+        #[arg(long = "continue-on-failure")]
+        continue_on_failure: bool,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum CoordsArg {
+    Dc,
+    Ic,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum IntegratorArg {
+    Trapezoidal,
+    Euler,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum NoiseArg {
+    Default,
+    Paper,
+}
+
+/// Why a command failed: bad input (exit 2) or a run that did not converge (exit 1).
+enum Failure {
+    Input(String),
+    Run(String),
+}
+
+impl From<String> for Failure {
+    fn from(m: String) -> Self {
+        Failure::Input(m)
+    }
 }
 
 fn main() -> ExitCode {
@@ -38,26 +110,200 @@ fn main() -> ExitCode {
     };
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
-        Err(message) => {
+        Err(Failure::Input(message)) => {
             eprintln!("error: {message}");
             ExitCode::from(2)
+        }
+        Err(Failure::Run(message)) => {
+            eprintln!("error: {message}");
+            ExitCode::from(1)
         }
     }
 }
 
 /// Runs a command; the error is the one line to print.
-fn run(cli: Cli) -> Result<(), String> {
+fn run(cli: Cli) -> Result<(), Failure> {
     match cli.command {
         Command::Check { scene } => {
             let (scene, model) = load(&scene)?;
             println!("{}", CheckReport::new(&scene, &model));
             Ok(())
         }
+        Command::Simulate {
+            scene,
+            coords,
+            dt,
+            t_end,
+            window,
+            batch,
+            max_iterations,
+            out,
+            integrator,
+            noise,
+            continue_on_failure,
+        } => {
+            let (_, model) = load(&scene)?;
+            let mode = if batch {
+                Mode::Batch
+            } else {
+                Mode::FixedLag(window.unwrap_or(1))
+            };
+            let coordinates = match coords {
+                CoordsArg::Dc => Coordinates::Dependent,
+                CoordsArg::Ic => Coordinates::Independent,
+            };
+            let mut options = ForwardOptions::new(coordinates, dt, t_end, mode);
+            options.integrator = match integrator {
+                IntegratorArg::Trapezoidal => Integrator::Trapezoidal,
+                IntegratorArg::Euler => Integrator::Euler,
+            };
+            options.noise = match noise {
+                NoiseArg::Default => NoiseModels::default(),
+                NoiseArg::Paper => NoiseModels::paper(),
+            };
+            options.settings.max_iterations = max_iterations;
+            options.continue_on_failure = continue_on_failure;
+            options
+                .validate(&model)
+                .map_err(|e| format!("{}", plain(e)))?;
+            simulate(model, &options, out.as_deref())
+        }
+    }
+}
+
+/// The message of a library error without the variant's prefix for bad arguments.
+fn plain(e: Error) -> String {
+    match e {
+        Error::InvalidArgument(m) => m,
+        other => other.to_string(),
+    }
+}
+
+/// `mbfg simulate`: runs, writes the CSV, prints the summary.
+fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Result<(), Failure> {
+    // Open the output first: an unwritable path is bad input, found before the run.
+    let file = match out {
+        Some(p) => Some(
+            std::fs::File::create(p)
+                .map_err(|e| format!("cannot write {}: {e}", p.display()))?,
+        ),
+        None => None,
+    };
+    let mut bar = Progress::new();
+    let result = forward::simulate(Arc::new(model), options, &mut |done, total| {
+        bar.update(done, total)
+    });
+    bar.finish();
+    let (trajectory, summary) = result.map_err(|e| Failure::Run(plain(e)))?;
+    let first_failure = summary.failures.first().cloned();
+    let stopped = first_failure.is_some() && !options.continue_on_failure;
+    // A batch that did not converge has no trustworthy step to write.
+    let writable = !(stopped && options.mode == Mode::Batch);
+    if writable {
+        let written = match file {
+            Some(f) => mbfg::io::write_trajectory(std::io::BufWriter::new(f), &trajectory, None),
+            None => mbfg::io::write_trajectory(std::io::stdout().lock(), &trajectory, None),
+        };
+        written.map_err(|e| Failure::Run(plain(e)))?;
+    }
+    let line = summary_line(options, &summary);
+    if out.is_some() {
+        println!("{line}");
+    } else {
+        eprintln!("{line}");
+    }
+    for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
+        eprintln!(
+            "warning: step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations",
+            f.step, f.t, f.report.termination, f.report.cost, f.report.iterations
+        );
+    }
+    if let (true, Some(f)) = (stopped, first_failure) {
+        let what = if writable {
+            format!("the {} steps before it were written", trajectory.len())
+        } else {
+            "nothing was written".into()
+        };
+        return Err(Failure::Run(format!(
+            "step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations; {what} \
+             (--continue-on-failure goes on, --max-iterations allows more)",
+            f.step, f.t, f.report.termination, f.report.cost, f.report.iterations
+        )));
+    }
+    Ok(())
+}
+
+fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
+    let mode = match options.mode {
+        Mode::Batch => "batch".to_string(),
+        Mode::FixedLag(n) => format!("window {n}"),
+    };
+    let mut line = format!(
+        "{} steps (dt = {} s, {mode}) in {:.3} s; LM iterations per solve: mean {:.2}, max {}; \
+         worst |Φ| {:.2e}, worst |Φq q̇| {:.2e}",
+        s.steps,
+        options.dt,
+        s.wall_time.as_secs_f64(),
+        s.mean_iterations,
+        s.max_iterations,
+        s.worst_phi,
+        s.worst_velocity_constraint
+    );
+    if let Some(d) = s.energy_drift {
+        line += &format!("; energy drift {d:.2e} J");
+    }
+    if !s.failures.is_empty() {
+        line += &format!("; {} step(s) did not converge", s.failures.len());
+    }
+    line
+}
+
+/// A progress bar on stderr, shown only when stderr is a terminal and the run has
+/// lasted over a second.
+struct Progress {
+    start: Instant,
+    bar: Option<indicatif::ProgressBar>,
+    enabled: bool,
+}
+
+impl Progress {
+    fn new() -> Self {
+        Progress {
+            start: Instant::now(),
+            bar: None,
+            enabled: std::io::stderr().is_terminal(),
+        }
+    }
+
+    fn update(&mut self, done: usize, total: usize) {
+        if !self.enabled {
+            return;
+        }
+        if self.bar.is_none() && self.start.elapsed() > Duration::from_secs(1) {
+            let bar = indicatif::ProgressBar::new(total as u64);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{elapsed_precise} [{bar:40}] {pos}/{len} steps, eta {eta}",
+                )
+                .expect("a valid template")
+                .progress_chars("=> "),
+            );
+            self.bar = Some(bar);
+        }
+        if let Some(bar) = &self.bar {
+            bar.set_position(done as u64);
+        }
+    }
+
+    fn finish(&mut self) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
     }
 }
 
 /// Reads and assembles a scene; errors name the file.
-fn load(path: &std::path::Path) -> Result<(Scene, Model), String> {
+fn load(path: &Path) -> Result<(Scene, Model), String> {
     let scene = Scene::load(path).map_err(|e| e.to_string())?;
     let model = Model::new(&scene).map_err(|e| match e {
         Error::Scene(s) => s.to_string(),
