@@ -165,7 +165,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             options.continue_on_failure = continue_on_failure;
             options
                 .validate(&model)
-                .map_err(|e| format!("{}", plain(e)))?;
+                .map_err(plain)?;
             simulate(model, &options, out.as_deref())
         }
     }

@@ -207,6 +207,8 @@ pub struct WindowSolver {
     scratch: Vec<f64>,
     /// Whitened soft rows [J over blocks k0, k0+1 | r] collected for marginalization.
     rows: Vec<f64>,
+    /// Marginalization's QR, column-major.
+    qr: Vec<f64>,
 }
 
 impl WindowSolver {
@@ -286,6 +288,7 @@ impl WindowSolver {
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 2 * s],
             rows: Vec::new(),
+            qr: Vec::new(),
         })
     }
 
@@ -472,6 +475,10 @@ impl WindowSolver {
                     .reduce(&block.jac, &block.rhs[..block.rows], block.rows);
             }
             self.h.reset(blocks);
+            // Directions the hard equations fix carry no unknown.
+            for b in 0..blocks {
+                self.h.set_dim(b, self.hard[b].reduction.dim);
+            }
             self.g[..blocks * s].fill(0.0);
         }
         for i in 0..self.instances.len() {
@@ -579,16 +586,7 @@ impl WindowSolver {
                 );
             }
         }
-        if linearize {
-            // Directions the hard equations fix carry no unknown: pin their y to 0.
-            for b in 0..blocks {
-                let dim = self.hard[b].reduction.dim;
-                let diag = self.h.diag_mut(b);
-                for j in dim..s {
-                    diag[j * s + j] += 1.0;
-                }
-            }
-        }
+
         if !cost.is_finite() {
             return Err(Error::Singular("the cost is not finite".into()));
         }
@@ -675,8 +673,10 @@ impl WindowSolver {
                 }
             }
             let small = largest <= self.settings.step_tolerance;
+            // The trial is linearized at once: accepted (the usual case), it is the
+            // next iteration's system; rejected, the old point is linearized again.
             let trial = match self.correct(graph, values, k0, k1) {
-                Ok(()) => self.evaluate(graph, values, k0, k1, prior, Scope::Window, false),
+                Ok(()) => self.evaluate(graph, values, k0, k1, prior, Scope::Window, true),
                 Err(e) => Err(e),
             };
             // Converged when an undamped step is small; or when it restores the hard
@@ -711,16 +711,18 @@ impl WindowSolver {
                     // by thirds costs a dozen iterations.
                     let ratio = (cost - c) / predicted.max(f64::MIN_POSITIVE);
                     mu = if ratio > 0.75 || mu < 1e-12 { 0.0 } else { mu / 3.0 };
-                    // Relinearize at the accepted point.
-                    cost = match self.evaluate(graph, values, k0, k1, prior, Scope::Window, true) {
-                        Ok(c) => c,
-                        Err(_) => return Ok(diverged(f64::INFINITY, iterations)),
-                    };
+                    cost = c;
                     nu = 2.0;
                 }
                 _ => {
                     values[k0 * s..k1 * s].copy_from_slice(&self.saved[..n]);
                     if !lm {
+                        return Ok(diverged(cost, iterations));
+                    }
+                    if self
+                        .evaluate(graph, values, k0, k1, prior, Scope::Window, true)
+                        .is_err()
+                    {
                         return Ok(diverged(cost, iterations));
                     }
                     if small {
@@ -734,7 +736,6 @@ impl WindowSolver {
                     if mu > 1e16 {
                         return Ok(diverged(cost, iterations));
                     }
-                    // H and g still hold the linearization at the restored point.
                 }
             }
         }
@@ -766,7 +767,10 @@ impl WindowSolver {
         let red = &self.hard[0].reduction;
         let d0 = red.dim;
         let width = d0 + s + 1;
-        let mut a = nalgebra::DMatrix::<f64>::zeros(nrows, width);
+        // A = [J₀N₀ J₁ | r + J₀p₀], column-major nrows × width.
+        let a = &mut self.qr;
+        a.clear();
+        a.resize(nrows * width, 0.0);
         for i in 0..nrows {
             let row = &self.rows[i * raw..(i + 1) * raw];
             let mut shifted = row[2 * s];
@@ -777,36 +781,37 @@ impl WindowSolver {
                 }
                 shifted += v * red.particular[j];
                 for c in 0..d0 {
-                    a[(i, c)] += v * red.basis[j * s + c];
+                    a[c * nrows + i] += v * red.basis[j * s + c];
                 }
             }
             for j in 0..s {
-                a[(i, d0 + j)] = row[s + j];
+                a[(d0 + j) * nrows + i] = row[s + j];
             }
-            a[(i, d0 + s)] = shifted;
+            a[(d0 + s) * nrows + i] = shifted;
         }
-        // Householder QR of [J₀N₀ J₁ | r], column by column; the augmented column
-        // carries Qᵀr along.
+        // Householder QR, column by column; the last column carries Qᵀr along.
         let cols = (d0 + s).min(nrows);
         for k in 0..cols {
-            let norm = a.view((k, k), (nrows - k, 1)).norm();
+            let (left, right) = a.split_at_mut((k + 1) * nrows);
+            let v = &mut left[k * nrows + k..];
+            let norm = v.iter().map(|x| x * x).sum::<f64>().sqrt();
             if norm == 0.0 {
                 continue;
             }
-            let alpha = if a[(k, k)] > 0.0 { -norm } else { norm };
-            let mut v = a.view((k, k), (nrows - k, 1)).into_owned();
+            let alpha = if v[0] > 0.0 { -norm } else { norm };
             v[0] -= alpha;
-            let vnorm2 = v.norm_squared();
-            if vnorm2 == 0.0 {
-                continue;
-            }
-            for j in k..width {
-                let dot: f64 = (0..nrows - k).map(|i| v[i] * a[(k + i, j)]).sum();
+            let vnorm2: f64 = v.iter().map(|x| x * x).sum();
+            for col in right.chunks_exact_mut(nrows) {
+                let y = &mut col[k..];
+                let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
                 let f = 2.0 * dot / vnorm2;
-                for i in 0..nrows - k {
-                    a[(k + i, j)] -= f * v[i];
+                for (yi, vi) in y.iter_mut().zip(v.iter()) {
+                    *yi -= f * vi;
                 }
             }
+            // The reflected column is α e_k.
+            v[0] = alpha;
+            v[1..].fill(0.0);
         }
         // Rows d0..d0+s of the triangle involve only block k0+1.
         let rows = cols.saturating_sub(d0);
@@ -814,9 +819,9 @@ impl WindowSolver {
         let mut e = Vec::with_capacity(rows);
         for i in d0..d0 + rows {
             for j in 0..s {
-                r.push(a[(i, d0 + j)]);
+                r.push(a[(d0 + j) * nrows + i]);
             }
-            e.push(a[(i, d0 + s)]);
+            e.push(a[(d0 + s) * nrows + i]);
         }
         if !r.iter().chain(&e).all(|v| v.is_finite()) {
             return Err(Error::Singular(format!(
@@ -874,7 +879,8 @@ fn reduce_factor(
 }
 
 /// Adds a reduced factor's JᵀJ and Jᵀr into the block-tridiagonal system: block
-/// `step` from `reduced[0]` and, when `lagged`, block `step − 1` from `reduced[1]`.
+/// `step` from `reduced[0]` and, when `lagged`, block `step − 1` from `reduced[1]`
+/// (only their active columns, H's block sizes).
 fn accumulate(
     h: &mut BlockTridiagonal,
     g: &mut [f64],
@@ -891,22 +897,23 @@ fn accumulate(
         &[(0, step)]
     };
     for &(part, block) in parts {
+        let d = h.dim(block);
         let j = &reduced[part];
-        let gb = &mut g[block * s..(block + 1) * s];
+        let gb = &mut g[block * s..block * s + d];
         for row in 0..dim {
-            let jr = &j[row * s..(row + 1) * s];
+            let jr = &j[row * s..row * s + d];
             for (gi, v) in gb.iter_mut().zip(jr) {
                 *gi += v * r[row];
             }
         }
         let hb = h.diag_mut(block);
         for row in 0..dim {
-            let jr = &j[row * s..(row + 1) * s];
+            let jr = &j[row * s..row * s + d];
             for (a, &va) in jr.iter().enumerate() {
                 if va == 0.0 {
                     continue;
                 }
-                let out = &mut hb[a * s..(a + 1) * s];
+                let out = &mut hb[a * s..a * s + d];
                 for (o, vb) in out.iter_mut().zip(jr) {
                     *o += va * vb;
                 }
@@ -915,16 +922,17 @@ fn accumulate(
     }
     if lagged {
         // H[step][step−1] += J₀ᵀ J₁.
+        let (d0, d1) = (h.dim(step), h.dim(step - 1));
         let (j0, j1) = (&reduced[0], &reduced[1]);
         let hl = h.lower_mut(step);
         for row in 0..dim {
-            let a_row = &j0[row * s..(row + 1) * s];
-            let b_row = &j1[row * s..(row + 1) * s];
+            let a_row = &j0[row * s..row * s + d0];
+            let b_row = &j1[row * s..row * s + d1];
             for (a, &va) in a_row.iter().enumerate() {
                 if va == 0.0 {
                     continue;
                 }
-                let out = &mut hl[a * s..(a + 1) * s];
+                let out = &mut hl[a * s..a * s + d1];
                 for (o, vb) in out.iter_mut().zip(b_row) {
                     *o += va * vb;
                 }

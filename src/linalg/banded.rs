@@ -4,15 +4,20 @@
 //! "symbolic factorization" is the band itself, fixed per window size; each LM
 //! iteration only refills and refactors the blocks, in O(steps · s³) and without
 //! allocating.
+//!
+//! Each block k has an active size d_k ≤ s (the unknowns left after a step's hard
+//! equations are eliminated); storage keeps stride s, the work is O(Σ d_k³).
 
 use super::dense::{self, DenseError};
 
 /// H = block tridiagonal with `blocks` diagonal blocks of size s×s; only the lower
-/// blocks H[k][k−1] are stored (row-major).
+/// blocks H[k][k−1] are stored (row-major, stride s). Block k uses its leading
+/// d_k rows and columns.
 #[derive(Debug, Clone)]
 pub struct BlockTridiagonal {
     s: usize,
     blocks: usize,
+    dims: Vec<usize>,
     diag: Vec<f64>,
     lower: Vec<f64>,
 }
@@ -23,6 +28,7 @@ impl BlockTridiagonal {
         BlockTridiagonal {
             s,
             blocks: capacity,
+            dims: vec![s; capacity],
             diag: vec![0.0; capacity * s * s],
             lower: vec![0.0; capacity * s * s],
         }
@@ -37,16 +43,28 @@ impl BlockTridiagonal {
     }
 
     pub fn capacity(&self) -> usize {
-        self.diag.len() / (self.s * self.s).max(1)
+        self.dims.len()
     }
 
-    /// Uses the first `blocks` blocks (≤ capacity) and zeroes them.
+    /// Uses the first `blocks` blocks (≤ capacity), zeroes them and makes every one
+    /// fully active.
     pub fn reset(&mut self, blocks: usize) {
         assert!(blocks <= self.capacity(), "more blocks than allocated");
         self.blocks = blocks;
         let len = blocks * self.s * self.s;
         self.diag[..len].fill(0.0);
         self.lower[..len].fill(0.0);
+        self.dims[..blocks].fill(self.s);
+    }
+
+    /// Sets the active size of block k (its unknowns past d are absent: zero).
+    pub fn set_dim(&mut self, k: usize, d: usize) {
+        assert!(d <= self.s, "an active size beyond the block");
+        self.dims[k] = d;
+    }
+
+    pub fn dim(&self, k: usize) -> usize {
+        self.dims[k]
     }
 
     /// H[k][k], row-major s×s.
@@ -71,23 +89,22 @@ impl BlockTridiagonal {
         &self.lower[k * ss..(k + 1) * ss]
     }
 
-    /// y = H x over the used blocks.
+    /// y = H x over the used blocks and their active parts (other entries of y: 0).
     pub fn multiply(&self, x: &[f64], y: &mut [f64]) {
         let s = self.s;
         y[..self.blocks * s].fill(0.0);
         for k in 0..self.blocks {
+            let dk = self.dims[k];
             let d = self.diag(k);
-            for i in 0..s {
-                let mut acc = 0.0;
-                for j in 0..s {
-                    acc += d[i * s + j] * x[k * s + j];
-                }
-                y[k * s + i] += acc;
+            for i in 0..dk {
+                let row = &d[i * s..i * s + dk];
+                y[k * s + i] += row.iter().zip(&x[k * s..k * s + dk]).map(|(a, b)| a * b).sum::<f64>();
             }
             if k > 0 {
+                let dp = self.dims[k - 1];
                 let b = self.lower(k);
-                for i in 0..s {
-                    for j in 0..s {
+                for i in 0..dk {
+                    for j in 0..dp {
                         // H[k][k−1] and its transpose H[k−1][k].
                         y[k * s + i] += b[i * s + j] * x[(k - 1) * s + j];
                         y[(k - 1) * s + j] += b[i * s + j] * x[k * s + i];
@@ -104,6 +121,7 @@ impl BlockTridiagonal {
 pub struct BandedCholesky {
     s: usize,
     blocks: usize,
+    dims: Vec<usize>,
     l: Vec<f64>,
     c: Vec<f64>,
 }
@@ -113,6 +131,7 @@ impl BandedCholesky {
         BandedCholesky {
             s,
             blocks: 0,
+            dims: vec![s; capacity],
             l: vec![0.0; capacity * s * s],
             c: vec![0.0; capacity * s * s],
         }
@@ -128,74 +147,78 @@ impl BandedCholesky {
         let s = self.s;
         let ss = s * s;
         self.blocks = h.blocks();
+        self.dims[..self.blocks].copy_from_slice(&h.dims[..self.blocks]);
         for k in 0..self.blocks {
+            let dk = self.dims[k];
             let (before, rest) = self.l.split_at_mut(k * ss);
             let lk = &mut rest[..ss];
             lk.copy_from_slice(h.diag(k));
             if !damping.is_empty() {
-                for i in 0..s {
+                for i in 0..dk {
                     lk[i * s + i] += damping[k * s + i];
                 }
             }
             if k > 0 {
+                let dp = self.dims[k - 1];
                 let lprev = &before[(k - 1) * ss..k * ss];
                 let ck = &mut self.c[k * ss..(k + 1) * ss];
                 ck.copy_from_slice(h.lower(k));
-                for r in 0..s {
-                    dense::solve_lower(lprev, s, &mut ck[r * s..(r + 1) * s]);
+                for r in 0..dk {
+                    dense::solve_lower_strided(lprev, dp, s, &mut ck[r * s..r * s + dp]);
                 }
-                for i in 0..s {
+                for i in 0..dk {
                     for j in 0..=i {
-                        let mut acc = 0.0;
-                        for t in 0..s {
-                            acc += ck[i * s + t] * ck[j * s + t];
-                        }
-                        lk[i * s + j] -= acc;
+                        let a = &ck[i * s..i * s + dp];
+                        let b = &ck[j * s..j * s + dp];
+                        lk[i * s + j] -= a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
                     }
                 }
             }
-            dense::cholesky(lk, s).map_err(|e| (k, e))?;
+            dense::cholesky_strided(lk, dk, s).map_err(|e| (k, e))?;
         }
         Ok(())
     }
 
-    /// Solves H x = b in place.
+    /// Solves H x = b in place (entries outside the active parts come out 0).
     pub fn solve(&self, b: &mut [f64]) {
         let s = self.s;
         let ss = s * s;
         for k in 0..self.blocks {
+            let dk = self.dims[k];
+            b[k * s + dk..(k + 1) * s].fill(0.0);
             if k > 0 {
+                let dp = self.dims[k - 1];
                 let ck = &self.c[k * ss..(k + 1) * ss];
                 let (prev, cur) = b.split_at_mut(k * s);
-                let yprev = &prev[(k - 1) * s..];
-                for i in 0..s {
-                    let mut acc = 0.0;
-                    for t in 0..s {
-                        acc += ck[i * s + t] * yprev[t];
-                    }
-                    cur[i] -= acc;
+                let yprev = &prev[(k - 1) * s..(k - 1) * s + dp];
+                for i in 0..dk {
+                    let row = &ck[i * s..i * s + dp];
+                    cur[i] -= row.iter().zip(yprev).map(|(x, y)| x * y).sum::<f64>();
                 }
             }
-            dense::solve_lower(&self.l[k * ss..(k + 1) * ss], s, &mut b[k * s..(k + 1) * s]);
+            dense::solve_lower_strided(&self.l[k * ss..(k + 1) * ss], dk, s, &mut b[k * s..k * s + dk]);
         }
         for k in (0..self.blocks).rev() {
+            let dk = self.dims[k];
             if k + 1 < self.blocks {
+                let dn = self.dims[k + 1];
                 let cn = &self.c[(k + 1) * ss..(k + 2) * ss];
                 let (cur, next) = b.split_at_mut((k + 1) * s);
-                let xnext = &next[..s];
+                let xnext = &next[..dn];
                 let cur = &mut cur[k * s..];
-                for j in 0..s {
-                    let mut acc = 0.0;
-                    for i in 0..s {
-                        acc += cn[i * s + j] * xnext[i];
+                for i in 0..dn {
+                    let row = &cn[i * s..i * s + dk];
+                    let xi = xnext[i];
+                    for (c, r) in cur[..dk].iter_mut().zip(row) {
+                        *c -= r * xi;
                     }
-                    cur[j] -= acc;
                 }
             }
-            dense::solve_lower_transpose(
+            dense::solve_lower_transpose_strided(
                 &self.l[k * ss..(k + 1) * ss],
+                dk,
                 s,
-                &mut b[k * s..(k + 1) * s],
+                &mut b[k * s..k * s + dk],
             );
         }
     }
@@ -264,6 +287,22 @@ mod tests {
         h.multiply(expect.as_slice(), &mut y);
         for i in 0..n {
             assert!((y[i] - b[i]).abs() < 1e-12);
+        }
+        // Active sizes below s: the same as the dense system of the active unknowns.
+        let dims = [5, 3, 0, 4, 2, 5];
+        for (k, &d) in dims.iter().enumerate() {
+            h.set_dim(k, d);
+        }
+        let active: Vec<usize> = (0..n).filter(|&i| i % s < dims[i / s]).collect();
+        let sub = DMatrix::from_fn(active.len(), active.len(), |a, b| dense[(active[a], active[b])]);
+        let rhs = DVector::from_fn(active.len(), |a, _| b[active[a]]);
+        let expect = sub.cholesky().unwrap().solve(&rhs);
+        f.factor(&h, &[]).unwrap();
+        let mut x = b.as_slice().to_vec();
+        f.solve(&mut x);
+        for i in 0..n {
+            let want = active.iter().position(|&a| a == i).map_or(0.0, |a| expect[a]);
+            assert!((x[i] - want).abs() < 1e-12, "{i}: {} vs {want}", x[i]);
         }
     }
 }

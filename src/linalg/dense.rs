@@ -14,49 +14,59 @@ pub enum DenseError {
 /// In-place lower Cholesky of the symmetric positive definite n×n matrix `a`
 /// (row-major, lower triangle read): afterwards a = L (upper triangle zeroed).
 pub fn cholesky(a: &mut [f64], n: usize) -> Result<(), DenseError> {
+    cholesky_strided(a, n, n)
+}
+
+/// [`cholesky`] of the leading n×n part of a matrix stored with row stride `ld`.
+pub fn cholesky_strided(a: &mut [f64], n: usize, ld: usize) -> Result<(), DenseError> {
     for j in 0..n {
-        let mut d = a[j * n + j];
-        for k in 0..j {
-            d -= a[j * n + k] * a[j * n + k];
-        }
+        let rj = &a[j * ld..j * ld + j];
+        let mut d = a[j * ld + j] - rj.iter().map(|v| v * v).sum::<f64>();
         if !(d > 0.0) || !d.is_finite() {
             return Err(DenseError::NotPositiveDefinite(j));
         }
-        let d = d.sqrt();
-        a[j * n + j] = d;
+        d = d.sqrt();
+        a[j * ld + j] = d;
         for i in j + 1..n {
-            let mut s = a[i * n + j];
-            for k in 0..j {
-                s -= a[i * n + k] * a[j * n + k];
-            }
-            a[i * n + j] = s / d;
+            let (top, bottom) = a.split_at_mut(i * ld);
+            let rj = &top[j * ld..j * ld + j];
+            let ri = &mut bottom[..j + 1];
+            let dot: f64 = ri[..j].iter().zip(rj).map(|(x, y)| x * y).sum();
+            ri[j] = (ri[j] - dot) / d;
         }
-        for k in j + 1..n {
-            a[j * n + k] = 0.0;
-        }
+        a[j * ld + j + 1..j * ld + n].fill(0.0);
     }
     Ok(())
 }
 
 /// Solves L y = b in place (L lower, from [`cholesky`]).
 pub fn solve_lower(l: &[f64], n: usize, b: &mut [f64]) {
+    solve_lower_strided(l, n, n, b)
+}
+
+/// [`solve_lower`] with L stored with row stride `ld`.
+pub fn solve_lower_strided(l: &[f64], n: usize, ld: usize, b: &mut [f64]) {
     for i in 0..n {
-        let mut s = b[i];
-        for k in 0..i {
-            s -= l[i * n + k] * b[k];
-        }
-        b[i] = s / l[i * n + i];
+        let row = &l[i * ld..i * ld + i];
+        let dot: f64 = row.iter().zip(&b[..i]).map(|(x, y)| x * y).sum();
+        b[i] = (b[i] - dot) / l[i * ld + i];
     }
 }
 
 /// Solves Lᵀ x = y in place.
 pub fn solve_lower_transpose(l: &[f64], n: usize, b: &mut [f64]) {
+    solve_lower_transpose_strided(l, n, n, b)
+}
+
+/// [`solve_lower_transpose`] with L stored with row stride `ld`.
+pub fn solve_lower_transpose_strided(l: &[f64], n: usize, ld: usize, b: &mut [f64]) {
     for i in (0..n).rev() {
-        let mut s = b[i];
-        for k in i + 1..n {
-            s -= l[k * n + i] * b[k];
+        let xi = b[i] / l[i * ld + i];
+        b[i] = xi;
+        // Column i of Lᵀ x: subtract L[i][k]·x_i from the rows above.
+        for k in 0..i {
+            b[k] -= l[i * ld + k] * xi;
         }
-        b[i] = s / l[i * n + i];
     }
 }
 
