@@ -26,7 +26,8 @@ pub enum Method {
 /// |δᵢ| ≤ `step_tolerance`·(1 + |xᵢ|) for every component, or restores the hard
 /// factors within that tolerance and either is predicted to lower the cost by less
 /// than 1e-12 of itself or fails to lower it while below 1e-6 relative or predicting
-/// less than 1e-6 of it (converged: the cost's round-off is reached), after `max_iterations` linear solves (iteration limit), or when the cost
+/// less than 1e-6 of it, or when a damped step below the tolerance fails to lower the
+/// cost (converged: the cost's round-off is reached), after `max_iterations` linear solves (iteration limit), or when the cost
 /// is not finite or LM's damping exceeds 1e16 without progress (diverged).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Settings {
@@ -673,6 +674,16 @@ impl WindowSolver {
                 }
             }
             let small = largest <= self.settings.step_tolerance;
+            if small && mu == 0.0 {
+                // Converged: the point moved by less than the tolerance, so the cost
+                // the model predicts is the cost there, to far below its round-off.
+                self.correct(graph, values, k0, k1).ok();
+                return Ok(SolveReport {
+                    iterations,
+                    termination: Termination::Converged,
+                    cost: cost - predicted,
+                });
+            }
             // The trial is linearized at once: accepted (the usual case), it is the
             // next iteration's system; rejected, the old point is linearized again.
             let trial = match self.correct(graph, values, k0, k1) {
@@ -724,6 +735,17 @@ impl WindowSolver {
                         .is_err()
                     {
                         return Ok(diverged(cost, iterations));
+                    }
+                    if small && restored {
+                        // A damped step below the tolerance, along a descent direction,
+                        // failed to lower the cost: the cost's changes are below its
+                        // round-off (the residuals go through factorizations), so no
+                        // step can be judged any more. This is the optimum.
+                        return Ok(SolveReport {
+                            iterations,
+                            termination: Termination::Converged,
+                            cost,
+                        });
                     }
                     if small {
                         // The damped step vanished without lowering the cost: try the
