@@ -43,7 +43,10 @@ fn main() {
         tweak(&mut opts);
         let (tr, s) = simulate(model, &opts, &mut |_, _| {}).expect("simulate");
         for f in s.failures.iter().take(3) {
-            println!("  not converged: step {} (t = {:.3}): {:?}", f.step, f.t, f.report);
+            println!(
+                "  not converged: step {} (t = {:.3}): {:?}",
+                f.step, f.t, f.report
+            );
         }
         (reference::rmse_points(&tr, &truth, &points), s)
     };
@@ -88,7 +91,10 @@ fn main() {
             Mode::FixedLag(10),
             Mode::Batch,
         ] {
-            if only.as_ref().is_some_and(|o| *o != format!("{coords:?}{mode:?}")) {
+            if only
+                .as_ref()
+                .is_some_and(|o| *o != format!("{coords:?}{mode:?}"))
+            {
                 continue;
             }
             let (rmse, s) = run(coords, mode, &|_| {});

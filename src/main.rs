@@ -163,9 +163,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             };
             options.settings.max_iterations = max_iterations;
             options.continue_on_failure = continue_on_failure;
-            options
-                .validate(&model)
-                .map_err(plain)?;
+            options.validate(&model).map_err(plain)?;
             simulate(model, &options, out.as_deref())
         }
     }
@@ -184,8 +182,7 @@ fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Resul
     // Open the output first: an unwritable path is bad input, found before the run.
     let file = match out {
         Some(p) => Some(
-            std::fs::File::create(p)
-                .map_err(|e| format!("cannot write {}: {e}", p.display()))?,
+            std::fs::File::create(p).map_err(|e| format!("cannot write {}: {e}", p.display()))?,
         ),
         None => None,
     };

@@ -427,7 +427,13 @@ impl WindowSolver {
     /// its hard equations with the least-norm step of the current C. Without it a step
     /// along the linearized constraints leaves an O(|δ|²) violation that the cost's
     /// 1/σ_hard² weight makes look like a failure (the Maratos effect).
-    fn correct(&mut self, graph: &ChainGraph, values: &mut [f64], k0: usize, k1: usize) -> Result<()> {
+    fn correct(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        k0: usize,
+        k1: usize,
+    ) -> Result<()> {
         let s = self.s;
         let blocks = k1 - k0;
         self.hard_pass(graph, values, k0, blocks, HardPass::Residuals)?;
@@ -721,7 +727,11 @@ impl WindowSolver {
                     // freezes directions with little information, and easing it off
                     // by thirds costs a dozen iterations.
                     let ratio = (cost - c) / predicted.max(f64::MIN_POSITIVE);
-                    mu = if ratio > 0.75 || mu < 1e-12 { 0.0 } else { mu / 3.0 };
+                    mu = if ratio > 0.75 || mu < 1e-12 {
+                        0.0
+                    } else {
+                        mu / 3.0
+                    };
                     cost = c;
                     nu = 2.0;
                 }

@@ -98,7 +98,11 @@ impl BlockTridiagonal {
             let d = self.diag(k);
             for i in 0..dk {
                 let row = &d[i * s..i * s + dk];
-                y[k * s + i] += row.iter().zip(&x[k * s..k * s + dk]).map(|(a, b)| a * b).sum::<f64>();
+                y[k * s + i] += row
+                    .iter()
+                    .zip(&x[k * s..k * s + dk])
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>();
             }
             if k > 0 {
                 let dp = self.dims[k - 1];
@@ -196,7 +200,12 @@ impl BandedCholesky {
                     cur[i] -= row.iter().zip(yprev).map(|(x, y)| x * y).sum::<f64>();
                 }
             }
-            dense::solve_lower_strided(&self.l[k * ss..(k + 1) * ss], dk, s, &mut b[k * s..k * s + dk]);
+            dense::solve_lower_strided(
+                &self.l[k * ss..(k + 1) * ss],
+                dk,
+                s,
+                &mut b[k * s..k * s + dk],
+            );
         }
         for k in (0..self.blocks).rev() {
             let dk = self.dims[k];
@@ -294,14 +303,19 @@ mod tests {
             h.set_dim(k, d);
         }
         let active: Vec<usize> = (0..n).filter(|&i| i % s < dims[i / s]).collect();
-        let sub = DMatrix::from_fn(active.len(), active.len(), |a, b| dense[(active[a], active[b])]);
+        let sub = DMatrix::from_fn(active.len(), active.len(), |a, b| {
+            dense[(active[a], active[b])]
+        });
         let rhs = DVector::from_fn(active.len(), |a, _| b[active[a]]);
         let expect = sub.cholesky().unwrap().solve(&rhs);
         f.factor(&h, &[]).unwrap();
         let mut x = b.as_slice().to_vec();
         f.solve(&mut x);
         for i in 0..n {
-            let want = active.iter().position(|&a| a == i).map_or(0.0, |a| expect[a]);
+            let want = active
+                .iter()
+                .position(|&a| a == i)
+                .map_or(0.0, |a| expect[a]);
             assert!((x[i] - want).abs() < 1e-12, "{i}: {} vs {want}", x[i]);
         }
     }

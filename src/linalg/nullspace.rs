@@ -67,7 +67,10 @@ impl NullSpace {
 
     /// Reduces the `rows` equations C δ = b, C row-major rows × s.
     pub fn reduce(&mut self, c: &[f64], b: &[f64], rows: usize) {
-        assert!(rows <= self.max_rows, "more equations than the reduction holds");
+        assert!(
+            rows <= self.max_rows,
+            "more equations than the reduction holds"
+        );
         if rows == 0 {
             self.set_unconstrained();
             return;
@@ -185,7 +188,9 @@ mod tests {
     use nalgebra::DMatrix;
 
     fn pseudo_random(seed: &mut u64) -> f64 {
-        *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         ((*seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
     }
 
@@ -199,8 +204,14 @@ mod tests {
     #[test]
     fn basis_spans_the_null_space_and_particular_solution_is_least_norm() {
         let mut seed = 7;
-        for &(rows, s, rank) in &[(3, 5, 3), (6, 12, 4), (8, 6, 6), (7, 7, 5), (1, 3, 1), (5, 9, 0)]
-        {
+        for &(rows, s, rank) in &[
+            (3, 5, 3),
+            (6, 12, 4),
+            (8, 6, 6),
+            (7, 7, 5),
+            (1, 3, 1),
+            (5, 9, 0),
+        ] {
             let c = low_rank(rows, s, rank, &mut seed);
             let x_true = DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
             let b = &c * &x_true; // consistent right-hand side
@@ -209,11 +220,16 @@ mod tests {
             ns.reduce(&row_major, b.as_slice(), rows);
             assert_eq!(ns.rank, rank, "rank of a {rows}×{s} matrix");
             assert_eq!(ns.dim, s - rank);
-            let n = DMatrix::from_row_slice(s, s, &ns.basis).columns(0, ns.dim).into_owned();
+            let n = DMatrix::from_row_slice(s, s, &ns.basis)
+                .columns(0, ns.dim)
+                .into_owned();
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
             let ntn = n.transpose() * &n;
-            assert!((ntn - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12, "NᵀN = I");
+            assert!(
+                (ntn - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12,
+                "NᵀN = I"
+            );
             assert!((&c * &p - &b).amax() < 1e-10, "C p = b");
             assert!((n.transpose() * &p).amax() < 1e-12, "p ⟂ null(C)");
             let b2 = &c * DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
