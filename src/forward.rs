@@ -420,7 +420,7 @@ pub fn simulate(
                     f.step, f.t, f.report.termination
                 )));
             }
-            fill_from_trajectory(&fg, &model, &guess, &mut values);
+            fg.fill_from_trajectory(&model, &guess, &mut values);
             let report = smoother::batch(&fg.graph, &mut values, steps, options.settings)?;
             iterations.push(report.iterations);
             progress(steps, steps);
@@ -439,17 +439,22 @@ pub fn simulate(
     Ok((trajectory, summary))
 }
 
-fn fill_from_trajectory(fg: &ForwardGraph, model: &Model, tr: &Trajectory, values: &mut [f64]) {
-    let (n, s) = (fg.n, fg.graph.layout.size());
-    for k in 0..tr.len() {
-        let block = &mut values[k * s..(k + 1) * s];
-        block[..n].copy_from_slice(&tr.q[k * n..(k + 1) * n]);
-        block[n..2 * n].copy_from_slice(&tr.dq[k * n..(k + 1) * n]);
-        block[2 * n..3 * n].copy_from_slice(&tr.ddq[k * n..(k + 1) * n]);
-        if fg.coordinates == Coordinates::Independent {
-            for (j, src) in [&tr.q, &tr.dq, &tr.ddq].iter().enumerate() {
-                for (i, &c) in model.independent.iter().enumerate() {
-                    block[3 * n + j * fg.f + i] = src[k * n + c];
+impl ForwardGraph {
+    /// The graph's variables (step-major) filled from a trajectory of the same model:
+    /// a starting point for a solve, or the state a benchmark linearizes at.
+    pub fn fill_from_trajectory(&self, model: &Model, tr: &Trajectory, values: &mut [f64]) {
+        let fg = self;
+        let (n, s) = (fg.n, fg.graph.layout.size());
+        for k in 0..tr.len() {
+            let block = &mut values[k * s..(k + 1) * s];
+            block[..n].copy_from_slice(&tr.q[k * n..(k + 1) * n]);
+            block[n..2 * n].copy_from_slice(&tr.dq[k * n..(k + 1) * n]);
+            block[2 * n..3 * n].copy_from_slice(&tr.ddq[k * n..(k + 1) * n]);
+            if fg.coordinates == Coordinates::Independent {
+                for (j, src) in [&tr.q, &tr.dq, &tr.ddq].iter().enumerate() {
+                    for (i, &c) in model.independent.iter().enumerate() {
+                        block[3 * n + j * fg.f + i] = src[k * n + c];
+                    }
                 }
             }
         }
