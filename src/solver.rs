@@ -103,16 +103,17 @@ pub struct SolveReport {
     pub cost: f64,
 }
 
-/// A Gaussian prior on one step's block left by marginalization, in square-root form:
-/// ½‖R δ + e‖² with δ = x − x̄ (so Λ = RᵀR and b = Rᵀe). The cost of a prior with
-/// large information is a sum of squares, not a difference of large terms, so it
-/// stays accurate to round-off near the optimum.
+/// A Gaussian prior on one step's block left by marginalization, in information
+/// form: c + ηᵀδ + ½ δᵀΛδ with δ = x − x̄. With the hard equations eliminated
+/// exactly, Λ holds only soft information (no 1/σ_hard² next to 1/σ_soft²), so the
+/// information form loses nothing that a square-root form would keep.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LinearPrior {
-    /// Row-major rows × s.
-    pub r: Vec<f64>,
-    pub rows: usize,
-    pub e: Vec<f64>,
+    /// Row-major s × s.
+    pub information: Vec<f64>,
+    pub eta: Vec<f64>,
+    /// The cost at δ = 0 (what the marginalized factors leave behind).
+    pub constant: f64,
     pub xbar: Vec<f64>,
 }
 
@@ -206,10 +207,6 @@ pub struct WindowSolver {
     correction: Vec<f64>,
     ws: Workspace,
     scratch: Vec<f64>,
-    /// Whitened soft rows [J over blocks k0, k0+1 | r] collected for marginalization.
-    rows: Vec<f64>,
-    /// Marginalization's QR, column-major.
-    qr: Vec<f64>,
 }
 
 impl WindowSolver {
@@ -287,9 +284,7 @@ impl WindowSolver {
             ),
             correction: vec![0.0; s],
             ws: graph.workspace(),
-            scratch: vec![0.0; 4 * s * s + 2 * s],
-            rows: Vec::new(),
-            qr: Vec::new(),
+            scratch: vec![0.0; 4 * s * s + 4 * s],
         })
     }
 
@@ -537,60 +532,44 @@ impl WindowSolver {
                     lagged,
                     s,
                 );
-                if let Scope::Oldest = scope {
-                    collect_rows(&mut self.rows, graph, keys, step, buf, s);
-                }
             }
         }
         if let Some(p) = prior {
             let x = &values[k0 * s..(k0 + 1) * s];
-            let (d, res) = self.scratch.split_at_mut(s);
+            let (d, rest) = self.scratch.split_at_mut(s);
+            let (grad, rest) = rest.split_at_mut(s);
             for i in 0..s {
                 d[i] = x[i] - p.xbar[i];
             }
-            let res = &mut res[..p.rows];
-            for (i, ri) in res.iter_mut().enumerate() {
-                let row = &p.r[i * s..(i + 1) * s];
-                *ri = p.e[i] + row.iter().zip(d.iter()).map(|(a, b)| a * b).sum::<f64>();
-                cost += 0.5 * *ri * *ri;
+            // grad = Λδ + η; cost = c + ηᵀδ + ½δᵀΛδ.
+            let mut quad = 0.0;
+            for i in 0..s {
+                let row = &p.information[i * s..(i + 1) * s];
+                let ld: f64 = row.iter().zip(d.iter()).map(|(a, b)| a * b).sum();
+                quad += d[i] * ld;
+                grad[i] = ld + p.eta[i];
             }
+            let lin: f64 = p.eta.iter().zip(d.iter()).map(|(a, b)| a * b).sum();
+            cost += p.constant + lin + 0.5 * quad;
             if linearize {
-                if let Scope::Oldest = scope {
-                    for (i, &ri) in res.iter().enumerate() {
-                        self.rows.extend_from_slice(&p.r[i * s..(i + 1) * s]);
-                        self.rows.extend(std::iter::repeat_n(0.0, s));
-                        self.rows.push(ri);
-                    }
-                }
-                // The prior's rows in reduced coordinates: R N₀ y + (e' + R p₀).
+                // In reduced coordinates δ₀ = p₀ + N₀y: H += N₀ᵀΛN₀, g += N₀ᵀ(grad + Λp₀).
                 let red = &self.hard[0].reduction;
-                for (i, &ri) in res.iter().enumerate() {
-                    let row = &p.r[i * s..(i + 1) * s];
-                    let out = &mut self.reduced[0][i * s..(i + 1) * s];
-                    out.fill(0.0);
-                    let mut shifted = ri;
-                    for (j, &v) in row.iter().enumerate() {
-                        if v == 0.0 {
-                            continue;
-                        }
-                        shifted += v * red.particular[j];
-                        let nrow = &red.basis[j * s..j * s + red.dim];
-                        for (o, nv) in out.iter_mut().zip(nrow) {
-                            *o += v * nv;
-                        }
+                let dim = red.dim;
+                let ln = &mut rest[..s * dim];
+                for i in 0..s {
+                    let row = &p.information[i * s..(i + 1) * s];
+                    grad[i] += row.iter().zip(&red.particular).map(|(a, b)| a * b).sum::<f64>();
+                    for c in 0..dim {
+                        ln[i * dim + c] = (0..s).map(|k| row[k] * red.basis[k * s + c]).sum();
                     }
-                    self.shifted[i] = shifted;
                 }
-                let rows = p.rows;
-                accumulate(
-                    &mut self.h,
-                    &mut self.g,
-                    &self.reduced,
-                    &self.shifted[..rows],
-                    0,
-                    false,
-                    s,
-                );
+                let h0 = self.h.diag_mut(0);
+                for a in 0..dim {
+                    for b in 0..dim {
+                        h0[a * s + b] += (0..s).map(|k| red.basis[k * s + a] * ln[k * dim + b]).sum::<f64>();
+                    }
+                    self.g[a] += (0..s).map(|k| red.basis[k * s + a] * grad[k]).sum::<f64>();
+                }
             }
         }
 
@@ -778,12 +757,11 @@ impl WindowSolver {
         })
     }
 
-    /// Marginalizes step k0 (with `prior` on it, if any) into a prior on step k0+1.
-    /// The factors touching k0 are linearized at `values`; k0's hard equations fix
-    /// δ₀ = p₀ + N₀ y₀, and the whitened soft rows [J₀N₀ J₁ | r + J₀p₀] are reduced by
-    /// a QR factorization: the rows left without y₀ form the square-root prior
-    /// ½‖R₁₁ δ₁ + e₁‖². This is the Schur complement Λ = H₁₁ − H₁₀H₀₀⁻¹H₀₁ of the
-    /// reduced normal equations, computed without squaring their condition number.
+    /// Marginalizes step k0 (with `prior` on it, if any) into a prior on step k0+1:
+    /// the factors touching k0 are linearized at `values`, k0's hard equations fix
+    /// δ₀ = p₀ + N₀y₀, and y₀ is eliminated from the reduced normal equations by the
+    /// Schur complement Λ = H₁₁ − H₁₀H₀₀⁻¹H₀₁, η = g₁ − H₁₀H₀₀⁻¹g₀. Block k0+1 carries
+    /// no hard equation in this linearization, so its coordinates are the full ones.
     pub fn marginalize(
         &mut self,
         graph: &ChainGraph,
@@ -792,78 +770,61 @@ impl WindowSolver {
         prior: Option<&LinearPrior>,
     ) -> Result<LinearPrior> {
         let s = self.s;
-        self.rows.clear();
-        self.evaluate(graph, values, k0, k0 + 2, prior, Scope::Oldest, true)?;
-        let raw = 2 * s + 1;
-        let nrows = self.rows.len() / raw;
-        let red = &self.hard[0].reduction;
-        let d0 = red.dim;
-        let width = d0 + s + 1;
-        // A = [J₀N₀ J₁ | r + J₀p₀], column-major nrows × width.
-        let a = &mut self.qr;
-        a.clear();
-        a.resize(nrows * width, 0.0);
-        for i in 0..nrows {
-            let row = &self.rows[i * raw..(i + 1) * raw];
-            let mut shifted = row[2 * s];
-            for j in 0..s {
-                let v = row[j];
-                if v == 0.0 {
-                    continue;
-                }
-                shifted += v * red.particular[j];
-                for c in 0..d0 {
-                    a[c * nrows + i] += v * red.basis[j * s + c];
-                }
-            }
-            for j in 0..s {
-                a[(d0 + j) * nrows + i] = row[s + j];
-            }
-            a[(d0 + s) * nrows + i] = shifted;
+        let cost = self.evaluate(graph, values, k0, k0 + 2, prior, Scope::Oldest, true)?;
+        let d0 = self.h.dim(0);
+        debug_assert_eq!(self.h.dim(1), s);
+        // L₀ = chol(H₀₀); Y = L₀⁻¹H₀₁ (d0 × s); w = L₀⁻¹g₀.
+        let (l0, rest) = self.scratch.split_at_mut(s * s);
+        let (y, rest) = rest.split_at_mut(s * s);
+        let w = &mut rest[..s];
+        for a in 0..d0 {
+            l0[a * s..a * s + d0].copy_from_slice(&self.h.diag(0)[a * s..a * s + d0]);
         }
-        // Householder QR, column by column; the last column carries Qᵀr along.
-        let cols = (d0 + s).min(nrows);
-        for k in 0..cols {
-            let (left, right) = a.split_at_mut((k + 1) * nrows);
-            let v = &mut left[k * nrows + k..];
-            let norm = v.iter().map(|x| x * x).sum::<f64>().sqrt();
-            if norm == 0.0 {
-                continue;
+        crate::linalg::dense::cholesky_strided(l0, d0, s).map_err(|_| {
+            Error::Singular(format!(
+                "marginalizing step {k0}: its soft factors leave a direction undetermined"
+            ))
+        })?;
+        let h10 = self.h.lower(1); // rows of block 1, columns of block 0
+        for j in 0..s {
+            // Column j of H₀₁ is row j of H₁₀.
+            for a in 0..d0 {
+                y[a * s + j] = h10[j * s + a];
             }
-            let alpha = if v[0] > 0.0 { -norm } else { norm };
-            v[0] -= alpha;
-            let vnorm2: f64 = v.iter().map(|x| x * x).sum();
-            for col in right.chunks_exact_mut(nrows) {
-                let y = &mut col[k..];
-                let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
-                let f = 2.0 * dot / vnorm2;
-                for (yi, vi) in y.iter_mut().zip(v.iter()) {
-                    *yi -= f * vi;
+        }
+        // Solve L₀ Y = H₀₁ column by column (Y row-major d0 × s, stride s).
+        for j in 0..s {
+            for a in 0..d0 {
+                let mut acc = y[a * s + j];
+                for b in 0..a {
+                    acc -= l0[a * s + b] * y[b * s + j];
                 }
+                y[a * s + j] = acc / l0[a * s + a];
             }
-            // The reflected column is α e_k.
-            v[0] = alpha;
-            v[1..].fill(0.0);
         }
-        // Rows d0..d0+s of the triangle involve only block k0+1.
-        let rows = cols.saturating_sub(d0);
-        let mut r = Vec::with_capacity(rows * s);
-        let mut e = Vec::with_capacity(rows);
-        for i in d0..d0 + rows {
+        w[..d0].copy_from_slice(&self.g[..d0]);
+        crate::linalg::dense::solve_lower_strided(l0, d0, s, &mut w[..d0]);
+        let h11 = self.h.diag(1);
+        let mut information = vec![0.0; s * s];
+        let mut eta = vec![0.0; s];
+        for i in 0..s {
             for j in 0..s {
-                r.push(a[(d0 + j) * nrows + i]);
+                let yy: f64 = (0..d0).map(|a| y[a * s + i] * y[a * s + j]).sum();
+                information[i * s + j] = h11[i * s + j] - yy;
             }
-            e.push(a[(d0 + s) * nrows + i]);
+            let yw: f64 = (0..d0).map(|a| y[a * s + i] * w[a]).sum();
+            eta[i] = self.g[s + i] - yw;
         }
-        if !r.iter().chain(&e).all(|v| v.is_finite()) {
+        let constant = cost - 0.5 * w[..d0].iter().map(|v| v * v).sum::<f64>();
+        if !information.iter().chain(&eta).all(|v| v.is_finite()) {
             return Err(Error::Singular(format!(
                 "marginalizing step {k0}: non-finite values"
             )));
         }
         Ok(LinearPrior {
-            r,
-            rows,
-            e,
+            information,
+            eta,
+            constant,
             xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),
         })
     }
@@ -970,30 +931,5 @@ fn accumulate(
                 }
             }
         }
-    }
-}
-
-/// Appends a whitened factor's rows [J over blocks 0, 1 of the pair | r].
-fn collect_rows(
-    rows: &mut Vec<f64>,
-    graph: &ChainGraph,
-    keys: &[Key],
-    step: usize,
-    buf: &FactorBuffers,
-    s: usize,
-) {
-    let width = 2 * s + 1;
-    for r in 0..buf.r.len() {
-        let start = rows.len();
-        rows.extend(std::iter::repeat_n(0.0, width));
-        let row = &mut rows[start..];
-        for (a, k) in keys.iter().enumerate() {
-            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
-            let block = step - k.lag;
-            for i in 0..d {
-                row[block * s + off + i] += buf.jac[a][r * d + i];
-            }
-        }
-        row[2 * s] = buf.r[r];
     }
 }
