@@ -44,7 +44,7 @@ impl Default for Settings {
         Settings {
             method: Method::LevenbergMarquardt,
             max_iterations: 50,
-            step_tolerance: 1e-10,
+            step_tolerance: 1e-8,
             initial_damping: 1e-4,
         }
     }
@@ -556,19 +556,33 @@ impl WindowSolver {
                 let red = &self.hard[0].reduction;
                 let dim = red.dim;
                 let ln = &mut rest[..s * dim];
+                ln.fill(0.0);
                 for i in 0..s {
                     let row = &p.information[i * s..(i + 1) * s];
                     grad[i] += row.iter().zip(&red.particular).map(|(a, b)| a * b).sum::<f64>();
-                    for c in 0..dim {
-                        ln[i * dim + c] = (0..s).map(|k| row[k] * red.basis[k * s + c]).sum();
+                    let out = &mut ln[i * dim..(i + 1) * dim];
+                    for (k, &v) in row.iter().enumerate() {
+                        if v == 0.0 {
+                            continue;
+                        }
+                        for (o, nv) in out.iter_mut().zip(&red.basis[k * s..k * s + dim]) {
+                            *o += v * nv;
+                        }
                     }
                 }
                 let h0 = self.h.diag_mut(0);
-                for a in 0..dim {
-                    for b in 0..dim {
-                        h0[a * s + b] += (0..s).map(|k| red.basis[k * s + a] * ln[k * dim + b]).sum::<f64>();
+                for k in 0..s {
+                    let nrow = &red.basis[k * s..k * s + dim];
+                    let lrow = &ln[k * dim..(k + 1) * dim];
+                    for (a, &na) in nrow.iter().enumerate() {
+                        if na == 0.0 {
+                            continue;
+                        }
+                        for (o, lv) in h0[a * s..a * s + dim].iter_mut().zip(lrow) {
+                            *o += na * lv;
+                        }
+                        self.g[a] += na * grad[k];
                     }
-                    self.g[a] += (0..s).map(|k| red.basis[k * s + a] * grad[k]).sum::<f64>();
                 }
             }
         }
