@@ -15,7 +15,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 fn load(name: &str) -> Arc<Model> {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scenes").join(name);
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name);
     Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap())
 }
 
@@ -28,10 +30,16 @@ fn scene_for(coords: Coordinates) -> &'static str {
 
 fn forward_runs(c: &mut Criterion) {
     let mut group = c.benchmark_group("fourbar_5s_dt1ms");
-    group.sample_size(10).measurement_time(Duration::from_secs(8));
+    group
+        .sample_size(10)
+        .measurement_time(Duration::from_secs(8));
     for coords in [Coordinates::Dependent, Coordinates::Independent] {
         let model = load(scene_for(coords));
-        let tag = if coords == Coordinates::Dependent { "dc" } else { "ic" };
+        let tag = if coords == Coordinates::Dependent {
+            "dc"
+        } else {
+            "ic"
+        };
         for mode in [
             Mode::FixedLag(1),
             Mode::FixedLag(2),

@@ -47,7 +47,16 @@ pub fn fixed_lag(
             prior = Some(solver.marginalize(graph, values, k0, prior.as_ref())?);
             k0 += 1;
         }
-        let report = solver.solve(graph, values, k0, k + 1, prior.as_ref())?;
+        let mut warm = 0;
+        if k > k0 {
+            // Bring the new step to its optimum given the one before, then solve the
+            // window from there: usually a single iteration that confirms it.
+            warm = solver
+                .solve_conditional(graph, values, k, k + 1)?
+                .iterations;
+        }
+        let mut report = solver.solve(graph, values, k0, k + 1, prior.as_ref())?;
+        report.iterations += warm;
         if let Next::Stop = on_step(k, &report, values) {
             break;
         }

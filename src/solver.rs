@@ -204,6 +204,8 @@ pub struct WindowSolver {
     /// A factor's residual linearized at x + p.
     shifted: Vec<f64>,
     instances: Vec<Instance>,
+    /// In a conditional solve the step before the window is held fixed.
+    conditional: bool,
     correction: Vec<f64>,
     ws: Workspace,
     scratch: Vec<f64>,
@@ -282,6 +284,7 @@ impl WindowSolver {
             instances: Vec::with_capacity(
                 capacity * graph.step_factors.len() + graph.initial_factors.len(),
             ),
+            conditional: false,
             correction: vec![0.0; s],
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
@@ -307,7 +310,14 @@ impl WindowSolver {
         for (index, factor) in graph.step_factors.iter().enumerate() {
             let keys = factor.keys();
             let max_lag = keys.iter().map(|k| k.lag).max().unwrap_or(0);
-            for step in k0 + max_lag..k1 {
+            // Conditional solves hold the step before the window fixed and keep the
+            // factors that reach back to it.
+            let first = if self.conditional {
+                k0.max(max_lag)
+            } else {
+                k0 + max_lag
+            };
+            for step in first..k1 {
                 if let Scope::Oldest = scope {
                     if !keys.iter().any(|k| step - k.lag == k0) {
                         continue;
@@ -522,7 +532,7 @@ impl WindowSolver {
                     buf,
                     s,
                 );
-                let lagged = keys.iter().any(|k| k.lag == 1);
+                let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
                 accumulate(
                     &mut self.h,
                     &mut self.g,
@@ -559,7 +569,11 @@ impl WindowSolver {
                 ln.fill(0.0);
                 for i in 0..s {
                     let row = &p.information[i * s..(i + 1) * s];
-                    grad[i] += row.iter().zip(&red.particular).map(|(a, b)| a * b).sum::<f64>();
+                    grad[i] += row
+                        .iter()
+                        .zip(&red.particular)
+                        .map(|(a, b)| a * b)
+                        .sum::<f64>();
                     let out = &mut ln[i * dim..(i + 1) * dim];
                     for (k, &v) in row.iter().enumerate() {
                         if v == 0.0 {
@@ -591,6 +605,28 @@ impl WindowSolver {
             return Err(Error::Singular("the cost is not finite".into()));
         }
         Ok(cost)
+    }
+
+    /// Optimizes steps k0..k1 (k0 ≥ 1) with step k0 − 1 held at its value: the factors
+    /// joining them stay, as constraints on the window rather than unknowns. The
+    /// fixed-lag smoother uses it to bring a new step close to its optimum before the
+    /// whole window is solved, which then mostly converges in one iteration.
+    pub fn solve_conditional(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        k0: usize,
+        k1: usize,
+    ) -> Result<SolveReport> {
+        if k0 == 0 {
+            return Err(Error::InvalidArgument(
+                "a conditional solve needs a step before the window".into(),
+            ));
+        }
+        self.conditional = true;
+        let report = self.solve(graph, values, k0, k1, None);
+        self.conditional = false;
+        report
     }
 
     /// Optimizes steps k0..k1 of `values` (step-major, the whole trajectory) with an
@@ -675,8 +711,9 @@ impl WindowSolver {
             let small = largest <= self.settings.step_tolerance;
             if small && mu == 0.0 {
                 // Converged: the point moved by less than the tolerance, so the cost
-                // the model predicts is the cost there, to far below its round-off.
-                self.correct(graph, values, k0, k1).ok();
+                // the model predicts is the cost there, to far below its round-off,
+                // and the hard equations, exact to first order along δ, are off by
+                // O(|δ|²) ≤ 1e-16: no correction needed.
                 return Ok(SolveReport {
                     iterations,
                     termination: Termination::Converged,
@@ -865,6 +902,9 @@ fn reduce_factor(
     shifted[..dim].copy_from_slice(&buf.r);
     for (a, k) in keys.iter().enumerate() {
         let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+        if k.lag > step {
+            continue; // a variable held fixed before the window
+        }
         let red = &hard[step - k.lag].reduction;
         let out = &mut reduced[k.lag];
         let jac = &buf.jac[a];
