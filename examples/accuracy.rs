@@ -104,7 +104,7 @@ fn main() {
             let mut runs: Vec<(f64, mbfg::forward::RunSummary)> = (0..repeat.max(1))
                 .map(|_| run(coords, mode, &|_| {}))
                 .collect();
-            runs.sort_by(|a, b| a.1.wall_time.cmp(&b.1.wall_time));
+            runs.sort_by_key(|r| r.1.wall_time);
             let (rmse, s) = runs.swap_remove(runs.len() / 2);
             println!(
                 "{coords:?} {mode:?}: rmse {rmse:.3e}  time {:?}  iterations {:.2}/{}  |Φ| {:.1e}  |Φq q̇| {:.1e}  drift {:.2e}  failures {}",
