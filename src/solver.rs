@@ -176,6 +176,14 @@ fn is_hard(f: &dyn Factor) -> bool {
     matches!(f.noise(), Noise::Hard)
 }
 
+/// What a window solve that converged on a small step leaves for marginalizing its
+/// first block.
+#[derive(Clone, Copy)]
+struct LastSolve {
+    k0: usize,
+    k1: usize,
+}
+
 /// The hard equations of one step, C δ = −c, and their reduction.
 struct HardBlock {
     /// Row-major rows × s.
@@ -206,6 +214,12 @@ pub struct WindowSolver {
     instances: Vec<Instance>,
     /// In a conditional solve the step before the window is held fixed.
     conditional: bool,
+    /// Set when a window solve ended on a small step: its linearization of the
+    /// oldest block is still at hand (see `marginalize`).
+    last: Option<LastSolve>,
+    /// Cost of the factors touching the first block, from the last evaluation.
+    cost_first: f64,
+    hard_cost_first: f64,
     correction: Vec<f64>,
     ws: Workspace,
     scratch: Vec<f64>,
@@ -285,6 +299,9 @@ impl WindowSolver {
                 capacity * graph.step_factors.len() + graph.initial_factors.len(),
             ),
             conditional: false,
+            last: None,
+            cost_first: 0.0,
+            hard_cost_first: 0.0,
             correction: vec![0.0; s],
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
@@ -390,6 +407,7 @@ impl WindowSolver {
             self.hard[b].rows = 0;
         }
         let linearize = mode == HardPass::Linearize;
+        let mut first = 0.0;
         for i in 0..self.instances.len() {
             let inst = self.instances[i];
             let factor = factor_of(graph, inst);
@@ -403,7 +421,11 @@ impl WindowSolver {
                 &self.step_buffers[inst.index]
             };
             let w = Noise::Hard.weight(0);
-            cost += buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum::<f64>();
+            let c: f64 = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
+            cost += c;
+            if inst.step == k0 {
+                first += c;
+            }
             if mode == HardPass::Cost {
                 continue;
             }
@@ -425,6 +447,7 @@ impl WindowSolver {
             }
             block.rows += dim;
         }
+        self.hard_cost_first = first;
         Ok(cost)
     }
 
@@ -472,6 +495,7 @@ impl WindowSolver {
     ) -> Result<f64> {
         let s = self.s;
         let blocks = k1 - k0;
+        self.last = None;
         self.collect_instances(graph, k0, k1, scope);
         // Hard factors first: their linearization defines each block's reduction.
         let mode = if linearize {
@@ -480,6 +504,7 @@ impl WindowSolver {
             HardPass::Cost
         };
         let mut cost = self.hard_pass(graph, values, k0, blocks, mode)?;
+        let mut cost_first = self.hard_cost_first;
         if linearize {
             for block in &mut self.hard[..blocks] {
                 block
@@ -507,10 +532,15 @@ impl WindowSolver {
             };
             let noise = factor.noise();
             let keys = factor.keys();
+            let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
             for r in 0..factor.dim() {
                 let w = noise.weight(r);
                 buf.r[r] *= w;
-                cost += 0.5 * buf.r[r] * buf.r[r];
+                let c = 0.5 * buf.r[r] * buf.r[r];
+                cost += c;
+                if touches_first {
+                    cost_first += c;
+                }
                 if linearize {
                     for (a, k) in keys.iter().enumerate() {
                         let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
@@ -561,6 +591,7 @@ impl WindowSolver {
             }
             let lin: f64 = p.eta.iter().zip(d.iter()).map(|(a, b)| a * b).sum();
             cost += p.constant + lin + 0.5 * quad;
+            cost_first += p.constant + lin + 0.5 * quad;
             if linearize {
                 // In reduced coordinates δ₀ = p₀ + N₀y: H += N₀ᵀΛN₀, g += N₀ᵀ(grad + Λp₀).
                 let red = &self.hard[0].reduction;
@@ -604,6 +635,7 @@ impl WindowSolver {
         if !cost.is_finite() {
             return Err(Error::Singular("the cost is not finite".into()));
         }
+        self.cost_first = cost_first;
         Ok(cost)
     }
 
@@ -714,6 +746,9 @@ impl WindowSolver {
                 // the model predicts is the cost there, to far below its round-off,
                 // and the hard equations, exact to first order along δ, are off by
                 // O(|δ|²) ≤ 1e-16: no correction needed.
+                if !self.conditional {
+                    self.last = Some(LastSolve { k0, k1 });
+                }
                 return Ok(SolveReport {
                     iterations,
                     termination: Termination::Converged,
@@ -821,50 +856,62 @@ impl WindowSolver {
         prior: Option<&LinearPrior>,
     ) -> Result<LinearPrior> {
         let s = self.s;
+        if let Some(last) = self.last.take() {
+            if last.k0 == k0 {
+                return self.marginalize_last(graph, values, k0, last.k1);
+            }
+        }
         let cost = self.evaluate(graph, values, k0, k0 + 2, prior, Scope::Oldest, true)?;
         let d0 = self.h.dim(0);
         debug_assert_eq!(self.h.dim(1), s);
-        // L₀ = chol(H₀₀); Y = L₀⁻¹H₀₁ (d0 × s); w = L₀⁻¹g₀.
-        let (l0, rest) = self.scratch.split_at_mut(s * s);
-        let (y, rest) = rest.split_at_mut(s * s);
+        // H₀₀, H₁₀ (block 1 rows × block 0 columns), H₁₁, g₀, g₁ into the scratch.
+        let ss = s * s;
+        let (h00, rest) = self.scratch.split_at_mut(ss);
+        let (h10, rest) = rest.split_at_mut(ss);
+        let (h11, rest) = rest.split_at_mut(ss);
+        let (g01, _) = rest.split_at_mut(2 * s);
+        h00.copy_from_slice(self.h.diag(0));
+        h10.copy_from_slice(self.h.lower(1));
+        h11.copy_from_slice(self.h.diag(1));
+        g01[..s].copy_from_slice(&self.g[..s]);
+        g01[s..].copy_from_slice(&self.g[s..2 * s]);
+        self.schur(k0, d0, cost, values)
+    }
+
+    /// The Schur complement of block 0 in the 2-block system held in the scratch
+    /// (H₀₀ d0 × d0, H₁₀ s × d0, H₁₁ s × s, all with stride s; g₀, g₁): the prior on
+    /// block k0 + 1, whose values are x̄.
+    fn schur(&mut self, k0: usize, d0: usize, cost: f64, values: &[f64]) -> Result<LinearPrior> {
+        let s = self.s;
+        let ss = s * s;
+        let (h00, rest) = self.scratch.split_at_mut(ss);
+        let (h10, rest) = rest.split_at_mut(ss);
+        let (h11, rest) = rest.split_at_mut(ss);
+        let (g01, rest) = rest.split_at_mut(2 * s);
         let w = &mut rest[..s];
-        for a in 0..d0 {
-            l0[a * s..a * s + d0].copy_from_slice(&self.h.diag(0)[a * s..a * s + d0]);
-        }
-        crate::linalg::dense::cholesky_strided(l0, d0, s).map_err(|_| {
+        // L₀ = chol(H₀₀) in place; Y = L₀⁻¹H₀₁ in place of H₁₀ (stored transposed:
+        // row j of h10 is column j of H₀₁); w = L₀⁻¹g₀.
+        crate::linalg::dense::cholesky_strided(h00, d0, s).map_err(|_| {
             Error::Singular(format!(
                 "marginalizing step {k0}: its soft factors leave a direction undetermined"
             ))
         })?;
-        let h10 = self.h.lower(1); // rows of block 1, columns of block 0
         for j in 0..s {
-            // Column j of H₀₁ is row j of H₁₀.
-            for a in 0..d0 {
-                y[a * s + j] = h10[j * s + a];
-            }
+            crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut h10[j * s..j * s + d0]);
         }
-        // Solve L₀ Y = H₀₁ column by column (Y row-major d0 × s, stride s).
-        for j in 0..s {
-            for a in 0..d0 {
-                let mut acc = y[a * s + j];
-                for b in 0..a {
-                    acc -= l0[a * s + b] * y[b * s + j];
-                }
-                y[a * s + j] = acc / l0[a * s + a];
-            }
-        }
-        w[..d0].copy_from_slice(&self.g[..d0]);
-        crate::linalg::dense::solve_lower_strided(l0, d0, s, &mut w[..d0]);
-        let h11 = self.h.diag(1);
-        let mut information = vec![0.0; s * s];
+        w[..d0].copy_from_slice(&g01[..d0]);
+        crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut w[..d0]);
+        let mut information = vec![0.0; ss];
         let mut eta = vec![0.0; s];
         for i in 0..s {
+            let yi = &h10[i * s..i * s + d0];
             for j in 0..s {
-                let yy: f64 = (0..d0).map(|a| y[a * s + i] * y[a * s + j]).sum();
+                let yj = &h10[j * s..j * s + d0];
+                let yy: f64 = yi.iter().zip(yj).map(|(a, b)| a * b).sum();
                 information[i * s + j] = h11[i * s + j] - yy;
             }
-            let yw: f64 = (0..d0).map(|a| y[a * s + i] * w[a]).sum();
-            eta[i] = self.g[s + i] - yw;
+            let yw: f64 = yi.iter().zip(&w[..d0]).map(|(a, b)| a * b).sum();
+            eta[i] = g01[s + i] - yw;
         }
         let constant = cost - 0.5 * w[..d0].iter().map(|v| v * v).sum::<f64>();
         if !information.iter().chain(&eta).all(|v| v.is_finite()) {
@@ -878,6 +925,122 @@ impl WindowSolver {
             constant,
             xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),
         })
+    }
+
+    /// Marginalization from the last window solve's linearization of its first block
+    /// (it converged on a step below the tolerance, so that linearization is the one
+    /// at the optimum up to O(tolerance)); only the factors joining k0 to k0 + 1 are
+    /// evaluated again, for their columns on k0 + 1 in full coordinates.
+    fn marginalize_last(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        k1: usize,
+    ) -> Result<LinearPrior> {
+        let s = self.s;
+        let ss = s * s;
+        let d0 = self.h.dim(0);
+        let window_holds_next = k1 > k0 + 1;
+        // H₀₀ and g₀ at the optimum: the gradient moves by H δ with the last step.
+        {
+            let (h00, rest) = self.scratch.split_at_mut(ss);
+            let (h10, rest) = rest.split_at_mut(ss);
+            let (h11, rest) = rest.split_at_mut(ss);
+            let g01 = &mut rest[..2 * s];
+            h00.copy_from_slice(self.h.diag(0));
+            h10.fill(0.0);
+            h11.fill(0.0);
+            g01.fill(0.0);
+            for a in 0..d0 {
+                g01[a] = self.g[a] + self.hd[a];
+            }
+        }
+        let mut cost = self.cost_first;
+        // The factors joining k0 and k0 + 1.
+        for index in 0..graph.step_factors.len() {
+            let factor = graph.step_factors[index].as_ref();
+            let keys = factor.keys();
+            if is_hard(factor) || !keys.iter().any(|k| k.lag == 1) {
+                continue;
+            }
+            let inst = Instance {
+                initial: false,
+                index,
+                step: k0 + 1,
+            };
+            self.evaluate_instance(graph, values, inst, true)?;
+            let buf = &mut self.step_buffers[index];
+            let noise = factor.noise();
+            let dim = factor.dim();
+            for r in 0..dim {
+                let w = noise.weight(r);
+                buf.r[r] *= w;
+                if !window_holds_next {
+                    cost += 0.5 * buf.r[r] * buf.r[r];
+                }
+                for (a, k) in keys.iter().enumerate() {
+                    let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                    for v in &mut buf.jac[a][r * d..(r + 1) * d] {
+                        *v *= w;
+                    }
+                }
+            }
+            // Rows: J₀N₀ (dim × d0) into reduced[1], J₁ full (dim × s) into reduced[0].
+            let red = &self.hard[0].reduction;
+            self.reduced[0][..dim * s].fill(0.0);
+            self.reduced[1][..dim * s].fill(0.0);
+            for (a, k) in keys.iter().enumerate() {
+                let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                for r in 0..dim {
+                    for j in 0..d {
+                        let v = buf.jac[a][r * d + j];
+                        if v == 0.0 {
+                            continue;
+                        }
+                        if k.lag == 0 {
+                            self.reduced[0][r * s + off + j] += v;
+                        } else {
+                            let nrow = &red.basis[(off + j) * s..(off + j) * s + d0];
+                            let out = &mut self.reduced[1][r * s..r * s + d0];
+                            for (o, nv) in out.iter_mut().zip(nrow) {
+                                *o += v * nv;
+                            }
+                        }
+                    }
+                }
+            }
+            let (h00, rest) = self.scratch.split_at_mut(ss);
+            let (h10, rest) = rest.split_at_mut(ss);
+            let (h11, rest) = rest.split_at_mut(ss);
+            let g01 = &mut rest[..2 * s];
+            for r in 0..dim {
+                let j1 = &self.reduced[0][r * s..(r + 1) * s];
+                let j0 = &self.reduced[1][r * s..r * s + d0];
+                let rr = buf.r[r];
+                for i in 0..s {
+                    if j1[i] == 0.0 {
+                        continue;
+                    }
+                    for (o, v) in h10[i * s..i * s + d0].iter_mut().zip(j0) {
+                        *o += j1[i] * v;
+                    }
+                    for (o, v) in h11[i * s..(i + 1) * s].iter_mut().zip(j1) {
+                        *o += j1[i] * v;
+                    }
+                    g01[s + i] += j1[i] * rr;
+                }
+                if !window_holds_next {
+                    for a in 0..d0 {
+                        for b in 0..d0 {
+                            h00[a * s + b] += j0[a] * j0[b];
+                        }
+                        g01[a] += j0[a] * rr;
+                    }
+                }
+            }
+        }
+        self.schur(k0, d0, cost, values)
     }
 }
 
