@@ -383,7 +383,9 @@ impl DynamicsKernel {
     }
 
     /// Computes q̈ into `ddq`; with `jac`, ∂q̈/∂q and ∂q̈/∂q̇ into the row-major n × n
-    /// blocks. `force`, when given, replaces the scene's Q (inverse dynamics).
+    /// blocks. `force`, when given, is added to the scene's Q (the unknown actuator
+    /// forces of inverse dynamics). The LU factors of the augmented system stay in
+    /// the scratch for [`DynamicsKernel::force_jacobian`].
     #[allow(clippy::too_many_arguments)]
     pub fn evaluate(
         model: &Model,
@@ -426,12 +428,12 @@ impl DynamicsKernel {
             }
         }
         sol.fill(0.0);
-        match force {
-            Some(f) => sol[..n].copy_from_slice(f),
-            None => {
-                for f in &model.forces {
-                    f.add_to(model, q, dq, t, &mut sol[..n])?;
-                }
+        for f in &model.forces {
+            f.add_to(model, q, dq, t, &mut sol[..n])?;
+        }
+        if let Some(f) = force {
+            for (s, v) in sol[..n].iter_mut().zip(f) {
+                *s += v;
             }
         }
         model.acceleration_rhs_into(q, dq, c);
@@ -450,10 +452,8 @@ impl DynamicsKernel {
         // Right-hand sides, column-major: n columns for q, then n for q̇.
         kq.fill(0.0);
         kv.fill(0.0);
-        if force.is_none() {
-            for f in &model.forces {
-                f.add_jacobians(model, q, dq, kq, kv)?;
-            }
+        for f in &model.forces {
+            f.add_jacobians(model, q, dq, kq, kv)?;
         }
         // kq −= ∂(Φ_qᵀλ)/∂q, accumulated with −λ.
         for (t, l) in tmp.iter_mut().zip(&sol[n..big]) {
@@ -501,6 +501,30 @@ impl DynamicsKernel {
             }
         }
         Ok(())
+    }
+
+    /// ∂q̈/∂Q (row-major n × n) with the factors a preceding [`DynamicsKernel::evaluate`]
+    /// left in the scratch: the first n rows of K⁻¹[I; 0], one pair of triangular
+    /// solves per column.
+    pub fn force_jacobian(model: &Model, jf: &mut [f64], reals: &mut [f64], indices: &[usize]) {
+        let l = KernelLayout::new(model);
+        let (n, ma) = (l.n, l.ma);
+        let big = n + ma;
+        let perm = &indices[..big];
+        let (kkt, rest) = reals[..l.end].split_at_mut(l.sol);
+        let (_, rest) = rest.split_at_mut(l.tmp - l.sol);
+        let (tmp, rest) = rest.split_at_mut(l.mat - l.tmp);
+        let (_, rest) = rest.split_at_mut(l.cols - l.mat);
+        let (cols, _) = rest.split_at_mut(l.c - l.cols);
+        let col = &mut cols[..big];
+        for j in 0..n {
+            col.fill(0.0);
+            col[j] = 1.0;
+            dense::lu_solve(kkt, big, perm, col, tmp);
+            for i in 0..n {
+                jf[i * n + j] = col[i];
+            }
+        }
     }
 }
 
@@ -853,6 +877,201 @@ impl Factor for IndependentDynamics {
                 j[1][k * n..(k + 1) * n].copy_from_slice(&jv[i * n..(i + 1) * n]);
             }
             identity(&mut j[2], f, -1.0);
+        }
+        Ok(())
+    }
+}
+
+/// f_prior on some components of a variable: e = x[idx] − x₀. Fixes the generalized
+/// forces where no actuator acts (x₀ = 0), or the prescribed coordinates' initial
+/// velocity and acceleration.
+pub struct ComponentPrior {
+    name: String,
+    keys: [Key; 1],
+    indices: Vec<usize>,
+    target: Vec<f64>,
+    noise: Noise,
+}
+
+impl ComponentPrior {
+    pub fn new(kind: VarKind, indices: Vec<usize>, target: Vec<f64>, noise: Noise) -> Self {
+        assert_eq!(indices.len(), target.len(), "one target per component");
+        ComponentPrior {
+            name: format!("f_prior({}[…])", kind.symbol()),
+            keys: [Key::now(kind)],
+            indices,
+            target,
+            noise,
+        }
+    }
+}
+
+impl Factor for ComponentPrior {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.indices.len()
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        for (ri, (&i, &t)) in r.iter_mut().zip(self.indices.iter().zip(&self.target)) {
+            *ri = x[0][i] - t;
+        }
+        if let Some(j) = jac {
+            let d = x[0].len();
+            j[0].fill(0.0);
+            for (row, &i) in self.indices.iter().enumerate() {
+                j[0][row * d + i] = 1.0;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// f_prior on a prescribed motion: e = q[idx] − q_p(t_k), the values read from a
+/// table with one row per time step t_k = t₀ + k·Δt.
+pub struct PrescribedMotion {
+    keys: [Key; 1],
+    indices: Vec<usize>,
+    /// Row-major steps × indices.len().
+    table: Arc<Vec<f64>>,
+    t0: f64,
+    dt: f64,
+    noise: Noise,
+}
+
+impl PrescribedMotion {
+    pub fn new(indices: Vec<usize>, table: Arc<Vec<f64>>, t0: f64, dt: f64, noise: Noise) -> Self {
+        PrescribedMotion {
+            keys: [Key::now(VarKind::Q)],
+            indices,
+            table,
+            t0,
+            dt,
+            noise,
+        }
+    }
+}
+
+impl Factor for PrescribedMotion {
+    fn name(&self) -> &str {
+        "f_prior(q prescribed)"
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.indices.len()
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        let p = self.indices.len();
+        let k = ((t - self.t0) / self.dt).round() as usize;
+        let row = self.table.get(k * p..(k + 1) * p).ok_or_else(|| {
+            Error::InvalidArgument(format!("no prescribed values at t = {t} (step {k})"))
+        })?;
+        for (ri, (&i, &v)) in r.iter_mut().zip(self.indices.iter().zip(row)) {
+            *ri = x[0][i] - v;
+        }
+        if let Some(j) = jac {
+            let d = x[0].len();
+            j[0].fill(0.0);
+            for (row, &i) in self.indices.iter().enumerate() {
+                j[0][row * d + i] = 1.0;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// f^d_idyn: e = q̈(q, q̇, t; Q_scene + Q) − q̈_t, with the actuator forces Q a variable.
+/// ∂e/∂Q is the first n rows of the augmented system's inverse applied to [I; 0].
+pub struct InverseDynamics {
+    model: Arc<Model>,
+    keys: [Key; 4],
+    noise: Noise,
+}
+
+impl InverseDynamics {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        InverseDynamics {
+            model,
+            keys: [
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Ddq),
+                Key::now(VarKind::Force),
+            ],
+            noise,
+        }
+    }
+}
+
+impl Factor for InverseDynamics {
+    fn name(&self) -> &str {
+        "f^d_idyn"
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.model.n()
+    }
+    fn scratch(&self) -> (usize, usize) {
+        DynamicsKernel::scratch(&self.model)
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let n = self.model.n();
+        match jac {
+            Some(j) => {
+                let (jq, rest) = j.split_at_mut(1);
+                let (jv, rest) = rest.split_at_mut(1);
+                let (ja, jf) = rest.split_at_mut(1);
+                DynamicsKernel::evaluate(
+                    &self.model,
+                    x[0],
+                    x[1],
+                    t,
+                    Some(x[3]),
+                    r,
+                    Some((&mut jq[0], &mut jv[0])),
+                    &mut ws.reals,
+                    &mut ws.indices,
+                )?;
+                identity(&mut ja[0], n, -1.0);
+                DynamicsKernel::force_jacobian(&self.model, &mut jf[0], &mut ws.reals, &ws.indices);
+            }
+            None => DynamicsKernel::evaluate(
+                &self.model,
+                x[0],
+                x[1],
+                t,
+                Some(x[3]),
+                r,
+                None,
+                &mut ws.reals,
+                &mut ws.indices,
+            )?,
+        }
+        for i in 0..n {
+            r[i] -= x[2][i];
         }
         Ok(())
     }
