@@ -86,3 +86,36 @@ pub fn r_matrix(
     let ddq = sc + &r * &ddz;
     Ok(RMatrixSolution { ddz, ddq })
 }
+
+/// Classical inverse dynamics: the actuator forces Q_a on the coordinates `actuated`
+/// (one generalized force per listed coordinate, zero elsewhere) that, with the
+/// scene's forces, produce the consistent motion (q, q̇, q̈). Solves
+/// M q̈ + Φ_qᵀλ − E Q_a = Q_scene for (λ, Q_a) in the least-squares sense, so
+/// redundant constraints are harmless. Returns the full n-vector of actuator forces.
+pub fn actuator_forces(
+    model: &Model,
+    q: &DVector<f64>,
+    dq: &DVector<f64>,
+    ddq: &DVector<f64>,
+    t: f64,
+    actuated: &[usize],
+) -> Result<DVector<f64>> {
+    let n = model.n();
+    let m = model.m();
+    let jac = model.jacobian(q);
+    let rhs = model.generalized_forces(q, dq, t)? - &model.mass * ddq;
+    let mut a = DMatrix::zeros(n, m + actuated.len());
+    a.view_mut((0, 0), (n, m)).copy_from(&jac.transpose());
+    for (c, &i) in actuated.iter().enumerate() {
+        a[(i, m + c)] = -1.0;
+    }
+    let svd = a.svd(true, true);
+    let x = svd
+        .solve(&rhs, 1e-12 * svd.singular_values.max())
+        .map_err(|e| Error::Singular(format!("inverse dynamics: {e}")))?;
+    let mut out = DVector::zeros(n);
+    for (c, &i) in actuated.iter().enumerate() {
+        out[i] = x[m + c];
+    }
+    Ok(out)
+}

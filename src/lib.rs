@@ -18,6 +18,7 @@ pub mod expr;
 pub mod factors;
 pub mod forward;
 pub mod graph;
+pub mod inverse;
 pub mod io;
 pub mod kinematics;
 pub mod linalg;

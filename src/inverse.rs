@@ -1,0 +1,352 @@
+//! Inverse dynamics as a factor graph (paper, sections 4.3 and 7.2): given the motion
+//! of some coordinates (the actuated ones) at uniformly spaced times, find the motion
+//! of all the others and the generalized forces on the actuated ones, solving the
+//! whole horizon in batch.
+//!
+//! Per step the graph holds q, q̇, q̈ and the actuator forces Q; hard factors: the
+//! position and velocity constraints, the prescribed values, Q = 0 where nothing
+//! actuates; soft: f^d_idyn and the trapezoidal integrators. The prescribed
+//! coordinates' velocity and acceleration at the first sample are fixed by one-sided
+//! fourth-order differences of the samples: without them the trapezoidal rule leaves
+//! an alternating (−1)^k mode of q̇ and q̈ undetermined, and Q would oscillate with it.
+//!
+//! The solve starts from the classical answer (position, velocity and acceleration
+//! problems along the samples, then the augmented system for Q), so a single batch
+//! solve converges in a few iterations.
+
+use crate::dynamics;
+use crate::error::{Error, Result};
+use crate::factors::*;
+use crate::forward::{NoiseModels, Trajectory};
+use crate::graph::{ChainGraph, Layout, Noise, VarKind};
+use crate::io::Table;
+use crate::kinematics;
+use crate::model::Model;
+use crate::smoother;
+use crate::solver::{Settings, SolveReport};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// The prescribed motion: coordinates (indices in q) and their values at t₀ + k·Δt.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prescription {
+    pub indices: Vec<usize>,
+    pub t0: f64,
+    pub dt: f64,
+    pub steps: usize,
+    /// Row-major steps × indices.len().
+    pub values: Vec<f64>,
+}
+
+/// Fewest samples a prescription needs (the starting derivatives use five).
+pub const MIN_SAMPLES: usize = 5;
+
+impl Prescription {
+    /// Reads a table with header `t,<coordinate>,...`; `file` names it in errors.
+    pub fn from_table(model: &Model, table: &Table, file: &str) -> Result<Self> {
+        let bad = |m: String| Err(Error::Data(format!("{file}: {m}")));
+        if table.columns.first().map(String::as_str) != Some("t") {
+            return bad("the first column must be `t` (time, in seconds)".into());
+        }
+        if table.columns.len() < 2 {
+            return bad("no prescribed coordinate: the header is `t` alone".into());
+        }
+        let mut indices = Vec::new();
+        for name in &table.columns[1..] {
+            let Some(i) = model.names.iter().position(|c| c == name) else {
+                return bad(format!(
+                    "unknown coordinate `{name}`; the scene's coordinates are {}",
+                    model.names.join(", ")
+                ));
+            };
+            if indices.contains(&i) {
+                return bad(format!("coordinate `{name}` appears twice"));
+            }
+            indices.push(i);
+        }
+        if table.rows < MIN_SAMPLES {
+            return bad(format!(
+                "{} samples; at least {MIN_SAMPLES} are needed",
+                table.rows
+            ));
+        }
+        let t = table.column("t").expect("checked above");
+        let dt = (t[table.rows - 1] - t[0]) / (table.rows - 1) as f64;
+        for k in 1..table.rows {
+            let step = t[k] - t[k - 1];
+            if !(step > 0.0) {
+                return bad(format!(
+                    "line {}: time {} does not increase (previous {})",
+                    k + 2,
+                    t[k],
+                    t[k - 1]
+                ));
+            }
+            if (step - dt).abs() > 1e-6 * dt {
+                return bad(format!(
+                    "line {}: times must be uniformly spaced (step {step} where the mean step is {dt})",
+                    k + 2
+                ));
+            }
+        }
+        let p = indices.len();
+        let w = table.columns.len();
+        let mut values = Vec::with_capacity(table.rows * p);
+        for k in 0..table.rows {
+            values.extend_from_slice(&table.values[k * w + 1..(k + 1) * w]);
+        }
+        Ok(Prescription {
+            indices,
+            t0: t[0],
+            dt,
+            steps: table.rows,
+            values,
+        })
+    }
+
+    fn value(&self, k: usize, c: usize) -> f64 {
+        self.values[k * self.indices.len() + c]
+    }
+
+    /// First and second derivative of prescribed coordinate `c` at the first sample,
+    /// by one-sided fourth- and third-order differences.
+    fn start_derivatives(&self, c: usize) -> (f64, f64) {
+        let v: Vec<f64> = (0..5).map(|k| self.value(k, c)).collect();
+        let h = self.dt;
+        let d1 = (-25.0 * v[0] + 48.0 * v[1] - 36.0 * v[2] + 16.0 * v[3] - 3.0 * v[4]) / (12.0 * h);
+        let d2 = (35.0 * v[0] - 104.0 * v[1] + 114.0 * v[2] - 56.0 * v[3] + 11.0 * v[4])
+            / (12.0 * h * h);
+        (d1, d2)
+    }
+}
+
+/// Options of an inverse-dynamics solve.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InverseOptions {
+    pub noise: NoiseModels,
+    pub settings: Settings,
+}
+
+impl Default for InverseOptions {
+    fn default() -> Self {
+        InverseOptions {
+            noise: NoiseModels::default(),
+            settings: Settings {
+                max_iterations: 50,
+                ..Settings::default()
+            },
+        }
+    }
+}
+
+/// What an inverse solve reports beside the motion and the forces.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InverseSummary {
+    pub steps: usize,
+    pub wall_time: Duration,
+    pub report: SolveReport,
+    /// max |q_c(t_k) − prescribed| over the prescribed coordinates.
+    pub worst_tracking: f64,
+    pub worst_phi: f64,
+}
+
+/// The motion and the actuator forces (row-major steps × n, zero where nothing acts).
+#[derive(Debug, Clone, PartialEq)]
+pub struct InverseSolution {
+    pub trajectory: Trajectory,
+    pub forces: Vec<f64>,
+    pub summary: InverseSummary,
+}
+
+/// Solves the inverse-dynamics problem in dependent coordinates.
+pub fn solve(
+    model: Arc<Model>,
+    prescription: &Prescription,
+    options: &InverseOptions,
+) -> Result<InverseSolution> {
+    options.settings.validate()?;
+    let start = Instant::now();
+    let n = model.n();
+    let (dt, steps) = (prescription.dt, prescription.steps);
+    let idx = &prescription.indices;
+    let unactuated: Vec<usize> = (0..n).filter(|i| !idx.contains(i)).collect();
+    let nm = options.noise;
+    let (d1, d2): (Vec<f64>, Vec<f64>) = (0..idx.len())
+        .map(|c| prescription.start_derivatives(c))
+        .unzip();
+    let table = Arc::new(prescription.values.clone());
+    let graph = ChainGraph {
+        layout: Layout::new(&[
+            (VarKind::Q, n),
+            (VarKind::Dq, n),
+            (VarKind::Ddq, n),
+            (VarKind::Force, n),
+        ]),
+        dt,
+        t0: prescription.t0,
+        step_factors: vec![
+            Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
+            Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)),
+            Box::new(PrescribedMotion::new(
+                idx.clone(),
+                table,
+                prescription.t0,
+                dt,
+                Noise::Hard,
+            )),
+            Box::new(ComponentPrior::new(
+                VarKind::Force,
+                unactuated.clone(),
+                vec![0.0; unactuated.len()],
+                Noise::Hard,
+            )),
+            Box::new(InverseDynamics::new(
+                model.clone(),
+                Noise::Isotropic(nm.dynamics),
+            )),
+            Box::new(Trapezoidal::new(
+                VarKind::Q,
+                VarKind::Dq,
+                n,
+                dt,
+                Noise::Isotropic(nm.integrator_position),
+            )),
+            Box::new(Trapezoidal::new(
+                VarKind::Dq,
+                VarKind::Ddq,
+                n,
+                dt,
+                Noise::Isotropic(nm.integrator_velocity),
+            )),
+        ],
+        initial_factors: vec![
+            Box::new(ComponentPrior::new(VarKind::Dq, idx.clone(), d1.clone(), Noise::Hard)),
+            Box::new(ComponentPrior::new(VarKind::Ddq, idx.clone(), d2.clone(), Noise::Hard)),
+        ],
+    };
+    let s = graph.layout.size();
+    let mut values = kinematic_start(&model, prescription, &d1, &d2)?;
+    debug_assert_eq!(values.len(), steps * s);
+    let report = smoother::batch(&graph, &mut values, steps, options.settings)?;
+    let wall_time = start.elapsed();
+
+    let mut tr = Trajectory {
+        names: model.names.clone(),
+        t: (0..steps).map(|k| graph.time(k)).collect(),
+        q: Vec::with_capacity(steps * n),
+        dq: Vec::with_capacity(steps * n),
+        ddq: Vec::with_capacity(steps * n),
+    };
+    let mut forces = Vec::with_capacity(steps * n);
+    let (mut worst_tracking, mut worst_phi) = (0.0f64, 0.0f64);
+    let mut phi = vec![0.0; model.m()];
+    for k in 0..steps {
+        let b = &values[k * s..(k + 1) * s];
+        tr.q.extend_from_slice(&b[..n]);
+        tr.dq.extend_from_slice(&b[n..2 * n]);
+        tr.ddq.extend_from_slice(&b[2 * n..3 * n]);
+        forces.extend_from_slice(&b[3 * n..4 * n]);
+        for (c, &i) in idx.iter().enumerate() {
+            worst_tracking = worst_tracking.max((b[i] - prescription.value(k, c)).abs());
+        }
+        model.phi_into(&b[..n], &mut phi);
+        worst_phi = phi.iter().fold(worst_phi, |w, v| w.max(v.abs()));
+    }
+    if !values.iter().all(|v| v.is_finite()) {
+        return Err(Error::Singular("the inverse solve produced non-finite values".into()));
+    }
+    Ok(InverseSolution {
+        trajectory: tr,
+        forces,
+        summary: InverseSummary {
+            steps,
+            wall_time,
+            report,
+            worst_tracking,
+            worst_phi,
+        },
+    })
+}
+
+/// The classical answer along the samples: positions by the position problem with the
+/// prescribed coordinates fixed (each step from the previous one, so the branch is
+/// kept), their velocities and accelerations by the trapezoidal rule from the starting
+/// derivatives, the other coordinates' by the velocity and acceleration problems, and
+/// Q by the augmented system.
+fn kinematic_start(
+    model: &Model,
+    p: &Prescription,
+    d1: &[f64],
+    d2: &[f64],
+) -> Result<Vec<f64>> {
+    let n = model.n();
+    let idx = &p.indices;
+    let mut out = Vec::with_capacity(p.steps * 4 * n);
+    let mut q = model.initial.q.clone();
+    let (mut v, mut a) = (d1.to_vec(), d2.to_vec());
+    for k in 0..p.steps {
+        let t = p.t0 + k as f64 * p.dt;
+        if k > 0 {
+            for c in 0..idx.len() {
+                let dq_prev = v[c];
+                v[c] = 2.0 * (p.value(k, c) - p.value(k - 1, c)) / p.dt - dq_prev;
+                a[c] = 2.0 * (v[c] - dq_prev) / p.dt - a[c];
+            }
+        }
+        for (c, &i) in idx.iter().enumerate() {
+            q[i] = p.value(k, c);
+        }
+        let reach = |e: Error| {
+            Error::Singular(format!(
+                "the prescribed motion is out of the mechanism's reach at t = {t} (sample {k}): {e}"
+            ))
+        };
+        kinematics::solve_position(model, &mut q, idx).map_err(reach)?;
+        let dq = kinematics::solve_velocity(model, &q, idx, &v).map_err(reach)?;
+        let ddq = kinematics::solve_acceleration(model, &q, &dq, idx, &a).map_err(reach)?;
+        let force = dynamics::actuator_forces(model, &q, &dq, &ddq, t, idx)?;
+        out.extend_from_slice(q.as_slice());
+        out.extend_from_slice(dq.as_slice());
+        out.extend_from_slice(ddq.as_slice());
+        out.extend_from_slice(force.as_slice());
+    }
+    Ok(out)
+}
+
+/// The exact classical solution for a prescribed motion given with its derivatives:
+/// `motion(t)` returns (values, first, second derivatives) of the prescribed
+/// coordinates. Used by tests as an independent answer.
+pub fn classical(
+    model: &Model,
+    indices: &[usize],
+    times: &[f64],
+    motion: impl Fn(f64) -> (Vec<f64>, Vec<f64>, Vec<f64>),
+) -> Result<InverseSolutionClassical> {
+    let n = model.n();
+    let mut q = model.initial.q.clone();
+    let mut out = InverseSolutionClassical {
+        q: Vec::new(),
+        forces: Vec::new(),
+    };
+    for &t in times {
+        let (x, v, a) = motion(t);
+        for (c, &i) in indices.iter().enumerate() {
+            q[i] = x[c];
+        }
+        kinematics::solve_position(model, &mut q, indices)?;
+        let dq = kinematics::solve_velocity(model, &q, indices, &v)?;
+        let ddq = kinematics::solve_acceleration(model, &q, &dq, indices, &a)?;
+        let f = dynamics::actuator_forces(model, &q, &dq, &ddq, t, indices)?;
+        out.q.extend_from_slice(q.as_slice());
+        out.forces.extend_from_slice(f.as_slice());
+        debug_assert_eq!(f.len(), n);
+    }
+    Ok(out)
+}
+
+/// Positions and actuator forces of [`classical`], row-major samples × n.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InverseSolutionClassical {
+    pub q: Vec<f64>,
+    pub forces: Vec<f64>,
+}
