@@ -220,8 +220,18 @@ pub fn solve(
             )),
         ],
         initial_factors: vec![
-            Box::new(ComponentPrior::new(VarKind::Dq, idx.clone(), d1.clone(), Noise::Hard)),
-            Box::new(ComponentPrior::new(VarKind::Ddq, idx.clone(), d2.clone(), Noise::Hard)),
+            Box::new(ComponentPrior::new(
+                VarKind::Dq,
+                idx.clone(),
+                d1.clone(),
+                Noise::Hard,
+            )),
+            Box::new(ComponentPrior::new(
+                VarKind::Ddq,
+                idx.clone(),
+                d2.clone(),
+                Noise::Hard,
+            )),
         ],
     };
     let s = graph.layout.size();
@@ -253,7 +263,9 @@ pub fn solve(
         worst_phi = phi.iter().fold(worst_phi, |w, v| w.max(v.abs()));
     }
     if !values.iter().all(|v| v.is_finite()) {
-        return Err(Error::Singular("the inverse solve produced non-finite values".into()));
+        return Err(Error::Singular(
+            "the inverse solve produced non-finite values".into(),
+        ));
     }
     Ok(InverseSolution {
         trajectory: tr,
@@ -273,12 +285,7 @@ pub fn solve(
 /// kept), their velocities and accelerations by the trapezoidal rule from the starting
 /// derivatives, the other coordinates' by the velocity and acceleration problems, and
 /// Q by the augmented system.
-fn kinematic_start(
-    model: &Model,
-    p: &Prescription,
-    d1: &[f64],
-    d2: &[f64],
-) -> Result<Vec<f64>> {
+fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> Result<Vec<f64>> {
     let n = model.n();
     let idx = &p.indices;
     let mut out = Vec::with_capacity(p.steps * 4 * n);

@@ -67,6 +67,32 @@ enum Command {
         #[arg(long = "continue-on-failure")]
         continue_on_failure: bool,
     },
+    /// Inverse dynamics: the forces on the prescribed coordinates that produce their
+    /// motion, and the motion of all the others, solved over the whole horizon.
+    Inverse {
+        /// Scene or MBSE mechanism file (YAML).
+        scene: PathBuf,
+        /// CSV with header `t,<coordinate>,...`: the prescribed coordinates at uniformly
+        /// spaced times (at least 5 rows).
+        #[arg(long, value_name = "FILE.csv")]
+        trajectory: PathBuf,
+        /// Dependent (natural) or independent coordinates.
+        #[arg(long, value_enum, default_value_t = InverseCoords::Dc)]
+        coords: InverseCoords,
+        /// Linear solves allowed.
+        #[arg(long = "max-iterations", value_name = "K", default_value_t = 50)]
+        max_iterations: usize,
+        /// Output CSV (trajectory plus `Q:<c>` columns); the summary then goes to
+        /// standard output.
+        #[arg(long, value_name = "FILE.csv")]
+        out: Option<PathBuf>,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum InverseCoords {
+    Dc,
+    Ic,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -166,7 +192,84 @@ fn run(cli: Cli) -> Result<(), Failure> {
             options.validate(&model).map_err(plain)?;
             simulate(model, &options, out.as_deref())
         }
+        Command::Inverse {
+            scene,
+            trajectory,
+            coords,
+            max_iterations,
+            out,
+        } => {
+            let (_, model) = load(&scene)?;
+            if max_iterations == 0 {
+                return Err(Failure::Input("--max-iterations must be at least 1".into()));
+            }
+            inverse(model, &trajectory, coords, max_iterations, out.as_deref())
+        }
     }
+}
+
+/// `mbfg inverse`: reads the prescription, solves, writes the CSV and the summary.
+fn inverse(
+    model: Model,
+    trajectory: &Path,
+    coords: InverseCoords,
+    max_iterations: usize,
+    out: Option<&Path>,
+) -> Result<(), Failure> {
+    if let InverseCoords::Ic = coords {
+        return Err(Failure::Input(
+            "inverse dynamics in independent coordinates is not available yet; use --coords dc"
+                .into(),
+        ));
+    }
+    let table = mbfg::io::read_table(trajectory).map_err(plain)?;
+    let prescription =
+        mbfg::inverse::Prescription::from_table(&model, &table, &trajectory.display().to_string())
+            .map_err(plain)?;
+    let file = match out {
+        Some(p) => Some(
+            std::fs::File::create(p).map_err(|e| format!("cannot write {}: {e}", p.display()))?,
+        ),
+        None => None,
+    };
+    let mut options = mbfg::inverse::InverseOptions::default();
+    options.settings.max_iterations = max_iterations;
+    let sol = mbfg::inverse::solve(Arc::new(model), &prescription, &options)
+        .map_err(|e| Failure::Run(plain(e)))?;
+    let written = match file {
+        Some(f) => mbfg::io::write_trajectory(
+            std::io::BufWriter::new(f),
+            &sol.trajectory,
+            Some(&sol.forces),
+        ),
+        None => {
+            mbfg::io::write_trajectory(std::io::stdout().lock(), &sol.trajectory, Some(&sol.forces))
+        }
+    };
+    written.map_err(|e| Failure::Run(plain(e)))?;
+    let s = &sol.summary;
+    let line = format!(
+        "{} steps (dt = {} s, batch) in {:.3} s; {} LM iterations ({}); worst tracking error {:.2e}; worst |Φ| {:.2e}",
+        s.steps,
+        prescription.dt,
+        s.wall_time.as_secs_f64(),
+        s.report.iterations,
+        s.report.termination,
+        s.worst_tracking,
+        s.worst_phi
+    );
+    if out.is_some() {
+        println!("{line}");
+    } else {
+        eprintln!("{line}");
+    }
+    if s.report.termination != mbfg::solver::Termination::Converged {
+        return Err(Failure::Run(format!(
+            "the inverse solve did not converge: {}, cost {:.3e} after {} iterations (--max-iterations allows more)",
+            s.report.termination, s.report.cost, s.report.iterations
+        )));
+    }
+    Ok(())
 }
 
 /// The message of a library error without the variant's prefix for bad arguments.

@@ -8,13 +8,19 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 fn load(name: &str) -> Arc<Model> {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scenes").join(name);
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name);
     Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap())
 }
 
 /// θ(t) = 1.2(1 − cos 2t) and its derivatives.
 fn crank(t: f64) -> (f64, f64, f64) {
-    (1.2 * (1.0 - (2.0 * t).cos()), 2.4 * (2.0 * t).sin(), 4.8 * (2.0 * t).cos())
+    (
+        1.2 * (1.0 - (2.0 * t).cos()),
+        2.4 * (2.0 * t).sin(),
+        4.8 * (2.0 * t).cos(),
+    )
 }
 
 fn table(name: &str, dt: f64, t_end: f64, f: impl Fn(f64) -> f64) -> Table {

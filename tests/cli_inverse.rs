@@ -1,0 +1,177 @@
+//! `mbfg inverse` end to end: the suite's four-bar prescription, bad trajectory files
+//! (exit 2, one line naming the file and what is wrong) and a prescription out of the
+//! mechanism's reach (exit 1, naming the sample where it first fails).
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+fn mbfg(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_mbfg"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("run mbfg")
+}
+
+fn temp(name: &str, text: &str) -> PathBuf {
+    let p = std::env::temp_dir().join(format!("mbfg-inv-{}-{name}", std::process::id()));
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn one_error_line(out: &Output, code: i32) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(code), "stderr: {err}");
+    let text = err.strip_suffix('\n').unwrap_or(&err);
+    assert!(!text.contains('\n'), "one line expected, got:\n{err}");
+    assert!(text.starts_with("error: "), "{text}");
+    text.to_string()
+}
+
+fn rows(f: impl Fn(usize) -> String, count: usize) -> String {
+    (0..count).map(f).collect::<Vec<_>>().join("\n")
+}
+
+#[test]
+fn solves_the_suite_prescription_and_writes_forces() {
+    let out_csv = std::env::temp_dir().join(format!("mbfg-inv-{}-out.csv", std::process::id()));
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        "scenes/trajectories/fourbar-theta.csv",
+        "--coords",
+        "dc",
+        "--out",
+        out_csv.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        summary.starts_with("2001 steps (dt = 0.005 s, batch)"),
+        "{summary}"
+    );
+    assert!(summary.contains("worst tracking error") && summary.contains("worst |Φ|"));
+    let text = std::fs::read_to_string(&out_csv).unwrap();
+    std::fs::remove_file(&out_csv).ok();
+    let header = text.lines().next().unwrap();
+    assert!(
+        header.ends_with(",Q:P1.x,Q:P1.y,Q:P2.x,Q:P2.y,Q:theta"),
+        "{header}"
+    );
+    assert_eq!(text.lines().count(), 2002);
+}
+
+#[test]
+fn bad_trajectory_files_exit_2_with_a_clear_message() {
+    let uniform = |k: usize| format!("{},{}", k as f64 * 0.01, 0.001 * k as f64);
+    let cases: Vec<(&str, String, &str)> = vec![
+        (
+            "only-t.csv",
+            format!("t\n{}", rows(|k| format!("{}", k as f64 * 0.01), 6)),
+            "no prescribed coordinate",
+        ),
+        (
+            "unknown.csv",
+            format!("t,phi\n{}", rows(uniform, 6)),
+            "unknown coordinate `phi`",
+        ),
+        (
+            "twice.csv",
+            format!(
+                "t,theta,theta\n{}",
+                rows(|k| format!("{},0,0", k as f64 * 0.01), 6)
+            ),
+            "appears twice",
+        ),
+        (
+            "few.csv",
+            format!("t,theta\n{}", rows(uniform, 3)),
+            "at least 5",
+        ),
+        (
+            "uneven.csv",
+            "t,theta\n0,0\n0.01,0\n0.02,0\n0.04,0\n0.05,0\n0.06,0".into(),
+            "uniformly spaced",
+        ),
+        (
+            "back.csv",
+            "t,theta\n0,0\n0.01,0\n0.02,0\n0.01,0\n0.04,0\n0.05,0".into(),
+            "does not increase",
+        ),
+        (
+            "nan.csv",
+            "t,theta\n0,0\n0.01,0\n0.02,NaN\n0.03,0\n0.04,0\n0.05,0".into(),
+            "not finite",
+        ),
+        (
+            "text.csv",
+            "t,theta\n0,0\n0.01,x\n0.02,0\n0.03,0\n0.04,0\n0.05,0".into(),
+            "not a number",
+        ),
+        (
+            "not-t.csv",
+            format!("time,theta\n{}", rows(uniform, 6)),
+            "first column must be `t`",
+        ),
+    ];
+    for (name, text, expect) in cases {
+        let path = temp(name, &text);
+        let out = mbfg(&[
+            "inverse",
+            "scenes/fourbar-theta.yaml",
+            "--trajectory",
+            path.to_str().unwrap(),
+        ]);
+        std::fs::remove_file(&path).ok();
+        let line = one_error_line(&out, 2);
+        assert!(line.contains(expect), "{name}: {line}");
+        assert!(
+            line.contains(name),
+            "{name}: the message must name the file: {line}"
+        );
+    }
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        "no/such/file.csv",
+    ]);
+    one_error_line(&out, 2);
+}
+
+#[test]
+fn a_prescription_out_of_reach_names_the_sample() {
+    // P1 is on a unit crank: P1.y cannot exceed 1; it does after 0.5 s here.
+    let text = format!(
+        "t,P1.y\n{}",
+        rows(
+            |k| format!("{},{}", k as f64 * 0.01, 2.0 * k as f64 * 0.01),
+            101
+        )
+    );
+    let path = temp("reach.csv", &text);
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        path.to_str().unwrap(),
+    ]);
+    std::fs::remove_file(&path).ok();
+    let line = one_error_line(&out, 1);
+    assert!(line.contains("out of the mechanism's reach"), "{line}");
+    let sample: usize = line
+        .split("(sample ")
+        .nth(1)
+        .and_then(|r| r.split(')').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no sample in: {line}"));
+    assert!(
+        (45..=51).contains(&sample),
+        "fails at sample {sample}: {line}"
+    );
+}
