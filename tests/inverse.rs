@@ -75,3 +75,75 @@ fn fourbar_crank_torque_matches_the_classical_solution() {
         }
     }
 }
+
+/// Closed-form Lagrange equations of two uniform rods with absolute angles φ₁, φ₂
+/// (measured from +x), gravity −g ŷ: the generalized forces on (φ₁, φ₂).
+fn double_pendulum_forces(phi: [f64; 3], phi2: [f64; 3]) -> [f64; 2] {
+    let (m1, m2, l1, l2, g) = (1.0, 1.0, 1.0, 1.0, 9.81);
+    let [p1, v1, a1] = phi;
+    let [p2, v2, a2] = phi2;
+    let d = p1 - p2;
+    let c = m2 * l1 * l2 / 2.0;
+    let m11 = m1 * l1 * l1 / 3.0 + m2 * l1 * l1;
+    let m22 = m2 * l2 * l2 / 3.0;
+    let m12 = c * d.cos();
+    let q1 = m11 * a1 + m12 * a2 + c * d.sin() * v2 * v2 + (m1 * l1 / 2.0 + m2 * l1) * g * p1.cos();
+    let q2 = m22 * a2 + m12 * a1 - c * d.sin() * v1 * v1 + m2 * g * l2 / 2.0 * p2.cos();
+    [q1, q2]
+}
+
+/// φ₁ = −0.8(1 − cos 1.5t), φ₂ = −1.1(1 − cos 2.3t): from rest, horizontal.
+fn arm(t: f64) -> [[f64; 3]; 2] {
+    let f = |a: f64, w: f64| {
+        [
+            -a * (1.0 - (w * t).cos()),
+            -a * w * (w * t).sin(),
+            -a * w * w * (w * t).cos(),
+        ]
+    };
+    [f(0.8, 1.5), f(1.1, 2.3)]
+}
+
+#[test]
+fn double_pendulum_joint_forces_match_the_closed_form() {
+    let model = load("double-pendulum.yaml");
+    let idx: Vec<usize> = ["theta1", "theta2"]
+        .iter()
+        .map(|c| model.names.iter().position(|n| n == c).unwrap())
+        .collect();
+    let (dt, t_end): (f64, f64) = (5e-3, 5.0);
+    let rows = (t_end / dt).round() as usize + 1;
+    let mut values = Vec::new();
+    for k in 0..rows {
+        let t = k as f64 * dt;
+        let [a, b] = arm(t);
+        values.extend([t, a[0], b[0]]);
+    }
+    let tab = Table {
+        columns: vec!["t".into(), "theta1".into(), "theta2".into()],
+        values,
+        rows,
+    };
+    let p = Prescription::from_table(&model, &tab, "test").unwrap();
+    let sol = inverse::solve(model.clone(), &p, &InverseOptions::default()).unwrap();
+    let n = model.n();
+    let mut err = [Vec::new(), Vec::new()];
+    let mut peak = [0.0f64; 2];
+    for k in 0..rows {
+        let [a, b] = arm(sol.trajectory.t[k]);
+        let exact = double_pendulum_forces(a, b);
+        for j in 0..2 {
+            err[j].push(sol.forces[k * n + idx[j]] - exact[j]);
+            peak[j] = peak[j].max(exact[j].abs());
+        }
+    }
+    for j in 0..2 {
+        let rel = rms(&err[j]) / peak[j];
+        eprintln!(
+            "double pendulum joint {j}: RMSE {:.3e} of peak {:.2}",
+            rel, peak[j]
+        );
+        assert!(rel <= 1e-4, "joint {j}: RMSE/peak {rel:.3e}");
+    }
+    assert!(sol.summary.worst_tracking <= 1e-9);
+}
