@@ -23,6 +23,19 @@ def main():
     # The paper's four-bar (section 7.2): crank angle 1.2 (1 - cos 2t) rad, 10 s at 5 ms.
     write("fourbar-theta.csv", ["theta"], 5e-3, 10.0,
           lambda t: [1.2 * (1.0 - math.cos(2.0 * t))])
+    # The pick-and-place robot: both motors from rest at the scene's configuration
+    # (motor1 = -3π/4, motor2 = -π/4) through one 5 s cycle; with τ = 2πt/5 and
+    # c = (1 - cos τ)/2 the plate goes down and sideways and back:
+    # motor1 = m1 + 0.3c + 0.2c·sin τ, motor2 = m2 - 0.3c + 0.2c·sin τ.
+    def robot(t):
+        tau = 2.0 * math.pi * t / 5.0
+        c = (1.0 - math.cos(tau)) / 2.0
+        return [-0.75 * math.pi + 0.3 * c + 0.2 * c * math.sin(tau),
+                -0.25 * math.pi - 0.3 * c + 0.2 * c * math.sin(tau)]
+    write("pick-and-place.csv", ["motor1", "motor2"], 5e-3, 5.0, robot)
+    # The double pendulum, both joints driven from rest, horizontal (absolute angles).
+    write("double-pendulum.csv", ["theta1", "theta2"], 5e-3, 5.0,
+          lambda t: [-0.8 * (1.0 - math.cos(1.5 * t)), -1.1 * (1.0 - math.cos(2.3 * t))])
 
 
 if __name__ == "__main__":

@@ -129,8 +129,18 @@ pub struct InverseOptions {
 
 impl Default for InverseOptions {
     fn default() -> Self {
+        // Integrators 100× stiffer than f^d_idyn. In inverse dynamics the unknown
+        // forces make the dynamics factor consistent at every step, so only the
+        // integrators carry information along the horizon; weighted 10× below
+        // f_dyn (the forward defaults) that information sinks under the dynamics'
+        // round-off on the robot, and the banded factorization loses definiteness.
         InverseOptions {
-            noise: NoiseModels::default(),
+            noise: NoiseModels {
+                dynamics: 1.0,
+                integrator_position: 0.01,
+                integrator_velocity: 0.01,
+                ..NoiseModels::default()
+            },
             settings: Settings {
                 max_iterations: 50,
                 ..Settings::default()

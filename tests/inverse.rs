@@ -147,3 +147,73 @@ fn double_pendulum_joint_forces_match_the_closed_form() {
     }
     assert!(sol.summary.worst_tracking <= 1e-9);
 }
+
+/// The robot's pick-and-place cycle (also in `scenes/trajectories/pick-and-place.csv`):
+/// with τ = 2πt/5 and c = (1 − cos τ)/2, motor1 = m₁ + 0.3c + 0.2c·sin τ,
+/// motor2 = m₂ − 0.3c + 0.2c·sin τ, from rest at the scene's configuration.
+fn cycle(t: f64, m0: [f64; 2]) -> [[f64; 3]; 2] {
+    let w = 2.0 * std::f64::consts::PI / 5.0;
+    let (s, c) = ((w * t).sin(), (w * t).cos());
+    let u = [(1.0 - c) / 2.0, w * s / 2.0, w * w * c / 2.0];
+    let v = [
+        s * u[0],
+        w * c * u[0] + s * u[1],
+        -w * w * s * u[0] + 2.0 * w * c * u[1] + s * u[2],
+    ];
+    let f = |m: f64, sign: f64| {
+        [
+            m + sign * 0.3 * u[0] + 0.2 * v[0],
+            sign * 0.3 * u[1] + 0.2 * v[1],
+            sign * 0.3 * u[2] + 0.2 * v[2],
+        ]
+    };
+    [f(m0[0], 1.0), f(m0[1], -1.0)]
+}
+
+#[test]
+fn robot_motor_torques_match_the_classical_solution() {
+    let model = load("pick-and-place.yaml");
+    let idx: Vec<usize> = ["motor1", "motor2"]
+        .iter()
+        .map(|c| model.names.iter().position(|n| n == c).unwrap())
+        .collect();
+    let m0 = [model.initial.q[idx[0]], model.initial.q[idx[1]]];
+    let (dt, t_end): (f64, f64) = (5e-3, 5.0);
+    let rows = (t_end / dt).round() as usize + 1;
+    let mut values = Vec::new();
+    for k in 0..rows {
+        let t = k as f64 * dt;
+        let [a, b] = cycle(t, m0);
+        values.extend([t, a[0], b[0]]);
+    }
+    let tab = Table {
+        columns: vec!["t".into(), "motor1".into(), "motor2".into()],
+        values,
+        rows,
+    };
+    let p = Prescription::from_table(&model, &tab, "test").unwrap();
+    let sol = inverse::solve(model.clone(), &p, &InverseOptions::default()).unwrap();
+    let exact = inverse::classical(&model, &idx, &sol.trajectory.t, |t| {
+        let [a, b] = cycle(t, m0);
+        (vec![a[0], b[0]], vec![a[1], b[1]], vec![a[2], b[2]])
+    })
+    .unwrap();
+    let n = model.n();
+    for (j, &i) in idx.iter().enumerate() {
+        let err: Vec<f64> = (0..rows)
+            .map(|k| sol.forces[k * n + i] - exact.forces[k * n + i])
+            .collect();
+        let peak = (0..rows).fold(0.0f64, |m, k| m.max(exact.forces[k * n + i].abs()));
+        let rel = rms(&err) / peak;
+        eprintln!(
+            "robot motor {}: torque RMSE {:.3e} of peak {peak:.2} N·m ({} iterations, {:?}, |Φ| {:.1e})",
+            j + 1,
+            rel,
+            sol.summary.report.iterations,
+            sol.summary.wall_time,
+            sol.summary.worst_phi
+        );
+        assert!(rel <= 1e-3, "motor {}: RMSE/peak {rel:.3e}", j + 1);
+    }
+    assert!(sol.summary.worst_phi <= 1e-9);
+}
