@@ -809,27 +809,42 @@ impl Factor for IndependentAcceleration {
 /// through the augmented system (the two agree to round-off; tested in `tests/model.rs`).
 pub struct IndependentDynamics {
     model: Arc<Model>,
-    keys: [Key; 3],
+    keys: Vec<Key>,
     noise: Noise,
+    inverse: bool,
 }
 
 impl IndependentDynamics {
     pub fn new(model: Arc<Model>, noise: Noise) -> Self {
         IndependentDynamics {
             model,
-            keys: [
+            keys: vec![
                 Key::now(VarKind::Q),
                 Key::now(VarKind::Dq),
                 Key::now(VarKind::Ddz),
             ],
             noise,
+            inverse: false,
         }
+    }
+
+    /// f^i_idyn: e = z̈(q, q̇, t; Q_scene + Q) − z̈_t with the actuator forces Q a
+    /// variable (fourth key); ∂e/∂Q is the independent rows of ∂q̈/∂Q.
+    pub fn inverse(model: Arc<Model>, noise: Noise) -> Self {
+        let mut f = IndependentDynamics::new(model, noise);
+        f.keys.push(Key::now(VarKind::Force));
+        f.inverse = true;
+        f
     }
 }
 
 impl Factor for IndependentDynamics {
     fn name(&self) -> &str {
-        "f^i_dyn"
+        if self.inverse {
+            "f^i_idyn"
+        } else {
+            "f^i_dyn"
+        }
     }
     key_and_noise_accessors!();
     fn dim(&self) -> usize {
@@ -838,7 +853,7 @@ impl Factor for IndependentDynamics {
     fn scratch(&self) -> (usize, usize) {
         let (r, i) = DynamicsKernel::scratch(&self.model);
         let n = self.model.n();
-        (r + 2 * n * n + n, i)
+        (r + 3 * n * n + n, i)
     }
     fn evaluate(
         &self,
@@ -854,20 +869,21 @@ impl Factor for IndependentDynamics {
         let (kernel, own) = ws.reals.split_at_mut(kernel_len);
         let (ddq, own) = own.split_at_mut(n);
         let (jq, own) = own.split_at_mut(n * n);
-        let jv = &mut own[..n * n];
+        let (jv, own) = own.split_at_mut(n * n);
+        let jf = &mut own[..n * n];
         let want = jac.is_some();
-        let result = DynamicsKernel::evaluate(
+        let force = if self.inverse { Some(x[3]) } else { None };
+        DynamicsKernel::evaluate(
             &self.model,
             x[0],
             x[1],
             t,
-            None,
+            force,
             ddq,
             want.then_some((&mut *jq, &mut *jv)),
             kernel,
             &mut ws.indices,
-        );
-        result?;
+        )?;
         for (k, &i) in self.model.independent.iter().enumerate() {
             r[k] = ddq[i] - x[2][k];
         }
@@ -877,6 +893,12 @@ impl Factor for IndependentDynamics {
                 j[1][k * n..(k + 1) * n].copy_from_slice(&jv[i * n..(i + 1) * n]);
             }
             identity(&mut j[2], f, -1.0);
+            if self.inverse {
+                DynamicsKernel::force_jacobian(&self.model, jf, kernel, &ws.indices);
+                for (k, &i) in self.model.independent.iter().enumerate() {
+                    j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
+                }
+            }
         }
         Ok(())
     }
@@ -949,9 +971,21 @@ pub struct PrescribedMotion {
 }
 
 impl PrescribedMotion {
+    /// On components `indices` of q (or of z, with `kind`).
     pub fn new(indices: Vec<usize>, table: Arc<Vec<f64>>, t0: f64, dt: f64, noise: Noise) -> Self {
+        Self::on(VarKind::Q, indices, table, t0, dt, noise)
+    }
+
+    pub fn on(
+        kind: VarKind,
+        indices: Vec<usize>,
+        table: Arc<Vec<f64>>,
+        t0: f64,
+        dt: f64,
+        noise: Noise,
+    ) -> Self {
         PrescribedMotion {
-            keys: [Key::now(VarKind::Q)],
+            keys: [Key::now(kind)],
             indices,
             table,
             t0,

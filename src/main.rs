@@ -216,12 +216,6 @@ fn inverse(
     max_iterations: usize,
     out: Option<&Path>,
 ) -> Result<(), Failure> {
-    if let InverseCoords::Ic = coords {
-        return Err(Failure::Input(
-            "inverse dynamics in independent coordinates is not available yet; use --coords dc"
-                .into(),
-        ));
-    }
     let table = mbfg::io::read_table(trajectory).map_err(plain)?;
     let prescription =
         mbfg::inverse::Prescription::from_table(&model, &table, &trajectory.display().to_string())
@@ -234,8 +228,15 @@ fn inverse(
     };
     let mut options = mbfg::inverse::InverseOptions::default();
     options.settings.max_iterations = max_iterations;
-    let sol = mbfg::inverse::solve(Arc::new(model), &prescription, &options)
-        .map_err(|e| Failure::Run(plain(e)))?;
+    options.coordinates = match coords {
+        InverseCoords::Dc => Coordinates::Dependent,
+        InverseCoords::Ic => Coordinates::Independent,
+    };
+    let model = Arc::new(model);
+    let sol = mbfg::inverse::solve(model, &prescription, &options).map_err(|e| match e {
+        Error::InvalidArgument(m) => Failure::Input(m),
+        other => Failure::Run(plain(other)),
+    })?;
     let written = match file {
         Some(f) => mbfg::io::write_trajectory(
             std::io::BufWriter::new(f),

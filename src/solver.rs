@@ -777,6 +777,9 @@ impl WindowSolver {
                 && (predicted <= 1e-12 * cost.abs()
                     || (no_progress && (largest <= 1e-6 || predicted <= 1e-6 * cost.abs())));
             let converged = (small || flat) && mu == 0.0;
+            if std::env::var("LMTRACE").is_ok() {
+                eprintln!("k0={k0} k1={k1} it={iterations} cost={cost:.6e} trial={:?} mu={mu:.1e} pred={predicted:.3e} |d|={largest:.2e} small={small} restored={restored}", trial.as_ref().ok());
+            }
 
             match trial {
                 Ok(c) if converged || c <= cost || !lm => {

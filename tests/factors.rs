@@ -444,6 +444,15 @@ fn inverse_dynamics_factors_match_finite_differences() {
             "f^d_idyn".into(),
             Box::new(InverseDynamics::new(m.clone(), Noise::Isotropic(1e-3))),
         )];
+        if !m.independent.is_empty() {
+            list.push((
+                "f^i_idyn".into(),
+                Box::new(IndependentDynamics::inverse(
+                    m.clone(),
+                    Noise::Isotropic(1e-3),
+                )),
+            ));
+        }
         list.push((
             "f_prior(Q[…])".into(),
             Box::new(ComponentPrior::new(
@@ -465,7 +474,7 @@ fn inverse_dynamics_factors_match_finite_differences() {
         ));
         list
     });
-    assert_eq!(errors.0.len(), 3);
+    assert_eq!(errors.0.len(), 4);
 }
 
 #[test]

@@ -1,6 +1,7 @@
 //! Inverse dynamics by the factor graph against the classical solution computed with
 //! the exact derivatives of the prescribed motion.
 
+use mbfg::forward::Coordinates;
 use mbfg::inverse::{self, InverseOptions, Prescription};
 use mbfg::io::Table;
 use mbfg::{Model, Scene};
@@ -37,6 +38,15 @@ fn table(name: &str, dt: f64, t_end: f64, f: impl Fn(f64) -> f64) -> Table {
     }
 }
 
+fn options(coordinates: Coordinates) -> InverseOptions {
+    InverseOptions {
+        coordinates,
+        ..InverseOptions::default()
+    }
+}
+
+const BOTH: [Coordinates; 2] = [Coordinates::Dependent, Coordinates::Independent];
+
 fn rms(a: &[f64]) -> f64 {
     (a.iter().map(|v| v * v).sum::<f64>() / a.len() as f64).sqrt()
 }
@@ -48,30 +58,32 @@ fn fourbar_crank_torque_matches_the_classical_solution() {
     let (dt, t_end) = (5e-3, 10.0);
     let tab = table("theta", dt, t_end, |t| crank(t).0);
     let p = Prescription::from_table(&model, &tab, "test").unwrap();
-    let sol = inverse::solve(model.clone(), &p, &InverseOptions::default()).unwrap();
-    let n = model.n();
-    let exact = inverse::classical(&model, &[theta], &sol.trajectory.t, |t| {
-        let (a, b, c) = crank(t);
-        (vec![a], vec![b], vec![c])
-    })
-    .unwrap();
-    let torque: Vec<f64> = (0..p.steps).map(|k| sol.forces[k * n + theta]).collect();
-    let truth: Vec<f64> = (0..p.steps).map(|k| exact.forces[k * n + theta]).collect();
-    let err: Vec<f64> = torque.iter().zip(&truth).map(|(a, b)| a - b).collect();
-    let peak = truth.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let rmse = rms(&err);
-    eprintln!(
-        "four-bar inverse: torque RMSE {rmse:.3e} N·m (peak {peak:.2} N·m), tracking {:.2e} rad, |Φ| {:.1e}, {} iterations, {:?}",
+    for coords in BOTH {
+        let sol = inverse::solve(model.clone(), &p, &options(coords)).unwrap();
+        let n = model.n();
+        let exact = inverse::classical(&model, &[theta], &sol.trajectory.t, |t| {
+            let (a, b, c) = crank(t);
+            (vec![a], vec![b], vec![c])
+        })
+        .unwrap();
+        let torque: Vec<f64> = (0..p.steps).map(|k| sol.forces[k * n + theta]).collect();
+        let truth: Vec<f64> = (0..p.steps).map(|k| exact.forces[k * n + theta]).collect();
+        let err: Vec<f64> = torque.iter().zip(&truth).map(|(a, b)| a - b).collect();
+        let peak = truth.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let rmse = rms(&err);
+        eprintln!(
+        "four-bar inverse {coords:?}: torque RMSE {rmse:.3e} N·m (peak {peak:.2} N·m), tracking {:.2e} rad, |Φ| {:.1e}, {} iterations, {:?}",
         sol.summary.worst_tracking, sol.summary.worst_phi, sol.summary.report.iterations, sol.summary.wall_time
     );
-    assert!(peak > 30.0, "peak torque {peak}");
-    assert!(rmse <= 5e-3, "torque RMSE {rmse:.3e} N·m");
-    assert!(sol.summary.worst_tracking <= 1e-6);
-    assert!(sol.summary.worst_phi <= 1e-9);
-    // Nothing acts on the other coordinates.
-    for k in 0..p.steps {
-        for i in (0..n).filter(|&i| i != theta) {
-            assert_eq!(sol.forces[k * n + i], 0.0);
+        assert!(peak > 30.0, "peak torque {peak}");
+        assert!(rmse <= 5e-3, "torque RMSE {rmse:.3e} N·m");
+        assert!(sol.summary.worst_tracking <= 1e-6);
+        assert!(sol.summary.worst_phi <= 1e-9);
+        // Nothing acts on the other coordinates.
+        for k in 0..p.steps {
+            for i in (0..n).filter(|&i| i != theta) {
+                assert_eq!(sol.forces[k * n + i], 0.0);
+            }
         }
     }
 }
@@ -125,27 +137,29 @@ fn double_pendulum_joint_forces_match_the_closed_form() {
         rows,
     };
     let p = Prescription::from_table(&model, &tab, "test").unwrap();
-    let sol = inverse::solve(model.clone(), &p, &InverseOptions::default()).unwrap();
-    let n = model.n();
-    let mut err = [Vec::new(), Vec::new()];
-    let mut peak = [0.0f64; 2];
-    for k in 0..rows {
-        let [a, b] = arm(sol.trajectory.t[k]);
-        let exact = double_pendulum_forces(a, b);
-        for j in 0..2 {
-            err[j].push(sol.forces[k * n + idx[j]] - exact[j]);
-            peak[j] = peak[j].max(exact[j].abs());
+    for coords in BOTH {
+        let sol = inverse::solve(model.clone(), &p, &options(coords)).unwrap();
+        let n = model.n();
+        let mut err = [Vec::new(), Vec::new()];
+        let mut peak = [0.0f64; 2];
+        for k in 0..rows {
+            let [a, b] = arm(sol.trajectory.t[k]);
+            let exact = double_pendulum_forces(a, b);
+            for j in 0..2 {
+                err[j].push(sol.forces[k * n + idx[j]] - exact[j]);
+                peak[j] = peak[j].max(exact[j].abs());
+            }
         }
+        for j in 0..2 {
+            let rel = rms(&err[j]) / peak[j];
+            eprintln!(
+                "double pendulum {coords:?} joint {j}: RMSE {:.3e} of peak {:.2}",
+                rel, peak[j]
+            );
+            assert!(rel <= 1e-4, "{coords:?} joint {j}: RMSE/peak {rel:.3e}");
+        }
+        assert!(sol.summary.worst_tracking <= 1e-9);
     }
-    for j in 0..2 {
-        let rel = rms(&err[j]) / peak[j];
-        eprintln!(
-            "double pendulum joint {j}: RMSE {:.3e} of peak {:.2}",
-            rel, peak[j]
-        );
-        assert!(rel <= 1e-4, "joint {j}: RMSE/peak {rel:.3e}");
-    }
-    assert!(sol.summary.worst_tracking <= 1e-9);
 }
 
 /// The robot's pick-and-place cycle (also in `scenes/trajectories/pick-and-place.csv`):
@@ -192,28 +206,36 @@ fn robot_motor_torques_match_the_classical_solution() {
         rows,
     };
     let p = Prescription::from_table(&model, &tab, "test").unwrap();
-    let sol = inverse::solve(model.clone(), &p, &InverseOptions::default()).unwrap();
-    let exact = inverse::classical(&model, &idx, &sol.trajectory.t, |t| {
-        let [a, b] = cycle(t, m0);
-        (vec![a[0], b[0]], vec![a[1], b[1]], vec![a[2], b[2]])
-    })
-    .unwrap();
-    let n = model.n();
-    for (j, &i) in idx.iter().enumerate() {
-        let err: Vec<f64> = (0..rows)
-            .map(|k| sol.forces[k * n + i] - exact.forces[k * n + i])
-            .collect();
-        let peak = (0..rows).fold(0.0f64, |m, k| m.max(exact.forces[k * n + i].abs()));
-        let rel = rms(&err) / peak;
-        eprintln!(
-            "robot motor {}: torque RMSE {:.3e} of peak {peak:.2} N·m ({} iterations, {:?}, |Φ| {:.1e})",
+    for coords in BOTH {
+        let sol = inverse::solve(model.clone(), &p, &options(coords)).unwrap();
+        let exact = inverse::classical(&model, &idx, &sol.trajectory.t, |t| {
+            let [a, b] = cycle(t, m0);
+            (vec![a[0], b[0]], vec![a[1], b[1]], vec![a[2], b[2]])
+        })
+        .unwrap();
+        let n = model.n();
+        for (j, &i) in idx.iter().enumerate() {
+            let err: Vec<f64> = (0..rows)
+                .map(|k| sol.forces[k * n + i] - exact.forces[k * n + i])
+                .collect();
+            let peak = (0..rows).fold(0.0f64, |m, k| m.max(exact.forces[k * n + i].abs()));
+            let rel = rms(&err) / peak;
+            eprintln!(
+            "robot {coords:?} motor {}: Q[100] {} vs {}; torque RMSE {:.3e} of peak {peak:.2} N·m ({} iterations, {:?}, |Φ| {:.1e})",
             j + 1,
+            sol.forces[100 * n + i],
+            exact.forces[100 * n + i],
             rel,
             sol.summary.report.iterations,
             sol.summary.wall_time,
             sol.summary.worst_phi
         );
-        assert!(rel <= 1e-3, "motor {}: RMSE/peak {rel:.3e}", j + 1);
+            assert!(
+                rel <= 1e-3,
+                "{coords:?} motor {}: RMSE/peak {rel:.3e}",
+                j + 1
+            );
+        }
+        assert!(sol.summary.worst_phi <= 1e-9);
     }
-    assert!(sol.summary.worst_phi <= 1e-9);
 }
