@@ -175,3 +175,32 @@ fn a_prescription_out_of_reach_names_the_sample() {
         "fails at sample {sample}: {line}"
     );
 }
+
+#[test]
+fn independent_coordinates_need_the_prescribed_ones_to_be_independent() {
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        "scenes/trajectories/fourbar-theta.csv",
+        "--coords",
+        "ic",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = format!(
+        "t,P1.y\n{}",
+        rows(|k| format!("{},{}", k as f64 * 0.01, 0.001 * k as f64), 10)
+    );
+    let path = temp("ic.csv", &text);
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        path.to_str().unwrap(),
+        "--coords",
+        "ic",
+    ]);
+    std::fs::remove_file(&path).ok();
+    let line = one_error_line(&out, 2);
+    assert!(line.contains("independent ones (theta)"), "{line}");
+}
