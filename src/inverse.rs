@@ -130,9 +130,22 @@ impl Prescription {
 /// 1.6e-4, σ = 1 to 1e-2.
 const SMOOTHING: f64 = 1e4;
 
+/// How the batch solve is started.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Start {
+    /// The classical solution along the samples (position, velocity, acceleration
+    /// problems, then the augmented system for Q): the default.
+    Kinematic,
+    /// The paper's four stages from the scene's initial configuration at every
+    /// step: positions (priors, f_pc, f_eq); then velocities, accelerations and the
+    /// integrators; then f_vc; then Q and f_idyn (the final solve).
+    Staged,
+}
+
 /// Options of an inverse-dynamics solve.
 #[derive(Debug, Clone, PartialEq)]
 pub struct InverseOptions {
+    pub start: Start,
     /// DC, or IC with z the prescribed coordinates (they must be the scene's
     /// `independent` set).
     pub coordinates: Coordinates,
@@ -148,6 +161,7 @@ impl Default for InverseOptions {
         // f_dyn (the forward defaults) that information sinks under the dynamics'
         // round-off on the robot, and the banded factorization loses definiteness.
         InverseOptions {
+            start: Start::Kinematic,
             coordinates: Coordinates::Dependent,
             noise: NoiseModels {
                 dynamics: 1.0,
@@ -331,7 +345,10 @@ pub fn solve(
         }
     };
     let s = graph.layout.size();
-    let start_blocks = kinematic_start(&model, prescription, &d1, &d2)?;
+    let start_blocks = match options.start {
+        Start::Kinematic => kinematic_start(&model, prescription, &d1, &d2)?,
+        Start::Staged => staged_start(&model, prescription, &d1, &d2, options)?,
+    };
     let mut values = Vec::with_capacity(steps * s);
     for k in 0..steps {
         let b = &start_blocks[k * 4 * n..(k + 1) * 4 * n];
@@ -423,6 +440,87 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
         out.extend_from_slice(dq.as_slice());
         out.extend_from_slice(ddq.as_slice());
         out.extend_from_slice(force.as_slice());
+    }
+    Ok(out)
+}
+
+/// The paper's stages 1–3 (see [`Start::Staged`]), each a batch solve started from
+/// the one before; Q starts at 0. Returns steps × [q, q̇, q̈, Q] like
+/// [`kinematic_start`].
+fn staged_start(
+    model: &Arc<Model>,
+    p: &Prescription,
+    d1: &[f64],
+    d2: &[f64],
+    options: &InverseOptions,
+) -> Result<Vec<f64>> {
+    let n = model.n();
+    let (steps, dt, idx) = (p.steps, p.dt, &p.indices);
+    let nm = options.noise;
+    let table = Arc::new(p.values.clone());
+    let prescribed = || -> Box<dyn crate::graph::Factor> {
+        Box::new(PrescribedMotion::new(idx.clone(), table.clone(), p.t0, dt, Noise::Hard))
+    };
+    let stage_failed = |stage: usize, r: SolveReport| {
+        Error::Singular(format!(
+            "the staged start did not converge in stage {stage}: {}, cost {:.3e} after {} iterations",
+            r.termination, r.cost, r.iterations
+        ))
+    };
+    // Stage 1: positions only, the constraints soft (σ = 1e-6) so that
+    // Levenberg-Marquardt can damp the long way from the scene's configuration (a
+    // hard constraint is solved by an undamped Newton step, which diverges here).
+    let g1 = ChainGraph {
+        layout: Layout::new(&[(VarKind::Q, n)]),
+        dt,
+        t0: p.t0,
+        step_factors: vec![
+            Box::new(PositionConstraints::new(model.clone(), Noise::Isotropic(1e-6))),
+            prescribed(),
+            Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
+        ],
+        initial_factors: vec![],
+    };
+    let mut q: Vec<f64> = (0..steps).flat_map(|_| model.initial.q.iter().copied()).collect();
+    let r = smoother::batch(&g1, &mut q, steps, options.settings)?;
+    if r.termination != crate::solver::Termination::Converged {
+        return Err(stage_failed(1, r));
+    }
+    // Stages 2 and 3: velocities and accelerations, then their constraints.
+    let mut x = vec![0.0; steps * 3 * n];
+    for k in 0..steps {
+        x[k * 3 * n..k * 3 * n + n].copy_from_slice(&q[k * n..(k + 1) * n]);
+    }
+    for stage in [2, 3] {
+        let mut factors: Vec<Box<dyn crate::graph::Factor>> = vec![
+            Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
+            prescribed(),
+            Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, n, dt, Noise::Isotropic(nm.integrator_position))),
+            Box::new(Trapezoidal::new(VarKind::Dq, VarKind::Ddq, n, dt, Noise::Isotropic(nm.integrator_velocity))),
+            Box::new(Equality::new(VarKind::Ddq, n, Noise::Isotropic(SMOOTHING))),
+        ];
+        if stage == 3 {
+            factors.push(Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)));
+        }
+        let g = ChainGraph {
+            layout: Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]),
+            dt,
+            t0: p.t0,
+            step_factors: factors,
+            initial_factors: vec![
+                Box::new(ComponentPrior::new(VarKind::Dq, idx.clone(), d1.to_vec(), Noise::Hard)),
+                Box::new(ComponentPrior::new(VarKind::Ddq, idx.clone(), d2.to_vec(), Noise::Hard)),
+            ],
+        };
+        let r = smoother::batch(&g, &mut x, steps, options.settings)?;
+        if r.termination != crate::solver::Termination::Converged {
+            return Err(stage_failed(stage, r));
+        }
+    }
+    let mut out = Vec::with_capacity(steps * 4 * n);
+    for k in 0..steps {
+        out.extend_from_slice(&x[k * 3 * n..(k + 1) * 3 * n]);
+        out.extend(std::iter::repeat_n(0.0, n));
     }
     Ok(out)
 }

@@ -82,11 +82,21 @@ enum Command {
         /// Linear solves allowed.
         #[arg(long = "max-iterations", value_name = "K", default_value_t = 50)]
         max_iterations: usize,
+        /// How the batch solve starts: the classical kinematic solution, or the
+        /// paper's four stages from the scene's configuration.
+        #[arg(long, value_enum, default_value_t = StartArg::Kinematic)]
+        start: StartArg,
         /// Output CSV (trajectory plus `Q:<c>` columns); the summary then goes to
         /// standard output.
         #[arg(long, value_name = "FILE.csv")]
         out: Option<PathBuf>,
     },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum StartArg {
+    Kinematic,
+    Staged,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -197,13 +207,18 @@ fn run(cli: Cli) -> Result<(), Failure> {
             trajectory,
             coords,
             max_iterations,
+            start,
             out,
         } => {
             let (_, model) = load(&scene)?;
             if max_iterations == 0 {
                 return Err(Failure::Input("--max-iterations must be at least 1".into()));
             }
-            inverse(model, &trajectory, coords, max_iterations, out.as_deref())
+            let start = match start {
+                StartArg::Kinematic => mbfg::inverse::Start::Kinematic,
+                StartArg::Staged => mbfg::inverse::Start::Staged,
+            };
+            inverse(model, &trajectory, coords, max_iterations, start, out.as_deref())
         }
     }
 }
@@ -214,6 +229,7 @@ fn inverse(
     trajectory: &Path,
     coords: InverseCoords,
     max_iterations: usize,
+    start: mbfg::inverse::Start,
     out: Option<&Path>,
 ) -> Result<(), Failure> {
     let table = mbfg::io::read_table(trajectory).map_err(plain)?;
@@ -228,6 +244,7 @@ fn inverse(
     };
     let mut options = mbfg::inverse::InverseOptions::default();
     options.settings.max_iterations = max_iterations;
+    options.start = start;
     options.coordinates = match coords {
         InverseCoords::Dc => Coordinates::Dependent,
         InverseCoords::Ic => Coordinates::Independent,
