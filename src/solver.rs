@@ -916,7 +916,9 @@ impl WindowSolver {
             let yw: f64 = yi.iter().zip(&w[..d0]).map(|(a, b)| a * b).sum();
             eta[i] = g01[s + i] - yw;
         }
-        let constant = cost - 0.5 * w[..d0].iter().map(|v| v * v).sum::<f64>();
+        // ≥ 0 in exact arithmetic (the least value of a sum of squares); round-off
+        // near singular configurations can push it below.
+        let constant = (cost - 0.5 * w[..d0].iter().map(|v| v * v).sum::<f64>()).max(0.0);
         if !information.iter().chain(&eta).all(|v| v.is_finite()) {
             return Err(Error::Singular(format!(
                 "marginalizing step {k0}: non-finite values"
