@@ -459,7 +459,13 @@ fn staged_start(
     let nm = options.noise;
     let table = Arc::new(p.values.clone());
     let prescribed = || -> Box<dyn crate::graph::Factor> {
-        Box::new(PrescribedMotion::new(idx.clone(), table.clone(), p.t0, dt, Noise::Hard))
+        Box::new(PrescribedMotion::new(
+            idx.clone(),
+            table.clone(),
+            p.t0,
+            dt,
+            Noise::Hard,
+        ))
     };
     let stage_failed = |stage: usize, r: SolveReport| {
         Error::Singular(format!(
@@ -475,13 +481,18 @@ fn staged_start(
         dt,
         t0: p.t0,
         step_factors: vec![
-            Box::new(PositionConstraints::new(model.clone(), Noise::Isotropic(1e-6))),
+            Box::new(PositionConstraints::new(
+                model.clone(),
+                Noise::Isotropic(1e-6),
+            )),
             prescribed(),
             Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
         ],
         initial_factors: vec![],
     };
-    let mut q: Vec<f64> = (0..steps).flat_map(|_| model.initial.q.iter().copied()).collect();
+    let mut q: Vec<f64> = (0..steps)
+        .flat_map(|_| model.initial.q.iter().copied())
+        .collect();
     let r = smoother::batch(&g1, &mut q, steps, options.settings)?;
     if r.termination != crate::solver::Termination::Converged {
         return Err(stage_failed(1, r));
@@ -495,12 +506,27 @@ fn staged_start(
         let mut factors: Vec<Box<dyn crate::graph::Factor>> = vec![
             Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
             prescribed(),
-            Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, n, dt, Noise::Isotropic(nm.integrator_position))),
-            Box::new(Trapezoidal::new(VarKind::Dq, VarKind::Ddq, n, dt, Noise::Isotropic(nm.integrator_velocity))),
+            Box::new(Trapezoidal::new(
+                VarKind::Q,
+                VarKind::Dq,
+                n,
+                dt,
+                Noise::Isotropic(nm.integrator_position),
+            )),
+            Box::new(Trapezoidal::new(
+                VarKind::Dq,
+                VarKind::Ddq,
+                n,
+                dt,
+                Noise::Isotropic(nm.integrator_velocity),
+            )),
             Box::new(Equality::new(VarKind::Ddq, n, Noise::Isotropic(SMOOTHING))),
         ];
         if stage == 3 {
-            factors.push(Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)));
+            factors.push(Box::new(VelocityConstraints::new(
+                model.clone(),
+                Noise::Hard,
+            )));
         }
         let g = ChainGraph {
             layout: Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]),
@@ -508,8 +534,18 @@ fn staged_start(
             t0: p.t0,
             step_factors: factors,
             initial_factors: vec![
-                Box::new(ComponentPrior::new(VarKind::Dq, idx.clone(), d1.to_vec(), Noise::Hard)),
-                Box::new(ComponentPrior::new(VarKind::Ddq, idx.clone(), d2.to_vec(), Noise::Hard)),
+                Box::new(ComponentPrior::new(
+                    VarKind::Dq,
+                    idx.clone(),
+                    d1.to_vec(),
+                    Noise::Hard,
+                )),
+                Box::new(ComponentPrior::new(
+                    VarKind::Ddq,
+                    idx.clone(),
+                    d2.to_vec(),
+                    Noise::Hard,
+                )),
             ],
         };
         let r = smoother::batch(&g, &mut x, steps, options.settings)?;

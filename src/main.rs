@@ -218,7 +218,14 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 StartArg::Kinematic => mbfg::inverse::Start::Kinematic,
                 StartArg::Staged => mbfg::inverse::Start::Staged,
             };
-            inverse(model, &trajectory, coords, max_iterations, start, out.as_deref())
+            inverse(
+                model,
+                &trajectory,
+                coords,
+                max_iterations,
+                start,
+                out.as_deref(),
+            )
         }
     }
 }

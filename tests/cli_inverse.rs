@@ -186,7 +186,11 @@ fn independent_coordinates_need_the_prescribed_ones_to_be_independent() {
         "--coords",
         "ic",
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let text = format!(
         "t,P1.y\n{}",
         rows(|k| format!("{},{}", k as f64 * 0.01, 0.001 * k as f64), 10)
