@@ -3,9 +3,12 @@
 //! δ = p + N y. The solver eliminates hard factors this way instead of weighting them,
 //! which keeps the normal equations' condition number that of the soft factors alone.
 //!
-//! Householder QR with column pivoting of Cᵀ (one column per equation) reveals the
-//! rank, so redundant equations (over-constrained mechanisms, or the initial priors
-//! together with the constraints they already satisfy) are dropped, not divided by 0.
+//! Equations with a single nonzero (priors on components, prescribed values, forces
+//! fixed at zero) fix their unknown outright and are taken out first. The rest go
+//! through a Householder QR with column pivoting of Cᵀ restricted to the unknowns left
+//! (one column per equation), which reveals the rank, so redundant equations
+//! (over-constrained mechanisms, or the initial priors together with the constraints
+//! they already satisfy) are dropped, not divided by 0.
 
 /// Scratch and results of one reduction, sized once for `s` unknowns and up to
 /// `max_rows` equations.
@@ -13,16 +16,25 @@
 pub struct NullSpace {
     s: usize,
     max_rows: usize,
-    /// Cᵀ column-major (column j = equation j), overwritten by the QR factors.
+    /// The equations of the last reduction, row-major rows × s (for `solve`).
+    c: Vec<f64>,
+    rows: usize,
+    /// Per unknown: the unit equation fixing it, if any.
+    fixed: Vec<Option<usize>>,
+    /// Unknowns not fixed by unit equations, and the other equations.
+    free: Vec<usize>,
+    others: Vec<usize>,
+    /// Cᵀ[free, others] column-major (stride free.len()), overwritten by the QR.
     a: Vec<f64>,
     rdiag: Vec<f64>,
     beta: Vec<f64>,
     perm: Vec<usize>,
     norms: Vec<f64>,
     w: Vec<f64>,
+    rhs: Vec<f64>,
     /// s × s row-major; columns 0..dim hold an orthonormal null-space basis, the rest 0.
     pub basis: Vec<f64>,
-    /// The least-norm solution of the independent equations.
+    /// The least-norm solution of the independent equations (exact on fixed unknowns).
     pub particular: Vec<f64>,
     /// Dimension of the null space.
     pub dim: usize,
@@ -38,12 +50,18 @@ impl NullSpace {
         let mut ns = NullSpace {
             s,
             max_rows,
+            c: vec![0.0; s * max_rows],
+            rows: 0,
+            fixed: vec![None; s],
+            free: Vec::with_capacity(s),
+            others: Vec::with_capacity(max_rows),
             a: vec![0.0; s * max_rows],
             rdiag: vec![0.0; s.min(max_rows)],
             beta: vec![0.0; s.min(max_rows)],
             perm: vec![0; max_rows],
-            norms: vec![0.0; max_rows],
+            norms: vec![0.0; 2 * max_rows],
             w: vec![0.0; s],
+            rhs: vec![0.0; max_rows],
             basis: vec![0.0; s * s],
             particular: vec![0.0; s],
             dim: s,
@@ -61,112 +79,202 @@ impl NullSpace {
             self.basis[i * s + i] = 1.0;
         }
         self.particular.fill(0.0);
+        self.fixed.fill(None);
+        self.free.clear();
+        self.free.extend(0..s);
+        self.others.clear();
+        self.rows = 0;
         self.dim = s;
         self.rank = 0;
     }
 
     /// Reduces the `rows` equations C δ = b, C row-major rows × s.
     pub fn reduce(&mut self, c: &[f64], b: &[f64], rows: usize) {
-        assert!(
-            rows <= self.max_rows,
-            "more equations than the reduction holds"
-        );
+        assert!(rows <= self.max_rows, "more equations than the reduction holds");
         if rows == 0 {
             self.set_unconstrained();
             return;
         }
         let s = self.s;
-        // Column j of Cᵀ is row j of C: the row-major C is Cᵀ column-major.
-        self.a[..rows * s].copy_from_slice(&c[..rows * s]);
-        let mut largest = 0.0f64;
+        self.rows = rows;
+        self.c[..rows * s].copy_from_slice(&c[..rows * s]);
+        // Unit equations fix their unknown; a second one on the same unknown is
+        // redundant.
+        self.fixed.fill(None);
+        self.others.clear();
         for j in 0..rows {
-            self.perm[j] = j;
-            self.norms[j] = self.a[j * s..(j + 1) * s].iter().map(|v| v * v).sum();
-            largest = largest.max(self.norms[j]);
+            let row = &c[j * s..(j + 1) * s];
+            let mut nonzero = row.iter().enumerate().filter(|(_, v)| **v != 0.0);
+            match (nonzero.next(), nonzero.next()) {
+                (Some((i, _)), None) => {
+                    if self.fixed[i].is_none() {
+                        self.fixed[i] = Some(j);
+                    }
+                }
+                (None, None) => {}
+                _ => self.others.push(j),
+            }
         }
-        let tol = Self::RANK_TOLERANCE * largest.sqrt();
-        let steps = s.min(rows);
-        let mut rank = 0;
-        for k in 0..steps {
-            // Pivot: the remaining column of largest norm below row k (recomputed, not
-            // downdated, so no cancellation creeps in).
-            let mut best = k;
-            let mut best_norm = -1.0;
-            for j in k..rows {
-                let col = &self.a[j * s + k..(j + 1) * s];
-                let nrm: f64 = col.iter().map(|v| v * v).sum();
-                self.norms[j] = nrm;
-                if nrm > best_norm {
-                    best_norm = nrm;
-                    best = j;
-                }
+        self.free.clear();
+        for i in 0..s {
+            if self.fixed[i].is_none() {
+                self.free.push(i);
             }
-            if best_norm.sqrt() <= tol {
-                break;
-            }
-            if best != k {
-                for i in 0..s {
-                    self.a.swap(k * s + i, best * s + i);
-                }
-                self.perm.swap(k, best);
-            }
-            // Householder reflector H = I − β v vᵀ taking column k (rows k..s) to α e_k.
-            let col = &mut self.a[k * s + k..(k + 1) * s];
-            let norm = best_norm.sqrt();
-            let alpha = if col[0] > 0.0 { -norm } else { norm };
-            col[0] -= alpha;
-            let vnorm2: f64 = col.iter().map(|v| v * v).sum();
-            let beta = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
-            self.rdiag[k] = alpha;
-            self.beta[k] = beta;
-            let (left, right) = self.a.split_at_mut((k + 1) * s);
-            let v = &left[k * s + k..(k + 1) * s];
-            for j in 0..rows - k - 1 {
-                let y = &mut right[j * s + k..(j + 1) * s];
-                let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
-                let f = beta * dot;
-                for (yi, vi) in y.iter_mut().zip(v) {
-                    *yi -= f * vi;
-                }
-            }
-            rank += 1;
         }
-        self.rank = rank;
-        self.dim = s - rank;
+        let sf = self.free.len();
+        let m = self.others.len();
+        // A = Cᵀ[free, others]: column k is equation others[k] on the free unknowns.
+        for (k, &j) in self.others.iter().enumerate() {
+            for (a, &i) in self.free.iter().enumerate() {
+                self.a[k * sf + a] = c[j * s + i];
+            }
+        }
+        let rank = householder_pivoted(
+            &mut self.a,
+            sf,
+            m,
+            &mut self.rdiag,
+            &mut self.beta,
+            &mut self.perm,
+            &mut self.norms,
+        );
+        let fixed_count = s - sf;
+        self.rank = fixed_count + rank;
+        self.dim = sf - rank;
         let mut p = std::mem::take(&mut self.particular);
         self.solve(b, &mut p);
         self.particular = p;
-        // Null-space basis: Q e_j for j = rank..s.
+        // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones.
         self.basis.fill(0.0);
-        for j in rank..s {
-            self.w.fill(0.0);
+        for j in rank..sf {
+            self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
-            apply_q(&self.a, &self.beta, s, rank, &mut self.w);
-            for i in 0..s {
-                self.basis[i * s + (j - rank)] = self.w[i];
+            apply_q(&self.a, &self.beta, sf, rank, &mut self.w[..sf]);
+            for (a, &i) in self.free.iter().enumerate() {
+                self.basis[i * s + (j - rank)] = self.w[a];
             }
         }
     }
-}
 
-impl NullSpace {
     /// The least-norm solution x (length s) of the independent equations of the last
     /// [`NullSpace::reduce`] for another right-hand side b: a second-order correction
     /// reuses the factors of C.
     pub fn solve(&mut self, b: &[f64], x: &mut [f64]) {
-        let (s, rank) = (self.s, self.rank);
-        // The selected equations read R₁ᵀ Q₁ᵀ x = b_sel: solve R₁ᵀ w = b_sel, x = Q₁ w.
+        let s = self.s;
+        x.fill(0.0);
+        for i in 0..s {
+            if let Some(j) = self.fixed[i] {
+                x[i] = b[j] / self.c[j * s + i];
+            }
+        }
+        let sf = self.free.len();
+        let rank = self.rank - (s - sf);
+        // The other equations on the free unknowns: b − C[:, fixed] x_fixed.
+        for (k, &j) in self.others.iter().enumerate() {
+            let row = &self.c[j * s..(j + 1) * s];
+            let mut v = b[j];
+            for i in 0..s {
+                if self.fixed[i].is_some() {
+                    v -= row[i] * x[i];
+                }
+            }
+            self.rhs[k] = v;
+        }
+        // The selected equations read R₁ᵀ Q₁ᵀ x_free = b_sel: R₁ᵀ w = b_sel, x = Q₁ w.
         for i in 0..rank {
-            let mut acc = b[self.perm[i]];
+            let mut acc = self.rhs[self.perm[i]];
             for l in 0..i {
-                acc -= self.a[i * s + l] * self.w[l];
+                acc -= self.a[i * sf + l] * self.w[l];
             }
             self.w[i] = acc / self.rdiag[i];
         }
-        x.fill(0.0);
-        x[..rank].copy_from_slice(&self.w[..rank]);
-        apply_q(&self.a, &self.beta, s, rank, x);
+        self.w[rank..sf].fill(0.0);
+        apply_q(&self.a, &self.beta, sf, rank, &mut self.w[..sf]);
+        for (a, &i) in self.free.iter().enumerate() {
+            x[i] = self.w[a];
+        }
     }
+}
+
+/// Householder QR with column pivoting of the column-major `s` × `m` matrix `a`,
+/// stopping at the first pivot below [`NullSpace::RANK_TOLERANCE`] relative to the
+/// largest column; returns the rank. Reflectors stay below the diagonal, R above it
+/// with its diagonal in `rdiag`; `perm[k]` is the original column now at k. Column
+/// norms are downdated, and recomputed when cancellation has eaten most of them.
+fn householder_pivoted(
+    a: &mut [f64],
+    s: usize,
+    m: usize,
+    rdiag: &mut [f64],
+    beta: &mut [f64],
+    perm: &mut [usize],
+    norms: &mut [f64],
+) -> usize {
+    if m == 0 || s == 0 {
+        return 0;
+    }
+    let (partial, reference) = norms.split_at_mut(m);
+    let mut largest = 0.0f64;
+    for j in 0..m {
+        perm[j] = j;
+        let n2: f64 = a[j * s..(j + 1) * s].iter().map(|v| v * v).sum();
+        partial[j] = n2;
+        reference[j] = n2;
+        largest = largest.max(n2);
+    }
+    let tol2 = (NullSpace::RANK_TOLERANCE * largest.sqrt()).powi(2);
+    let mut rank = 0;
+    for k in 0..s.min(m) {
+        let mut best = k;
+        for j in k + 1..m {
+            if partial[j] > partial[best] {
+                best = j;
+            }
+        }
+        if partial[best] <= tol2 {
+            // Confirm with exact norms before declaring the rest dependent.
+            let exact: f64 = a[best * s + k..(best + 1) * s].iter().map(|v| v * v).sum();
+            if exact <= tol2 {
+                break;
+            }
+            partial[best] = exact;
+        }
+        if best != k {
+            for i in 0..s {
+                a.swap(k * s + i, best * s + i);
+            }
+            perm.swap(k, best);
+            partial.swap(k, best);
+            reference.swap(k, best);
+        }
+        let col = &mut a[k * s + k..(k + 1) * s];
+        let norm = col.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let alpha = if col[0] > 0.0 { -norm } else { norm };
+        col[0] -= alpha;
+        let vnorm2: f64 = col.iter().map(|v| v * v).sum();
+        let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
+        rdiag[k] = alpha;
+        beta[k] = b;
+        let (left, right) = a.split_at_mut((k + 1) * s);
+        let v = &left[k * s + k..(k + 1) * s];
+        for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
+            let y = &mut y[k..];
+            let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
+            let f = b * dot;
+            for (yi, vi) in y.iter_mut().zip(v) {
+                *yi -= f * vi;
+            }
+            // Downdate the partial norm of rows k+1.. of this column.
+            let j = k + 1 + jj;
+            partial[j] -= y[0] * y[0];
+            if partial[j] < 1e-4 * reference[j] {
+                partial[j] = y[1..].iter().map(|v| v * v).sum();
+                reference[j] = partial[j];
+            }
+        }
+        rank += 1;
+    }
+    rank
 }
 
 /// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`.
@@ -237,6 +345,36 @@ mod tests {
             ns.solve(b2.as_slice(), &mut x);
             let x = DMatrix::from_column_slice(s, 1, &x);
             assert!((&c * &x - &b2).amax() < 1e-10, "C x = b for another b");
+        }
+    }
+
+    #[test]
+    fn unit_equations_fix_their_unknowns_and_the_rest_reduce_as_before() {
+        let mut seed = 11;
+        let (s, rows) = (9, 7);
+        for trial in 0..5 {
+            // Rows 0..3 unit rows on unknowns 2, 5, 5 (a redundant duplicate), the
+            // rest dense and rank-deficient.
+            let mut c = DMatrix::zeros(rows, s);
+            c[(0, 2)] = 2.0;
+            c[(1, 5)] = -0.5;
+            c[(2, 5)] = 1.5;
+            let dense = low_rank(rows - 3, s, 2 + trial % 2, &mut seed);
+            c.view_mut((3, 0), (rows - 3, s)).copy_from(&dense);
+            let x_true = DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
+            let b = &c * &x_true;
+            let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+            let mut ns = NullSpace::new(s, rows);
+            ns.reduce(&row_major, b.as_slice(), rows);
+            let rank = c.clone().svd(false, false).rank(1e-9);
+            assert_eq!(ns.rank, rank, "trial {trial}");
+            let n = DMatrix::from_row_slice(s, s, &ns.basis).columns(0, ns.dim).into_owned();
+            let p = DMatrix::from_column_slice(s, 1, &ns.particular);
+            assert!((&c * &n).amax() < 1e-12);
+            assert!((n.transpose() * &n - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12);
+            assert!((&c * &p - &b).amax() < 1e-10);
+            assert!((p[2] - x_true[2]).abs() < 1e-14 && (p[5] - x_true[5]).abs() < 1e-14);
+            assert!(n.row(2).amax() == 0.0 && n.row(5).amax() == 0.0);
         }
     }
 
