@@ -345,6 +345,25 @@ pub struct StepFailure {
     pub step: usize,
     pub t: f64,
     pub report: SolveReport,
+    /// σ_r/σ₁ of Φ_q at the step's configuration, r the constraints' rank at the
+    /// start: near 0 where the mechanism approaches a singular configuration.
+    pub constraint_conditioning: f64,
+}
+
+/// σ_r/σ₁ of Φ_q(q), r = the number of independent constraints at the start.
+fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
+    let r = model.active.len();
+    if r == 0 {
+        return 1.0;
+    }
+    let jac = model.jacobian(&nalgebra::DVector::from_column_slice(q));
+    let mut sv: Vec<f64> = jac.singular_values().iter().copied().collect();
+    sv.sort_by(|a, b| b.total_cmp(a));
+    if sv[0] > 0.0 {
+        sv.get(r - 1).copied().unwrap_or(0.0) / sv[0]
+    } else {
+        0.0
+    }
 }
 
 /// What a run reports beside its trajectory.
@@ -387,14 +406,16 @@ pub fn simulate(
                 window,
                 options.settings,
                 |v, k| fg.predict(v, k),
-                |k, report, _| {
+                |k, report, v| {
                     iterations.push(report.iterations);
                     progress(k + 1, steps);
                     if report.termination != Termination::Converged {
+                        let q = &v[k * s..k * s + model.n()];
                         failures.push(StepFailure {
                             step: k,
                             t: fg.graph.time(k),
                             report: *report,
+                            constraint_conditioning: constraint_conditioning(&model, q),
                         });
                         if !options.continue_on_failure
                             || report.termination == Termination::Diverged
@@ -425,10 +446,12 @@ pub fn simulate(
             iterations.push(report.iterations);
             progress(steps, steps);
             if report.termination != Termination::Converged {
+                let q = &values[(steps - 1) * s..(steps - 1) * s + model.n()];
                 failures.push(StepFailure {
                     step: steps - 1,
                     t: fg.graph.time(steps - 1),
                     report,
+                    constraint_conditioning: constraint_conditioning(&model, q),
                 });
             }
         }

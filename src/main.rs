@@ -340,22 +340,39 @@ fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Resul
     for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
         eprintln!(
             "warning: step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations",
-            f.step, f.t, f.report.termination, f.report.cost, f.report.iterations
+            f.step,
+            round_time(f.t),
+            f.report.termination,
+            f.report.cost,
+            f.report.iterations
         );
     }
     if let (true, Some(f)) = (stopped, first_failure) {
+        let singular = if f.constraint_conditioning < 1e-2 {
+            format!(
+                "; Φ_q is close to losing rank there (σ_r/σ₁ = {:.1e}): a singular configuration",
+                f.constraint_conditioning
+            )
+        } else {
+            String::new()
+        };
         let what = if writable {
             format!("the {} steps before it were written", trajectory.len())
         } else {
             "nothing was written".into()
         };
         return Err(Failure::Run(format!(
-            "step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations; {what} \
+            "step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations{singular}; {what} \
              (--continue-on-failure goes on, --max-iterations allows more)",
-            f.step, f.t, f.report.termination, f.report.cost, f.report.iterations
+            f.step, round_time(f.t), f.report.termination, f.report.cost, f.report.iterations
         )));
     }
     Ok(())
+}
+
+/// A time for messages: t₀ + k·Δt carries round-off (1.2690000000000001).
+fn round_time(t: f64) -> f64 {
+    (t * 1e9).round() / 1e9
 }
 
 fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {

@@ -90,7 +90,10 @@ impl NullSpace {
 
     /// Reduces the `rows` equations C δ = b, C row-major rows × s.
     pub fn reduce(&mut self, c: &[f64], b: &[f64], rows: usize) {
-        assert!(rows <= self.max_rows, "more equations than the reduction holds");
+        assert!(
+            rows <= self.max_rows,
+            "more equations than the reduction holds"
+        );
         if rows == 0 {
             self.set_unconstrained();
             return;
@@ -368,7 +371,9 @@ mod tests {
             ns.reduce(&row_major, b.as_slice(), rows);
             let rank = c.clone().svd(false, false).rank(1e-9);
             assert_eq!(ns.rank, rank, "trial {trial}");
-            let n = DMatrix::from_row_slice(s, s, &ns.basis).columns(0, ns.dim).into_owned();
+            let n = DMatrix::from_row_slice(s, s, &ns.basis)
+                .columns(0, ns.dim)
+                .into_owned();
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12);
             assert!((n.transpose() * &n - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12);
