@@ -528,30 +528,46 @@ impl DynamicsKernel {
     }
 }
 
-/// f^d_dyn: e = q̈(q, q̇, t) − q̈_t.
+/// f^d_dyn: e = q̈(q, q̇, t) − q̈_t; with [`Dynamics::inverse`], f^d_idyn:
+/// e = q̈(q, q̇, t; Q_scene + Q) − q̈_t with the actuator forces Q a variable (fourth
+/// key), ∂e/∂Q the first n rows of the augmented system's inverse applied to [I; 0].
 pub struct Dynamics {
     model: Arc<Model>,
-    keys: [Key; 3],
+    keys: Vec<Key>,
     noise: Noise,
+    inverse: bool,
 }
 
 impl Dynamics {
     pub fn new(model: Arc<Model>, noise: Noise) -> Self {
         Dynamics {
             model,
-            keys: [
+            keys: vec![
                 Key::now(VarKind::Q),
                 Key::now(VarKind::Dq),
                 Key::now(VarKind::Ddq),
             ],
             noise,
+            inverse: false,
         }
+    }
+
+    /// f^d_idyn.
+    pub fn inverse(model: Arc<Model>, noise: Noise) -> Self {
+        let mut f = Dynamics::new(model, noise);
+        f.keys.push(Key::now(VarKind::Force));
+        f.inverse = true;
+        f
     }
 }
 
 impl Factor for Dynamics {
     fn name(&self) -> &str {
-        "f^d_dyn"
+        if self.inverse {
+            "f^d_idyn"
+        } else {
+            "f^d_dyn"
+        }
     }
     key_and_noise_accessors!();
     fn dim(&self) -> usize {
@@ -569,29 +585,39 @@ impl Factor for Dynamics {
         ws: &mut Workspace,
     ) -> Result<()> {
         let n = self.model.n();
+        let force = if self.inverse { Some(x[3]) } else { None };
         match jac {
             Some(j) => {
                 let (jq, rest) = j.split_at_mut(1);
-                let (jv, ja) = rest.split_at_mut(1);
+                let (jv, rest) = rest.split_at_mut(1);
+                let (ja, jf) = rest.split_at_mut(1);
                 DynamicsKernel::evaluate(
                     &self.model,
                     x[0],
                     x[1],
                     t,
-                    None,
+                    force,
                     r,
                     Some((&mut jq[0], &mut jv[0])),
                     &mut ws.reals,
                     &mut ws.indices,
                 )?;
                 identity(&mut ja[0], n, -1.0);
+                if self.inverse {
+                    DynamicsKernel::force_jacobian(
+                        &self.model,
+                        &mut jf[0],
+                        &mut ws.reals,
+                        &ws.indices,
+                    );
+                }
             }
             None => DynamicsKernel::evaluate(
                 &self.model,
                 x[0],
                 x[1],
                 t,
-                None,
+                force,
                 r,
                 None,
                 &mut ws.reals,
@@ -1025,87 +1051,6 @@ impl Factor for PrescribedMotion {
             for (row, &i) in self.indices.iter().enumerate() {
                 j[0][row * d + i] = 1.0;
             }
-        }
-        Ok(())
-    }
-}
-
-/// f^d_idyn: e = q̈(q, q̇, t; Q_scene + Q) − q̈_t, with the actuator forces Q a variable.
-/// ∂e/∂Q is the first n rows of the augmented system's inverse applied to [I; 0].
-pub struct InverseDynamics {
-    model: Arc<Model>,
-    keys: [Key; 4],
-    noise: Noise,
-}
-
-impl InverseDynamics {
-    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
-        InverseDynamics {
-            model,
-            keys: [
-                Key::now(VarKind::Q),
-                Key::now(VarKind::Dq),
-                Key::now(VarKind::Ddq),
-                Key::now(VarKind::Force),
-            ],
-            noise,
-        }
-    }
-}
-
-impl Factor for InverseDynamics {
-    fn name(&self) -> &str {
-        "f^d_idyn"
-    }
-    key_and_noise_accessors!();
-    fn dim(&self) -> usize {
-        self.model.n()
-    }
-    fn scratch(&self) -> (usize, usize) {
-        DynamicsKernel::scratch(&self.model)
-    }
-    fn evaluate(
-        &self,
-        t: f64,
-        x: &[&[f64]],
-        r: &mut [f64],
-        jac: Option<&mut [Vec<f64>]>,
-        ws: &mut Workspace,
-    ) -> Result<()> {
-        let n = self.model.n();
-        match jac {
-            Some(j) => {
-                let (jq, rest) = j.split_at_mut(1);
-                let (jv, rest) = rest.split_at_mut(1);
-                let (ja, jf) = rest.split_at_mut(1);
-                DynamicsKernel::evaluate(
-                    &self.model,
-                    x[0],
-                    x[1],
-                    t,
-                    Some(x[3]),
-                    r,
-                    Some((&mut jq[0], &mut jv[0])),
-                    &mut ws.reals,
-                    &mut ws.indices,
-                )?;
-                identity(&mut ja[0], n, -1.0);
-                DynamicsKernel::force_jacobian(&self.model, &mut jf[0], &mut ws.reals, &ws.indices);
-            }
-            None => DynamicsKernel::evaluate(
-                &self.model,
-                x[0],
-                x[1],
-                t,
-                Some(x[3]),
-                r,
-                None,
-                &mut ws.reals,
-                &mut ws.indices,
-            )?,
-        }
-        for i in 0..n {
-            r[i] -= x[2][i];
         }
         Ok(())
     }

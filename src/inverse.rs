@@ -246,7 +246,7 @@ pub fn solve(
                     Noise::Hard,
                 )),
                 force_zero(),
-                Box::new(InverseDynamics::new(
+                Box::new(Dynamics::inverse(
                     model.clone(),
                     Noise::Isotropic(nm.dynamics),
                 )),

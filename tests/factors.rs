@@ -7,8 +7,8 @@
 use mbfg::dynamics;
 use mbfg::factors::{
     ComponentPrior, Dynamics, DynamicsKernel, Equality, Euler, IndependentAcceleration,
-    IndependentDynamics, IndependentPosition, IndependentVelocity, InverseDynamics,
-    PositionConstraints, PrescribedMotion, Prior, Trapezoidal, VelocityConstraints,
+    IndependentDynamics, IndependentPosition, IndependentVelocity, PositionConstraints,
+    PrescribedMotion, Prior, Trapezoidal, VelocityConstraints,
 };
 use mbfg::graph::{Factor, Key, Noise, VarKind, Workspace};
 use mbfg::kinematics;
@@ -442,7 +442,7 @@ fn inverse_dynamics_factors_match_finite_differences() {
         let table: Vec<f64> = rng.values(steps * idx.len(), 1.0);
         let mut list: Vec<(String, Box<dyn Factor>)> = vec![(
             "f^d_idyn".into(),
-            Box::new(InverseDynamics::new(m.clone(), Noise::Isotropic(1e-3))),
+            Box::new(Dynamics::inverse(m.clone(), Noise::Isotropic(1e-3))),
         )];
         if !m.independent.is_empty() {
             list.push((
@@ -484,7 +484,7 @@ fn inverse_dynamics_with_zero_force_is_forward_dynamics() {
         let model = load(name);
         let step = Step::random(&model, &mut rng);
         let forward = Dynamics::new(model.clone(), Noise::Hard);
-        let inverse = InverseDynamics::new(model.clone(), Noise::Hard);
+        let inverse = Dynamics::inverse(model.clone(), Noise::Hard);
         let zero = vec![0.0; model.n()];
         let mut ws = workspace_for(&forward);
         let (mut a, mut b) = (vec![0.0; model.n()], vec![0.0; model.n()]);
