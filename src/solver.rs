@@ -219,7 +219,6 @@ pub struct WindowSolver {
     last: Option<LastSolve>,
     /// Cost of the factors touching the first block, from the last evaluation.
     cost_first: f64,
-    hard_cost_first: f64,
     correction: Vec<f64>,
     ws: Workspace,
     scratch: Vec<f64>,
@@ -301,7 +300,6 @@ impl WindowSolver {
             conditional: false,
             last: None,
             cost_first: 0.0,
-            hard_cost_first: 0.0,
             correction: vec![0.0; s],
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
@@ -391,7 +389,7 @@ impl WindowSolver {
     }
 
     /// Evaluates the hard factors of the listed instances and returns their share of
-    /// the cost. `Linearize` writes each block's equations C δ = −c; `Residuals`
+    /// the cost, and the part of it at the first block. `Linearize` writes each block's equations C δ = −c; `Residuals`
     /// writes only −c (in the same row order) for a correction with the current C.
     fn hard_pass(
         &mut self,
@@ -400,7 +398,7 @@ impl WindowSolver {
         k0: usize,
         blocks: usize,
         mode: HardPass,
-    ) -> Result<f64> {
+    ) -> Result<(f64, f64)> {
         let s = self.s;
         let mut cost = 0.0;
         for b in 0..blocks {
@@ -447,8 +445,7 @@ impl WindowSolver {
             }
             block.rows += dim;
         }
-        self.hard_cost_first = first;
-        Ok(cost)
+        Ok((cost, first))
     }
 
     /// Second-order correction after a step: moves each block of the window back onto
@@ -503,8 +500,7 @@ impl WindowSolver {
         } else {
             HardPass::Cost
         };
-        let mut cost = self.hard_pass(graph, values, k0, blocks, mode)?;
-        let mut cost_first = self.hard_cost_first;
+        let (mut cost, mut cost_first) = self.hard_pass(graph, values, k0, blocks, mode)?;
         if linearize {
             for block in &mut self.hard[..blocks] {
                 block
