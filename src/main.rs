@@ -2,7 +2,9 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 use mbfg::check::CheckReport;
-use mbfg::forward::{self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary};
+use mbfg::forward::{
+    self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary, Trajectory,
+};
 use mbfg::smoother::Mode;
 use mbfg::{Error, Model, Scene};
 use std::io::IsTerminal;
@@ -243,12 +245,7 @@ fn inverse(
     let prescription =
         mbfg::inverse::Prescription::from_table(&model, &table, &trajectory.display().to_string())
             .map_err(plain)?;
-    let file = match out {
-        Some(p) => Some(
-            std::fs::File::create(p).map_err(|e| format!("cannot write {}: {e}", p.display()))?,
-        ),
-        None => None,
-    };
+    let mut output = Output::open(out)?;
     let mut options = mbfg::inverse::InverseOptions::default();
     options.settings.max_iterations = max_iterations;
     options.start = start;
@@ -261,17 +258,7 @@ fn inverse(
         Error::InvalidArgument(m) => Failure::Input(m),
         other => Failure::Run(plain(other)),
     })?;
-    let written = match file {
-        Some(f) => mbfg::io::write_trajectory(
-            std::io::BufWriter::new(f),
-            &sol.trajectory,
-            Some(&sol.forces),
-        ),
-        None => {
-            mbfg::io::write_trajectory(std::io::stdout().lock(), &sol.trajectory, Some(&sol.forces))
-        }
-    };
-    written.map_err(|e| Failure::Run(plain(e)))?;
+    output.write(&sol.trajectory, Some(&sol.forces))?;
     let s = &sol.summary;
     let line = format!(
         "{} steps (dt = {} s, batch) in {:.3} s; {} LM iterations ({}); worst tracking error {:.2e}; worst |Φ| {:.2e}",
@@ -283,11 +270,7 @@ fn inverse(
         s.worst_tracking,
         s.worst_phi
     );
-    if out.is_some() {
-        println!("{line}");
-    } else {
-        eprintln!("{line}");
-    }
+    output.summary(&line);
     if s.report.termination != mbfg::solver::Termination::Converged {
         return Err(Failure::Run(format!(
             "the inverse solve did not converge: {}, cost {:.3e} after {} iterations (--max-iterations allows more)",
@@ -295,6 +278,46 @@ fn inverse(
         )));
     }
     Ok(())
+}
+
+/// Where a command's CSV goes: the `--out` file (opened before the run, so that an
+/// unwritable path is refused as bad input) or standard output. The summary line goes
+/// to standard output beside a file, to standard error beside CSV on standard output.
+struct Output {
+    file: Option<std::fs::File>,
+    to_file: bool,
+}
+
+impl Output {
+    fn open(out: Option<&Path>) -> Result<Self, Failure> {
+        let file = match out {
+            Some(p) => Some(
+                std::fs::File::create(p)
+                    .map_err(|e| format!("cannot write {}: {e}", p.display()))?,
+            ),
+            None => None,
+        };
+        Ok(Output {
+            to_file: file.is_some(),
+            file,
+        })
+    }
+
+    fn write(&mut self, trajectory: &Trajectory, forces: Option<&[f64]>) -> Result<(), Failure> {
+        let written = match self.file.take() {
+            Some(f) => mbfg::io::write_trajectory(std::io::BufWriter::new(f), trajectory, forces),
+            None => mbfg::io::write_trajectory(std::io::stdout().lock(), trajectory, forces),
+        };
+        written.map_err(|e| Failure::Run(plain(e)))
+    }
+
+    fn summary(&self, line: &str) {
+        if self.to_file {
+            println!("{line}");
+        } else {
+            eprintln!("{line}");
+        }
+    }
 }
 
 /// The message of a library error without the variant's prefix for bad arguments.
@@ -308,12 +331,7 @@ fn plain(e: Error) -> String {
 /// `mbfg simulate`: runs, writes the CSV, prints the summary.
 fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Result<(), Failure> {
     // Open the output first: an unwritable path is bad input, found before the run.
-    let file = match out {
-        Some(p) => Some(
-            std::fs::File::create(p).map_err(|e| format!("cannot write {}: {e}", p.display()))?,
-        ),
-        None => None,
-    };
+    let mut output = Output::open(out)?;
     let mut bar = Progress::new();
     let result = forward::simulate(Arc::new(model), options, &mut |done, total| {
         bar.update(done, total)
@@ -325,18 +343,10 @@ fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Resul
     // A batch that did not converge has no trustworthy step to write.
     let writable = !(stopped && options.mode == Mode::Batch);
     if writable {
-        let written = match file {
-            Some(f) => mbfg::io::write_trajectory(std::io::BufWriter::new(f), &trajectory, None),
-            None => mbfg::io::write_trajectory(std::io::stdout().lock(), &trajectory, None),
-        };
-        written.map_err(|e| Failure::Run(plain(e)))?;
+        output.write(&trajectory, None)?;
     }
     let line = summary_line(options, &summary);
-    if out.is_some() {
-        println!("{line}");
-    } else {
-        eprintln!("{line}");
-    }
+    output.summary(&line);
     for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
         eprintln!(
             "warning: step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations",
