@@ -7,6 +7,7 @@
 
 use mbfg::forward::{simulate, Coordinates, ForwardOptions};
 use mbfg::inverse::{self, InverseOptions, Prescription};
+use mbfg::motions;
 use mbfg::smoother::Mode;
 use mbfg::{reference, Model, Scene};
 use std::fmt::Write as _;
@@ -110,43 +111,9 @@ fn inverse_table(out: &mut String) {
     )
     .unwrap();
     type Motion = fn(f64) -> (Vec<f64>, Vec<f64>, Vec<f64>);
-    let crank: Motion = |t| {
-        (
-            vec![1.2 * (1.0 - (2.0 * t).cos())],
-            vec![2.4 * (2.0 * t).sin()],
-            vec![4.8 * (2.0 * t).cos()],
-        )
-    };
-    let robot: Motion = |t| {
-        let w = 2.0 * std::f64::consts::PI / 5.0;
-        let (s, c) = ((w * t).sin(), (w * t).cos());
-        let u = [(1.0 - c) / 2.0, w * s / 2.0, w * w * c / 2.0];
-        let v = [
-            s * u[0],
-            w * c * u[0] + s * u[1],
-            -w * w * s * u[0] + 2.0 * w * c * u[1] + s * u[2],
-        ];
-        let m = [-0.75 * std::f64::consts::PI, -0.25 * std::f64::consts::PI];
-        (
-            vec![
-                m[0] + 0.3 * u[0] + 0.2 * v[0],
-                m[1] - 0.3 * u[0] + 0.2 * v[0],
-            ],
-            vec![0.3 * u[1] + 0.2 * v[1], -0.3 * u[1] + 0.2 * v[1]],
-            vec![0.3 * u[2] + 0.2 * v[2], -0.3 * u[2] + 0.2 * v[2]],
-        )
-    };
-    let pendulum: Motion = |t| {
-        let f = |a: f64, w: f64| {
-            (
-                -a * (1.0 - (w * t).cos()),
-                -a * w * (w * t).sin(),
-                -a * w * w * (w * t).cos(),
-            )
-        };
-        let (a, b) = (f(0.8, 1.5), f(1.1, 2.3));
-        (vec![a.0, b.0], vec![a.1, b.1], vec![a.2, b.2])
-    };
+    let crank: Motion = |t| motions::split([motions::fourbar_crank(t)]);
+    let robot: Motion = |t| motions::split(motions::robot_cycle(t));
+    let pendulum: Motion = |t| motions::split(motions::double_pendulum(t));
     for (name, scene, file, motion) in [
         (
             "four-bar crank",

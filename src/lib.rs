@@ -23,6 +23,7 @@ pub mod io;
 pub mod kinematics;
 pub mod linalg;
 pub mod model;
+pub mod motions;
 pub mod reference;
 pub mod scene;
 pub mod smoother;

@@ -4,6 +4,7 @@
 use mbfg::forward::Coordinates;
 use mbfg::inverse::{self, InverseOptions, Prescription};
 use mbfg::io::Table;
+use mbfg::motions;
 use mbfg::{Model, Scene};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -13,15 +14,6 @@ fn load(name: &str) -> Arc<Model> {
         .join("scenes")
         .join(name);
     Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap())
-}
-
-/// θ(t) = 1.2(1 − cos 2t) and its derivatives.
-fn crank(t: f64) -> (f64, f64, f64) {
-    (
-        1.2 * (1.0 - (2.0 * t).cos()),
-        2.4 * (2.0 * t).sin(),
-        4.8 * (2.0 * t).cos(),
-    )
 }
 
 fn table(name: &str, dt: f64, t_end: f64, f: impl Fn(f64) -> f64) -> Table {
@@ -56,13 +48,13 @@ fn fourbar_crank_torque_matches_the_classical_solution() {
     let model = load("fourbar-theta.yaml");
     let theta = model.names.iter().position(|c| c == "theta").unwrap();
     let (dt, t_end) = (5e-3, 10.0);
-    let tab = table("theta", dt, t_end, |t| crank(t).0);
+    let tab = table("theta", dt, t_end, |t| motions::fourbar_crank(t)[0]);
     let p = Prescription::from_table(&model, &tab, "test").unwrap();
     for coords in BOTH {
         let sol = inverse::solve(model.clone(), &p, &options(coords)).unwrap();
         let n = model.n();
         let exact = inverse::classical(&model, &[theta], &sol.trajectory.t, |t| {
-            let (a, b, c) = crank(t);
+            let [a, b, c] = motions::fourbar_crank(t);
             (vec![a], vec![b], vec![c])
         })
         .unwrap();
@@ -104,18 +96,6 @@ fn double_pendulum_forces(phi: [f64; 3], phi2: [f64; 3]) -> [f64; 2] {
     [q1, q2]
 }
 
-/// φ₁ = −0.8(1 − cos 1.5t), φ₂ = −1.1(1 − cos 2.3t): from rest, horizontal.
-fn arm(t: f64) -> [[f64; 3]; 2] {
-    let f = |a: f64, w: f64| {
-        [
-            -a * (1.0 - (w * t).cos()),
-            -a * w * (w * t).sin(),
-            -a * w * w * (w * t).cos(),
-        ]
-    };
-    [f(0.8, 1.5), f(1.1, 2.3)]
-}
-
 #[test]
 fn double_pendulum_joint_forces_match_the_closed_form() {
     let model = load("double-pendulum.yaml");
@@ -128,7 +108,7 @@ fn double_pendulum_joint_forces_match_the_closed_form() {
     let mut values = Vec::new();
     for k in 0..rows {
         let t = k as f64 * dt;
-        let [a, b] = arm(t);
+        let [a, b] = motions::double_pendulum(t);
         values.extend([t, a[0], b[0]]);
     }
     let tab = Table {
@@ -143,7 +123,7 @@ fn double_pendulum_joint_forces_match_the_closed_form() {
         let mut err = [Vec::new(), Vec::new()];
         let mut peak = [0.0f64; 2];
         for k in 0..rows {
-            let [a, b] = arm(sol.trajectory.t[k]);
+            let [a, b] = motions::double_pendulum(sol.trajectory.t[k]);
             let exact = double_pendulum_forces(a, b);
             for j in 0..2 {
                 err[j].push(sol.forces[k * n + idx[j]] - exact[j]);
@@ -162,28 +142,6 @@ fn double_pendulum_joint_forces_match_the_closed_form() {
     }
 }
 
-/// The robot's pick-and-place cycle (also in `scenes/trajectories/pick-and-place.csv`):
-/// with τ = 2πt/5 and c = (1 − cos τ)/2, motor1 = m₁ + 0.3c + 0.2c·sin τ,
-/// motor2 = m₂ − 0.3c + 0.2c·sin τ, from rest at the scene's configuration.
-fn cycle(t: f64, m0: [f64; 2]) -> [[f64; 3]; 2] {
-    let w = 2.0 * std::f64::consts::PI / 5.0;
-    let (s, c) = ((w * t).sin(), (w * t).cos());
-    let u = [(1.0 - c) / 2.0, w * s / 2.0, w * w * c / 2.0];
-    let v = [
-        s * u[0],
-        w * c * u[0] + s * u[1],
-        -w * w * s * u[0] + 2.0 * w * c * u[1] + s * u[2],
-    ];
-    let f = |m: f64, sign: f64| {
-        [
-            m + sign * 0.3 * u[0] + 0.2 * v[0],
-            sign * 0.3 * u[1] + 0.2 * v[1],
-            sign * 0.3 * u[2] + 0.2 * v[2],
-        ]
-    };
-    [f(m0[0], 1.0), f(m0[1], -1.0)]
-}
-
 #[test]
 fn robot_motor_torques_match_the_classical_solution() {
     let model = load("pick-and-place.yaml");
@@ -191,13 +149,17 @@ fn robot_motor_torques_match_the_classical_solution() {
         .iter()
         .map(|c| model.names.iter().position(|n| n == c).unwrap())
         .collect();
-    let m0 = [model.initial.q[idx[0]], model.initial.q[idx[1]]];
+    // The cycle starts at the scene's configuration.
+    let start = motions::robot_cycle(0.0);
+    for (c, &i) in idx.iter().enumerate() {
+        assert!((start[c][0] - model.initial.q[i]).abs() < 1e-12);
+    }
     let (dt, t_end): (f64, f64) = (5e-3, 5.0);
     let rows = (t_end / dt).round() as usize + 1;
     let mut values = Vec::new();
     for k in 0..rows {
         let t = k as f64 * dt;
-        let [a, b] = cycle(t, m0);
+        let [a, b] = motions::robot_cycle(t);
         values.extend([t, a[0], b[0]]);
     }
     let tab = Table {
@@ -209,7 +171,7 @@ fn robot_motor_torques_match_the_classical_solution() {
     for coords in BOTH {
         let sol = inverse::solve(model.clone(), &p, &options(coords)).unwrap();
         let exact = inverse::classical(&model, &idx, &sol.trajectory.t, |t| {
-            let [a, b] = cycle(t, m0);
+            let [a, b] = motions::robot_cycle(t);
             (vec![a[0], b[0]], vec![a[1], b[1]], vec![a[2], b[2]])
         })
         .unwrap();
