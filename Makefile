@@ -4,7 +4,7 @@ CARGO ?= cargo
 MBFG := target/release/mbfg
 SCENES := $(sort $(wildcard scenes/*.yaml))
 
-.PHONY: all build report test bench fmt lint clean
+.PHONY: all build report test bench fmt lint clean venv python
 
 all: build
 
@@ -19,10 +19,11 @@ report: build
 	@echo "wrote reports/check.txt"
 	$(CARGO) run --release --example report
 
-test:
+test: python
 	$(CARGO) test --release
 	$(CARGO) build --release
 	@set -e; for s in $(SCENES); do $(MBFG) check $$s > /dev/null; done; echo "mbfg check: $(words $(SCENES)) scenes passed, 0 failed"
+	.venv/bin/python -m pytest harness/tests -q
 
 bench:
 	$(CARGO) bench
@@ -45,3 +46,7 @@ clean:
 	touch $@
 
 venv: .venv/.installed
+
+# The mbfg Python module (PyO3), built in release mode into .venv.
+python: .venv/.installed
+	VIRTUAL_ENV=$(CURDIR)/.venv .venv/bin/maturin develop --release --quiet

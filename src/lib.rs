@@ -24,6 +24,8 @@ pub mod kinematics;
 pub mod linalg;
 pub mod model;
 pub mod motions;
+#[cfg(feature = "python")]
+mod python;
 pub mod reference;
 pub mod scene;
 pub mod smoother;

@@ -1,0 +1,1 @@
+"""The Python side of mbfg: reference generators, comparisons and reports."""
