@@ -4,20 +4,25 @@ CARGO ?= cargo
 MBFG := target/release/mbfg
 SCENES := $(sort $(wildcard scenes/*.yaml))
 
-.PHONY: all build report test bench fmt lint clean venv python
+.PHONY: all build report reference test bench fmt lint clean venv python
 
 all: build
 
 build:
 	$(CARGO) build --release
 
-# The scene summaries, the four-bar forward table over window sizes and the inverse
-# problems against their classical solutions (reports/index.md).
-report: build
+# The validation pages (reports/index.md): scene summaries, RMSE over window sizes
+# against the committed references, accuracy against time, hard cases, inverse dynamics.
+report: build python
 	@mkdir -p reports
 	@set -e; for s in $(SCENES); do $(MBFG) check $$s; echo; done > reports/check.txt
 	@echo "wrote reports/check.txt"
-	$(CARGO) run --release --example report
+	$(CARGO) run --release --example inverse_report
+	.venv/bin/python -m harness.report
+
+# The committed ground truth (references/), regenerated from the scenes.
+reference: python
+	.venv/bin/python -m harness.reference
 
 test: python
 	$(CARGO) test --release

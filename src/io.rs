@@ -97,13 +97,19 @@ impl Table {
     }
 }
 
-/// Reads a numeric CSV table; errors name the file, the line and the column.
+/// Reads a numeric CSV table (gzip-compressed when the name ends in `.gz`, as the
+/// committed references are); errors name the file, the line and the column.
 pub fn read_table(path: &Path) -> Result<Table> {
     let file = path.display().to_string();
+    let raw = std::fs::File::open(path).map_err(|e| Error::Data(format!("{file}: {e}")))?;
+    let input: Box<dyn std::io::Read> = if path.extension().is_some_and(|e| e == "gz") {
+        Box::new(flate2::read::GzDecoder::new(raw))
+    } else {
+        Box::new(raw)
+    };
     let mut r = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
-        .from_path(path)
-        .map_err(|e| Error::Data(format!("{file}: {e}")))?;
+        .from_reader(input);
     let columns: Vec<String> = r
         .headers()
         .map_err(|e| Error::Data(format!("{file}: {e}")))?

@@ -1,0 +1,64 @@
+"""Writes tests/data/rmse-bounds.csv, the RMSE regression thresholds `cargo test`
+checks against the committed references: every row is measured now and its bound is
+the measured value with a 5 % margin, rounded up. Run after an improvement to lock
+it in (then review the diff: a bound should only ever go down).
+
+    python -m harness.regression
+"""
+from __future__ import annotations
+
+import math
+import pathlib
+import sys
+
+import mbfg
+from harness import report
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+OUT = ROOT / "tests" / "data" / "rmse-bounds.csv"
+MARGIN = 1.05
+WINDOWS = [1, 2, 5, 10, "batch"]
+
+
+def rows():
+    for _, dc_scene, ic_scene, ref in report.FORWARD:
+        truth, _ = report.load_reference(ref)
+        t_end = float(truth.t[-1])
+        for c, scene in [("dc", dc_scene), ("ic", ic_scene)]:
+            if c == "ic" and not mbfg.load(report.scene_path(scene)).independent:
+                continue
+            for w in WINDOWS:
+                yield scene, ref, c, w, 1e-3, t_end
+    # The dt² trend of the paper's four-bar.
+    for dt in (5e-3, 2e-4):
+        yield "fourbar", "fourbar", "dc", 1, dt, 5.0
+        yield "fourbar-theta", "fourbar", "ic", 1, dt, 5.0
+
+
+def round_up(x: float) -> float:
+    e = math.floor(math.log10(x)) - 2
+    return math.ceil(x / 10 ** e) * 10 ** e
+
+
+def main() -> int:
+    lines = ["scene,reference,coords,window,dt,t_end,rmse_bound_m"]
+    for scene, ref, c, w, dt, t_end in rows():
+        truth, _ = report.load_reference(ref)
+        model = mbfg.load(report.scene_path(ref))
+        try:
+            r = mbfg.simulate(report.scene_path(scene), coords=c, dt=dt, t_end=t_end,
+                              **report.window_kw(w))
+        except mbfg.SolveError as e:
+            print(f"skipped {scene} {c} N_w={w} dt={dt}: {e}", file=sys.stderr)
+            continue
+        rmse, _ = report.errors(model, r.t, r.q, truth)
+        bound = round_up(rmse * MARGIN)
+        print(f"{scene:<16} {c} N_w={w!s:<5} dt={dt:g}: {rmse:.4e} → bound {bound:.3e}", file=sys.stderr)
+        lines.append(f"{scene},{ref},{c},{w},{dt:g},{t_end:g},{bound:.3e}")
+    OUT.write_text("\n".join(lines) + "\n")
+    print(f"wrote {OUT.relative_to(ROOT)} ({len(lines) - 1} rows)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

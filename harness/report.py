@@ -1,0 +1,225 @@
+"""`make report`: the validation pages in reports/, from the committed references.
+
+    python -m harness.report            # everything (forward tables, accuracy against
+                                        # time, hard cases; the inverse page comes from
+                                        # `cargo run --release --example inverse_report`)
+    python -m harness.report --ci       # the four-bar table and the fast hard cases,
+                                        # printed (the end of every CI log)
+    python -m harness.report --only forward|timing|hard
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import json
+import os
+import pathlib
+import platform
+import sys
+import time
+
+import numpy as np
+
+import mbfg
+from harness import hard_cases
+from harness import reference as refs
+from harness import trajectory as tj
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+REPORTS = ROOT / "reports"
+WINDOWS = list(range(1, 11)) + ["batch"]
+
+# The paper's Table 3 (RMSE in m, g = 9.8, ADAMS as truth) for N_w = 2…10: DC, IC.
+PAPER = {2: (2.361e-3, 2.3834e-2), 3: (2.356e-3, 1.9645e-2), 4: (2.352e-3, 2.0019e-2),
+         5: (2.348e-3, 1.6647e-2), 6: (2.344e-3, 1.6677e-2), 7: (2.341e-3, 1.6677e-2),
+         8: (2.338e-3, 1.6677e-2), 9: (2.335e-3, 1.7056e-2), 10: (2.332e-3, 1.6677e-2)}
+
+# Forward scenes of the RMSE tables: scene for DC, scene for IC (None: no independent
+# coordinates declared), reference (a scene of references/).
+FORWARD = [
+    ("fourbar", "fourbar", "fourbar-theta", "fourbar"),
+    ("pendulum", "pendulum", "pendulum", "pendulum"),
+    ("double pendulum", "double-pendulum", "double-pendulum", "double-pendulum"),
+    ("spring-damper pendulum", "spring-damper", "spring-damper", "spring-damper"),
+    ("slider-crank", "slider-crank", "slider-crank", "slider-crank"),
+    ("slotted lever", "slotted-lever", "slotted-lever", "slotted-lever"),
+    ("pick-and-place robot (1 s)", "pick-and-place", "pick-and-place", "pick-and-place"),
+]
+
+
+def progress(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def scene_path(name: str) -> pathlib.Path:
+    return ROOT / "scenes" / f"{name}.yaml"
+
+
+def load_reference(name: str) -> tuple[tj.Trajectory, dict]:
+    folder = ROOT / "references" / name
+    return (tj.read(folder / "reference.csv.gz"),
+            json.loads((folder / "provenance.json").read_text()))
+
+
+def errors(model: mbfg.Model, t: np.ndarray, q: np.ndarray, truth: tj.Trajectory):
+    """(RMSE, max) of the point coordinates at the samples both have."""
+    step = truth.t[1] - truth.t[0]
+    k = np.rint(t / step).astype(int)
+    on_grid = (np.abs(k * step - t) < 1e-9) & (k < len(truth.t))
+    cols = refs.point_columns(model)
+    d = q[on_grid][:, cols] - truth.q[k[on_grid]][:, cols]
+    return float(np.sqrt(np.mean(d ** 2))), float(np.max(np.abs(d)))
+
+
+def window_kw(w) -> dict:
+    return {"batch": True} if w == "batch" else {"window": w}
+
+
+# ---------------------------------------------------------------- forward tables
+
+def forward_tables(windows=WINDOWS, scenes=FORWARD) -> tuple[str, list[dict]]:
+    rows, md = [], []
+    for title, dc_scene, ic_scene, ref in scenes:
+        truth, prov = load_reference(ref)
+        t_end = float(truth.t[-1])
+        model = mbfg.load(scene_path(dc_scene))
+        coords = [("dc", dc_scene)] + ([("ic", ic_scene)] if ic_scene and mbfg.load(scene_path(ic_scene)).independent else [])
+        progress(f"forward: {title}")
+        for w in windows:
+            for c, scene in coords:
+                try:
+                    r = mbfg.simulate(scene_path(scene), coords=c, dt=1e-3, t_end=t_end, **window_kw(w))
+                    rmse, mx = errors(model, r.t, r.q, truth)
+                    s = r.summary
+                    rows.append({"scene": ref, "coords": c, "window": w, "dt": 1e-3, "rmse_m": rmse,
+                                 "max_m": mx, "worst_phi": s["worst_phi"],
+                                 "energy_drift_j": s["energy_drift"], "mean_iterations": s["mean_iterations"],
+                                 "wall_time_s": s["wall_time"], "status": "converged"})
+                except mbfg.SolveError as e:
+                    rows.append({"scene": ref, "coords": c, "window": w, "dt": 1e-3, "status": str(e)})
+        md.append(scene_table(title, ref, prov, [r for r in rows if r["scene"] == ref], t_end))
+    return "\n".join(md), rows
+
+
+def fmt(v, spec=".2e"):
+    return "—" if v is None else format(v, spec)
+
+
+def scene_table(title, ref, prov, rows, t_end) -> str:
+    fourbar = ref == "fourbar"
+    cc = prov.get("cross_check", {})
+    lines = [f"## {title}\n",
+             f"{t_end:g} s at dt = 1 ms, trapezoidal, default noise models. Reference: "
+             f"{prov['generator']} ({prov.get('formulation', '')}), cross-checked by "
+             f"{cc.get('generator', '—')} (disagreement max {fmt(cc.get('max_m'))} m).\n"]
+    head = "| N_w | DC RMSE (m) | IC RMSE (m) |" + (" paper DC | paper IC |" if fourbar else "")
+    head += " worst \\|Φ\\| DC / IC | energy drift DC / IC (J) | LM iter. DC / IC | time DC / IC |"
+    lines += [head, "|" + "---|" * (head.count("|") - 1)]
+    for w in WINDOWS:
+        by = {r["coords"]: r for r in rows if r["window"] == w}
+        dc, ic = by.get("dc", {}), by.get("ic", {})
+        def cell(r, key, spec=".3e"):
+            if not r:
+                return "—"
+            if r["status"] != "converged":
+                return "stopped"
+            v = r[key]
+            return "—" if v is None else format(v, spec)
+        line = f"| {w} | {cell(dc, 'rmse_m')} | {cell(ic, 'rmse_m')} |"
+        if fourbar:
+            p = PAPER.get(w)
+            line += f" {fmt(p[0]) if p else '—'} | {fmt(p[1]) if p else '—'} |"
+        line += (f" {cell(dc, 'worst_phi', '.0e')} / {cell(ic, 'worst_phi', '.0e')} |"
+                 f" {cell(dc, 'energy_drift_j', '.1e')} / {cell(ic, 'energy_drift_j', '.1e')} |"
+                 f" {cell(dc, 'mean_iterations', '.2f')} / {cell(ic, 'mean_iterations', '.2f')} |"
+                 f" {ms(dc)} / {ms(ic)} |")
+        lines.append(line)
+    stopped = [r for r in rows if r["status"] != "converged"]
+    for r in stopped[:4]:
+        lines.append(f"\n{r['coords'].upper()}, N_w = {r['window']}: {r['status']}")
+    if fourbar:
+        lines.append("\nTargets: DC ≤ 2.8e-5 m and IC ≤ 2.6e-6 m for every N_w. Paper: Table 3 "
+                     "(ADAMS as truth, g = 9.8; its IC graph is our IC graph with the paper preset).")
+    return "\n".join(lines) + "\n"
+
+
+def ms(r) -> str:
+    if not r or r.get("status") != "converged":
+        return "—"
+    return f"{r['wall_time_s'] * 1e3:.0f} ms"
+
+
+def write_csv(path: pathlib.Path, rows: list[dict]) -> None:
+    keys = sorted({k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k) if k in rows[0] else 99)
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+
+
+# ---------------------------------------------------------------- hard cases
+
+def hard_page(fast: bool) -> tuple[str, list]:
+    progress("hard cases" + (" (fast form)" if fast else ""))
+    outcomes = hard_cases.suite(fast)
+    passed = sum(o.passed for o in outcomes)
+    text = ("# Hard-case stability suite\n\n"
+            f"{passed} of {len(outcomes)} runs pass. Scenes in `scenes/hard/`; criteria and code in "
+            "`harness/hard_cases.py`. A case passes when the run converges at every step, stays on "
+            "the reference branch, keeps |Φ| ≤ 1e-9 and meets its error/energy bound.\n\n"
+            + hard_cases.table(outcomes) + "\n")
+    return text, outcomes
+
+
+# ---------------------------------------------------------------- page
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {datetime.date.today()}"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ci", action="store_true", help="print the four-bar table and the fast hard cases")
+    ap.add_argument("--only", choices=["forward", "timing", "hard"], help="one part")
+    args = ap.parse_args(argv)
+    start = time.perf_counter()
+    if args.ci:
+        text, _ = forward_tables(scenes=FORWARD[:1])
+        print(text)
+        hard, outcomes = hard_page(fast=True)
+        print(hard)
+        return 0
+    REPORTS.mkdir(exist_ok=True)
+    parts = [args.only] if args.only else ["forward", "timing", "hard"]
+    if "forward" in parts:
+        text, rows = forward_tables()
+        (REPORTS / "forward.md").write_text(
+            "# Forward dynamics: RMSE over window sizes, DC and IC\n\n"
+            "RMSE and max error over the x, y of every moving point against the committed "
+            "reference (`references/`); wall times are single runs (medians: `make bench` and "
+            f"[accuracy against time](accuracy-vs-time.md)). Machine: {machine()}.\n\n" + text)
+        write_csv(REPORTS / "forward.csv", rows)
+        progress("wrote reports/forward.md, reports/forward.csv")
+    if "timing" in parts:
+        from harness import timing
+        timing.write(REPORTS, machine())
+    if "hard" in parts:
+        text, outcomes = hard_page(fast=False)
+        (REPORTS / "hard-cases.md").write_text(text)
+        write_csv(REPORTS / "hard-cases.csv", [o.__dict__ for o in outcomes])
+        progress("wrote reports/hard-cases.md, reports/hard-cases.csv")
+    progress(f"report done in {time.perf_counter() - start:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
