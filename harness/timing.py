@@ -1,0 +1,167 @@
+"""Accuracy against wall time, every tool measured in one run on one machine.
+
+For each scene of SCENES: mbfg (DC and IC, a few windows, dt from 10 to 0.1 ms),
+exudyn (generalized-alpha and trapezoidal index-2, h from 1 ms to 10 µs), IDA
+(tolerances 1e-4…1e-12) and Pinocchio where it models the scene. Errors (RMSE and
+max over the moving points' x, y) against the committed reference; wall times are
+medians of REPEATS runs of the whole call. Writes accuracy-vs-time.md, .csv and one
+PNG per scene.
+"""
+from __future__ import annotations
+
+import csv
+import importlib
+import pathlib
+import statistics
+import sys
+import time
+
+import numpy as np
+
+import mbfg
+from harness import report
+from harness import trajectory as tj
+
+REPEATS = 3
+MBFG_DTS = [1e-2, 5e-3, 2e-3, 1e-3, 5e-4, 2e-4, 1e-4]
+LEVELS = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8]
+
+# scene title → DC scene, IC scene, reference, horizon (s)
+SCENES = {
+    "four-bar": ("fourbar", "fourbar-theta", "fourbar", 5.0),
+    "slider-crank": ("slider-crank", "slider-crank", "slider-crank", 5.0),
+}
+
+
+def timed(fn):
+    """(result of the last run, median wall time); a failure ends the repetitions."""
+    times, out = [], None
+    for _ in range(REPEATS):
+        start = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - start)
+    return out, statistics.median(times)
+
+
+def configurations(dc_scene, ic_scene, t_end):
+    """(tool, variant, setting, callable returning (t, q)) for every point of the plot."""
+    dc, ic = report.scene_path(dc_scene), report.scene_path(ic_scene)
+    for coords, scene in [("DC", dc), ("IC", ic)]:
+        for w in (1, 5):
+            for dt in MBFG_DTS:
+                def run(scene=scene, coords=coords, w=w, dt=dt):
+                    r = mbfg.simulate(scene, coords=coords.lower(), dt=dt, t_end=t_end, window=w)
+                    return r.t, r.q
+                yield "mbfg", f"{coords}, N_w = {w}", f"dt = {dt * 1e3:g} ms", run
+    generators = [
+        ("exudyn", "generalized-alpha", "exudyn_ref", "h",
+         [1e-3, 1e-4, 1e-5], {"solver": "generalized_alpha"}),
+        ("exudyn", "trapezoidal index-2", "exudyn_ref", "h",
+         [1e-3, 1e-4, 1e-5], {"solver": "trapezoidal_index2"}),
+        ("IDA", "GGL index-2", "ida", "rtol",
+         [1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12], {"formulation": "ggl"}),
+        ("Pinocchio", "RK4", "pinocchio_ref", "h", [1e-3, 1e-4], {}),
+    ]
+    for tool, variant, module, key, values, extra in generators:
+        gen = importlib.import_module(f"harness.{module}")
+        for v in values:
+            def run(gen=gen, key=key, v=v, extra=extra):
+                traj, _ = gen.generate(dc, t_end, 1e-3, **{key: v}, **extra)
+                return traj.t, traj.q
+            yield tool, variant, f"{key} = {v:g}", run
+
+
+def measure(title, dc_scene, ic_scene, ref, t_end) -> list[dict]:
+    truth, _ = report.load_reference(ref)
+    model = mbfg.load(report.scene_path(ref))
+    rows = []
+    for tool, variant, setting, run in configurations(dc_scene, ic_scene, t_end):
+        row = {"scene": title, "tool": tool, "variant": variant, "setting": setting}
+        try:
+            (t, q), wall = timed(run)
+            rmse, mx = report.errors(model, t, q[:, :model.n], truth)
+            row.update(rmse_m=rmse, max_m=mx, wall_time_s=wall, status="ok")
+        except tj.Unsupported as e:
+            row.update(status=f"refused: {e}")
+        except (mbfg.SolveError, RuntimeError, ValueError) as e:
+            row.update(status=f"failed: {str(e).splitlines()[0][:160]}")
+        report.progress(f"  {title}: {tool} {variant} {setting}: "
+                        + (f"RMSE {row['rmse_m']:.2e} m in {row['wall_time_s'] * 1e3:.0f} ms"
+                           if row["status"] == "ok" else row["status"]))
+        rows.append(row)
+    return rows
+
+
+def fastest_table(rows: list[dict]) -> str:
+    lines = ["| RMSE ≤ | fastest tool (setting) | its time | mbfg's fastest (setting) | mbfg time | mbfg / fastest |",
+             "|---|---|---|---|---|---|"]
+    ok = [r for r in rows if r["status"] == "ok"]
+    for level in LEVELS:
+        reach = [r for r in ok if r["rmse_m"] <= level]
+        if not reach:
+            lines.append(f"| {level:.0e} | nobody | — | — | — | — |")
+            continue
+        best = min(reach, key=lambda r: r["wall_time_s"])
+        ours = [r for r in reach if r["tool"] == "mbfg"]
+        mine = min(ours, key=lambda r: r["wall_time_s"]) if ours else None
+        lines.append(
+            f"| {level:.0e} | {best['tool']} {best['variant']} ({best['setting']}) | "
+            f"{best['wall_time_s'] * 1e3:.0f} ms | "
+            + (f"{mine['variant']} ({mine['setting']}) | {mine['wall_time_s'] * 1e3:.0f} ms | "
+               f"{mine['wall_time_s'] / best['wall_time_s']:.2f} |" if mine else "does not reach it | — | — |"))
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], title: str, path: pathlib.Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    ok = [r for r in rows if r["status"] == "ok"]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharex=True)
+    series = sorted({(r["tool"], r["variant"]) for r in ok})
+    for tool, variant in series:
+        pts = sorted((r for r in ok if (r["tool"], r["variant"]) == (tool, variant)),
+                     key=lambda r: r["wall_time_s"])
+        style = "o-" if tool == "mbfg" else "s--"
+        for ax, key in zip(axes, ["rmse_m", "max_m"]):
+            ax.loglog([p["wall_time_s"] for p in pts], [max(p[key], 1e-16) for p in pts], style,
+                      label=f"{tool} {variant}", markersize=4)
+    for ax, name in zip(axes, ["RMSE (m)", "max error (m)"]):
+        ax.set_xlabel("wall time (s, median of 3)")
+        ax.set_ylabel(name)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"{title}: error against wall time (smaller and further left is better)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write(reports: pathlib.Path, machine: str) -> list[dict]:
+    all_rows, parts = [], []
+    for title, (dc, ic, ref, t_end) in SCENES.items():
+        report.progress(f"accuracy against time: {title}")
+        rows = measure(title, dc, ic, ref, t_end)
+        all_rows += rows
+        png = f"accuracy-vs-time-{ref}.png"
+        plot(rows, title, reports / png)
+        failed = [r for r in rows if r["status"] != "ok"]
+        parts.append(f"## {title} ({t_end:g} s)\n\n![{title}]({png})\n\n" + fastest_table(rows)
+                     + ("\n\nRuns that did not finish or were refused:\n\n"
+                        + "\n".join(f"- {r['tool']} {r['variant']} {r['setting']}: {r['status']}"
+                                    for r in failed) if failed else "") + "\n")
+    page = ("# Accuracy against wall time\n\n"
+            f"All tools measured in one run on one machine ({machine}); wall times are medians of "
+            f"{REPEATS} runs of the whole call (model building included, files not written). Errors "
+            "over the x, y of the moving points against the committed reference, at its 1 ms "
+            "samples. mbfg: trapezoidal, default noise, dt ∈ {10, 5, 2, 1, 0.5, 0.2, 0.1} ms. "
+            "Raw numbers: [accuracy-vs-time.csv](accuracy-vs-time.csv).\n\n" + "\n".join(parts))
+    (reports / "accuracy-vs-time.md").write_text(page)
+    report.write_csv(reports / "accuracy-vs-time.csv", all_rows)
+    report.progress("wrote reports/accuracy-vs-time.md, .csv, .png")
+    return all_rows
+
+
+if __name__ == "__main__":
+    write(report.REPORTS, report.machine())
+    sys.exit(0)
