@@ -1,0 +1,536 @@
+"""Reference trajectories from exudyn: the scene rebuilt as planar rigid bodies.
+
+mbfg integrates natural coordinates (the x, y of points). This generator is a
+genuinely different formulation of the same mechanism: every scene body becomes an
+exudyn `ObjectRigidBody2D` whose node holds its centre of mass and its rotation
+(x, y, ψ); scene points become markers on those bodies, a point shared by two bodies a
+`RevoluteJoint2D`, a fixed point a revolute joint to ground, a slider a
+`PrismaticJoint2D` that keeps only its point-on-line equation. The motion is mapped
+back to the scene's coordinates (points from the bodies that carry them; angles and
+distances from the points, with their rates by exact differentiation) and sampled.
+
+Anything the generator cannot model raises `Unsupported`; nothing is dropped.
+
+    python -m harness.exudyn_ref scenes/fourbar.yaml --t-end 5 --dt 1e-3 --h 1e-5 \
+        --solver generalized_alpha --out fourbar.csv.gz
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+import exudyn as exu
+import exudyn.itemInterface as ei
+import mbfg
+from harness import trajectory as tj
+from harness.trajectory import Unsupported
+
+SOLVERS = {
+    "generalized_alpha": exu.DynamicSolverType.GeneralizedAlpha,
+    "trapezoidal_index2": exu.DynamicSolverType.TrapezoidalIndex2,
+}
+# Inertia given to the rotation of a lone point mass (a rigid body node, so that a
+# slider can hold it): the rotation is coupled to nothing and stays at rest.
+POINT_INERTIA = 1.0
+
+
+# --- second-order jets: value, first and second time derivative -----------------
+# The relative coordinates and their rates follow from the points' positions,
+# velocities and accelerations by the chain rule; jets do it once for all formulas.
+
+@dataclasses.dataclass
+class Jet:
+    v: np.ndarray
+    d: np.ndarray
+    dd: np.ndarray
+
+    def __add__(self, o): return Jet(self.v + o.v, self.d + o.d, self.dd + o.dd)
+    def __sub__(self, o): return Jet(self.v - o.v, self.d - o.d, self.dd - o.dd)
+
+    def __mul__(self, o):
+        return Jet(self.v * o.v, self.d * o.v + self.v * o.d,
+                   self.dd * o.v + 2 * self.d * o.d + self.v * o.dd)
+
+    def __truediv__(self, o):
+        r = Jet(1 / o.v, -o.d / o.v ** 2, 2 * o.d ** 2 / o.v ** 3 - o.dd / o.v ** 2)
+        return self * r
+
+
+def jet_sqrt(a: Jet) -> Jet:
+    s = np.sqrt(a.v)
+    return Jet(s, a.d / (2 * s), a.dd / (2 * s) - a.d ** 2 / (4 * s ** 3))
+
+
+def jet_atan2(y: Jet, x: Jet) -> Jet:
+    """atan2 continued without jumps along the samples (np.unwrap)."""
+    r2 = x.v ** 2 + y.v ** 2
+    num = x.v * y.d - y.v * x.d
+    d = num / r2
+    dd = (x.v * y.dd - y.v * x.dd) / r2 - num * (2 * x.v * x.d + 2 * y.v * y.d) / r2 ** 2
+    return Jet(np.unwrap(np.arctan2(y.v, x.v)), d, dd)
+
+
+# --- the mechanism as rigid bodies ---------------------------------------------------
+
+@dataclasses.dataclass
+class Body:
+    """An exudyn rigid body: a scene body (with the point masses it carries) or a lone
+    point mass. Local positions are in the frame at the centre of mass turned by psi0."""
+    name: str
+    mass: float
+    inertia: float                  # about the centre of mass
+    c0: np.ndarray                  # centre of mass at t = 0
+    psi0: float                     # orientation at t = 0
+    v0: np.ndarray                  # velocity of the centre at t = 0
+    omega0: float
+    points: list[str]
+    node: int = -1
+    obj: int = -1
+
+    def local(self, p: np.ndarray) -> np.ndarray:
+        c, s = math.cos(self.psi0), math.sin(self.psi0)
+        d = p - self.c0
+        return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+
+
+def rotate(psi: float, v: np.ndarray) -> np.ndarray:
+    c, s = math.cos(psi), math.sin(psi)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
+
+
+def cross(a, b) -> float:
+    return a[0] * b[1] - a[1] * b[0]
+
+
+class Mechanism:
+    """The scene model built into an exudyn MainSystem."""
+
+    def __init__(self, model: mbfg.Model):
+        self.model = model
+        self.pos, self.vel = {}, {}
+        for p in model.points:
+            if p["index"] is None:
+                self.pos[p["name"]] = np.array([p["x"], p["y"]])
+                self.vel[p["name"]] = np.zeros(2)
+            else:
+                i = p["index"]
+                self.pos[p["name"]] = np.array(model.initial_q[i:i + 2], dtype=float)
+                self.vel[p["name"]] = np.array(model.initial_dq[i:i + 2], dtype=float)
+        self.fixed = {p["name"] for p in model.points if p["fixed"]}
+        self.coords = {c["name"]: c for c in model.coordinates}
+        self.notes: list[str] = []       # modelling decisions worth recording
+        self.bodies = self._bodies()
+        # The body whose marker stands for a free point (its first body).
+        self.carrier = {}
+        for k, b in enumerate(self.bodies):
+            for p in b.points:
+                if p not in self.fixed:
+                    self.carrier.setdefault(p, k)
+        for p in model.points:
+            if p["name"] not in self.fixed and p["name"] not in self.carrier:
+                raise Unsupported(f"point {p['name']} is free but on no body and carries no mass")
+        self.SC = exu.SystemContainer()
+        self.mbs = self.SC.AddSystem()
+        self._markers: dict = {}
+        self.sensors: list[tuple[int, int, int]] = []
+        self._build()
+
+    # -- bodies --------------------------------------------------------------------
+
+    def _bodies(self) -> list[Body]:
+        model, pos, vel = self.model, self.pos, self.vel
+        masses = {p["name"]: p["mass"] for p in model.points if p["mass"] > 0 and not p["fixed"]}
+        out = []
+        for b in model.bodies:
+            pts = b["points"]
+            if sum(p not in self.fixed for p in pts) == 0:
+                raise Unsupported(f"body {b['name']} has only fixed points")
+            if sum(p in self.fixed for p in pts) > 1:
+                raise Unsupported(f"body {b['name']} has more than one fixed point (it cannot move; "
+                                  "the joints to ground would be redundant)")
+            p0, p1 = pos[pts[0]], pos[pts[1]]
+            e = p1 - p0
+            psi = math.atan2(e[1], e[0])
+            c = p0 + rotate(psi, np.array(b["cog"], dtype=float))
+            omega = cross(e, vel[pts[1]] - vel[pts[0]]) / (e @ e)
+            m, inertia = b["mass"], b["inertia_cog"]
+            # A point mass rides on the first body that carries it: the body's mass,
+            # centre and inertia become those of the pair (exact for a rigid pair).
+            for p in pts:
+                if p in masses:
+                    mp = masses.pop(p)
+                    cn = (m * c + mp * pos[p]) / (m + mp)
+                    inertia += m * np.sum((c - cn) ** 2) + mp * np.sum((pos[p] - cn) ** 2)
+                    m, c = m + mp, cn
+                    self.notes.append(f"point mass of {p} added to body {b['name']}")
+            v = vel[pts[0]] + omega * np.array([-(c - p0)[1], (c - p0)[0]])
+            out.append(Body(b["name"], m, inertia, c, psi, v, omega, list(pts)))
+        # A point mass on no body: a rigid body of its own, centred on the point.
+        for p, mp in masses.items():
+            out.append(Body(f"point {p}", mp, mp * POINT_INERTIA, pos[p].copy(), 0.0,
+                            vel[p].copy(), 0.0, [p]))
+            self.notes.append(f"lone point mass {p}: rigid body with a free, uncoupled rotation")
+        return out
+
+    # -- markers -------------------------------------------------------------------
+
+    def _ground_marker(self, p: np.ndarray, rigid: bool) -> int:
+        key = ("ground", tuple(p), rigid)
+        if key not in self._markers:
+            cls = ei.MarkerBodyRigid if rigid else ei.MarkerBodyPosition
+            self._markers[key] = self.mbs.AddMarker(cls(bodyNumber=self.ground,
+                                                        localPosition=[p[0], p[1], 0.0]))
+        return self._markers[key]
+
+    def _body_marker(self, k: int, p: np.ndarray, rigid: bool) -> int:
+        key = (k, tuple(p), rigid)
+        if key not in self._markers:
+            cls = ei.MarkerBodyRigid if rigid else ei.MarkerBodyPosition
+            loc = self.bodies[k].local(p)
+            self._markers[key] = self.mbs.AddMarker(cls(bodyNumber=self.bodies[k].obj,
+                                                        localPosition=[loc[0], loc[1], 0.0]))
+        return self._markers[key]
+
+    def marker(self, point: str, body: int | None = None, rigid: bool = False) -> int:
+        """Marker at a scene point: on ground if it is fixed, else on `body` (default:
+        its carrier)."""
+        if point in self.fixed:
+            return self._ground_marker(self.pos[point], rigid)
+        k = self.carrier[point] if body is None else body
+        return self._body_marker(k, self.pos[point], rigid)
+
+    def segment_body(self, a: str, b: str) -> int | None:
+        """The body both points are on (None: both fixed, the segment is ground)."""
+        if a in self.fixed and b in self.fixed:
+            return None
+        for k, body in enumerate(self.bodies):
+            if a in body.points and b in body.points:
+                return k
+        raise Unsupported(f"the segment {a}→{b} is on no single body: its angle is not a body "
+                          "rotation")
+
+    def rotation_marker(self, k: int | None) -> int:
+        """Coordinate marker on a body's rotation (its displacement from psi0)."""
+        key = ("rot", k)
+        if key not in self._markers:
+            if k is None:
+                self._markers[key] = self.mbs.AddMarker(ei.MarkerNodeCoordinate(
+                    nodeNumber=self.ground_node, coordinate=0))
+            else:
+                self._markers[key] = self.mbs.AddMarker(ei.MarkerNodeCoordinate(
+                    nodeNumber=self.bodies[k].node, coordinate=2))
+        return self._markers[key]
+
+    def rigid_marker(self, k: int | None) -> int:
+        key = ("rigid", k)
+        if key not in self._markers:
+            num = self.ground if k is None else self.bodies[k].obj
+            self._markers[key] = self.mbs.AddMarker(ei.MarkerBodyRigid(bodyNumber=num,
+                                                                      localPosition=[0, 0, 0]))
+        return self._markers[key]
+
+    def coordinate_segments(self, name: str) -> list[tuple[int | None, float]]:
+        """An angle coordinate as (body, sign) terms: θ = Σ sign · ψ_body + constant."""
+        c = self.coords.get(name)
+        if c is None:
+            raise Unsupported(f"effect on '{name}', which is not a relative coordinate")
+        pts = c["points"]
+        if c["type"] == "angle":
+            return [(self.segment_body(pts[0], pts[1]), 1.0)]
+        if c["type"] == "relative_angle":
+            return [(self.segment_body(pts[0], pts[1]), -1.0),
+                    (self.segment_body(pts[2], pts[3]), 1.0)]
+        raise Unsupported(f"a torque or rotational spring on the {c['type']} coordinate {name}")
+
+    # -- the system ----------------------------------------------------------------
+
+    def _build(self):
+        mbs, model = self.mbs, self.model
+        self.ground = mbs.AddObject(ei.ObjectGround())
+        self.ground_node = mbs.AddNode(ei.NodePointGround())
+        for k, b in enumerate(self.bodies):
+            b.node = mbs.AddNode(ei.NodeRigidBody2D(
+                referenceCoordinates=[b.c0[0], b.c0[1], b.psi0],
+                initialVelocities=[b.v0[0], b.v0[1], b.omega0]))
+            b.obj = mbs.AddObject(ei.ObjectRigidBody2D(mass=b.mass, inertia=b.inertia,
+                                                       nodeNumber=b.node))
+            for var in (exu.OutputVariableType.Coordinates, exu.OutputVariableType.Coordinates_t,
+                        exu.OutputVariableType.Coordinates_tt):
+                self.sensors.append(mbs.AddSensor(ei.SensorNode(
+                    nodeNumber=b.node, storeInternal=True, writeToFile=False,
+                    outputVariableType=var)))
+        # Joints: each point ties every further body on it to its carrier; fixed points
+        # tie bodies to ground.
+        for k, b in enumerate(self.bodies):
+            for p in b.points:
+                if p in self.fixed or self.carrier[p] != k:
+                    mbs.AddObject(ei.ObjectJointRevolute2D(markerNumbers=[
+                        self.marker(p), self._body_marker(k, self.pos[p], rigid=False)]))
+        redundant = set(model.redundant)
+        for c in model.constraints:
+            if c["name"] in redundant:
+                # mbfg leaves it out as implied by the others; exudyn's solver would meet
+                # a singular Jacobian with it.
+                self.notes.append(f"constraint {c['name']} left out: redundant")
+                continue
+            if c["type"] == "distance":
+                a, b = c["points"]
+                mbs.AddObject(ei.ObjectConnectorDistance(
+                    markerNumbers=[self.marker(a), self.marker(b)], distance=c["length"]))
+            elif c["type"] in ("fixed_slider", "mobile_slider"):
+                self._slider(c)
+            else:
+                raise Unsupported(f"constraint {c['name']} of type {c['type']}")
+        for i, e in enumerate(model.effects):
+            self._effect(i, e)
+        for name in model.redundant:
+            if name not in {c["name"] for c in model.constraints}:
+                raise Unsupported(f"redundant equation '{name}' (a rigid-body or coordinate "
+                                  "equation): exudyn's joints would be redundant too")
+        mbs.Assemble()
+
+    def _slider(self, c):
+        """Point on a line: PrismaticJoint2D without its rotation equation. Its normal is
+        given in the frame of its second marker, which must therefore carry the line."""
+        p, l0, l1 = c["points"]
+        if l0 in self.fixed and l1 in self.fixed:
+            k = None
+        else:
+            try:
+                k = self.segment_body(l0, l1)
+            except Unsupported:
+                raise Unsupported(f"slider {c['name']}: its line {l0}–{l1} is on no single body")
+        if p in self.fixed:
+            raise Unsupported(f"slider {c['name']}: its point {p} is fixed")
+        e = self.pos[l1] - self.pos[l0]
+        n = np.array([-e[1], e[0]]) / np.hypot(*e)
+        if k is not None:
+            if self.carrier[p] == k:
+                raise Unsupported(f"slider {c['name']}: point and line on the same body")
+            n = rotate(-self.bodies[k].psi0, n)
+            line = self._body_marker(k, self.pos[l0], rigid=True)
+        else:
+            line = self._ground_marker(self.pos[l0], rigid=True)
+        self.mbs.AddObject(ei.ObjectJointPrismatic2D(
+            markerNumbers=[self.marker(p, rigid=True), line],
+            axisMarker0=[1.0, 0.0, 0.0], normalMarker1=[n[0], n[1], 0.0],
+            constrainRotation=False))
+
+    def _effect(self, i, e):
+        mbs, model = self.mbs, self.model
+        kind = e["type"]
+        if kind == "gravity":
+            g = e["vector"]
+            for b in self.bodies:
+                m = mbs.AddMarker(ei.MarkerBodyMass(bodyNumber=b.obj))
+                mbs.AddLoad(ei.LoadMassProportional(markerNumber=m, loadVector=[g[0], g[1], 0.0]))
+        elif kind == "spring_damper":
+            a, b = e["points"]
+            mbs.AddObject(ei.ObjectConnectorSpringDamper(
+                markerNumbers=[self.marker(a), self.marker(b)], referenceLength=e["rest_length"],
+                stiffness=e["stiffness"], damping=e["damping"]))
+        elif kind == "force":
+            p = e["point"]
+            if p in self.fixed:
+                return                   # does no work
+            mbs.AddLoad(ei.LoadForceVector(
+                markerNumber=self.marker(p),
+                loadVectorUserFunction=lambda mbs_, t, v, i=i: [*model.effect_value(i, t), 0.0]))
+        elif kind == "torque":
+            for k, sign in self.coordinate_segments(self._coordinate_name(e)):
+                if k is None:
+                    continue             # the ground takes it
+                mbs.AddLoad(ei.LoadTorqueVector(
+                    markerNumber=self.rigid_marker(k),
+                    loadVectorUserFunction=lambda mbs_, t, v, i=i, s=sign:
+                        [0.0, 0.0, s * model.effect_value(i, t)]))
+        elif kind == "rotational_spring_damper":
+            name = self._coordinate_name(e)
+            terms = self.coordinate_segments(name)
+            if len(terms) == 1:
+                terms = [(None, -1.0)] + terms
+            (ka, _), (kb, _) = terms
+            # θ = θ(0) + Δψ_b − Δψ_a; the connector acts on Δψ_b − Δψ_a − offset.
+            theta0 = model.initial_q[self.coords[name]["index"]]
+            mbs.AddObject(ei.ObjectConnectorCoordinateSpringDamper(
+                markerNumbers=[self.rotation_marker(ka), self.rotation_marker(kb)],
+                stiffness=e["stiffness"], damping=e["damping"],
+                offset=e["rest_angle"] - theta0))
+        else:
+            raise Unsupported(f"effect {e.get('name', i)} of type {kind}")
+
+    def _coordinate_name(self, e) -> str:
+        name = e["coordinate"]
+        if name not in self.coords and name in self.model.names:
+            # The module (as of this writing) names an effect's coordinate by indexing
+            # the model's names with the coordinate's place among the relative
+            # coordinates; take that place back.
+            k = self.model.names.index(name)
+            if k < len(self.model.coordinates):
+                name = self.model.coordinates[k]["name"]
+        return name
+
+    # -- the motion in the scene's coordinates ------------------------------------
+
+    def trajectory(self, t_expected: np.ndarray) -> tj.Trajectory:
+        model = self.model
+        data = [self.mbs.GetSensorStoredData(s) for s in self.sensors]
+        t = data[0][:, 0]
+        if len(t) != len(t_expected) or np.max(np.abs(t - t_expected)) > 1e-9 * max(1.0, t[-1]):
+            raise RuntimeError(f"exudyn stored {len(t)} samples, expected {len(t_expected)} "
+                               "at the multiples of the sampling step")
+        rows = len(t)
+        jets: dict[str, tuple[Jet, Jet]] = {}
+        for k, b in enumerate(self.bodies):
+            u, du, ddu = (d[:, 1:4] for d in data[3 * k:3 * k + 3])
+            psi, w, al = b.psi0 + u[:, 2], du[:, 2], ddu[:, 2]
+            cx, cy = b.c0[0] + u[:, 0], b.c0[1] + u[:, 1]
+            for p in b.points:
+                if p in self.fixed or self.carrier[p] != k:
+                    continue
+                loc = b.local(self.pos[p])
+                c, s = np.cos(psi), np.sin(psi)
+                rx, ry = c * loc[0] - s * loc[1], s * loc[0] + c * loc[1]
+                jets[p] = (Jet(cx + rx, du[:, 0] - w * ry, ddu[:, 0] - al * ry - w ** 2 * rx),
+                           Jet(cy + ry, du[:, 1] + w * rx, ddu[:, 1] + al * rx - w ** 2 * ry))
+        zero = np.zeros(rows)
+        for p in self.fixed:
+            x, y = self.pos[p]
+            jets[p] = (Jet(zero + x, zero, zero), Jet(zero + y, zero, zero))
+
+        n = model.n
+        q, dq, ddq = np.zeros((rows, n)), np.zeros((rows, n)), np.zeros((rows, n))
+        for p in model.points:
+            if p["index"] is not None:
+                for j, jet in enumerate(jets[p["name"]]):
+                    q[:, p["index"] + j], dq[:, p["index"] + j], ddq[:, p["index"] + j] = \
+                        jet.v, jet.d, jet.dd
+
+        def angle(a, b):
+            (ax, ay), (bx, by) = jets[a], jets[b]
+            return jet_atan2(by - ay, bx - ax)
+
+        for c in model.coordinates:
+            pts = c["points"]
+            if c["type"] == "angle":
+                j = angle(pts[0], pts[1])
+            elif c["type"] == "relative_angle":
+                j = angle(pts[2], pts[3]) - angle(pts[0], pts[1])
+            elif c["type"] == "distance":
+                (px, py), (ax, ay), (bx, by) = jets[pts[0]], jets[pts[1]], jets[pts[2]]
+                ex, ey = bx - ax, by - ay
+                j = ((px - ax) * ex + (py - ay) * ey) / jet_sqrt(ex * ex + ey * ey)
+            else:
+                raise Unsupported(f"coordinate {c['name']} of type {c['type']}")
+            v = j.v
+            if c["type"] != "distance":
+                # The angle's branch (a multiple of 2π) is the scene's initial value's.
+                v = v + 2 * np.pi * np.round((model.initial_q[c["index"]] - v[0]) / (2 * np.pi))
+            q[:, c["index"]], dq[:, c["index"]], ddq[:, c["index"]] = v, j.d, j.dd
+        return tj.Trajectory(list(model.names), t, q, dq, ddq)
+
+
+def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_alpha",
+             h: float = 1e-5, newton_rtol: float = 1e-12, newton_atol: float = 1e-12,
+             spectral_radius: float = 0.8, modified_newton: bool = True
+             ) -> tuple[tj.Trajectory, dict]:
+    """Integrates the scene with exudyn at the fixed step h; returns the trajectory at the
+    multiples of sample_dt up to t_end and its provenance."""
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {sorted(SOLVERS)}, not {solver!r}")
+    per_sample = round(sample_dt / h)
+    samples = round(t_end / sample_dt)
+    if per_sample < 1 or abs(per_sample * h - sample_dt) > 1e-9 * sample_dt:
+        raise ValueError(f"the step h = {h} must divide the sampling step {sample_dt}")
+    if abs(samples * sample_dt - t_end) > 1e-9 * t_end:
+        raise ValueError(f"t_end = {t_end} is not a multiple of the sampling step {sample_dt}")
+    model = mbfg.load(str(scene))
+    mech = Mechanism(model)
+
+    s = exu.SimulationSettings()
+    ti = s.timeIntegration
+    ti.endTime = t_end
+    ti.numberOfSteps = samples * per_sample
+    # Fixed steps: the adaptive step can cut h silently (and on a singular
+    # configuration then land on the wrong branch while reporting success).
+    ti.adaptiveStep = False
+    ti.automaticStepSize = False
+    ti.newton.relativeTolerance = newton_rtol
+    ti.newton.absoluteTolerance = newton_atol
+    ti.newton.useModifiedNewton = modified_newton
+    # ρ∞ = 1 with index-3 constraints gives wrong velocities; < 1 damps them.
+    ti.generalizedAlpha.spectralRadius = spectral_radius
+    ti.generalizedAlpha.computeInitialAccelerations = True
+    ti.verboseMode = 0
+    s.solution.file.write = False
+    s.solution.sensors.writePeriod = sample_dt
+
+    start = time.perf_counter()
+    ok = mech.mbs.SolveDynamic(s, solverType=SOLVERS[solver], storeSolver=True)
+    wall = time.perf_counter() - start
+    it = mech.mbs.sys["dynamicSolver"].it
+    if not ok:
+        raise RuntimeError(f"exudyn: the {solver} solve failed at t = {it.currentTime}")
+    steps = int(it.currentStepIndex) - 1        # the index of the step after the last
+    if (steps != samples * per_sample or abs(it.currentTime - t_end) > 1e-9 * t_end
+            or abs(it.lastStepSize - h) > 1e-9 * h):
+        raise RuntimeError(f"exudyn took {steps} steps to t = {it.currentTime}, expected "
+                           f"{samples * per_sample} fixed steps to {t_end}")
+
+    traj = mech.trajectory(np.arange(samples + 1) * sample_dt)
+    phi = max(float(np.max(np.abs(model.phi(q)))) for q in traj.q) if model.m else 0.0
+    settings = {"solver": solver, "h": h, "sample_dt": sample_dt, "t_end": t_end,
+                "newton_relative_tolerance": newton_rtol,
+                "newton_absolute_tolerance": newton_atol,
+                "modified_newton": modified_newton, "adaptive_step": False}
+    if solver == "generalized_alpha":
+        settings["spectral_radius"] = spectral_radius
+    record = tj.provenance(
+        "exudyn_ref", scene,
+        "exudyn rigid bodies (x, y, psi per body; ObjectRigidBody2D), RevoluteJoint2D / "
+        "PrismaticJoint2D constraints, "
+        + ("index 2 (trapezoidal)" if solver == "trapezoidal_index2" else "index 3 (generalized-alpha)"),
+        settings, wall, packages=("exudyn",),
+        steps=steps, newton_iterations=int(it.newtonStepsCount),
+        jacobian_updates=int(it.newtonJacobiCount), max_abs_phi=phi,
+        modelling_notes=mech.notes)
+    return traj, record
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m harness.exudyn_ref", description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene")
+    ap.add_argument("--t-end", type=float, default=5.0)
+    ap.add_argument("--dt", type=float, default=1e-3, help="sampling step of the output")
+    ap.add_argument("--h", type=float, default=1e-5, help="integration step (divides --dt)")
+    ap.add_argument("--solver", choices=sorted(SOLVERS), default="generalized_alpha")
+    ap.add_argument("--newton-rtol", type=float, default=1e-12)
+    ap.add_argument("--newton-atol", type=float, default=1e-12)
+    ap.add_argument("--spectral-radius", type=float, default=0.8)
+    ap.add_argument("--out", required=True, help="trajectory file (.csv or .csv.gz); "
+                    "the provenance goes beside it as .json")
+    a = ap.parse_args(argv)
+    try:
+        traj, record = generate(a.scene, a.t_end, a.dt, solver=a.solver, h=a.h,
+                                newton_rtol=a.newton_rtol, newton_atol=a.newton_atol,
+                                spectral_radius=a.spectral_radius)
+    except Unsupported as e:
+        print(f"unsupported: {e}", file=sys.stderr)
+        return 2
+    out = pathlib.Path(a.out)
+    tj.write(out, traj)
+    base = out.name.removesuffix(".gz").removesuffix(".csv")
+    tj.write_provenance(out.with_name(base + ".json"), record)
+    print(f"{out}: {len(traj.t)} samples, {record['steps']} steps in {record['wall_time_s']:.3f} s, "
+          f"max |Φ| = {record['max_abs_phi']:.2e}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
