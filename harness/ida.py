@@ -167,11 +167,12 @@ def generate(scene, t_end: float, sample_dt: float, formulation: str = "ggl",
     traj = tj.Trajectory(list(model.names), times, q, dq, ddq)
     worst_phi_dot = max(float(np.max(np.abs(model.phi_q(qi) @ vi))) for qi, vi in zip(q, dq))
     wall = time.perf_counter() - start
-    settings = {"rtol": rtol, "atol": atol, "atol_untested": UNTESTED,
+    settings = {"rtol": rtol, "atol": atol,
+                "error_test": "q, v" if dae.ggl else "q", "atol_untested": UNTESTED,
                 "max_num_steps": max_num_steps, "max_step": max_step,
                 "jacobian": "analytic; dQ/dq, dQ/dv by forward differences"}
     prov = tj.provenance("ida", scene, formulation, settings, wall,
-                         packages=("scikit-sundae", "scipy"),
+                         packages=("scikit-sundae", "scipy", "mbfg"),
                          steps=steps, residual_evaluations=int(out.nfev),
                          jacobian_evaluations=int(out.njev), max_abs_phi=worst_phi,
                          max_abs_phi_dot_samples=worst_phi_dot,

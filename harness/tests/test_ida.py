@@ -134,6 +134,11 @@ def test_spring_oscillates_at_sqrt_k_over_m():
 def test_a_failed_run_raises():
     with pytest.raises(RuntimeError, match="max_num_steps"):
         ida.generate(FOURBAR, 1.0, 0.1, max_num_steps=5)
+    # The parallelogram goes flat (Φq loses rank) at t ≈ 0.52 s: IDA's own failure,
+    # reported with its message instead of a truncated trajectory.
+    with pytest.raises(RuntimeError, match=r"failed after \d+ steps at t = 0\.52.*"
+                                           r"Convergence tests failed"):
+        ida.generate(ROOT / "scenes" / "hard" / "parallelogram.yaml", 1.0, 1e-3)
 
 
 def test_cli_writes_trajectory_and_provenance(tmp_path):
