@@ -159,7 +159,10 @@ def generate(scene, t_end: float, sample_dt: float, formulation: str = "ggl",
         t = out.t
         worst_phi = max(worst_phi, float(np.max(np.abs(model.phi(out.y[:dae.n])))))
         while k <= samples and times[k] <= t:
-            ys[k] = solver.step(times[k]).y
+            sample = solver.step(times[k])
+            if not sample.success:
+                raise RuntimeError(f"IDA could not output t = {times[k]}: {sample.message}")
+            ys[k] = sample.y
             k += 1
     n = dae.n
     q, dq = ys[:, :n], ys[:, n:2 * n]
