@@ -35,6 +35,12 @@ SOLVERS = {
     "generalized_alpha": exu.DynamicSolverType.GeneralizedAlpha,
     "trapezoidal_index2": exu.DynamicSolverType.TrapezoidalIndex2,
 }
+
+
+class SolveError(RuntimeError):
+    """exudyn's solve failed (a step's Newton iteration, a singular Jacobian)."""
+
+
 # Inertia given to the rotation of a lone point mass (a rigid body node, so that a
 # slider can hold it): the rotation is coupled to nothing and stays at rest.
 POINT_INERTIA = 1.0
@@ -438,10 +444,20 @@ class Mechanism:
 
 def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_alpha",
              h: float = 1e-5, newton_rtol: float = 1e-12, newton_atol: float = 1e-12,
-             spectral_radius: float = 0.8, modified_newton: bool = True
-             ) -> tuple[tj.Trajectory, dict]:
+             spectral_radius: float = 0.8, modified_newton: bool = True,
+             ignore_singular_jacobian: bool = False) -> tuple[tj.Trajectory, dict]:
     """Integrates the scene with exudyn at the fixed step h; returns the trajectory at the
-    multiples of sample_dt up to t_end and its provenance."""
+    multiples of sample_dt up to t_end and its provenance.
+
+    newton_rtol/atol: exudyn's Newton tolerances (its defaults, 1e-8 and 1e-10, limit the
+    accuracy at small steps). spectral_radius: generalized-α's ρ∞ (< 1: with index-3
+    constraints ρ∞ = 1 gives wrong velocities). ignore_singular_jacobian: let exudyn's
+    dense solver pass a rank-deficient Jacobian (a singular configuration) instead of
+    failing there.
+
+    Accelerations: with index-3 constraints (generalized-α) q̈ carries the constraints'
+    round-off amplified by 1/(β h²): about 1e-3 at h = 1e-5 on the four-bar, 5e-6 at
+    1e-4; the index-2 trapezoidal rule's is smaller (velocity level), its |Φ| drifts."""
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {sorted(SOLVERS)}, not {solver!r}")
     per_sample = round(sample_dt / h)
@@ -468,15 +484,24 @@ def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_a
     ti.generalizedAlpha.spectralRadius = spectral_radius
     ti.generalizedAlpha.computeInitialAccelerations = True
     ti.verboseMode = 0
+    s.linearSolver.ignoreSingularJacobian = ignore_singular_jacobian
     s.solution.file.write = False
     s.solution.sensors.writePeriod = sample_dt
 
     start = time.perf_counter()
-    ok = mech.mbs.SolveDynamic(s, solverType=SOLVERS[solver], storeSolver=True)
+    try:
+        ok = mech.mbs.SolveDynamic(s, solverType=SOLVERS[solver], storeSolver=True)
+    except exu.SolverError as e:      # Newton did not converge, a singular Jacobian, ...
+        ok, why = False, str(e).strip().splitlines()[0]
+    else:
+        why = "no reason given"
     wall = time.perf_counter() - start
-    it = mech.mbs.sys["dynamicSolver"].it
+    dyn = mech.mbs.sys["dynamicSolver"]
+    it = dyn.it
     if not ok:
-        raise RuntimeError(f"exudyn: the {solver} solve failed at t = {it.currentTime}")
+        why = " ".join(dyn.GetErrorString().split()) or why
+        raise SolveError(f"exudyn: the {solver} solve of {scene} failed at t = "
+                         f"{it.currentTime:.6g} s (h = {h}): {why}")
     steps = int(it.currentStepIndex) - 1        # the index of the step after the last
     if (steps != samples * per_sample or abs(it.currentTime - t_end) > 1e-9 * t_end
             or abs(it.lastStepSize - h) > 1e-9 * h):
@@ -488,7 +513,8 @@ def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_a
     settings = {"solver": solver, "h": h, "sample_dt": sample_dt, "t_end": t_end,
                 "newton_relative_tolerance": newton_rtol,
                 "newton_absolute_tolerance": newton_atol,
-                "modified_newton": modified_newton, "adaptive_step": False}
+                "modified_newton": modified_newton, "adaptive_step": False,
+                "ignore_singular_jacobian": ignore_singular_jacobian}
     if solver == "generalized_alpha":
         settings["spectral_radius"] = spectral_radius
     record = tj.provenance(
@@ -513,13 +539,17 @@ def main(argv=None) -> int:
     ap.add_argument("--newton-rtol", type=float, default=1e-12)
     ap.add_argument("--newton-atol", type=float, default=1e-12)
     ap.add_argument("--spectral-radius", type=float, default=0.8)
+    ap.add_argument("--ignore-singular-jacobian", action="store_true",
+                    help="pass singular configurations (with --newton-rtol 1e-8: the tight "
+                    "default does not converge there)")
     ap.add_argument("--out", required=True, help="trajectory file (.csv or .csv.gz); "
                     "the provenance goes beside it as .json")
     a = ap.parse_args(argv)
     try:
         traj, record = generate(a.scene, a.t_end, a.dt, solver=a.solver, h=a.h,
                                 newton_rtol=a.newton_rtol, newton_atol=a.newton_atol,
-                                spectral_radius=a.spectral_radius)
+                                spectral_radius=a.spectral_radius,
+                                ignore_singular_jacobian=a.ignore_singular_jacobian)
     except Unsupported as e:
         print(f"unsupported: {e}", file=sys.stderr)
         return 2

@@ -126,3 +126,19 @@ def test_cli_writes_trajectory_and_provenance(tmp_path):
     prov = json.loads((tmp_path / "pendulum.json").read_text())
     assert prov["generator"] == "exudyn_ref" and prov["settings"]["solver"] == "trapezoidal_index2"
     assert prov["steps"] == 100 and "exudyn" in prov["versions"]
+
+
+def test_parallelogram_through_its_flat_configurations():
+    # θ = π/2 + 3t, coupler horizontal; flat (Φ_q rank-deficient) at t = π/6, π/2.
+    # exudyn fails there unless told to pass a singular Jacobian, and its Newton
+    # iteration does not reach the tight default tolerance at the flat configuration.
+    scene = ROOT / "scenes" / "hard" / "parallelogram.yaml"
+    with pytest.raises(exudyn_ref.SolveError, match=r"failed at t = 0\.523"):
+        exudyn_ref.generate(scene, 1.0, 1e-3, h=1e-4)
+    traj, prov = exudyn_ref.generate(scene, 2.0, 1e-3, h=1e-4, newton_rtol=1e-8,
+                                     newton_atol=1e-10, ignore_singular_jacobian=True)
+    theta = traj.q[:, column(traj, "theta")]
+    np.testing.assert_allclose(theta, np.pi / 2 + 3 * traj.t, atol=1e-6)
+    np.testing.assert_allclose(traj.q[:, column(traj, "P1.y")], traj.q[:, column(traj, "P2.y")],
+                               atol=1e-9)
+    assert prov["max_abs_phi"] < 1e-12
