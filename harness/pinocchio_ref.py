@@ -1,0 +1,646 @@
+"""Reference trajectories from Pinocchio: rigid-body dynamics in joint coordinates.
+
+An independent check of mbfg's natural-coordinate formulation. The scene's bodies
+become a kinematic tree of revolute joints about z (JointModelRZ): a body hinged at a
+fixed point hangs from the universe, a body sharing a point with a body already in the
+tree hangs from that body. Every joint angle is zero at the scene's assembled initial
+configuration, so the joint placements are the initial pivot positions. Points shared
+by bodies that the tree does not join (closed loops, a second fixed point) become
+CONTACT_3D constraints solved by `pin.constraintDynamics`; open trees use ABA.
+
+Forward: `generate(scene, t_end, sample_dt, h)` integrates with classical RK4 at the
+fixed step h and maps every sample back to the scene's coordinates (point positions,
+velocities and accelerations of frames placed at the scene's points; relative
+coordinates from the joint angles or the points). Inverse: `inverse(scene, csv)`
+gives the generalized forces on the prescribed coordinates by RNEA.
+
+Anything this generator cannot model (sliders, free-floating bodies, massless chains,
+unknown effects) raises `trajectory.Unsupported`; nothing is dropped silently.
+
+    python -m harness.pinocchio_ref scenes/double-pendulum.yaml --t-end 5 --dt 1e-3 \\
+        --h 1e-5 --out /tmp/dp.csv.gz        # writes /tmp/dp.json too
+    python -m harness.pinocchio_ref scenes/double-pendulum.yaml \\
+        --inverse scenes/trajectories/double-pendulum.csv --out /tmp/dp-Q.csv
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import pathlib
+import sys
+import time
+
+import numpy as np
+import pinocchio as pin
+
+import mbfg
+from harness import trajectory as tj
+
+LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+# A 3D point contact closing a planar loop has an identically zero z row, so the
+# constraint Gram matrix is singular: the proximal solver needs μ > 0 (μ = 0 gives NaN).
+PROX_MU = 1e-10
+PROX_ACCURACY = 1e-14
+PROX_MAX_ITER = 50
+# Baumgarte gains on the loop-closure error: small, only to keep the drift of the
+# index-1 formulation from growing (critically damped, time constant 0.1 s).
+BAUMGARTE_KP = 100.0
+BAUMGARTE_KD = 20.0
+
+# Closed forms of the suite's prescribed motions (harness/prescribed_motions.py writes
+# the tables from these): coordinate -> (A, w) of c(t) = A (1 - cos w t).
+CLOSED_FORMS = {
+    "double-pendulum.csv": {"theta1": (-0.8, 1.5), "theta2": (-1.1, 2.3)},
+    "fourbar-theta.csv": {"theta": (1.2, 2.0)},
+}
+
+
+def _angle_of(d) -> float:
+    return math.atan2(d[1], d[0])
+
+
+class PinocchioModel:
+    """The Pinocchio counterpart of an `mbfg.Model`, built at its initial configuration."""
+
+    def __init__(self, scene: str | pathlib.Path):
+        self.scene = pathlib.Path(scene)
+        self.mb = mb = mbfg.load(scene)
+        self.points = {p["name"]: p for p in mb.points}
+        q0 = mb.initial_q
+        self.p0 = {n: np.array(mb.point_position(q0, n)) for n in self.points}
+        self._check_constraints()
+        self._build_tree()
+        self._add_point_frames()
+        self._coordinate_rows()
+        self._effects()
+        self.data = self.model.createData()
+        if self.loops:
+            self.cdatas = [c.createData() for c in self.cmodels]
+            self.prox = pin.ProximalSettings(PROX_ACCURACY, PROX_MU, PROX_MAX_ITER)
+            pin.initConstraintDynamics(self.model, self.data, self.cmodels, self.cdatas)
+
+    # ---- building -------------------------------------------------------------------
+
+    def _check_constraints(self):
+        body_points = [set(b["points"]) for b in self.mb.bodies]
+        for c in self.mb.constraints:
+            if c["type"] == "distance":
+                a, b = c["points"]
+                implied = any({a, b} <= s for s in body_points)
+                if implied and abs(np.linalg.norm(self.p0[a] - self.p0[b]) - c["length"]) < 1e-9:
+                    continue  # a rigid body already keeps this distance
+                raise tj.Unsupported(
+                    f"constraint {c['name']!r}: a distance between points of different "
+                    "bodies (a massless link) is not modelled by the Pinocchio generator")
+            raise tj.Unsupported(
+                f"constraint {c['name']!r} of type {c['type']}: sliders have no "
+                "counterpart among the Pinocchio generator's revolute joints")
+
+    def _build_tree(self):
+        """Revolute joints from the ground outwards; loop closures."""
+        bodies = self.mb.bodies
+        for b in bodies:
+            if len(b["points"]) < 2:
+                raise tj.Unsupported(f"body {b['name']!r} has fewer than two points")
+        fixed = {n for n, p in self.points.items() if p["fixed"]}
+        on_body = {n for b in bodies for n in b["points"]}
+        for n, p in self.points.items():
+            if not p["fixed"] and n not in on_body:
+                raise tj.Unsupported(f"point {n!r} is on no body (a free particle or a "
+                                     "slider block): not modelled by the Pinocchio generator")
+        # Parents breadth-first from the ground (short paths to the ground) ...
+        parent = {}            # body index -> (point, parent entity); entity = "ground" | index
+        placed = []
+        while len(placed) < len(bodies):
+            progress = False
+            for i, b in enumerate(bodies):
+                if i in parent:
+                    continue
+                hinge = next(((n, "ground") for n in b["points"] if n in fixed), None)
+                if hinge is None:
+                    for j in placed:  # the earliest placed neighbour
+                        shared = [n for n in b["points"] if n in bodies[j]["points"]]
+                        if shared:
+                            hinge = (shared[0], j)
+                            break
+                if hinge is not None:
+                    parent[i] = hinge
+                    placed.append(i)
+                    progress = True
+            if not progress:
+                free = [bodies[i]["name"] for i in range(len(bodies)) if i not in parent]
+                raise tj.Unsupported(f"bodies {free} are not connected to the ground through "
+                                     "shared points (free-floating bodies are not modelled)")
+        # ... but joints added depth-first: Pinocchio's CRBA and constraint Cholesky
+        # assume every subtree has contiguous velocity indices.
+        model = pin.Model()
+        model.name = self.mb.file
+        self.joint = {}        # body index -> joint id
+        self.pivot = {0: np.zeros(2)}  # joint id -> world position of its axis at q = 0
+        self.tree_edges = []   # (point, child entity, parent entity)
+        order = []
+
+        def add(entity):
+            for i in placed:
+                n, pent = parent[i]
+                if pent != entity:
+                    continue
+                pjoint = 0 if pent == "ground" else self.joint[pent]
+                at = self.p0[n]
+                placement = pin.SE3(np.eye(3), np.r_[at - self.pivot[pjoint], 0.0])
+                jid = model.addJoint(pjoint, pin.JointModelRZ(), placement,
+                                     f"{bodies[i]['name']}@{n}")
+                self.joint[i] = jid
+                self.pivot[jid] = at
+                self.tree_edges.append((n, i, pent))
+                order.append(i)
+                add(i)
+        add("ground")
+        placed = order
+        self.order = placed
+        # Inertias: each body's mass, centre of mass and inertia about it; point masses
+        # go to the first body (in tree order) that carries the point.
+        for i in placed:
+            b = bodies[i]
+            jid = self.joint[i]
+            origin, x_to = self.p0[b["points"][0]], self.p0[b["points"][1]]
+            th = _angle_of(x_to - origin)
+            c, s = math.cos(th), math.sin(th)
+            cog = origin + np.array([c * b["cog"][0] - s * b["cog"][1],
+                                     s * b["cog"][0] + c * b["cog"][1]])
+            izz = b["inertia_cog"]
+            # Planar motion only sees Izz; Ixx = Iyy = Izz keeps the inertia physical.
+            inertia = pin.Inertia(b["mass"], np.r_[cog - self.pivot[jid], 0.0], np.eye(3) * izz)
+            model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
+        for n, p in self.points.items():
+            if p["mass"] > 0 and not p["fixed"]:
+                i = next(i for i in placed if n in bodies[i]["points"])
+                jid = self.joint[i]
+                lever = np.r_[self.p0[n] - self.pivot[jid], 0.0]
+                model.appendBodyToJoint(jid, pin.Inertia(p["mass"], lever, np.zeros((3, 3))),
+                                        pin.SE3.Identity())
+        for i in placed:
+            jid = self.joint[i]
+            if model.inertias[jid].mass <= 0 and model.inertias[jid].inertia[2, 2] <= 0:
+                raise tj.Unsupported(f"body {bodies[i]['name']!r} has no mass and no inertia")
+        self.model = model
+        self._loop_closures()
+
+    def _loop_closures(self):
+        """A point joining entities the tree does not join at that point is a loop closure."""
+        bodies = self.mb.bodies
+        self.cmodels = []
+        self.loops = []
+        for n, p in self.points.items():
+            ents = (["ground"] if p["fixed"] else []) + [i for i in self.order
+                                                        if n in bodies[i]["points"]]
+            comp = {e: e for e in ents}
+
+            def root(e):
+                while comp[e] != e:
+                    e = comp[e]
+                return e
+            for pt, child, parent in self.tree_edges:
+                if pt == n:
+                    comp[root(child)] = root(parent)
+            roots = []
+            for e in ents:
+                if root(e) not in [root(r) for r in roots]:
+                    roots.append(e)
+            for other in roots[1:]:
+                self.loops.append((n, roots[0], other))
+                j1, j2 = (self._joint_of(roots[0]), self._joint_of(other))
+                pl1 = pin.SE3(np.eye(3), np.r_[self.p0[n] - self.pivot[j1], 0.0])
+                pl2 = pin.SE3(np.eye(3), np.r_[self.p0[n] - self.pivot[j2], 0.0])
+                if j1 == 0:  # Pinocchio wants the moving joint first
+                    j1, j2, pl1, pl2 = j2, j1, pl2, pl1
+                cm = pin.RigidConstraintModel(pin.ContactType.CONTACT_3D, self.model,
+                                              j1, pl1, j2, pl2, pin.ReferenceFrame.LOCAL)
+                cm.name = f"loop@{n}"
+                cm.setBaumgarteCorrectorParameters(
+                    pin.BaumgarteCorrectorParameters(BAUMGARTE_KP, BAUMGARTE_KD))
+                self.cmodels.append(cm)
+        self.cmodels = pin.StdVec_RigidConstraintModel(self.cmodels)
+
+    def _joint_of(self, entity) -> int:
+        return 0 if entity == "ground" else self.joint[entity]
+
+    def _add_point_frames(self):
+        """An operational frame at every scene point, on the first body carrying it."""
+        self.frame = {}
+        for n, p in self.points.items():
+            owner = next((i for i in self.order if n in self.mb.bodies[i]["points"]), None)
+            jid = 0 if p["fixed"] or owner is None else self.joint[owner]
+            placement = pin.SE3(np.eye(3), np.r_[self.p0[n] - self.pivot[jid], 0.0])
+            self.frame[n] = self.model.addFrame(
+                pin.Frame(f"point {n}", jid, placement, pin.FrameType.OP_FRAME))
+
+    def _body_rows(self) -> dict[int, np.ndarray]:
+        """Body index -> row r with (body angle - its initial angle) = r · q."""
+        rows = {}
+        for i in self.order:
+            r = np.zeros(self.model.nv)
+            jid = self.joint[i]
+            while jid != 0:
+                r[self.model.idx_vs[jid]] = 1.0
+                jid = self.model.parents[jid]
+            rows[i] = r
+        return rows
+
+    def _segment_row(self, a: str, b: str):
+        """Row r with (angle of a→b - its initial angle) = r · q, if one body carries a, b."""
+        body_rows = self._body_rows()
+        for i in self.order:
+            if {a, b} <= set(self.mb.bodies[i]["points"]):
+                return body_rows[i]
+        if self.points[a]["fixed"] and self.points[b]["fixed"]:
+            return np.zeros(self.model.nv)
+        return None
+
+    def _coordinate_rows(self):
+        """Relative coordinates linear in the joint angles: c = c0 + row · q."""
+        self.rows = {}
+        q0 = self.mb.initial_q
+        for c in self.mb.coordinates:
+            row = None
+            if c["type"] == "angle":
+                row = self._segment_row(*c["points"])
+            elif c["type"] == "relative_angle":
+                ra = self._segment_row(*c["points"][:2])
+                rb = self._segment_row(*c["points"][2:])
+                if ra is not None and rb is not None:
+                    row = rb - ra
+            elif c["type"] != "distance":
+                raise tj.Unsupported(f"coordinate {c['name']!r} of type {c['type']}")
+            if row is not None:
+                self.rows[c["name"]] = (q0[c["index"]], row)
+
+    def _effects(self):
+        """Sorts the scene's effects; gravity goes into the model."""
+        self.model.gravity.linear = np.zeros(3)
+        self.loads = []
+        coords = {c["name"]: c for c in self.mb.coordinates}
+        for i, e in enumerate(self.mb.effects):
+            kind = e["type"]
+            if kind == "gravity":
+                self.model.gravity.linear = self.model.gravity.linear + np.r_[e["vector"], 0.0]
+            elif kind in ("torque", "rotational_spring_damper"):
+                if e["coordinate"] not in self.rows:
+                    c = coords.get(e["coordinate"], {})
+                    raise tj.Unsupported(
+                        f"effect {e['name']!r} acts on coordinate {e['coordinate']!r} "
+                        f"({c.get('type')}), which is not an angle of a single body")
+                self.loads.append((i, e))
+            elif kind in ("spring_damper", "force"):
+                self.loads.append((i, e))
+            else:
+                raise tj.Unsupported(f"effect {e.get('name')!r} of type {kind}")
+        self.needs_points = any(e["type"] in ("spring_damper", "force") for _, e in self.loads)
+
+    # ---- dynamics -------------------------------------------------------------------
+
+    def _point_jacobians(self, q, names):
+        """(positions, 2×nv Jacobians) of named points; call after forwardKinematics."""
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+        out = {}
+        for n in names:
+            fid = self.frame[n]
+            pos = self.data.oMf[fid].translation[:2].copy()
+            # reshape: with one joint, the binding returns the 6×1 Jacobian as a vector
+            J = np.reshape(pin.getFrameJacobian(self.model, self.data, fid, LWA),
+                           (6, self.model.nv))[:2]
+            out[n] = (pos, J)
+        return out
+
+    def applied_torques(self, t, q, v):
+        """Joint torques of every effect but gravity (that one is in the model)."""
+        tau = np.zeros(self.model.nv)
+        if not self.loads:
+            return tau
+        if self.needs_points:
+            names = [n for _, e in self.loads if e["type"] in ("spring_damper", "force")
+                     for n in ([e["point"]] if e["type"] == "force" else e["points"])]
+            pts = self._point_jacobians(q, names)
+        for i, e in self.loads:
+            kind = e["type"]
+            if kind == "torque":
+                tau += self.mb.effect_value(i, t) * self.rows[e["coordinate"]][1]
+            elif kind == "rotational_spring_damper":
+                c0, row = self.rows[e["coordinate"]]
+                angle, rate = c0 + row @ q, row @ v
+                tau += (-e["stiffness"] * (angle - e["rest_angle"]) - e["damping"] * rate) * row
+            elif kind == "force":
+                pos, J = pts[e["point"]]
+                tau += J.T @ np.asarray(self.mb.effect_value(i, t), dtype=float)
+            else:  # spring_damper
+                (pa, Ja), (pb, Jb) = pts[e["points"][0]], pts[e["points"][1]]
+                d = pb - pa
+                length = math.hypot(*d)
+                if length < 1e-12:
+                    raise ValueError(f"spring {e['name']!r}: its ends coincide, direction undefined")
+                u = d / length
+                rate = u @ ((Jb - Ja) @ v)
+                tension = e["stiffness"] * (length - e["rest_length"]) + e["damping"] * rate
+                tau += (Ja - Jb).T @ (tension * u)  # pulls b towards a and a towards b
+        return tau
+
+    def acceleration(self, t, q, v):
+        tau = self.applied_torques(t, q, v)
+        if self.loops:
+            a = pin.constraintDynamics(self.model, self.data, q, v, tau,
+                                       self.cmodels, self.cdatas, self.prox)
+        else:
+            a = pin.aba(self.model, self.data, q, v, tau)
+        return np.array(a)  # a copy: Pinocchio may reuse its buffer
+
+    def loop_error(self, q) -> float:
+        """Largest loop-closure gap (m) at q."""
+        if not self.loops:
+            return 0.0
+        pin.framesForwardKinematics(self.model, self.data, q)
+        worst = 0.0
+        for (n, a, b) in self.loops:
+            pos = []
+            for ent in (a, b):
+                jid = self._joint_of(ent)
+                pos.append(self.data.oMi[jid].act(np.r_[self.p0[n] - self.pivot[jid], 0.0])[:2])
+            worst = max(worst, float(np.max(np.abs(pos[0] - pos[1]))))
+        return worst
+
+    # ---- states ---------------------------------------------------------------------
+
+    def initial_state(self):
+        """Joint angles (zero by construction) and rates from mbfg's initial q̇."""
+        mb = self.mb
+        dq0 = mb.initial_dq
+
+        def vel(n):
+            return np.zeros(2) if self.points[n]["fixed"] else np.array(mb.point_velocity(dq0, n))
+        omega = {0: 0.0}
+        v = np.zeros(self.model.nv)
+        for i in self.order:
+            a, b = self.mb.bodies[i]["points"][:2]
+            d = self.p0[b] - self.p0[a]
+            dv = vel(b) - vel(a)
+            jid = self.joint[i]
+            omega[jid] = (d[0] * dv[1] - d[1] * dv[0]) / (d @ d)
+            v[self.model.idx_vs[jid]] = omega[jid] - omega[self.model.parents[jid]]
+        return np.zeros(self.model.nq), v
+
+    def scene_state(self, q, v, a):
+        """(q, q̇, q̈) of the mbfg model, in its order, from the joint state."""
+        model, data = self.model, self.data
+        pin.forwardKinematics(model, data, q, v, a)
+        pin.updateFramePlacements(model, data)
+        n = self.mb.n
+        Q, dQ, ddQ = np.zeros(n), np.zeros(n), np.zeros(n)
+        pos, vel, acc = {}, {}, {}
+        for name, p in self.points.items():
+            fid = self.frame[name]
+            pos[name] = data.oMf[fid].translation[:2].copy()
+            vel[name] = pin.getFrameVelocity(model, data, fid, LWA).linear[:2].copy()
+            acc[name] = pin.getFrameClassicalAcceleration(model, data, fid, LWA).linear[:2].copy()
+            k = p["index"]
+            if k is not None:
+                Q[k:k + 2], dQ[k:k + 2], ddQ[k:k + 2] = pos[name], vel[name], acc[name]
+        for c in self.mb.coordinates:
+            k = c["index"]
+            if c["name"] in self.rows:
+                c0, row = self.rows[c["name"]]
+                Q[k], dQ[k], ddQ[k] = c0 + row @ q, row @ v, row @ a
+            elif c["type"] == "angle":
+                a0, b = c["points"]
+                Q[k], dQ[k], ddQ[k] = _angle_state(pos[b] - pos[a0], vel[b] - vel[a0],
+                                                   acc[b] - acc[a0])
+            elif c["type"] == "relative_angle":
+                s = [_angle_state(pos[b] - pos[a0], vel[b] - vel[a0], acc[b] - acc[a0])
+                     for a0, b in (c["points"][:2], c["points"][2:])]
+                Q[k], dQ[k], ddQ[k] = (s[1][j] - s[0][j] for j in range(3))
+            else:  # distance of p from a0 along a0→a1
+                p_, a0, a1 = c["points"]
+                Q[k], dQ[k], ddQ[k] = _distance_state(
+                    (pos[p_] - pos[a0], vel[p_] - vel[a0], acc[p_] - acc[a0]),
+                    (pos[a1] - pos[a0], vel[a1] - vel[a0], acc[a1] - acc[a0]))
+        return Q, dQ, ddQ
+
+
+def _angle_state(d, dv, da):
+    """Angle of d against x and its first two time derivatives."""
+    r2 = d @ d
+    cross = d[0] * dv[1] - d[1] * dv[0]
+    rate = cross / r2
+    dcross = d[0] * da[1] - d[1] * da[0]
+    return _angle_of(d), rate, dcross / r2 - cross * 2.0 * (d @ dv) / r2 ** 2
+
+
+def _distance_state(w, e):
+    """s = w·e/|e| and its first two time derivatives; w, e as (x, ẋ, ẍ)."""
+    (w0, w1, w2), (e0, e1, e2) = w, e
+    L = math.sqrt(e0 @ e0)
+    L1 = (e0 @ e1) / L
+    L2 = (e1 @ e1 + e0 @ e2 - L1 ** 2) / L
+    n0 = w0 @ e0
+    n1 = w1 @ e0 + w0 @ e1
+    n2 = w2 @ e0 + 2.0 * (w1 @ e1) + w0 @ e2
+    s0 = n0 / L
+    s1 = (n1 - s0 * L1) / L
+    s2 = (n2 - 2.0 * s1 * L1 - s0 * L2) / L
+    return s0, s1, s2
+
+
+def _unwrap_angles(pm: PinocchioModel, q: np.ndarray) -> None:
+    """Angle coordinates computed by atan2 made continuous, starting at mbfg's values."""
+    q0 = pm.mb.initial_q
+    for c in pm.mb.coordinates:
+        if c["type"] in ("angle", "relative_angle") and c["name"] not in pm.rows:
+            k = c["index"]
+            col = np.unwrap(q[:, k])
+            q[:, k] = col + 2 * math.pi * round((q0[k] - col[0]) / (2 * math.pi))
+
+
+def _rk4(f, q, v, t_end, h, every, record):
+    """Classical RK4 at the fixed step h; record(t, q, v) every `every` steps.
+
+    The state sums are compensated (Kahan): over 10⁶ steps plain addition would lose
+    more to round-off than the method's truncation error at h = 1e-5.
+    """
+    steps = round(t_end / h)
+    cq, cv = np.zeros_like(q), np.zeros_like(v)
+    h2, h6 = h / 2.0, h / 6.0
+    for k in range(steps + 1):
+        t = k * h
+        if k % every == 0:
+            record(t, q, v)
+        if k == steps:
+            break
+        a1 = f(t, q, v)
+        v2 = v + h2 * a1
+        a2 = f(t + h2, q + h2 * v, v2)
+        v3 = v + h2 * a2
+        a3 = f(t + h2, q + h2 * v2, v3)
+        v4 = v + h * a3
+        a4 = f(t + h, q + h * v3, v4)
+        dq = h6 * (v + 2.0 * (v2 + v3) + v4) - cq
+        dv = h6 * (a1 + 2.0 * (a2 + a3) + a4) - cv
+        qn, vn = q + dq, v + dv
+        cq, cv = (qn - q) - dq, (vn - v) - dv
+        q, v = qn, vn
+    return q, v
+
+
+def generate(scene, t_end: float, sample_dt: float, h: float = 1e-5,
+             **_ignored) -> tuple[tj.Trajectory, dict]:
+    """Forward dynamics of the scene over [0, t_end], sampled every sample_dt."""
+    start = time.perf_counter()
+    pm = PinocchioModel(scene)
+    every = round(sample_dt / h)
+    if every < 1 or abs(every * h - sample_dt) > 1e-9 * sample_dt:
+        raise ValueError(f"the sample step {sample_dt} is not a multiple of h = {h}")
+    if abs(round(t_end / sample_dt) * sample_dt - t_end) > 1e-9 * sample_dt:
+        raise ValueError(f"t_end {t_end} is not a multiple of the sample step {sample_dt}")
+    rows_t, rows = [], []
+    loop_gap = [0.0]
+
+    def record(t, q, v):
+        a = pm.acceleration(t, q, v)
+        rows_t.append(t)
+        rows.append(pm.scene_state(q, v, a))
+        loop_gap[0] = max(loop_gap[0], pm.loop_error(q))
+
+    q, v = pm.initial_state()
+    _rk4(pm.acceleration, q, v, t_end, h, every, record)
+    Q = np.array([r[0] for r in rows])
+    _unwrap_angles(pm, Q)
+    traj = tj.Trajectory(list(pm.mb.names), np.array(rows_t), Q,
+                         np.array([r[1] for r in rows]), np.array([r[2] for r in rows]))
+    wall = time.perf_counter() - start
+    max_phi = max(float(np.max(np.abs(pm.mb.phi(qk)))) for qk in traj.q) if pm.mb.m else 0.0
+    if pm.loops:
+        formulation = "constraintDynamics (CONTACT_3D loop closures) + RK4"
+        settings = {"h": h, "mu": PROX_MU, "prox_accuracy": PROX_ACCURACY,
+                    "prox_max_iter": PROX_MAX_ITER,
+                    "baumgarte": {"Kp": BAUMGARTE_KP, "Kd": BAUMGARTE_KD},
+                    "loops": [f"{n}: {a}-{b}" for n, a, b in pm.loops]}
+    else:
+        formulation = "ABA + RK4"
+        settings = {"h": h}
+    prov = tj.provenance("pinocchio", scene, formulation, settings, wall, packages=("pin",),
+                         joints=[pm.model.names[j] for j in range(1, pm.model.njoints)],
+                         max_phi=max_phi, max_loop_gap_m=loop_gap[0],
+                         sample_dt=sample_dt, t_end=t_end)
+    return traj, prov
+
+
+# ---- inverse dynamics -------------------------------------------------------------------
+
+def _read_prescription(path):
+    path = pathlib.Path(path)
+    with open(path) as f:
+        header = f.readline().strip().split(",")
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    if header[0] != "t":
+        raise ValueError(f"{path}: the first column must be t")
+    return header[1:], data[:, 0], data[:, 1:]
+
+
+def _derivatives(t, x):
+    """First and second derivatives of uniformly sampled columns (fourth order inside)."""
+    dt = t[1] - t[0]
+    if np.max(np.abs(np.diff(t) - dt)) > 1e-9 * dt:
+        raise ValueError("finite differences need a uniformly sampled trajectory")
+    d1 = np.gradient(x, dt, axis=0, edge_order=2)
+    d2 = np.gradient(d1, dt, axis=0, edge_order=2)
+    if len(t) >= 5:
+        i = slice(2, -2)
+        d1[i] = (x[:-4] - 8 * x[1:-3] + 8 * x[3:-1] - x[4:]) / (12 * dt)
+        d2[i] = (-x[:-4] + 16 * x[1:-3] - 30 * x[2:-2] + 16 * x[3:-1] - x[4:]) / (12 * dt ** 2)
+    return d1, d2
+
+
+def prescribed_motion(path):
+    """(names, t, c, ċ, c̈) of a prescription file; exact derivatives for the suite's
+    closed forms when the table matches them, finite differences otherwise."""
+    names, t, c = _read_prescription(path)
+    form = CLOSED_FORMS.get(pathlib.Path(path).name)
+    if form is not None and set(form) == set(names):
+        amp = np.array([form[n][0] for n in names])
+        w = np.array([form[n][1] for n in names])
+        wt = np.outer(t, w)
+        exact = amp * (1.0 - np.cos(wt))
+        if np.max(np.abs(exact - c)) < 1e-12:
+            return names, t, exact, amp * w * np.sin(wt), amp * w ** 2 * np.cos(wt), "closed form"
+    dc, ddc = _derivatives(t, c)
+    return names, t, c, dc, ddc, "finite differences (4th order)"
+
+
+def inverse(scene, trajectory_csv, with_method: bool = False):
+    """Generalized forces on the prescribed coordinates (RNEA in joint space).
+
+    The prescribed coordinates c must be angles of single bodies, one per joint, so that
+    c = c0 + A q with A invertible. The joint torques τ = RNEA(q, q̇, q̈) minus the
+    scene's applied loads do virtual work τᵀδq = τᵀA⁻¹δc, so the forces on c are
+    Q = A⁻ᵀτ (for the double pendulum's absolute angles: Q1 = τ1 − τ2, Q2 = τ2).
+    Returns (t, {coordinate: Q}) and, with with_method, the derivative method too.
+    """
+    pm = PinocchioModel(scene)
+    if pm.loops:
+        raise tj.Unsupported("inverse dynamics of closed loops is not modelled by the "
+                             "Pinocchio generator (RNEA needs a tree)")
+    names, t, c, dc, ddc, method = prescribed_motion(trajectory_csv)
+    missing = [n for n in names if n not in pm.rows]
+    if missing:
+        raise tj.Unsupported(f"prescribed coordinates {missing} are not angles of single bodies")
+    A = np.array([pm.rows[n][1] for n in names])
+    c0 = np.array([pm.rows[n][0] for n in names])
+    if A.shape[0] != A.shape[1] or abs(np.linalg.det(A)) < 1e-12:
+        raise tj.Unsupported(f"the prescribed coordinates {names} do not fix the "
+                             f"{pm.model.nv} joint angles one to one")
+    Ainv = np.linalg.inv(A)
+    q, v, a = (c - c0) @ Ainv.T, dc @ Ainv.T, ddc @ Ainv.T
+    Q = np.zeros_like(c)
+    for k, tk in enumerate(t):
+        tau = pin.rnea(pm.model, pm.data, q[k], v[k], a[k]) - pm.applied_torques(tk, q[k], v[k])
+        Q[k] = Ainv.T @ tau
+    out = (t, {n: Q[:, j] for j, n in enumerate(names)})
+    return (*out, method) if with_method else out
+
+
+# ---- command line -----------------------------------------------------------------------
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene")
+    ap.add_argument("--t-end", type=float, default=5.0)
+    ap.add_argument("--dt", type=float, default=1e-3, help="sample step of the output")
+    ap.add_argument("--h", type=float, default=1e-5, help="RK4 step")
+    ap.add_argument("--inverse", metavar="CSV", help="inverse dynamics of this prescription")
+    ap.add_argument("--out", required=True, help="output CSV (.gz compresses)")
+    args = ap.parse_args(argv)
+    out = pathlib.Path(args.out)
+    base = out.name.split(".")[0]
+    try:
+        if args.inverse:
+            start = time.perf_counter()
+            t, Q, method = inverse(args.scene, args.inverse, with_method=True)
+            names = list(Q)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            np.savetxt(out, np.column_stack([t] + [Q[n] for n in names]), delimiter=",",
+                       header=",".join(["t"] + [f"Q:{n}" for n in names]), comments="",
+                       fmt="%.17g")
+            prov = tj.provenance("pinocchio", args.scene, "RNEA", {"derivatives": method},
+                                 time.perf_counter() - start, packages=("pin",),
+                                 trajectory=str(args.inverse))
+        else:
+            traj, prov = generate(args.scene, args.t_end, args.dt, h=args.h)
+            tj.write(out, traj)
+    except tj.Unsupported as e:
+        print(f"pinocchio_ref: {args.scene}: unsupported: {e}", file=sys.stderr)
+        return 2
+    tj.write_provenance(out.with_name(base + ".json"), prov)
+    print(f"wrote {out} ({prov['wall_time_s']:.1f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
