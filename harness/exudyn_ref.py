@@ -345,17 +345,14 @@ class Mechanism:
             p = e["point"]
             if p in self.fixed:
                 return                   # does no work
-            mbs.AddLoad(ei.LoadForceVector(
-                markerNumber=self.marker(p),
-                loadVectorUserFunction=lambda mbs_, t, v, i=i: [*model.effect_value(i, t), 0.0]))
+            mbs.AddLoad(ei.LoadForceVector(markerNumber=self.marker(p), **self._load(
+                i, e["value"], lambda i, t: [*model.effect_value(i, t), 0.0])))
         elif kind == "torque":
             for k, sign in self.coordinate_segments(self._coordinate_name(e)):
                 if k is None:
                     continue             # the ground takes it
-                mbs.AddLoad(ei.LoadTorqueVector(
-                    markerNumber=self.rigid_marker(k),
-                    loadVectorUserFunction=lambda mbs_, t, v, i=i, s=sign:
-                        [0.0, 0.0, s * model.effect_value(i, t)]))
+                mbs.AddLoad(ei.LoadTorqueVector(markerNumber=self.rigid_marker(k), **self._load(
+                    i, [e["value"]], lambda i, t, s=sign: [0.0, 0.0, s * model.effect_value(i, t)])))
         elif kind == "rotational_spring_damper":
             name = self._coordinate_name(e)
             terms = self.coordinate_segments(name)
@@ -370,6 +367,16 @@ class Mechanism:
                 offset=e["rest_angle"] - theta0))
         else:
             raise Unsupported(f"effect {e.get('name', i)} of type {kind}")
+
+    @staticmethod
+    def _load(i: int, texts, vector):
+        """A load's arguments: a constant vector when every expression is a plain number
+        (a Python user function costs a call per residual), else a function of time."""
+        try:
+            [float(x) for x in texts]
+        except ValueError:
+            return {"loadVectorUserFunction": lambda mbs, t, v: vector(i, t)}
+        return {"loadVector": vector(i, 0.0)}
 
     def _coordinate_name(self, e) -> str:
         name = e["coordinate"]

@@ -142,3 +142,15 @@ def test_parallelogram_through_its_flat_configurations():
     np.testing.assert_allclose(traj.q[:, column(traj, "P1.y")], traj.q[:, column(traj, "P2.y")],
                                atol=1e-9)
     assert prov["max_abs_phi"] < 1e-12
+
+
+@pytest.mark.parametrize("scene", [SCENES / "exu-loads.yaml", ROOT / "scenes" / "slotted-lever.yaml"])
+def test_loads_and_mobile_slider_obey_the_dynamics(scene):
+    # Forces and torques (constant and time-dependent); the slotted lever's pin slides
+    # on the moving lever (a prismatic joint on the lever's frame) under a motor torque.
+    model = mbfg.load(scene)
+    traj, _ = exudyn_ref.generate(scene, 1.0, 1e-3, h=1e-4)
+    assert max(np.max(np.abs(model.phi(q))) for q in traj.q) < 1e-12
+    for k in range(0, len(traj.t), len(traj.t) // 5):
+        a = model.accelerations(traj.q[k], traj.dq[k], traj.t[k])
+        np.testing.assert_allclose(traj.ddq[k], a, atol=1e-4 * max(1.0, np.max(np.abs(a))))
