@@ -285,6 +285,7 @@ class PinocchioModel:
             if kind == "gravity":
                 self.model.gravity.linear = self.model.gravity.linear + np.r_[e["vector"], 0.0]
             elif kind in ("torque", "rotational_spring_damper"):
+                e = dict(e, coordinate=self._effect_coordinate(e))
                 if e["coordinate"] not in self.rows:
                     c = coords.get(e["coordinate"], {})
                     raise tj.Unsupported(
@@ -296,6 +297,23 @@ class PinocchioModel:
             else:
                 raise tj.Unsupported(f"effect {e.get('name')!r} of type {kind}")
         self.needs_points = any(e["type"] in ("spring_damper", "force") for _, e in self.loads)
+
+    def _effect_coordinate(self, e) -> str:
+        """The relative coordinate an effect acts on.
+
+        Works around an mbfg module bug (src/python.rs `effects`): it names the k-th
+        relative coordinate by `names[k]` (a point coordinate) instead of
+        `names[relative_offset + k]`. The accelerations test against mbfg's KKT checks
+        this mapping.
+        """
+        name = e["coordinate"]
+        coords = self.mb.coordinates
+        if any(c["name"] == name for c in coords):
+            return name
+        k = list(self.mb.names).index(name)
+        if k < len(coords):
+            return coords[k]["name"]
+        raise ValueError(f"effect {e['name']!r}: unknown coordinate {name!r}")
 
     # ---- dynamics -------------------------------------------------------------------
 
@@ -544,17 +562,26 @@ def _read_prescription(path):
     return header[1:], data[:, 0], data[:, 1:]
 
 
+# Fourth-order finite-difference stencils (weights × 1/(12 dt^k)): central inside,
+# one-sided for the first two rows (mirrored for the last two).
+_D1_CENTRAL = np.array([1, -8, 0, 8, -1])
+_D2_CENTRAL = np.array([-1, 16, -30, 16, -1])
+_D1_EDGE = np.array([[-25, 48, -36, 16, -3, 0], [-3, -10, 18, -6, 1, 0]])
+_D2_EDGE = np.array([[45, -154, 214, -156, 61, -10], [10, -15, -4, 14, -6, 1]])
+
+
 def _derivatives(t, x):
-    """First and second derivatives of uniformly sampled columns (fourth order inside)."""
+    """First and second derivatives of uniformly sampled columns, fourth order."""
     dt = t[1] - t[0]
-    if np.max(np.abs(np.diff(t) - dt)) > 1e-9 * dt:
-        raise ValueError("finite differences need a uniformly sampled trajectory")
-    d1 = np.gradient(x, dt, axis=0, edge_order=2)
-    d2 = np.gradient(d1, dt, axis=0, edge_order=2)
-    if len(t) >= 5:
-        i = slice(2, -2)
-        d1[i] = (x[:-4] - 8 * x[1:-3] + 8 * x[3:-1] - x[4:]) / (12 * dt)
-        d2[i] = (-x[:-4] + 16 * x[1:-3] - 30 * x[2:-2] + 16 * x[3:-1] - x[4:]) / (12 * dt ** 2)
+    if len(t) < 6 or np.max(np.abs(np.diff(t) - dt)) > 1e-9 * dt:
+        raise ValueError("finite differences need at least 6 uniformly spaced rows")
+    d1, d2 = np.empty_like(x), np.empty_like(x)
+    n = len(t)
+    d1[2:-2] = sum(w * x[k:n - 4 + k] for k, w in enumerate(_D1_CENTRAL)) / (12 * dt)
+    d2[2:-2] = sum(w * x[k:n - 4 + k] for k, w in enumerate(_D2_CENTRAL)) / (12 * dt ** 2)
+    head, tail = x[:6], x[::-1][:6]
+    d1[:2], d1[-2:] = _D1_EDGE @ head / (12 * dt), -(_D1_EDGE @ tail)[::-1] / (12 * dt)
+    d2[:2], d2[-2:] = _D2_EDGE @ head / (12 * dt ** 2), (_D2_EDGE @ tail)[::-1] / (12 * dt ** 2)
     return d1, d2
 
 
