@@ -258,6 +258,10 @@ class Mechanism:
 
     def _build(self):
         mbs, model = self.mbs, self.model
+        for name in model.redundant:
+            if name not in {c["name"] for c in model.constraints}:
+                raise Unsupported(f"redundant equation '{name}' (a rigid-body or coordinate "
+                                  "equation): exudyn's joints would be redundant too")
         self.ground = mbs.AddObject(ei.ObjectGround())
         self.ground_node = mbs.AddNode(ei.NodePointGround())
         for k, b in enumerate(self.bodies):
@@ -295,10 +299,6 @@ class Mechanism:
                 raise Unsupported(f"constraint {c['name']} of type {c['type']}")
         for i, e in enumerate(model.effects):
             self._effect(i, e)
-        for name in model.redundant:
-            if name not in {c["name"] for c in model.constraints}:
-                raise Unsupported(f"redundant equation '{name}' (a rigid-body or coordinate "
-                                  "equation): exudyn's joints would be redundant too")
         mbs.Assemble()
 
     def _slider(self, c):
