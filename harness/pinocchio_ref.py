@@ -507,8 +507,8 @@ def _rk4(f, q, v, t_end, h, every, record):
     return q, v
 
 
-def generate(scene, t_end: float, sample_dt: float, h: float = 1e-5,
-             **_ignored) -> tuple[tj.Trajectory, dict]:
+def generate(scene, t_end: float, sample_dt: float,
+             h: float = 1e-5) -> tuple[tj.Trajectory, dict]:
     """Forward dynamics of the scene over [0, t_end], sampled every sample_dt."""
     start = time.perf_counter()
     pm = PinocchioModel(scene)
@@ -533,7 +533,13 @@ def generate(scene, t_end: float, sample_dt: float, h: float = 1e-5,
     traj = tj.Trajectory(list(pm.mb.names), np.array(rows_t), Q,
                          np.array([r[1] for r in rows]), np.array([r[2] for r in rows]))
     wall = time.perf_counter() - start
-    max_phi = max(float(np.max(np.abs(pm.mb.phi(qk)))) for qk in traj.q) if pm.mb.m else 0.0
+    mb = pm.mb
+    max_phi = max(float(np.max(np.abs(mb.phi(qk)))) for qk in traj.q) if mb.m else 0.0
+    extra = {}
+    if mb.is_conservative:
+        e = np.array([mb.kinetic_energy(v) + mb.potential_energy(q)
+                      for q, v in zip(traj.q, traj.dq)])
+        extra["max_energy_drift_J"] = float(np.max(np.abs(e - e[0])))
     if pm.loops:
         formulation = "constraintDynamics (CONTACT_3D loop closures) + RK4"
         settings = {"h": h, "mu": PROX_MU, "prox_accuracy": PROX_ACCURACY,
@@ -545,8 +551,8 @@ def generate(scene, t_end: float, sample_dt: float, h: float = 1e-5,
         settings = {"h": h}
     prov = tj.provenance("pinocchio", scene, formulation, settings, wall, packages=("pin",),
                          joints=[pm.model.names[j] for j in range(1, pm.model.njoints)],
-                         max_phi=max_phi, max_loop_gap_m=loop_gap[0],
-                         sample_dt=sample_dt, t_end=t_end)
+                         max_abs_phi=max_phi, max_loop_gap_m=loop_gap[0],
+                         sample_dt=sample_dt, t_end=t_end, **extra)
     return traj, prov
 
 
@@ -645,7 +651,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="output CSV (.gz compresses)")
     args = ap.parse_args(argv)
     out = pathlib.Path(args.out)
-    base = out.name.split(".")[0]
+    base = out.name.removesuffix(".gz").removesuffix(".csv")
     try:
         if args.inverse:
             start = time.perf_counter()
