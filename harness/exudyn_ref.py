@@ -525,7 +525,7 @@ def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_a
     if solver == "generalized_alpha":
         settings["spectral_radius"] = spectral_radius
     record = tj.provenance(
-        "exudyn_ref", scene,
+        "exudyn", scene,
         "exudyn rigid bodies (x, y, psi per body; ObjectRigidBody2D), RevoluteJoint2D / "
         "PrismaticJoint2D constraints, "
         + ("index 2 (trapezoidal)" if solver == "trapezoidal_index2" else "index 3 (generalized-alpha)"),

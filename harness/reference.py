@@ -31,21 +31,24 @@ REFERENCES = ROOT / "references"
 # dt < 1 ms at these).
 SAMPLE_DT = 1e-3
 
-IDA = ("ida", {"formulation": "ggl", "rtol": 1e-12})
+# rtol 1e-14: 1.6e-11 m on the four-bar over 5 s against a minimal-coordinate ODE
+# (1e-12 gives 1.9e-9 m), about 3 s per scene.
+IDA = ("ida", {"formulation": "ggl", "rtol": 1e-14})
 EXUDYN = ("exudyn_ref", {"solver": "generalized_alpha", "h": 1e-5})
 PINOCCHIO = ("pinocchio_ref", {"h": 1e-5})
 
-# scene → horizon, the generator that writes the reference, the one that checks it.
+# scene → horizon, the generator that writes the reference, those that check it.
 SUITE = {
-    "fourbar": (5.0, IDA, EXUDYN),
-    "fourbar-theta": (5.0, IDA, EXUDYN),
-    "pendulum": (5.0, IDA, PINOCCHIO),
-    "double-pendulum": (5.0, IDA, PINOCCHIO),
-    "spring-damper": (5.0, IDA, EXUDYN),
-    "slider-crank": (5.0, IDA, EXUDYN),
-    "slotted-lever": (5.0, IDA, ("ida", {"formulation": "index3", "rtol": 1e-10})),
+    "fourbar": (5.0, IDA, [PINOCCHIO, EXUDYN]),
+    "fourbar-theta": (5.0, IDA, [EXUDYN]),
+    "pendulum": (5.0, IDA, [PINOCCHIO]),
+    "double-pendulum": (5.0, IDA, [PINOCCHIO]),
+    "spring-damper": (5.0, IDA, [EXUDYN]),
+    "slider-crank": (5.0, IDA, [EXUDYN]),
+    "slotted-lever": (5.0, IDA, [EXUDYN]),
     # Falls into a singular configuration after ~1.3 s: the reference stops before.
-    "pick-and-place": (1.0, IDA, ("ida", {"formulation": "index3", "rtol": 1e-10})),
+    # IDA's corrector fails at rtol ≤ 1e-13 on this 22-coordinate model (t ≈ 0.3 s).
+    "pick-and-place": (1.0, ("ida", {"formulation": "ggl", "rtol": 1e-12}), [PINOCCHIO]),
 }
 
 
@@ -77,24 +80,28 @@ def run(generator: tuple[str, dict], scene: pathlib.Path, t_end: float):
 
 def generate(name: str, out_dir: pathlib.Path) -> dict:
     """Writes one scene's reference and provenance into out_dir; returns the provenance."""
-    t_end, primary, check = SUITE[name]
+    t_end, primary, checks = SUITE[name]
     scene = ROOT / "scenes" / f"{name}.yaml"
     model = mbfg.load(scene)
     print(f"{name}: {primary[0]} {primary[1]} over {t_end} s …", flush=True)
     truth, prov, wall = run(primary, scene, t_end)
-    print(f"{name}:   done in {wall:.1f} s; cross-check with {check[0]} {check[1]} …", flush=True)
-    try:
-        other, other_prov, other_wall = run(check, scene, t_end)
-        diff = disagreement(model, truth, other)
-        prov["cross_check"] = {"generator": other_prov.get("generator", check[0]),
-                               "formulation": other_prov.get("formulation"),
-                               "settings": other_prov.get("settings", check[1]),
-                               "wall_time_s": other_wall, **diff}
-        print(f"{name}:   done in {other_wall:.1f} s; disagreement max {diff['max_m']:.2e} m, "
-              f"RMSE {diff['rmse_m']:.2e} m", flush=True)
-    except tj.Unsupported as e:
-        prov["cross_check"] = {"generator": check[0], "refused": str(e)}
-        print(f"{name}:   {check[0]} refuses the scene: {e}", flush=True)
+    print(f"{name}:   done in {wall:.1f} s", flush=True)
+    prov["cross_checks"] = []
+    for check in checks:
+        print(f"{name}:   cross-check with {check[0]} {check[1]} …", flush=True)
+        try:
+            other, other_prov, other_wall = run(check, scene, t_end)
+            diff = disagreement(model, truth, other)
+            prov["cross_checks"].append({
+                "generator": other_prov.get("generator", check[0]),
+                "formulation": other_prov.get("formulation"),
+                "settings": other_prov.get("settings", check[1]),
+                "wall_time_s": other_wall, **diff})
+            print(f"{name}:   done in {other_wall:.1f} s; disagreement max {diff['max_m']:.2e} m, "
+                  f"RMSE {diff['rmse_m']:.2e} m", flush=True)
+        except tj.Unsupported as e:
+            prov["cross_checks"].append({"generator": check[0], "refused": str(e)})
+            print(f"{name}:   {check[0]} refuses the scene: {e}", flush=True)
     prov["sample_dt"] = SAMPLE_DT
     prov["t_end"] = t_end
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -123,9 +130,9 @@ def check(names: list[str]) -> int:
 
 
 def tolerance(prov: dict) -> float:
-    """What a reference claims: its cross-check disagreement, at least 1e-10 m."""
-    cc = prov.get("cross_check", {})
-    return max(cc.get("max_m", 1e-10), 1e-10)
+    """What a reference claims: its closest cross-check's disagreement, at least 1e-10 m."""
+    found = [c["max_m"] for c in prov.get("cross_checks", []) if "max_m" in c]
+    return max(min(found, default=1e-10), 1e-10)
 
 
 def main(argv=None) -> int:

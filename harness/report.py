@@ -108,11 +108,11 @@ def fmt(v, spec=".2e"):
 
 def scene_table(title, ref, prov, rows, t_end) -> str:
     fourbar = ref == "fourbar"
-    cc = prov.get("cross_check", {})
+    checks = ", ".join(f"{c['generator']} (max {fmt(c.get('max_m'))} m)"
+                       for c in prov.get("cross_checks", []) if "max_m" in c) or "—"
     lines = [f"## {title}\n",
              f"{t_end:g} s at dt = 1 ms, trapezoidal, default noise models. Reference: "
-             f"{prov['generator']} ({prov.get('formulation', '')}), cross-checked by "
-             f"{cc.get('generator', '—')} (disagreement max {fmt(cc.get('max_m'))} m).\n"]
+             f"{prov['generator']} ({prov.get('formulation', '')}), cross-checked by {checks}.\n"]
     head = "| N_w | DC RMSE (m) | IC RMSE (m) |" + (" paper DC | paper IC |" if fourbar else "")
     head += " worst \\|Φ\\| DC / IC | energy drift DC / IC (J) | LM iter. DC / IC | time DC / IC |"
     lines += [head, "|" + "---|" * (head.count("|") - 1)]

@@ -205,7 +205,7 @@ impl PyModel {
     #[getter]
     fn effects<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
         let list = PyList::empty(py);
-        let coordinate = |i: usize| self.model.names[i].clone();
+        let coordinate = |i: usize| self.model.names[self.model.relative_offset + i].clone();
         for e in &self.model.scene.effects {
             let d = PyDict::new(py);
             match e {

@@ -124,7 +124,7 @@ def test_cli_writes_trajectory_and_provenance(tmp_path):
     traj = tj.read(out)
     assert traj.names == ["P.x", "P.y", "theta"] and len(traj.t) == 11
     prov = json.loads((tmp_path / "pendulum.json").read_text())
-    assert prov["generator"] == "exudyn_ref" and prov["settings"]["solver"] == "trapezoidal_index2"
+    assert prov["generator"] == "exudyn" and prov["settings"]["solver"] == "trapezoidal_index2"
     assert prov["steps"] == 100 and "exudyn" in prov["versions"]
 
 
