@@ -27,6 +27,10 @@ def rows():
         for c, scene in [("dc", dc_scene), ("ic", ic_scene)]:
             if c == "ic" and not mbfg.load(report.scene_path(scene)).independent:
                 continue
+            # IC on the robot leaves its assembly branch for N_w ≥ 2 (RMSE 3e-4 to
+            # 7e-2 m, reports/forward.md): a bound there would lock in a wrong answer.
+            if (c, ref) == ("ic", "pick-and-place"):
+                continue
             for w in WINDOWS:
                 yield scene, ref, c, w, 1e-3, t_end
     # The dt² trend of the paper's four-bar.
