@@ -4,7 +4,9 @@
 //! which keeps the normal equations' condition number that of the soft factors alone.
 //!
 //! Equations with a single nonzero (priors on components, prescribed values, forces
-//! fixed at zero) fix their unknown outright and are taken out first. The rest go
+//! fixed at zero) fix their unknown outright and are taken out first; unknowns no
+//! equation touches (the accelerations under position and velocity constraints) are
+//! free outright, a unit basis vector each, and stay out of the QR. The rest go
 //! through a Householder QR with column pivoting of Cᵀ restricted to the unknowns left
 //! (one column per equation), which reveals the rank, so redundant equations
 //! (over-constrained mechanisms, or the initial priors together with the constraints
@@ -21,9 +23,11 @@ pub struct NullSpace {
     rows: usize,
     /// Per unknown: the unit equation fixing it, if any.
     fixed: Vec<Option<usize>>,
-    /// Unknowns not fixed by unit equations, and the other equations.
+    /// Unknowns neither fixed by unit equations nor untouched by the others (those
+    /// the QR sees), the other equations, and the unknowns no equation touches.
     free: Vec<usize>,
     others: Vec<usize>,
+    untouched: Vec<usize>,
     /// Cᵀ[free, others] column-major (stride free.len()), overwritten by the QR.
     a: Vec<f64>,
     rdiag: Vec<f64>,
@@ -55,6 +59,7 @@ impl NullSpace {
             fixed: vec![None; s],
             free: Vec::with_capacity(s),
             others: Vec::with_capacity(max_rows),
+            untouched: Vec::with_capacity(s),
             a: vec![0.0; s * max_rows],
             rdiag: vec![0.0; s.min(max_rows)],
             beta: vec![0.0; s.min(max_rows)],
@@ -81,8 +86,9 @@ impl NullSpace {
         self.particular.fill(0.0);
         self.fixed.fill(None);
         self.free.clear();
-        self.free.extend(0..s);
         self.others.clear();
+        self.untouched.clear();
+        self.untouched.extend(0..s);
         self.rows = 0;
         self.dim = s;
         self.rank = 0;
@@ -119,9 +125,15 @@ impl NullSpace {
             }
         }
         self.free.clear();
+        self.untouched.clear();
         for i in 0..s {
-            if self.fixed[i].is_none() {
+            if self.fixed[i].is_some() {
+                continue;
+            }
+            if self.others.iter().any(|&j| c[j * s + i] != 0.0) {
                 self.free.push(i);
+            } else {
+                self.untouched.push(i);
             }
         }
         let sf = self.free.len();
@@ -141,13 +153,14 @@ impl NullSpace {
             &mut self.perm,
             &mut self.norms,
         );
-        let fixed_count = s - sf;
+        let fixed_count = s - sf - self.untouched.len();
         self.rank = fixed_count + rank;
-        self.dim = sf - rank;
+        self.dim = sf - rank + self.untouched.len();
         let mut p = std::mem::take(&mut self.particular);
         self.solve(b, &mut p);
         self.particular = p;
-        // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones.
+        // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones,
+        // then a unit vector per untouched unknown.
         self.basis.fill(0.0);
         for j in rank..sf {
             self.w[..sf].fill(0.0);
@@ -156,6 +169,9 @@ impl NullSpace {
             for (a, &i) in self.free.iter().enumerate() {
                 self.basis[i * s + (j - rank)] = self.w[a];
             }
+        }
+        for (u, &i) in self.untouched.iter().enumerate() {
+            self.basis[i * s + sf - rank + u] = 1.0;
         }
     }
 
@@ -171,7 +187,7 @@ impl NullSpace {
             }
         }
         let sf = self.free.len();
-        let rank = self.rank - (s - sf);
+        let rank = self.rank - (s - sf - self.untouched.len());
         // The other equations on the free unknowns: b − C[:, fixed] x_fixed.
         for (k, &j) in self.others.iter().enumerate() {
             let row = &self.c[j * s..(j + 1) * s];
