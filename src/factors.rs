@@ -354,7 +354,7 @@ impl KernelLayout {
         let big = n + ma;
         let sol = big * big;
         let tmp = sol + big;
-        let mat = tmp + big;
+        let mat = tmp + 2 * n * big;
         let kq = mat + m * n;
         let kv = kq + n * n;
         let cols = kv + n * n;
@@ -460,45 +460,40 @@ impl DynamicsKernel {
             *t = -l;
         }
         model.add_weighted_hessians(q, &tmp[..ma], kq);
+        // The right-hand sides, row-major big × 2n: n columns for q, then n for q̇.
+        let w = 2 * n;
+        for i in 0..n {
+            cols[i * w..i * w + n].copy_from_slice(&kq[i * n..(i + 1) * n]);
+            cols[i * w + n..(i + 1) * w].copy_from_slice(&kv[i * n..(i + 1) * n]);
+        }
         // Bottom rows for q: −∂(Φ̇_q q̇)/∂q − Φ_qq q̈.
         model.third_order_into(q, dq, mat);
-        for j in 0..n {
-            let col = &mut cols[j * big..(j + 1) * big];
-            for i in 0..n {
-                col[i] = kq[i * n + j];
+        for (r, &k) in model.active.iter().enumerate() {
+            let row = &mut cols[(n + r) * w..(n + r) * w + n];
+            for (o, v) in row.iter_mut().zip(&mat[k * n..(k + 1) * n]) {
+                *o = -v;
             }
         }
         let ddq_now: &[f64] = ddq;
-        for (r, &k) in model.active.iter().enumerate() {
-            for j in 0..n {
-                cols[j * big + n + r] = -mat[k * n + j];
-            }
-        }
         model.jacobian_derivative_into(q, ddq_now, mat);
         for (r, &k) in model.active.iter().enumerate() {
-            for j in 0..n {
-                cols[j * big + n + r] -= mat[k * n + j];
+            let row = &mut cols[(n + r) * w..(n + r) * w + n];
+            for (o, v) in row.iter_mut().zip(&mat[k * n..(k + 1) * n]) {
+                *o -= v;
             }
         }
-        // Columns for q̇: [∂Q/∂q̇; −2 Φ̇_q].
+        // Bottom rows for q̇: −2 Φ̇_q.
         model.jacobian_derivative_into(q, dq, mat);
-        for j in 0..n {
-            let col = &mut cols[(n + j) * big..(n + j + 1) * big];
-            for i in 0..n {
-                col[i] = kv[i * n + j];
-            }
-            for (r, &k) in model.active.iter().enumerate() {
-                col[n + r] = -2.0 * mat[k * n + j];
+        for (r, &k) in model.active.iter().enumerate() {
+            let row = &mut cols[(n + r) * w + n..(n + r + 1) * w];
+            for (o, v) in row.iter_mut().zip(&mat[k * n..(k + 1) * n]) {
+                *o = -2.0 * v;
             }
         }
-        for j in 0..2 * n {
-            dense::lu_solve(kkt, big, perm, &mut cols[j * big..(j + 1) * big], tmp);
-        }
+        dense::lu_solve_many(kkt, big, perm, &mut cols[..big * w], w, tmp);
         for i in 0..n {
-            for j in 0..n {
-                jq[i * n + j] = cols[j * big + i];
-                jv[i * n + j] = cols[(n + j) * big + i];
-            }
+            jq[i * n..(i + 1) * n].copy_from_slice(&cols[i * w..i * w + n]);
+            jv[i * n..(i + 1) * n].copy_from_slice(&cols[i * w + n..(i + 1) * w]);
         }
         Ok(())
     }
@@ -516,15 +511,13 @@ impl DynamicsKernel {
         let (tmp, rest) = rest.split_at_mut(l.mat - l.tmp);
         let (_, rest) = rest.split_at_mut(l.cols - l.mat);
         let (cols, _) = rest.split_at_mut(l.c - l.cols);
-        let col = &mut cols[..big];
+        let rhs = &mut cols[..big * n];
+        rhs.fill(0.0);
         for j in 0..n {
-            col.fill(0.0);
-            col[j] = 1.0;
-            dense::lu_solve(kkt, big, perm, col, tmp);
-            for i in 0..n {
-                jf[i * n + j] = col[i];
-            }
+            rhs[j * n + j] = 1.0;
         }
+        dense::lu_solve_many(kkt, big, perm, rhs, n, tmp);
+        jf[..n * n].copy_from_slice(&rhs[..n * n]);
     }
 }
 
