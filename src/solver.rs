@@ -606,16 +606,18 @@ impl WindowSolver {
                         if v == 0.0 {
                             continue;
                         }
-                        for (o, nv) in out.iter_mut().zip(&red.basis[k * s..k * s + dim]) {
+                        let (start, nrow) = red.row(k);
+                        for (o, nv) in out[start..].iter_mut().zip(nrow) {
                             *o += v * nv;
                         }
                     }
                 }
                 let h0 = self.h.diag_mut(0);
                 for k in 0..s {
-                    let nrow = &red.basis[k * s..k * s + dim];
+                    let (start, nrow) = red.row(k);
                     let lrow = &ln[k * dim..(k + 1) * dim];
                     for (a, &na) in nrow.iter().enumerate() {
+                        let a = start + a;
                         if na == 0.0 {
                             continue;
                         }
@@ -728,8 +730,12 @@ impl WindowSolver {
                 let x = &mut window[b * s..(b + 1) * s];
                 for i in 0..s {
                     let p = red.particular[i];
-                    let nrow = &red.basis[i * s..i * s + red.dim];
-                    let step = p + nrow.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+                    let (start, nrow) = red.row(i);
+                    let step = p + nrow
+                        .iter()
+                        .zip(&y[start..])
+                        .map(|(a, b)| a * b)
+                        .sum::<f64>();
                     let scale = 1.0 + x[i].abs();
                     largest = largest.max(step.abs() / scale);
                     restored &= p.abs() <= self.settings.step_tolerance * scale;
@@ -902,12 +908,15 @@ impl WindowSolver {
         crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut w[..d0]);
         let mut information = vec![0.0; ss];
         let mut eta = vec![0.0; s];
+        // Λ is symmetric (H₁₁ and YᵀY are, to the bit): one triangle, mirrored.
         for i in 0..s {
             let yi = &h10[i * s..i * s + d0];
-            for j in 0..s {
+            for j in 0..=i {
                 let yj = &h10[j * s..j * s + d0];
                 let yy: f64 = yi.iter().zip(yj).map(|(a, b)| a * b).sum();
-                information[i * s + j] = h11[i * s + j] - yy;
+                let v = h11[i * s + j] - yy;
+                information[i * s + j] = v;
+                information[j * s + i] = v;
             }
             let yw: f64 = yi.iter().zip(&w[..d0]).map(|(a, b)| a * b).sum();
             eta[i] = g01[s + i] - yw;
@@ -1002,8 +1011,8 @@ impl WindowSolver {
                         if k.lag == 0 {
                             self.reduced[0][r * s + off + j] += v;
                         } else {
-                            let nrow = &red.basis[(off + j) * s..(off + j) * s + d0];
-                            let out = &mut self.reduced[1][r * s..r * s + d0];
+                            let (start, nrow) = red.row(off + j);
+                            let out = &mut self.reduced[1][r * s + start..r * s + d0];
                             for (o, nv) in out.iter_mut().zip(nrow) {
                                 *o += v * nv;
                             }
@@ -1080,8 +1089,8 @@ fn reduce_factor(
                     continue;
                 }
                 shifted[r] += v * red.particular[off + j];
-                let nrow = &red.basis[(off + j) * s..(off + j) * s + red.dim];
-                for (o, nv) in row.iter_mut().zip(nrow) {
+                let (start, nrow) = red.row(off + j);
+                for (o, nv) in row[start..].iter_mut().zip(nrow) {
                     *o += v * nv;
                 }
             }

@@ -38,6 +38,9 @@ pub struct NullSpace {
     rhs: Vec<f64>,
     /// s × s row-major; columns 0..dim hold an orthonormal null-space basis, the rest 0.
     pub basis: Vec<f64>,
+    /// Per row of the basis, the columns [start, end) outside which it is 0 (fixed
+    /// unknowns: none; untouched ones: their unit column; the rest: the QR's columns).
+    span: Vec<(usize, usize)>,
     /// The least-norm solution of the independent equations (exact on fixed unknowns).
     pub particular: Vec<f64>,
     /// Dimension of the null space.
@@ -68,6 +71,7 @@ impl NullSpace {
             w: vec![0.0; s],
             rhs: vec![0.0; max_rows],
             basis: vec![0.0; s * s],
+            span: vec![(0, 0); s],
             particular: vec![0.0; s],
             dim: s,
             rank: 0,
@@ -82,6 +86,7 @@ impl NullSpace {
         self.basis.fill(0.0);
         for i in 0..s {
             self.basis[i * s + i] = 1.0;
+            self.span[i] = (i, i + 1);
         }
         self.particular.fill(0.0);
         self.fixed.fill(None);
@@ -170,9 +175,23 @@ impl NullSpace {
                 self.basis[i * s + (j - rank)] = self.w[a];
             }
         }
-        for (u, &i) in self.untouched.iter().enumerate() {
-            self.basis[i * s + sf - rank + u] = 1.0;
+        self.span.fill((0, 0));
+        for &i in &self.free {
+            self.span[i] = (0, sf - rank);
         }
+        for (u, &i) in self.untouched.iter().enumerate() {
+            let col = sf - rank + u;
+            self.basis[i * s + col] = 1.0;
+            self.span[i] = (col, col + 1);
+        }
+    }
+
+    /// Row i of the basis where it may be nonzero: (first column, entries). Products
+    /// with N skip the rest, which is most of it (one entry per untouched unknown,
+    /// none per fixed one).
+    pub fn row(&self, i: usize) -> (usize, &[f64]) {
+        let (start, end) = self.span[i];
+        (start, &self.basis[i * self.s + start..i * self.s + end])
     }
 
     /// The least-norm solution x (length s) of the independent equations of the last
@@ -352,6 +371,14 @@ mod tests {
                 .into_owned();
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
+            for i in 0..s {
+                let (start, row) = ns.row(i);
+                for j in 0..s {
+                    let inside = j >= start && j < start + row.len();
+                    let v = if inside { row[j - start] } else { 0.0 };
+                    assert_eq!(v, ns.basis[i * s + j], "row {i} of N outside its span");
+                }
+            }
             let ntn = n.transpose() * &n;
             assert!(
                 (ntn - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12,
