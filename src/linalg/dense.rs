@@ -98,19 +98,19 @@ pub fn lu(a: &mut [f64], n: usize, perm: &mut [usize]) -> Result<(), DenseError>
         if !(best > tol) {
             return Err(DenseError::Singular(k));
         }
+        let (top, bottom) = a[..n * n].split_at_mut((k + 1) * n);
+        let pivot = &mut top[k * n..];
         if piv != k {
-            for j in 0..n {
-                a.swap(k * n + j, piv * n + j);
-            }
+            pivot.swap_with_slice(&mut bottom[(piv - k - 1) * n..(piv - k) * n]);
             perm.swap(k, piv);
         }
-        let d = a[k * n + k];
-        for i in k + 1..n {
-            let f = a[i * n + k] / d;
-            a[i * n + k] = f;
+        let d = pivot[k];
+        for row in bottom.chunks_exact_mut(n) {
+            let f = row[k] / d;
+            row[k] = f;
             if f != 0.0 {
-                for j in k + 1..n {
-                    a[i * n + j] -= f * a[k * n + j];
+                for (x, p) in row[k + 1..].iter_mut().zip(&pivot[k + 1..]) {
+                    *x -= f * p;
                 }
             }
         }

@@ -189,6 +189,7 @@ impl NullSpace {
     /// Row i of the basis where it may be nonzero: (first column, entries). Products
     /// with N skip the rest, which is most of it (one entry per untouched unknown,
     /// none per fixed one).
+    #[inline]
     pub fn row(&self, i: usize) -> (usize, &[f64]) {
         let (start, end) = self.span[i];
         (start, &self.basis[i * self.s + start..i * self.s + end])
