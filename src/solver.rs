@@ -507,11 +507,9 @@ impl WindowSolver {
                     .reduction
                     .reduce(&block.jac, &block.rhs[..block.rows], block.rows);
             }
-            self.h.reset(blocks);
             // Directions the hard equations fix carry no unknown.
-            for b in 0..blocks {
-                self.h.set_dim(b, self.hard[b].reduction.dim);
-            }
+            let hard = &self.hard;
+            self.h.reset_active(blocks, |b| hard[b].reduction.dim);
             self.g[..blocks * s].fill(0.0);
         }
         for i in 0..self.instances.len() {
@@ -1070,8 +1068,15 @@ fn reduce_factor(
     s: usize,
 ) {
     let dim = buf.r.len();
-    reduced[0][..dim * s].fill(0.0);
-    reduced[1][..dim * s].fill(0.0);
+    // Only the columns of the blocks' null spaces are filled and read.
+    for (lag, part) in reduced.iter_mut().enumerate() {
+        if lag <= step {
+            let width = hard[step - lag].reduction.dim;
+            for r in 0..dim {
+                part[r * s..r * s + width].fill(0.0);
+            }
+        }
+    }
     shifted[..dim].copy_from_slice(&buf.r);
     for (a, k) in keys.iter().enumerate() {
         let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));

@@ -159,6 +159,8 @@ impl NullSpace {
             &mut self.norms,
         );
         let fixed_count = s - sf - self.untouched.len();
+        // Columns that may hold a basis vector from before (past them all is 0).
+        let stale = self.dim;
         self.rank = fixed_count + rank;
         self.dim = sf - rank + self.untouched.len();
         let mut p = std::mem::take(&mut self.particular);
@@ -166,7 +168,10 @@ impl NullSpace {
         self.particular = p;
         // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones,
         // then a unit vector per untouched unknown.
-        self.basis.fill(0.0);
+        let width = stale.max(self.dim);
+        for row in self.basis.chunks_exact_mut(s) {
+            row[..width].fill(0.0);
+        }
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
