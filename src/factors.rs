@@ -499,9 +499,15 @@ impl DynamicsKernel {
     }
 
     /// ∂q̈/∂Q (row-major n × n) with the factors a preceding [`DynamicsKernel::evaluate`]
-    /// left in the scratch: the first n rows of K⁻¹[I; 0], one pair of triangular
-    /// solves per column.
-    pub fn force_jacobian(model: &Model, jf: &mut [f64], reals: &mut [f64], indices: &[usize]) {
+    /// left in the scratch: the first n rows of K⁻¹[I; 0], for the listed `columns`
+    /// only (forces acting on those coordinates); the other columns are 0.
+    pub fn force_jacobian(
+        model: &Model,
+        columns: &[usize],
+        jf: &mut [f64],
+        reals: &mut [f64],
+        indices: &[usize],
+    ) {
         let l = KernelLayout::new(model);
         let (n, ma) = (l.n, l.ma);
         let big = n + ma;
@@ -511,13 +517,19 @@ impl DynamicsKernel {
         let (tmp, rest) = rest.split_at_mut(l.mat - l.tmp);
         let (_, rest) = rest.split_at_mut(l.cols - l.mat);
         let (cols, _) = rest.split_at_mut(l.c - l.cols);
-        let rhs = &mut cols[..big * n];
+        let p = columns.len();
+        let rhs = &mut cols[..big * p];
         rhs.fill(0.0);
-        for j in 0..n {
-            rhs[j * n + j] = 1.0;
+        for (c, &j) in columns.iter().enumerate() {
+            rhs[j * p + c] = 1.0;
         }
-        dense::lu_solve_many(kkt, big, perm, rhs, n, tmp);
-        jf[..n * n].copy_from_slice(&rhs[..n * n]);
+        dense::lu_solve_many(kkt, big, perm, rhs, p, tmp);
+        jf[..n * n].fill(0.0);
+        for i in 0..n {
+            for (c, &j) in columns.iter().enumerate() {
+                jf[i * n + j] = rhs[i * p + c];
+            }
+        }
     }
 }
 
@@ -528,7 +540,51 @@ pub struct Dynamics {
     model: Arc<Model>,
     keys: Vec<Key>,
     noise: Noise,
-    inverse: bool,
+    /// Inverse dynamics: the coordinates the forces Q act on (see [`Actuated`]).
+    actuated: Option<Actuated>,
+}
+
+/// The coordinates an inverse-dynamics factor's forces Q act on: all of them, or the
+/// listed ones, the other entries of Q then taking no part (their ∂e/∂Q columns are
+/// 0, which spares a pair of triangular solves per column).
+#[derive(Debug, Clone)]
+struct Actuated {
+    all: bool,
+    indices: Vec<usize>,
+}
+
+impl Actuated {
+    fn all(n: usize) -> Self {
+        Actuated {
+            all: true,
+            indices: (0..n).collect(),
+        }
+    }
+
+    fn only(n: usize, mut indices: Vec<usize>) -> Self {
+        indices.sort_unstable();
+        indices.dedup();
+        assert!(
+            indices.iter().all(|&i| i < n),
+            "an actuated coordinate past q"
+        );
+        Actuated {
+            all: indices.len() == n,
+            indices,
+        }
+    }
+
+    /// The forces that act: Q itself, or Q with the other entries zeroed into `own`.
+    fn forces<'a>(&self, q: &'a [f64], own: &'a mut [f64]) -> &'a [f64] {
+        if self.all {
+            return q;
+        }
+        own.fill(0.0);
+        for &i in &self.indices {
+            own[i] = q[i];
+        }
+        own
+    }
 }
 
 impl Dynamics {
@@ -541,22 +597,31 @@ impl Dynamics {
                 Key::now(VarKind::Ddq),
             ],
             noise,
-            inverse: false,
+            actuated: None,
         }
     }
 
-    /// f^d_idyn.
+    /// f^d_idyn, with forces on every coordinate.
     pub fn inverse(model: Arc<Model>, noise: Noise) -> Self {
+        let n = model.n();
         let mut f = Dynamics::new(model, noise);
         f.keys.push(Key::now(VarKind::Force));
-        f.inverse = true;
+        f.actuated = Some(Actuated::all(n));
+        f
+    }
+
+    /// f^d_idyn with forces on the coordinates `actuated` only.
+    pub fn inverse_on(model: Arc<Model>, noise: Noise, actuated: Vec<usize>) -> Self {
+        let n = model.n();
+        let mut f = Dynamics::inverse(model, noise);
+        f.actuated = Some(Actuated::only(n, actuated));
         f
     }
 }
 
 impl Factor for Dynamics {
     fn name(&self) -> &str {
-        if self.inverse {
+        if self.actuated.is_some() {
             "f^d_idyn"
         } else {
             "f^d_dyn"
@@ -567,7 +632,8 @@ impl Factor for Dynamics {
         self.model.n()
     }
     fn scratch(&self) -> (usize, usize) {
-        DynamicsKernel::scratch(&self.model)
+        let (r, i) = DynamicsKernel::scratch(&self.model);
+        (r + self.model.n(), i)
     }
     fn evaluate(
         &self,
@@ -578,7 +644,12 @@ impl Factor for Dynamics {
         ws: &mut Workspace,
     ) -> Result<()> {
         let n = self.model.n();
-        let force = if self.inverse { Some(x[3]) } else { None };
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let force = self
+            .actuated
+            .as_ref()
+            .map(|a| a.forces(x[3], &mut own[..n]));
         match jac {
             Some(j) => {
                 let (jq, rest) = j.split_at_mut(1);
@@ -592,15 +663,16 @@ impl Factor for Dynamics {
                     force,
                     r,
                     Some((&mut jq[0], &mut jv[0])),
-                    &mut ws.reals,
+                    kernel,
                     &mut ws.indices,
                 )?;
                 identity(&mut ja[0], n, -1.0);
-                if self.inverse {
+                if let Some(a) = &self.actuated {
                     DynamicsKernel::force_jacobian(
                         &self.model,
+                        &a.indices,
                         &mut jf[0],
-                        &mut ws.reals,
+                        kernel,
                         &ws.indices,
                     );
                 }
@@ -613,7 +685,7 @@ impl Factor for Dynamics {
                 force,
                 r,
                 None,
-                &mut ws.reals,
+                kernel,
                 &mut ws.indices,
             )?,
         }
@@ -831,11 +903,14 @@ pub struct IndependentDynamics {
     keys: Vec<Key>,
     noise: Noise,
     inverse: bool,
+    /// Every coordinate, the columns of ∂q̈/∂Q (forces act on all of them).
+    all: Vec<usize>,
 }
 
 impl IndependentDynamics {
     pub fn new(model: Arc<Model>, noise: Noise) -> Self {
         IndependentDynamics {
+            all: (0..model.n()).collect(),
             model,
             keys: vec![
                 Key::now(VarKind::Q),
@@ -913,7 +988,7 @@ impl Factor for IndependentDynamics {
             }
             identity(&mut j[2], f, -1.0);
             if self.inverse {
-                DynamicsKernel::force_jacobian(&self.model, jf, kernel, &ws.indices);
+                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, kernel, &ws.indices);
                 for (k, &i) in self.model.independent.iter().enumerate() {
                     j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
                 }
