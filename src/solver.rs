@@ -891,33 +891,53 @@ impl WindowSolver {
         let (h10, rest) = rest.split_at_mut(ss);
         let (h11, rest) = rest.split_at_mut(ss);
         let (g01, rest) = rest.split_at_mut(2 * s);
-        let w = &mut rest[..s];
-        // L₀ = chol(H₀₀) in place; Y = L₀⁻¹H₀₁ in place of H₁₀ (stored transposed:
-        // row j of h10 is column j of H₀₁); w = L₀⁻¹g₀.
+        let (w, rest) = rest.split_at_mut(s);
+        let (y, rest) = rest.split_at_mut(ss);
+        let acc = &mut rest[..s];
+        // L₀ = chol(H₀₀) in place; Y = L₀⁻¹H₀₁ (d0 × s, row-major; row j of h10 is
+        // column j of H₀₁); w = L₀⁻¹g₀.
         crate::linalg::dense::cholesky_strided(h00, d0, s).map_err(|_| {
             Error::Singular(format!(
                 "marginalizing step {k0}: its soft factors leave a direction undetermined"
             ))
         })?;
-        for j in 0..s {
-            crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut h10[j * s..j * s + d0]);
+        // Forward substitution a whole row of Y at a time (the same sums, in the same
+        // order, as one column at a time, but along contiguous rows).
+        for a in 0..d0 {
+            acc.fill(0.0);
+            let (done, row) = y.split_at_mut(a * s);
+            for (l, yk) in h00[a * s..a * s + a].iter().zip(done.chunks_exact(s)) {
+                for (c, v) in acc.iter_mut().zip(yk) {
+                    *c += l * v;
+                }
+            }
+            let lii = h00[a * s + a];
+            for (j, out) in row[..s].iter_mut().enumerate() {
+                *out = (h10[j * s + a] - acc[j]) / lii;
+            }
         }
         w[..d0].copy_from_slice(&g01[..d0]);
         crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut w[..d0]);
+        // Λ = H₁₁ − YᵀY, η = g₁ − Yᵀw. YᵀY is summed over the rows of Y in order, one
+        // triangle (Λ is symmetric, H₁₁ and YᵀY to the bit), then mirrored.
         let mut information = vec![0.0; ss];
         let mut eta = vec![0.0; s];
-        // Λ is symmetric (H₁₁ and YᵀY are, to the bit): one triangle, mirrored.
+        for a in 0..d0 {
+            let ya = &y[a * s..(a + 1) * s];
+            for (i, &yi) in ya.iter().enumerate() {
+                for (o, yj) in information[i * s..=i * s + i].iter_mut().zip(ya) {
+                    *o += yi * yj;
+                }
+                eta[i] += yi * w[a];
+            }
+        }
         for i in 0..s {
-            let yi = &h10[i * s..i * s + d0];
             for j in 0..=i {
-                let yj = &h10[j * s..j * s + d0];
-                let yy: f64 = yi.iter().zip(yj).map(|(a, b)| a * b).sum();
-                let v = h11[i * s + j] - yy;
+                let v = h11[i * s + j] - information[i * s + j];
                 information[i * s + j] = v;
                 information[j * s + i] = v;
             }
-            let yw: f64 = yi.iter().zip(&w[..d0]).map(|(a, b)| a * b).sum();
-            eta[i] = g01[s + i] - yw;
+            eta[i] = g01[s + i] - eta[i];
         }
         // ≥ 0 in exact arithmetic (the least value of a sum of squares); round-off
         // near singular configurations can push it below.
