@@ -57,6 +57,9 @@ impl Factor for Prior {
     fn dim(&self) -> usize {
         self.target.len()
     }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
+    }
     fn evaluate(
         &self,
         _t: f64,
@@ -110,6 +113,9 @@ impl Factor for Equality {
     fn dim(&self) -> usize {
         self.dim
     }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
+    }
     fn evaluate(
         &self,
         _t: f64,
@@ -157,6 +163,9 @@ impl Factor for Euler {
     key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.dim
+    }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
     }
     fn evaluate(
         &self,
@@ -206,6 +215,9 @@ impl Factor for Trapezoidal {
     key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.dim
+    }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
     }
     fn evaluate(
         &self,
@@ -634,6 +646,9 @@ impl Factor for Dynamics {
     fn scratch(&self) -> (usize, usize) {
         let (r, i) = DynamicsKernel::scratch(&self.model);
         (r + self.model.n(), i)
+    }
+    fn diagonal_jacobian(&self, key: usize) -> bool {
+        key == 2
     }
     fn evaluate(
         &self,

@@ -11,7 +11,7 @@
 //! the window solves stall.
 
 use crate::error::{Error, Result};
-use crate::graph::{ChainGraph, Factor, Key, Noise, Workspace};
+use crate::graph::{ChainGraph, Factor, Noise, Workspace};
 use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
 use crate::linalg::nullspace::NullSpace;
 
@@ -538,6 +538,10 @@ impl WindowSolver {
                 if linearize {
                     for (a, k) in keys.iter().enumerate() {
                         let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                        if factor.diagonal_jacobian(a) {
+                            buf.jac[a][r * d + r] *= w;
+                            continue;
+                        }
                         for v in &mut buf.jac[a][r * d..(r + 1) * d] {
                             *v *= w;
                         }
@@ -551,7 +555,7 @@ impl WindowSolver {
                     &mut self.shifted,
                     &self.hard,
                     graph,
-                    keys,
+                    factor,
                     step,
                     buf,
                     s,
@@ -1009,6 +1013,10 @@ impl WindowSolver {
                 }
                 for (a, k) in keys.iter().enumerate() {
                     let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                    if factor.diagonal_jacobian(a) {
+                        buf.jac[a][r * d + r] *= w;
+                        continue;
+                    }
                     for v in &mut buf.jac[a][r * d..(r + 1) * d] {
                         *v *= w;
                     }
@@ -1020,8 +1028,10 @@ impl WindowSolver {
             self.reduced[1][..dim * s].fill(0.0);
             for (a, k) in keys.iter().enumerate() {
                 let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                let diagonal = factor.diagonal_jacobian(a);
                 for r in 0..dim {
-                    for j in 0..d {
+                    let columns = if diagonal { r..r + 1 } else { 0..d };
+                    for j in columns {
                         let v = buf.jac[a][r * d + j];
                         if v == 0.0 {
                             continue;
@@ -1082,11 +1092,12 @@ fn reduce_factor(
     shifted: &mut [f64],
     hard: &[HardBlock],
     graph: &ChainGraph,
-    keys: &[Key],
+    factor: &dyn Factor,
     step: usize,
     buf: &FactorBuffers,
     s: usize,
 ) {
+    let keys = factor.keys();
     let dim = buf.r.len();
     // Only the columns of the blocks' null spaces are filled and read.
     for (lag, part) in reduced.iter_mut().enumerate() {
@@ -1106,9 +1117,11 @@ fn reduce_factor(
         let red = &hard[step - k.lag].reduction;
         let out = &mut reduced[k.lag];
         let jac = &buf.jac[a];
+        let diagonal = factor.diagonal_jacobian(a);
         for r in 0..dim {
             let row = &mut out[r * s..r * s + red.dim];
-            for j in 0..d {
+            let columns = if diagonal { r..r + 1 } else { 0..d };
+            for j in columns {
                 let v = jac[r * d + j];
                 if v == 0.0 {
                     continue;

@@ -203,6 +203,18 @@ fn check_factor(name: &str, factor: &dyn Factor, xs: &[Vec<f64>], t: f64) -> f64
         full.r
     );
     for (k, block) in jac.iter().enumerate() {
+        // A block declared diagonal (the solver reads only its diagonal) must be.
+        if factor.diagonal_jacobian(k) {
+            let n = xs[k].len();
+            assert_eq!(n, dim, "{name}: a diagonal ∂r/∂x{k} must be square");
+            let off = (0..dim * n).find(|&i| i / n != i % n && block[i] != 0.0);
+            assert!(
+                off.is_none(),
+                "{name}: ∂r/∂{} declared diagonal has entry {:?} off it",
+                key_label(&factor.keys()[k]),
+                off.map(|i| (i / n, i % n))
+            );
+        }
         if let Some(i) = block.iter().position(|v| !v.is_finite()) {
             let n = xs[k].len();
             panic!(
