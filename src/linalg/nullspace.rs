@@ -28,6 +28,8 @@ pub struct NullSpace {
     free: Vec<usize>,
     others: Vec<usize>,
     untouched: Vec<usize>,
+    /// The unknowns unit equations fix, ascending.
+    pinned: Vec<usize>,
     /// Cᵀ[free, others] column-major (stride free.len()), overwritten by the QR.
     a: Vec<f64>,
     rdiag: Vec<f64>,
@@ -63,6 +65,7 @@ impl NullSpace {
             free: Vec::with_capacity(s),
             others: Vec::with_capacity(max_rows),
             untouched: Vec::with_capacity(s),
+            pinned: Vec::with_capacity(s),
             a: vec![0.0; s * max_rows],
             rdiag: vec![0.0; s.min(max_rows)],
             beta: vec![0.0; s.min(max_rows)],
@@ -94,6 +97,7 @@ impl NullSpace {
         self.others.clear();
         self.untouched.clear();
         self.untouched.extend(0..s);
+        self.pinned.clear();
         self.rows = 0;
         self.dim = s;
         self.rank = 0;
@@ -131,8 +135,10 @@ impl NullSpace {
         }
         self.free.clear();
         self.untouched.clear();
+        self.pinned.clear();
         for i in 0..s {
             if self.fixed[i].is_some() {
+                self.pinned.push(i);
                 continue;
             }
             if self.others.iter().any(|&j| c[j * s + i] != 0.0) {
@@ -206,7 +212,7 @@ impl NullSpace {
     pub fn solve(&mut self, b: &[f64], x: &mut [f64]) {
         let s = self.s;
         x.fill(0.0);
-        for i in 0..s {
+        for &i in &self.pinned {
             if let Some(j) = self.fixed[i] {
                 x[i] = b[j] / self.c[j * s + i];
             }
@@ -217,10 +223,8 @@ impl NullSpace {
         for (k, &j) in self.others.iter().enumerate() {
             let row = &self.c[j * s..(j + 1) * s];
             let mut v = b[j];
-            for i in 0..s {
-                if self.fixed[i].is_some() {
-                    v -= row[i] * x[i];
-                }
+            for &i in &self.pinned {
+                v -= row[i] * x[i];
             }
             self.rhs[k] = v;
         }
