@@ -117,15 +117,24 @@ pub struct LinearPrior {
     pub xbar: Vec<f64>,
 }
 
-/// Buffers of one factor: residual and Jacobian blocks.
+/// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
 struct FactorBuffers {
     r: Vec<f64>,
     jac: Vec<Vec<f64>>,
+    weights: Vec<f64>,
+    /// Per key, the size of its variable.
+    sizes: Vec<usize>,
 }
 
 impl FactorBuffers {
     fn new(graph: &ChainGraph, f: &dyn Factor) -> Self {
         FactorBuffers {
+            weights: (0..f.dim()).map(|r| f.noise().weight(r)).collect(),
+            sizes: f
+                .keys()
+                .iter()
+                .map(|k| graph.layout.slot(k.kind).map_or(0, |(_, d)| d))
+                .collect(),
             r: vec![0.0; f.dim()],
             jac: f
                 .keys()
@@ -135,6 +144,33 @@ impl FactorBuffers {
                     vec![0.0; f.dim() * d]
                 })
                 .collect(),
+        }
+    }
+
+    /// Divides the residual's rows, and with `jacobians` the Jacobians' rows, by their
+    /// σ (a diagonal Jacobian block only on its diagonal: the rest is 0).
+    fn whiten(&mut self, factor: &dyn Factor, jacobians: bool) {
+        for (r, w) in self.r.iter_mut().zip(&self.weights) {
+            *r *= w;
+        }
+        if !jacobians {
+            return;
+        }
+        for (a, (jac, &d)) in self.jac.iter_mut().zip(&self.sizes).enumerate() {
+            if d == 0 {
+                continue;
+            }
+            if factor.diagonal_jacobian(a) {
+                for (r, w) in self.weights.iter().enumerate() {
+                    jac[r * d + r] *= w;
+                }
+                continue;
+            }
+            for (row, w) in jac.chunks_exact_mut(d).zip(&self.weights) {
+                for v in row {
+                    *v *= w;
+                }
+            }
         }
     }
 }
@@ -524,28 +560,14 @@ impl WindowSolver {
             } else {
                 &mut self.step_buffers[inst.index]
             };
-            let noise = factor.noise();
             let keys = factor.keys();
             let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
-            for r in 0..factor.dim() {
-                let w = noise.weight(r);
-                buf.r[r] *= w;
-                let c = 0.5 * buf.r[r] * buf.r[r];
+            buf.whiten(factor, linearize);
+            for r in &buf.r {
+                let c = 0.5 * r * r;
                 cost += c;
                 if touches_first {
                     cost_first += c;
-                }
-                if linearize {
-                    for (a, k) in keys.iter().enumerate() {
-                        let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
-                        if factor.diagonal_jacobian(a) {
-                            buf.jac[a][r * d + r] *= w;
-                            continue;
-                        }
-                        for v in &mut buf.jac[a][r * d..(r + 1) * d] {
-                            *v *= w;
-                        }
-                    }
                 }
             }
             if linearize {
@@ -696,10 +718,11 @@ impl WindowSolver {
         let mut iterations = 0;
         while iterations < self.settings.max_iterations {
             iterations += 1;
-            for i in 0..n {
-                let (b, r) = (i / s, i % s);
-                let d = self.h.diag(b)[r * s + r];
-                self.damping[i] = mu * d.max(1e-12);
+            for (b, damping) in self.damping[..n].chunks_exact_mut(s).enumerate() {
+                let diag = self.h.diag(b);
+                for (r, v) in damping.iter_mut().enumerate() {
+                    *v = mu * diag[r * s + r].max(1e-12);
+                }
             }
             if self
                 .chol
@@ -1003,23 +1026,11 @@ impl WindowSolver {
             };
             self.evaluate_instance(graph, values, inst, true)?;
             let buf = &mut self.step_buffers[index];
-            let noise = factor.noise();
             let dim = factor.dim();
-            for r in 0..dim {
-                let w = noise.weight(r);
-                buf.r[r] *= w;
-                if !window_holds_next {
-                    cost += 0.5 * buf.r[r] * buf.r[r];
-                }
-                for (a, k) in keys.iter().enumerate() {
-                    let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
-                    if factor.diagonal_jacobian(a) {
-                        buf.jac[a][r * d + r] *= w;
-                        continue;
-                    }
-                    for v in &mut buf.jac[a][r * d..(r + 1) * d] {
-                        *v *= w;
-                    }
+            buf.whiten(factor, true);
+            if !window_holds_next {
+                for r in &buf.r {
+                    cost += 0.5 * r * r;
                 }
             }
             // Rows: J₀N₀ (dim × d0) into reduced[1], J₁ full (dim × s) into reduced[0].
