@@ -256,6 +256,8 @@ pub struct WindowSolver {
     /// Cost of the factors touching the first block, from the last evaluation.
     cost_first: f64,
     correction: Vec<f64>,
+    /// The nonzero pattern of a null-space basis, for products with a dense prior.
+    entries: Vec<(usize, usize, f64)>,
     ws: Workspace,
     scratch: Vec<f64>,
 }
@@ -337,6 +339,7 @@ impl WindowSolver {
             last: None,
             cost_first: 0.0,
             correction: vec![0.0; s],
+            entries: Vec::with_capacity(s * s),
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
         })
@@ -618,6 +621,14 @@ impl WindowSolver {
                 let dim = red.dim;
                 let ln = &mut rest[..s * dim];
                 ln.fill(0.0);
+                // N₀'s entries (row, column, value) by rows: ΛN₀ takes a product per
+                // entry and row of Λ, summed over the rows of N₀ in order.
+                self.entries.clear();
+                for k in 0..s {
+                    let (start, nrow) = red.row(k);
+                    self.entries
+                        .extend(nrow.iter().enumerate().map(|(c, &v)| (k, start + c, v)));
+                }
                 for i in 0..s {
                     let row = &p.information[i * s..(i + 1) * s];
                     grad[i] += row
@@ -626,14 +637,8 @@ impl WindowSolver {
                         .map(|(a, b)| a * b)
                         .sum::<f64>();
                     let out = &mut ln[i * dim..(i + 1) * dim];
-                    for (k, &v) in row.iter().enumerate() {
-                        if v == 0.0 {
-                            continue;
-                        }
-                        let (start, nrow) = red.row(k);
-                        for (o, nv) in out[start..].iter_mut().zip(nrow) {
-                            *o += v * nv;
-                        }
+                    for &(k, c, nv) in &self.entries {
+                        out[c] += row[k] * nv;
                     }
                 }
                 let h0 = self.h.diag_mut(0);
