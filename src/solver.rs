@@ -258,6 +258,8 @@ pub struct WindowSolver {
     correction: Vec<f64>,
     /// The nonzero pattern of a null-space basis, for products with a dense prior.
     entries: Vec<(usize, usize, f64)>,
+    /// The nonzeros of a Jacobian row.
+    nonzero: Vec<(usize, f64)>,
     ws: Workspace,
     scratch: Vec<f64>,
 }
@@ -340,6 +342,7 @@ impl WindowSolver {
             cost_first: 0.0,
             correction: vec![0.0; s],
             entries: Vec::with_capacity(s * s),
+            nonzero: Vec::with_capacity(s),
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
         })
@@ -1072,17 +1075,20 @@ impl WindowSolver {
                 let j1 = &self.reduced[0][r * s..(r + 1) * s];
                 let j0 = &self.reduced[1][r * s..r * s + d0];
                 let rr = buf.r[r];
-                for i in 0..s {
-                    if j1[i] == 0.0 {
-                        continue;
-                    }
+                // J₁'s rows are sparse (integrators: two entries): its products over
+                // the nonzeros only.
+                self.nonzero.clear();
+                self.nonzero
+                    .extend((0..s).filter(|&i| j1[i] != 0.0).map(|i| (i, j1[i])));
+                for &(i, vi) in &self.nonzero {
                     for (o, v) in h10[i * s..i * s + d0].iter_mut().zip(j0) {
-                        *o += j1[i] * v;
+                        *o += vi * v;
                     }
-                    for (o, v) in h11[i * s..(i + 1) * s].iter_mut().zip(j1) {
-                        *o += j1[i] * v;
+                    let out = &mut h11[i * s..(i + 1) * s];
+                    for &(j, vj) in &self.nonzero {
+                        out[j] += vi * vj;
                     }
-                    g01[s + i] += j1[i] * rr;
+                    g01[s + i] += vi * rr;
                 }
                 if !window_holds_next {
                     for a in 0..d0 {
