@@ -1091,11 +1091,11 @@ impl WindowSolver {
                     g01[s + i] += vi * rr;
                 }
                 if !window_holds_next {
-                    for a in 0..d0 {
-                        for b in 0..d0 {
-                            h00[a * s + b] += j0[a] * j0[b];
+                    for (a, &va) in j0.iter().enumerate() {
+                        for (o, vb) in h00[a * s..a * s + d0].iter_mut().zip(j0) {
+                            *o += va * vb;
                         }
-                        g01[a] += j0[a] * rr;
+                        g01[a] += va * rr;
                     }
                 }
             }
