@@ -57,6 +57,9 @@ impl Factor for Prior {
     fn dim(&self) -> usize {
         self.target.len()
     }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
+    }
     fn evaluate(
         &self,
         _t: f64,
@@ -110,6 +113,9 @@ impl Factor for Equality {
     fn dim(&self) -> usize {
         self.dim
     }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
+    }
     fn evaluate(
         &self,
         _t: f64,
@@ -157,6 +163,9 @@ impl Factor for Euler {
     key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.dim
+    }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
     }
     fn evaluate(
         &self,
@@ -206,6 +215,9 @@ impl Factor for Trapezoidal {
     key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.dim
+    }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
     }
     fn evaluate(
         &self,
@@ -354,7 +366,7 @@ impl KernelLayout {
         let big = n + ma;
         let sol = big * big;
         let tmp = sol + big;
-        let mat = tmp + big;
+        let mat = tmp + 2 * n * big;
         let kq = mat + m * n;
         let kv = kq + n * n;
         let cols = kv + n * n;
@@ -460,53 +472,54 @@ impl DynamicsKernel {
             *t = -l;
         }
         model.add_weighted_hessians(q, &tmp[..ma], kq);
+        // The right-hand sides, row-major big × 2n: n columns for q, then n for q̇.
+        let w = 2 * n;
+        for i in 0..n {
+            cols[i * w..i * w + n].copy_from_slice(&kq[i * n..(i + 1) * n]);
+            cols[i * w + n..(i + 1) * w].copy_from_slice(&kv[i * n..(i + 1) * n]);
+        }
         // Bottom rows for q: −∂(Φ̇_q q̇)/∂q − Φ_qq q̈.
         model.third_order_into(q, dq, mat);
-        for j in 0..n {
-            let col = &mut cols[j * big..(j + 1) * big];
-            for i in 0..n {
-                col[i] = kq[i * n + j];
+        for (r, &k) in model.active.iter().enumerate() {
+            let row = &mut cols[(n + r) * w..(n + r) * w + n];
+            for (o, v) in row.iter_mut().zip(&mat[k * n..(k + 1) * n]) {
+                *o = -v;
             }
         }
         let ddq_now: &[f64] = ddq;
-        for (r, &k) in model.active.iter().enumerate() {
-            for j in 0..n {
-                cols[j * big + n + r] = -mat[k * n + j];
-            }
-        }
         model.jacobian_derivative_into(q, ddq_now, mat);
         for (r, &k) in model.active.iter().enumerate() {
-            for j in 0..n {
-                cols[j * big + n + r] -= mat[k * n + j];
+            let row = &mut cols[(n + r) * w..(n + r) * w + n];
+            for (o, v) in row.iter_mut().zip(&mat[k * n..(k + 1) * n]) {
+                *o -= v;
             }
         }
-        // Columns for q̇: [∂Q/∂q̇; −2 Φ̇_q].
+        // Bottom rows for q̇: −2 Φ̇_q.
         model.jacobian_derivative_into(q, dq, mat);
-        for j in 0..n {
-            let col = &mut cols[(n + j) * big..(n + j + 1) * big];
-            for i in 0..n {
-                col[i] = kv[i * n + j];
-            }
-            for (r, &k) in model.active.iter().enumerate() {
-                col[n + r] = -2.0 * mat[k * n + j];
+        for (r, &k) in model.active.iter().enumerate() {
+            let row = &mut cols[(n + r) * w + n..(n + r + 1) * w];
+            for (o, v) in row.iter_mut().zip(&mat[k * n..(k + 1) * n]) {
+                *o = -2.0 * v;
             }
         }
-        for j in 0..2 * n {
-            dense::lu_solve(kkt, big, perm, &mut cols[j * big..(j + 1) * big], tmp);
-        }
+        dense::lu_solve_many(kkt, big, perm, &mut cols[..big * w], w, tmp);
         for i in 0..n {
-            for j in 0..n {
-                jq[i * n + j] = cols[j * big + i];
-                jv[i * n + j] = cols[(n + j) * big + i];
-            }
+            jq[i * n..(i + 1) * n].copy_from_slice(&cols[i * w..i * w + n]);
+            jv[i * n..(i + 1) * n].copy_from_slice(&cols[i * w + n..(i + 1) * w]);
         }
         Ok(())
     }
 
     /// ∂q̈/∂Q (row-major n × n) with the factors a preceding [`DynamicsKernel::evaluate`]
-    /// left in the scratch: the first n rows of K⁻¹[I; 0], one pair of triangular
-    /// solves per column.
-    pub fn force_jacobian(model: &Model, jf: &mut [f64], reals: &mut [f64], indices: &[usize]) {
+    /// left in the scratch: the first n rows of K⁻¹[I; 0], for the listed `columns`
+    /// only (forces acting on those coordinates); the other columns are 0.
+    pub fn force_jacobian(
+        model: &Model,
+        columns: &[usize],
+        jf: &mut [f64],
+        reals: &mut [f64],
+        indices: &[usize],
+    ) {
         let l = KernelLayout::new(model);
         let (n, ma) = (l.n, l.ma);
         let big = n + ma;
@@ -516,13 +529,17 @@ impl DynamicsKernel {
         let (tmp, rest) = rest.split_at_mut(l.mat - l.tmp);
         let (_, rest) = rest.split_at_mut(l.cols - l.mat);
         let (cols, _) = rest.split_at_mut(l.c - l.cols);
-        let col = &mut cols[..big];
-        for j in 0..n {
-            col.fill(0.0);
-            col[j] = 1.0;
-            dense::lu_solve(kkt, big, perm, col, tmp);
-            for i in 0..n {
-                jf[i * n + j] = col[i];
+        let p = columns.len();
+        let rhs = &mut cols[..big * p];
+        rhs.fill(0.0);
+        for (c, &j) in columns.iter().enumerate() {
+            rhs[j * p + c] = 1.0;
+        }
+        dense::lu_solve_many(kkt, big, perm, rhs, p, tmp);
+        jf[..n * n].fill(0.0);
+        for i in 0..n {
+            for (c, &j) in columns.iter().enumerate() {
+                jf[i * n + j] = rhs[i * p + c];
             }
         }
     }
@@ -535,7 +552,51 @@ pub struct Dynamics {
     model: Arc<Model>,
     keys: Vec<Key>,
     noise: Noise,
-    inverse: bool,
+    /// Inverse dynamics: the coordinates the forces Q act on (see [`Actuated`]).
+    actuated: Option<Actuated>,
+}
+
+/// The coordinates an inverse-dynamics factor's forces Q act on: all of them, or the
+/// listed ones, the other entries of Q then taking no part (their ∂e/∂Q columns are
+/// 0, which spares a pair of triangular solves per column).
+#[derive(Debug, Clone)]
+struct Actuated {
+    all: bool,
+    indices: Vec<usize>,
+}
+
+impl Actuated {
+    fn all(n: usize) -> Self {
+        Actuated {
+            all: true,
+            indices: (0..n).collect(),
+        }
+    }
+
+    fn only(n: usize, mut indices: Vec<usize>) -> Self {
+        indices.sort_unstable();
+        indices.dedup();
+        assert!(
+            indices.iter().all(|&i| i < n),
+            "an actuated coordinate past q"
+        );
+        Actuated {
+            all: indices.len() == n,
+            indices,
+        }
+    }
+
+    /// The forces that act: Q itself, or Q with the other entries zeroed into `own`.
+    fn forces<'a>(&self, q: &'a [f64], own: &'a mut [f64]) -> &'a [f64] {
+        if self.all {
+            return q;
+        }
+        own.fill(0.0);
+        for &i in &self.indices {
+            own[i] = q[i];
+        }
+        own
+    }
 }
 
 impl Dynamics {
@@ -548,22 +609,31 @@ impl Dynamics {
                 Key::now(VarKind::Ddq),
             ],
             noise,
-            inverse: false,
+            actuated: None,
         }
     }
 
-    /// f^d_idyn.
+    /// f^d_idyn, with forces on every coordinate.
     pub fn inverse(model: Arc<Model>, noise: Noise) -> Self {
+        let n = model.n();
         let mut f = Dynamics::new(model, noise);
         f.keys.push(Key::now(VarKind::Force));
-        f.inverse = true;
+        f.actuated = Some(Actuated::all(n));
+        f
+    }
+
+    /// f^d_idyn with forces on the coordinates `actuated` only.
+    pub fn inverse_on(model: Arc<Model>, noise: Noise, actuated: Vec<usize>) -> Self {
+        let n = model.n();
+        let mut f = Dynamics::inverse(model, noise);
+        f.actuated = Some(Actuated::only(n, actuated));
         f
     }
 }
 
 impl Factor for Dynamics {
     fn name(&self) -> &str {
-        if self.inverse {
+        if self.actuated.is_some() {
             "f^d_idyn"
         } else {
             "f^d_dyn"
@@ -574,7 +644,11 @@ impl Factor for Dynamics {
         self.model.n()
     }
     fn scratch(&self) -> (usize, usize) {
-        DynamicsKernel::scratch(&self.model)
+        let (r, i) = DynamicsKernel::scratch(&self.model);
+        (r + self.model.n(), i)
+    }
+    fn diagonal_jacobian(&self, key: usize) -> bool {
+        key == 2
     }
     fn evaluate(
         &self,
@@ -585,7 +659,12 @@ impl Factor for Dynamics {
         ws: &mut Workspace,
     ) -> Result<()> {
         let n = self.model.n();
-        let force = if self.inverse { Some(x[3]) } else { None };
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let force = self
+            .actuated
+            .as_ref()
+            .map(|a| a.forces(x[3], &mut own[..n]));
         match jac {
             Some(j) => {
                 let (jq, rest) = j.split_at_mut(1);
@@ -599,15 +678,16 @@ impl Factor for Dynamics {
                     force,
                     r,
                     Some((&mut jq[0], &mut jv[0])),
-                    &mut ws.reals,
+                    kernel,
                     &mut ws.indices,
                 )?;
                 identity(&mut ja[0], n, -1.0);
-                if self.inverse {
+                if let Some(a) = &self.actuated {
                     DynamicsKernel::force_jacobian(
                         &self.model,
+                        &a.indices,
                         &mut jf[0],
-                        &mut ws.reals,
+                        kernel,
                         &ws.indices,
                     );
                 }
@@ -620,7 +700,7 @@ impl Factor for Dynamics {
                 force,
                 r,
                 None,
-                &mut ws.reals,
+                kernel,
                 &mut ws.indices,
             )?,
         }
@@ -838,11 +918,14 @@ pub struct IndependentDynamics {
     keys: Vec<Key>,
     noise: Noise,
     inverse: bool,
+    /// Every coordinate, the columns of ∂q̈/∂Q (forces act on all of them).
+    all: Vec<usize>,
 }
 
 impl IndependentDynamics {
     pub fn new(model: Arc<Model>, noise: Noise) -> Self {
         IndependentDynamics {
+            all: (0..model.n()).collect(),
             model,
             keys: vec![
                 Key::now(VarKind::Q),
@@ -920,7 +1003,7 @@ impl Factor for IndependentDynamics {
             }
             identity(&mut j[2], f, -1.0);
             if self.inverse {
-                DynamicsKernel::force_jacobian(&self.model, jf, kernel, &ws.indices);
+                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, kernel, &ws.indices);
                 for (k, &i) in self.model.independent.iter().enumerate() {
                     j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
                 }

@@ -178,6 +178,13 @@ pub trait Factor: Send + Sync {
         (0, 0)
     }
 
+    /// Whether the Jacobian block of key `key` is square and nonzero on its diagonal
+    /// only (integrators, priors, the q̈ of f_dyn): the solver then reads that
+    /// diagonal and skips the zeros around it.
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        false
+    }
+
     /// Evaluates the residual at time `t` from the variables `x` (one slice per key)
     /// into `r`; with `jacobians`, also ∂r/∂x_k for every key into the row-major
     /// dim × size(x_k) blocks.

@@ -246,9 +246,12 @@ pub fn solve(
                     Noise::Hard,
                 )),
                 force_zero(),
-                Box::new(Dynamics::inverse(
+                // Q acts on the prescribed coordinates only (the others are fixed at 0
+                // by `force_zero`), which spares the factor the other ∂e/∂Q columns.
+                Box::new(Dynamics::inverse_on(
                     model.clone(),
                     Noise::Isotropic(nm.dynamics),
+                    idx.clone(),
                 )),
                 integrate(VarKind::Q, VarKind::Dq, n, nm.integrator_position),
                 integrate(VarKind::Dq, VarKind::Ddq, n, nm.integrator_velocity),

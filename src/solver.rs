@@ -11,7 +11,7 @@
 //! the window solves stall.
 
 use crate::error::{Error, Result};
-use crate::graph::{ChainGraph, Factor, Key, Noise, Workspace};
+use crate::graph::{ChainGraph, Factor, Noise, Workspace};
 use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
 use crate::linalg::nullspace::NullSpace;
 
@@ -117,15 +117,24 @@ pub struct LinearPrior {
     pub xbar: Vec<f64>,
 }
 
-/// Buffers of one factor: residual and Jacobian blocks.
+/// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
 struct FactorBuffers {
     r: Vec<f64>,
     jac: Vec<Vec<f64>>,
+    weights: Vec<f64>,
+    /// Per key, the size of its variable.
+    sizes: Vec<usize>,
 }
 
 impl FactorBuffers {
     fn new(graph: &ChainGraph, f: &dyn Factor) -> Self {
         FactorBuffers {
+            weights: (0..f.dim()).map(|r| f.noise().weight(r)).collect(),
+            sizes: f
+                .keys()
+                .iter()
+                .map(|k| graph.layout.slot(k.kind).map_or(0, |(_, d)| d))
+                .collect(),
             r: vec![0.0; f.dim()],
             jac: f
                 .keys()
@@ -135,6 +144,33 @@ impl FactorBuffers {
                     vec![0.0; f.dim() * d]
                 })
                 .collect(),
+        }
+    }
+
+    /// Divides the residual's rows, and with `jacobians` the Jacobians' rows, by their
+    /// σ (a diagonal Jacobian block only on its diagonal: the rest is 0).
+    fn whiten(&mut self, factor: &dyn Factor, jacobians: bool) {
+        for (r, w) in self.r.iter_mut().zip(&self.weights) {
+            *r *= w;
+        }
+        if !jacobians {
+            return;
+        }
+        for (a, (jac, &d)) in self.jac.iter_mut().zip(&self.sizes).enumerate() {
+            if d == 0 {
+                continue;
+            }
+            if factor.diagonal_jacobian(a) {
+                for (r, w) in self.weights.iter().enumerate() {
+                    jac[r * d + r] *= w;
+                }
+                continue;
+            }
+            for (row, w) in jac.chunks_exact_mut(d).zip(&self.weights) {
+                for v in row {
+                    *v *= w;
+                }
+            }
         }
     }
 }
@@ -220,6 +256,10 @@ pub struct WindowSolver {
     /// Cost of the factors touching the first block, from the last evaluation.
     cost_first: f64,
     correction: Vec<f64>,
+    /// The nonzero pattern of a null-space basis, for products with a dense prior.
+    entries: Vec<(usize, usize, f64)>,
+    /// The nonzeros of a Jacobian row.
+    nonzero: Vec<(usize, f64)>,
     ws: Workspace,
     scratch: Vec<f64>,
 }
@@ -301,6 +341,8 @@ impl WindowSolver {
             last: None,
             cost_first: 0.0,
             correction: vec![0.0; s],
+            entries: Vec::with_capacity(s * s),
+            nonzero: Vec::with_capacity(s),
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
         })
@@ -507,11 +549,9 @@ impl WindowSolver {
                     .reduction
                     .reduce(&block.jac, &block.rhs[..block.rows], block.rows);
             }
-            self.h.reset(blocks);
             // Directions the hard equations fix carry no unknown.
-            for b in 0..blocks {
-                self.h.set_dim(b, self.hard[b].reduction.dim);
-            }
+            let hard = &self.hard;
+            self.h.reset_active(blocks, |b| hard[b].reduction.dim);
             self.g[..blocks * s].fill(0.0);
         }
         for i in 0..self.instances.len() {
@@ -526,24 +566,14 @@ impl WindowSolver {
             } else {
                 &mut self.step_buffers[inst.index]
             };
-            let noise = factor.noise();
             let keys = factor.keys();
             let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
-            for r in 0..factor.dim() {
-                let w = noise.weight(r);
-                buf.r[r] *= w;
-                let c = 0.5 * buf.r[r] * buf.r[r];
+            buf.whiten(factor, linearize);
+            for r in &buf.r {
+                let c = 0.5 * r * r;
                 cost += c;
                 if touches_first {
                     cost_first += c;
-                }
-                if linearize {
-                    for (a, k) in keys.iter().enumerate() {
-                        let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
-                        for v in &mut buf.jac[a][r * d..(r + 1) * d] {
-                            *v *= w;
-                        }
-                    }
                 }
             }
             if linearize {
@@ -553,7 +583,7 @@ impl WindowSolver {
                     &mut self.shifted,
                     &self.hard,
                     graph,
-                    keys,
+                    factor,
                     step,
                     buf,
                     s,
@@ -594,6 +624,14 @@ impl WindowSolver {
                 let dim = red.dim;
                 let ln = &mut rest[..s * dim];
                 ln.fill(0.0);
+                // N₀'s entries (row, column, value) by rows: ΛN₀ takes a product per
+                // entry and row of Λ, summed over the rows of N₀ in order.
+                self.entries.clear();
+                for k in 0..s {
+                    let (start, nrow) = red.row(k);
+                    self.entries
+                        .extend(nrow.iter().enumerate().map(|(c, &v)| (k, start + c, v)));
+                }
                 for i in 0..s {
                     let row = &p.information[i * s..(i + 1) * s];
                     grad[i] += row
@@ -602,20 +640,16 @@ impl WindowSolver {
                         .map(|(a, b)| a * b)
                         .sum::<f64>();
                     let out = &mut ln[i * dim..(i + 1) * dim];
-                    for (k, &v) in row.iter().enumerate() {
-                        if v == 0.0 {
-                            continue;
-                        }
-                        for (o, nv) in out.iter_mut().zip(&red.basis[k * s..k * s + dim]) {
-                            *o += v * nv;
-                        }
+                    for &(k, c, nv) in &self.entries {
+                        out[c] += row[k] * nv;
                     }
                 }
                 let h0 = self.h.diag_mut(0);
                 for k in 0..s {
-                    let nrow = &red.basis[k * s..k * s + dim];
+                    let (start, nrow) = red.row(k);
                     let lrow = &ln[k * dim..(k + 1) * dim];
                     for (a, &na) in nrow.iter().enumerate() {
+                        let a = start + a;
                         if na == 0.0 {
                             continue;
                         }
@@ -692,10 +726,11 @@ impl WindowSolver {
         let mut iterations = 0;
         while iterations < self.settings.max_iterations {
             iterations += 1;
-            for i in 0..n {
-                let (b, r) = (i / s, i % s);
-                let d = self.h.diag(b)[r * s + r];
-                self.damping[i] = mu * d.max(1e-12);
+            for (b, damping) in self.damping[..n].chunks_exact_mut(s).enumerate() {
+                let diag = self.h.diag(b);
+                for (r, v) in damping.iter_mut().enumerate() {
+                    *v = mu * diag[r * s + r].max(1e-12);
+                }
             }
             if self
                 .chol
@@ -728,8 +763,12 @@ impl WindowSolver {
                 let x = &mut window[b * s..(b + 1) * s];
                 for i in 0..s {
                     let p = red.particular[i];
-                    let nrow = &red.basis[i * s..i * s + red.dim];
-                    let step = p + nrow.iter().zip(y).map(|(a, b)| a * b).sum::<f64>();
+                    let (start, nrow) = red.row(i);
+                    let step = p + nrow
+                        .iter()
+                        .zip(&y[start..])
+                        .map(|(a, b)| a * b)
+                        .sum::<f64>();
                     let scale = 1.0 + x[i].abs();
                     largest = largest.max(step.abs() / scale);
                     restored &= p.abs() <= self.settings.step_tolerance * scale;
@@ -887,30 +926,53 @@ impl WindowSolver {
         let (h10, rest) = rest.split_at_mut(ss);
         let (h11, rest) = rest.split_at_mut(ss);
         let (g01, rest) = rest.split_at_mut(2 * s);
-        let w = &mut rest[..s];
-        // L₀ = chol(H₀₀) in place; Y = L₀⁻¹H₀₁ in place of H₁₀ (stored transposed:
-        // row j of h10 is column j of H₀₁); w = L₀⁻¹g₀.
+        let (w, rest) = rest.split_at_mut(s);
+        let (y, rest) = rest.split_at_mut(ss);
+        let acc = &mut rest[..s];
+        // L₀ = chol(H₀₀) in place; Y = L₀⁻¹H₀₁ (d0 × s, row-major; row j of h10 is
+        // column j of H₀₁); w = L₀⁻¹g₀.
         crate::linalg::dense::cholesky_strided(h00, d0, s).map_err(|_| {
             Error::Singular(format!(
                 "marginalizing step {k0}: its soft factors leave a direction undetermined"
             ))
         })?;
-        for j in 0..s {
-            crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut h10[j * s..j * s + d0]);
+        // Forward substitution a whole row of Y at a time (the same sums, in the same
+        // order, as one column at a time, but along contiguous rows).
+        for a in 0..d0 {
+            acc.fill(0.0);
+            let (done, row) = y.split_at_mut(a * s);
+            for (l, yk) in h00[a * s..a * s + a].iter().zip(done.chunks_exact(s)) {
+                for (c, v) in acc.iter_mut().zip(yk) {
+                    *c += l * v;
+                }
+            }
+            let lii = h00[a * s + a];
+            for (j, out) in row[..s].iter_mut().enumerate() {
+                *out = (h10[j * s + a] - acc[j]) / lii;
+            }
         }
         w[..d0].copy_from_slice(&g01[..d0]);
         crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut w[..d0]);
+        // Λ = H₁₁ − YᵀY, η = g₁ − Yᵀw. YᵀY is summed over the rows of Y in order, one
+        // triangle (Λ is symmetric, H₁₁ and YᵀY to the bit), then mirrored.
         let mut information = vec![0.0; ss];
         let mut eta = vec![0.0; s];
-        for i in 0..s {
-            let yi = &h10[i * s..i * s + d0];
-            for j in 0..s {
-                let yj = &h10[j * s..j * s + d0];
-                let yy: f64 = yi.iter().zip(yj).map(|(a, b)| a * b).sum();
-                information[i * s + j] = h11[i * s + j] - yy;
+        for a in 0..d0 {
+            let ya = &y[a * s..(a + 1) * s];
+            for (i, &yi) in ya.iter().enumerate() {
+                for (o, yj) in information[i * s..=i * s + i].iter_mut().zip(ya) {
+                    *o += yi * yj;
+                }
+                eta[i] += yi * w[a];
             }
-            let yw: f64 = yi.iter().zip(&w[..d0]).map(|(a, b)| a * b).sum();
-            eta[i] = g01[s + i] - yw;
+        }
+        for i in 0..s {
+            for j in 0..=i {
+                let v = h11[i * s + j] - information[i * s + j];
+                information[i * s + j] = v;
+                information[j * s + i] = v;
+            }
+            eta[i] = g01[s + i] - eta[i];
         }
         // ≥ 0 in exact arithmetic (the least value of a sum of squares); round-off
         // near singular configurations can push it below.
@@ -972,19 +1034,11 @@ impl WindowSolver {
             };
             self.evaluate_instance(graph, values, inst, true)?;
             let buf = &mut self.step_buffers[index];
-            let noise = factor.noise();
             let dim = factor.dim();
-            for r in 0..dim {
-                let w = noise.weight(r);
-                buf.r[r] *= w;
-                if !window_holds_next {
-                    cost += 0.5 * buf.r[r] * buf.r[r];
-                }
-                for (a, k) in keys.iter().enumerate() {
-                    let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
-                    for v in &mut buf.jac[a][r * d..(r + 1) * d] {
-                        *v *= w;
-                    }
+            buf.whiten(factor, true);
+            if !window_holds_next {
+                for r in &buf.r {
+                    cost += 0.5 * r * r;
                 }
             }
             // Rows: J₀N₀ (dim × d0) into reduced[1], J₁ full (dim × s) into reduced[0].
@@ -993,8 +1047,10 @@ impl WindowSolver {
             self.reduced[1][..dim * s].fill(0.0);
             for (a, k) in keys.iter().enumerate() {
                 let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                let diagonal = factor.diagonal_jacobian(a);
                 for r in 0..dim {
-                    for j in 0..d {
+                    let columns = if diagonal { r..r + 1 } else { 0..d };
+                    for j in columns {
                         let v = buf.jac[a][r * d + j];
                         if v == 0.0 {
                             continue;
@@ -1002,8 +1058,8 @@ impl WindowSolver {
                         if k.lag == 0 {
                             self.reduced[0][r * s + off + j] += v;
                         } else {
-                            let nrow = &red.basis[(off + j) * s..(off + j) * s + d0];
-                            let out = &mut self.reduced[1][r * s..r * s + d0];
+                            let (start, nrow) = red.row(off + j);
+                            let out = &mut self.reduced[1][r * s + start..r * s + d0];
                             for (o, nv) in out.iter_mut().zip(nrow) {
                                 *o += v * nv;
                             }
@@ -1019,24 +1075,27 @@ impl WindowSolver {
                 let j1 = &self.reduced[0][r * s..(r + 1) * s];
                 let j0 = &self.reduced[1][r * s..r * s + d0];
                 let rr = buf.r[r];
-                for i in 0..s {
-                    if j1[i] == 0.0 {
-                        continue;
-                    }
+                // J₁'s rows are sparse (integrators: two entries): its products over
+                // the nonzeros only.
+                self.nonzero.clear();
+                self.nonzero
+                    .extend((0..s).filter(|&i| j1[i] != 0.0).map(|i| (i, j1[i])));
+                for &(i, vi) in &self.nonzero {
                     for (o, v) in h10[i * s..i * s + d0].iter_mut().zip(j0) {
-                        *o += j1[i] * v;
+                        *o += vi * v;
                     }
-                    for (o, v) in h11[i * s..(i + 1) * s].iter_mut().zip(j1) {
-                        *o += j1[i] * v;
+                    let out = &mut h11[i * s..(i + 1) * s];
+                    for &(j, vj) in &self.nonzero {
+                        out[j] += vi * vj;
                     }
-                    g01[s + i] += j1[i] * rr;
+                    g01[s + i] += vi * rr;
                 }
                 if !window_holds_next {
-                    for a in 0..d0 {
-                        for b in 0..d0 {
-                            h00[a * s + b] += j0[a] * j0[b];
+                    for (a, &va) in j0.iter().enumerate() {
+                        for (o, vb) in h00[a * s..a * s + d0].iter_mut().zip(j0) {
+                            *o += va * vb;
                         }
-                        g01[a] += j0[a] * rr;
+                        g01[a] += va * rr;
                     }
                 }
             }
@@ -1055,14 +1114,22 @@ fn reduce_factor(
     shifted: &mut [f64],
     hard: &[HardBlock],
     graph: &ChainGraph,
-    keys: &[Key],
+    factor: &dyn Factor,
     step: usize,
     buf: &FactorBuffers,
     s: usize,
 ) {
+    let keys = factor.keys();
     let dim = buf.r.len();
-    reduced[0][..dim * s].fill(0.0);
-    reduced[1][..dim * s].fill(0.0);
+    // Only the columns of the blocks' null spaces are filled and read.
+    for (lag, part) in reduced.iter_mut().enumerate() {
+        if lag <= step {
+            let width = hard[step - lag].reduction.dim;
+            for r in 0..dim {
+                part[r * s..r * s + width].fill(0.0);
+            }
+        }
+    }
     shifted[..dim].copy_from_slice(&buf.r);
     for (a, k) in keys.iter().enumerate() {
         let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
@@ -1072,16 +1139,18 @@ fn reduce_factor(
         let red = &hard[step - k.lag].reduction;
         let out = &mut reduced[k.lag];
         let jac = &buf.jac[a];
+        let diagonal = factor.diagonal_jacobian(a);
         for r in 0..dim {
             let row = &mut out[r * s..r * s + red.dim];
-            for j in 0..d {
+            let columns = if diagonal { r..r + 1 } else { 0..d };
+            for j in columns {
                 let v = jac[r * d + j];
                 if v == 0.0 {
                     continue;
                 }
                 shifted[r] += v * red.particular[off + j];
-                let nrow = &red.basis[(off + j) * s..(off + j) * s + red.dim];
-                for (o, nv) in row.iter_mut().zip(nrow) {
+                let (start, nrow) = red.row(off + j);
+                for (o, nv) in row[start..].iter_mut().zip(nrow) {
                     *o += v * nv;
                 }
             }

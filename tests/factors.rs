@@ -203,6 +203,18 @@ fn check_factor(name: &str, factor: &dyn Factor, xs: &[Vec<f64>], t: f64) -> f64
         full.r
     );
     for (k, block) in jac.iter().enumerate() {
+        // A block declared diagonal (the solver reads only its diagonal) must be.
+        if factor.diagonal_jacobian(k) {
+            let n = xs[k].len();
+            assert_eq!(n, dim, "{name}: a diagonal ∂r/∂x{k} must be square");
+            let off = (0..dim * n).find(|&i| i / n != i % n && block[i] != 0.0);
+            assert!(
+                off.is_none(),
+                "{name}: ∂r/∂{} declared diagonal has entry {:?} off it",
+                key_label(&factor.keys()[k]),
+                off.map(|i| (i / n, i % n))
+            );
+        }
         if let Some(i) = block.iter().position(|v| !v.is_finite()) {
             let n = xs[k].len();
             panic!(
@@ -504,6 +516,55 @@ fn inverse_dynamics_with_zero_force_is_forward_dynamics() {
             max_abs_diff(&a, &b) <= 1e-12 * (1.0 + max_abs(&a)),
             "{name}"
         );
+    }
+}
+
+#[test]
+fn inverse_dynamics_on_some_coordinates_ignores_the_other_forces() {
+    // f^d_idyn with Q on every other coordinate: the full factor with the other
+    // entries of Q zeroed, its ∂e/∂Q the full one's columns there and 0 elsewhere.
+    let mut rng = Rng(91);
+    for name in SCENES {
+        let model = load(name);
+        let n = model.n();
+        let step = Step::random(&model, &mut rng);
+        let on: Vec<usize> = (0..n).step_by(2).collect();
+        let mut masked = vec![0.0; n];
+        for &i in &on {
+            masked[i] = step.force[i];
+        }
+        let full = Dynamics::inverse(model.clone(), Noise::Hard);
+        let some = Dynamics::inverse_on(model.clone(), Noise::Hard, on.clone());
+        let mut ws = workspace_for(&some);
+        let run = |f: &Dynamics, force: &[f64], ws: &mut Workspace| {
+            let mut r = vec![0.0; n];
+            let mut jac = vec![vec![0.0; n * n]; 4];
+            f.evaluate(
+                0.3,
+                &[&step.q, &step.dq, &step.ddq, force],
+                &mut r,
+                Some(&mut jac),
+                ws,
+            )
+            .unwrap();
+            (r, jac)
+        };
+        let (r_full, j_full) = run(&full, &masked, &mut ws);
+        let (r_some, j_some) = run(&some, &step.force, &mut ws);
+        assert!(same_bits(&r_full, &r_some), "{name}: residual");
+        for k in 0..3 {
+            assert!(same_bits(&j_full[k], &j_some[k]), "{name}: Jacobian {k}");
+        }
+        for i in 0..n {
+            for j in 0..n {
+                let want = if on.contains(&j) {
+                    j_full[3][i * n + j]
+                } else {
+                    0.0
+                };
+                assert_eq!(j_some[3][i * n + j], want, "{name}: ∂e/∂Q[{i}][{j}]");
+            }
+        }
     }
 }
 

@@ -57,6 +57,29 @@ impl BlockTridiagonal {
         self.dims[..blocks].fill(self.s);
     }
 
+    /// Uses the first `blocks` blocks with active sizes `dim(k)` and zeroes their
+    /// active parts only: with d_k well below s (many unknowns fixed by hard
+    /// equations) the rest of the storage is never read.
+    pub fn reset_active(&mut self, blocks: usize, dim: impl Fn(usize) -> usize) {
+        assert!(blocks <= self.capacity(), "more blocks than allocated");
+        self.blocks = blocks;
+        let s = self.s;
+        for k in 0..blocks {
+            let d = dim(k);
+            assert!(d <= s, "an active size beyond the block");
+            self.dims[k] = d;
+            let dp = if k > 0 { self.dims[k - 1] } else { 0 };
+            let (diag, lower) = (
+                &mut self.diag[k * s * s..(k + 1) * s * s],
+                &mut self.lower[k * s * s..(k + 1) * s * s],
+            );
+            for i in 0..d {
+                diag[i * s..i * s + d].fill(0.0);
+                lower[i * s..i * s + dp].fill(0.0);
+            }
+        }
+    }
+
     /// Sets the active size of block k (its unknowns past d are absent: zero).
     pub fn set_dim(&mut self, k: usize, d: usize) {
         assert!(d <= self.s, "an active size beyond the block");
@@ -156,7 +179,10 @@ impl BandedCholesky {
             let dk = self.dims[k];
             let (before, rest) = self.l.split_at_mut(k * ss);
             let lk = &mut rest[..ss];
-            lk.copy_from_slice(h.diag(k));
+            // Active parts only (the rest is never read).
+            for i in 0..dk {
+                lk[i * s..i * s + dk].copy_from_slice(&h.diag(k)[i * s..i * s + dk]);
+            }
             if !damping.is_empty() {
                 for i in 0..dk {
                     lk[i * s + i] += damping[k * s + i];
@@ -166,7 +192,9 @@ impl BandedCholesky {
                 let dp = self.dims[k - 1];
                 let lprev = &before[(k - 1) * ss..k * ss];
                 let ck = &mut self.c[k * ss..(k + 1) * ss];
-                ck.copy_from_slice(h.lower(k));
+                for i in 0..dk {
+                    ck[i * s..i * s + dp].copy_from_slice(&h.lower(k)[i * s..i * s + dp]);
+                }
                 for r in 0..dk {
                     dense::solve_lower_strided(lprev, dp, s, &mut ck[r * s..r * s + dp]);
                 }

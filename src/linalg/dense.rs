@@ -98,19 +98,19 @@ pub fn lu(a: &mut [f64], n: usize, perm: &mut [usize]) -> Result<(), DenseError>
         if !(best > tol) {
             return Err(DenseError::Singular(k));
         }
+        let (top, bottom) = a[..n * n].split_at_mut((k + 1) * n);
+        let pivot = &mut top[k * n..];
         if piv != k {
-            for j in 0..n {
-                a.swap(k * n + j, piv * n + j);
-            }
+            pivot.swap_with_slice(&mut bottom[(piv - k - 1) * n..(piv - k) * n]);
             perm.swap(k, piv);
         }
-        let d = a[k * n + k];
-        for i in k + 1..n {
-            let f = a[i * n + k] / d;
-            a[i * n + k] = f;
+        let d = pivot[k];
+        for row in bottom.chunks_exact_mut(n) {
+            let f = row[k] / d;
+            row[k] = f;
             if f != 0.0 {
-                for j in k + 1..n {
-                    a[i * n + j] -= f * a[k * n + j];
+                for (x, p) in row[k + 1..].iter_mut().zip(&pivot[k + 1..]) {
+                    *x -= f * p;
                 }
             }
         }
@@ -138,6 +138,53 @@ pub fn lu_solve(lu: &[f64], n: usize, perm: &[usize], b: &mut [f64], tmp: &mut [
         tmp[i] = s / lu[i * n + i];
     }
     b[..n].copy_from_slice(&tmp[..n]);
+}
+
+/// Solves A X = B with the factors of [`lu`] for the row-major n × k B in place
+/// (`tmp` holds n × k): the same substitutions as [`lu_solve`], a whole row of
+/// right-hand sides at a time, so the inner loops run along contiguous rows.
+pub fn lu_solve_many(
+    lu: &[f64],
+    n: usize,
+    perm: &[usize],
+    b: &mut [f64],
+    k: usize,
+    tmp: &mut [f64],
+) {
+    let (b, x) = (&mut b[..n * k], &mut tmp[..n * k]);
+    for i in 0..n {
+        x[i * k..(i + 1) * k].copy_from_slice(&b[perm[i] * k..(perm[i] + 1) * k]);
+    }
+    for i in 0..n {
+        let (done, rest) = x.split_at_mut(i * k);
+        let row = &mut rest[..k];
+        for (l, prev) in lu[i * n..i * n + i].iter().zip(done.chunks_exact(k)) {
+            if *l != 0.0 {
+                for (r, p) in row.iter_mut().zip(prev) {
+                    *r -= l * p;
+                }
+            }
+        }
+    }
+    for i in (0..n).rev() {
+        let (head, later) = x.split_at_mut((i + 1) * k);
+        let row = &mut head[i * k..];
+        for (u, next) in lu[i * n + i + 1..(i + 1) * n]
+            .iter()
+            .zip(later.chunks_exact(k))
+        {
+            if *u != 0.0 {
+                for (r, p) in row.iter_mut().zip(next) {
+                    *r -= u * p;
+                }
+            }
+        }
+        let d = lu[i * n + i];
+        for r in row.iter_mut() {
+            *r /= d;
+        }
+    }
+    b.copy_from_slice(x);
 }
 
 #[cfg(test)]
@@ -198,6 +245,32 @@ mod tests {
             lu_solve(&f, n, &perm, &mut x, &mut tmp);
             let r = &a * nalgebra::DVector::from_vec(x) - nalgebra::DVector::from_vec(b);
             assert!(r.amax() < 1e-10, "n = {n}: residual {}", r.amax());
+        }
+        // Several right-hand sides at once agree with one at a time.
+        let n = 9;
+        let a = random(n, 7);
+        let mut f = row_major(&a);
+        let mut perm = vec![0; n];
+        lu(&mut f, n, &mut perm).unwrap();
+        let k = 4;
+        let mut many: Vec<f64> = (0..n * k).map(|i| (i as f64 * 0.37).cos()).collect();
+        let mut tmp = vec![0.0; n * k];
+        let mut one = vec![0.0; n];
+        let mut t1 = vec![0.0; n];
+        let expect: Vec<Vec<f64>> = (0..k)
+            .map(|c| {
+                for i in 0..n {
+                    one[i] = many[i * k + c];
+                }
+                lu_solve(&f, n, &perm, &mut one, &mut t1);
+                one.clone()
+            })
+            .collect();
+        lu_solve_many(&f, n, &perm, &mut many, k, &mut tmp);
+        for c in 0..k {
+            for i in 0..n {
+                assert!((many[i * k + c] - expect[c][i]).abs() < 1e-12);
+            }
         }
         let mut singular = vec![1.0, 2.0, 2.0, 4.0];
         let mut perm = vec![0; 2];

@@ -4,7 +4,9 @@
 //! which keeps the normal equations' condition number that of the soft factors alone.
 //!
 //! Equations with a single nonzero (priors on components, prescribed values, forces
-//! fixed at zero) fix their unknown outright and are taken out first. The rest go
+//! fixed at zero) fix their unknown outright and are taken out first; unknowns no
+//! equation touches (the accelerations under position and velocity constraints) are
+//! free outright, a unit basis vector each, and stay out of the QR. The rest go
 //! through a Householder QR with column pivoting of Cᵀ restricted to the unknowns left
 //! (one column per equation), which reveals the rank, so redundant equations
 //! (over-constrained mechanisms, or the initial priors together with the constraints
@@ -21,9 +23,13 @@ pub struct NullSpace {
     rows: usize,
     /// Per unknown: the unit equation fixing it, if any.
     fixed: Vec<Option<usize>>,
-    /// Unknowns not fixed by unit equations, and the other equations.
+    /// Unknowns neither fixed by unit equations nor untouched by the others (those
+    /// the QR sees), the other equations, and the unknowns no equation touches.
     free: Vec<usize>,
     others: Vec<usize>,
+    untouched: Vec<usize>,
+    /// The unknowns unit equations fix, ascending.
+    pinned: Vec<usize>,
     /// Cᵀ[free, others] column-major (stride free.len()), overwritten by the QR.
     a: Vec<f64>,
     rdiag: Vec<f64>,
@@ -34,6 +40,9 @@ pub struct NullSpace {
     rhs: Vec<f64>,
     /// s × s row-major; columns 0..dim hold an orthonormal null-space basis, the rest 0.
     pub basis: Vec<f64>,
+    /// Per row of the basis, the columns [start, end) outside which it is 0 (fixed
+    /// unknowns: none; untouched ones: their unit column; the rest: the QR's columns).
+    span: Vec<(usize, usize)>,
     /// The least-norm solution of the independent equations (exact on fixed unknowns).
     pub particular: Vec<f64>,
     /// Dimension of the null space.
@@ -55,6 +64,8 @@ impl NullSpace {
             fixed: vec![None; s],
             free: Vec::with_capacity(s),
             others: Vec::with_capacity(max_rows),
+            untouched: Vec::with_capacity(s),
+            pinned: Vec::with_capacity(s),
             a: vec![0.0; s * max_rows],
             rdiag: vec![0.0; s.min(max_rows)],
             beta: vec![0.0; s.min(max_rows)],
@@ -63,6 +74,7 @@ impl NullSpace {
             w: vec![0.0; s],
             rhs: vec![0.0; max_rows],
             basis: vec![0.0; s * s],
+            span: vec![(0, 0); s],
             particular: vec![0.0; s],
             dim: s,
             rank: 0,
@@ -77,12 +89,15 @@ impl NullSpace {
         self.basis.fill(0.0);
         for i in 0..s {
             self.basis[i * s + i] = 1.0;
+            self.span[i] = (i, i + 1);
         }
         self.particular.fill(0.0);
         self.fixed.fill(None);
         self.free.clear();
-        self.free.extend(0..s);
         self.others.clear();
+        self.untouched.clear();
+        self.untouched.extend(0..s);
+        self.pinned.clear();
         self.rows = 0;
         self.dim = s;
         self.rank = 0;
@@ -119,9 +134,17 @@ impl NullSpace {
             }
         }
         self.free.clear();
+        self.untouched.clear();
+        self.pinned.clear();
         for i in 0..s {
-            if self.fixed[i].is_none() {
+            if self.fixed[i].is_some() {
+                self.pinned.push(i);
+                continue;
+            }
+            if self.others.iter().any(|&j| c[j * s + i] != 0.0) {
                 self.free.push(i);
+            } else {
+                self.untouched.push(i);
             }
         }
         let sf = self.free.len();
@@ -141,14 +164,20 @@ impl NullSpace {
             &mut self.perm,
             &mut self.norms,
         );
-        let fixed_count = s - sf;
+        let fixed_count = s - sf - self.untouched.len();
+        // Columns that may hold a basis vector from before (past them all is 0).
+        let stale = self.dim;
         self.rank = fixed_count + rank;
-        self.dim = sf - rank;
+        self.dim = sf - rank + self.untouched.len();
         let mut p = std::mem::take(&mut self.particular);
         self.solve(b, &mut p);
         self.particular = p;
-        // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones.
-        self.basis.fill(0.0);
+        // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones,
+        // then a unit vector per untouched unknown.
+        let width = stale.max(self.dim);
+        for row in self.basis.chunks_exact_mut(s) {
+            row[..width].fill(0.0);
+        }
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
@@ -157,6 +186,24 @@ impl NullSpace {
                 self.basis[i * s + (j - rank)] = self.w[a];
             }
         }
+        self.span.fill((0, 0));
+        for &i in &self.free {
+            self.span[i] = (0, sf - rank);
+        }
+        for (u, &i) in self.untouched.iter().enumerate() {
+            let col = sf - rank + u;
+            self.basis[i * s + col] = 1.0;
+            self.span[i] = (col, col + 1);
+        }
+    }
+
+    /// Row i of the basis where it may be nonzero: (first column, entries). Products
+    /// with N skip the rest, which is most of it (one entry per untouched unknown,
+    /// none per fixed one).
+    #[inline]
+    pub fn row(&self, i: usize) -> (usize, &[f64]) {
+        let (start, end) = self.span[i];
+        (start, &self.basis[i * self.s + start..i * self.s + end])
     }
 
     /// The least-norm solution x (length s) of the independent equations of the last
@@ -165,21 +212,19 @@ impl NullSpace {
     pub fn solve(&mut self, b: &[f64], x: &mut [f64]) {
         let s = self.s;
         x.fill(0.0);
-        for i in 0..s {
+        for &i in &self.pinned {
             if let Some(j) = self.fixed[i] {
                 x[i] = b[j] / self.c[j * s + i];
             }
         }
         let sf = self.free.len();
-        let rank = self.rank - (s - sf);
+        let rank = self.rank - (s - sf - self.untouched.len());
         // The other equations on the free unknowns: b − C[:, fixed] x_fixed.
         for (k, &j) in self.others.iter().enumerate() {
             let row = &self.c[j * s..(j + 1) * s];
             let mut v = b[j];
-            for i in 0..s {
-                if self.fixed[i].is_some() {
-                    v -= row[i] * x[i];
-                }
+            for &i in &self.pinned {
+                v -= row[i] * x[i];
             }
             self.rhs[k] = v;
         }
@@ -336,6 +381,14 @@ mod tests {
                 .into_owned();
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
+            for i in 0..s {
+                let (start, row) = ns.row(i);
+                for j in 0..s {
+                    let inside = j >= start && j < start + row.len();
+                    let v = if inside { row[j - start] } else { 0.0 };
+                    assert_eq!(v, ns.basis[i * s + j], "row {i} of N outside its span");
+                }
+            }
             let ntn = n.transpose() * &n;
             assert!(
                 (ntn - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12,
