@@ -49,6 +49,13 @@ SUITE = {
     # Falls into a singular configuration after ~1.3 s: the reference stops before.
     # IDA's corrector fails at rtol ≤ 1e-13 on this 22-coordinate model (t ≈ 0.3 s).
     "pick-and-place": (1.0, ("ida", {"formulation": "ggl", "rtol": 1e-12}), [PINOCCHIO]),
+    "pick-and-place-mbse": (1.0, ("ida", {"formulation": "ggl", "rtol": 1e-12}), [PINOCCHIO]),
+    # Hard cases with a reference (the parallelogram's is its exact motion, and IDA
+    # fails at its first flat configuration).
+    "hard/slider-crank-dead-centres": (5.0, IDA, [EXUDYN]),
+    "hard/stiff-spring": (5.0, IDA, [EXUDYN]),
+    "hard/redundant-fourbar": (5.0, IDA, [PINOCCHIO]),
+    "hard/fourbar-lower-branch": (5.0, IDA, [EXUDYN]),
 }
 
 
