@@ -115,7 +115,7 @@ def scene_table(title, ref, prov, rows, t_end) -> str:
              f"{prov['generator']} ({prov.get('formulation', '')}), cross-checked by {checks}.\n"]
     head = "| N_w | DC RMSE (m) | IC RMSE (m) |" + (" paper DC | paper IC |" if fourbar else "")
     head += " worst \\|Φ\\| DC / IC | energy drift DC / IC (J) | LM iter. DC / IC | time DC / IC |"
-    lines += [head, "|" + "---|" * (head.count("|") - 1)]
+    lines += [head, "|" + "---|" * (head.replace("\\|", "").count("|") - 1)]
     for w in WINDOWS:
         by = {r["coords"]: r for r in rows if r["window"] == w}
         dc, ic = by.get("dc", {}), by.get("ic", {})
