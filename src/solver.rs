@@ -256,8 +256,6 @@ pub struct WindowSolver {
     /// Cost of the factors touching the first block, from the last evaluation.
     cost_first: f64,
     correction: Vec<f64>,
-    /// The nonzero pattern of a null-space basis, for products with a dense prior.
-    entries: Vec<(usize, usize, f64)>,
     /// The nonzeros of a Jacobian row (per block it touches, for `accumulate`).
     nonzero: Vec<(usize, f64)>,
     nonzeros: [Vec<(usize, f64)>; 2],
@@ -342,7 +340,6 @@ impl WindowSolver {
             last: None,
             cost_first: 0.0,
             correction: vec![0.0; s],
-            entries: Vec::with_capacity(s * s),
             nonzero: Vec::with_capacity(s),
             nonzeros: [Vec::with_capacity(s), Vec::with_capacity(s)],
             ws: graph.workspace(),
@@ -626,15 +623,10 @@ impl WindowSolver {
                 let red = &self.hard[0].reduction;
                 let dim = red.dim;
                 let ln = &mut rest[..s * dim];
-                ln.fill(0.0);
-                // N₀'s entries (row, column, value) by rows: ΛN₀ takes a product per
-                // entry and row of Λ, summed over the rows of N₀ in order.
-                self.entries.clear();
-                for k in 0..s {
-                    let (start, nrow) = red.row(k);
-                    self.entries
-                        .extend(nrow.iter().enumerate().map(|(c, &v)| (k, start + c, v)));
-                }
+                // ΛN₀ over N₀'s nonzeros: its first q columns on the rows `free`, then
+                // one unit column per untouched unknown (each sum over rows in order).
+                let (free, untouched) = red.structure();
+                let q = dim - untouched.len();
                 for i in 0..s {
                     let row = &p.information[i * s..(i + 1) * s];
                     grad[i] += row
@@ -643,8 +635,13 @@ impl WindowSolver {
                         .map(|(a, b)| a * b)
                         .sum::<f64>();
                     let out = &mut ln[i * dim..(i + 1) * dim];
-                    for &(k, c, nv) in &self.entries {
-                        out[c] += row[k] * nv;
+                    for (c, o) in out[..q].iter_mut().enumerate() {
+                        *o = free
+                            .iter()
+                            .fold(0.0, |acc, &k| acc + row[k] * red.basis[k * s + c]);
+                    }
+                    for (o, &k) in out[q..].iter_mut().zip(untouched) {
+                        *o = 0.0 + row[k];
                     }
                 }
                 let h0 = self.h.diag_mut(0);
