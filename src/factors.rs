@@ -510,9 +510,9 @@ impl DynamicsKernel {
         Ok(())
     }
 
-    /// ∂q̈/∂Q (row-major n × n) with the factors a preceding [`DynamicsKernel::evaluate`]
-    /// left in the scratch: the first n rows of K⁻¹[I; 0], for the listed `columns`
-    /// only (forces acting on those coordinates); the other columns are 0.
+    /// ∂q̈/∂Q_c for forces Q_c on the coordinates `columns` (row-major n × columns.len())
+    /// with the factors a preceding [`DynamicsKernel::evaluate`] left in the scratch:
+    /// the first n rows of K⁻¹[E; 0], E the columns of I they act on.
     pub fn force_jacobian(
         model: &Model,
         columns: &[usize],
@@ -536,12 +536,7 @@ impl DynamicsKernel {
             rhs[j * p + c] = 1.0;
         }
         dense::lu_solve_many(kkt, big, perm, rhs, p, tmp);
-        jf[..n * n].fill(0.0);
-        for i in 0..n {
-            for (c, &j) in columns.iter().enumerate() {
-                jf[i * n + j] = rhs[i * p + c];
-            }
-        }
+        jf[..n * p].copy_from_slice(&rhs[..n * p]);
     }
 }
 
@@ -556,9 +551,10 @@ pub struct Dynamics {
     actuated: Option<Actuated>,
 }
 
-/// The coordinates an inverse-dynamics factor's forces Q act on: all of them, or the
-/// listed ones, the other entries of Q then taking no part (their ∂e/∂Q columns are
-/// 0, which spares a pair of triangular solves per column).
+/// The coordinates an inverse-dynamics factor's forces act on: all of them (Q has n
+/// entries), or the listed ones (Q has one entry per listed coordinate, in that
+/// order), which spares a pair of triangular solves per other column of ∂e/∂Q and
+/// the solver the unknowns that would only be held at 0.
 #[derive(Debug, Clone)]
 struct Actuated {
     all: bool,
@@ -573,27 +569,29 @@ impl Actuated {
         }
     }
 
-    fn only(n: usize, mut indices: Vec<usize>) -> Self {
-        indices.sort_unstable();
-        indices.dedup();
+    fn only(n: usize, indices: Vec<usize>) -> Self {
         assert!(
             indices.iter().all(|&i| i < n),
             "an actuated coordinate past q"
         );
+        let mut sorted = indices.clone();
+        sorted.sort_unstable();
+        sorted.dedup();
+        assert_eq!(sorted.len(), indices.len(), "an actuated coordinate twice");
         Actuated {
-            all: indices.len() == n,
+            all: indices.iter().copied().eq(0..n),
             indices,
         }
     }
 
-    /// The forces that act: Q itself, or Q with the other entries zeroed into `own`.
+    /// The generalized forces on all n coordinates: Q itself, or Q spread into `own`.
     fn forces<'a>(&self, q: &'a [f64], own: &'a mut [f64]) -> &'a [f64] {
         if self.all {
             return q;
         }
         own.fill(0.0);
-        for &i in &self.indices {
-            own[i] = q[i];
+        for (&i, &v) in self.indices.iter().zip(q) {
+            own[i] = v;
         }
         own
     }
@@ -622,7 +620,8 @@ impl Dynamics {
         f
     }
 
-    /// f^d_idyn with forces on the coordinates `actuated` only.
+    /// f^d_idyn with forces on the coordinates `actuated` only: its Q variable has
+    /// one entry per actuated coordinate, in that order.
     pub fn inverse_on(model: Arc<Model>, noise: Noise, actuated: Vec<usize>) -> Self {
         let n = model.n();
         let mut f = Dynamics::inverse(model, noise);

@@ -226,12 +226,13 @@ pub fn solve(
         ))
     };
     let graph = match options.coordinates {
+        // Q has one entry per prescribed coordinate: the forces that act.
         Coordinates::Dependent => ChainGraph {
             layout: Layout::new(&[
                 (VarKind::Q, n),
                 (VarKind::Dq, n),
                 (VarKind::Ddq, n),
-                (VarKind::Force, n),
+                (VarKind::Force, idx.len()),
             ]),
             dt,
             t0: prescription.t0,
@@ -245,9 +246,6 @@ pub fn solve(
                     dt,
                     Noise::Hard,
                 )),
-                force_zero(),
-                // Q acts on the prescribed coordinates only (the others are fixed at 0
-                // by `force_zero`), which spares the factor the other ∂e/∂Q columns.
                 Box::new(Dynamics::inverse_on(
                     model.clone(),
                     Noise::Isotropic(nm.dynamics),
@@ -361,7 +359,10 @@ pub fn solve(
                 values.extend(model.independent.iter().map(|&i| b[part * n + i]));
             }
         }
-        values.extend_from_slice(&b[3 * n..]);
+        match options.coordinates {
+            Coordinates::Dependent => values.extend(idx.iter().map(|&i| b[3 * n + i])),
+            Coordinates::Independent => values.extend_from_slice(&b[3 * n..]),
+        }
     }
     debug_assert_eq!(values.len(), steps * s);
     let report = smoother::batch(&graph, &mut values, steps, options.settings)?;
@@ -382,7 +383,16 @@ pub fn solve(
         tr.q.extend_from_slice(&b[..n]);
         tr.dq.extend_from_slice(&b[n..2 * n]);
         tr.ddq.extend_from_slice(&b[2 * n..3 * n]);
-        forces.extend_from_slice(&b[s - n..]);
+        match options.coordinates {
+            Coordinates::Dependent => {
+                let row = forces.len();
+                forces.resize(row + n, 0.0);
+                for (&i, &v) in idx.iter().zip(&b[3 * n..]) {
+                    forces[row + i] = v;
+                }
+            }
+            Coordinates::Independent => forces.extend_from_slice(&b[s - n..]),
+        }
         for (c, &i) in idx.iter().enumerate() {
             worst_tracking = worst_tracking.max((b[i] - prescription.value(k, c)).abs());
         }

@@ -256,10 +256,9 @@ pub struct WindowSolver {
     /// Cost of the factors touching the first block, from the last evaluation.
     cost_first: f64,
     correction: Vec<f64>,
-    /// The nonzero pattern of a null-space basis, for products with a dense prior.
-    entries: Vec<(usize, usize, f64)>,
-    /// The nonzeros of a Jacobian row.
+    /// The nonzeros of a Jacobian row (per block it touches, for `accumulate`).
     nonzero: Vec<(usize, f64)>,
+    nonzeros: [Vec<(usize, f64)>; 2],
     ws: Workspace,
     scratch: Vec<f64>,
 }
@@ -341,8 +340,8 @@ impl WindowSolver {
             last: None,
             cost_first: 0.0,
             correction: vec![0.0; s],
-            entries: Vec::with_capacity(s * s),
             nonzero: Vec::with_capacity(s),
+            nonzeros: [Vec::with_capacity(s), Vec::with_capacity(s)],
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
         })
@@ -597,6 +596,7 @@ impl WindowSolver {
                     step,
                     lagged,
                     s,
+                    &mut self.nonzeros,
                 );
             }
         }
@@ -623,15 +623,10 @@ impl WindowSolver {
                 let red = &self.hard[0].reduction;
                 let dim = red.dim;
                 let ln = &mut rest[..s * dim];
-                ln.fill(0.0);
-                // N₀'s entries (row, column, value) by rows: ΛN₀ takes a product per
-                // entry and row of Λ, summed over the rows of N₀ in order.
-                self.entries.clear();
-                for k in 0..s {
-                    let (start, nrow) = red.row(k);
-                    self.entries
-                        .extend(nrow.iter().enumerate().map(|(c, &v)| (k, start + c, v)));
-                }
+                // ΛN₀ over N₀'s nonzeros: its first q columns on the rows `free`, then
+                // one unit column per untouched unknown (each sum over rows in order).
+                let (free, untouched) = red.structure();
+                let q = dim - untouched.len();
                 for i in 0..s {
                     let row = &p.information[i * s..(i + 1) * s];
                     grad[i] += row
@@ -640,8 +635,13 @@ impl WindowSolver {
                         .map(|(a, b)| a * b)
                         .sum::<f64>();
                     let out = &mut ln[i * dim..(i + 1) * dim];
-                    for &(k, c, nv) in &self.entries {
-                        out[c] += row[k] * nv;
+                    for (c, o) in out[..q].iter_mut().enumerate() {
+                        *o = free
+                            .iter()
+                            .fold(0.0, |acc, &k| acc + row[k] * red.basis[k * s + c]);
+                    }
+                    for (o, &k) in out[q..].iter_mut().zip(untouched) {
+                        *o = 0.0 + row[k];
                     }
                 }
                 let h0 = self.h.diag_mut(0);
@@ -1160,7 +1160,11 @@ fn reduce_factor(
 
 /// Adds a reduced factor's JᵀJ and Jᵀr into the block-tridiagonal system: block
 /// `step` from `reduced[0]` and, when `lagged`, block `step − 1` from `reduced[1]`
-/// (only their active columns, H's block sizes).
+/// (only their active columns, H's block sizes). Reduced rows are often sparse (a
+/// scaled identity times a null-space basis with unit rows), so each row's products
+/// run over its nonzeros, gathered into `nonzero`; every entry still sums the rows
+/// in order.
+#[allow(clippy::too_many_arguments)]
 fn accumulate(
     h: &mut BlockTridiagonal,
     g: &mut [f64],
@@ -1169,52 +1173,44 @@ fn accumulate(
     step: usize,
     lagged: bool,
     s: usize,
+    nonzero: &mut [Vec<(usize, f64)>; 2],
 ) {
-    let dim = r.len();
     let parts: &[(usize, usize)] = if lagged {
         &[(0, step), (1, step - 1)]
     } else {
         &[(0, step)]
     };
-    for &(part, block) in parts {
-        let d = h.dim(block);
-        let j = &reduced[part];
-        let gb = &mut g[block * s..block * s + d];
-        for row in 0..dim {
-            let jr = &j[row * s..row * s + d];
-            for (gi, v) in gb.iter_mut().zip(jr) {
-                *gi += v * r[row];
+    for (row, &rr) in r.iter().enumerate() {
+        for &(part, block) in parts {
+            let d = h.dim(block);
+            let jr = &reduced[part][row * s..row * s + d];
+            let nz = &mut nonzero[part];
+            nz.clear();
+            nz.extend(
+                jr.iter()
+                    .enumerate()
+                    .filter(|(_, v)| **v != 0.0)
+                    .map(|(a, &v)| (a, v)),
+            );
+            let gb = &mut g[block * s..block * s + d];
+            for &(a, va) in nz.iter() {
+                gb[a] += va * rr;
             }
-        }
-        let hb = h.diag_mut(block);
-        for row in 0..dim {
-            let jr = &j[row * s..row * s + d];
-            for (a, &va) in jr.iter().enumerate() {
-                if va == 0.0 {
-                    continue;
-                }
+            let hb = h.diag_mut(block);
+            for &(a, va) in nz.iter() {
                 let out = &mut hb[a * s..a * s + d];
-                for (o, vb) in out.iter_mut().zip(jr) {
-                    *o += va * vb;
+                for &(b, vb) in nz.iter() {
+                    out[b] += va * vb;
                 }
             }
         }
-    }
-    if lagged {
-        // H[step][step−1] += J₀ᵀ J₁.
-        let (d0, d1) = (h.dim(step), h.dim(step - 1));
-        let (j0, j1) = (&reduced[0], &reduced[1]);
-        let hl = h.lower_mut(step);
-        for row in 0..dim {
-            let a_row = &j0[row * s..row * s + d0];
-            let b_row = &j1[row * s..row * s + d1];
-            for (a, &va) in a_row.iter().enumerate() {
-                if va == 0.0 {
-                    continue;
-                }
-                let out = &mut hl[a * s..a * s + d1];
-                for (o, vb) in out.iter_mut().zip(b_row) {
-                    *o += va * vb;
+        if lagged {
+            // H[step][step−1] += J₀ᵀ J₁.
+            let hl = h.lower_mut(step);
+            for &(a, va) in &nonzero[0] {
+                let out = &mut hl[a * s..(a + 1) * s];
+                for &(b, vb) in &nonzero[1] {
+                    out[b] += va * vb;
                 }
             }
         }

@@ -197,6 +197,13 @@ impl NullSpace {
         }
     }
 
+    /// The basis' structure: columns 0..q (q = dim − untouched.len()) are nonzero on
+    /// the rows `free` only, column q + u is the unit vector of `untouched[u]`.
+    /// Returns (free, untouched), both ascending.
+    pub fn structure(&self) -> (&[usize], &[usize]) {
+        (&self.free, &self.untouched)
+    }
+
     /// Row i of the basis where it may be nonzero: (first column, entries). Products
     /// with N skip the rest, which is most of it (one entry per untouched unknown,
     /// none per fixed one).
