@@ -62,14 +62,7 @@ def load_reference(name: str) -> tuple[tj.Trajectory, dict]:
             json.loads((folder / "provenance.json").read_text()))
 
 
-def errors(model: mbfg.Model, t: np.ndarray, q: np.ndarray, truth: tj.Trajectory):
-    """(RMSE, max) of the point coordinates at the samples both have."""
-    step = truth.t[1] - truth.t[0]
-    k = np.rint(t / step).astype(int)
-    on_grid = (np.abs(k * step - t) < 1e-9) & (k < len(truth.t))
-    cols = refs.point_columns(model)
-    d = q[on_grid][:, cols] - truth.q[k[on_grid]][:, cols]
-    return float(np.sqrt(np.mean(d ** 2))), float(np.max(np.abs(d)))
+errors = refs.point_errors
 
 
 def window_kw(w) -> dict:
@@ -151,7 +144,7 @@ def ms(r) -> str:
 
 
 def write_csv(path: pathlib.Path, rows: list[dict]) -> None:
-    keys = sorted({k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k) if k in rows[0] else 99)
+    keys = list(dict.fromkeys(k for r in rows for k in r))  # every key, in first-seen order
     with open(path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
