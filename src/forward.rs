@@ -86,6 +86,9 @@ impl Default for NoiseModels {
     /// step from the previous one.
     fn default() -> Self {
         NoiseModels {
+            integrator_position: 0.01,
+            integrator_velocity: 0.01,
+            dynamics: 1.0,
             equality: 1e6,
             ..NoiseModels::paper()
         }
@@ -404,7 +407,11 @@ pub fn simulate(
                 &mut values,
                 steps,
                 window,
-                options.settings,
+                Settings {
+                    // The DC graph's integrators conflict with its constraints.
+                    tangent_priors: options.coordinates == Coordinates::Dependent,
+                    ..options.settings
+                },
                 |v, k| fg.predict(v, k),
                 |k, report, v| {
                     iterations.push(report.iterations);

@@ -44,8 +44,12 @@ pub fn fixed_lag(
             predict(values, k);
         }
         if k + 1 - k0 > window {
-            prior = Some(solver.marginalize(graph, values, k0, prior.as_ref())?);
+            let mut p = solver.marginalize(graph, values, k0, prior.as_ref())?;
             k0 += 1;
+            if settings.tangent_priors {
+                solver.project_prior(graph, values, k0, &mut p)?;
+            }
+            prior = Some(p);
         }
         let mut warm = 0;
         if k > k0 {

@@ -1,8 +1,8 @@
-//! Four-bar forward dynamics in dependent coordinates on plain, non-singular motion
-//! must converge at every step, at large steps too (less accurate, but converged,
-//! with |Φ| ≤ 1e-9). These runs stall today (see docs/dc-stall.md for the diagnosis),
-//! so the tests are ignored until the solver is fixed; run them with
-//! `cargo test --release --test robustness -- --ignored`.
+//! Four-bar forward dynamics on plain, non-singular motion must converge at every
+//! step, at large steps and over long runs too (less accurate, but converged, with
+//! |Φ| ≤ 1e-9). These runs used to stall (docs/dc-stall.md has the diagnosis and
+//! the fix: priors on the constraints' tangent space, the exact reduced Hessian
+//! when Gauss-Newton converges slowly, backtracking, integrators weighted above f_dyn).
 
 use mbfg::forward::{simulate, Coordinates, ForwardOptions};
 use mbfg::smoother::Mode;
@@ -10,14 +10,26 @@ use mbfg::{Model, Scene};
 use std::path::PathBuf;
 use std::sync::Arc;
 
-fn fourbar() -> Arc<Model> {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scenes/fourbar.yaml");
+fn scene(file: &str) -> Arc<Model> {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(file);
     Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap())
 }
 
+fn fourbar() -> Arc<Model> {
+    scene("scenes/fourbar.yaml")
+}
+
 fn converges(dt: f64, t_end: f64, window: usize) {
-    let opts = ForwardOptions::new(Coordinates::Dependent, dt, t_end, Mode::FixedLag(window));
-    let (tr, summary) = simulate(fourbar(), &opts, &mut |_, _| {}).unwrap();
+    converges_in(Coordinates::Dependent, dt, t_end, window);
+}
+
+fn converges_in(coordinates: Coordinates, dt: f64, t_end: f64, window: usize) {
+    let opts = ForwardOptions::new(coordinates, dt, t_end, Mode::FixedLag(window));
+    let model = match coordinates {
+        Coordinates::Dependent => fourbar(),
+        Coordinates::Independent => scene("scenes/fourbar-theta.yaml"),
+    };
+    let (tr, summary) = simulate(model, &opts, &mut |_, _| {}).unwrap();
     let first = summary.failures.first().map(|f| (f.step, f.t, f.report));
     assert!(
         summary.failures.is_empty(),
@@ -32,26 +44,34 @@ fn converges(dt: f64, t_end: f64, window: usize) {
 }
 
 #[test]
-#[ignore = "stalls at t = 1.44 s: GN curvature along the motion (docs/dc-stall.md)"]
 fn dependent_coordinates_converge_at_20_ms() {
     converges(2e-2, 5.0, 1);
 }
 
 #[test]
-#[ignore = "stalls at t = 1.45 s: GN curvature along the motion (docs/dc-stall.md)"]
 fn dependent_coordinates_converge_at_10_ms() {
     converges(1e-2, 5.0, 1);
 }
 
 #[test]
-#[ignore = "stalls at t = 3.495 s: GN curvature along the motion (docs/dc-stall.md)"]
 fn dependent_coordinates_converge_at_5_ms() {
     converges(5e-3, 5.0, 1);
 }
 
 #[test]
-#[ignore = "stalls at t = 8.884 s (N_w = 1), 9.699 s (N_w = 2) (docs/dc-stall.md)"]
 fn dependent_coordinates_converge_for_60_s_at_1_ms() {
     converges(1e-3, 60.0, 1);
     converges(1e-3, 60.0, 2);
+}
+
+#[test]
+fn independent_coordinates_converge_for_60_s_at_1_ms() {
+    converges_in(Coordinates::Independent, 1e-3, 60.0, 1);
+}
+
+#[test]
+fn windows_converge_at_10_ms() {
+    converges(1e-2, 5.0, 2);
+    converges(1e-2, 5.0, 10);
+    converges_in(Coordinates::Independent, 2e-2, 5.0, 10);
 }

@@ -249,6 +249,50 @@ impl NullSpace {
             x[i] = self.w[a];
         }
     }
+
+    /// Least-squares multipliers of the last [`NullSpace::reduce`]'s equations for a
+    /// gradient g (length s): λ (one per equation, 0 on dropped ones) minimizing
+    /// ‖Cᵀλ + g‖, from the same factors. A unit equation takes all of g on its unknown;
+    /// the others, through the QR, what is left on the free unknowns.
+    pub fn multipliers(&mut self, g: &[f64], lambda: &mut [f64]) {
+        let s = self.s;
+        lambda[..self.rows].fill(0.0);
+        let sf = self.free.len();
+        let rank = self.rank - (s - sf - self.untouched.len());
+        // Qᵀ g_free (Q = H₀ H₁ … H_{r−1}), then R₁ λ_sel = −(Qᵀ g)₁ by back substitution.
+        for (a, &i) in self.free.iter().enumerate() {
+            self.w[a] = g[i];
+        }
+        for k in 0..rank {
+            let v = &self.a[k * sf + k..(k + 1) * sf];
+            let y = &mut self.w[k..sf];
+            let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
+            let f = self.beta[k] * dot;
+            for (yi, vi) in y.iter_mut().zip(v) {
+                *yi -= f * vi;
+            }
+        }
+        for i in (0..rank).rev() {
+            let mut acc = -self.w[i];
+            for j in i + 1..rank {
+                acc -= self.a[j * sf + i] * self.rhs[j];
+            }
+            self.rhs[i] = acc / self.rdiag[i];
+        }
+        for i in 0..rank {
+            lambda[self.others[self.perm[i]]] = self.rhs[i];
+        }
+        // Unit equations: (Cᵀλ)ᵢ + gᵢ = 0 on the unknown each one fixes.
+        for &i in &self.pinned {
+            if let Some(j) = self.fixed[i] {
+                let mut v = g[i];
+                for &o in &self.others {
+                    v += self.c[o * s + i] * lambda[o];
+                }
+                lambda[j] = -v / self.c[j * s + i];
+            }
+        }
+    }
 }
 
 /// Householder QR with column pivoting of the column-major `s` × `m` matrix `a`,
@@ -440,6 +484,34 @@ mod tests {
             assert!((&c * &p - &b).amax() < 1e-10);
             assert!((p[2] - x_true[2]).abs() < 1e-14 && (p[5] - x_true[5]).abs() < 1e-14);
             assert!(n.row(2).amax() == 0.0 && n.row(5).amax() == 0.0);
+        }
+    }
+
+    #[test]
+    fn multipliers_solve_the_least_squares_problem() {
+        // Dense rank-deficient equations, and unit rows (one of them a duplicate)
+        // next to them: C(Cᵀλ + g) = 0 is the least-squares condition.
+        let mut seed = 5;
+        for &(rows, s, rank, units) in &[(3, 6, 3, 0), (6, 12, 4, 0), (7, 9, 3, 3), (5, 5, 4, 2)] {
+            let mut c = DMatrix::zeros(rows, s);
+            let dense = low_rank(rows - units, s, rank, &mut seed);
+            c.view_mut((units, 0), (rows - units, s)).copy_from(&dense);
+            for u in 0..units {
+                c[(u, 1 + (u % 2) * 2)] = 1.5 + u as f64;
+            }
+            let g = DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
+            let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+            let mut ns = NullSpace::new(s, rows);
+            ns.reduce(&row_major, &vec![0.0; rows], rows);
+            let mut lambda = vec![0.0; rows];
+            ns.multipliers(g.as_slice(), &mut lambda);
+            let l = DMatrix::from_column_slice(rows, 1, &lambda);
+            let residual = c.transpose() * l + &g;
+            assert!(
+                (&c * &residual).amax() < 1e-12,
+                "C(Cᵀλ + g) = {:e} for a {rows}×{s} system of rank {rank}",
+                (&c * &residual).amax()
+            );
         }
     }
 
