@@ -88,7 +88,7 @@ impl Default for NoiseModels {
         NoiseModels {
             integrator_position: 0.01,
             integrator_velocity: 0.01,
-            dynamics: 1.0,
+            dynamics: 0.1,
             equality: 1e6,
             ..NoiseModels::paper()
         }

@@ -1137,6 +1137,7 @@ impl WindowSolver {
         let mut newton = false;
         let mut gauss_newton = true;
         let mut previous = f64::INFINITY;
+        let mut slow = false;
         while iterations < self.settings.max_iterations {
             iterations += 1;
             if newton && gauss_newton {
@@ -1252,10 +1253,12 @@ impl WindowSolver {
                     // to Gauss-Newton at once: damping relative to diag H all but
                     // freezes directions with little information, and easing it off
                     // by thirds costs a dozen iterations.
-                    // Undamped steps shrinking by less than 4× per iteration: the
+                    // Undamped steps shrinking by less than 4× twice in a row: the
                     // linear convergence of a model missing its second-order terms.
                     if mu == 0.0 {
-                        newton |= iterations >= 2 && largest > 0.25 * previous;
+                        let slower = largest > 0.25 * previous;
+                        newton |= slow && slower;
+                        slow = slower;
                         previous = largest;
                     }
                     let ratio = (cost - c) / predicted.max(f64::MIN_POSITIVE);
@@ -1268,12 +1271,16 @@ impl WindowSolver {
                     nu = 2.0;
                 }
                 _ => {
+                    // A failed full step after the first (which starts from a
+                    // prediction off the constraints): the model is wrong at its scale.
+                    newton |= iterations >= 2;
                     if lm && mu == 0.0 && !small {
                         // The full step overshot: try fractions of it before damping,
                         // which would turn the step away from the directions with
                         // little information, where it is most needed.
                         if let Some(c) = self.backtrack(graph, values, k0, k1, prior, cost)? {
                             previous = f64::INFINITY;
+                            slow = false;
                             cost = c;
                             continue;
                         }
@@ -1282,7 +1289,6 @@ impl WindowSolver {
                     if !lm {
                         return Ok(diverged(cost, iterations));
                     }
-                    newton |= iterations >= 2;
                     if self
                         .evaluate(graph, values, k0, k1, prior, Scope::Window, true)
                         .is_err()
