@@ -975,56 +975,81 @@ impl WindowSolver {
             lin += prior.eta[i] * delta[i];
         }
         let constant = prior.constant + lin + 0.5 * quad;
-        // ΛN̄ (s × d), N̄ᵀΛN̄ (d × d), N̄ᵀ∇Q, over N̄'s nonzeros.
-        ln[..s * d].fill(0.0);
-        reduced[..d * d].fill(0.0);
-        gt[..d].fill(0.0);
+        // N̄'s structure: columns 0..q dense on the rows `free`, column q + u the unit
+        // vector of `untouched[u]`, rows of fixed unknowns 0.
+        let (free, untouched) = red.structure();
+        let q = d - untouched.len();
+        let basis = &red.basis;
+        // ΛN̄ (s × d).
         for i in 0..s {
+            let row = &prior.information[i * s..(i + 1) * s];
             let out = &mut ln[i * d..(i + 1) * d];
-            for (j, &lij) in prior.information[i * s..(i + 1) * s].iter().enumerate() {
-                let (start, nrow) = red.row(j);
-                if lij == 0.0 {
-                    continue;
+            out[..q].fill(0.0);
+            for &j in free {
+                let lij = row[j];
+                for (o, b) in out[..q].iter_mut().zip(&basis[j * s..j * s + q]) {
+                    *o += lij * b;
                 }
-                for (o, nv) in out[start..].iter_mut().zip(nrow) {
-                    *o += lij * nv;
+            }
+            for (o, &j) in out[q..].iter_mut().zip(untouched) {
+                *o = row[j];
+            }
+        }
+        // N̄ᵀΛN̄ (d × d) and N̄ᵀ∇Q.
+        reduced[..q * d].fill(0.0);
+        gt[..q].fill(0.0);
+        for &i in free {
+            let li = &ln[i * d..(i + 1) * d];
+            for a in 0..q {
+                let b = basis[i * s + a];
+                gt[a] += b * grad[i];
+                for (o, l) in reduced[a * d..(a + 1) * d].iter_mut().zip(li) {
+                    *o += b * l;
                 }
             }
         }
-        for i in 0..s {
-            let (start, nrow) = red.row(i);
-            for (a, &na) in nrow.iter().enumerate() {
-                let a = start + a;
-                gt[a] += na * grad[i];
-                for (o, l) in reduced[a * d..(a + 1) * d]
-                    .iter_mut()
-                    .zip(&ln[i * d..(i + 1) * d])
-                {
-                    *o += na * l;
-                }
-            }
+        for (u, &i) in untouched.iter().enumerate() {
+            let a = q + u;
+            gt[a] = grad[i];
+            reduced[a * d..(a + 1) * d].copy_from_slice(&ln[i * d..(i + 1) * d]);
         }
-        // Back to full coordinates: N̄(N̄ᵀΛN̄) (s × d), then PΛP = that times N̄ᵀ and
-        // P∇Q = N̄(N̄ᵀ∇Q).
+        // Back to full coordinates: R = N̄(N̄ᵀΛN̄) (s × d), PΛP = R N̄ᵀ, P∇Q = N̄(N̄ᵀ∇Q).
         nr[..s * d].fill(0.0);
-        for i in 0..s {
-            let (start, nrow) = red.row(i);
+        prior.eta.fill(0.0);
+        for &i in free {
             let out = &mut nr[i * d..(i + 1) * d];
-            let mut eta = 0.0;
-            for (a, &na) in nrow.iter().enumerate() {
-                let a = start + a;
-                eta += na * gt[a];
+            for a in 0..q {
+                let b = basis[i * s + a];
+                prior.eta[i] += b * gt[a];
                 for (o, r) in out.iter_mut().zip(&reduced[a * d..(a + 1) * d]) {
-                    *o += na * r;
+                    *o += b * r;
                 }
             }
-            prior.eta[i] = eta;
         }
+        for (u, &i) in untouched.iter().enumerate() {
+            let a = q + u;
+            prior.eta[i] = gt[a];
+            nr[i * d..(i + 1) * d].copy_from_slice(&reduced[a * d..(a + 1) * d]);
+        }
+        prior.information.fill(0.0);
         for i in 0..s {
             let row = &nr[i * d..(i + 1) * d];
-            for j in 0..=i {
-                let (start, nrow) = red.row(j);
-                let v: f64 = row[start..].iter().zip(nrow).map(|(a, b)| a * b).sum();
+            let out = &mut prior.information[i * s..(i + 1) * s];
+            for &j in free {
+                out[j] = row[..q]
+                    .iter()
+                    .zip(&basis[j * s..j * s + q])
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>();
+            }
+            for (u, &j) in untouched.iter().enumerate() {
+                out[j] = row[q + u];
+            }
+        }
+        // Exactly symmetric (the two triangles summed in different orders).
+        for i in 0..s {
+            for j in 0..i {
+                let v = 0.5 * (prior.information[i * s + j] + prior.information[j * s + i]);
                 prior.information[i * s + j] = v;
                 prior.information[j * s + i] = v;
             }
