@@ -425,10 +425,12 @@ pub fn solve(
 fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> Result<Vec<f64>> {
     let n = model.n();
     let idx = &p.indices;
-    let mut out = Vec::with_capacity(p.steps * 4 * n);
-    let mut q = model.initial.q.clone();
+    let mut out = vec![0.0; p.steps * 4 * n];
+    let mut kin = kinematics::PrescribedKinematics::new(model, idx);
+    let mut q = model.initial.q.as_slice().to_vec();
     let (mut v, mut a) = (d1.to_vec(), d2.to_vec());
-    for k in 0..p.steps {
+    let mut force = vec![0.0; idx.len()];
+    for (k, block) in out.chunks_exact_mut(4 * n).enumerate() {
         let t = p.t0 + k as f64 * p.dt;
         if k > 0 {
             for c in 0..idx.len() {
@@ -445,14 +447,18 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
                 "the prescribed motion is out of the mechanism's reach at t = {t} (sample {k}): {e}"
             ))
         };
-        kinematics::solve_position(model, &mut q, idx).map_err(reach)?;
-        let dq = kinematics::solve_velocity(model, &q, idx, &v).map_err(reach)?;
-        let ddq = kinematics::solve_acceleration(model, &q, &dq, idx, &a).map_err(reach)?;
-        let force = dynamics::actuator_forces(model, &q, &dq, &ddq, t, idx)?;
-        out.extend_from_slice(q.as_slice());
-        out.extend_from_slice(dq.as_slice());
-        out.extend_from_slice(ddq.as_slice());
-        out.extend_from_slice(force.as_slice());
+        kin.position(model, &mut q).map_err(reach)?;
+        kin.factor(model, &q).map_err(reach)?;
+        let (bq, rest) = block.split_at_mut(n);
+        let (bdq, rest) = rest.split_at_mut(n);
+        let (bddq, bforce) = rest.split_at_mut(n);
+        bq.copy_from_slice(&q);
+        kin.velocity(&v, bdq);
+        kin.acceleration(model, &q, bdq, &a, bddq);
+        kin.forces(model, &q, bdq, bddq, t, &mut force)?;
+        for (&i, &f) in idx.iter().zip(&force) {
+            bforce[i] = f;
+        }
     }
     Ok(out)
 }

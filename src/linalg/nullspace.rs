@@ -251,6 +251,56 @@ impl NullSpace {
     }
 }
 
+impl NullSpace {
+    /// A solution μ (one entry per equation of the last [`NullSpace::reduce`]) of
+    /// Cᵀ μ = r (r of length s) that is exact whenever the system is consistent: on
+    /// the QR's unknowns A μ_others = r_free with A = Cᵀ[free, others] = Q R Pᵀ, so
+    /// μ = P R₁⁻¹ (Qᵀ r_free)₁..rank (the dependent equations get 0); then each
+    /// unit equation takes what its unknown's row leaves, r_i − Σ C[j][i] μ_j over
+    /// the others (a duplicate unit equation gets 0). Rows of untouched unknowns
+    /// (0 = r_i) are not checked.
+    pub fn solve_transpose(&mut self, r: &[f64], mu: &mut [f64]) {
+        let s = self.s;
+        mu[..self.rows].fill(0.0);
+        let sf = self.free.len();
+        let rank = self.rank - (s - sf - self.untouched.len());
+        // w = Qᵀ r_free = H_{rank−1} ⋯ H₀ r_free.
+        for (a, &i) in self.free.iter().enumerate() {
+            self.w[a] = r[i];
+        }
+        for k in 0..rank {
+            let v = &self.a[k * sf + k..(k + 1) * sf];
+            let y = &mut self.w[k..sf];
+            let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
+            let f = self.beta[k] * dot;
+            for (yi, vi) in y.iter_mut().zip(v) {
+                *yi -= f * vi;
+            }
+        }
+        // R₁ z = w₁..rank (R above the diagonal of `a`, column-major, its diagonal in
+        // `rdiag`).
+        for i in (0..rank).rev() {
+            let mut acc = self.w[i];
+            for j in i + 1..rank {
+                acc -= self.a[j * sf + i] * self.w[j];
+            }
+            self.w[i] = acc / self.rdiag[i];
+        }
+        for i in 0..rank {
+            mu[self.others[self.perm[i]]] = self.w[i];
+        }
+        for &i in &self.pinned {
+            if let Some(j) = self.fixed[i] {
+                let mut v = r[i];
+                for &o in &self.others {
+                    v -= self.c[o * s + i] * mu[o];
+                }
+                mu[j] = v / self.c[j * s + i];
+            }
+        }
+    }
+}
+
 /// Householder QR with column pivoting of the column-major `s` × `m` matrix `a`,
 /// stopping at the first pivot below [`NullSpace::RANK_TOLERANCE`] relative to the
 /// largest column; returns the rank. Reflectors stay below the diagonal, R above it
@@ -440,6 +490,30 @@ mod tests {
             assert!((&c * &p - &b).amax() < 1e-10);
             assert!((p[2] - x_true[2]).abs() < 1e-14 && (p[5] - x_true[5]).abs() < 1e-14);
             assert!(n.row(2).amax() == 0.0 && n.row(5).amax() == 0.0);
+        }
+    }
+
+    #[test]
+    fn transposed_solve_is_exact_for_consistent_systems() {
+        let mut seed = 23;
+        let (s, rows) = (8, 9);
+        for trial in 0..4 {
+            // Unit rows on unknowns 1 and 6, the rest dense (rank-deficient on odd
+            // trials, so some equations are dependent).
+            let mut c = DMatrix::zeros(rows, s);
+            c[(0, 1)] = 1.5;
+            c[(1, 6)] = -2.0;
+            let dense = low_rank(rows - 2, s, 5 + trial % 2, &mut seed);
+            c.view_mut((2, 0), (rows - 2, s)).copy_from(&dense);
+            let mu_true = DMatrix::from_fn(rows, 1, |_, _| pseudo_random(&mut seed));
+            let r = c.transpose() * &mu_true; // consistent
+            let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+            let mut ns = NullSpace::new(s, rows);
+            ns.reduce(&row_major, &vec![0.0; rows], rows);
+            let mut mu = vec![0.0; rows];
+            ns.solve_transpose(r.as_slice(), &mut mu);
+            let back = c.transpose() * DMatrix::from_column_slice(rows, 1, &mu);
+            assert!((back - &r).amax() < 1e-10, "trial {trial}: Cᵀμ = r");
         }
     }
 
