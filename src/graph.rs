@@ -38,6 +38,19 @@ impl VarKind {
             VarKind::Force => "Q",
         }
     }
+
+    /// The time derivative a variable holds (positions 0, velocities 1,
+    /// accelerations 2), forces after them (3): hard equations on a step are block
+    /// triangular in this order (position constraints touch positions, velocity
+    /// constraints positions and velocities, ...), which their reduction exploits.
+    pub fn order(self) -> usize {
+        match self {
+            VarKind::Q | VarKind::Z => 0,
+            VarKind::Dq | VarKind::Dz => 1,
+            VarKind::Ddq | VarKind::Ddz => 2,
+            VarKind::Force => 3,
+        }
+    }
 }
 
 /// A variable a factor touches: its kind, at the factor's step (`lag` 0) or the step

@@ -23,7 +23,7 @@ use crate::io::Table;
 use crate::kinematics;
 use crate::model::Model;
 use crate::smoother;
-use crate::solver::{Settings, SolveReport};
+use crate::solver::{Settings, SolveReport, WindowSolver};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -365,7 +365,9 @@ pub fn solve(
         }
     }
     debug_assert_eq!(values.len(), steps * s);
-    let report = smoother::batch(&graph, &mut values, steps, options.settings)?;
+    let mut solver = WindowSolver::new(&graph, steps, options.settings)?;
+    solver.segment_hard_equations(&graph);
+    let report = solver.solve(&graph, &mut values, 0, steps, None)?;
     let wall_time = start.elapsed();
 
     let mut tr = Trajectory {

@@ -11,6 +11,19 @@
 //! (one column per equation), which reveals the rank, so redundant equations
 //! (over-constrained mechanisms, or the initial priors together with the constraints
 //! they already satisfy) are dropped, not divided by 0.
+//!
+//! Unknowns may be split into ordered segments ([`NullSpace::set_segments`]; the
+//! solver puts positions, velocities, accelerations and forces in segments 0–3).
+//! Each equation then belongs to the segment of the last unknown it touches, and the
+//! QR takes the equations segment by segment (pivoting within a segment), with the
+//! QR's rows ordered by segment: the position equations' reflectors then touch the
+//! position rows only, the velocity equations' the velocity rows and what the
+//! position equations left, and so on. For the block-triangular hard equations of a
+//! step ([Φ_q 0; ∂(Φ_q q̇)/∂q Φ_q] and their kin) this costs a fraction of a QR of
+//! the whole, and the null-space basis comes out exactly 0 on the unknowns the
+//! earlier segments fix (the positions, in inverse dynamics). The basis is another
+//! orthonormal basis of the same space and the particular solution the same
+//! least-norm one.
 
 /// Scratch and results of one reduction, sized once for `s` unknowns and up to
 /// `max_rows` equations.
@@ -24,8 +37,20 @@ pub struct NullSpace {
     /// Per unknown: the unit equation fixing it, if any.
     fixed: Vec<Option<usize>>,
     /// Unknowns neither fixed by unit equations nor untouched by the others (those
-    /// the QR sees), the other equations, and the unknowns no equation touches.
+    /// the QR sees, ascending), the other equations, and the unknowns no equation
+    /// touches.
     free: Vec<usize>,
+    /// Per unknown, its segment; the number of segments.
+    segment: Vec<usize>,
+    segments: usize,
+    /// The free unknowns in the QR's row order (by segment, then index), and per
+    /// segment the end of its rows in that order.
+    qr_rows: Vec<usize>,
+    seg_end: Vec<usize>,
+    /// Per column of the QR: its segment, or [`DROPPED`]; per reflector, the end of
+    /// its rows (it is 0 past them).
+    group: Vec<usize>,
+    rend: Vec<usize>,
     others: Vec<usize>,
     untouched: Vec<usize>,
     /// The unknowns unit equations fix, ascending.
@@ -63,6 +88,12 @@ impl NullSpace {
             rows: 0,
             fixed: vec![None; s],
             free: Vec::with_capacity(s),
+            segment: vec![0; s],
+            segments: 1,
+            qr_rows: Vec::with_capacity(s),
+            seg_end: vec![0; 1],
+            group: vec![0; max_rows],
+            rend: vec![0; s.min(max_rows)],
             others: Vec::with_capacity(max_rows),
             untouched: Vec::with_capacity(s),
             pinned: Vec::with_capacity(s),
@@ -83,6 +114,16 @@ impl NullSpace {
         ns
     }
 
+    /// Splits the unknowns into ordered segments (`segment[i]` for unknown i): the
+    /// equations are reduced segment by segment (see the module's documentation).
+    /// One segment (the default) is the plain pivoted QR.
+    pub fn set_segments(&mut self, segment: &[usize]) {
+        assert_eq!(segment.len(), self.s, "one segment per unknown");
+        self.segment.copy_from_slice(segment);
+        self.segments = segment.iter().max().map_or(1, |m| m + 1);
+        self.seg_end = vec![0; self.segments];
+    }
+
     /// No equations: N = I, p = 0.
     pub fn set_unconstrained(&mut self) {
         let s = self.s;
@@ -94,6 +135,7 @@ impl NullSpace {
         self.particular.fill(0.0);
         self.fixed.fill(None);
         self.free.clear();
+        self.qr_rows.clear();
         self.others.clear();
         self.untouched.clear();
         self.untouched.extend(0..s);
@@ -149,16 +191,41 @@ impl NullSpace {
         }
         let sf = self.free.len();
         let m = self.others.len();
-        // A = Cᵀ[free, others]: column k is equation others[k] on the free unknowns.
-        for (k, &j) in self.others.iter().enumerate() {
-            for (a, &i) in self.free.iter().enumerate() {
-                self.a[k * sf + a] = c[j * s + i];
-            }
+        // The QR's rows: the free unknowns by segment (ascending within one).
+        self.qr_rows.clear();
+        self.qr_rows.extend_from_slice(&self.free);
+        if self.segments > 1 {
+            let seg = &self.segment;
+            self.qr_rows.sort_unstable_by_key(|&i| (seg[i], i));
         }
-        let rank = householder_pivoted(
+        self.seg_end.fill(0);
+        for &i in &self.qr_rows {
+            self.seg_end[self.segment[i]] += 1;
+        }
+        for g in 1..self.segments {
+            self.seg_end[g] += self.seg_end[g - 1];
+        }
+        // A = Cᵀ[free, others]: column k is equation others[k] on the free unknowns;
+        // its group is the segment of the last of them it touches.
+        for (k, &j) in self.others.iter().enumerate() {
+            let col = &mut self.a[k * sf..(k + 1) * sf];
+            for (o, &i) in col.iter_mut().zip(&self.qr_rows) {
+                *o = c[j * s + i];
+            }
+            self.group[k] = col
+                .iter()
+                .rposition(|v| *v != 0.0)
+                .map_or(0, |a| self.segment[self.qr_rows[a]]);
+        }
+        let rank = householder_grouped(
             &mut self.a,
             sf,
             m,
+            Grouping {
+                group: &mut self.group[..m],
+                seg_end: &self.seg_end,
+                rend: &mut self.rend,
+            },
             &mut self.rdiag,
             &mut self.beta,
             &mut self.perm,
@@ -181,14 +248,21 @@ impl NullSpace {
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
-            apply_q(&self.a, &self.beta, sf, rank, &mut self.w[..sf]);
-            for (a, &i) in self.free.iter().enumerate() {
+            apply_q(&self.a, &self.beta, &self.rend, sf, rank, &mut self.w[..sf]);
+            for (a, &i) in self.qr_rows.iter().enumerate() {
                 self.basis[i * s + (j - rank)] = self.w[a];
             }
         }
+        // Each row's span: its nonzeros (rows the earlier segments fix are 0).
         self.span.fill((0, 0));
         for &i in &self.free {
-            self.span[i] = (0, sf - rank);
+            let row = &self.basis[i * s..i * s + sf - rank];
+            if let (Some(a), Some(b)) = (
+                row.iter().position(|v| *v != 0.0),
+                row.iter().rposition(|v| *v != 0.0),
+            ) {
+                self.span[i] = (a, b + 1);
+            }
         }
         for (u, &i) in self.untouched.iter().enumerate() {
             let col = sf - rank + u;
@@ -244,8 +318,8 @@ impl NullSpace {
             self.w[i] = acc / self.rdiag[i];
         }
         self.w[rank..sf].fill(0.0);
-        apply_q(&self.a, &self.beta, sf, rank, &mut self.w[..sf]);
-        for (a, &i) in self.free.iter().enumerate() {
+        apply_q(&self.a, &self.beta, &self.rend, sf, rank, &mut self.w[..sf]);
+        for (a, &i) in self.qr_rows.iter().enumerate() {
             x[i] = self.w[a];
         }
     }
@@ -265,12 +339,13 @@ impl NullSpace {
         let sf = self.free.len();
         let rank = self.rank - (s - sf - self.untouched.len());
         // w = Qᵀ r_free = H_{rank−1} ⋯ H₀ r_free.
-        for (a, &i) in self.free.iter().enumerate() {
+        for (a, &i) in self.qr_rows.iter().enumerate() {
             self.w[a] = r[i];
         }
         for k in 0..rank {
-            let v = &self.a[k * sf + k..(k + 1) * sf];
-            let y = &mut self.w[k..sf];
+            let end = self.rend[k];
+            let v = &self.a[k * sf + k..k * sf + end];
+            let y = &mut self.w[k..end];
             let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
             let f = self.beta[k] * dot;
             for (yi, vi) in y.iter_mut().zip(v) {
@@ -301,20 +376,42 @@ impl NullSpace {
     }
 }
 
+/// Marks a column of the QR found dependent.
+const DROPPED: usize = usize::MAX;
+
+/// How the columns of a grouped QR are grouped: per column its group (a segment),
+/// per segment the end of its rows; per reflector, filled in, the end of its rows.
+struct Grouping<'a> {
+    group: &'a mut [usize],
+    seg_end: &'a [usize],
+    rend: &'a mut [usize],
+}
+
 /// Householder QR with column pivoting of the column-major `s` × `m` matrix `a`,
-/// stopping at the first pivot below [`NullSpace::RANK_TOLERANCE`] relative to the
-/// largest column; returns the rank. Reflectors stay below the diagonal, R above it
-/// with its diagonal in `rdiag`; `perm[k]` is the original column now at k. Column
-/// norms are downdated, and recomputed when cancellation has eaten most of them.
-fn householder_pivoted(
+/// group by group: the pivot is the column of largest remaining norm in the current
+/// group, whose columns are 0 past their segment's rows, so its reflector and its
+/// updates stop there. A group ends at its first pivot below
+/// [`NullSpace::RANK_TOLERANCE`] relative to the largest column (its other columns
+/// are dependent); returns the rank. With one group this is the plain pivoted QR.
+/// Reflectors stay below the diagonal, R above it with its diagonal in `rdiag`;
+/// `perm[k]` is the original column now at k. Column norms are downdated, and
+/// recomputed when cancellation has eaten most of them.
+#[allow(clippy::too_many_arguments)]
+fn householder_grouped(
     a: &mut [f64],
     s: usize,
     m: usize,
+    grouping: Grouping,
     rdiag: &mut [f64],
     beta: &mut [f64],
     perm: &mut [usize],
     norms: &mut [f64],
 ) -> usize {
+    let Grouping {
+        group,
+        seg_end,
+        rend,
+    } = grouping;
     if m == 0 || s == 0 {
         return 0;
     }
@@ -329,21 +426,41 @@ fn householder_pivoted(
     }
     let tol2 = (NullSpace::RANK_TOLERANCE * largest.sqrt()).powi(2);
     let mut rank = 0;
-    for k in 0..s.min(m) {
-        let mut best = k;
-        for j in k + 1..m {
-            if partial[j] > partial[best] {
-                best = j;
+    let mut g = 0;
+    let mut k = 0;
+    while k < s.min(m) {
+        let mut best = None;
+        for j in k..m {
+            if group[j] == g && best.is_none_or(|b| partial[j] > partial[b]) {
+                best = Some(j);
             }
         }
-        if partial[best] <= tol2 {
-            // Confirm with exact norms before declaring the rest dependent.
-            let exact: f64 = a[best * s + k..(best + 1) * s].iter().map(|v| v * v).sum();
-            if exact <= tol2 {
+        let end = seg_end[g];
+        let exhausted = match best {
+            None => true,
+            Some(b) if partial[b] <= tol2 => {
+                // Confirm with exact norms before declaring the rest dependent.
+                let exact: f64 = a[b * s + k..b * s + end].iter().map(|v| v * v).sum();
+                if exact <= tol2 {
+                    true
+                } else {
+                    partial[b] = exact;
+                    false
+                }
+            }
+            Some(_) => false,
+        };
+        if exhausted {
+            for gj in group[k..m].iter_mut().filter(|gj| **gj == g) {
+                *gj = DROPPED;
+            }
+            g += 1;
+            if g == seg_end.len() {
                 break;
             }
-            partial[best] = exact;
+            continue;
         }
+        let best = best.expect("a column of the group");
         if best != k {
             for i in 0..s {
                 a.swap(k * s + i, best * s + i);
@@ -351,8 +468,9 @@ fn householder_pivoted(
             perm.swap(k, best);
             partial.swap(k, best);
             reference.swap(k, best);
+            group.swap(k, best);
         }
-        let col = &mut a[k * s + k..(k + 1) * s];
+        let col = &mut a[k * s + k..k * s + end];
         let norm = col.iter().map(|v| v * v).sum::<f64>().sqrt();
         let alpha = if col[0] > 0.0 { -norm } else { norm };
         col[0] -= alpha;
@@ -360,33 +478,40 @@ fn householder_pivoted(
         let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
         rdiag[k] = alpha;
         beta[k] = b;
+        rend[k] = end;
         let (left, right) = a.split_at_mut((k + 1) * s);
-        let v = &left[k * s + k..(k + 1) * s];
+        let v = &left[k * s + k..k * s + end];
         for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
-            let y = &mut y[k..];
-            let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
+            let j = k + 1 + jj;
+            if group[j] == DROPPED {
+                continue;
+            }
+            let live = &mut y[k..end];
+            let dot: f64 = v.iter().zip(live.iter()).map(|(a, b)| a * b).sum();
             let f = b * dot;
-            for (yi, vi) in y.iter_mut().zip(v) {
+            for (yi, vi) in live.iter_mut().zip(v) {
                 *yi -= f * vi;
             }
             // Downdate the partial norm of rows k+1.. of this column.
-            let j = k + 1 + jj;
-            partial[j] -= y[0] * y[0];
+            partial[j] -= live[0] * live[0];
             if partial[j] < 1e-4 * reference[j] {
-                partial[j] = y[1..].iter().map(|v| v * v).sum();
+                partial[j] = y[k + 1..].iter().map(|v| v * v).sum();
                 reference[j] = partial[j];
             }
         }
         rank += 1;
+        k += 1;
     }
     rank
 }
 
-/// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`.
-fn apply_q(a: &[f64], beta: &[f64], s: usize, rank: usize, x: &mut [f64]) {
+/// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`
+/// (reflector k nonzero on rows k..rend[k]).
+fn apply_q(a: &[f64], beta: &[f64], rend: &[usize], s: usize, rank: usize, x: &mut [f64]) {
     for k in (0..rank).rev() {
-        let v = &a[k * s + k..(k + 1) * s];
-        let y = &mut x[k..s];
+        let end = rend[k];
+        let v = &a[k * s + k..k * s + end];
+        let y = &mut x[k..end];
         let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
         let f = beta[k] * dot;
         for (yi, vi) in y.iter_mut().zip(v) {
@@ -514,6 +639,82 @@ mod tests {
             ns.solve_transpose(r.as_slice(), &mut mu);
             let back = c.transpose() * DMatrix::from_column_slice(rows, 1, &mu);
             assert!((back - &r).amax() < 1e-10, "trial {trial}: Cᵀμ = r");
+        }
+    }
+
+    #[test]
+    fn segments_give_the_same_reduction_and_zeros_where_earlier_ones_fix() {
+        // Block-triangular equations on (x, v, a), 4 unknowns each: A x = ·,
+        // B x + A v = ·, with A rank 3 (one redundant row in each block), one unit
+        // row on x; a untouched.
+        let mut seed = 5;
+        let (s, rows) = (12, 9);
+        for trial in 0..4 {
+            let a = low_rank(4, 4, 3, &mut seed);
+            let b = DMatrix::from_fn(4, 4, |_, _| pseudo_random(&mut seed));
+            let mut c = DMatrix::zeros(rows, s);
+            c.view_mut((0, 0), (4, 4)).copy_from(&a);
+            c.view_mut((4, 0), (4, 4)).copy_from(&b);
+            c.view_mut((4, 4), (4, 4)).copy_from(&a);
+            c[(8, trial % 4)] = 1.0;
+            let x_true = DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
+            let rhs = &c * &x_true;
+            let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+            let mut plain = NullSpace::new(s, rows);
+            plain.reduce(&row_major, rhs.as_slice(), rows);
+            let mut seg = NullSpace::new(s, rows);
+            seg.set_segments(&[0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]);
+            seg.reduce(&row_major, rhs.as_slice(), rows);
+            assert_eq!(
+                (seg.rank, seg.dim),
+                (plain.rank, plain.dim),
+                "trial {trial}"
+            );
+            let n = DMatrix::from_row_slice(s, s, &seg.basis)
+                .columns(0, seg.dim)
+                .into_owned();
+            let n0 = DMatrix::from_row_slice(s, s, &plain.basis)
+                .columns(0, plain.dim)
+                .into_owned();
+            assert!((&c * &n).amax() < 1e-12, "C N = 0");
+            assert!((n.transpose() * &n - DMatrix::identity(seg.dim, seg.dim)).amax() < 1e-12);
+            // The same space: N₀ N₀ᵀ N = N.
+            assert!((&n0 * (n0.transpose() * &n) - &n).amax() < 1e-12);
+            for i in 0..s {
+                assert!((seg.particular[i] - plain.particular[i]).abs() < 1e-12);
+                let (start, row) = seg.row(i);
+                for j in 0..s {
+                    let inside = j >= start && j < start + row.len();
+                    let v = if inside { row[j - start] } else { 0.0 };
+                    assert_eq!(v, seg.basis[i * s + j], "row {i} of N outside its span");
+                }
+            }
+            let b2 = &c * DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
+            let (mut x1, mut x2) = (vec![0.0; s], vec![0.0; s]);
+            plain.solve(b2.as_slice(), &mut x1);
+            seg.solve(b2.as_slice(), &mut x2);
+            assert!(x1.iter().zip(&x2).all(|(a, b)| (a - b).abs() < 1e-12));
+            let mu_true = DMatrix::from_fn(rows, 1, |_, _| pseudo_random(&mut seed));
+            let r = c.transpose() * &mu_true;
+            let mut mu = vec![0.0; rows];
+            seg.solve_transpose(r.as_slice(), &mut mu);
+            let back = c.transpose() * DMatrix::from_column_slice(rows, 1, &mu);
+            assert!((back - &r).amax() < 1e-10, "Cᵀμ = r");
+        }
+        // x fully fixed (A regular): the basis is exactly 0 on x.
+        let a = DMatrix::from_fn(4, 4, |_, _| pseudo_random(&mut seed));
+        let b = DMatrix::from_fn(3, 4, |_, _| pseudo_random(&mut seed));
+        let mut c = DMatrix::zeros(7, 12);
+        c.view_mut((0, 0), (4, 4)).copy_from(&a);
+        c.view_mut((4, 0), (3, 4)).copy_from(&b);
+        c.view_mut((4, 4), (3, 4)).copy_from(&a.rows(0, 3));
+        let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+        let mut seg = NullSpace::new(12, 7);
+        seg.set_segments(&[0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]);
+        seg.reduce(&row_major, &[0.0; 7], 7);
+        assert_eq!(seg.dim, 5);
+        for i in 0..4 {
+            assert!(seg.row(i).1.is_empty(), "row {i} of N");
         }
     }
 
