@@ -220,11 +220,9 @@ struct LastSolve {
     k1: usize,
 }
 
-/// The hard equations of one step, C δ = −c, and their reduction.
+/// The reduction of one step's hard equations C δ = −c (C and c themselves live in
+/// the solver's scratch only while the step is reduced or corrected).
 struct HardBlock {
-    /// Row-major rows × s.
-    jac: Vec<f64>,
-    rhs: Vec<f64>,
     rows: usize,
     reduction: NullSpace,
 }
@@ -248,6 +246,17 @@ pub struct WindowSolver {
     /// A factor's residual linearized at x + p.
     shifted: Vec<f64>,
     instances: Vec<Instance>,
+    /// The instances in step order (indices into `instances`), and where each block's
+    /// begin in it (one more entry than blocks).
+    by_step: Vec<usize>,
+    block_start: Vec<usize>,
+    /// Per instance, the cost of a hard one (summed in `instances` order).
+    hard_cost: Vec<f64>,
+    /// One step's hard equations: C row-major rows × s, and −c.
+    hard_jac: Vec<f64>,
+    hard_rhs: Vec<f64>,
+    /// Evaluate step by step (see `optimize_for_batch`).
+    step_major: bool,
     /// In a conditional solve the step before the window is held fixed.
     conditional: bool,
     /// Set when a window solve ended on a small step: its linearization of the
@@ -325,12 +334,20 @@ impl WindowSolver {
                 .collect(),
             hard: (0..capacity)
                 .map(|_| HardBlock {
-                    jac: vec![0.0; max_hard * s],
-                    rhs: vec![0.0; max_hard],
                     rows: 0,
                     reduction: NullSpace::new(s, max_hard),
                 })
                 .collect(),
+            by_step: Vec::with_capacity(
+                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+            ),
+            block_start: Vec::with_capacity(capacity + 1),
+            hard_cost: Vec::with_capacity(
+                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+            ),
+            hard_jac: vec![0.0; max_hard * s],
+            hard_rhs: vec![0.0; max_hard],
+            step_major: false,
             reduced: [vec![0.0; max_dim.max(s) * s], vec![0.0; max_dim.max(s) * s]],
             shifted: vec![0.0; max_dim.max(s)],
             instances: Vec::with_capacity(
@@ -347,17 +364,23 @@ impl WindowSolver {
         })
     }
 
-    /// Reduces each step's hard equations segment by segment, positions first, then
-    /// velocities, accelerations, forces ([`VarKind::order`], [`NullSpace::set_segments`]):
-    /// a fraction of the work of one QR of them all when they are block triangular,
-    /// and a null-space basis exactly 0 on what the earlier segments fix. The basis
-    /// is another one of the same space, so the results agree to the solve's
-    /// tolerance, not to the bit; off by default, so that the forward runs keep
-    /// theirs (their window solves stop at the step tolerance, and another basis
-    /// moves them by up to ~1e-7 relative).
+    /// Sets the solver up for long batch horizons (inverse dynamics):
+    /// - each step's hard equations are reduced segment by segment, positions first,
+    ///   then velocities, accelerations, forces ([`VarKind::order`],
+    ///   [`NullSpace::set_segments`]): a fraction of the work of one QR of them all
+    ///   when they are block triangular, and a null-space basis exactly 0 on what the
+    ///   earlier segments fix;
+    /// - linearizations go step by step (a step's hard equations, then its factors
+    ///   into its blocks of H) instead of factor by factor over the whole horizon, so
+    ///   each block of H is filled while it is in cache.
+    ///
+    /// The basis is another one of the same space and the sums run in another order,
+    /// so results agree with the default to the solve's tolerance, not to the bit.
+    /// Off by default, so that the forward runs keep theirs (their window solves stop
+    /// at the step tolerance, and another basis moves them by up to ~1e-7 relative).
     ///
     /// [`VarKind::order`]: crate::graph::VarKind::order
-    pub fn segment_hard_equations(&mut self, graph: &ChainGraph) {
+    pub fn optimize_for_batch(&mut self, graph: &ChainGraph) {
         let mut segment = vec![0; self.s];
         for (kind, d) in graph.layout.kinds() {
             let (off, _) = graph.layout.slot(kind).expect("a kind of the layout");
@@ -366,6 +389,7 @@ impl WindowSolver {
         for block in &mut self.hard {
             block.reduction.set_segments(&segment);
         }
+        self.step_major = true;
     }
 
     pub fn settings(&self) -> &Settings {
@@ -407,6 +431,21 @@ impl WindowSolver {
                 });
             }
         }
+        // Step order, `instances` order within a step (initial factors first).
+        let inst = &self.instances;
+        self.by_step.clear();
+        self.by_step.extend(0..inst.len());
+        self.by_step.sort_unstable_by_key(|&i| (inst[i].step, i));
+        self.block_start.clear();
+        let mut at = 0;
+        for b in 0..=k1 - k0 {
+            while at < self.by_step.len() && inst[self.by_step[at]].step < k0 + b {
+                at += 1;
+            }
+            self.block_start.push(at);
+        }
+        self.hard_cost.clear();
+        self.hard_cost.resize(inst.len(), 0.0);
     }
 
     /// Evaluates one factor instance into its buffers (residual not yet whitened).
@@ -450,25 +489,22 @@ impl WindowSolver {
             })
     }
 
-    /// Evaluates the hard factors of the listed instances and returns their share of
-    /// the cost, and the part of it at the first block. `Linearize` writes each block's equations C δ = −c; `Residuals`
-    /// writes only −c (in the same row order) for a correction with the current C.
-    fn hard_pass(
+    /// Evaluates the hard factors of block `b` (step k0 + b) of the listed instances,
+    /// records their costs in `hard_cost`, and with `Linearize` reduces the block's
+    /// equations C δ = −c; with `Residuals` leaves −c (in the same row order) in
+    /// `hard_rhs` for a correction with the current C.
+    fn hard_block(
         &mut self,
         graph: &ChainGraph,
         values: &[f64],
-        k0: usize,
-        blocks: usize,
+        b: usize,
         mode: HardPass,
-    ) -> Result<(f64, f64)> {
+    ) -> Result<()> {
         let s = self.s;
-        let mut cost = 0.0;
-        for b in 0..blocks {
-            self.hard[b].rows = 0;
-        }
         let linearize = mode == HardPass::Linearize;
-        let mut first = 0.0;
-        for i in 0..self.instances.len() {
+        let mut rows = 0;
+        for at in self.block_start[b]..self.block_start[b + 1] {
+            let i = self.by_step[at];
             let inst = self.instances[i];
             let factor = factor_of(graph, inst);
             if !is_hard(factor) {
@@ -481,33 +517,51 @@ impl WindowSolver {
                 &self.step_buffers[inst.index]
             };
             let w = Noise::Hard.weight(0);
-            let c: f64 = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
-            cost += c;
-            if inst.step == k0 {
-                first += c;
-            }
+            self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
             if mode == HardPass::Cost {
                 continue;
             }
-            let block = &mut self.hard[inst.step - k0];
-            let row0 = block.rows;
             let dim = factor.dim();
             if linearize {
-                block.jac[row0 * s..(row0 + dim) * s].fill(0.0);
+                self.hard_jac[rows * s..(rows + dim) * s].fill(0.0);
                 for (a, k) in factor.keys().iter().enumerate() {
                     let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
                     for r in 0..dim {
-                        let row = &mut block.jac[(row0 + r) * s + off..(row0 + r) * s + off + d];
+                        let row =
+                            &mut self.hard_jac[(rows + r) * s + off..(rows + r) * s + off + d];
                         row.copy_from_slice(&buf.jac[a][r * d..(r + 1) * d]);
                     }
                 }
             }
             for r in 0..dim {
-                block.rhs[row0 + r] = -buf.r[r];
+                self.hard_rhs[rows + r] = -buf.r[r];
             }
-            block.rows += dim;
+            rows += dim;
         }
-        Ok((cost, first))
+        let block = &mut self.hard[b];
+        block.rows = rows;
+        if linearize {
+            block
+                .reduction
+                .reduce(&self.hard_jac, &self.hard_rhs[..rows], rows);
+        }
+        Ok(())
+    }
+
+    /// The hard factors' share of the cost, summed in `instances` order, and the part
+    /// of it at the first block.
+    fn hard_cost_sum(&self, graph: &ChainGraph, k0: usize) -> (f64, f64) {
+        let (mut cost, mut first) = (0.0, 0.0);
+        for (inst, &c) in self.instances.iter().zip(&self.hard_cost) {
+            if !is_hard(factor_of(graph, *inst)) {
+                continue;
+            }
+            cost += c;
+            if inst.step == k0 {
+                first += c;
+            }
+        }
+        (cost, first)
     }
 
     /// Second-order correction after a step: moves each block of the window back onto
@@ -522,18 +576,80 @@ impl WindowSolver {
         k1: usize,
     ) -> Result<()> {
         let s = self.s;
-        let blocks = k1 - k0;
-        self.hard_pass(graph, values, k0, blocks, HardPass::Residuals)?;
-        for b in 0..blocks {
+        for b in 0..k1 - k0 {
+            // A block's hard factors read that block only.
+            self.hard_block(graph, values, b, HardPass::Residuals)?;
             let block = &mut self.hard[b];
             if block.rows == 0 {
                 continue;
             }
-            block.reduction.solve(&block.rhs, &mut self.correction);
+            block
+                .reduction
+                .solve(&self.hard_rhs[..block.rows], &mut self.correction);
             let x = &mut values[(k0 + b) * s..(k0 + b + 1) * s];
             for (xi, c) in x.iter_mut().zip(&self.correction) {
                 *xi += c;
             }
+        }
+        Ok(())
+    }
+
+    /// Evaluates soft factor instance `i` at `values` and adds its cost (and to
+    /// `cost_first` when it touches block k0); with `linearize` also adds its
+    /// reduced JᵀJ and Jᵀr to H and g.
+    #[allow(clippy::too_many_arguments)]
+    fn soft_instance(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        i: usize,
+        linearize: bool,
+        cost: &mut f64,
+        cost_first: &mut f64,
+    ) -> Result<()> {
+        let s = self.s;
+        let inst = self.instances[i];
+        let factor = factor_of(graph, inst);
+        self.evaluate_instance(graph, values, inst, linearize)?;
+        let buf = if inst.initial {
+            &mut self.initial_buffers[inst.index]
+        } else {
+            &mut self.step_buffers[inst.index]
+        };
+        let keys = factor.keys();
+        let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
+        buf.whiten(factor, linearize);
+        for r in &buf.r {
+            let c = 0.5 * r * r;
+            *cost += c;
+            if touches_first {
+                *cost_first += c;
+            }
+        }
+        if linearize {
+            let step = inst.step - k0;
+            reduce_factor(
+                &mut self.reduced,
+                &mut self.shifted,
+                &self.hard,
+                graph,
+                factor,
+                step,
+                buf,
+                s,
+            );
+            let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
+            accumulate(
+                &mut self.h,
+                &mut self.g,
+                &self.reduced,
+                &self.shifted[..factor.dim()],
+                step,
+                lagged,
+                s,
+                &mut self.nonzeros,
+            );
         }
         Ok(())
     }
@@ -556,69 +672,57 @@ impl WindowSolver {
         let blocks = k1 - k0;
         self.last = None;
         self.collect_instances(graph, k0, k1, scope);
-        // Hard factors first: their linearization defines each block's reduction.
         let mode = if linearize {
             HardPass::Linearize
         } else {
             HardPass::Cost
         };
-        let (mut cost, mut cost_first) = self.hard_pass(graph, values, k0, blocks, mode)?;
-        if linearize {
-            for block in &mut self.hard[..blocks] {
-                block
-                    .reduction
-                    .reduce(&block.jac, &block.rhs[..block.rows], block.rows);
-            }
-            // Directions the hard equations fix carry no unknown.
-            let hard = &self.hard;
-            self.h.reset_active(blocks, |b| hard[b].reduction.dim);
-            self.g[..blocks * s].fill(0.0);
-        }
-        for i in 0..self.instances.len() {
-            let inst = self.instances[i];
-            let factor = factor_of(graph, inst);
-            if is_hard(factor) {
-                continue;
-            }
-            self.evaluate_instance(graph, values, inst, linearize)?;
-            let buf = if inst.initial {
-                &mut self.initial_buffers[inst.index]
-            } else {
-                &mut self.step_buffers[inst.index]
-            };
-            let keys = factor.keys();
-            let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
-            buf.whiten(factor, linearize);
-            for r in &buf.r {
-                let c = 0.5 * r * r;
-                cost += c;
-                if touches_first {
-                    cost_first += c;
+        let (mut soft, mut soft_first) = (0.0, 0.0);
+        if self.step_major && linearize {
+            // Step by step: each step's hard equations, then its factors into its
+            // blocks of H (and the lagged ones into the previous step's) while they
+            // are in cache.
+            self.h.set_blocks(blocks);
+            for b in 0..blocks {
+                self.hard_block(graph, values, b, mode)?;
+                self.h.reset_block(b, self.hard[b].reduction.dim);
+                self.g[b * s..(b + 1) * s].fill(0.0);
+                for at in self.block_start[b]..self.block_start[b + 1] {
+                    let i = self.by_step[at];
+                    if !is_hard(factor_of(graph, self.instances[i])) {
+                        self.soft_instance(graph, values, k0, i, true, &mut soft, &mut soft_first)?;
+                    }
                 }
             }
+        } else {
+            // Hard factors first: their linearization defines each block's reduction.
+            for b in 0..blocks {
+                self.hard_block(graph, values, b, mode)?;
+            }
             if linearize {
-                let step = inst.step - k0;
-                reduce_factor(
-                    &mut self.reduced,
-                    &mut self.shifted,
-                    &self.hard,
-                    graph,
-                    factor,
-                    step,
-                    buf,
-                    s,
-                );
-                let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
-                accumulate(
-                    &mut self.h,
-                    &mut self.g,
-                    &self.reduced,
-                    &self.shifted[..factor.dim()],
-                    step,
-                    lagged,
-                    s,
-                    &mut self.nonzeros,
-                );
+                // Directions the hard equations fix carry no unknown.
+                let hard = &self.hard;
+                self.h.reset_active(blocks, |b| hard[b].reduction.dim);
+                self.g[..blocks * s].fill(0.0);
+            }
+        }
+        let (mut cost, mut cost_first) = self.hard_cost_sum(graph, k0);
+        if self.step_major && linearize {
+            cost += soft;
+            cost_first += soft_first;
+        } else {
+            for i in 0..self.instances.len() {
+                if !is_hard(factor_of(graph, self.instances[i])) {
+                    self.soft_instance(
+                        graph,
+                        values,
+                        k0,
+                        i,
+                        linearize,
+                        &mut cost,
+                        &mut cost_first,
+                    )?;
+                }
             }
         }
         if let Some(p) = prior {

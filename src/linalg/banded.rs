@@ -61,22 +61,33 @@ impl BlockTridiagonal {
     /// active parts only: with d_k well below s (many unknowns fixed by hard
     /// equations) the rest of the storage is never read.
     pub fn reset_active(&mut self, blocks: usize, dim: impl Fn(usize) -> usize) {
+        self.set_blocks(blocks);
+        for k in 0..blocks {
+            self.reset_block(k, dim(k));
+        }
+    }
+
+    /// Uses the first `blocks` blocks (≤ capacity); their contents are set block by
+    /// block with [`BlockTridiagonal::reset_block`], in order.
+    pub fn set_blocks(&mut self, blocks: usize) {
         assert!(blocks <= self.capacity(), "more blocks than allocated");
         self.blocks = blocks;
+    }
+
+    /// Gives block k the active size d and zeroes its active parts (H[k][k] and
+    /// H[k][k−1], whose width is block k − 1's size: set that one first).
+    pub fn reset_block(&mut self, k: usize, d: usize) {
         let s = self.s;
-        for k in 0..blocks {
-            let d = dim(k);
-            assert!(d <= s, "an active size beyond the block");
-            self.dims[k] = d;
-            let dp = if k > 0 { self.dims[k - 1] } else { 0 };
-            let (diag, lower) = (
-                &mut self.diag[k * s * s..(k + 1) * s * s],
-                &mut self.lower[k * s * s..(k + 1) * s * s],
-            );
-            for i in 0..d {
-                diag[i * s..i * s + d].fill(0.0);
-                lower[i * s..i * s + dp].fill(0.0);
-            }
+        assert!(d <= s, "an active size beyond the block");
+        self.dims[k] = d;
+        let dp = if k > 0 { self.dims[k - 1] } else { 0 };
+        let (diag, lower) = (
+            &mut self.diag[k * s * s..(k + 1) * s * s],
+            &mut self.lower[k * s * s..(k + 1) * s * s],
+        );
+        for i in 0..d {
+            diag[i * s..i * s + d].fill(0.0);
+            lower[i * s..i * s + dp].fill(0.0);
         }
     }
 
