@@ -250,6 +250,7 @@ pub struct WindowSolver {
     /// begin in it (one more entry than blocks).
     by_step: Vec<usize>,
     block_start: Vec<usize>,
+    next_slot: Vec<usize>,
     /// Per instance, the cost of a hard one (summed in `instances` order).
     hard_cost: Vec<f64>,
     /// One step's hard equations: C row-major rows × s, and −c.
@@ -342,6 +343,7 @@ impl WindowSolver {
                 capacity * graph.step_factors.len() + graph.initial_factors.len(),
             ),
             block_start: Vec::with_capacity(capacity + 1),
+            next_slot: Vec::with_capacity(capacity),
             hard_cost: Vec::with_capacity(
                 capacity * graph.step_factors.len() + graph.initial_factors.len(),
             ),
@@ -431,18 +433,27 @@ impl WindowSolver {
                 });
             }
         }
-        // Step order, `instances` order within a step (initial factors first).
+        // Step order, `instances` order within a step (initial factors first): a
+        // counting sort by step.
         let inst = &self.instances;
-        self.by_step.clear();
-        self.by_step.extend(0..inst.len());
-        self.by_step.sort_unstable_by_key(|&i| (inst[i].step, i));
+        let blocks = k1 - k0;
         self.block_start.clear();
-        let mut at = 0;
-        for b in 0..=k1 - k0 {
-            while at < self.by_step.len() && inst[self.by_step[at]].step < k0 + b {
-                at += 1;
-            }
-            self.block_start.push(at);
+        self.block_start.resize(blocks + 1, 0);
+        for i in inst {
+            self.block_start[i.step - k0 + 1] += 1;
+        }
+        for b in 0..blocks {
+            self.block_start[b + 1] += self.block_start[b];
+        }
+        self.by_step.clear();
+        self.by_step.resize(inst.len(), 0);
+        self.next_slot.clear();
+        self.next_slot
+            .extend_from_slice(&self.block_start[..blocks]);
+        for (i, it) in inst.iter().enumerate() {
+            let slot = &mut self.next_slot[it.step - k0];
+            self.by_step[*slot] = i;
+            *slot += 1;
         }
         self.hard_cost.clear();
         self.hard_cost.resize(inst.len(), 0.0);
@@ -760,10 +771,11 @@ impl WindowSolver {
                         .map(|(a, b)| a * b)
                         .sum::<f64>();
                     let out = &mut ln[i * dim..(i + 1) * dim];
+                    let basis = red.basis();
                     for (c, o) in out[..q].iter_mut().enumerate() {
                         *o = free
                             .iter()
-                            .fold(0.0, |acc, &k| acc + row[k] * red.basis[k * s + c]);
+                            .fold(0.0, |acc, &k| acc + row[k] * basis[k * dim + c]);
                     }
                     for (o, &k) in out[q..].iter_mut().zip(untouched) {
                         *o = 0.0 + row[k];
@@ -778,7 +790,7 @@ impl WindowSolver {
                         if na == 0.0 {
                             continue;
                         }
-                        for (o, lv) in h0[a * s..a * s + dim].iter_mut().zip(lrow) {
+                        for (o, lv) in h0[a * dim..(a + 1) * dim].iter_mut().zip(lrow) {
                             *o += na * lv;
                         }
                         self.g[a] += na * grad[k];
@@ -852,9 +864,9 @@ impl WindowSolver {
         while iterations < self.settings.max_iterations {
             iterations += 1;
             for (b, damping) in self.damping[..n].chunks_exact_mut(s).enumerate() {
-                let diag = self.h.diag(b);
-                for (r, v) in damping.iter_mut().enumerate() {
-                    *v = mu * diag[r * s + r].max(1e-12);
+                let (diag, d) = (self.h.diag(b), self.h.dim(b));
+                for (r, v) in damping[..d].iter_mut().enumerate() {
+                    *v = mu * diag[r * d + r].max(1e-12);
                 }
             }
             if self
@@ -1033,9 +1045,9 @@ impl WindowSolver {
         let (h10, rest) = rest.split_at_mut(ss);
         let (h11, rest) = rest.split_at_mut(ss);
         let (g01, _) = rest.split_at_mut(2 * s);
-        h00.copy_from_slice(self.h.diag(0));
-        h10.copy_from_slice(self.h.lower(1));
-        h11.copy_from_slice(self.h.diag(1));
+        restride(self.h.diag(0), d0, d0, h00, s);
+        restride(self.h.lower(1), s, d0, h10, s);
+        restride(self.h.diag(1), s, s, h11, s);
         g01[..s].copy_from_slice(&self.g[..s]);
         g01[s..].copy_from_slice(&self.g[s..2 * s]);
         self.schur(k0, d0, cost, values)
@@ -1136,7 +1148,7 @@ impl WindowSolver {
             let (h10, rest) = rest.split_at_mut(ss);
             let (h11, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
-            h00.copy_from_slice(self.h.diag(0));
+            restride(self.h.diag(0), d0, d0, h00, s);
             h10.fill(0.0);
             h11.fill(0.0);
             g01.fill(0.0);
@@ -1226,6 +1238,14 @@ impl WindowSolver {
             }
         }
         self.schur(k0, d0, cost, values)
+    }
+}
+
+/// Copies a rows × cols matrix stored with row stride cols into `dst` with row
+/// stride `ld`.
+fn restride(src: &[f64], rows: usize, cols: usize, dst: &mut [f64], ld: usize) {
+    for r in 0..rows {
+        dst[r * ld..r * ld + cols].copy_from_slice(&src[r * cols..(r + 1) * cols]);
     }
 }
 
@@ -1323,7 +1343,7 @@ fn accumulate(
             }
             let hb = h.diag_mut(block);
             for &(a, va) in nz.iter() {
-                let out = &mut hb[a * s..a * s + d];
+                let out = &mut hb[a * d..(a + 1) * d];
                 for &(b, vb) in nz.iter() {
                     out[b] += va * vb;
                 }
@@ -1331,9 +1351,10 @@ fn accumulate(
         }
         if lagged {
             // H[step][step−1] += J₀ᵀ J₁.
+            let dp = h.dim(step - 1);
             let hl = h.lower_mut(step);
             for &(a, va) in &nonzero[0] {
-                let out = &mut hl[a * s..(a + 1) * s];
+                let out = &mut hl[a * dp..(a + 1) * dp];
                 for &(b, vb) in &nonzero[1] {
                     out[b] += va * vb;
                 }

@@ -6,32 +6,56 @@
 //! allocating.
 //!
 //! Each block k has an active size d_k ≤ s (the unknowns left after a step's hard
-//! equations are eliminated); storage keeps stride s, the work is O(Σ d_k³).
+//! equations are eliminated); the work is O(Σ d_k³), and storage is packed: block k's
+//! H[k][k] is d_k × d_k (row stride d_k) and H[k][k−1] d_k × d_{k−1} (row stride
+//! d_{k−1}), one after the other, so a long horizon with d_k well below s touches
+//! Σ d_k² numbers instead of blocks·s² (the capacity, allocated once and left
+//! untouched past what is used).
 
 use super::dense::{self, DenseError};
 
-/// H = block tridiagonal with `blocks` diagonal blocks of size s×s; only the lower
-/// blocks H[k][k−1] are stored (row-major, stride s). Block k uses its leading
-/// d_k rows and columns.
+/// H = block tridiagonal with `blocks` diagonal blocks; only the lower blocks
+/// H[k][k−1] are stored. Block k uses d_k unknowns.
 #[derive(Debug, Clone)]
 pub struct BlockTridiagonal {
     s: usize,
     blocks: usize,
     dims: Vec<usize>,
+    /// Where H[k][k] and H[k][k−1] start in `diag` and `lower`.
+    diag_at: Vec<usize>,
+    lower_at: Vec<usize>,
     diag: Vec<f64>,
     lower: Vec<f64>,
+}
+
+/// Offsets of packed blocks: block k at Σ_{j<k} size(j).
+fn pack(dims: &[usize], diag_at: &mut [usize], lower_at: &mut [usize], k: usize) {
+    if k == 0 {
+        diag_at[0] = 0;
+        lower_at[0] = 0;
+    } else {
+        let (d, dp) = (dims[k - 1], if k >= 2 { dims[k - 2] } else { 0 });
+        diag_at[k] = diag_at[k - 1] + d * d;
+        lower_at[k] = lower_at[k - 1] + d * dp;
+    }
 }
 
 impl BlockTridiagonal {
     /// Storage for up to `capacity` blocks of size s.
     pub fn new(capacity: usize, s: usize) -> Self {
-        BlockTridiagonal {
+        let mut h = BlockTridiagonal {
             s,
             blocks: capacity,
             dims: vec![s; capacity],
+            diag_at: vec![0; capacity],
+            lower_at: vec![0; capacity],
             diag: vec![0.0; capacity * s * s],
             lower: vec![0.0; capacity * s * s],
+        };
+        for k in 0..capacity {
+            pack(&h.dims, &mut h.diag_at, &mut h.lower_at, k);
         }
+        h
     }
 
     pub fn block_size(&self) -> usize {
@@ -49,17 +73,11 @@ impl BlockTridiagonal {
     /// Uses the first `blocks` blocks (≤ capacity), zeroes them and makes every one
     /// fully active.
     pub fn reset(&mut self, blocks: usize) {
-        assert!(blocks <= self.capacity(), "more blocks than allocated");
-        self.blocks = blocks;
-        let len = blocks * self.s * self.s;
-        self.diag[..len].fill(0.0);
-        self.lower[..len].fill(0.0);
-        self.dims[..blocks].fill(self.s);
+        let s = self.s;
+        self.reset_active(blocks, |_| s);
     }
 
-    /// Uses the first `blocks` blocks with active sizes `dim(k)` and zeroes their
-    /// active parts only: with d_k well below s (many unknowns fixed by hard
-    /// equations) the rest of the storage is never read.
+    /// Uses the first `blocks` blocks with active sizes `dim(k)` and zeroes them.
     pub fn reset_active(&mut self, blocks: usize, dim: impl Fn(usize) -> usize) {
         self.set_blocks(blocks);
         for k in 0..blocks {
@@ -74,56 +92,46 @@ impl BlockTridiagonal {
         self.blocks = blocks;
     }
 
-    /// Gives block k the active size d and zeroes its active parts (H[k][k] and
-    /// H[k][k−1], whose width is block k − 1's size: set that one first).
+    /// Gives block k the active size d and zeroes H[k][k] and H[k][k−1]; blocks are
+    /// packed, so they are reset in order (block k − 1 first).
     pub fn reset_block(&mut self, k: usize, d: usize) {
-        let s = self.s;
-        assert!(d <= s, "an active size beyond the block");
-        self.dims[k] = d;
-        let dp = if k > 0 { self.dims[k - 1] } else { 0 };
-        let (diag, lower) = (
-            &mut self.diag[k * s * s..(k + 1) * s * s],
-            &mut self.lower[k * s * s..(k + 1) * s * s],
-        );
-        for i in 0..d {
-            diag[i * s..i * s + d].fill(0.0);
-            lower[i * s..i * s + dp].fill(0.0);
-        }
-    }
-
-    /// Sets the active size of block k (its unknowns past d are absent: zero).
-    pub fn set_dim(&mut self, k: usize, d: usize) {
         assert!(d <= self.s, "an active size beyond the block");
         self.dims[k] = d;
+        pack(&self.dims, &mut self.diag_at, &mut self.lower_at, k);
+        let dp = if k > 0 { self.dims[k - 1] } else { 0 };
+        let (a, b) = (self.diag_at[k], self.lower_at[k]);
+        self.diag[a..a + d * d].fill(0.0);
+        self.lower[b..b + d * dp].fill(0.0);
     }
 
     pub fn dim(&self, k: usize) -> usize {
         self.dims[k]
     }
 
-    /// H[k][k], row-major s×s.
+    /// H[k][k], row-major d_k × d_k.
     pub fn diag_mut(&mut self, k: usize) -> &mut [f64] {
-        let ss = self.s * self.s;
-        &mut self.diag[k * ss..(k + 1) * ss]
+        let (a, d) = (self.diag_at[k], self.dims[k]);
+        &mut self.diag[a..a + d * d]
     }
 
     pub fn diag(&self, k: usize) -> &[f64] {
-        let ss = self.s * self.s;
-        &self.diag[k * ss..(k + 1) * ss]
+        let (a, d) = (self.diag_at[k], self.dims[k]);
+        &self.diag[a..a + d * d]
     }
 
-    /// H[k][k−1], row-major s×s (k ≥ 1).
+    /// H[k][k−1], row-major d_k × d_{k−1} (k ≥ 1).
     pub fn lower_mut(&mut self, k: usize) -> &mut [f64] {
-        let ss = self.s * self.s;
-        &mut self.lower[k * ss..(k + 1) * ss]
+        let (b, n) = (self.lower_at[k], self.dims[k] * self.dims[k - 1]);
+        &mut self.lower[b..b + n]
     }
 
     pub fn lower(&self, k: usize) -> &[f64] {
-        let ss = self.s * self.s;
-        &self.lower[k * ss..(k + 1) * ss]
+        let (b, n) = (self.lower_at[k], self.dims[k] * self.dims[k - 1]);
+        &self.lower[b..b + n]
     }
 
-    /// y = H x over the used blocks and their active parts (other entries of y: 0).
+    /// y = H x over the used blocks and their active parts (x and y with stride s per
+    /// block; other entries of y: 0).
     pub fn multiply(&self, x: &[f64], y: &mut [f64]) {
         let s = self.s;
         y[..self.blocks * s].fill(0.0);
@@ -131,7 +139,7 @@ impl BlockTridiagonal {
             let dk = self.dims[k];
             let d = self.diag(k);
             for i in 0..dk {
-                let row = &d[i * s..i * s + dk];
+                let row = &d[i * dk..(i + 1) * dk];
                 y[k * s + i] += row
                     .iter()
                     .zip(&x[k * s..k * s + dk])
@@ -144,8 +152,8 @@ impl BlockTridiagonal {
                 for i in 0..dk {
                     for j in 0..dp {
                         // H[k][k−1] and its transpose H[k−1][k].
-                        y[k * s + i] += b[i * s + j] * x[(k - 1) * s + j];
-                        y[(k - 1) * s + j] += b[i * s + j] * x[k * s + i];
+                        y[k * s + i] += b[i * dp + j] * x[(k - 1) * s + j];
+                        y[(k - 1) * s + j] += b[i * dp + j] * x[k * s + i];
                     }
                 }
             }
@@ -154,12 +162,14 @@ impl BlockTridiagonal {
 }
 
 /// The Cholesky factor of a block-tridiagonal matrix: diagonal blocks L_k and
-/// sub-diagonal blocks C_k = H[k][k−1] L_{k−1}⁻ᵀ.
+/// sub-diagonal blocks C_k = H[k][k−1] L_{k−1}⁻ᵀ, packed like H.
 #[derive(Debug, Clone)]
 pub struct BandedCholesky {
     s: usize,
     blocks: usize,
     dims: Vec<usize>,
+    diag_at: Vec<usize>,
+    lower_at: Vec<usize>,
     l: Vec<f64>,
     c: Vec<f64>,
 }
@@ -170,79 +180,83 @@ impl BandedCholesky {
             s,
             blocks: 0,
             dims: vec![s; capacity],
+            diag_at: vec![0; capacity],
+            lower_at: vec![0; capacity],
             l: vec![0.0; capacity * s * s],
             c: vec![0.0; capacity * s * s],
         }
     }
 
-    /// Factors H + diag(damping) (damping has one entry per unknown, or is empty).
-    /// On failure, returns the block and row where positive definiteness was lost.
+    /// Factors H + diag(damping) (damping has s entries per block, of which the
+    /// first d_k are read, or is empty). On failure, returns the block and row where
+    /// positive definiteness was lost.
     pub fn factor(
         &mut self,
         h: &BlockTridiagonal,
         damping: &[f64],
     ) -> Result<(), (usize, DenseError)> {
         let s = self.s;
-        let ss = s * s;
         self.blocks = h.blocks();
         self.dims[..self.blocks].copy_from_slice(&h.dims[..self.blocks]);
+        self.diag_at[..self.blocks].copy_from_slice(&h.diag_at[..self.blocks]);
+        self.lower_at[..self.blocks].copy_from_slice(&h.lower_at[..self.blocks]);
         for k in 0..self.blocks {
             let dk = self.dims[k];
-            let (before, rest) = self.l.split_at_mut(k * ss);
-            let lk = &mut rest[..ss];
-            // Active parts only (the rest is never read).
-            for i in 0..dk {
-                lk[i * s..i * s + dk].copy_from_slice(&h.diag(k)[i * s..i * s + dk]);
-            }
+            let at = self.diag_at[k];
+            let (before, rest) = self.l.split_at_mut(at);
+            let lk = &mut rest[..dk * dk];
+            lk.copy_from_slice(h.diag(k));
             if !damping.is_empty() {
                 for i in 0..dk {
-                    lk[i * s + i] += damping[k * s + i];
+                    lk[i * dk + i] += damping[k * s + i];
                 }
             }
             if k > 0 {
                 let dp = self.dims[k - 1];
-                let lprev = &before[(k - 1) * ss..k * ss];
-                let ck = &mut self.c[k * ss..(k + 1) * ss];
-                for i in 0..dk {
-                    ck[i * s..i * s + dp].copy_from_slice(&h.lower(k)[i * s..i * s + dp]);
-                }
+                let pa = self.diag_at[k - 1];
+                let lprev = &before[pa..pa + dp * dp];
+                let ca = self.lower_at[k];
+                let ck = &mut self.c[ca..ca + dk * dp];
+                ck.copy_from_slice(h.lower(k));
                 for r in 0..dk {
-                    dense::solve_lower_strided(lprev, dp, s, &mut ck[r * s..r * s + dp]);
+                    dense::solve_lower_strided(lprev, dp, dp, &mut ck[r * dp..(r + 1) * dp]);
                 }
                 for i in 0..dk {
                     for j in 0..=i {
-                        let a = &ck[i * s..i * s + dp];
-                        let b = &ck[j * s..j * s + dp];
-                        lk[i * s + j] -= a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+                        let a = &ck[i * dp..(i + 1) * dp];
+                        let b = &ck[j * dp..(j + 1) * dp];
+                        lk[i * dk + j] -= a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
                     }
                 }
             }
-            dense::cholesky_strided(lk, dk, s).map_err(|e| (k, e))?;
+            dense::cholesky_strided(lk, dk, dk).map_err(|e| (k, e))?;
         }
         Ok(())
     }
 
-    /// Solves H x = b in place (entries outside the active parts come out 0).
+    /// Solves H x = b in place (b with stride s per block; entries outside the active
+    /// parts come out 0).
     pub fn solve(&self, b: &mut [f64]) {
         let s = self.s;
-        let ss = s * s;
         for k in 0..self.blocks {
             let dk = self.dims[k];
             b[k * s + dk..(k + 1) * s].fill(0.0);
             if k > 0 {
                 let dp = self.dims[k - 1];
-                let ck = &self.c[k * ss..(k + 1) * ss];
+                let ca = self.lower_at[k];
+                let ck = &self.c[ca..ca + dk * dp];
                 let (prev, cur) = b.split_at_mut(k * s);
                 let yprev = &prev[(k - 1) * s..(k - 1) * s + dp];
                 for i in 0..dk {
-                    let row = &ck[i * s..i * s + dp];
+                    let row = &ck[i * dp..(i + 1) * dp];
                     cur[i] -= row.iter().zip(yprev).map(|(x, y)| x * y).sum::<f64>();
                 }
             }
+            let at = self.diag_at[k];
             dense::solve_lower_strided(
-                &self.l[k * ss..(k + 1) * ss],
+                &self.l[at..at + dk * dk],
                 dk,
-                s,
+                dk,
                 &mut b[k * s..k * s + dk],
             );
         }
@@ -250,22 +264,24 @@ impl BandedCholesky {
             let dk = self.dims[k];
             if k + 1 < self.blocks {
                 let dn = self.dims[k + 1];
-                let cn = &self.c[(k + 1) * ss..(k + 2) * ss];
+                let ca = self.lower_at[k + 1];
+                let cn = &self.c[ca..ca + dn * dk];
                 let (cur, next) = b.split_at_mut((k + 1) * s);
                 let xnext = &next[..dn];
                 let cur = &mut cur[k * s..];
                 for i in 0..dn {
-                    let row = &cn[i * s..i * s + dk];
+                    let row = &cn[i * dk..(i + 1) * dk];
                     let xi = xnext[i];
                     for (c, r) in cur[..dk].iter_mut().zip(row) {
                         *c -= r * xi;
                     }
                 }
             }
+            let at = self.diag_at[k];
             dense::solve_lower_transpose_strided(
-                &self.l[k * ss..(k + 1) * ss],
+                &self.l[at..at + dk * dk],
                 dk,
-                s,
+                dk,
                 &mut b[k * s..k * s + dk],
             );
         }
@@ -336,10 +352,20 @@ mod tests {
         for i in 0..n {
             assert!((y[i] - b[i]).abs() < 1e-12);
         }
-        // Active sizes below s: the same as the dense system of the active unknowns.
+        // Active sizes below s: the same as the dense system of the active unknowns
+        // (blocks packed: refilled after the sizes are set).
         let dims = [5, 3, 0, 4, 2, 5];
-        for (k, &d) in dims.iter().enumerate() {
-            h.set_dim(k, d);
+        h.reset_active(blocks, |k| dims[k]);
+        for k in 0..blocks {
+            let (d, dp) = (dims[k], if k > 0 { dims[k - 1] } else { 0 });
+            for a in 0..d {
+                for b in 0..d {
+                    h.diag_mut(k)[a * d + b] = dense[(k * s + a, k * s + b)];
+                }
+                for b in 0..dp {
+                    h.lower_mut(k)[a * dp + b] = dense[(k * s + a, (k - 1) * s + b)];
+                }
+            }
         }
         let active: Vec<usize> = (0..n).filter(|&i| i % s < dims[i / s]).collect();
         let sub = DMatrix::from_fn(active.len(), active.len(), |a, b| {

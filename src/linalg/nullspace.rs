@@ -31,9 +31,10 @@
 pub struct NullSpace {
     s: usize,
     max_rows: usize,
-    /// The equations of the last reduction, row-major rows × s (for `solve`).
-    c: Vec<f64>,
     rows: usize,
+    /// What `solve` keeps of the equations: per fixed unknown its unit equation's
+    /// coefficient, and the other equations' coefficients on the fixed unknowns
+    /// (row-major others × pinned).
     /// Per unknown: the unit equation fixing it, if any.
     fixed: Vec<Option<usize>>,
     /// Unknowns neither fixed by unit equations nor untouched by the others (those
@@ -63,8 +64,10 @@ pub struct NullSpace {
     norms: Vec<f64>,
     w: Vec<f64>,
     rhs: Vec<f64>,
-    /// s × s row-major; columns 0..dim hold an orthonormal null-space basis, the rest 0.
-    pub basis: Vec<f64>,
+    pin_coef: Vec<f64>,
+    others_pinned: Vec<f64>,
+    /// s × dim row-major: an orthonormal basis of the null space (see `basis`).
+    basis: Vec<f64>,
     /// Per row of the basis, the columns [start, end) outside which it is 0 (fixed
     /// unknowns: none; untouched ones: their unit column; the rest: the QR's columns).
     span: Vec<(usize, usize)>,
@@ -84,7 +87,8 @@ impl NullSpace {
         let mut ns = NullSpace {
             s,
             max_rows,
-            c: vec![0.0; s * max_rows],
+            pin_coef: vec![0.0; s],
+            others_pinned: vec![0.0; s * max_rows],
             rows: 0,
             fixed: vec![None; s],
             free: Vec::with_capacity(s),
@@ -157,7 +161,6 @@ impl NullSpace {
         }
         let s = self.s;
         self.rows = rows;
-        self.c[..rows * s].copy_from_slice(&c[..rows * s]);
         // Unit equations fix their unknown; a second one on the same unknown is
         // redundant.
         self.fixed.fill(None);
@@ -187,6 +190,19 @@ impl NullSpace {
                 self.free.push(i);
             } else {
                 self.untouched.push(i);
+            }
+        }
+        let np = self.pinned.len();
+        for &i in &self.pinned {
+            let j = self.fixed[i].expect("a pinned unknown has its unit equation");
+            self.pin_coef[i] = c[j * s + i];
+        }
+        for (k, &j) in self.others.iter().enumerate() {
+            for (o, &i) in self.others_pinned[k * np..(k + 1) * np]
+                .iter_mut()
+                .zip(&self.pinned)
+            {
+                *o = c[j * s + i];
             }
         }
         let sf = self.free.len();
@@ -232,31 +248,27 @@ impl NullSpace {
             &mut self.norms,
         );
         let fixed_count = s - sf - self.untouched.len();
-        // Columns that may hold a basis vector from before (past them all is 0).
-        let stale = self.dim;
         self.rank = fixed_count + rank;
         self.dim = sf - rank + self.untouched.len();
+        let dim = self.dim;
         let mut p = std::mem::take(&mut self.particular);
         self.solve(b, &mut p);
         self.particular = p;
         // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones,
         // then a unit vector per untouched unknown.
-        let width = stale.max(self.dim);
-        for row in self.basis.chunks_exact_mut(s) {
-            row[..width].fill(0.0);
-        }
+        self.basis[..s * dim].fill(0.0);
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
             apply_q(&self.a, &self.beta, &self.rend, sf, rank, &mut self.w[..sf]);
             for (a, &i) in self.qr_rows.iter().enumerate() {
-                self.basis[i * s + (j - rank)] = self.w[a];
+                self.basis[i * dim + (j - rank)] = self.w[a];
             }
         }
         // Each row's span: its nonzeros (rows the earlier segments fix are 0).
         self.span.fill((0, 0));
         for &i in &self.free {
-            let row = &self.basis[i * s..i * s + sf - rank];
+            let row = &self.basis[i * dim..i * dim + sf - rank];
             if let (Some(a), Some(b)) = (
                 row.iter().position(|v| *v != 0.0),
                 row.iter().rposition(|v| *v != 0.0),
@@ -266,7 +278,7 @@ impl NullSpace {
         }
         for (u, &i) in self.untouched.iter().enumerate() {
             let col = sf - rank + u;
-            self.basis[i * s + col] = 1.0;
+            self.basis[i * dim + col] = 1.0;
             self.span[i] = (col, col + 1);
         }
     }
@@ -284,7 +296,12 @@ impl NullSpace {
     #[inline]
     pub fn row(&self, i: usize) -> (usize, &[f64]) {
         let (start, end) = self.span[i];
-        (start, &self.basis[i * self.s + start..i * self.s + end])
+        (start, &self.basis[i * self.dim + start..i * self.dim + end])
+    }
+
+    /// The null-space basis N, row-major s × dim, orthonormal columns.
+    pub fn basis(&self) -> &[f64] {
+        &self.basis[..self.s * self.dim]
     }
 
     /// The least-norm solution x (length s) of the independent equations of the last
@@ -295,17 +312,18 @@ impl NullSpace {
         x.fill(0.0);
         for &i in &self.pinned {
             if let Some(j) = self.fixed[i] {
-                x[i] = b[j] / self.c[j * s + i];
+                x[i] = b[j] / self.pin_coef[i];
             }
         }
         let sf = self.free.len();
         let rank = self.rank - (s - sf - self.untouched.len());
         // The other equations on the free unknowns: b − C[:, fixed] x_fixed.
+        let np = self.pinned.len();
         for (k, &j) in self.others.iter().enumerate() {
-            let row = &self.c[j * s..(j + 1) * s];
+            let row = &self.others_pinned[k * np..(k + 1) * np];
             let mut v = b[j];
-            for &i in &self.pinned {
-                v -= row[i] * x[i];
+            for (c, &i) in row.iter().zip(&self.pinned) {
+                v -= c * x[i];
             }
             self.rhs[k] = v;
         }
@@ -364,13 +382,14 @@ impl NullSpace {
         for i in 0..rank {
             mu[self.others[self.perm[i]]] = self.w[i];
         }
-        for &i in &self.pinned {
+        let np = self.pinned.len();
+        for (t, &i) in self.pinned.iter().enumerate() {
             if let Some(j) = self.fixed[i] {
                 let mut v = r[i];
-                for &o in &self.others {
-                    v -= self.c[o * s + i] * mu[o];
+                for (k, &o) in self.others.iter().enumerate() {
+                    v -= self.others_pinned[k * np + t] * mu[o];
                 }
-                mu[j] = v / self.c[j * s + i];
+                mu[j] = v / self.pin_coef[i];
             }
         }
     }
@@ -558,17 +577,19 @@ mod tests {
             ns.reduce(&row_major, b.as_slice(), rows);
             assert_eq!(ns.rank, rank, "rank of a {rows}×{s} matrix");
             assert_eq!(ns.dim, s - rank);
-            let n = DMatrix::from_row_slice(s, s, &ns.basis)
-                .columns(0, ns.dim)
-                .into_owned();
+            let n = DMatrix::from_row_slice(s, ns.dim, ns.basis());
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
             for i in 0..s {
                 let (start, row) = ns.row(i);
-                for j in 0..s {
+                for j in 0..ns.dim {
                     let inside = j >= start && j < start + row.len();
                     let v = if inside { row[j - start] } else { 0.0 };
-                    assert_eq!(v, ns.basis[i * s + j], "row {i} of N outside its span");
+                    assert_eq!(
+                        v,
+                        ns.basis()[i * ns.dim + j],
+                        "row {i} of N outside its span"
+                    );
                 }
             }
             let ntn = n.transpose() * &n;
@@ -606,9 +627,7 @@ mod tests {
             ns.reduce(&row_major, b.as_slice(), rows);
             let rank = c.clone().svd(false, false).rank(1e-9);
             assert_eq!(ns.rank, rank, "trial {trial}");
-            let n = DMatrix::from_row_slice(s, s, &ns.basis)
-                .columns(0, ns.dim)
-                .into_owned();
+            let n = DMatrix::from_row_slice(s, ns.dim, ns.basis());
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12);
             assert!((n.transpose() * &n - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12);
@@ -670,12 +689,8 @@ mod tests {
                 (plain.rank, plain.dim),
                 "trial {trial}"
             );
-            let n = DMatrix::from_row_slice(s, s, &seg.basis)
-                .columns(0, seg.dim)
-                .into_owned();
-            let n0 = DMatrix::from_row_slice(s, s, &plain.basis)
-                .columns(0, plain.dim)
-                .into_owned();
+            let n = DMatrix::from_row_slice(s, seg.dim, seg.basis());
+            let n0 = DMatrix::from_row_slice(s, plain.dim, plain.basis());
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
             assert!((n.transpose() * &n - DMatrix::identity(seg.dim, seg.dim)).amax() < 1e-12);
             // The same space: N₀ N₀ᵀ N = N.
@@ -683,10 +698,14 @@ mod tests {
             for i in 0..s {
                 assert!((seg.particular[i] - plain.particular[i]).abs() < 1e-12);
                 let (start, row) = seg.row(i);
-                for j in 0..s {
+                for j in 0..seg.dim {
                     let inside = j >= start && j < start + row.len();
                     let v = if inside { row[j - start] } else { 0.0 };
-                    assert_eq!(v, seg.basis[i * s + j], "row {i} of N outside its span");
+                    assert_eq!(
+                        v,
+                        seg.basis()[i * seg.dim + j],
+                        "row {i} of N outside its span"
+                    );
                 }
             }
             let b2 = &c * DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
@@ -723,6 +742,6 @@ mod tests {
         let mut ns = NullSpace::new(3, 2);
         ns.reduce(&[], &[], 0);
         assert_eq!(ns.dim, 3);
-        assert_eq!(ns.basis, vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(ns.basis(), &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
     }
 }
