@@ -28,6 +28,14 @@ pub struct BlockTridiagonal {
     lower: Vec<f64>,
 }
 
+/// Grows `v` (within its reserved capacity: storage is touched only as far as it
+/// is used) to at least `len` entries.
+fn ensure(v: &mut Vec<f64>, len: usize) {
+    if v.len() < len {
+        v.resize(len, 0.0);
+    }
+}
+
 /// Offsets of packed blocks: block k at Σ_{j<k} size(j).
 fn pack(dims: &[usize], diag_at: &mut [usize], lower_at: &mut [usize], k: usize) {
     if k == 0 {
@@ -49,8 +57,8 @@ impl BlockTridiagonal {
             dims: vec![s; capacity],
             diag_at: vec![0; capacity],
             lower_at: vec![0; capacity],
-            diag: vec![0.0; capacity * s * s],
-            lower: vec![0.0; capacity * s * s],
+            diag: Vec::with_capacity(capacity * s * s),
+            lower: Vec::with_capacity(capacity * s * s),
         };
         for k in 0..capacity {
             pack(&h.dims, &mut h.diag_at, &mut h.lower_at, k);
@@ -100,6 +108,8 @@ impl BlockTridiagonal {
         pack(&self.dims, &mut self.diag_at, &mut self.lower_at, k);
         let dp = if k > 0 { self.dims[k - 1] } else { 0 };
         let (a, b) = (self.diag_at[k], self.lower_at[k]);
+        ensure(&mut self.diag, a + d * d);
+        ensure(&mut self.lower, b + d * dp);
         self.diag[a..a + d * d].fill(0.0);
         self.lower[b..b + d * dp].fill(0.0);
     }
@@ -182,8 +192,8 @@ impl BandedCholesky {
             dims: vec![s; capacity],
             diag_at: vec![0; capacity],
             lower_at: vec![0; capacity],
-            l: vec![0.0; capacity * s * s],
-            c: vec![0.0; capacity * s * s],
+            l: Vec::with_capacity(capacity * s * s),
+            c: Vec::with_capacity(capacity * s * s),
         }
     }
 
@@ -200,6 +210,12 @@ impl BandedCholesky {
         self.dims[..self.blocks].copy_from_slice(&h.dims[..self.blocks]);
         self.diag_at[..self.blocks].copy_from_slice(&h.diag_at[..self.blocks]);
         self.lower_at[..self.blocks].copy_from_slice(&h.lower_at[..self.blocks]);
+        if let Some(last) = self.blocks.checked_sub(1) {
+            let d = self.dims[last];
+            ensure(&mut self.l, self.diag_at[last] + d * d);
+            let dp = if last > 0 { self.dims[last - 1] } else { 0 };
+            ensure(&mut self.c, self.lower_at[last] + d * dp);
+        }
         for k in 0..self.blocks {
             let dk = self.dims[k];
             let at = self.diag_at[k];

@@ -68,6 +68,8 @@ pub struct NullSpace {
     others_pinned: Vec<f64>,
     /// s × dim row-major: an orthonormal basis of the null space (see `basis`).
     basis: Vec<f64>,
+    /// A new reduction: N = I, not written into `basis` yet.
+    lazy_identity: bool,
     /// Per row of the basis, the columns [start, end) outside which it is 0 (fixed
     /// unknowns: none; untouched ones: their unit column; the rest: the QR's columns).
     span: Vec<(usize, usize)>,
@@ -88,7 +90,7 @@ impl NullSpace {
             s,
             max_rows,
             pin_coef: vec![0.0; s],
-            others_pinned: vec![0.0; s * max_rows],
+            others_pinned: Vec::new(),
             rows: 0,
             fixed: vec![None; s],
             free: Vec::with_capacity(s),
@@ -101,21 +103,36 @@ impl NullSpace {
             others: Vec::with_capacity(max_rows),
             untouched: Vec::with_capacity(s),
             pinned: Vec::with_capacity(s),
-            a: vec![0.0; s * max_rows],
+            a: Vec::new(),
             rdiag: vec![0.0; s.min(max_rows)],
             beta: vec![0.0; s.min(max_rows)],
             perm: vec![0; max_rows],
             norms: vec![0.0; 2 * max_rows],
             w: vec![0.0; s],
             rhs: vec![0.0; max_rows],
-            basis: vec![0.0; s * s],
+            basis: Vec::new(),
+            lazy_identity: true,
             span: vec![(0, 0); s],
             particular: vec![0.0; s],
             dim: s,
             rank: 0,
         };
-        ns.set_unconstrained();
+        // Unconstrained, with N = I not written out until it is asked for: the
+        // solver's blocks are reduced before use, and their storage (allocated at
+        // the first reduction, to its size) stays small when dim is.
+        for i in 0..s {
+            ns.span[i] = (i, i + 1);
+        }
+        ns.untouched.extend(0..s);
         ns
+    }
+
+    /// Grows `v` to at least `len` entries (allocating only when a reduction needs
+    /// more than any before it).
+    fn ensure(v: &mut Vec<f64>, len: usize) {
+        if v.len() < len {
+            v.resize(len, 0.0);
+        }
     }
 
     /// Splits the unknowns into ordered segments (`segment[i]` for unknown i): the
@@ -131,7 +148,9 @@ impl NullSpace {
     /// No equations: N = I, p = 0.
     pub fn set_unconstrained(&mut self) {
         let s = self.s;
+        Self::ensure(&mut self.basis, s * s);
         self.basis.fill(0.0);
+        self.lazy_identity = false;
         for i in 0..s {
             self.basis[i * s + i] = 1.0;
             self.span[i] = (i, i + 1);
@@ -193,6 +212,7 @@ impl NullSpace {
             }
         }
         let np = self.pinned.len();
+        Self::ensure(&mut self.others_pinned, self.others.len() * np);
         for &i in &self.pinned {
             let j = self.fixed[i].expect("a pinned unknown has its unit equation");
             self.pin_coef[i] = c[j * s + i];
@@ -221,6 +241,7 @@ impl NullSpace {
         for g in 1..self.segments {
             self.seg_end[g] += self.seg_end[g - 1];
         }
+        Self::ensure(&mut self.a, sf * m);
         // A = Cᵀ[free, others]: column k is equation others[k] on the free unknowns;
         // its group is the segment of the last of them it touches.
         for (k, &j) in self.others.iter().enumerate() {
@@ -256,7 +277,9 @@ impl NullSpace {
         self.particular = p;
         // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones,
         // then a unit vector per untouched unknown.
+        Self::ensure(&mut self.basis, s * dim);
         self.basis[..s * dim].fill(0.0);
+        self.lazy_identity = false;
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
@@ -296,11 +319,19 @@ impl NullSpace {
     #[inline]
     pub fn row(&self, i: usize) -> (usize, &[f64]) {
         let (start, end) = self.span[i];
+        if self.lazy_identity {
+            return (i, &[1.0]);
+        }
         (start, &self.basis[i * self.dim + start..i * self.dim + end])
     }
 
-    /// The null-space basis N, row-major s × dim, orthonormal columns.
+    /// The null-space basis N, row-major s × dim, orthonormal columns (after a
+    /// [`NullSpace::reduce`] or [`NullSpace::set_unconstrained`]).
     pub fn basis(&self) -> &[f64] {
+        assert!(
+            !self.lazy_identity,
+            "the basis of a reduction before its first reduce"
+        );
         &self.basis[..self.s * self.dim]
     }
 
