@@ -198,6 +198,33 @@ pub trait Factor: Send + Sync {
         false
     }
 
+    /// Whether [`Factor::evaluate_along`] is implemented.
+    fn evaluates_along(&self) -> bool {
+        false
+    }
+
+    /// Evaluates the residual into `r` and, instead of the Jacobians, their products
+    /// with directions: Σ_a J_a V_a into the row-major dim × c `out`, V_a = `dirs[a]`
+    /// (row-major size(x_a) × c, the same c columns for every key). A factor whose
+    /// Jacobian comes out of a factorization (the dynamics factors: one pair of
+    /// triangular solves per column) then solves for the few directions that are
+    /// nonzero instead of for every column. Returns `Ok(false)`, having written
+    /// nothing, when it does not do this (the default) or it would not be cheaper
+    /// than the Jacobians.
+    #[allow(clippy::too_many_arguments)]
+    fn evaluate_along(
+        &self,
+        _t: f64,
+        _x: &[&[f64]],
+        _r: &mut [f64],
+        _dirs: &[&[f64]],
+        _c: usize,
+        _out: &mut [f64],
+        _ws: &mut Workspace,
+    ) -> Result<bool> {
+        Ok(false)
+    }
+
     /// Evaluates the residual at time `t` from the variables `x` (one slice per key)
     /// into `r`; with `jacobians`, also ∂r/∂x_k for every key into the row-major
     /// dim × size(x_k) blocks.

@@ -258,6 +258,10 @@ pub struct WindowSolver {
     hard_rhs: Vec<f64>,
     /// Evaluate step by step (see `optimize_for_batch`).
     step_major: bool,
+    /// Directions and products of [`Factor::evaluate_along`]: per key size × c, and
+    /// dim × c (c ≤ 1 + 2s); empty when no factor evaluates along directions.
+    along_dirs: Vec<f64>,
+    along_out: Vec<f64>,
     /// In a conditional solve the step before the window is held fixed.
     conditional: bool,
     /// Set when a window solve ended on a small step: its linearization of the
@@ -313,6 +317,19 @@ impl WindowSolver {
         let capacity = capacity.max(2);
         let n = capacity * s;
         let max_hard = hard_step + hard_initial;
+        // Room for the factors that linearize along directions.
+        let (mut along_keys, mut along_dim) = (0, 0);
+        for f in graph.step_factors.iter().chain(&graph.initial_factors) {
+            if f.evaluates_along() {
+                let sizes: usize = f
+                    .keys()
+                    .iter()
+                    .map(|k| graph.layout.slot(k.kind).map_or(0, |(_, d)| d))
+                    .sum();
+                along_keys = along_keys.max(sizes);
+                along_dim = along_dim.max(f.dim());
+            }
+        }
         Ok(WindowSolver {
             settings,
             s,
@@ -350,6 +367,8 @@ impl WindowSolver {
             hard_jac: vec![0.0; max_hard * s],
             hard_rhs: vec![0.0; max_hard],
             step_major: false,
+            along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
+            along_out: vec![0.0; along_dim * (1 + 2 * s)],
             reduced: [vec![0.0; max_dim.max(s) * s], vec![0.0; max_dim.max(s) * s]],
             shifted: vec![0.0; max_dim.max(s)],
             instances: Vec::with_capacity(
@@ -622,7 +641,12 @@ impl WindowSolver {
         let s = self.s;
         let inst = self.instances[i];
         let factor = factor_of(graph, inst);
-        self.evaluate_instance(graph, values, inst, linearize)?;
+        let along = linearize
+            && factor.evaluates_along()
+            && self.evaluate_along(graph, values, k0, inst)?;
+        if !along {
+            self.evaluate_instance(graph, values, inst, linearize)?;
+        }
         let buf = if inst.initial {
             &mut self.initial_buffers[inst.index]
         } else {
@@ -630,7 +654,7 @@ impl WindowSolver {
         };
         let keys = factor.keys();
         let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
-        buf.whiten(factor, linearize);
+        buf.whiten(factor, linearize && !along);
         for r in &buf.r {
             let c = 0.5 * r * r;
             *cost += c;
@@ -640,17 +664,44 @@ impl WindowSolver {
         }
         if linearize {
             let step = inst.step - k0;
-            reduce_factor(
-                &mut self.reduced,
-                &mut self.shifted,
-                &self.hard,
-                graph,
-                factor,
-                step,
-                buf,
-                s,
-            );
             let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
+            if along {
+                // The rows J [p N] came back unwhitened: [p | N(step) | N(step − 1)].
+                let d0 = self.hard[step].reduction.dim;
+                let d1 = if lagged {
+                    self.hard[step - 1].reduction.dim
+                } else {
+                    0
+                };
+                let c = 1 + d0 + d1;
+                for (row, (&w, &r)) in buf.weights.iter().zip(&buf.r).enumerate() {
+                    let out = &self.along_out[row * c..(row + 1) * c];
+                    self.shifted[row] = r + w * out[0];
+                    for (o, v) in self.reduced[0][row * s..row * s + d0]
+                        .iter_mut()
+                        .zip(&out[1..1 + d0])
+                    {
+                        *o = w * v;
+                    }
+                    for (o, v) in self.reduced[1][row * s..row * s + d1]
+                        .iter_mut()
+                        .zip(&out[1 + d0..])
+                    {
+                        *o = w * v;
+                    }
+                }
+            } else {
+                reduce_factor(
+                    &mut self.reduced,
+                    &mut self.shifted,
+                    &self.hard,
+                    graph,
+                    factor,
+                    step,
+                    buf,
+                    s,
+                );
+            }
             accumulate(
                 &mut self.h,
                 &mut self.g,
@@ -663,6 +714,81 @@ impl WindowSolver {
             );
         }
         Ok(())
+    }
+
+    /// Linearizes a soft factor instance along its blocks' reductions,
+    /// J [p N] per key ([`Factor::evaluate_along`]), into `along_out` (columns: p,
+    /// then block step's reduced coordinates, then those of the block before), its
+    /// residual into its buffer; returns false when the factor declines.
+    fn evaluate_along(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        inst: Instance,
+    ) -> Result<bool> {
+        let s = self.s;
+        let factor = factor_of(graph, inst);
+        let keys = factor.keys();
+        let step = inst.step - k0;
+        let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
+        let d0 = self.hard[step].reduction.dim;
+        let d1 = if lagged {
+            self.hard[step - 1].reduction.dim
+        } else {
+            0
+        };
+        let c = 1 + d0 + d1;
+        let mut xs: [&[f64]; 8] = [&[]; 8];
+        let mut ranges = [(0, 0); 8];
+        let mut at = 0;
+        for (a, k) in keys.iter().enumerate() {
+            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+            let base = (inst.step - k.lag) * s + off;
+            xs[a] = &values[base..base + d];
+            let v = &mut self.along_dirs[at..at + d * c];
+            v.fill(0.0);
+            // A variable held fixed before the window (k.lag > step) moves not.
+            if k.lag <= step {
+                let red = &self.hard[step - k.lag].reduction;
+                let col0 = if k.lag == 0 { 1 } else { 1 + d0 };
+                for (i, row) in v.chunks_exact_mut(c).enumerate() {
+                    row[0] = red.particular[off + i];
+                    let (start, nrow) = red.row(off + i);
+                    row[col0 + start..col0 + start + nrow.len()].copy_from_slice(nrow);
+                }
+            }
+            ranges[a] = (at, at + d * c);
+            at += d * c;
+        }
+        let mut dirs: [&[f64]; 8] = [&[]; 8];
+        for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
+            *d = &self.along_dirs[a..b];
+        }
+        let buf = if inst.initial {
+            &mut self.initial_buffers[inst.index]
+        } else {
+            &mut self.step_buffers[inst.index]
+        };
+        let t = graph.time(inst.step);
+        factor
+            .evaluate_along(
+                t,
+                &xs[..keys.len()],
+                &mut buf.r,
+                &dirs[..keys.len()],
+                c,
+                &mut self.along_out[..factor.dim() * c],
+                &mut self.ws,
+            )
+            .map_err(|e| match e {
+                Error::Singular(m) => Error::Singular(format!(
+                    "{} at step {} (t = {t}): {m}",
+                    factor.name(),
+                    inst.step
+                )),
+                other => other,
+            })
     }
 
     /// Evaluates the factors of a scope at `values` (the whole trajectory, step-major)
