@@ -332,7 +332,11 @@ impl PrescribedKinematics {
             phi_trial: vec![0.0; m],
             step: vec![0.0; n],
             mu: vec![0.0; m + p],
-            ns: NullSpace::new(n, m + p),
+            ns: {
+                let mut ns = NullSpace::new(n, m + p);
+                ns.set_summation(crate::linalg::dense::Summation::Lanes);
+                ns
+            },
         }
     }
 

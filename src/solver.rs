@@ -13,6 +13,7 @@
 use crate::error::{Error, Result};
 use crate::graph::{ChainGraph, Factor, Noise, Workspace};
 use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
+use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
 
 /// The nonlinear least-squares method.
@@ -393,7 +394,9 @@ impl WindowSolver {
     ///   earlier segments fix;
     /// - linearizations go step by step (a step's hard equations, then its factors
     ///   into its blocks of H) instead of factor by factor over the whole horizon, so
-    ///   each block of H is filled while it is in cache.
+    ///   each block of H is filled while it is in cache;
+    /// - dot products in the reductions, the banded factorization and its solves are
+    ///   summed in four lanes ([`Summation::Lanes`]).
     ///
     /// The basis is another one of the same space and the sums run in another order,
     /// so results agree with the default to the solve's tolerance, not to the bit.
@@ -409,7 +412,10 @@ impl WindowSolver {
         }
         for block in &mut self.hard {
             block.reduction.set_segments(&segment);
+            block.reduction.set_summation(Summation::Lanes);
         }
+        self.h.set_summation(Summation::Lanes);
+        self.chol.set_summation(Summation::Lanes);
         self.step_major = true;
     }
 

@@ -12,7 +12,7 @@
 //! Σ d_k² numbers instead of blocks·s² (the capacity, allocated once and left
 //! untouched past what is used).
 
-use super::dense::{self, DenseError};
+use super::dense::{self, DenseError, Summation};
 
 /// H = block tridiagonal with `blocks` diagonal blocks; only the lower blocks
 /// H[k][k−1] are stored. Block k uses d_k unknowns.
@@ -26,6 +26,7 @@ pub struct BlockTridiagonal {
     lower_at: Vec<usize>,
     diag: Vec<f64>,
     lower: Vec<f64>,
+    summation: Summation,
 }
 
 /// Grows `v` (within its reserved capacity: storage is touched only as far as it
@@ -59,11 +60,18 @@ impl BlockTridiagonal {
             lower_at: vec![0; capacity],
             diag: Vec::with_capacity(capacity * s * s),
             lower: Vec::with_capacity(capacity * s * s),
+            summation: Summation::Sequential,
         };
         for k in 0..capacity {
             pack(&h.dims, &mut h.diag_at, &mut h.lower_at, k);
         }
         h
+    }
+
+    /// How products are summed in [`BlockTridiagonal::multiply`] (sequential by
+    /// default).
+    pub fn set_summation(&mut self, how: Summation) {
+        self.summation = how;
     }
 
     pub fn block_size(&self) -> usize {
@@ -150,11 +158,7 @@ impl BlockTridiagonal {
             let d = self.diag(k);
             for i in 0..dk {
                 let row = &d[i * dk..(i + 1) * dk];
-                y[k * s + i] += row
-                    .iter()
-                    .zip(&x[k * s..k * s + dk])
-                    .map(|(a, b)| a * b)
-                    .sum::<f64>();
+                y[k * s + i] += dense::dot(row, &x[k * s..k * s + dk], self.summation);
             }
             if k > 0 {
                 let dp = self.dims[k - 1];
@@ -182,6 +186,7 @@ pub struct BandedCholesky {
     lower_at: Vec<usize>,
     l: Vec<f64>,
     c: Vec<f64>,
+    summation: Summation,
 }
 
 impl BandedCholesky {
@@ -194,7 +199,14 @@ impl BandedCholesky {
             lower_at: vec![0; capacity],
             l: Vec::with_capacity(capacity * s * s),
             c: Vec::with_capacity(capacity * s * s),
+            summation: Summation::Sequential,
         }
+    }
+
+    /// How the factorization's and the solve's products are summed (sequential by
+    /// default).
+    pub fn set_summation(&mut self, how: Summation) {
+        self.summation = how;
     }
 
     /// Factors H + diag(damping) (damping has s entries per block, of which the
@@ -235,17 +247,23 @@ impl BandedCholesky {
                 let ck = &mut self.c[ca..ca + dk * dp];
                 ck.copy_from_slice(h.lower(k));
                 for r in 0..dk {
-                    dense::solve_lower_strided(lprev, dp, dp, &mut ck[r * dp..(r + 1) * dp]);
+                    dense::solve_lower_strided_with(
+                        lprev,
+                        dp,
+                        dp,
+                        &mut ck[r * dp..(r + 1) * dp],
+                        self.summation,
+                    );
                 }
                 for i in 0..dk {
                     for j in 0..=i {
                         let a = &ck[i * dp..(i + 1) * dp];
                         let b = &ck[j * dp..(j + 1) * dp];
-                        lk[i * dk + j] -= a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+                        lk[i * dk + j] -= dense::dot(a, b, self.summation);
                     }
                 }
             }
-            dense::cholesky_strided(lk, dk, dk).map_err(|e| (k, e))?;
+            dense::cholesky_strided_with(lk, dk, dk, self.summation).map_err(|e| (k, e))?;
         }
         Ok(())
     }
@@ -265,15 +283,16 @@ impl BandedCholesky {
                 let yprev = &prev[(k - 1) * s..(k - 1) * s + dp];
                 for i in 0..dk {
                     let row = &ck[i * dp..(i + 1) * dp];
-                    cur[i] -= row.iter().zip(yprev).map(|(x, y)| x * y).sum::<f64>();
+                    cur[i] -= dense::dot(row, yprev, self.summation);
                 }
             }
             let at = self.diag_at[k];
-            dense::solve_lower_strided(
+            dense::solve_lower_strided_with(
                 &self.l[at..at + dk * dk],
                 dk,
                 dk,
                 &mut b[k * s..k * s + dk],
+                self.summation,
             );
         }
         for k in (0..self.blocks).rev() {

@@ -25,6 +25,8 @@
 //! orthonormal basis of the same space and the particular solution the same
 //! least-norm one.
 
+use super::dense::{dot, Summation};
+
 /// Scratch and results of one reduction, sized once for `s` unknowns and up to
 /// `max_rows` equations.
 #[derive(Debug, Clone)]
@@ -70,6 +72,8 @@ pub struct NullSpace {
     basis: Vec<f64>,
     /// A new reduction: N = I, not written into `basis` yet.
     lazy_identity: bool,
+    /// How the QR's sums of products are taken.
+    summation: Summation,
     /// Per row of the basis, the columns [start, end) outside which it is 0 (fixed
     /// unknowns: none; untouched ones: their unit column; the rest: the QR's columns).
     span: Vec<(usize, usize)>,
@@ -112,6 +116,7 @@ impl NullSpace {
             rhs: vec![0.0; max_rows],
             basis: Vec::new(),
             lazy_identity: true,
+            summation: Summation::Sequential,
             span: vec![(0, 0); s],
             particular: vec![0.0; s],
             dim: s,
@@ -143,6 +148,11 @@ impl NullSpace {
         self.segment.copy_from_slice(segment);
         self.segments = segment.iter().max().map_or(1, |m| m + 1);
         self.seg_end = vec![0; self.segments];
+    }
+
+    /// How the QR's sums of products are taken (sequential by default).
+    pub fn set_summation(&mut self, how: Summation) {
+        self.summation = how;
     }
 
     /// No equations: N = I, p = 0.
@@ -263,6 +273,7 @@ impl NullSpace {
                 seg_end: &self.seg_end,
                 rend: &mut self.rend,
             },
+            self.summation,
             &mut self.rdiag,
             &mut self.beta,
             &mut self.perm,
@@ -283,7 +294,15 @@ impl NullSpace {
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
-            apply_q(&self.a, &self.beta, &self.rend, sf, rank, &mut self.w[..sf]);
+            apply_q(
+                &self.a,
+                &self.beta,
+                &self.rend,
+                sf,
+                rank,
+                &mut self.w[..sf],
+                self.summation,
+            );
             for (a, &i) in self.qr_rows.iter().enumerate() {
                 self.basis[i * dim + (j - rank)] = self.w[a];
             }
@@ -361,13 +380,28 @@ impl NullSpace {
         // The selected equations read R₁ᵀ Q₁ᵀ x_free = b_sel: R₁ᵀ w = b_sel, x = Q₁ w.
         for i in 0..rank {
             let mut acc = self.rhs[self.perm[i]];
-            for l in 0..i {
-                acc -= self.a[i * sf + l] * self.w[l];
+            match self.summation {
+                Summation::Sequential => {
+                    for l in 0..i {
+                        acc -= self.a[i * sf + l] * self.w[l];
+                    }
+                }
+                Summation::Lanes => {
+                    acc -= dot(&self.a[i * sf..i * sf + i], &self.w[..i], self.summation)
+                }
             }
             self.w[i] = acc / self.rdiag[i];
         }
         self.w[rank..sf].fill(0.0);
-        apply_q(&self.a, &self.beta, &self.rend, sf, rank, &mut self.w[..sf]);
+        apply_q(
+            &self.a,
+            &self.beta,
+            &self.rend,
+            sf,
+            rank,
+            &mut self.w[..sf],
+            self.summation,
+        );
         for (a, &i) in self.qr_rows.iter().enumerate() {
             x[i] = self.w[a];
         }
@@ -395,8 +429,7 @@ impl NullSpace {
             let end = self.rend[k];
             let v = &self.a[k * sf + k..k * sf + end];
             let y = &mut self.w[k..end];
-            let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
-            let f = self.beta[k] * dot;
+            let f = self.beta[k] * dot(v, y, self.summation);
             for (yi, vi) in y.iter_mut().zip(v) {
                 *yi -= f * vi;
             }
@@ -452,6 +485,7 @@ fn householder_grouped(
     s: usize,
     m: usize,
     grouping: Grouping,
+    how: Summation,
     rdiag: &mut [f64],
     beta: &mut [f64],
     perm: &mut [usize],
@@ -469,7 +503,8 @@ fn householder_grouped(
     let mut largest = 0.0f64;
     for j in 0..m {
         perm[j] = j;
-        let n2: f64 = a[j * s..(j + 1) * s].iter().map(|v| v * v).sum();
+        let col = &a[j * s..(j + 1) * s];
+        let n2 = dot(col, col, how);
         partial[j] = n2;
         reference[j] = n2;
         largest = largest.max(n2);
@@ -490,7 +525,8 @@ fn householder_grouped(
             None => true,
             Some(b) if partial[b] <= tol2 => {
                 // Confirm with exact norms before declaring the rest dependent.
-                let exact: f64 = a[b * s + k..b * s + end].iter().map(|v| v * v).sum();
+                let live = &a[b * s + k..b * s + end];
+                let exact = dot(live, live, how);
                 if exact <= tol2 {
                     true
                 } else {
@@ -521,10 +557,10 @@ fn householder_grouped(
             group.swap(k, best);
         }
         let col = &mut a[k * s + k..k * s + end];
-        let norm = col.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let norm = dot(col, col, how).sqrt();
         let alpha = if col[0] > 0.0 { -norm } else { norm };
         col[0] -= alpha;
-        let vnorm2: f64 = col.iter().map(|v| v * v).sum();
+        let vnorm2 = dot(col, col, how);
         let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
         rdiag[k] = alpha;
         beta[k] = b;
@@ -537,15 +573,14 @@ fn householder_grouped(
                 continue;
             }
             let live = &mut y[k..end];
-            let dot: f64 = v.iter().zip(live.iter()).map(|(a, b)| a * b).sum();
-            let f = b * dot;
+            let f = b * dot(v, live, how);
             for (yi, vi) in live.iter_mut().zip(v) {
                 *yi -= f * vi;
             }
             // Downdate the partial norm of rows k+1.. of this column.
             partial[j] -= live[0] * live[0];
             if partial[j] < 1e-4 * reference[j] {
-                partial[j] = y[k + 1..].iter().map(|v| v * v).sum();
+                partial[j] = dot(&y[k + 1..], &y[k + 1..], how);
                 reference[j] = partial[j];
             }
         }
@@ -557,13 +592,21 @@ fn householder_grouped(
 
 /// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`
 /// (reflector k nonzero on rows k..rend[k]).
-fn apply_q(a: &[f64], beta: &[f64], rend: &[usize], s: usize, rank: usize, x: &mut [f64]) {
+#[allow(clippy::too_many_arguments)]
+fn apply_q(
+    a: &[f64],
+    beta: &[f64],
+    rend: &[usize],
+    s: usize,
+    rank: usize,
+    x: &mut [f64],
+    how: Summation,
+) {
     for k in (0..rank).rev() {
         let end = rend[k];
         let v = &a[k * s + k..k * s + end];
         let y = &mut x[k..end];
-        let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
-        let f = beta[k] * dot;
+        let f = beta[k] * dot(v, y, how);
         for (yi, vi) in y.iter_mut().zip(v) {
             *yi -= f * vi;
         }
