@@ -54,6 +54,8 @@ pub struct NullSpace {
     /// its rows (it is 0 past them).
     group: Vec<usize>,
     rend: Vec<usize>,
+    /// Per group of the last QR, its reflectors.
+    made: Vec<GroupReflectors>,
     others: Vec<usize>,
     untouched: Vec<usize>,
     /// The unknowns unit equations fix, ascending.
@@ -104,6 +106,7 @@ impl NullSpace {
             seg_end: vec![0; 1],
             group: vec![0; max_rows],
             rend: vec![0; s.min(max_rows)],
+            made: Vec::with_capacity(4),
             others: Vec::with_capacity(max_rows),
             untouched: Vec::with_capacity(s),
             pinned: Vec::with_capacity(s),
@@ -150,6 +153,17 @@ impl NullSpace {
         self.seg_end = vec![0; self.segments];
     }
 
+    /// w ← H_k w (reflector k of the last QR, on rows k..rend[k]).
+    fn reflect(&mut self, k: usize, sf: usize) {
+        let end = self.rend[k];
+        let v = &self.a[k * sf + k..k * sf + end];
+        let y = &mut self.w[k..end];
+        let f = self.beta[k] * dot(v, y, self.summation);
+        for (yi, vi) in y.iter_mut().zip(v) {
+            *yi -= f * vi;
+        }
+    }
+
     /// How the QR's sums of products are taken (sequential by default).
     pub fn set_summation(&mut self, how: Summation) {
         self.summation = how;
@@ -169,6 +183,7 @@ impl NullSpace {
         self.fixed.fill(None);
         self.free.clear();
         self.qr_rows.clear();
+        self.made.clear();
         self.others.clear();
         self.untouched.clear();
         self.untouched.extend(0..s);
@@ -272,6 +287,7 @@ impl NullSpace {
                 group: &mut self.group[..m],
                 seg_end: &self.seg_end,
                 rend: &mut self.rend,
+                made: &mut self.made,
             },
             self.summation,
             &mut self.rdiag,
@@ -298,8 +314,8 @@ impl NullSpace {
                 &self.a,
                 &self.beta,
                 &self.rend,
+                &self.made,
                 sf,
-                rank,
                 &mut self.w[..sf],
                 self.summation,
             );
@@ -378,27 +394,37 @@ impl NullSpace {
             self.rhs[k] = v;
         }
         // The selected equations read R₁ᵀ Q₁ᵀ x_free = b_sel: R₁ᵀ w = b_sel, x = Q₁ w.
-        for i in 0..rank {
-            let mut acc = self.rhs[self.perm[i]];
-            match self.summation {
-                Summation::Sequential => {
-                    for l in 0..i {
-                        acc -= self.a[i * sf + l] * self.w[l];
+        // A group apart is finished at once: its reflectors turn its w into x on its
+        // rows, which the later equations (C's coefficients there) then read.
+        for gi in 0..self.made.len() {
+            let GroupReflectors { ks, ke, apart } = self.made[gi];
+            for i in ks..ke {
+                let mut acc = self.rhs[self.perm[i]];
+                match self.summation {
+                    Summation::Sequential => {
+                        for l in 0..i {
+                            acc -= self.a[i * sf + l] * self.w[l];
+                        }
+                    }
+                    Summation::Lanes => {
+                        acc -= dot(&self.a[i * sf..i * sf + i], &self.w[..i], self.summation)
                     }
                 }
-                Summation::Lanes => {
-                    acc -= dot(&self.a[i * sf..i * sf + i], &self.w[..i], self.summation)
+                self.w[i] = acc / self.rdiag[i];
+            }
+            if apart {
+                for k in (ks..ke).rev() {
+                    self.reflect(k, sf);
                 }
             }
-            self.w[i] = acc / self.rdiag[i];
         }
         self.w[rank..sf].fill(0.0);
         apply_q(
             &self.a,
             &self.beta,
             &self.rend,
+            &self.made,
             sf,
-            rank,
             &mut self.w[..sf],
             self.summation,
         );
@@ -421,27 +447,44 @@ impl NullSpace {
         mu[..self.rows].fill(0.0);
         let sf = self.free.len();
         let rank = self.rank - (s - sf - self.untouched.len());
-        // w = Qᵀ r_free = H_{rank−1} ⋯ H₀ r_free.
+        // w = Qᵀ r_free = H_{rank−1} ⋯ H₀ r_free, but for the groups apart (their rows
+        // keep r until the later unknowns are known).
         for (a, &i) in self.qr_rows.iter().enumerate() {
             self.w[a] = r[i];
         }
-        for k in 0..rank {
-            let end = self.rend[k];
-            let v = &self.a[k * sf + k..k * sf + end];
-            let y = &mut self.w[k..end];
-            let f = self.beta[k] * dot(v, y, self.summation);
-            for (yi, vi) in y.iter_mut().zip(v) {
-                *yi -= f * vi;
+        for gi in 0..self.made.len() {
+            let GroupReflectors { ks, ke, apart } = self.made[gi];
+            if !apart {
+                for k in ks..ke {
+                    self.reflect(k, sf);
+                }
             }
         }
         // R₁ z = w₁..rank (R above the diagonal of `a`, column-major, its diagonal in
-        // `rdiag`).
-        for i in (0..rank).rev() {
-            let mut acc = self.w[i];
-            for j in i + 1..rank {
-                acc -= self.a[j * sf + i] * self.w[j];
+        // `rdiag`), group by group from the last; a group apart first takes the later
+        // unknowns out of its rows (C's coefficients there) and then its Qᵀ.
+        for gi in (0..self.made.len()).rev() {
+            let GroupReflectors { ks, ke, apart } = self.made[gi];
+            if apart {
+                for i in ks..ke {
+                    let mut acc = self.w[i];
+                    for j in ke..rank {
+                        acc -= self.a[j * sf + i] * self.w[j];
+                    }
+                    self.w[i] = acc;
+                }
+                for k in ks..ke {
+                    self.reflect(k, sf);
+                }
             }
-            self.w[i] = acc / self.rdiag[i];
+            for i in (ks..ke).rev() {
+                let mut acc = self.w[i];
+                let upto = if apart { ke } else { rank };
+                for j in i + 1..upto {
+                    acc -= self.a[j * sf + i] * self.w[j];
+                }
+                self.w[i] = acc / self.rdiag[i];
+            }
         }
         for i in 0..rank {
             mu[self.others[self.perm[i]]] = self.w[i];
@@ -463,22 +506,40 @@ impl NullSpace {
 const DROPPED: usize = usize::MAX;
 
 /// How the columns of a grouped QR are grouped: per column its group (a segment),
-/// per segment the end of its rows; per reflector, filled in, the end of its rows.
+/// per segment the end of its rows; filled in, per reflector the end of its rows,
+/// and per group the reflectors it made and whether it stands apart (see
+/// [`householder_grouped`]).
 struct Grouping<'a> {
     group: &'a mut [usize],
     seg_end: &'a [usize],
     rend: &'a mut [usize],
+    made: &'a mut Vec<GroupReflectors>,
+}
+
+/// The reflectors ks..ke of one group; `apart` when they span exactly its segment's
+/// rows (nothing left of earlier segments, the segment fully determined): they were
+/// not applied to the later groups' columns, whose rows there keep C's coefficients.
+#[derive(Debug, Clone, Copy)]
+struct GroupReflectors {
+    ks: usize,
+    ke: usize,
+    apart: bool,
 }
 
 /// Householder QR with column pivoting of the column-major `s` × `m` matrix `a`,
 /// group by group: the pivot is the column of largest remaining norm in the current
-/// group, whose columns are 0 past their segment's rows, so its reflector and its
+/// group, whose columns are 0 past their segment's rows, so its reflectors and their
 /// updates stop there. A group ends at its first pivot below
 /// [`NullSpace::RANK_TOLERANCE`] relative to the largest column (its other columns
-/// are dependent); returns the rank. With one group this is the plain pivoted QR.
-/// Reflectors stay below the diagonal, R above it with its diagonal in `rdiag`;
-/// `perm[k]` is the original column now at k. Column norms are downdated, and
-/// recomputed when cancellation has eaten most of them.
+/// are dependent). A group's reflectors reach the later groups' columns only when
+/// they must: when the group leaves rows of its segment (or found rows of earlier
+/// ones) for the later groups; when it determines exactly its segment's rows, the
+/// later columns keep C's coefficients there, and [`NullSpace::solve`] substitutes
+/// the segment's solution into them instead. Returns the rank. With one group this
+/// is the plain pivoted QR, operation for operation. Reflectors stay below the
+/// diagonal, R above it with its diagonal in `rdiag`; `perm[k]` is the original
+/// column now at k. Column norms are downdated, and recomputed when cancellation has
+/// eaten most of them.
 #[allow(clippy::too_many_arguments)]
 fn householder_grouped(
     a: &mut [f64],
@@ -495,7 +556,9 @@ fn householder_grouped(
         group,
         seg_end,
         rend,
+        made,
     } = grouping;
+    made.clear();
     if m == 0 || s == 0 {
         return 0;
     }
@@ -510,105 +573,141 @@ fn householder_grouped(
         largest = largest.max(n2);
     }
     let tol2 = (NullSpace::RANK_TOLERANCE * largest.sqrt()).powi(2);
-    let mut rank = 0;
-    let mut g = 0;
+    let groups = seg_end.len();
     let mut k = 0;
-    while k < s.min(m) {
-        let mut best = None;
-        for j in k..m {
-            if group[j] == g && best.is_none_or(|b| partial[j] > partial[b]) {
-                best = Some(j);
-            }
-        }
+    for g in 0..groups {
         let end = seg_end[g];
-        let exhausted = match best {
-            None => true,
-            Some(b) if partial[b] <= tol2 => {
-                // Confirm with exact norms before declaring the rest dependent.
-                let live = &a[b * s + k..b * s + end];
-                let exact = dot(live, live, how);
-                if exact <= tol2 {
-                    true
-                } else {
-                    partial[b] = exact;
-                    false
+        let start = if g > 0 { seg_end[g - 1] } else { 0 };
+        let ks = k;
+        if groups > 1 {
+            // Norms over the live rows (earlier groups' reflectors may not have
+            // reached these columns).
+            for j in k..m {
+                if group[j] == g {
+                    let live = &a[j * s + k..j * s + end];
+                    partial[j] = dot(live, live, how);
+                    reference[j] = partial[j];
                 }
             }
-            Some(_) => false,
-        };
-        if exhausted {
-            for gj in group[k..m].iter_mut().filter(|gj| **gj == g) {
-                *gj = DROPPED;
+        }
+        while k < s.min(m) {
+            let mut best = None;
+            for j in k..m {
+                if group[j] == g && best.is_none_or(|b| partial[j] > partial[b]) {
+                    best = Some(j);
+                }
             }
-            g += 1;
-            if g == seg_end.len() {
+            let exhausted = match best {
+                None => true,
+                Some(b) if partial[b] <= tol2 => {
+                    // Confirm with exact norms before declaring the rest dependent.
+                    let live = &a[b * s + k..b * s + end];
+                    let exact = dot(live, live, how);
+                    if exact <= tol2 {
+                        true
+                    } else {
+                        partial[b] = exact;
+                        false
+                    }
+                }
+                Some(_) => false,
+            };
+            if exhausted {
+                for gj in group[k..m].iter_mut().filter(|gj| **gj == g) {
+                    *gj = DROPPED;
+                }
                 break;
             }
-            continue;
+            let best = best.expect("a column of the group");
+            if best != k {
+                for i in 0..s {
+                    a.swap(k * s + i, best * s + i);
+                }
+                perm.swap(k, best);
+                partial.swap(k, best);
+                reference.swap(k, best);
+                group.swap(k, best);
+            }
+            let col = &mut a[k * s + k..k * s + end];
+            let norm = dot(col, col, how).sqrt();
+            let alpha = if col[0] > 0.0 { -norm } else { norm };
+            col[0] -= alpha;
+            let vnorm2 = dot(col, col, how);
+            let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
+            rdiag[k] = alpha;
+            beta[k] = b;
+            rend[k] = end;
+            let (left, right) = a.split_at_mut((k + 1) * s);
+            let v = &left[k * s + k..k * s + end];
+            for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
+                let j = k + 1 + jj;
+                // This group's columns now; the later ones below, if at all.
+                if group[j] != g {
+                    continue;
+                }
+                let live = &mut y[k..end];
+                let f = b * dot(v, live, how);
+                for (yi, vi) in live.iter_mut().zip(v) {
+                    *yi -= f * vi;
+                }
+                // Downdate the partial norm of rows k+1.. of this column.
+                partial[j] -= live[0] * live[0];
+                if partial[j] < 1e-4 * reference[j] {
+                    partial[j] = dot(&y[k + 1..], &y[k + 1..], how);
+                    reference[j] = partial[j];
+                }
+            }
+            k += 1;
         }
-        let best = best.expect("a column of the group");
-        if best != k {
-            for i in 0..s {
-                a.swap(k * s + i, best * s + i);
-            }
-            perm.swap(k, best);
-            partial.swap(k, best);
-            reference.swap(k, best);
-            group.swap(k, best);
-        }
-        let col = &mut a[k * s + k..k * s + end];
-        let norm = dot(col, col, how).sqrt();
-        let alpha = if col[0] > 0.0 { -norm } else { norm };
-        col[0] -= alpha;
-        let vnorm2 = dot(col, col, how);
-        let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
-        rdiag[k] = alpha;
-        beta[k] = b;
-        rend[k] = end;
-        let (left, right) = a.split_at_mut((k + 1) * s);
-        let v = &left[k * s + k..k * s + end];
-        for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
-            let j = k + 1 + jj;
-            if group[j] == DROPPED {
-                continue;
-            }
-            let live = &mut y[k..end];
-            let f = b * dot(v, live, how);
-            for (yi, vi) in live.iter_mut().zip(v) {
-                *yi -= f * vi;
-            }
-            // Downdate the partial norm of rows k+1.. of this column.
-            partial[j] -= live[0] * live[0];
-            if partial[j] < 1e-4 * reference[j] {
-                partial[j] = dot(&y[k + 1..], &y[k + 1..], how);
-                reference[j] = partial[j];
+        let apart = ks == start && k == end;
+        if !apart && g + 1 < groups {
+            // The later groups' columns see this group's reflectors, in order.
+            for r in ks..k {
+                let (left, right) = a.split_at_mut((r + 1) * s);
+                let v = &left[r * s + r..r * s + end];
+                for (jj, y) in right.chunks_exact_mut(s).take(m - r - 1).enumerate() {
+                    let j = r + 1 + jj;
+                    if group[j] == DROPPED || group[j] <= g {
+                        continue;
+                    }
+                    let live = &mut y[r..end];
+                    let f = beta[r] * dot(v, live, how);
+                    for (yi, vi) in live.iter_mut().zip(v) {
+                        *yi -= f * vi;
+                    }
+                }
             }
         }
-        rank += 1;
-        k += 1;
+        made.push(GroupReflectors { ks, ke: k, apart });
+        if k == s.min(m) {
+            break;
+        }
     }
-    rank
+    k
 }
 
 /// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`
-/// (reflector k nonzero on rows k..rend[k]).
+/// (reflector k nonzero on rows k..rend[k]), leaving out the groups apart (their
+/// rows are 0 in the null-space vectors, and `solve` applies them itself).
 #[allow(clippy::too_many_arguments)]
 fn apply_q(
     a: &[f64],
     beta: &[f64],
     rend: &[usize],
+    made: &[GroupReflectors],
     s: usize,
-    rank: usize,
     x: &mut [f64],
     how: Summation,
 ) {
-    for k in (0..rank).rev() {
-        let end = rend[k];
-        let v = &a[k * s + k..k * s + end];
-        let y = &mut x[k..end];
-        let f = beta[k] * dot(v, y, how);
-        for (yi, vi) in y.iter_mut().zip(v) {
-            *yi -= f * vi;
+    for g in made.iter().rev().filter(|g| !g.apart) {
+        for k in (g.ks..g.ke).rev() {
+            let end = rend[k];
+            let v = &a[k * s + k..k * s + end];
+            let y = &mut x[k..end];
+            let f = beta[k] * dot(v, y, how);
+            for (yi, vi) in y.iter_mut().zip(v) {
+                *yi -= f * vi;
+            }
         }
     }
 }
@@ -802,12 +901,38 @@ mod tests {
         c.view_mut((4, 0), (3, 4)).copy_from(&b);
         c.view_mut((4, 4), (3, 4)).copy_from(&a.rows(0, 3));
         let row_major: Vec<f64> = c.transpose().iter().copied().collect();
-        let mut seg = NullSpace::new(12, 7);
-        seg.set_segments(&[0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]);
-        seg.reduce(&row_major, &[0.0; 7], 7);
-        assert_eq!(seg.dim, 5);
-        for i in 0..4 {
-            assert!(seg.row(i).1.is_empty(), "row {i} of N");
+        let rhs: Vec<f64> = (0..7).map(|_| pseudo_random(&mut seed)).collect();
+        let mut plain = NullSpace::new(12, 7);
+        plain.reduce(&row_major, &rhs, 7);
+        for how in [Summation::Sequential, Summation::Lanes] {
+            let mut seg = NullSpace::new(12, 7);
+            seg.set_segments(&[0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]);
+            seg.set_summation(how);
+            seg.reduce(&row_major, &rhs, 7);
+            assert_eq!(seg.dim, 5);
+            // The positions' group stands apart: its reflectors never reach the
+            // velocity equations, whose solution reads the positions' instead.
+            assert!(seg.made[0].apart && !seg.made[1].apart);
+            for i in 0..4 {
+                assert!(seg.row(i).1.is_empty(), "row {i} of N");
+            }
+            for i in 0..12 {
+                assert!((seg.particular[i] - plain.particular[i]).abs() < 1e-12);
+            }
+            let n = DMatrix::from_row_slice(12, seg.dim, seg.basis());
+            assert!((&c * &n).amax() < 1e-12, "C N = 0");
+            assert!((n.transpose() * &n - DMatrix::identity(seg.dim, seg.dim)).amax() < 1e-12);
+            let b2 = &c * DMatrix::from_fn(12, 1, |_, _| pseudo_random(&mut seed));
+            let (mut x1, mut x2) = (vec![0.0; 12], vec![0.0; 12]);
+            plain.solve(b2.as_slice(), &mut x1);
+            seg.solve(b2.as_slice(), &mut x2);
+            assert!(x1.iter().zip(&x2).all(|(a, b)| (a - b).abs() < 1e-12));
+            let mu_true = DMatrix::from_fn(7, 1, |_, _| pseudo_random(&mut seed));
+            let r = c.transpose() * &mu_true;
+            let mut mu = vec![0.0; 7];
+            seg.solve_transpose(r.as_slice(), &mut mu);
+            let back = c.transpose() * DMatrix::from_column_slice(7, 1, &mu);
+            assert!((back - &r).amax() < 1e-10, "Cᵀμ = r");
         }
     }
 
