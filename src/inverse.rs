@@ -420,8 +420,8 @@ pub fn solve(
 }
 
 /// The classical answer along the samples: positions by the position problem with the
-/// prescribed coordinates fixed (each step from the previous one, so the branch is
-/// kept), their velocities and accelerations by the trapezoidal rule from the starting
+/// prescribed coordinates fixed (each step from a Taylor step of the previous one, so
+/// the branch is kept), their velocities and accelerations by the trapezoidal rule from the starting
 /// derivatives, the other coordinates' by the velocity and acceleration problems, and
 /// Q by the augmented system.
 fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> Result<Vec<f64>> {
@@ -460,6 +460,12 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
         kin.forces(model, &q, bdq, bddq, t, &mut force)?;
         for (&i, &f) in idx.iter().zip(&force) {
             bforce[i] = f;
+        }
+        // The next sample's guess: a second-order Taylor step from this one (Newton
+        // then mostly converges in one iteration, from the same branch).
+        let h = p.dt;
+        for i in 0..n {
+            q[i] += h * bdq[i] + 0.5 * h * h * bddq[i];
         }
     }
     Ok(out)
