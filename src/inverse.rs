@@ -420,8 +420,8 @@ pub fn solve(
 }
 
 /// The classical answer along the samples: positions by the position problem with the
-/// prescribed coordinates fixed (each step from a Taylor step of the previous one, so
-/// the branch is kept), their velocities and accelerations by the trapezoidal rule from the starting
+/// prescribed coordinates fixed (each step from a Taylor step of the previous one when
+/// that step is small, so the branch is kept), their velocities and accelerations by the trapezoidal rule from the starting
 /// derivatives, the other coordinates' by the velocity and acceleration problems, and
 /// Q by the augmented system.
 fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> Result<Vec<f64>> {
@@ -430,6 +430,7 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
     let mut out = vec![0.0; p.steps * 4 * n];
     let mut kin = kinematics::PrescribedKinematics::new(model, idx);
     let mut q = model.initial.q.as_slice().to_vec();
+    let mut guess = q.clone();
     let (mut v, mut a) = (d1.to_vec(), d2.to_vec());
     let mut force = vec![0.0; idx.len()];
     for (k, block) in out.chunks_exact_mut(4 * n).enumerate() {
@@ -443,13 +444,22 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
         }
         for (c, &i) in idx.iter().enumerate() {
             q[i] = p.value(k, c);
+            guess[i] = q[i];
+        }
+        // |Φ| is judged on the scale of the last solution (as `solve_position` would
+        // from it), then Newton starts from the Taylor step, unless that step is not
+        // small (near a singular configuration the velocities grow without bound).
+        let tol = kinematics::position_tolerance_of(&q);
+        let size = q.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+        if k > 0 && (0..n).all(|i| (guess[i] - q[i]).abs() <= 0.1 * size) {
+            q.copy_from_slice(&guess);
         }
         let reach = |e: Error| {
             Error::Singular(format!(
                 "the prescribed motion is out of the mechanism's reach at t = {t} (sample {k}): {e}"
             ))
         };
-        kin.position(model, &mut q).map_err(reach)?;
+        kin.position_within(model, &mut q, tol).map_err(reach)?;
         kin.factor(model, &q).map_err(reach)?;
         let (bq, rest) = block.split_at_mut(n);
         let (bdq, rest) = rest.split_at_mut(n);
@@ -465,7 +475,7 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
         // then mostly converges in one iteration, from the same branch).
         let h = p.dt;
         for i in 0..n {
-            q[i] += h * bdq[i] + 0.5 * h * h * bddq[i];
+            guess[i] = q[i] + h * bdq[i] + 0.5 * h * h * bddq[i];
         }
     }
     Ok(out)

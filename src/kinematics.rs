@@ -20,7 +20,12 @@ pub struct PositionSolution {
 /// Tolerance on |Φ| for a model: its equations are quadratic in lengths, so scale
 /// with the square of the mechanism's size.
 pub fn position_tolerance(q: &DVector<f64>) -> f64 {
-    let s = q.amax().max(1.0);
+    position_tolerance_of(q.as_slice())
+}
+
+/// [`position_tolerance`] of a slice.
+pub fn position_tolerance_of(q: &[f64]) -> f64 {
+    let s = q.iter().fold(1.0f64, |m, v| m.max(v.abs()));
     1e-12 * s * s
 }
 
@@ -350,10 +355,20 @@ impl PrescribedKinematics {
     /// Solves Φ(q) = 0 by damped Newton moving every coordinate but the prescribed
     /// ones, like [`solve_position`] (same tolerance, same backtracking, same errors).
     pub fn position(&mut self, model: &Model, q: &mut [f64]) -> Result<PositionSolution> {
+        let tol = position_tolerance_of(q);
+        self.position_within(model, q, tol)
+    }
+
+    /// [`PrescribedKinematics::position`] to |Φ| ≤ `tol` (a starting guess far from the
+    /// solution should not set the tolerance).
+    pub fn position_within(
+        &mut self,
+        model: &Model,
+        q: &mut [f64],
+        tol: f64,
+    ) -> Result<PositionSolution> {
         const MAX_ITERATIONS: usize = 100;
         let (n, m) = (self.n, self.m);
-        let scale = q.iter().fold(1.0f64, |a, v| a.max(v.abs()));
-        let tol = 1e-12 * scale * scale;
         model.phi_into(q, &mut self.phi);
         let amax = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
         let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
