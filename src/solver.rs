@@ -246,6 +246,8 @@ pub struct WindowSolver {
     reduced: [Vec<f64>; 2],
     /// A factor's residual linearized at x + p.
     shifted: Vec<f64>,
+    /// Per row of `reduced`, the columns outside which it is 0.
+    reduced_spans: [Vec<(usize, usize)>; 2],
     instances: Vec<Instance>,
     /// The instances in step order (indices into `instances`), and where each block's
     /// begin in it (one more entry than blocks).
@@ -372,6 +374,7 @@ impl WindowSolver {
             along_out: vec![0.0; along_dim * (1 + 2 * s)],
             reduced: [vec![0.0; max_dim.max(s) * s], vec![0.0; max_dim.max(s) * s]],
             shifted: vec![0.0; max_dim.max(s)],
+            reduced_spans: [vec![(0, 0); max_dim.max(s)], vec![(0, 0); max_dim.max(s)]],
             instances: Vec::with_capacity(
                 capacity * graph.step_factors.len() + graph.initial_factors.len(),
             ),
@@ -680,6 +683,8 @@ impl WindowSolver {
                     0
                 };
                 let c = 1 + d0 + d1;
+                self.reduced_spans[0][..buf.r.len()].fill((0, d0));
+                self.reduced_spans[1][..buf.r.len()].fill((0, d1));
                 for (row, (&w, &r)) in buf.weights.iter().zip(&buf.r).enumerate() {
                     let out = &self.along_out[row * c..(row + 1) * c];
                     self.shifted[row] = r + w * out[0];
@@ -699,6 +704,7 @@ impl WindowSolver {
             } else {
                 reduce_factor(
                     &mut self.reduced,
+                    &mut self.reduced_spans,
                     &mut self.shifted,
                     &self.hard,
                     graph,
@@ -712,6 +718,7 @@ impl WindowSolver {
                 &mut self.h,
                 &mut self.g,
                 &self.reduced,
+                &self.reduced_spans,
                 &self.shifted[..factor.dim()],
                 step,
                 lagged,
@@ -1388,6 +1395,7 @@ fn restride(src: &[f64], rows: usize, cols: usize, dst: &mut [f64], ld: usize) {
 #[allow(clippy::too_many_arguments)]
 fn reduce_factor(
     reduced: &mut [Vec<f64>; 2],
+    spans: &mut [Vec<(usize, usize)>; 2],
     shifted: &mut [f64],
     hard: &[HardBlock],
     graph: &ChainGraph,
@@ -1406,6 +1414,7 @@ fn reduce_factor(
                 part[r * s..r * s + width].fill(0.0);
             }
         }
+        spans[lag][..dim].fill((usize::MAX, 0));
     }
     shifted[..dim].copy_from_slice(&buf.r);
     for (a, k) in keys.iter().enumerate() {
@@ -1415,6 +1424,7 @@ fn reduce_factor(
         }
         let red = &hard[step - k.lag].reduction;
         let out = &mut reduced[k.lag];
+        let span = &mut spans[k.lag];
         let jac = &buf.jac[a];
         let diagonal = factor.diagonal_jacobian(a);
         for r in 0..dim {
@@ -1427,6 +1437,11 @@ fn reduce_factor(
                 }
                 shifted[r] += v * red.particular[off + j];
                 let (start, nrow) = red.row(off + j);
+                if !nrow.is_empty() {
+                    let (lo, hi) = &mut span[r];
+                    *lo = (*lo).min(start);
+                    *hi = (*hi).max(start + nrow.len());
+                }
                 for (o, nv) in row[start..].iter_mut().zip(nrow) {
                     *o += v * nv;
                 }
@@ -1446,6 +1461,7 @@ fn accumulate(
     h: &mut BlockTridiagonal,
     g: &mut [f64],
     reduced: &[Vec<f64>; 2],
+    spans: &[Vec<(usize, usize)>; 2],
     r: &[f64],
     step: usize,
     lagged: bool,
@@ -1461,14 +1477,19 @@ fn accumulate(
         for &(part, block) in parts {
             let d = h.dim(block);
             let jr = &reduced[part][row * s..row * s + d];
+            // Past the row's span it is 0.
+            let (lo, hi) = spans[part][row];
             let nz = &mut nonzero[part];
             nz.clear();
-            nz.extend(
-                jr.iter()
-                    .enumerate()
-                    .filter(|(_, v)| **v != 0.0)
-                    .map(|(a, &v)| (a, v)),
-            );
+            if lo < hi {
+                nz.extend(
+                    jr[lo..hi]
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, v)| **v != 0.0)
+                        .map(|(a, &v)| (lo + a, v)),
+                );
+            }
             let gb = &mut g[block * s..block * s + d];
             for &(a, va) in nz.iter() {
                 gb[a] += va * rr;

@@ -25,7 +25,7 @@ pub enum Summation {
 }
 
 /// Σ aᵢbᵢ over the shorter length, summed as `how` says.
-#[inline]
+#[inline(always)]
 pub fn dot(a: &[f64], b: &[f64], how: Summation) -> f64 {
     match how {
         Summation::Sequential => a.iter().zip(b).map(|(x, y)| x * y).sum(),
