@@ -910,11 +910,10 @@ impl WindowSolver {
                         .map(|(a, b)| a * b)
                         .sum::<f64>();
                     let out = &mut ln[i * dim..(i + 1) * dim];
-                    let basis = red.basis();
                     for (c, o) in out[..q].iter_mut().enumerate() {
                         *o = free
                             .iter()
-                            .fold(0.0, |acc, &k| acc + row[k] * basis[k * dim + c]);
+                            .fold(0.0, |acc, &k| acc + row[k] * red.free_row(k)[c]);
                     }
                     for (o, &k) in out[q..].iter_mut().zip(untouched) {
                         *o = 0.0 + row[k];

@@ -70,10 +70,12 @@ pub struct NullSpace {
     rhs: Vec<f64>,
     pin_coef: Vec<f64>,
     others_pinned: Vec<f64>,
-    /// s × dim row-major: an orthonormal basis of the null space (see `basis`).
-    basis: Vec<f64>,
-    /// A new reduction: N = I, not written into `basis` yet.
-    lazy_identity: bool,
+    /// The basis' dense part: the QR's null vectors on the free unknowns, row-major
+    /// free × q in the QR's row order (q = dim − untouched); its other columns are
+    /// the untouched unknowns' unit vectors, written nowhere.
+    dense: Vec<f64>,
+    /// Per unknown, its row in `dense` (free unknowns only).
+    dense_row: Vec<usize>,
     /// How the QR's sums of products are taken.
     summation: Summation,
     /// Per row of the basis, the columns [start, end) outside which it is 0 (fixed
@@ -117,8 +119,8 @@ impl NullSpace {
             norms: vec![0.0; 2 * max_rows],
             w: vec![0.0; s],
             rhs: vec![0.0; max_rows],
-            basis: Vec::new(),
-            lazy_identity: true,
+            dense: Vec::new(),
+            dense_row: vec![usize::MAX; s],
             summation: Summation::Sequential,
             span: vec![(0, 0); s],
             particular: vec![0.0; s],
@@ -172,13 +174,10 @@ impl NullSpace {
     /// No equations: N = I, p = 0.
     pub fn set_unconstrained(&mut self) {
         let s = self.s;
-        Self::ensure(&mut self.basis, s * s);
-        self.basis.fill(0.0);
-        self.lazy_identity = false;
         for i in 0..s {
-            self.basis[i * s + i] = 1.0;
             self.span[i] = (i, i + 1);
         }
+        self.dense_row.fill(usize::MAX);
         self.particular.fill(0.0);
         self.fixed.fill(None);
         self.free.clear();
@@ -298,15 +297,13 @@ impl NullSpace {
         let fixed_count = s - sf - self.untouched.len();
         self.rank = fixed_count + rank;
         self.dim = sf - rank + self.untouched.len();
-        let dim = self.dim;
+        let q = sf - rank;
         let mut p = std::mem::take(&mut self.particular);
         self.solve(b, &mut p);
         self.particular = p;
         // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones,
-        // then a unit vector per untouched unknown.
-        Self::ensure(&mut self.basis, s * dim);
-        self.basis[..s * dim].fill(0.0);
-        self.lazy_identity = false;
+        // then a unit vector per untouched unknown (implicit).
+        Self::ensure(&mut self.dense, sf * q);
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
@@ -319,14 +316,16 @@ impl NullSpace {
                 &mut self.w[..sf],
                 self.summation,
             );
-            for (a, &i) in self.qr_rows.iter().enumerate() {
-                self.basis[i * dim + (j - rank)] = self.w[a];
+            for a in 0..sf {
+                self.dense[a * q + (j - rank)] = self.w[a];
             }
         }
         // Each row's span: its nonzeros (rows the earlier segments fix are 0).
         self.span.fill((0, 0));
-        for &i in &self.free {
-            let row = &self.basis[i * dim..i * dim + sf - rank];
+        self.dense_row.fill(usize::MAX);
+        for (a, &i) in self.qr_rows.iter().enumerate() {
+            self.dense_row[i] = a;
+            let row = &self.dense[a * q..(a + 1) * q];
             if let (Some(a), Some(b)) = (
                 row.iter().position(|v| *v != 0.0),
                 row.iter().rposition(|v| *v != 0.0),
@@ -335,8 +334,7 @@ impl NullSpace {
             }
         }
         for (u, &i) in self.untouched.iter().enumerate() {
-            let col = sf - rank + u;
-            self.basis[i * dim + col] = 1.0;
+            let col = q + u;
             self.span[i] = (col, col + 1);
         }
     }
@@ -354,20 +352,33 @@ impl NullSpace {
     #[inline]
     pub fn row(&self, i: usize) -> (usize, &[f64]) {
         let (start, end) = self.span[i];
-        if self.lazy_identity {
-            return (i, &[1.0]);
+        match self.dense_row[i] {
+            usize::MAX if end > start => (start, &[1.0]),
+            usize::MAX => (start, &[]),
+            a => {
+                let q = self.dim - self.untouched.len();
+                (start, &self.dense[a * q + start..a * q + end])
+            }
         }
-        (start, &self.basis[i * self.dim + start..i * self.dim + end])
     }
 
-    /// The null-space basis N, row-major s × dim, orthonormal columns (after a
-    /// [`NullSpace::reduce`] or [`NullSpace::set_unconstrained`]).
-    pub fn basis(&self) -> &[f64] {
-        assert!(
-            !self.lazy_identity,
-            "the basis of a reduction before its first reduce"
-        );
-        &self.basis[..self.s * self.dim]
+    /// Row `i` of the basis' first q = dim − untouched columns (those of the QR's
+    /// null vectors; i free, see [`NullSpace::structure`]).
+    pub fn free_row(&self, i: usize) -> &[f64] {
+        let q = self.dim - self.untouched.len();
+        let a = self.dense_row[i];
+        &self.dense[a * q..(a + 1) * q]
+    }
+
+    /// The null-space basis N written out, row-major s × dim, orthonormal columns.
+    pub fn basis(&self) -> Vec<f64> {
+        let dim = self.dim;
+        let mut n = vec![0.0; self.s * dim];
+        for i in 0..self.s {
+            let (start, row) = self.row(i);
+            n[i * dim + start..i * dim + start + row.len()].copy_from_slice(row);
+        }
+        n
     }
 
     /// The least-norm solution x (length s) of the independent equations of the last
@@ -750,7 +761,7 @@ mod tests {
             ns.reduce(&row_major, b.as_slice(), rows);
             assert_eq!(ns.rank, rank, "rank of a {rows}×{s} matrix");
             assert_eq!(ns.dim, s - rank);
-            let n = DMatrix::from_row_slice(s, ns.dim, ns.basis());
+            let n = DMatrix::from_row_slice(s, ns.dim, &ns.basis());
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
             for i in 0..s {
@@ -800,7 +811,7 @@ mod tests {
             ns.reduce(&row_major, b.as_slice(), rows);
             let rank = c.clone().svd(false, false).rank(1e-9);
             assert_eq!(ns.rank, rank, "trial {trial}");
-            let n = DMatrix::from_row_slice(s, ns.dim, ns.basis());
+            let n = DMatrix::from_row_slice(s, ns.dim, &ns.basis());
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12);
             assert!((n.transpose() * &n - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12);
@@ -862,8 +873,8 @@ mod tests {
                 (plain.rank, plain.dim),
                 "trial {trial}"
             );
-            let n = DMatrix::from_row_slice(s, seg.dim, seg.basis());
-            let n0 = DMatrix::from_row_slice(s, plain.dim, plain.basis());
+            let n = DMatrix::from_row_slice(s, seg.dim, &seg.basis());
+            let n0 = DMatrix::from_row_slice(s, plain.dim, &plain.basis());
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
             assert!((n.transpose() * &n - DMatrix::identity(seg.dim, seg.dim)).amax() < 1e-12);
             // The same space: N₀ N₀ᵀ N = N.
@@ -919,7 +930,7 @@ mod tests {
             for i in 0..12 {
                 assert!((seg.particular[i] - plain.particular[i]).abs() < 1e-12);
             }
-            let n = DMatrix::from_row_slice(12, seg.dim, seg.basis());
+            let n = DMatrix::from_row_slice(12, seg.dim, &seg.basis());
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
             assert!((n.transpose() * &n - DMatrix::identity(seg.dim, seg.dim)).amax() < 1e-12);
             let b2 = &c * DMatrix::from_fn(12, 1, |_, _| pseudo_random(&mut seed));
@@ -941,6 +952,9 @@ mod tests {
         let mut ns = NullSpace::new(3, 2);
         ns.reduce(&[], &[], 0);
         assert_eq!(ns.dim, 3);
-        assert_eq!(ns.basis(), &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(
+            ns.basis(),
+            vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        );
     }
 }
