@@ -37,8 +37,10 @@ pub struct NullSpace {
     /// What `solve` keeps of the equations: per fixed unknown its unit equation's
     /// coefficient, and the other equations' coefficients on the fixed unknowns
     /// (row-major others × pinned).
-    /// Per unknown: the unit equation fixing it, if any.
+    /// Per unknown: the unit equation fixing it, if any; whether another equation
+    /// touches it.
     fixed: Vec<Option<usize>>,
+    touched: Vec<bool>,
     /// Unknowns neither fixed by unit equations nor untouched by the others (those
     /// the QR sees, ascending), the other equations, and the unknowns no equation
     /// touches.
@@ -101,6 +103,7 @@ impl NullSpace {
             others_pinned: Vec::new(),
             rows: 0,
             fixed: vec![None; s],
+            touched: vec![false; s],
             free: Vec::with_capacity(s),
             segment: vec![0; s],
             segments: 1,
@@ -208,17 +211,33 @@ impl NullSpace {
         // redundant.
         self.fixed.fill(None);
         self.others.clear();
+        // One pass along the rows: unit equations, the others, and the unknowns the
+        // others touch.
+        let touched = &mut self.touched;
+        touched.fill(false);
         for j in 0..rows {
             let row = &c[j * s..(j + 1) * s];
-            let mut nonzero = row.iter().enumerate().filter(|(_, v)| **v != 0.0);
+            let mut nonzero = row
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| **v != 0.0)
+                .map(|(i, _)| i);
             match (nonzero.next(), nonzero.next()) {
-                (Some((i, _)), None) => {
+                (Some(i), None) => {
                     if self.fixed[i].is_none() {
                         self.fixed[i] = Some(j);
                     }
                 }
                 (None, None) => {}
-                _ => self.others.push(j),
+                (Some(i0), Some(i1)) => {
+                    self.others.push(j);
+                    touched[i0] = true;
+                    touched[i1] = true;
+                    for i in nonzero {
+                        touched[i] = true;
+                    }
+                }
+                (None, Some(_)) => unreachable!("a second nonzero without a first"),
             }
         }
         self.free.clear();
@@ -227,9 +246,7 @@ impl NullSpace {
         for i in 0..s {
             if self.fixed[i].is_some() {
                 self.pinned.push(i);
-                continue;
-            }
-            if self.others.iter().any(|&j| c[j * s + i] != 0.0) {
+            } else if self.touched[i] {
                 self.free.push(i);
             } else {
                 self.untouched.push(i);
