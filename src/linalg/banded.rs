@@ -187,6 +187,8 @@ pub struct BandedCholesky {
     l: Vec<f64>,
     c: Vec<f64>,
     summation: Summation,
+    /// One block's Cᵀ (s × s), for the factorization in lanes.
+    scratch: Vec<f64>,
 }
 
 impl BandedCholesky {
@@ -200,6 +202,7 @@ impl BandedCholesky {
             l: Vec::with_capacity(capacity * s * s),
             c: Vec::with_capacity(capacity * s * s),
             summation: Summation::Sequential,
+            scratch: vec![0.0; s * s],
         }
     }
 
@@ -245,22 +248,72 @@ impl BandedCholesky {
                 let lprev = &before[pa..pa + dp * dp];
                 let ca = self.lower_at[k];
                 let ck = &mut self.c[ca..ca + dk * dp];
-                ck.copy_from_slice(h.lower(k));
-                for r in 0..dk {
-                    dense::solve_lower_strided_with(
-                        lprev,
-                        dp,
-                        dp,
-                        &mut ck[r * dp..(r + 1) * dp],
-                        self.summation,
-                    );
-                }
-                for i in 0..dk {
-                    for j in 0..=i {
-                        let a = &ck[i * dp..(i + 1) * dp];
-                        let b = &ck[j * dp..(j + 1) * dp];
-                        lk[i * dk + j] -= dense::dot(a, b, self.summation);
+                match self.summation {
+                    Summation::Sequential => {
+                        ck.copy_from_slice(h.lower(k));
+                        for r in 0..dk {
+                            dense::solve_lower_strided(
+                                lprev,
+                                dp,
+                                dp,
+                                &mut ck[r * dp..(r + 1) * dp],
+                            );
+                        }
+                        for i in 0..dk {
+                            for j in 0..=i {
+                                let a = &ck[i * dp..(i + 1) * dp];
+                                let b = &ck[j * dp..(j + 1) * dp];
+                                lk[i * dk + j] -= a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+                            }
+                        }
                     }
+                    Summation::Lanes if dk > 0 && dp > 0 => {
+                        // All of C_k's rows at once: Cᵀ = L⁻¹ H[k][k−1]ᵀ by forward
+                        // substitution on rows of length d_k, and L_k L_kᵀ −= C Cᵀ
+                        // as a sum of outer products, so the inner loops run along
+                        // contiguous rows without a running sum to wait on.
+                        let ct = &mut self.scratch[..dp * dk];
+                        let hl = h.lower(k);
+                        for r in 0..dk {
+                            for i in 0..dp {
+                                ct[i * dk + r] = hl[r * dp + i];
+                            }
+                        }
+                        for i in 0..dp {
+                            let (done, rest) = ct.split_at_mut(i * dk);
+                            let row = &mut rest[..dk];
+                            for (l, prev) in
+                                lprev[i * dp..i * dp + i].iter().zip(done.chunks_exact(dk))
+                            {
+                                if *l != 0.0 {
+                                    for (x, p) in row.iter_mut().zip(prev) {
+                                        *x -= l * p;
+                                    }
+                                }
+                            }
+                            let d = lprev[i * dp + i];
+                            for x in row.iter_mut() {
+                                *x /= d;
+                            }
+                        }
+                        for l in 0..dp {
+                            let cl = &ct[l * dk..(l + 1) * dk];
+                            for (i, &ci) in cl.iter().enumerate() {
+                                if ci == 0.0 {
+                                    continue;
+                                }
+                                for (o, &cj) in lk[i * dk..i * dk + i + 1].iter_mut().zip(cl) {
+                                    *o -= ci * cj;
+                                }
+                            }
+                        }
+                        for r in 0..dk {
+                            for i in 0..dp {
+                                ck[r * dp + i] = ct[i * dk + r];
+                            }
+                        }
+                    }
+                    Summation::Lanes => {}
                 }
             }
             dense::cholesky_strided_with(lk, dk, dk, self.summation).map_err(|e| (k, e))?;
@@ -408,15 +461,28 @@ mod tests {
         });
         let rhs = DVector::from_fn(active.len(), |a, _| b[active[a]]);
         let expect = sub.cholesky().unwrap().solve(&rhs);
-        f.factor(&h, &[]).unwrap();
-        let mut x = b.as_slice().to_vec();
-        f.solve(&mut x);
-        for i in 0..n {
-            let want = active
-                .iter()
-                .position(|&a| a == i)
-                .map_or(0.0, |a| expect[a]);
-            assert!((x[i] - want).abs() < 1e-12, "{i}: {} vs {want}", x[i]);
+        for how in [Summation::Sequential, Summation::Lanes] {
+            f.set_summation(how);
+            h.set_summation(how);
+            f.factor(&h, &[]).unwrap();
+            let mut x = b.as_slice().to_vec();
+            f.solve(&mut x);
+            for i in 0..n {
+                let want = active
+                    .iter()
+                    .position(|&a| a == i)
+                    .map_or(0.0, |a| expect[a]);
+                assert!(
+                    (x[i] - want).abs() < 1e-12,
+                    "{how:?} {i}: {} vs {want}",
+                    x[i]
+                );
+            }
+            let mut y = vec![0.0; n];
+            h.multiply(&x, &mut y);
+            for &i in &active {
+                assert!((y[i] - b[i]).abs() < 1e-12, "{how:?}: H x = b");
+            }
         }
     }
 }
