@@ -1,6 +1,7 @@
 //! One run of a benchmark case, for profilers (`valgrind --tool=callgrind`):
 //! `cargo run --release --example profile -- CASE`, CASE one of `dc1`, `dc10`,
-//! `dcbatch`, `ic1`, `ic10`, `icbatch`, `inv4bar`, `invrobot`.
+//! `dcbatch`, `ic1`, `ic10`, `icbatch`, `inv4bar`, `invrobot` (inverse, DC), `inv4bar-ic`,
+//! `invrobot-ic`.
 use mbfg::forward::{simulate, Coordinates, ForwardOptions};
 use mbfg::inverse::{self, InverseOptions, Prescription};
 use mbfg::smoother::Mode;
@@ -24,13 +25,17 @@ fn main() {
             s.failures.len()
         );
     };
-    let inverse = |scene: &str, file: &str| {
+    let inverse = |scene: &str, file: &str, coordinates| {
         let model = load(scene);
         let table =
             mbfg::io::read_table(std::path::Path::new(&format!("scenes/trajectories/{file}")))
                 .unwrap();
         let p = Prescription::from_table(&model, &table, file).unwrap();
-        let sol = inverse::solve(model, &p, &InverseOptions::default()).unwrap();
+        let options = InverseOptions {
+            coordinates,
+            ..InverseOptions::default()
+        };
+        let sol = inverse::solve(model, &p, &options).unwrap();
         println!(
             "{case}: {:?} {:?}",
             sol.summary.wall_time, sol.summary.report
@@ -44,8 +49,10 @@ fn main() {
         "ic1" => forward(ic, "fourbar-theta.yaml", Mode::FixedLag(1)),
         "ic10" => forward(ic, "fourbar-theta.yaml", Mode::FixedLag(10)),
         "icbatch" => forward(ic, "fourbar-theta.yaml", Mode::Batch),
-        "inv4bar" => inverse("fourbar-theta.yaml", "fourbar-theta.csv"),
-        "invrobot" => inverse("pick-and-place.yaml", "pick-and-place.csv"),
+        "inv4bar" => inverse("fourbar-theta.yaml", "fourbar-theta.csv", dc),
+        "invrobot" => inverse("pick-and-place.yaml", "pick-and-place.csv", dc),
+        "inv4bar-ic" => inverse("fourbar-theta.yaml", "fourbar-theta.csv", ic),
+        "invrobot-ic" => inverse("pick-and-place.yaml", "pick-and-place.csv", ic),
         other => panic!("unknown case {other}"),
     }
 }

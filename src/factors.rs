@@ -540,6 +540,191 @@ impl DynamicsKernel {
     }
 }
 
+/// Where [`DynamicsKernel::along`]'s scratch lives: after the kernel's in
+/// `ws.reals` (the part passed as `extra`), and after the kernel's permutation in
+/// `ws.indices`.
+struct AlongLayout {
+    kv: usize,
+    mat: usize,
+    bq: usize,
+    bv: usize,
+    b: usize,
+    tmp: usize,
+    end: usize,
+}
+
+impl AlongLayout {
+    /// For up to `max_cols` directions solved for.
+    fn new(model: &Model, max_cols: usize) -> Self {
+        let (n, m, ma) = (model.n(), model.m(), model.active.len());
+        let big = n + ma;
+        let kv = n * n;
+        let mat = kv + n * n;
+        let bq = mat + m * n;
+        let bv = bq + ma * n;
+        let b = bv + ma * n;
+        let tmp = b + big * max_cols.max(1);
+        let end = tmp + big * max_cols.max(1);
+        AlongLayout {
+            kv,
+            mat,
+            bq,
+            bv,
+            b,
+            tmp,
+            end,
+        }
+    }
+}
+
+impl DynamicsKernel {
+    /// Scratch [`DynamicsKernel::along`] needs beyond the kernel's, for up to
+    /// `max_cols` directions: (reals, indices).
+    pub fn along_scratch(model: &Model, max_cols: usize) -> (usize, usize) {
+        (AlongLayout::new(model, max_cols).end, max_cols)
+    }
+
+    /// Rows `rows` (all n without) of Σ_a ∂q̈/∂x_a V_a over x = q, q̇ and the forces, for directions
+    /// V_q, V_v (row-major n × c) and V_f (row-major columns.len() × c, the forces on
+    /// the coordinates `columns`), into the row-major rows.len() × c `out`, at the
+    /// point of a preceding [`DynamicsKernel::evaluate`] without Jacobians (its LU
+    /// factors and [q̈; λ] are in `reals`): the first n rows of
+    /// K⁻¹ (R_q V_q + R_v V_v + [E V_f; 0]), R_q and R_v the right-hand sides from
+    /// which `evaluate` solves for ∂q̈/∂q and ∂q̈/∂q̇. Only the columns where some
+    /// direction is nonzero are solved for (one pair of triangular solves each, where
+    /// the Jacobians take one per coordinate and force); returns false when more
+    /// than `max_cols` are (`out` then holds nothing of use).
+    #[allow(clippy::too_many_arguments)]
+    pub fn along(
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        directions: [&[f64]; 3],
+        columns: &[usize],
+        rows: Option<&[usize]>,
+        c: usize,
+        out: &mut [f64],
+        reals: &mut [f64],
+        extra: &mut [f64],
+        indices: &mut [usize],
+        max_cols: usize,
+    ) -> Result<bool> {
+        let [vq, vv, vf] = directions;
+        let l = KernelLayout::new(model);
+        let (n, ma) = (l.n, l.ma);
+        let big = n + ma;
+        let a = AlongLayout::new(model, max_cols);
+        let (perm, act) = indices.split_at_mut(big);
+        // The columns where a direction is nonzero (flags in `out`'s first row).
+        let flags = &mut out[..c];
+        flags.fill(0.0);
+        for v in [vq, vv, vf] {
+            for row in v.chunks_exact(c) {
+                for (f, x) in flags.iter_mut().zip(row) {
+                    if *x != 0.0 {
+                        *f = 1.0;
+                    }
+                }
+            }
+        }
+        let mut na = 0;
+        for (j, f) in flags.iter().enumerate() {
+            if *f != 0.0 {
+                if na == max_cols {
+                    return Ok(false);
+                }
+                act[na] = j;
+                na += 1;
+            }
+        }
+        let act = &act[..na];
+        let (kkt, rest) = reals[..l.end].split_at_mut(l.sol);
+        let sol = &rest[..big];
+        let (kq, rest) = extra[..a.end].split_at_mut(a.kv);
+        let (kv, rest) = rest.split_at_mut(a.mat - a.kv);
+        let (mat, rest) = rest.split_at_mut(a.bq - a.mat);
+        let (bq, rest) = rest.split_at_mut(a.bv - a.bq);
+        let (bv, rest) = rest.split_at_mut(a.b - a.bv);
+        let (b, tmp) = rest.split_at_mut(a.tmp - a.b);
+        // The right-hand sides of `evaluate`'s Jacobians (the same terms in the same
+        // order): top rows ∂Q/∂q − ∂(Φ_qᵀλ)/∂q and ∂Q/∂q̇; bottom rows
+        // −∂(Φ̇_q q̇)/∂q − Φ_qq q̈ and −2 Φ̇_q.
+        kq.fill(0.0);
+        kv.fill(0.0);
+        for f in &model.forces {
+            f.add_jacobians(model, q, dq, kq, kv)?;
+        }
+        for (t, lam) in tmp.iter_mut().zip(&sol[n..big]) {
+            *t = -lam;
+        }
+        model.add_weighted_hessians(q, &tmp[..ma], kq);
+        model.third_order_into(q, dq, mat);
+        for (r, &k) in model.active.iter().enumerate() {
+            for (o, v) in bq[r * n..(r + 1) * n]
+                .iter_mut()
+                .zip(&mat[k * n..(k + 1) * n])
+            {
+                *o = -v;
+            }
+        }
+        model.jacobian_derivative_into(q, &sol[..n], mat);
+        for (r, &k) in model.active.iter().enumerate() {
+            for (o, v) in bq[r * n..(r + 1) * n]
+                .iter_mut()
+                .zip(&mat[k * n..(k + 1) * n])
+            {
+                *o -= v;
+            }
+        }
+        model.jacobian_derivative_into(q, dq, mat);
+        for (r, &k) in model.active.iter().enumerate() {
+            for (o, v) in bv[r * n..(r + 1) * n]
+                .iter_mut()
+                .zip(&mat[k * n..(k + 1) * n])
+            {
+                *o = -2.0 * v;
+            }
+        }
+        // B = R_q V_q + R_v V_v + [E V_f; 0] on the active columns, big × na.
+        let b = &mut b[..big * na];
+        b.fill(0.0);
+        let add = |out: &mut [f64], coef: &[f64], v: &[f64]| {
+            for (i, row) in out.chunks_exact_mut(na).enumerate() {
+                for (k, &cf) in coef[i * n..(i + 1) * n].iter().enumerate() {
+                    if cf == 0.0 {
+                        continue;
+                    }
+                    let vrow = &v[k * c..(k + 1) * c];
+                    for (o, &j) in row.iter_mut().zip(act) {
+                        *o += cf * vrow[j];
+                    }
+                }
+            }
+        };
+        let (top, bottom) = b.split_at_mut(n * na);
+        add(top, kq, vq);
+        add(top, kv, vv);
+        add(bottom, bq, vq);
+        add(bottom, bv, vv);
+        for (k, &i) in columns.iter().enumerate() {
+            let vrow = &vf[k * c..(k + 1) * c];
+            for (o, &j) in top[i * na..(i + 1) * na].iter_mut().zip(act) {
+                *o += vrow[j];
+            }
+        }
+        dense::lu_solve_many(kkt, big, perm, b, na, tmp);
+        let count = rows.map_or(n, <[usize]>::len);
+        out[..count * c].fill(0.0);
+        for r in 0..count {
+            let i = rows.map_or(r, |rows| rows[r]);
+            for (t, &j) in act.iter().enumerate() {
+                out[r * c + j] = b[i * na + t];
+            }
+        }
+        Ok(true)
+    }
+}
+
 /// f^d_dyn: e = q̈(q, q̇, t) − q̈_t; with [`Dynamics::inverse`], f^d_idyn:
 /// e = q̈(q, q̇, t; Q_scene + Q) − q̈_t with the actuator forces Q a variable (fourth
 /// key), ∂e/∂Q the first n rows of the augmented system's inverse applied to [I; 0].
@@ -644,10 +829,76 @@ impl Factor for Dynamics {
     }
     fn scratch(&self) -> (usize, usize) {
         let (r, i) = DynamicsKernel::scratch(&self.model);
-        (r + self.model.n(), i)
+        let n = self.model.n();
+        match &self.actuated {
+            Some(a) => {
+                let (ra, ia) = DynamicsKernel::along_scratch(&self.model, 2 * n + a.indices.len());
+                (r + n + ra, i + ia)
+            }
+            None => (r + n, i),
+        }
     }
     fn diagonal_jacobian(&self, key: usize) -> bool {
         key == 2
+    }
+    fn evaluates_along(&self) -> bool {
+        self.actuated.is_some()
+    }
+    /// f^d_idyn only: e = q̈(q, q̇, t; Q) − q̈_t along V: K⁻¹ applied to the
+    /// Jacobians' right-hand sides times V (see [`DynamicsKernel::along`]), minus V on
+    /// q̈_t.
+    fn evaluate_along(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        dirs: &[&[f64]],
+        c: usize,
+        out: &mut [f64],
+        ws: &mut Workspace,
+    ) -> Result<bool> {
+        let Some(a) = &self.actuated else {
+            return Ok(false);
+        };
+        let n = self.model.n();
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, rest) = ws.reals.split_at_mut(kernel_len);
+        let (own, extra) = rest.split_at_mut(n);
+        let force = a.forces(x[3], own);
+        DynamicsKernel::evaluate(
+            &self.model,
+            x[0],
+            x[1],
+            t,
+            Some(force),
+            r,
+            None,
+            kernel,
+            &mut ws.indices,
+        )?;
+        if !DynamicsKernel::along(
+            &self.model,
+            x[0],
+            x[1],
+            [dirs[0], dirs[1], dirs[3]],
+            &a.indices,
+            None,
+            c,
+            out,
+            kernel,
+            extra,
+            &mut ws.indices,
+            2 * n + a.indices.len(),
+        )? {
+            return Ok(false);
+        }
+        for (o, v) in out[..n * c].iter_mut().zip(&dirs[2][..n * c]) {
+            *o -= v;
+        }
+        for i in 0..n {
+            r[i] -= x[2][i];
+        }
+        Ok(true)
     }
     fn evaluate(
         &self,
@@ -961,7 +1212,71 @@ impl Factor for IndependentDynamics {
     fn scratch(&self) -> (usize, usize) {
         let (r, i) = DynamicsKernel::scratch(&self.model);
         let n = self.model.n();
-        (r + 3 * n * n + n, i)
+        if self.inverse {
+            let (ra, ia) = DynamicsKernel::along_scratch(&self.model, 3 * n);
+            (r + n + (3 * n * n).max(ra), i + ia)
+        } else {
+            (r + 3 * n * n + n, i)
+        }
+    }
+    fn evaluates_along(&self) -> bool {
+        self.inverse
+    }
+    /// f^i_idyn only: the independent rows of q̈(q, q̇, t; Q) along V (see
+    /// [`DynamicsKernel::along`]), minus V on z̈_t.
+    fn evaluate_along(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        dirs: &[&[f64]],
+        c: usize,
+        out: &mut [f64],
+        ws: &mut Workspace,
+    ) -> Result<bool> {
+        if !self.inverse {
+            return Ok(false);
+        }
+        let n = self.model.n();
+        let ind = &self.model.independent;
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let (ddq, extra) = own.split_at_mut(n);
+        DynamicsKernel::evaluate(
+            &self.model,
+            x[0],
+            x[1],
+            t,
+            Some(x[3]),
+            ddq,
+            None,
+            kernel,
+            &mut ws.indices,
+        )?;
+        if !DynamicsKernel::along(
+            &self.model,
+            x[0],
+            x[1],
+            [dirs[0], dirs[1], dirs[3]],
+            &self.all,
+            Some(ind),
+            c,
+            out,
+            kernel,
+            extra,
+            &mut ws.indices,
+            3 * n,
+        )? {
+            return Ok(false);
+        }
+        let f = ind.len();
+        for (o, v) in out[..f * c].iter_mut().zip(&dirs[2][..f * c]) {
+            *o -= v;
+        }
+        for (k, &i) in ind.iter().enumerate() {
+            r[k] = ddq[i] - x[2][k];
+        }
+        Ok(true)
     }
     fn evaluate(
         &self,

@@ -38,6 +38,19 @@ impl VarKind {
             VarKind::Force => "Q",
         }
     }
+
+    /// The time derivative a variable holds (positions 0, velocities 1,
+    /// accelerations 2), forces after them (3): hard equations on a step are block
+    /// triangular in this order (position constraints touch positions, velocity
+    /// constraints positions and velocities, ...), which their reduction exploits.
+    pub fn order(self) -> usize {
+        match self {
+            VarKind::Q | VarKind::Z => 0,
+            VarKind::Dq | VarKind::Dz => 1,
+            VarKind::Ddq | VarKind::Ddz => 2,
+            VarKind::Force => 3,
+        }
+    }
 }
 
 /// A variable a factor touches: its kind, at the factor's step (`lag` 0) or the step
@@ -183,6 +196,33 @@ pub trait Factor: Send + Sync {
     /// diagonal and skips the zeros around it.
     fn diagonal_jacobian(&self, _key: usize) -> bool {
         false
+    }
+
+    /// Whether [`Factor::evaluate_along`] is implemented.
+    fn evaluates_along(&self) -> bool {
+        false
+    }
+
+    /// Evaluates the residual into `r` and, instead of the Jacobians, their products
+    /// with directions: Σ_a J_a V_a into the row-major dim × c `out`, V_a = `dirs[a]`
+    /// (row-major size(x_a) × c, the same c columns for every key). A factor whose
+    /// Jacobian comes out of a factorization (the dynamics factors: one pair of
+    /// triangular solves per column) then solves for the few directions that are
+    /// nonzero instead of for every column. Returns `Ok(false)`, having written
+    /// nothing, when it does not do this (the default) or it would not be cheaper
+    /// than the Jacobians.
+    #[allow(clippy::too_many_arguments)]
+    fn evaluate_along(
+        &self,
+        _t: f64,
+        _x: &[&[f64]],
+        _r: &mut [f64],
+        _dirs: &[&[f64]],
+        _c: usize,
+        _out: &mut [f64],
+        _ws: &mut Workspace,
+    ) -> Result<bool> {
+        Ok(false)
     }
 
     /// Evaluates the residual at time `t` from the variables `x` (one slice per key)

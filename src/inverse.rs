@@ -23,7 +23,7 @@ use crate::io::Table;
 use crate::kinematics;
 use crate::model::Model;
 use crate::smoother;
-use crate::solver::{Settings, SolveReport};
+use crate::solver::{Settings, SolveReport, WindowSolver};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -365,7 +365,9 @@ pub fn solve(
         }
     }
     debug_assert_eq!(values.len(), steps * s);
-    let report = smoother::batch(&graph, &mut values, steps, options.settings)?;
+    let mut solver = WindowSolver::new(&graph, steps, options.settings)?;
+    solver.optimize_for_batch(&graph);
+    let report = solver.solve(&graph, &mut values, 0, steps, None)?;
     let wall_time = start.elapsed();
 
     let mut tr = Trajectory {
@@ -418,17 +420,20 @@ pub fn solve(
 }
 
 /// The classical answer along the samples: positions by the position problem with the
-/// prescribed coordinates fixed (each step from the previous one, so the branch is
-/// kept), their velocities and accelerations by the trapezoidal rule from the starting
+/// prescribed coordinates fixed (each step from a Taylor step of the previous one when
+/// that step is small, so the branch is kept), their velocities and accelerations by the trapezoidal rule from the starting
 /// derivatives, the other coordinates' by the velocity and acceleration problems, and
 /// Q by the augmented system.
 fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> Result<Vec<f64>> {
     let n = model.n();
     let idx = &p.indices;
-    let mut out = Vec::with_capacity(p.steps * 4 * n);
-    let mut q = model.initial.q.clone();
+    let mut out = vec![0.0; p.steps * 4 * n];
+    let mut kin = kinematics::PrescribedKinematics::new(model, idx);
+    let mut q = model.initial.q.as_slice().to_vec();
+    let mut guess = q.clone();
     let (mut v, mut a) = (d1.to_vec(), d2.to_vec());
-    for k in 0..p.steps {
+    let mut force = vec![0.0; idx.len()];
+    for (k, block) in out.chunks_exact_mut(4 * n).enumerate() {
         let t = p.t0 + k as f64 * p.dt;
         if k > 0 {
             for c in 0..idx.len() {
@@ -439,20 +444,39 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
         }
         for (c, &i) in idx.iter().enumerate() {
             q[i] = p.value(k, c);
+            guess[i] = q[i];
+        }
+        // |Φ| is judged on the scale of the last solution (as `solve_position` would
+        // from it), then Newton starts from the Taylor step, unless that step is not
+        // small (near a singular configuration the velocities grow without bound).
+        let tol = kinematics::position_tolerance_of(&q);
+        let size = q.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+        if k > 0 && (0..n).all(|i| (guess[i] - q[i]).abs() <= 0.1 * size) {
+            q.copy_from_slice(&guess);
         }
         let reach = |e: Error| {
             Error::Singular(format!(
                 "the prescribed motion is out of the mechanism's reach at t = {t} (sample {k}): {e}"
             ))
         };
-        kinematics::solve_position(model, &mut q, idx).map_err(reach)?;
-        let dq = kinematics::solve_velocity(model, &q, idx, &v).map_err(reach)?;
-        let ddq = kinematics::solve_acceleration(model, &q, &dq, idx, &a).map_err(reach)?;
-        let force = dynamics::actuator_forces(model, &q, &dq, &ddq, t, idx)?;
-        out.extend_from_slice(q.as_slice());
-        out.extend_from_slice(dq.as_slice());
-        out.extend_from_slice(ddq.as_slice());
-        out.extend_from_slice(force.as_slice());
+        kin.position_within(model, &mut q, tol).map_err(reach)?;
+        kin.factor(model, &q).map_err(reach)?;
+        let (bq, rest) = block.split_at_mut(n);
+        let (bdq, rest) = rest.split_at_mut(n);
+        let (bddq, bforce) = rest.split_at_mut(n);
+        bq.copy_from_slice(&q);
+        kin.velocity(&v, bdq);
+        kin.acceleration(model, &q, bdq, &a, bddq);
+        kin.forces(model, &q, bdq, bddq, t, &mut force)?;
+        for (&i, &f) in idx.iter().zip(&force) {
+            bforce[i] = f;
+        }
+        // The next sample's guess: a second-order Taylor step from this one (Newton
+        // then mostly converges in one iteration, from the same branch).
+        let h = p.dt;
+        for i in 0..n {
+            guess[i] = q[i] + h * bdq[i] + 0.5 * h * h * bddq[i];
+        }
     }
     Ok(out)
 }

@@ -2,6 +2,7 @@
 //! the choice of independent coordinates.
 
 use crate::error::{Error, Result};
+use crate::linalg::nullspace::NullSpace;
 use crate::model::Model;
 use nalgebra::{DMatrix, DVector};
 
@@ -19,7 +20,12 @@ pub struct PositionSolution {
 /// Tolerance on |Φ| for a model: its equations are quadratic in lengths, so scale
 /// with the square of the mechanism's size.
 pub fn position_tolerance(q: &DVector<f64>) -> f64 {
-    let s = q.amax().max(1.0);
+    position_tolerance_of(q.as_slice())
+}
+
+/// [`position_tolerance`] of a slice.
+pub fn position_tolerance_of(q: &[f64]) -> f64 {
+    let s = q.iter().fold(1.0f64, |m, v| m.max(v.abs()));
     1e-12 * s * s
 }
 
@@ -286,4 +292,201 @@ pub fn s_and_r(
         inv.columns(0, m).into_owned(),
         inv.columns(m, n - m).into_owned(),
     ))
+}
+
+/// The position, velocity and acceleration problems with a fixed set of prescribed
+/// coordinates, and the actuator forces on them, solved sample after sample along a
+/// prescribed motion without allocating. Each Newton step of the position problem is
+/// the least-norm correction from a rank-revealing QR of Φ_q on the other coordinates
+/// (the [`NullSpace`] reduction of [Φ_q; Eᵀ], E the columns of I on the prescribed
+/// coordinates), so redundant constraints do no harm; one more reduction at the
+/// solution serves the velocity and acceleration problems (Φ_q q̇ = 0 and
+/// Φ_q q̈ = −Φ̇_q q̇ with the prescribed components given) and, transposed, the
+/// actuator forces (Φ_qᵀλ − E Q_a = Q − M q̈).
+pub struct PrescribedKinematics {
+    keep: Vec<usize>,
+    n: usize,
+    m: usize,
+    /// [Φ_q; Eᵀ], row-major (m + p) × n.
+    c: Vec<f64>,
+    b: Vec<f64>,
+    phi: Vec<f64>,
+    trial: Vec<f64>,
+    phi_trial: Vec<f64>,
+    step: Vec<f64>,
+    mu: Vec<f64>,
+    ns: NullSpace,
+}
+
+impl PrescribedKinematics {
+    /// For the coordinates `keep` prescribed (indices in q).
+    pub fn new(model: &Model, keep: &[usize]) -> Self {
+        let (n, m, p) = (model.n(), model.m(), keep.len());
+        let mut c = vec![0.0; (m + p) * n];
+        for (r, &i) in keep.iter().enumerate() {
+            c[(m + r) * n + i] = 1.0;
+        }
+        PrescribedKinematics {
+            keep: keep.to_vec(),
+            n,
+            m,
+            c,
+            b: vec![0.0; m + p],
+            phi: vec![0.0; m],
+            trial: vec![0.0; n],
+            phi_trial: vec![0.0; m],
+            step: vec![0.0; n],
+            mu: vec![0.0; m + p],
+            ns: {
+                let mut ns = NullSpace::new(n, m + p);
+                ns.set_summation(crate::linalg::dense::Summation::Lanes);
+                ns
+            },
+        }
+    }
+
+    /// [Φ_q(q); Eᵀ] and its reduction (right-hand side in `b`).
+    fn reduce_at(&mut self, model: &Model, q: &[f64]) {
+        let (n, m) = (self.n, self.m);
+        model.jacobian_into(q, &mut self.c[..m * n]);
+        self.ns.reduce(&self.c, &self.b, m + self.keep.len());
+    }
+
+    /// Solves Φ(q) = 0 by damped Newton moving every coordinate but the prescribed
+    /// ones, like [`solve_position`] (same tolerance, same backtracking, same errors).
+    pub fn position(&mut self, model: &Model, q: &mut [f64]) -> Result<PositionSolution> {
+        let tol = position_tolerance_of(q);
+        self.position_within(model, q, tol)
+    }
+
+    /// [`PrescribedKinematics::position`] to |Φ| ≤ `tol` (a starting guess far from the
+    /// solution should not set the tolerance).
+    pub fn position_within(
+        &mut self,
+        model: &Model,
+        q: &mut [f64],
+        tol: f64,
+    ) -> Result<PositionSolution> {
+        const MAX_ITERATIONS: usize = 100;
+        let (n, m) = (self.n, self.m);
+        model.phi_into(q, &mut self.phi);
+        let amax = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let mut iterations = 0;
+        while amax(&self.phi) > tol {
+            if iterations == MAX_ITERATIONS || self.keep.len() == n {
+                return Err(violated_slice(model, &self.phi, tol, iterations));
+            }
+            iterations += 1;
+            for (b, p) in self.b[..m].iter_mut().zip(&self.phi) {
+                *b = -p;
+            }
+            self.b[m..].fill(0.0);
+            self.reduce_at(model, q);
+            self.step.copy_from_slice(&self.ns.particular);
+            if !self.step.iter().all(|v| v.is_finite()) {
+                return Err(violated_slice(model, &self.phi, tol, iterations));
+            }
+            // Backtrack until |Φ| decreases.
+            let norm0 = norm(&self.phi);
+            let mut alpha = 1.0;
+            loop {
+                for ((t, x), d) in self.trial.iter_mut().zip(q.iter()).zip(&self.step) {
+                    *t = x + alpha * d;
+                }
+                model.phi_into(&self.trial, &mut self.phi_trial);
+                if norm(&self.phi_trial) < norm0 {
+                    q.copy_from_slice(&self.trial);
+                    std::mem::swap(&mut self.phi, &mut self.phi_trial);
+                    break;
+                }
+                alpha *= 0.5;
+                if alpha < 1e-6 {
+                    return Err(violated_slice(model, &self.phi, tol, iterations));
+                }
+            }
+        }
+        Ok(PositionSolution {
+            iterations,
+            residual: amax(&self.phi),
+        })
+    }
+
+    /// Factors [Φ_q(q); Eᵀ] at a solution of the position problem for
+    /// [`PrescribedKinematics::velocity`], [`PrescribedKinematics::acceleration`] and
+    /// [`PrescribedKinematics::forces`]; refuses a configuration where the prescribed
+    /// coordinates do not determine the motion.
+    pub fn factor(&mut self, model: &Model, q: &[f64]) -> Result<()> {
+        let f = self.n - model.active.len();
+        if self.keep.len() != f {
+            return Err(Error::InvalidArgument(format!(
+                "the velocity problem needs {f} independent coordinate(s) (the degrees of freedom), got {} [{}]",
+                self.keep.len(),
+                names(model, &self.keep)
+            )));
+        }
+        self.b.fill(0.0);
+        self.reduce_at(model, q);
+        if self.ns.dim != 0 || self.ns.rank != self.n {
+            return Err(Error::Singular(format!(
+                "the independent coordinates [{}] do not determine the velocity at this configuration",
+                names(model, &self.keep)
+            )));
+        }
+        Ok(())
+    }
+
+    /// q̇ with Φ_q q̇ = 0 and the prescribed components `v`, at the factored q.
+    pub fn velocity(&mut self, v: &[f64], dq: &mut [f64]) {
+        let m = self.m;
+        self.b[..m].fill(0.0);
+        self.b[m..].copy_from_slice(v);
+        self.ns.solve(&self.b, dq);
+    }
+
+    /// q̈ with Φ_q q̈ = −Φ̇_q q̇ and the prescribed components `a`, at the factored q.
+    pub fn acceleration(
+        &mut self,
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        a: &[f64],
+        ddq: &mut [f64],
+    ) {
+        let m = self.m;
+        model.acceleration_rhs_into(q, dq, &mut self.b[..m]);
+        self.b[m..].copy_from_slice(a);
+        self.ns.solve(&self.b, ddq);
+    }
+
+    /// The actuator forces Q_a on the prescribed coordinates (one per coordinate, in
+    /// their order) with M q̈ + Φ_qᵀλ − E Q_a = Q(q, q̇, t), at the factored q.
+    pub fn forces(
+        &mut self,
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        ddq: &[f64],
+        t: f64,
+        out: &mut [f64],
+    ) -> Result<()> {
+        let (n, m) = (self.n, self.m);
+        let r = &mut self.trial;
+        r.fill(0.0);
+        for f in &model.forces {
+            f.add_to(model, q, dq, t, r)?;
+        }
+        for i in 0..n {
+            r[i] -= (0..n).map(|j| model.mass[(i, j)] * ddq[j]).sum::<f64>();
+        }
+        self.ns.solve_transpose(r, &mut self.mu);
+        for (o, mu) in out.iter_mut().zip(&self.mu[m..]) {
+            *o = -mu;
+        }
+        Ok(())
+    }
+}
+
+fn violated_slice(model: &Model, phi: &[f64], tol: f64, iterations: usize) -> Error {
+    violated(model, &DVector::from_column_slice(phi), tol, iterations)
 }

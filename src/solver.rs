@@ -13,6 +13,7 @@
 use crate::error::{Error, Result};
 use crate::graph::{ChainGraph, Factor, Noise, Workspace};
 use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
+use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
 
 /// The nonlinear least-squares method.
@@ -225,11 +226,9 @@ struct LastSolve {
     k1: usize,
 }
 
-/// The hard equations of one step, C δ = −c, and their reduction.
+/// The reduction of one step's hard equations C δ = −c (C and c themselves live in
+/// the solver's scratch only while the step is reduced or corrected).
 struct HardBlock {
-    /// Row-major rows × s.
-    jac: Vec<f64>,
-    rhs: Vec<f64>,
     rows: usize,
     reduction: NullSpace,
 }
@@ -252,9 +251,27 @@ pub struct WindowSolver {
     reduced: [Vec<f64>; 2],
     /// A factor's residual linearized at x + p.
     shifted: Vec<f64>,
+    /// Per row of `reduced`, the columns outside which it is 0.
+    reduced_spans: [Vec<(usize, usize)>; 2],
     instances: Vec<Instance>,
     /// The last full step δ = p + N y of the window (for `backtrack`).
     direction: Vec<f64>,
+    /// The instances in step order (indices into `instances`), and where each block's
+    /// begin in it (one more entry than blocks).
+    by_step: Vec<usize>,
+    block_start: Vec<usize>,
+    next_slot: Vec<usize>,
+    /// Per instance, the cost of a hard one (summed in `instances` order).
+    hard_cost: Vec<f64>,
+    /// One step's hard equations: C row-major rows × s, and −c.
+    hard_jac: Vec<f64>,
+    hard_rhs: Vec<f64>,
+    /// Evaluate step by step (see `optimize_for_batch`).
+    step_major: bool,
+    /// Directions and products of [`Factor::evaluate_along`]: per key size × c, and
+    /// dim × c (c ≤ 1 + 2s); empty when no factor evaluates along directions.
+    along_dirs: Vec<f64>,
+    along_out: Vec<f64>,
     /// In a conditional solve the step before the window is held fixed.
     conditional: bool,
     /// Set when a window solve ended on a small step: its linearization of the
@@ -270,8 +287,8 @@ pub struct WindowSolver {
     scratch: Vec<f64>,
     newton: NewtonBuffers,
     /// Step whose hard equations `project_prior` linearized and reduced in block 0 at
-    /// the current values, with their cost and its share at the first block.
-    hard_cache: Option<(usize, f64, f64)>,
+    /// the current values (their costs in `hard_cost`).
+    hard_cache: Option<usize>,
 }
 
 /// Buffers of the exact (Newton) model: the Lagrangian's gradient in full
@@ -329,6 +346,19 @@ impl WindowSolver {
         let capacity = capacity.max(2);
         let n = capacity * s;
         let max_hard = hard_step + hard_initial;
+        // Room for the factors that linearize along directions.
+        let (mut along_keys, mut along_dim) = (0, 0);
+        for f in graph.step_factors.iter().chain(&graph.initial_factors) {
+            if f.evaluates_along() {
+                let sizes: usize = f
+                    .keys()
+                    .iter()
+                    .map(|k| graph.layout.slot(k.kind).map_or(0, |(_, d)| d))
+                    .sum();
+                along_keys = along_keys.max(sizes);
+                along_dim = along_dim.max(f.dim());
+            }
+        }
         Ok(WindowSolver {
             settings,
             s,
@@ -352,14 +382,26 @@ impl WindowSolver {
                 .collect(),
             hard: (0..capacity)
                 .map(|_| HardBlock {
-                    jac: vec![0.0; max_hard * s],
-                    rhs: vec![0.0; max_hard],
                     rows: 0,
                     reduction: NullSpace::new(s, max_hard),
                 })
                 .collect(),
+            by_step: Vec::with_capacity(
+                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+            ),
+            block_start: Vec::with_capacity(capacity + 1),
+            next_slot: Vec::with_capacity(capacity),
+            hard_cost: Vec::with_capacity(
+                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+            ),
+            hard_jac: vec![0.0; max_hard * s],
+            hard_rhs: vec![0.0; max_hard],
+            step_major: false,
+            along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
+            along_out: vec![0.0; along_dim * (1 + 2 * s)],
             reduced: [vec![0.0; max_dim.max(s) * s], vec![0.0; max_dim.max(s) * s]],
             shifted: vec![0.0; max_dim.max(s)],
+            reduced_spans: [vec![(0, 0); max_dim.max(s)], vec![(0, 0); max_dim.max(s)]],
             instances: Vec::with_capacity(
                 capacity * graph.step_factors.len() + graph.initial_factors.len(),
             ),
@@ -383,6 +425,39 @@ impl WindowSolver {
                 max_hard,
             },
         })
+    }
+
+    /// Sets the solver up for long batch horizons (inverse dynamics):
+    /// - each step's hard equations are reduced segment by segment, positions first,
+    ///   then velocities, accelerations, forces ([`VarKind::order`],
+    ///   [`NullSpace::set_segments`]): a fraction of the work of one QR of them all
+    ///   when they are block triangular, and a null-space basis exactly 0 on what the
+    ///   earlier segments fix;
+    /// - linearizations go step by step (a step's hard equations, then its factors
+    ///   into its blocks of H) instead of factor by factor over the whole horizon, so
+    ///   each block of H is filled while it is in cache;
+    /// - dot products in the reductions, the banded factorization and its solves are
+    ///   summed in four lanes ([`Summation::Lanes`]).
+    ///
+    /// The basis is another one of the same space and the sums run in another order,
+    /// so results agree with the default to the solve's tolerance, not to the bit.
+    /// Off by default, so that the forward runs keep theirs (their window solves stop
+    /// at the step tolerance, and another basis moves them by up to ~1e-7 relative).
+    ///
+    /// [`VarKind::order`]: crate::graph::VarKind::order
+    pub fn optimize_for_batch(&mut self, graph: &ChainGraph) {
+        let mut segment = vec![0; self.s];
+        for (kind, d) in graph.layout.kinds() {
+            let (off, _) = graph.layout.slot(kind).expect("a kind of the layout");
+            segment[off..off + d].fill(kind.order());
+        }
+        for block in &mut self.hard {
+            block.reduction.set_segments(&segment);
+            block.reduction.set_summation(Summation::Lanes);
+        }
+        self.h.set_summation(Summation::Lanes);
+        self.chol.set_summation(Summation::Lanes);
+        self.step_major = true;
     }
 
     pub fn settings(&self) -> &Settings {
@@ -424,6 +499,30 @@ impl WindowSolver {
                 });
             }
         }
+        // Step order, `instances` order within a step (initial factors first): a
+        // counting sort by step.
+        let inst = &self.instances;
+        let blocks = k1 - k0;
+        self.block_start.clear();
+        self.block_start.resize(blocks + 1, 0);
+        for i in inst {
+            self.block_start[i.step - k0 + 1] += 1;
+        }
+        for b in 0..blocks {
+            self.block_start[b + 1] += self.block_start[b];
+        }
+        self.by_step.clear();
+        self.by_step.resize(inst.len(), 0);
+        self.next_slot.clear();
+        self.next_slot
+            .extend_from_slice(&self.block_start[..blocks]);
+        for (i, it) in inst.iter().enumerate() {
+            let slot = &mut self.next_slot[it.step - k0];
+            self.by_step[*slot] = i;
+            *slot += 1;
+        }
+        self.hard_cost.clear();
+        self.hard_cost.resize(inst.len(), 0.0);
     }
 
     /// Evaluates one factor instance into its buffers (residual not yet whitened).
@@ -467,26 +566,23 @@ impl WindowSolver {
             })
     }
 
-    /// Evaluates the hard factors of the listed instances and returns their share of
-    /// the cost, and the part of it at the first block. `Linearize` writes each block's equations C δ = −c; `Residuals`
-    /// writes only −c (in the same row order) for a correction with the current C.
-    fn hard_pass(
+    /// Evaluates the hard factors of block `b` (step k0 + b) of the listed instances,
+    /// records their costs in `hard_cost`, and with `Linearize` reduces the block's
+    /// equations C δ = −c; with `Residuals` leaves −c (in the same row order) in
+    /// `hard_rhs` for a correction with the current C.
+    fn hard_block(
         &mut self,
         graph: &ChainGraph,
         values: &[f64],
-        k0: usize,
-        blocks: usize,
+        b: usize,
         mode: HardPass,
-    ) -> Result<(f64, f64)> {
+    ) -> Result<()> {
         let s = self.s;
-        let mut cost = 0.0;
-        self.hard_cache = None;
-        for b in 0..blocks {
-            self.hard[b].rows = 0;
-        }
         let linearize = mode == HardPass::Linearize;
-        let mut first = 0.0;
-        for i in 0..self.instances.len() {
+        self.hard_cache = None;
+        let mut rows = 0;
+        for at in self.block_start[b]..self.block_start[b + 1] {
+            let i = self.by_step[at];
             let inst = self.instances[i];
             let factor = factor_of(graph, inst);
             if !is_hard(factor) {
@@ -499,33 +595,51 @@ impl WindowSolver {
                 &self.step_buffers[inst.index]
             };
             let w = Noise::Hard.weight(0);
-            let c: f64 = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
-            cost += c;
-            if inst.step == k0 {
-                first += c;
-            }
+            self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
             if mode == HardPass::Cost {
                 continue;
             }
-            let block = &mut self.hard[inst.step - k0];
-            let row0 = block.rows;
             let dim = factor.dim();
             if linearize {
-                block.jac[row0 * s..(row0 + dim) * s].fill(0.0);
+                self.hard_jac[rows * s..(rows + dim) * s].fill(0.0);
                 for (a, k) in factor.keys().iter().enumerate() {
                     let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
                     for r in 0..dim {
-                        let row = &mut block.jac[(row0 + r) * s + off..(row0 + r) * s + off + d];
+                        let row =
+                            &mut self.hard_jac[(rows + r) * s + off..(rows + r) * s + off + d];
                         row.copy_from_slice(&buf.jac[a][r * d..(r + 1) * d]);
                     }
                 }
             }
             for r in 0..dim {
-                block.rhs[row0 + r] = -buf.r[r];
+                self.hard_rhs[rows + r] = -buf.r[r];
             }
-            block.rows += dim;
+            rows += dim;
         }
-        Ok((cost, first))
+        let block = &mut self.hard[b];
+        block.rows = rows;
+        if linearize {
+            block
+                .reduction
+                .reduce(&self.hard_jac, &self.hard_rhs[..rows], rows);
+        }
+        Ok(())
+    }
+
+    /// The hard factors' share of the cost, summed in `instances` order, and the part
+    /// of it at the first block.
+    fn hard_cost_sum(&self, graph: &ChainGraph, k0: usize) -> (f64, f64) {
+        let (mut cost, mut first) = (0.0, 0.0);
+        for (inst, &c) in self.instances.iter().zip(&self.hard_cost) {
+            if !is_hard(factor_of(graph, *inst)) {
+                continue;
+            }
+            cost += c;
+            if inst.step == k0 {
+                first += c;
+            }
+        }
+        (cost, first)
     }
 
     /// Second-order correction after a step: moves each block of the window back onto
@@ -540,20 +654,193 @@ impl WindowSolver {
         k1: usize,
     ) -> Result<()> {
         let s = self.s;
-        let blocks = k1 - k0;
-        self.hard_pass(graph, values, k0, blocks, HardPass::Residuals)?;
-        for b in 0..blocks {
+        for b in 0..k1 - k0 {
+            // A block's hard factors read that block only.
+            self.hard_block(graph, values, b, HardPass::Residuals)?;
             let block = &mut self.hard[b];
             if block.rows == 0 {
                 continue;
             }
-            block.reduction.solve(&block.rhs, &mut self.correction);
+            block
+                .reduction
+                .solve(&self.hard_rhs[..block.rows], &mut self.correction);
             let x = &mut values[(k0 + b) * s..(k0 + b + 1) * s];
             for (xi, c) in x.iter_mut().zip(&self.correction) {
                 *xi += c;
             }
         }
         Ok(())
+    }
+
+    /// Evaluates soft factor instance `i` at `values` and adds its cost (and to
+    /// `cost_first` when it touches block k0); with `linearize` also adds its
+    /// reduced JᵀJ and Jᵀr to H and g.
+    #[allow(clippy::too_many_arguments)]
+    fn soft_instance(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        i: usize,
+        linearize: bool,
+        cost: &mut f64,
+        cost_first: &mut f64,
+    ) -> Result<()> {
+        let s = self.s;
+        let inst = self.instances[i];
+        let factor = factor_of(graph, inst);
+        let along = linearize
+            && factor.evaluates_along()
+            && self.evaluate_along(graph, values, k0, inst)?;
+        if !along {
+            self.evaluate_instance(graph, values, inst, linearize)?;
+        }
+        let buf = if inst.initial {
+            &mut self.initial_buffers[inst.index]
+        } else {
+            &mut self.step_buffers[inst.index]
+        };
+        let keys = factor.keys();
+        let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
+        buf.whiten(factor, linearize && !along);
+        for r in &buf.r {
+            let c = 0.5 * r * r;
+            *cost += c;
+            if touches_first {
+                *cost_first += c;
+            }
+        }
+        if linearize {
+            let step = inst.step - k0;
+            let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
+            if along {
+                // The rows J [p N] came back unwhitened: [p | N(step) | N(step − 1)].
+                let d0 = self.hard[step].reduction.dim;
+                let d1 = if lagged {
+                    self.hard[step - 1].reduction.dim
+                } else {
+                    0
+                };
+                let c = 1 + d0 + d1;
+                self.reduced_spans[0][..buf.r.len()].fill((0, d0));
+                self.reduced_spans[1][..buf.r.len()].fill((0, d1));
+                for (row, (&w, &r)) in buf.weights.iter().zip(&buf.r).enumerate() {
+                    let out = &self.along_out[row * c..(row + 1) * c];
+                    self.shifted[row] = r + w * out[0];
+                    for (o, v) in self.reduced[0][row * s..row * s + d0]
+                        .iter_mut()
+                        .zip(&out[1..1 + d0])
+                    {
+                        *o = w * v;
+                    }
+                    for (o, v) in self.reduced[1][row * s..row * s + d1]
+                        .iter_mut()
+                        .zip(&out[1 + d0..])
+                    {
+                        *o = w * v;
+                    }
+                }
+            } else {
+                reduce_factor(
+                    &mut self.reduced,
+                    &mut self.reduced_spans,
+                    &mut self.shifted,
+                    &self.hard,
+                    graph,
+                    factor,
+                    step,
+                    buf,
+                    s,
+                );
+            }
+            accumulate(
+                &mut self.h,
+                &mut self.g,
+                &self.reduced,
+                &self.reduced_spans,
+                &self.shifted[..factor.dim()],
+                step,
+                lagged,
+                s,
+                &mut self.nonzeros,
+            );
+        }
+        Ok(())
+    }
+
+    /// Linearizes a soft factor instance along its blocks' reductions,
+    /// J [p N] per key ([`Factor::evaluate_along`]), into `along_out` (columns: p,
+    /// then block step's reduced coordinates, then those of the block before), its
+    /// residual into its buffer; returns false when the factor declines.
+    fn evaluate_along(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        inst: Instance,
+    ) -> Result<bool> {
+        let s = self.s;
+        let factor = factor_of(graph, inst);
+        let keys = factor.keys();
+        let step = inst.step - k0;
+        let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
+        let d0 = self.hard[step].reduction.dim;
+        let d1 = if lagged {
+            self.hard[step - 1].reduction.dim
+        } else {
+            0
+        };
+        let c = 1 + d0 + d1;
+        let mut xs: [&[f64]; 8] = [&[]; 8];
+        let mut ranges = [(0, 0); 8];
+        let mut at = 0;
+        for (a, k) in keys.iter().enumerate() {
+            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+            let base = (inst.step - k.lag) * s + off;
+            xs[a] = &values[base..base + d];
+            let v = &mut self.along_dirs[at..at + d * c];
+            v.fill(0.0);
+            // A variable held fixed before the window (k.lag > step) moves not.
+            if k.lag <= step {
+                let red = &self.hard[step - k.lag].reduction;
+                let col0 = if k.lag == 0 { 1 } else { 1 + d0 };
+                for (i, row) in v.chunks_exact_mut(c).enumerate() {
+                    row[0] = red.particular[off + i];
+                    let (start, nrow) = red.row(off + i);
+                    row[col0 + start..col0 + start + nrow.len()].copy_from_slice(nrow);
+                }
+            }
+            ranges[a] = (at, at + d * c);
+            at += d * c;
+        }
+        let mut dirs: [&[f64]; 8] = [&[]; 8];
+        for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
+            *d = &self.along_dirs[a..b];
+        }
+        let buf = if inst.initial {
+            &mut self.initial_buffers[inst.index]
+        } else {
+            &mut self.step_buffers[inst.index]
+        };
+        let t = graph.time(inst.step);
+        factor
+            .evaluate_along(
+                t,
+                &xs[..keys.len()],
+                &mut buf.r,
+                &dirs[..keys.len()],
+                c,
+                &mut self.along_out[..factor.dim() * c],
+                &mut self.ws,
+            )
+            .map_err(|e| match e {
+                Error::Singular(m) => Error::Singular(format!(
+                    "{} at step {} (t = {t}): {m}",
+                    factor.name(),
+                    inst.step
+                )),
+                other => other,
+            })
     }
 
     /// Evaluates the factors of a scope at `values` (the whole trajectory, step-major)
@@ -574,78 +861,61 @@ impl WindowSolver {
         let blocks = k1 - k0;
         self.last = None;
         self.collect_instances(graph, k0, k1, scope);
-        // Hard factors first: their linearization defines each block's reduction.
         let mode = if linearize {
             HardPass::Linearize
         } else {
             HardPass::Cost
         };
-        let cached = match self.hard_cache.take() {
-            Some((k, cost, first)) if linearize && k == k0 && blocks == 1 => Some((cost, first)),
-            _ => None,
-        };
-        let (mut cost, mut cost_first) = match cached {
-            Some(c) => c,
-            None => self.hard_pass(graph, values, k0, blocks, mode)?,
-        };
-        if linearize {
-            if cached.is_none() {
-                for block in &mut self.hard[..blocks] {
-                    block
-                        .reduction
-                        .reduce(&block.jac, &block.rhs[..block.rows], block.rows);
+        let (mut soft, mut soft_first) = (0.0, 0.0);
+        if self.step_major && linearize {
+            // Step by step: each step's hard equations, then its factors into its
+            // blocks of H (and the lagged ones into the previous step's) while they
+            // are in cache.
+            self.h.set_blocks(blocks);
+            for b in 0..blocks {
+                self.hard_block(graph, values, b, mode)?;
+                self.h.reset_block(b, self.hard[b].reduction.dim);
+                self.g[b * s..(b + 1) * s].fill(0.0);
+                for at in self.block_start[b]..self.block_start[b + 1] {
+                    let i = self.by_step[at];
+                    if !is_hard(factor_of(graph, self.instances[i])) {
+                        self.soft_instance(graph, values, k0, i, true, &mut soft, &mut soft_first)?;
+                    }
                 }
             }
-            // Directions the hard equations fix carry no unknown.
-            let hard = &self.hard;
-            self.h.reset_active(blocks, |b| hard[b].reduction.dim);
-            self.g[..blocks * s].fill(0.0);
-        }
-        for i in 0..self.instances.len() {
-            let inst = self.instances[i];
-            let factor = factor_of(graph, inst);
-            if is_hard(factor) {
-                continue;
-            }
-            self.evaluate_instance(graph, values, inst, linearize)?;
-            let buf = if inst.initial {
-                &mut self.initial_buffers[inst.index]
-            } else {
-                &mut self.step_buffers[inst.index]
-            };
-            let keys = factor.keys();
-            let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
-            buf.whiten(factor, linearize);
-            for r in &buf.r {
-                let c = 0.5 * r * r;
-                cost += c;
-                if touches_first {
-                    cost_first += c;
+        } else {
+            // Hard factors first: their linearization defines each block's reduction
+            // (unless `project_prior` has just made it for this one-step window).
+            let cached = self.hard_cache.take() == Some(k0) && blocks == 1 && linearize;
+            for b in 0..blocks {
+                if !cached {
+                    self.hard_block(graph, values, b, mode)?;
                 }
             }
             if linearize {
-                let step = inst.step - k0;
-                reduce_factor(
-                    &mut self.reduced,
-                    &mut self.shifted,
-                    &self.hard,
-                    graph,
-                    factor,
-                    step,
-                    buf,
-                    s,
-                );
-                let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
-                accumulate(
-                    &mut self.h,
-                    &mut self.g,
-                    &self.reduced,
-                    &self.shifted[..factor.dim()],
-                    step,
-                    lagged,
-                    s,
-                    &mut self.nonzeros,
-                );
+                // Directions the hard equations fix carry no unknown.
+                let hard = &self.hard;
+                self.h.reset_active(blocks, |b| hard[b].reduction.dim);
+                self.g[..blocks * s].fill(0.0);
+            }
+        }
+        let (mut cost, mut cost_first) = self.hard_cost_sum(graph, k0);
+        if self.step_major && linearize {
+            cost += soft;
+            cost_first += soft_first;
+        } else {
+            for i in 0..self.instances.len() {
+                if !is_hard(factor_of(graph, self.instances[i])) {
+                    self.soft_instance(
+                        graph,
+                        values,
+                        k0,
+                        i,
+                        linearize,
+                        &mut cost,
+                        &mut cost_first,
+                    )?;
+                }
             }
         }
         if let Some(p) = prior {
@@ -686,7 +956,7 @@ impl WindowSolver {
                     for (c, o) in out[..q].iter_mut().enumerate() {
                         *o = free
                             .iter()
-                            .fold(0.0, |acc, &k| acc + row[k] * red.basis[k * s + c]);
+                            .fold(0.0, |acc, &k| acc + row[k] * red.free_row(k)[c]);
                     }
                     for (o, &k) in out[q..].iter_mut().zip(untouched) {
                         *o = 0.0 + row[k];
@@ -701,7 +971,7 @@ impl WindowSolver {
                         if na == 0.0 {
                             continue;
                         }
-                        for (o, lv) in h0[a * s..a * s + dim].iter_mut().zip(lrow) {
+                        for (o, lv) in h0[a * dim..(a + 1) * dim].iter_mut().zip(lrow) {
                             *o += na * lv;
                         }
                         self.g[a] += na * grad[k];
@@ -719,7 +989,7 @@ impl WindowSolver {
 
     /// The gradient of the Lagrangian of the window's problem in full coordinates,
     /// Σ Jᵢᵀrᵢ over the soft factors (whitened), the prior's Λ(x − x̄) + η, and
-    /// Σ C_bᵀλ_b over each block's hard equations (rows in `hard_pass` order) with the
+    /// Σ C_bᵀλ_b over each block's hard equations (rows in `hard_block` order) with the
     /// multipliers in `self.newton.lambda`; into `out` (blocks × s).
     #[allow(clippy::too_many_arguments)]
     fn lagrangian_gradient(
@@ -826,9 +1096,9 @@ impl WindowSolver {
         }
         self.newton.grad = grad;
         for b in 0..blocks {
-            let diag = self.h.diag(b);
-            for r in 0..s {
-                self.newton.scale[b * s + r] = diag[r * s + r];
+            let (diag, d) = (self.h.diag(b), self.h.dim(b));
+            for r in 0..d {
+                self.newton.scale[b * s + r] = diag[r * d + r];
             }
         }
         let colors = blocks.min(3);
@@ -876,6 +1146,8 @@ impl WindowSolver {
                         continue;
                     }
                     let h = 2.0 * step(&self.saved[b * s..(b + 1) * s]);
+                    // H_bb and H_{b+1,b} both have d_b columns (packed, stride d_b).
+                    let db = self.hard[b].reduction.dim;
                     for target in [b, b + 1] {
                         if target >= blocks {
                             continue;
@@ -896,7 +1168,7 @@ impl WindowSolver {
                             self.h.lower_mut(target)
                         };
                         for (a, v) in col.iter().enumerate() {
-                            block[a * s + j] = *v;
+                            block[a * db + j] = *v;
                         }
                     }
                 }
@@ -913,9 +1185,9 @@ impl WindowSolver {
             let diag = self.h.diag_mut(b);
             for i in 0..d {
                 for j in 0..i {
-                    let v = 0.5 * (diag[i * s + j] + diag[j * s + i]);
-                    diag[i * s + j] = v;
-                    diag[j * s + i] = v;
+                    let v = 0.5 * (diag[i * d + j] + diag[j * d + i]);
+                    diag[i * d + j] = v;
+                    diag[j * d + i] = v;
                 }
             }
         }
@@ -943,13 +1215,10 @@ impl WindowSolver {
     ) -> Result<()> {
         let s = self.s;
         self.collect_instances(graph, k, k + 1, Scope::Window);
-        let (cost, first) = self.hard_pass(graph, values, k, 1, HardPass::Linearize)?;
-        let block = &mut self.hard[0];
-        block
-            .reduction
-            .reduce(&block.jac, &block.rhs[..block.rows], block.rows);
+        self.hard_block(graph, values, 0, HardPass::Linearize)?;
         // A one-step window solve of step k that follows finds it reduced.
-        self.hard_cache = Some((k, cost, first));
+        self.hard_cache = Some(k);
+        let block = &mut self.hard[0];
         if block.rows == 0 {
             return Ok(());
         }
@@ -979,7 +1248,6 @@ impl WindowSolver {
         // vector of `untouched[u]`, rows of fixed unknowns 0.
         let (free, untouched) = red.structure();
         let q = d - untouched.len();
-        let basis = &red.basis;
         // ΛN̄ (s × d).
         for i in 0..s {
             let row = &prior.information[i * s..(i + 1) * s];
@@ -987,7 +1255,7 @@ impl WindowSolver {
             out[..q].fill(0.0);
             for &j in free {
                 let lij = row[j];
-                for (o, b) in out[..q].iter_mut().zip(&basis[j * s..j * s + q]) {
+                for (o, b) in out[..q].iter_mut().zip(red.free_row(j)) {
                     *o += lij * b;
                 }
             }
@@ -1000,8 +1268,7 @@ impl WindowSolver {
         gt[..q].fill(0.0);
         for &i in free {
             let li = &ln[i * d..(i + 1) * d];
-            for a in 0..q {
-                let b = basis[i * s + a];
+            for (a, &b) in red.free_row(i).iter().enumerate() {
                 gt[a] += b * grad[i];
                 for (o, l) in reduced[a * d..(a + 1) * d].iter_mut().zip(li) {
                     *o += b * l;
@@ -1018,8 +1285,7 @@ impl WindowSolver {
         prior.eta.fill(0.0);
         for &i in free {
             let out = &mut nr[i * d..(i + 1) * d];
-            for a in 0..q {
-                let b = basis[i * s + a];
+            for (a, &b) in red.free_row(i).iter().enumerate() {
                 prior.eta[i] += b * gt[a];
                 for (o, r) in out.iter_mut().zip(&reduced[a * d..(a + 1) * d]) {
                     *o += b * r;
@@ -1038,7 +1304,7 @@ impl WindowSolver {
             for &j in free {
                 out[j] = row[..q]
                     .iter()
-                    .zip(&basis[j * s..j * s + q])
+                    .zip(red.free_row(j))
                     .map(|(a, b)| a * b)
                     .sum::<f64>();
             }
@@ -1172,11 +1438,11 @@ impl WindowSolver {
                 gauss_newton = false;
             }
             for (b, damping) in self.damping[..n].chunks_exact_mut(s).enumerate() {
-                let diag = self.h.diag(b);
+                let (diag, d) = (self.h.diag(b), self.h.dim(b));
                 let scale = &self.newton.scale[b * s..(b + 1) * s];
-                for (r, v) in damping.iter_mut().enumerate() {
-                    let d = if newton { scale[r] } else { diag[r * s + r] };
-                    *v = mu * d.max(1e-12);
+                for (r, v) in damping[..d].iter_mut().enumerate() {
+                    let x = if newton { scale[r] } else { diag[r * d + r] };
+                    *v = mu * x.max(1e-12);
                 }
             }
             if self
@@ -1379,9 +1645,9 @@ impl WindowSolver {
         let (h10, rest) = rest.split_at_mut(ss);
         let (h11, rest) = rest.split_at_mut(ss);
         let (g01, _) = rest.split_at_mut(2 * s);
-        h00.copy_from_slice(self.h.diag(0));
-        h10.copy_from_slice(self.h.lower(1));
-        h11.copy_from_slice(self.h.diag(1));
+        restride(self.h.diag(0), d0, d0, h00, s);
+        restride(self.h.lower(1), s, d0, h10, s);
+        restride(self.h.diag(1), s, s, h11, s);
         g01[..s].copy_from_slice(&self.g[..s]);
         g01[s..].copy_from_slice(&self.g[s..2 * s]);
         self.schur(k0, d0, cost, values)
@@ -1482,7 +1748,7 @@ impl WindowSolver {
             let (h10, rest) = rest.split_at_mut(ss);
             let (h11, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
-            h00.copy_from_slice(self.h.diag(0));
+            restride(self.h.diag(0), d0, d0, h00, s);
             h10.fill(0.0);
             h11.fill(0.0);
             g01.fill(0.0);
@@ -1575,6 +1841,14 @@ impl WindowSolver {
     }
 }
 
+/// Copies a rows × cols matrix stored with row stride cols into `dst` with row
+/// stride `ld`.
+fn restride(src: &[f64], rows: usize, cols: usize, dst: &mut [f64], ld: usize) {
+    for r in 0..rows {
+        dst[r * ld..r * ld + cols].copy_from_slice(&src[r * cols..(r + 1) * cols]);
+    }
+}
+
 /// A whitened soft factor in reduced coordinates: per block it touches (lag 0 into
 /// `reduced[0]`, lag 1 into `reduced[1]`) the rows J N (dim × s, padded with zeros
 /// past the block's null-space dimension), and the residual r + J p linearized at the
@@ -1582,6 +1856,7 @@ impl WindowSolver {
 #[allow(clippy::too_many_arguments)]
 fn reduce_factor(
     reduced: &mut [Vec<f64>; 2],
+    spans: &mut [Vec<(usize, usize)>; 2],
     shifted: &mut [f64],
     hard: &[HardBlock],
     graph: &ChainGraph,
@@ -1600,6 +1875,7 @@ fn reduce_factor(
                 part[r * s..r * s + width].fill(0.0);
             }
         }
+        spans[lag][..dim].fill((usize::MAX, 0));
     }
     shifted[..dim].copy_from_slice(&buf.r);
     for (a, k) in keys.iter().enumerate() {
@@ -1609,6 +1885,7 @@ fn reduce_factor(
         }
         let red = &hard[step - k.lag].reduction;
         let out = &mut reduced[k.lag];
+        let span = &mut spans[k.lag];
         let jac = &buf.jac[a];
         let diagonal = factor.diagonal_jacobian(a);
         for r in 0..dim {
@@ -1621,6 +1898,11 @@ fn reduce_factor(
                 }
                 shifted[r] += v * red.particular[off + j];
                 let (start, nrow) = red.row(off + j);
+                if !nrow.is_empty() {
+                    let (lo, hi) = &mut span[r];
+                    *lo = (*lo).min(start);
+                    *hi = (*hi).max(start + nrow.len());
+                }
                 for (o, nv) in row[start..].iter_mut().zip(nrow) {
                     *o += v * nv;
                 }
@@ -1640,6 +1922,7 @@ fn accumulate(
     h: &mut BlockTridiagonal,
     g: &mut [f64],
     reduced: &[Vec<f64>; 2],
+    spans: &[Vec<(usize, usize)>; 2],
     r: &[f64],
     step: usize,
     lagged: bool,
@@ -1655,21 +1938,26 @@ fn accumulate(
         for &(part, block) in parts {
             let d = h.dim(block);
             let jr = &reduced[part][row * s..row * s + d];
+            // Past the row's span it is 0.
+            let (lo, hi) = spans[part][row];
             let nz = &mut nonzero[part];
             nz.clear();
-            nz.extend(
-                jr.iter()
-                    .enumerate()
-                    .filter(|(_, v)| **v != 0.0)
-                    .map(|(a, &v)| (a, v)),
-            );
+            if lo < hi {
+                nz.extend(
+                    jr[lo..hi]
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, v)| **v != 0.0)
+                        .map(|(a, &v)| (lo + a, v)),
+                );
+            }
             let gb = &mut g[block * s..block * s + d];
             for &(a, va) in nz.iter() {
                 gb[a] += va * rr;
             }
             let hb = h.diag_mut(block);
             for &(a, va) in nz.iter() {
-                let out = &mut hb[a * s..a * s + d];
+                let out = &mut hb[a * d..(a + 1) * d];
                 for &(b, vb) in nz.iter() {
                     out[b] += va * vb;
                 }
@@ -1677,9 +1965,10 @@ fn accumulate(
         }
         if lagged {
             // H[step][step−1] += J₀ᵀ J₁.
+            let dp = h.dim(step - 1);
             let hl = h.lower_mut(step);
             for &(a, va) in &nonzero[0] {
-                let out = &mut hl[a * s..(a + 1) * s];
+                let out = &mut hl[a * dp..(a + 1) * dp];
                 for &(b, vb) in &nonzero[1] {
                     out[b] += va * vb;
                 }
@@ -1778,9 +2067,7 @@ mod tests {
         let red = solver.hard[0].reduction.clone();
         let d = red.dim;
         let mut missed = 0.0f64;
-        let h: Vec<f64> = (0..d * d)
-            .map(|i| solver.h.diag(0)[(i / d) * s + i % d])
-            .collect();
+        let h: Vec<f64> = solver.h.diag(0)[..d * d].to_vec();
         let x0 = values.clone();
         let mut checked = 0;
         for seed in 0..4 {
@@ -1804,7 +2091,7 @@ mod tests {
             let gn: f64 = (0..d)
                 .map(|i| {
                     (0..d)
-                        .map(|j| v[i] * gauss_newton[i * s + j] * v[j])
+                        .map(|j| v[i] * gauss_newton[i * d + j] * v[j])
                         .sum::<f64>()
                 })
                 .sum();

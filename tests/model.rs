@@ -364,3 +364,67 @@ fn scene_without_effects_stays_at_rest() {
     assert_eq!(s.ddq.amax(), 0.0);
     assert_eq!(model.potential_energy(&model.initial.q), 0.0);
 }
+
+#[test]
+fn prescribed_kinematics_agree_with_the_classical_problems() {
+    // The robot (one redundant constraint) and the four-bar, each moved away from
+    // its scene configuration on the prescribed coordinates.
+    for (name, keep, shift) in [
+        (
+            "pick-and-place.yaml",
+            vec!["motor1", "motor2"],
+            [0.2, -0.15],
+        ),
+        ("fourbar-theta.yaml", vec!["theta"], [0.7, 0.0]),
+    ] {
+        let model = load(name);
+        let idx: Vec<usize> = keep.iter().map(|c| model.index_of(c).unwrap()).collect();
+        let mut q0 = model.initial.q.clone();
+        for (c, &i) in idx.iter().enumerate() {
+            q0[i] += shift[c];
+        }
+        let (v, a) = (
+            vec![1.3, -0.4][..idx.len()].to_vec(),
+            vec![-0.4, 2.1][..idx.len()].to_vec(),
+        );
+        let mut q = q0.clone();
+        kinematics::solve_position(&model, &mut q, &idx).unwrap();
+        let dq = kinematics::solve_velocity(&model, &q, &idx, &v).unwrap();
+        let ddq = kinematics::solve_acceleration(&model, &q, &dq, &idx, &a).unwrap();
+        let force = dynamics::actuator_forces(&model, &q, &dq, &ddq, 0.3, &idx).unwrap();
+
+        let mut kin = kinematics::PrescribedKinematics::new(&model, &idx);
+        let mut q2 = q0.as_slice().to_vec();
+        kin.position(&model, &mut q2).unwrap();
+        kin.factor(&model, &q2).unwrap();
+        let n = model.n();
+        let (mut dq2, mut ddq2, mut f2) = (vec![0.0; n], vec![0.0; n], vec![0.0; idx.len()]);
+        kin.velocity(&v, &mut dq2);
+        kin.acceleration(&model, &q2, &dq2, &a, &mut ddq2);
+        kin.forces(&model, &q2, &dq2, &ddq2, 0.3, &mut f2).unwrap();
+        let diff = |x: &[f64], y: &[f64]| {
+            x.iter()
+                .zip(y)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()))
+        };
+        assert!(diff(&q2, q.as_slice()) < 1e-10, "{name}: q");
+        assert!(diff(&dq2, dq.as_slice()) < 1e-10, "{name}: q̇");
+        assert!(diff(&ddq2, ddq.as_slice()) < 1e-9, "{name}: q̈");
+        let fa: Vec<f64> = idx.iter().map(|&i| force[i]).collect();
+        assert!(
+            diff(&f2, &fa) < 1e-8 * fa.iter().fold(1.0f64, |m, v| m.max(v.abs())),
+            "{name}: forces {f2:?} vs {fa:?}"
+        );
+        for (c, &i) in idx.iter().enumerate() {
+            assert_eq!(q2[i], q0[i]);
+            assert_eq!(dq2[i], v[c]);
+            assert_eq!(ddq2[i], a[c]);
+        }
+    }
+    // A prescription that does not determine the motion is refused.
+    let model = load("pick-and-place.yaml");
+    let one = [model.index_of("motor1").unwrap()];
+    let mut kin = kinematics::PrescribedKinematics::new(&model, &one);
+    let q = model.initial.q.as_slice().to_vec();
+    assert!(kin.factor(&model, &q).is_err());
+}

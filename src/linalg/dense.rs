@@ -11,6 +11,42 @@ pub enum DenseError {
     Singular(usize),
 }
 
+/// How the sums of products in the kernels here are taken.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Summation {
+    /// One running sum, in order (the default; the forward runs' results are pinned
+    /// to it).
+    #[default]
+    Sequential,
+    /// Four interleaved partial sums, added pairwise at the end: a running sum
+    /// waits on each addition (a dot product of length L takes ~4L cycles), four
+    /// independent ones overlap. Another rounding than `Sequential`, as accurate.
+    Lanes,
+}
+
+/// Σ aᵢbᵢ over the shorter length, summed as `how` says.
+#[inline(always)]
+pub fn dot(a: &[f64], b: &[f64], how: Summation) -> f64 {
+    match how {
+        Summation::Sequential => a.iter().zip(b).map(|(x, y)| x * y).sum(),
+        Summation::Lanes => {
+            let len = a.len().min(b.len());
+            let (a, b) = (&a[..len], &b[..len]);
+            let mut acc = [0.0f64; 4];
+            let (xa, xb) = (a.chunks_exact(4), b.chunks_exact(4));
+            let (ra, rb) = (xa.remainder(), xb.remainder());
+            for (x, y) in xa.zip(xb) {
+                acc[0] += x[0] * y[0];
+                acc[1] += x[1] * y[1];
+                acc[2] += x[2] * y[2];
+                acc[3] += x[3] * y[3];
+            }
+            let tail: f64 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
+            (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+        }
+    }
+}
+
 /// In-place lower Cholesky of the symmetric positive definite n×n matrix `a`
 /// (row-major, lower triangle read): afterwards a = L (upper triangle zeroed).
 pub fn cholesky(a: &mut [f64], n: usize) -> Result<(), DenseError> {
@@ -19,9 +55,19 @@ pub fn cholesky(a: &mut [f64], n: usize) -> Result<(), DenseError> {
 
 /// [`cholesky`] of the leading n×n part of a matrix stored with row stride `ld`.
 pub fn cholesky_strided(a: &mut [f64], n: usize, ld: usize) -> Result<(), DenseError> {
+    cholesky_strided_with(a, n, ld, Summation::Sequential)
+}
+
+/// [`cholesky_strided`] with its sums taken as `how` says.
+pub fn cholesky_strided_with(
+    a: &mut [f64],
+    n: usize,
+    ld: usize,
+    how: Summation,
+) -> Result<(), DenseError> {
     for j in 0..n {
         let rj = &a[j * ld..j * ld + j];
-        let mut d = a[j * ld + j] - rj.iter().map(|v| v * v).sum::<f64>();
+        let mut d = a[j * ld + j] - dot(rj, rj, how);
         if !(d > 0.0) || !d.is_finite() {
             return Err(DenseError::NotPositiveDefinite(j));
         }
@@ -31,8 +77,8 @@ pub fn cholesky_strided(a: &mut [f64], n: usize, ld: usize) -> Result<(), DenseE
             let (top, bottom) = a.split_at_mut(i * ld);
             let rj = &top[j * ld..j * ld + j];
             let ri = &mut bottom[..j + 1];
-            let dot: f64 = ri[..j].iter().zip(rj).map(|(x, y)| x * y).sum();
-            ri[j] = (ri[j] - dot) / d;
+            let sum = dot(&ri[..j], rj, how);
+            ri[j] = (ri[j] - sum) / d;
         }
         a[j * ld + j + 1..j * ld + n].fill(0.0);
     }
@@ -46,10 +92,15 @@ pub fn solve_lower(l: &[f64], n: usize, b: &mut [f64]) {
 
 /// [`solve_lower`] with L stored with row stride `ld`.
 pub fn solve_lower_strided(l: &[f64], n: usize, ld: usize, b: &mut [f64]) {
+    solve_lower_strided_with(l, n, ld, b, Summation::Sequential)
+}
+
+/// [`solve_lower_strided`] with its sums taken as `how` says.
+pub fn solve_lower_strided_with(l: &[f64], n: usize, ld: usize, b: &mut [f64], how: Summation) {
     for i in 0..n {
         let row = &l[i * ld..i * ld + i];
-        let dot: f64 = row.iter().zip(&b[..i]).map(|(x, y)| x * y).sum();
-        b[i] = (b[i] - dot) / l[i * ld + i];
+        let sum = dot(row, &b[..i], how);
+        b[i] = (b[i] - sum) / l[i * ld + i];
     }
 }
 
@@ -204,6 +255,25 @@ mod tests {
 
     fn row_major(m: &DMatrix<f64>) -> Vec<f64> {
         m.transpose().as_slice().to_vec()
+    }
+
+    #[test]
+    fn dot_in_lanes_matches_the_running_sum() {
+        for len in [0, 1, 3, 4, 5, 8, 13, 40] {
+            let a: Vec<f64> = (0..len).map(|i| (i as f64 * 0.7).sin()).collect();
+            let b: Vec<f64> = (0..len).map(|i| (i as f64 * 1.3).cos()).collect();
+            let (x, y) = (
+                dot(&a, &b, Summation::Sequential),
+                dot(&a, &b, Summation::Lanes),
+            );
+            assert!((x - y).abs() <= 1e-14 * (1.0 + x.abs()), "length {len}");
+            let plain: f64 = a.iter().zip(&b).map(|(p, q)| p * q).sum();
+            assert_eq!(
+                x.to_bits(),
+                plain.to_bits(),
+                "sequential is the running sum"
+            );
+        }
     }
 
     #[test]

@@ -11,6 +11,21 @@
 //! (one column per equation), which reveals the rank, so redundant equations
 //! (over-constrained mechanisms, or the initial priors together with the constraints
 //! they already satisfy) are dropped, not divided by 0.
+//!
+//! Unknowns may be split into ordered segments ([`NullSpace::set_segments`]; the
+//! solver puts positions, velocities, accelerations and forces in segments 0–3).
+//! Each equation then belongs to the segment of the last unknown it touches, and the
+//! QR takes the equations segment by segment (pivoting within a segment), with the
+//! QR's rows ordered by segment: the position equations' reflectors then touch the
+//! position rows only, the velocity equations' the velocity rows and what the
+//! position equations left, and so on. For the block-triangular hard equations of a
+//! step ([Φ_q 0; ∂(Φ_q q̇)/∂q Φ_q] and their kin) this costs a fraction of a QR of
+//! the whole, and the null-space basis comes out exactly 0 on the unknowns the
+//! earlier segments fix (the positions, in inverse dynamics). The basis is another
+//! orthonormal basis of the same space and the particular solution the same
+//! least-norm one.
+
+use super::dense::{dot, Summation};
 
 /// Scratch and results of one reduction, sized once for `s` unknowns and up to
 /// `max_rows` equations.
@@ -18,14 +33,33 @@
 pub struct NullSpace {
     s: usize,
     max_rows: usize,
-    /// The equations of the last reduction, row-major rows × s (for `solve`).
-    c: Vec<f64>,
     rows: usize,
-    /// Per unknown: the unit equation fixing it, if any.
+    /// −g for `multipliers`.
+    scratch_g: Vec<f64>,
+    /// What `solve` keeps of the equations: per fixed unknown its unit equation's
+    /// coefficient, and the other equations' coefficients on the fixed unknowns
+    /// (row-major others × pinned).
+    /// Per unknown: the unit equation fixing it, if any; whether another equation
+    /// touches it.
     fixed: Vec<Option<usize>>,
+    touched: Vec<bool>,
     /// Unknowns neither fixed by unit equations nor untouched by the others (those
-    /// the QR sees), the other equations, and the unknowns no equation touches.
+    /// the QR sees, ascending), the other equations, and the unknowns no equation
+    /// touches.
     free: Vec<usize>,
+    /// Per unknown, its segment; the number of segments.
+    segment: Vec<usize>,
+    segments: usize,
+    /// The free unknowns in the QR's row order (by segment, then index), and per
+    /// segment the end of its rows in that order.
+    qr_rows: Vec<usize>,
+    seg_end: Vec<usize>,
+    /// Per column of the QR: its segment, or [`DROPPED`]; per reflector, the end of
+    /// its rows (it is 0 past them).
+    group: Vec<usize>,
+    rend: Vec<usize>,
+    /// Per group of the last QR, its reflectors.
+    made: Vec<GroupReflectors>,
     others: Vec<usize>,
     untouched: Vec<usize>,
     /// The unknowns unit equations fix, ascending.
@@ -38,8 +72,16 @@ pub struct NullSpace {
     norms: Vec<f64>,
     w: Vec<f64>,
     rhs: Vec<f64>,
-    /// s × s row-major; columns 0..dim hold an orthonormal null-space basis, the rest 0.
-    pub basis: Vec<f64>,
+    pin_coef: Vec<f64>,
+    others_pinned: Vec<f64>,
+    /// The basis' dense part: the QR's null vectors on the free unknowns, row-major
+    /// free × q in the QR's row order (q = dim − untouched); its other columns are
+    /// the untouched unknowns' unit vectors, written nowhere.
+    dense: Vec<f64>,
+    /// Per unknown, its row in `dense` (free unknowns only).
+    dense_row: Vec<usize>,
+    /// How the QR's sums of products are taken.
+    summation: Summation,
     /// Per row of the basis, the columns [start, end) outside which it is 0 (fixed
     /// unknowns: none; untouched ones: their unit column; the rest: the QR's columns).
     span: Vec<(usize, usize)>,
@@ -59,41 +101,94 @@ impl NullSpace {
         let mut ns = NullSpace {
             s,
             max_rows,
-            c: vec![0.0; s * max_rows],
+            scratch_g: Vec::with_capacity(s),
+            pin_coef: vec![0.0; s],
+            others_pinned: Vec::new(),
             rows: 0,
             fixed: vec![None; s],
+            touched: vec![false; s],
             free: Vec::with_capacity(s),
+            segment: vec![0; s],
+            segments: 1,
+            qr_rows: Vec::with_capacity(s),
+            seg_end: vec![0; 1],
+            group: vec![0; max_rows],
+            rend: vec![0; s.min(max_rows)],
+            made: Vec::with_capacity(4),
             others: Vec::with_capacity(max_rows),
             untouched: Vec::with_capacity(s),
             pinned: Vec::with_capacity(s),
-            a: vec![0.0; s * max_rows],
+            a: Vec::new(),
             rdiag: vec![0.0; s.min(max_rows)],
             beta: vec![0.0; s.min(max_rows)],
             perm: vec![0; max_rows],
             norms: vec![0.0; 2 * max_rows],
             w: vec![0.0; s],
             rhs: vec![0.0; max_rows],
-            basis: vec![0.0; s * s],
+            dense: Vec::new(),
+            dense_row: vec![usize::MAX; s],
+            summation: Summation::Sequential,
             span: vec![(0, 0); s],
             particular: vec![0.0; s],
             dim: s,
             rank: 0,
         };
-        ns.set_unconstrained();
+        // Unconstrained, with N = I not written out until it is asked for: the
+        // solver's blocks are reduced before use, and their storage (allocated at
+        // the first reduction, to its size) stays small when dim is.
+        for i in 0..s {
+            ns.span[i] = (i, i + 1);
+        }
+        ns.untouched.extend(0..s);
         ns
+    }
+
+    /// Grows `v` to at least `len` entries (allocating only when a reduction needs
+    /// more than any before it).
+    fn ensure(v: &mut Vec<f64>, len: usize) {
+        if v.len() < len {
+            v.resize(len, 0.0);
+        }
+    }
+
+    /// Splits the unknowns into ordered segments (`segment[i]` for unknown i): the
+    /// equations are reduced segment by segment (see the module's documentation).
+    /// One segment (the default) is the plain pivoted QR.
+    pub fn set_segments(&mut self, segment: &[usize]) {
+        assert_eq!(segment.len(), self.s, "one segment per unknown");
+        self.segment.copy_from_slice(segment);
+        self.segments = segment.iter().max().map_or(1, |m| m + 1);
+        self.seg_end = vec![0; self.segments];
+    }
+
+    /// w ← H_k w (reflector k of the last QR, on rows k..rend[k]).
+    fn reflect(&mut self, k: usize, sf: usize) {
+        let end = self.rend[k];
+        let v = &self.a[k * sf + k..k * sf + end];
+        let y = &mut self.w[k..end];
+        let f = self.beta[k] * dot(v, y, self.summation);
+        for (yi, vi) in y.iter_mut().zip(v) {
+            *yi -= f * vi;
+        }
+    }
+
+    /// How the QR's sums of products are taken (sequential by default).
+    pub fn set_summation(&mut self, how: Summation) {
+        self.summation = how;
     }
 
     /// No equations: N = I, p = 0.
     pub fn set_unconstrained(&mut self) {
         let s = self.s;
-        self.basis.fill(0.0);
         for i in 0..s {
-            self.basis[i * s + i] = 1.0;
             self.span[i] = (i, i + 1);
         }
+        self.dense_row.fill(usize::MAX);
         self.particular.fill(0.0);
         self.fixed.fill(None);
         self.free.clear();
+        self.qr_rows.clear();
+        self.made.clear();
         self.others.clear();
         self.untouched.clear();
         self.untouched.extend(0..s);
@@ -115,22 +210,37 @@ impl NullSpace {
         }
         let s = self.s;
         self.rows = rows;
-        self.c[..rows * s].copy_from_slice(&c[..rows * s]);
         // Unit equations fix their unknown; a second one on the same unknown is
         // redundant.
         self.fixed.fill(None);
         self.others.clear();
+        // One pass along the rows: unit equations, the others, and the unknowns the
+        // others touch.
+        let touched = &mut self.touched;
+        touched.fill(false);
         for j in 0..rows {
             let row = &c[j * s..(j + 1) * s];
-            let mut nonzero = row.iter().enumerate().filter(|(_, v)| **v != 0.0);
+            let mut nonzero = row
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| **v != 0.0)
+                .map(|(i, _)| i);
             match (nonzero.next(), nonzero.next()) {
-                (Some((i, _)), None) => {
+                (Some(i), None) => {
                     if self.fixed[i].is_none() {
                         self.fixed[i] = Some(j);
                     }
                 }
                 (None, None) => {}
-                _ => self.others.push(j),
+                (Some(i0), Some(i1)) => {
+                    self.others.push(j);
+                    touched[i0] = true;
+                    touched[i1] = true;
+                    for i in nonzero {
+                        touched[i] = true;
+                    }
+                }
+                (None, Some(_)) => unreachable!("a second nonzero without a first"),
             }
         }
         self.free.clear();
@@ -139,60 +249,112 @@ impl NullSpace {
         for i in 0..s {
             if self.fixed[i].is_some() {
                 self.pinned.push(i);
-                continue;
-            }
-            if self.others.iter().any(|&j| c[j * s + i] != 0.0) {
+            } else if self.touched[i] {
                 self.free.push(i);
             } else {
                 self.untouched.push(i);
             }
         }
-        let sf = self.free.len();
-        let m = self.others.len();
-        // A = Cᵀ[free, others]: column k is equation others[k] on the free unknowns.
+        let np = self.pinned.len();
+        Self::ensure(&mut self.others_pinned, self.others.len() * np);
+        for &i in &self.pinned {
+            let j = self.fixed[i].expect("a pinned unknown has its unit equation");
+            self.pin_coef[i] = c[j * s + i];
+        }
         for (k, &j) in self.others.iter().enumerate() {
-            for (a, &i) in self.free.iter().enumerate() {
-                self.a[k * sf + a] = c[j * s + i];
+            for (o, &i) in self.others_pinned[k * np..(k + 1) * np]
+                .iter_mut()
+                .zip(&self.pinned)
+            {
+                *o = c[j * s + i];
             }
         }
-        let rank = householder_pivoted(
+        let sf = self.free.len();
+        let m = self.others.len();
+        // The QR's rows: the free unknowns by segment (ascending within one).
+        self.qr_rows.clear();
+        self.qr_rows.extend_from_slice(&self.free);
+        if self.segments > 1 {
+            let seg = &self.segment;
+            self.qr_rows.sort_unstable_by_key(|&i| (seg[i], i));
+        }
+        self.seg_end.fill(0);
+        for &i in &self.qr_rows {
+            self.seg_end[self.segment[i]] += 1;
+        }
+        for g in 1..self.segments {
+            self.seg_end[g] += self.seg_end[g - 1];
+        }
+        Self::ensure(&mut self.a, sf * m);
+        // A = Cᵀ[free, others]: column k is equation others[k] on the free unknowns;
+        // its group is the segment of the last of them it touches.
+        for (k, &j) in self.others.iter().enumerate() {
+            let col = &mut self.a[k * sf..(k + 1) * sf];
+            for (o, &i) in col.iter_mut().zip(&self.qr_rows) {
+                *o = c[j * s + i];
+            }
+            self.group[k] = col
+                .iter()
+                .rposition(|v| *v != 0.0)
+                .map_or(0, |a| self.segment[self.qr_rows[a]]);
+        }
+        let rank = householder_grouped(
             &mut self.a,
             sf,
             m,
+            Grouping {
+                group: &mut self.group[..m],
+                seg_end: &self.seg_end,
+                rend: &mut self.rend,
+                made: &mut self.made,
+            },
+            self.summation,
             &mut self.rdiag,
             &mut self.beta,
             &mut self.perm,
             &mut self.norms,
         );
         let fixed_count = s - sf - self.untouched.len();
-        // Columns that may hold a basis vector from before (past them all is 0).
-        let stale = self.dim;
         self.rank = fixed_count + rank;
         self.dim = sf - rank + self.untouched.len();
+        let q = sf - rank;
         let mut p = std::mem::take(&mut self.particular);
         self.solve(b, &mut p);
         self.particular = p;
         // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones,
-        // then a unit vector per untouched unknown.
-        let width = stale.max(self.dim);
-        for row in self.basis.chunks_exact_mut(s) {
-            row[..width].fill(0.0);
-        }
+        // then a unit vector per untouched unknown (implicit).
+        Self::ensure(&mut self.dense, sf * q);
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
-            apply_q(&self.a, &self.beta, sf, rank, &mut self.w[..sf]);
-            for (a, &i) in self.free.iter().enumerate() {
-                self.basis[i * s + (j - rank)] = self.w[a];
+            apply_q(
+                &self.a,
+                &self.beta,
+                &self.rend,
+                &self.made,
+                sf,
+                &mut self.w[..sf],
+                self.summation,
+            );
+            for a in 0..sf {
+                self.dense[a * q + (j - rank)] = self.w[a];
             }
         }
+        // Each row's span: its nonzeros (rows the earlier segments fix are 0).
         self.span.fill((0, 0));
-        for &i in &self.free {
-            self.span[i] = (0, sf - rank);
+        self.dense_row.fill(usize::MAX);
+        for (a, &i) in self.qr_rows.iter().enumerate() {
+            self.dense_row[i] = a;
+            let row = &self.dense[a * q..(a + 1) * q];
+            if let (Some(a), Some(b)) = (
+                row.iter().position(|v| *v != 0.0),
+                row.iter().rposition(|v| *v != 0.0),
+            ) {
+                self.span[i] = (a, b + 1);
+            }
         }
         for (u, &i) in self.untouched.iter().enumerate() {
-            let col = sf - rank + u;
-            self.basis[i * s + col] = 1.0;
+            let col = q + u;
             self.span[i] = (col, col + 1);
         }
     }
@@ -210,7 +372,33 @@ impl NullSpace {
     #[inline]
     pub fn row(&self, i: usize) -> (usize, &[f64]) {
         let (start, end) = self.span[i];
-        (start, &self.basis[i * self.s + start..i * self.s + end])
+        match self.dense_row[i] {
+            usize::MAX if end > start => (start, &[1.0]),
+            usize::MAX => (start, &[]),
+            a => {
+                let q = self.dim - self.untouched.len();
+                (start, &self.dense[a * q + start..a * q + end])
+            }
+        }
+    }
+
+    /// Row `i` of the basis' first q = dim − untouched columns (those of the QR's
+    /// null vectors; i free, see [`NullSpace::structure`]).
+    pub fn free_row(&self, i: usize) -> &[f64] {
+        let q = self.dim - self.untouched.len();
+        let a = self.dense_row[i];
+        &self.dense[a * q..(a + 1) * q]
+    }
+
+    /// The null-space basis N written out, row-major s × dim, orthonormal columns.
+    pub fn basis(&self) -> Vec<f64> {
+        let dim = self.dim;
+        let mut n = vec![0.0; self.s * dim];
+        for i in 0..self.s {
+            let (start, row) = self.row(i);
+            n[i * dim + start..i * dim + start + row.len()].copy_from_slice(row);
+        }
+        n
     }
 
     /// The least-norm solution x (length s) of the independent equations of the last
@@ -221,31 +409,57 @@ impl NullSpace {
         x.fill(0.0);
         for &i in &self.pinned {
             if let Some(j) = self.fixed[i] {
-                x[i] = b[j] / self.c[j * s + i];
+                x[i] = b[j] / self.pin_coef[i];
             }
         }
         let sf = self.free.len();
         let rank = self.rank - (s - sf - self.untouched.len());
         // The other equations on the free unknowns: b − C[:, fixed] x_fixed.
+        let np = self.pinned.len();
         for (k, &j) in self.others.iter().enumerate() {
-            let row = &self.c[j * s..(j + 1) * s];
+            let row = &self.others_pinned[k * np..(k + 1) * np];
             let mut v = b[j];
-            for &i in &self.pinned {
-                v -= row[i] * x[i];
+            for (c, &i) in row.iter().zip(&self.pinned) {
+                v -= c * x[i];
             }
             self.rhs[k] = v;
         }
         // The selected equations read R₁ᵀ Q₁ᵀ x_free = b_sel: R₁ᵀ w = b_sel, x = Q₁ w.
-        for i in 0..rank {
-            let mut acc = self.rhs[self.perm[i]];
-            for l in 0..i {
-                acc -= self.a[i * sf + l] * self.w[l];
+        // A group apart is finished at once: its reflectors turn its w into x on its
+        // rows, which the later equations (C's coefficients there) then read.
+        for gi in 0..self.made.len() {
+            let GroupReflectors { ks, ke, apart } = self.made[gi];
+            for i in ks..ke {
+                let mut acc = self.rhs[self.perm[i]];
+                match self.summation {
+                    Summation::Sequential => {
+                        for l in 0..i {
+                            acc -= self.a[i * sf + l] * self.w[l];
+                        }
+                    }
+                    Summation::Lanes => {
+                        acc -= dot(&self.a[i * sf..i * sf + i], &self.w[..i], self.summation)
+                    }
+                }
+                self.w[i] = acc / self.rdiag[i];
             }
-            self.w[i] = acc / self.rdiag[i];
+            if apart {
+                for k in (ks..ke).rev() {
+                    self.reflect(k, sf);
+                }
+            }
         }
         self.w[rank..sf].fill(0.0);
-        apply_q(&self.a, &self.beta, sf, rank, &mut self.w[..sf]);
-        for (a, &i) in self.free.iter().enumerate() {
+        apply_q(
+            &self.a,
+            &self.beta,
+            &self.rend,
+            &self.made,
+            sf,
+            &mut self.w[..sf],
+            self.summation,
+        );
+        for (a, &i) in self.qr_rows.iter().enumerate() {
             x[i] = self.w[a];
         }
     }
@@ -255,60 +469,141 @@ impl NullSpace {
     /// ‖Cᵀλ + g‖, from the same factors. A unit equation takes all of g on its unknown;
     /// the others, through the QR, what is left on the free unknowns.
     pub fn multipliers(&mut self, g: &[f64], lambda: &mut [f64]) {
+        // Cᵀλ = −g solved as `solve_transpose` does: least squares on the QR's
+        // unknowns, exact on the unknowns unit equations fix.
+        let mut minus = std::mem::take(&mut self.scratch_g);
+        minus.clear();
+        minus.extend(g.iter().map(|v| -v));
+        self.solve_transpose(&minus, lambda);
+        self.scratch_g = minus;
+    }
+}
+
+impl NullSpace {
+    /// A solution μ (one entry per equation of the last [`NullSpace::reduce`]) of
+    /// Cᵀ μ = r (r of length s) that is exact whenever the system is consistent: on
+    /// the QR's unknowns A μ_others = r_free with A = Cᵀ[free, others] = Q R Pᵀ, so
+    /// μ = P R₁⁻¹ (Qᵀ r_free)₁..rank (the dependent equations get 0); then each
+    /// unit equation takes what its unknown's row leaves, r_i − Σ C[j][i] μ_j over
+    /// the others (a duplicate unit equation gets 0). Rows of untouched unknowns
+    /// (0 = r_i) are not checked.
+    pub fn solve_transpose(&mut self, r: &[f64], mu: &mut [f64]) {
         let s = self.s;
-        lambda[..self.rows].fill(0.0);
+        mu[..self.rows].fill(0.0);
         let sf = self.free.len();
         let rank = self.rank - (s - sf - self.untouched.len());
-        // Qᵀ g_free (Q = H₀ H₁ … H_{r−1}), then R₁ λ_sel = −(Qᵀ g)₁ by back substitution.
-        for (a, &i) in self.free.iter().enumerate() {
-            self.w[a] = g[i];
+        // w = Qᵀ r_free = H_{rank−1} ⋯ H₀ r_free, but for the groups apart (their rows
+        // keep r until the later unknowns are known).
+        for (a, &i) in self.qr_rows.iter().enumerate() {
+            self.w[a] = r[i];
         }
-        for k in 0..rank {
-            let v = &self.a[k * sf + k..(k + 1) * sf];
-            let y = &mut self.w[k..sf];
-            let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
-            let f = self.beta[k] * dot;
-            for (yi, vi) in y.iter_mut().zip(v) {
-                *yi -= f * vi;
+        for gi in 0..self.made.len() {
+            let GroupReflectors { ks, ke, apart } = self.made[gi];
+            if !apart {
+                for k in ks..ke {
+                    self.reflect(k, sf);
+                }
             }
         }
-        for i in (0..rank).rev() {
-            let mut acc = -self.w[i];
-            for j in i + 1..rank {
-                acc -= self.a[j * sf + i] * self.rhs[j];
+        // R₁ z = w₁..rank (R above the diagonal of `a`, column-major, its diagonal in
+        // `rdiag`), group by group from the last; a group apart first takes the later
+        // unknowns out of its rows (C's coefficients there) and then its Qᵀ.
+        for gi in (0..self.made.len()).rev() {
+            let GroupReflectors { ks, ke, apart } = self.made[gi];
+            if apart {
+                for i in ks..ke {
+                    let mut acc = self.w[i];
+                    for j in ke..rank {
+                        acc -= self.a[j * sf + i] * self.w[j];
+                    }
+                    self.w[i] = acc;
+                }
+                for k in ks..ke {
+                    self.reflect(k, sf);
+                }
             }
-            self.rhs[i] = acc / self.rdiag[i];
+            for i in (ks..ke).rev() {
+                let mut acc = self.w[i];
+                let upto = if apart { ke } else { rank };
+                for j in i + 1..upto {
+                    acc -= self.a[j * sf + i] * self.w[j];
+                }
+                self.w[i] = acc / self.rdiag[i];
+            }
         }
         for i in 0..rank {
-            lambda[self.others[self.perm[i]]] = self.rhs[i];
+            mu[self.others[self.perm[i]]] = self.w[i];
         }
-        // Unit equations: (Cᵀλ)ᵢ + gᵢ = 0 on the unknown each one fixes.
-        for &i in &self.pinned {
+        let np = self.pinned.len();
+        for (t, &i) in self.pinned.iter().enumerate() {
             if let Some(j) = self.fixed[i] {
-                let mut v = g[i];
-                for &o in &self.others {
-                    v += self.c[o * s + i] * lambda[o];
+                let mut v = r[i];
+                for (k, &o) in self.others.iter().enumerate() {
+                    v -= self.others_pinned[k * np + t] * mu[o];
                 }
-                lambda[j] = -v / self.c[j * s + i];
+                mu[j] = v / self.pin_coef[i];
             }
         }
     }
 }
 
+/// Marks a column of the QR found dependent.
+const DROPPED: usize = usize::MAX;
+
+/// How the columns of a grouped QR are grouped: per column its group (a segment),
+/// per segment the end of its rows; filled in, per reflector the end of its rows,
+/// and per group the reflectors it made and whether it stands apart (see
+/// [`householder_grouped`]).
+struct Grouping<'a> {
+    group: &'a mut [usize],
+    seg_end: &'a [usize],
+    rend: &'a mut [usize],
+    made: &'a mut Vec<GroupReflectors>,
+}
+
+/// The reflectors ks..ke of one group; `apart` when they span exactly its segment's
+/// rows (nothing left of earlier segments, the segment fully determined): they were
+/// not applied to the later groups' columns, whose rows there keep C's coefficients.
+#[derive(Debug, Clone, Copy)]
+struct GroupReflectors {
+    ks: usize,
+    ke: usize,
+    apart: bool,
+}
+
 /// Householder QR with column pivoting of the column-major `s` × `m` matrix `a`,
-/// stopping at the first pivot below [`NullSpace::RANK_TOLERANCE`] relative to the
-/// largest column; returns the rank. Reflectors stay below the diagonal, R above it
-/// with its diagonal in `rdiag`; `perm[k]` is the original column now at k. Column
-/// norms are downdated, and recomputed when cancellation has eaten most of them.
-fn householder_pivoted(
+/// group by group: the pivot is the column of largest remaining norm in the current
+/// group, whose columns are 0 past their segment's rows, so its reflectors and their
+/// updates stop there. A group ends at its first pivot below
+/// [`NullSpace::RANK_TOLERANCE`] relative to the largest column (its other columns
+/// are dependent). A group's reflectors reach the later groups' columns only when
+/// they must: when the group leaves rows of its segment (or found rows of earlier
+/// ones) for the later groups; when it determines exactly its segment's rows, the
+/// later columns keep C's coefficients there, and [`NullSpace::solve`] substitutes
+/// the segment's solution into them instead. Returns the rank. With one group this
+/// is the plain pivoted QR, operation for operation. Reflectors stay below the
+/// diagonal, R above it with its diagonal in `rdiag`; `perm[k]` is the original
+/// column now at k. Column norms are downdated, and recomputed when cancellation has
+/// eaten most of them.
+#[allow(clippy::too_many_arguments)]
+fn householder_grouped(
     a: &mut [f64],
     s: usize,
     m: usize,
+    grouping: Grouping,
+    how: Summation,
     rdiag: &mut [f64],
     beta: &mut [f64],
     perm: &mut [usize],
     norms: &mut [f64],
 ) -> usize {
+    let Grouping {
+        group,
+        seg_end,
+        rend,
+        made,
+    } = grouping;
+    made.clear();
     if m == 0 || s == 0 {
         return 0;
     }
@@ -316,75 +611,148 @@ fn householder_pivoted(
     let mut largest = 0.0f64;
     for j in 0..m {
         perm[j] = j;
-        let n2: f64 = a[j * s..(j + 1) * s].iter().map(|v| v * v).sum();
+        let col = &a[j * s..(j + 1) * s];
+        let n2 = dot(col, col, how);
         partial[j] = n2;
         reference[j] = n2;
         largest = largest.max(n2);
     }
     let tol2 = (NullSpace::RANK_TOLERANCE * largest.sqrt()).powi(2);
-    let mut rank = 0;
-    for k in 0..s.min(m) {
-        let mut best = k;
-        for j in k + 1..m {
-            if partial[j] > partial[best] {
-                best = j;
+    let groups = seg_end.len();
+    let mut k = 0;
+    for g in 0..groups {
+        let end = seg_end[g];
+        let start = if g > 0 { seg_end[g - 1] } else { 0 };
+        let ks = k;
+        if groups > 1 {
+            // Norms over the live rows (earlier groups' reflectors may not have
+            // reached these columns).
+            for j in k..m {
+                if group[j] == g {
+                    let live = &a[j * s + k..j * s + end];
+                    partial[j] = dot(live, live, how);
+                    reference[j] = partial[j];
+                }
             }
         }
-        if partial[best] <= tol2 {
-            // Confirm with exact norms before declaring the rest dependent.
-            let exact: f64 = a[best * s + k..(best + 1) * s].iter().map(|v| v * v).sum();
-            if exact <= tol2 {
+        while k < s.min(m) {
+            let mut best = None;
+            for j in k..m {
+                if group[j] == g && best.is_none_or(|b| partial[j] > partial[b]) {
+                    best = Some(j);
+                }
+            }
+            let exhausted = match best {
+                None => true,
+                Some(b) if partial[b] <= tol2 => {
+                    // Confirm with exact norms before declaring the rest dependent.
+                    let live = &a[b * s + k..b * s + end];
+                    let exact = dot(live, live, how);
+                    if exact <= tol2 {
+                        true
+                    } else {
+                        partial[b] = exact;
+                        false
+                    }
+                }
+                Some(_) => false,
+            };
+            if exhausted {
+                for gj in group[k..m].iter_mut().filter(|gj| **gj == g) {
+                    *gj = DROPPED;
+                }
                 break;
             }
-            partial[best] = exact;
-        }
-        if best != k {
-            for i in 0..s {
-                a.swap(k * s + i, best * s + i);
+            let best = best.expect("a column of the group");
+            if best != k {
+                for i in 0..s {
+                    a.swap(k * s + i, best * s + i);
+                }
+                perm.swap(k, best);
+                partial.swap(k, best);
+                reference.swap(k, best);
+                group.swap(k, best);
             }
-            perm.swap(k, best);
-            partial.swap(k, best);
-            reference.swap(k, best);
+            let col = &mut a[k * s + k..k * s + end];
+            let norm = dot(col, col, how).sqrt();
+            let alpha = if col[0] > 0.0 { -norm } else { norm };
+            col[0] -= alpha;
+            let vnorm2 = dot(col, col, how);
+            let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
+            rdiag[k] = alpha;
+            beta[k] = b;
+            rend[k] = end;
+            let (left, right) = a.split_at_mut((k + 1) * s);
+            let v = &left[k * s + k..k * s + end];
+            for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
+                let j = k + 1 + jj;
+                // This group's columns now; the later ones below, if at all.
+                if group[j] != g {
+                    continue;
+                }
+                let live = &mut y[k..end];
+                let f = b * dot(v, live, how);
+                for (yi, vi) in live.iter_mut().zip(v) {
+                    *yi -= f * vi;
+                }
+                // Downdate the partial norm of rows k+1.. of this column.
+                partial[j] -= live[0] * live[0];
+                if partial[j] < 1e-4 * reference[j] {
+                    partial[j] = dot(&y[k + 1..], &y[k + 1..], how);
+                    reference[j] = partial[j];
+                }
+            }
+            k += 1;
         }
-        let col = &mut a[k * s + k..(k + 1) * s];
-        let norm = col.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let alpha = if col[0] > 0.0 { -norm } else { norm };
-        col[0] -= alpha;
-        let vnorm2: f64 = col.iter().map(|v| v * v).sum();
-        let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
-        rdiag[k] = alpha;
-        beta[k] = b;
-        let (left, right) = a.split_at_mut((k + 1) * s);
-        let v = &left[k * s + k..(k + 1) * s];
-        for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
-            let y = &mut y[k..];
-            let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
-            let f = b * dot;
+        let apart = ks == start && k == end;
+        if !apart && g + 1 < groups {
+            // The later groups' columns see this group's reflectors, in order.
+            for r in ks..k {
+                let (left, right) = a.split_at_mut((r + 1) * s);
+                let v = &left[r * s + r..r * s + end];
+                for (jj, y) in right.chunks_exact_mut(s).take(m - r - 1).enumerate() {
+                    let j = r + 1 + jj;
+                    if group[j] == DROPPED || group[j] <= g {
+                        continue;
+                    }
+                    let live = &mut y[r..end];
+                    let f = beta[r] * dot(v, live, how);
+                    for (yi, vi) in live.iter_mut().zip(v) {
+                        *yi -= f * vi;
+                    }
+                }
+            }
+        }
+        made.push(GroupReflectors { ks, ke: k, apart });
+        if k == s.min(m) {
+            break;
+        }
+    }
+    k
+}
+
+/// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`
+/// (reflector k nonzero on rows k..rend[k]), leaving out the groups apart (their
+/// rows are 0 in the null-space vectors, and `solve` applies them itself).
+#[allow(clippy::too_many_arguments)]
+fn apply_q(
+    a: &[f64],
+    beta: &[f64],
+    rend: &[usize],
+    made: &[GroupReflectors],
+    s: usize,
+    x: &mut [f64],
+    how: Summation,
+) {
+    for g in made.iter().rev().filter(|g| !g.apart) {
+        for k in (g.ks..g.ke).rev() {
+            let end = rend[k];
+            let v = &a[k * s + k..k * s + end];
+            let y = &mut x[k..end];
+            let f = beta[k] * dot(v, y, how);
             for (yi, vi) in y.iter_mut().zip(v) {
                 *yi -= f * vi;
             }
-            // Downdate the partial norm of rows k+1.. of this column.
-            let j = k + 1 + jj;
-            partial[j] -= y[0] * y[0];
-            if partial[j] < 1e-4 * reference[j] {
-                partial[j] = y[1..].iter().map(|v| v * v).sum();
-                reference[j] = partial[j];
-            }
-        }
-        rank += 1;
-    }
-    rank
-}
-
-/// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`.
-fn apply_q(a: &[f64], beta: &[f64], s: usize, rank: usize, x: &mut [f64]) {
-    for k in (0..rank).rev() {
-        let v = &a[k * s + k..(k + 1) * s];
-        let y = &mut x[k..s];
-        let dot: f64 = v.iter().zip(y.iter()).map(|(a, b)| a * b).sum();
-        let f = beta[k] * dot;
-        for (yi, vi) in y.iter_mut().zip(v) {
-            *yi -= f * vi;
         }
     }
 }
@@ -427,17 +795,19 @@ mod tests {
             ns.reduce(&row_major, b.as_slice(), rows);
             assert_eq!(ns.rank, rank, "rank of a {rows}×{s} matrix");
             assert_eq!(ns.dim, s - rank);
-            let n = DMatrix::from_row_slice(s, s, &ns.basis)
-                .columns(0, ns.dim)
-                .into_owned();
+            let n = DMatrix::from_row_slice(s, ns.dim, &ns.basis());
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12, "C N = 0");
             for i in 0..s {
                 let (start, row) = ns.row(i);
-                for j in 0..s {
+                for j in 0..ns.dim {
                     let inside = j >= start && j < start + row.len();
                     let v = if inside { row[j - start] } else { 0.0 };
-                    assert_eq!(v, ns.basis[i * s + j], "row {i} of N outside its span");
+                    assert_eq!(
+                        v,
+                        ns.basis()[i * ns.dim + j],
+                        "row {i} of N outside its span"
+                    );
                 }
             }
             let ntn = n.transpose() * &n;
@@ -475,15 +845,139 @@ mod tests {
             ns.reduce(&row_major, b.as_slice(), rows);
             let rank = c.clone().svd(false, false).rank(1e-9);
             assert_eq!(ns.rank, rank, "trial {trial}");
-            let n = DMatrix::from_row_slice(s, s, &ns.basis)
-                .columns(0, ns.dim)
-                .into_owned();
+            let n = DMatrix::from_row_slice(s, ns.dim, &ns.basis());
             let p = DMatrix::from_column_slice(s, 1, &ns.particular);
             assert!((&c * &n).amax() < 1e-12);
             assert!((n.transpose() * &n - DMatrix::identity(ns.dim, ns.dim)).amax() < 1e-12);
             assert!((&c * &p - &b).amax() < 1e-10);
             assert!((p[2] - x_true[2]).abs() < 1e-14 && (p[5] - x_true[5]).abs() < 1e-14);
             assert!(n.row(2).amax() == 0.0 && n.row(5).amax() == 0.0);
+        }
+    }
+
+    #[test]
+    fn transposed_solve_is_exact_for_consistent_systems() {
+        let mut seed = 23;
+        let (s, rows) = (8, 9);
+        for trial in 0..4 {
+            // Unit rows on unknowns 1 and 6, the rest dense (rank-deficient on odd
+            // trials, so some equations are dependent).
+            let mut c = DMatrix::zeros(rows, s);
+            c[(0, 1)] = 1.5;
+            c[(1, 6)] = -2.0;
+            let dense = low_rank(rows - 2, s, 5 + trial % 2, &mut seed);
+            c.view_mut((2, 0), (rows - 2, s)).copy_from(&dense);
+            let mu_true = DMatrix::from_fn(rows, 1, |_, _| pseudo_random(&mut seed));
+            let r = c.transpose() * &mu_true; // consistent
+            let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+            let mut ns = NullSpace::new(s, rows);
+            ns.reduce(&row_major, &vec![0.0; rows], rows);
+            let mut mu = vec![0.0; rows];
+            ns.solve_transpose(r.as_slice(), &mut mu);
+            let back = c.transpose() * DMatrix::from_column_slice(rows, 1, &mu);
+            assert!((back - &r).amax() < 1e-10, "trial {trial}: Cᵀμ = r");
+        }
+    }
+
+    #[test]
+    fn segments_give_the_same_reduction_and_zeros_where_earlier_ones_fix() {
+        // Block-triangular equations on (x, v, a), 4 unknowns each: A x = ·,
+        // B x + A v = ·, with A rank 3 (one redundant row in each block), one unit
+        // row on x; a untouched.
+        let mut seed = 5;
+        let (s, rows) = (12, 9);
+        for trial in 0..4 {
+            let a = low_rank(4, 4, 3, &mut seed);
+            let b = DMatrix::from_fn(4, 4, |_, _| pseudo_random(&mut seed));
+            let mut c = DMatrix::zeros(rows, s);
+            c.view_mut((0, 0), (4, 4)).copy_from(&a);
+            c.view_mut((4, 0), (4, 4)).copy_from(&b);
+            c.view_mut((4, 4), (4, 4)).copy_from(&a);
+            c[(8, trial % 4)] = 1.0;
+            let x_true = DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
+            let rhs = &c * &x_true;
+            let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+            let mut plain = NullSpace::new(s, rows);
+            plain.reduce(&row_major, rhs.as_slice(), rows);
+            let mut seg = NullSpace::new(s, rows);
+            seg.set_segments(&[0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]);
+            seg.reduce(&row_major, rhs.as_slice(), rows);
+            assert_eq!(
+                (seg.rank, seg.dim),
+                (plain.rank, plain.dim),
+                "trial {trial}"
+            );
+            let n = DMatrix::from_row_slice(s, seg.dim, &seg.basis());
+            let n0 = DMatrix::from_row_slice(s, plain.dim, &plain.basis());
+            assert!((&c * &n).amax() < 1e-12, "C N = 0");
+            assert!((n.transpose() * &n - DMatrix::identity(seg.dim, seg.dim)).amax() < 1e-12);
+            // The same space: N₀ N₀ᵀ N = N.
+            assert!((&n0 * (n0.transpose() * &n) - &n).amax() < 1e-12);
+            for i in 0..s {
+                assert!((seg.particular[i] - plain.particular[i]).abs() < 1e-12);
+                let (start, row) = seg.row(i);
+                for j in 0..seg.dim {
+                    let inside = j >= start && j < start + row.len();
+                    let v = if inside { row[j - start] } else { 0.0 };
+                    assert_eq!(
+                        v,
+                        seg.basis()[i * seg.dim + j],
+                        "row {i} of N outside its span"
+                    );
+                }
+            }
+            let b2 = &c * DMatrix::from_fn(s, 1, |_, _| pseudo_random(&mut seed));
+            let (mut x1, mut x2) = (vec![0.0; s], vec![0.0; s]);
+            plain.solve(b2.as_slice(), &mut x1);
+            seg.solve(b2.as_slice(), &mut x2);
+            assert!(x1.iter().zip(&x2).all(|(a, b)| (a - b).abs() < 1e-12));
+            let mu_true = DMatrix::from_fn(rows, 1, |_, _| pseudo_random(&mut seed));
+            let r = c.transpose() * &mu_true;
+            let mut mu = vec![0.0; rows];
+            seg.solve_transpose(r.as_slice(), &mut mu);
+            let back = c.transpose() * DMatrix::from_column_slice(rows, 1, &mu);
+            assert!((back - &r).amax() < 1e-10, "Cᵀμ = r");
+        }
+        // x fully fixed (A regular): the basis is exactly 0 on x.
+        let a = DMatrix::from_fn(4, 4, |_, _| pseudo_random(&mut seed));
+        let b = DMatrix::from_fn(3, 4, |_, _| pseudo_random(&mut seed));
+        let mut c = DMatrix::zeros(7, 12);
+        c.view_mut((0, 0), (4, 4)).copy_from(&a);
+        c.view_mut((4, 0), (3, 4)).copy_from(&b);
+        c.view_mut((4, 4), (3, 4)).copy_from(&a.rows(0, 3));
+        let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+        let rhs: Vec<f64> = (0..7).map(|_| pseudo_random(&mut seed)).collect();
+        let mut plain = NullSpace::new(12, 7);
+        plain.reduce(&row_major, &rhs, 7);
+        for how in [Summation::Sequential, Summation::Lanes] {
+            let mut seg = NullSpace::new(12, 7);
+            seg.set_segments(&[0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]);
+            seg.set_summation(how);
+            seg.reduce(&row_major, &rhs, 7);
+            assert_eq!(seg.dim, 5);
+            // The positions' group stands apart: its reflectors never reach the
+            // velocity equations, whose solution reads the positions' instead.
+            assert!(seg.made[0].apart && !seg.made[1].apart);
+            for i in 0..4 {
+                assert!(seg.row(i).1.is_empty(), "row {i} of N");
+            }
+            for i in 0..12 {
+                assert!((seg.particular[i] - plain.particular[i]).abs() < 1e-12);
+            }
+            let n = DMatrix::from_row_slice(12, seg.dim, &seg.basis());
+            assert!((&c * &n).amax() < 1e-12, "C N = 0");
+            assert!((n.transpose() * &n - DMatrix::identity(seg.dim, seg.dim)).amax() < 1e-12);
+            let b2 = &c * DMatrix::from_fn(12, 1, |_, _| pseudo_random(&mut seed));
+            let (mut x1, mut x2) = (vec![0.0; 12], vec![0.0; 12]);
+            plain.solve(b2.as_slice(), &mut x1);
+            seg.solve(b2.as_slice(), &mut x2);
+            assert!(x1.iter().zip(&x2).all(|(a, b)| (a - b).abs() < 1e-12));
+            let mu_true = DMatrix::from_fn(7, 1, |_, _| pseudo_random(&mut seed));
+            let r = c.transpose() * &mu_true;
+            let mut mu = vec![0.0; 7];
+            seg.solve_transpose(r.as_slice(), &mut mu);
+            let back = c.transpose() * DMatrix::from_column_slice(7, 1, &mu);
+            assert!((back - &r).amax() < 1e-10, "Cᵀμ = r");
         }
     }
 
@@ -520,6 +1014,9 @@ mod tests {
         let mut ns = NullSpace::new(3, 2);
         ns.reduce(&[], &[], 0);
         assert_eq!(ns.dim, 3);
-        assert_eq!(ns.basis, vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(
+            ns.basis(),
+            vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        );
     }
 }
