@@ -340,13 +340,33 @@ fn mat_vec(a: &[f64], rows: usize, cols: usize, x: &[f64], y: &mut [f64]) {
 /// Forward dynamics q̈(q, q̇, t) by the augmented system, and optionally its exact
 /// Jacobians, without allocating.
 ///
-/// With K = [M A_ᵀ; A 0] (A: the active rows of Φ_q) and [q̈; λ] = K⁻¹[Q; c]:
-///   K [∂q̈/∂q; ∂λ/∂q] = [∂Q/∂q − ∂(Φ_qᵀλ)/∂q; −∂(Φ̇_q q̇)/∂q − Φ_qq q̈]
+/// With K = [M Aᵀ; A −E] (A: the active rows of Φ_q, E = diag(εₖ), see below) and
+/// [q̈; λ] = K⁻¹[Q; c]:
+///   K [∂q̈/∂q; ∂λ/∂q] = [∂Q/∂q − ∂(Φ_qᵀλ)/∂q; −∂(Φ̇_q q̇)/∂q − Φ_qq q̈ + E_q λ]
 ///   K [∂q̈/∂q̇; ∂λ/∂q̇] = [∂Q/∂q̇; −2 Φ̇_q]
-/// (rows of the right-hand sides restricted to the active constraints).
+/// (rows of the right-hand sides restricted to the active constraints; row k of
+/// E_q λ is λₖ ∂εₖ/∂q).
+///
+/// **Singular configurations.** Where Φ_q is regular, E = 0: the KKT system of the
+/// paper (eq. "qDynSys"), computed exactly as before. Where Φ_q loses a rank (the
+/// parallelogram's flat configurations) K is singular, and near it the KKT q̈
+/// answers a velocity off the constraint manifold by round-off with an acceleration
+/// 1/σ larger (σ the smallest singular value of Φ_q); the hard constraints cannot
+/// remove that round-off there (they fix the velocity along the lost rank only to
+/// ε_mach/σ²), ∂q̈/∂q grows like 1/σ, and K no longer factors below σ ≈ 1e-8. So
+/// near rank loss the bottom block is −E with εₖ = w(s) ε_rel ‖aₖ‖²/m̄ (aₖ row k of
+/// A, m̄ the largest diagonal entry of M): the Tikhonov-regularized (penalty) form
+/// (M + AᵀE⁻¹A) q̈ = Q + AᵀE⁻¹c, regular at every configuration, with a bounded
+/// response to such velocities, and within O(ε/σ²) of the KKT q̈ where σ² ≫ ε.
+/// s = (tr G⁻¹)^(−1/2), G = ÂÂᵀ with Â the rows of A normalized, measures the
+/// distance to rank loss (√λ_min(G/m) ≤ s ≤ √λ_min(G)); w = 0 above
+/// [`DynamicsKernel::REGULAR_ABOVE`], 1 below [`DynamicsKernel::SINGULAR_BELOW`] and
+/// the cubic 1 − x²(3 − 2x) of x = log(s/below)/log(above/below) between, so q̈ is C¹
+/// and the Jacobians above exact everywhere.
 pub struct DynamicsKernel;
 
-/// Where the kernel's scratch lives inside `ws.reals`.
+/// Where the kernel's scratch lives inside `ws.reals`: the augmented system and its
+/// right-hand sides, then the singularity measure's scratch ([`MeasureLayout`]).
 struct KernelLayout {
     n: usize,
     ma: usize,
@@ -357,6 +377,7 @@ struct KernelLayout {
     kv: usize,
     cols: usize,
     c: usize,
+    measure: usize,
     end: usize,
 }
 
@@ -371,7 +392,8 @@ impl KernelLayout {
         let kv = kq + n * n;
         let cols = kv + n * n;
         let c = cols + 2 * n * big;
-        let end = c + m;
+        let measure = c + m;
+        let end = measure + MeasureLayout::new(model).end;
         KernelLayout {
             n,
             ma,
@@ -382,16 +404,281 @@ impl KernelLayout {
             kv,
             cols,
             c,
+            measure,
             end,
         }
     }
 }
 
+/// The singularity measure's scratch, relative to its start: Â (ma × n), G and its
+/// Cholesky factor, L⁻¹, G⁻¹ (ma × ma each), per-row vectors and their Hessian
+/// products (m × n each), εₖ and ‖aₖ‖ (ma each), ∂s/∂q (n).
+struct MeasureLayout {
+    gram: usize,
+    linv: usize,
+    ginv: usize,
+    vrows: usize,
+    hrows: usize,
+    eps: usize,
+    norms: usize,
+    ds: usize,
+    end: usize,
+}
+
+impl MeasureLayout {
+    fn new(model: &Model) -> Self {
+        let (n, m, ma) = (model.n(), model.m(), model.active.len());
+        let gram = ma * n;
+        let linv = gram + ma * ma;
+        let ginv = linv + ma * ma;
+        let vrows = ginv + ma * ma;
+        let hrows = vrows + m * n;
+        let eps = hrows + m * n;
+        let norms = eps + ma;
+        let ds = norms + ma;
+        let end = ds + n;
+        MeasureLayout {
+            gram,
+            linv,
+            ginv,
+            vrows,
+            hrows,
+            eps,
+            norms,
+            ds,
+            end,
+        }
+    }
+}
+
+/// The regularization at one configuration: the weight w(s), dw/ds and s.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Regularization {
+    w: f64,
+    dw: f64,
+    s: f64,
+}
+
+/// m̄: the largest diagonal entry of M (1 for a massless model).
+fn mass_scale(model: &Model) -> f64 {
+    let m = (0..model.n()).fold(0.0f64, |m, i| m.max(model.mass[(i, i)]));
+    if m > 0.0 {
+        m
+    } else {
+        1.0
+    }
+}
+
 impl DynamicsKernel {
+    /// ε_rel: εₖ = w ε_rel ‖aₖ‖²/m̄. With the ramp below, ε_rel from 5e-8 to 5e-5
+    /// lets DC pass the parallelogram's five flat points at Δt = 1e-3 to 1e-5 s and
+    /// seven phases of the motion; 5e-9 does not. 1e-6 sits in the middle.
+    pub const REGULARIZATION: f64 = 1e-6;
+    /// Below this s the regularization is full (w = 1).
+    pub const SINGULAR_BELOW: f64 = 1e-4;
+    /// At or above this s the system is the plain KKT system (w = 0). With the
+    /// damped corrections of [`crate::linalg::nullspace::NullSpace`] the KKT system
+    /// serves down to s ≈ 1e-4: ramps from (1e-5, 1e-4) to (1e-3, 1e-2) all pass the
+    /// parallelogram, (1e-7, 1e-6) does not. The top stays below the regular motion
+    /// of every scene: pick-and-place comes closest (s = 4.5e-3 at t = 0.39 s; a
+    /// ramp up to 1e-2 changed its run), the four-bar stays above 0.37.
+    pub const REGULAR_ABOVE: f64 = 1e-3;
+
     /// Scratch needed: (reals, indices).
     pub fn scratch(model: &Model) -> (usize, usize) {
         let l = KernelLayout::new(model);
         (l.end, l.n + l.ma)
+    }
+
+    /// The distance to rank loss s(q) = (tr G⁻¹)^(−1/2) of the active rows of Φ_q
+    /// (see [`DynamicsKernel`]), the weight w(s) of the regularization there (w = 0,
+    /// the plain KKT system, for s ≥ [`DynamicsKernel::REGULAR_ABOVE`]) and, where
+    /// w is in its ramp, ∂s/∂q (else `None`). Allocates; for diagnostics and tests.
+    pub fn regularization_at(model: &Model, q: &[f64]) -> (f64, f64, Option<Vec<f64>>) {
+        let (n, m) = (model.n(), model.m());
+        let mut mat = vec![0.0; m * n];
+        model.jacobian_into(q, &mut mat);
+        let ml = MeasureLayout::new(model);
+        let mut scratch = vec![0.0; ml.end];
+        let reg = Self::measure(model, &mat, &mut scratch);
+        let gradient = (reg.dw != 0.0).then(|| {
+            Self::measure_gradient(model, q, reg.s, &mut scratch);
+            scratch[ml.ds..ml.ds + n].to_vec()
+        });
+        (reg.s, reg.w, gradient)
+    }
+
+    /// The distance s to rank loss of the active rows of Φ_q (`mat`, row-major
+    /// m × n) and the weight w(s); leaves Â, G⁻¹ and ‖aₖ‖ in `scratch` for
+    /// [`DynamicsKernel::measure_gradient`]. s = 0 where Φ_q has lost a rank or has
+    /// a zero row.
+    fn measure(model: &Model, mat: &[f64], scratch: &mut [f64]) -> Regularization {
+        let (n, ma) = (model.n(), model.active.len());
+        let ml = MeasureLayout::new(model);
+        let singular = Regularization {
+            w: 1.0,
+            dw: 0.0,
+            s: 0.0,
+        };
+        if ma == 0 {
+            return Regularization {
+                w: 0.0,
+                dw: 0.0,
+                s: f64::INFINITY,
+            };
+        }
+        let (abar, rest) = scratch[..ml.end].split_at_mut(ml.gram);
+        let (gram, rest) = rest.split_at_mut(ml.linv - ml.gram);
+        let (linv, rest) = rest.split_at_mut(ml.ginv - ml.linv);
+        let (ginv, rest) = rest.split_at_mut(ml.vrows - ml.ginv);
+        let norms = &mut rest[ml.norms - ml.vrows..ml.ds - ml.vrows];
+        for (r, &k) in model.active.iter().enumerate() {
+            norms[r] = mat[k * n..(k + 1) * n]
+                .iter()
+                .map(|v| v * v)
+                .sum::<f64>()
+                .sqrt();
+        }
+        if !norms.iter().all(|&v| v > 0.0) {
+            return singular;
+        }
+        for (r, &k) in model.active.iter().enumerate() {
+            for (a, v) in abar[r * n..(r + 1) * n]
+                .iter_mut()
+                .zip(&mat[k * n..(k + 1) * n])
+            {
+                *a = v / norms[r];
+            }
+        }
+        for i in 0..ma {
+            for j in 0..=i {
+                let g: f64 = (0..n).map(|c| abar[i * n + c] * abar[j * n + c]).sum();
+                gram[i * ma + j] = g;
+                gram[j * ma + i] = g;
+            }
+        }
+        if dense::cholesky(gram, ma).is_err() {
+            return singular;
+        }
+        // L⁻¹ (lower triangular) column by column; tr G⁻¹ = ‖L⁻¹‖_F².
+        linv.fill(0.0);
+        let mut trace = 0.0;
+        for j in 0..ma {
+            for i in j..ma {
+                let mut v = if i == j { 1.0 } else { 0.0 };
+                for k in j..i {
+                    v -= gram[i * ma + k] * linv[k * ma + j];
+                }
+                v /= gram[i * ma + i];
+                linv[i * ma + j] = v;
+                trace += v * v;
+            }
+        }
+        let s = trace.recip().sqrt();
+        if !(s > 0.0) {
+            return singular;
+        }
+        let (lo, hi) = (Self::SINGULAR_BELOW, Self::REGULAR_ABOVE);
+        if s >= hi {
+            return Regularization { w: 0.0, dw: 0.0, s };
+        }
+        // G⁻¹ = L⁻ᵀL⁻¹, for the gradient of s.
+        for i in 0..ma {
+            for j in 0..=i {
+                let g: f64 = (i..ma).map(|k| linv[k * ma + i] * linv[k * ma + j]).sum();
+                ginv[i * ma + j] = g;
+                ginv[j * ma + i] = g;
+            }
+        }
+        if s <= lo {
+            return Regularization { w: 1.0, dw: 0.0, s };
+        }
+        let span = (hi / lo).ln();
+        let x = (s / lo).ln() / span;
+        Regularization {
+            w: 1.0 - x * x * (3.0 - 2.0 * x),
+            dw: -6.0 * x * (1.0 - x) / (s * span),
+            s,
+        }
+    }
+
+    /// ∂s/∂q into the scratch's `ds`, from what [`DynamicsKernel::measure`] left:
+    /// s = T^(−1/2) with T = tr G⁻¹ and ∂T = −tr(G⁻²∂G), G = ÂÂᵀ, so
+    /// ∂s/∂q = s³ Σₖ Φᵏ_qq yₖ with zₖ = Σₗ (G⁻²)ₖₗ âₗ and
+    /// yₖ = (zₖ − (âₖ·zₖ) âₖ)/‖aₖ‖ (âₖ = aₖ/‖aₖ‖ moves by (I − âₖâₖᵀ) ∂aₖ/‖aₖ‖,
+    /// ∂aₖ/∂q = Φᵏ_qq).
+    fn measure_gradient(model: &Model, q: &[f64], s: f64, scratch: &mut [f64]) {
+        let (n, ma, m) = (model.n(), model.active.len(), model.m());
+        let ml = MeasureLayout::new(model);
+        let (abar, rest) = scratch[..ml.end].split_at_mut(ml.gram);
+        let (_, rest) = rest.split_at_mut(ml.linv - ml.gram);
+        let (g2, rest) = rest.split_at_mut(ml.ginv - ml.linv);
+        let (ginv, rest) = rest.split_at_mut(ml.vrows - ml.ginv);
+        let (vrows, rest) = rest.split_at_mut(m * n);
+        let (hrows, rest) = rest.split_at_mut(m * n);
+        let (norms, ds) = rest[ma..].split_at_mut(ma);
+        // G⁻² where L⁻¹ was.
+        for i in 0..ma {
+            for j in 0..ma {
+                g2[i * ma + j] = (0..ma).map(|k| ginv[i * ma + k] * ginv[k * ma + j]).sum();
+            }
+        }
+        vrows.fill(0.0);
+        for (r, &k) in model.active.iter().enumerate() {
+            let y = &mut vrows[k * n..(k + 1) * n];
+            for (c, yc) in y.iter_mut().enumerate() {
+                *yc = (0..ma).map(|j| g2[r * ma + j] * abar[j * n + c]).sum();
+            }
+            let a = &abar[r * n..(r + 1) * n];
+            let dot: f64 = a.iter().zip(y.iter()).map(|(x, z)| x * z).sum();
+            for (yc, ac) in y.iter_mut().zip(a) {
+                *yc = (*yc - dot * ac) / norms[r];
+            }
+        }
+        model.hessian_rows_into(q, vrows, hrows);
+        let s3 = s * s * s;
+        for (j, d) in ds[..n].iter_mut().enumerate() {
+            *d = s3 * model.active.iter().map(|&k| hrows[k * n + j]).sum::<f64>();
+        }
+    }
+
+    /// Adds λₖ ∂εₖ/∂q to the bottom rows' q columns of the right-hand sides `cols`
+    /// (row-major, `width` columns): εₖ = w(s) ε_rel ‖aₖ‖²/m̄, ∂‖aₖ‖² = 2 Φᵏ_qq aₖ,
+    /// ∂w = w'(s) ∂s/∂q.
+    #[allow(clippy::too_many_arguments)]
+    fn add_regularization_terms(
+        model: &Model,
+        q: &[f64],
+        reg: Regularization,
+        lambda: &[f64],
+        cols: &mut [f64],
+        width: usize,
+        scratch: &mut [f64],
+    ) {
+        let (n, m) = (model.n(), model.m());
+        let ml = MeasureLayout::new(model);
+        if reg.dw != 0.0 {
+            Self::measure_gradient(model, q, reg.s, scratch);
+        }
+        let (head, rest) = scratch[..ml.end].split_at_mut(ml.hrows);
+        let vrows = &mut head[ml.vrows..];
+        let (hrows, rest) = rest.split_at_mut(m * n);
+        let norms = &rest[ml.norms - ml.eps..ml.ds - ml.eps];
+        let ds = &rest[ml.ds - ml.eps..ml.end - ml.eps];
+        model.jacobian_into(q, vrows);
+        model.hessian_rows_into(q, vrows, hrows);
+        let scale = Self::REGULARIZATION / mass_scale(model);
+        for (r, &k) in model.active.iter().enumerate() {
+            let norm2 = norms[r] * norms[r];
+            let row = &mut cols[(n + r) * width..(n + r) * width + n];
+            for (j, o) in row.iter_mut().enumerate() {
+                let mut de = 2.0 * reg.w * hrows[k * n + j];
+                if reg.dw != 0.0 {
+                    de += norm2 * reg.dw * ds[j];
+                }
+                *o += lambda[r] * scale * de;
+            }
+        }
     }
 
     /// Computes q̈ into `ddq`; with `jac`, ∂q̈/∂q and ∂q̈/∂q̇ into the row-major n × n
@@ -415,7 +702,8 @@ impl DynamicsKernel {
         let big = n + ma;
         let m = model.m();
         let perm = &mut indices[..big];
-        let (kkt, rest) = reals[..l.end].split_at_mut(l.sol);
+        let (main, scratch) = reals[..l.end].split_at_mut(l.measure);
+        let (kkt, rest) = main.split_at_mut(l.sol);
         let (sol, rest) = rest.split_at_mut(l.tmp - l.sol);
         let (tmp, rest) = rest.split_at_mut(l.mat - l.tmp);
         let (mat, rest) = rest.split_at_mut(l.kq - l.mat);
@@ -424,8 +712,9 @@ impl DynamicsKernel {
         let (cols, rest) = rest.split_at_mut(l.c - l.cols);
         let c = &mut rest[..m];
 
-        // K = [M Aᵀ; A 0] and the right-hand side [Q; c].
+        // K = [M Aᵀ; A −E] and the right-hand side [Q; c].
         model.jacobian_into(q, mat);
+        let reg = Self::measure(model, mat, scratch);
         kkt.fill(0.0);
         for i in 0..n {
             for j in 0..n {
@@ -437,6 +726,16 @@ impl DynamicsKernel {
                 let a = mat[k * n + j];
                 kkt[(n + r) * big + j] = a;
                 kkt[j * big + n + r] = a;
+            }
+        }
+        if reg.w > 0.0 {
+            let ml = MeasureLayout::new(model);
+            let scale = Self::REGULARIZATION * reg.w / mass_scale(model);
+            for r in 0..ma {
+                let norm = scratch[ml.norms + r];
+                let e = scale * norm * norm;
+                scratch[ml.eps + r] = e;
+                kkt[(n + r) * big + n + r] = -e;
             }
         }
         sol.fill(0.0);
@@ -493,6 +792,9 @@ impl DynamicsKernel {
             for (o, v) in row.iter_mut().zip(&mat[k * n..(k + 1) * n]) {
                 *o -= v;
             }
+        }
+        if reg.w > 0.0 {
+            Self::add_regularization_terms(model, q, reg, &sol[n..big], cols, w, scratch);
         }
         // Bottom rows for q̇: −2 Φ̇_q.
         model.jacobian_derivative_into(q, dq, mat);

@@ -457,6 +457,21 @@ impl Model {
         }
     }
 
+    /// Row k of the row-major m × n `out` = Φᵏ_qq(q) vₖ, with vₖ row k of the
+    /// row-major m × n `v`: each constraint's Hessian applied to its own vector (the
+    /// derivative of the gradient Φᵏ_q in direction vₖ).
+    pub fn hessian_rows_into(&self, q: &[f64], v: &[f64], out: &mut [f64]) {
+        let n = self.n();
+        out[..self.m() * n].fill(0.0);
+        let (mut u, mut w, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (row, c) in self.constraints.iter().enumerate() {
+            c.gather(q, &mut u);
+            c.gather_rate(&v[row * n..(row + 1) * n], &mut w);
+            c.equation.hessian_times(&u, &w, &mut h);
+            c.scatter(&h, &mut out[row * n..(row + 1) * n]);
+        }
+    }
+
     /// Adds Σ_k λ_k ∂²Φ_k/∂q² over the active constraints (λ indexed like
     /// `active`) to the row-major n × n `out`: the derivative of Φ_qᵀλ with λ fixed.
     pub fn add_weighted_hessians(&self, q: &[f64], lambda: &[f64], out: &mut [f64]) {
