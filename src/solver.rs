@@ -872,8 +872,11 @@ impl WindowSolver {
             // blocks of H (and the lagged ones into the previous step's) while they
             // are in cache.
             self.h.set_blocks(blocks);
+            let cached = self.hard_cache.take() == Some(k0) && blocks == 1;
             for b in 0..blocks {
-                self.hard_block(graph, values, b, mode)?;
+                if !cached {
+                    self.hard_block(graph, values, b, mode)?;
+                }
                 self.h.reset_block(b, self.hard[b].reduction.dim);
                 self.g[b * s..(b + 1) * s].fill(0.0);
                 for at in self.block_start[b]..self.block_start[b + 1] {
