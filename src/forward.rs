@@ -385,11 +385,11 @@ impl StepFailure {
         let t = round_time(self.t);
         match &self.singular {
             Some(c) => format!(
-                "singular configuration at t ≈ {} s (extrapolated): the independent \
+                "singular configuration at t ≈ {:.6} s (extrapolated): the independent \
                  coordinates [{}] do not determine the other coordinates' velocities there \
                  (rank of Φ_q over the dependent coordinates [{}] {} < {}); stopped at step {} \
                  (t = {t} s), where its distance to rank loss is {:.1e} and falling",
-                round_time(c.t_singular),
+                c.t_singular,
                 c.independent.join(", "),
                 c.dependent.join(", "),
                 c.rank,
