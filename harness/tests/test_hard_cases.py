@@ -13,6 +13,7 @@ KNOWN = {
 
 CASES = {
     "parallelogram-dc-1ms": lambda: hc.parallelogram([1e-3], ["dc"]),
+    "parallelogram-ic-1ms-ill-posed": lambda: hc.parallelogram([1e-3], ["ic"]),
     "slider-crank-dead-centres": lambda: hc.dead_centres(["dc", "ic"]),
     "fourbar-60s-dc": lambda: hc.long_run(60.0, ["dc"]),
     "stiff-spring": hc.stiff_spring,
