@@ -160,7 +160,8 @@ def hard_page(fast: bool) -> tuple[str, list]:
     text = ("# Hard-case stability suite\n\n"
             f"{passed} of {len(outcomes)} runs pass. Scenes in `scenes/hard/`; criteria and code in "
             "`harness/hard_cases.py`. A case passes when the run converges at every step, stays on "
-            "the reference branch, keeps |Φ| ≤ 1e-9 and meets its error/energy bound.\n\n"
+            "the reference branch, keeps |Φ| ≤ 1e-9 and meets its error/energy bound — or, where the "
+            "problem itself is ill-posed, stops with the status that names the step and the cause.\n\n"
             + hard_cases.table(outcomes) + "\n")
     return text, outcomes
 

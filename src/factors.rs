@@ -500,7 +500,7 @@ impl DynamicsKernel {
         model.jacobian_into(q, &mut mat);
         let ml = MeasureLayout::new(model);
         let mut scratch = vec![0.0; ml.end];
-        let reg = Self::measure(model, &mat, &mut scratch);
+        let reg = Self::measure(model, &mat, &mut scratch, true);
         let gradient = (reg.dw != 0.0).then(|| {
             Self::measure_gradient(model, q, reg.s, &mut scratch);
             scratch[ml.ds..ml.ds + n].to_vec()
@@ -509,10 +509,12 @@ impl DynamicsKernel {
     }
 
     /// The distance s to rank loss of the active rows of Φ_q (`mat`, row-major
-    /// m × n) and the weight w(s); leaves Â, G⁻¹ and ‖aₖ‖ in `scratch` for
+    /// m × n) and the weight w(s); leaves ‖aₖ‖ and, below
+    /// [`DynamicsKernel::REGULAR_ABOVE`], G⁻¹ in `scratch` for
     /// [`DynamicsKernel::measure_gradient`]. s = 0 where Φ_q has lost a rank or has
-    /// a zero row.
-    fn measure(model: &Model, mat: &[f64], scratch: &mut [f64]) -> Regularization {
+    /// a zero row. Unless `exact`, s may be reported as REGULAR_ABOVE where a bound
+    /// shows it is at least that (w = 0 either way).
+    fn measure(model: &Model, mat: &[f64], scratch: &mut [f64], exact: bool) -> Regularization {
         let (n, ma) = (model.n(), model.active.len());
         let ml = MeasureLayout::new(model);
         let singular = Regularization {
@@ -527,49 +529,65 @@ impl DynamicsKernel {
                 s: f64::INFINITY,
             };
         }
-        let (abar, rest) = scratch[..ml.end].split_at_mut(ml.gram);
-        let (gram, rest) = rest.split_at_mut(ml.linv - ml.gram);
+        let (_, rest) = scratch[..ml.end].split_at_mut(ml.gram);
+        let (chol, rest) = rest.split_at_mut(ml.linv - ml.gram);
         let (linv, rest) = rest.split_at_mut(ml.ginv - ml.linv);
         let (ginv, rest) = rest.split_at_mut(ml.vrows - ml.ginv);
         let norms = &mut rest[ml.norms - ml.vrows..ml.ds - ml.vrows];
-        for (r, &k) in model.active.iter().enumerate() {
-            norms[r] = mat[k * n..(k + 1) * n]
-                .iter()
-                .map(|v| v * v)
-                .sum::<f64>()
-                .sqrt();
-        }
-        if !norms.iter().all(|&v| v > 0.0) {
-            return singular;
-        }
-        for (r, &k) in model.active.iter().enumerate() {
-            for (a, v) in abar[r * n..(r + 1) * n]
-                .iter_mut()
-                .zip(&mat[k * n..(k + 1) * n])
-            {
-                *a = v / norms[r];
+        // AAᵀ (lower triangle) and the row norms from its diagonal.
+        for (i, &ki) in model.active.iter().enumerate() {
+            let ri = &mat[ki * n..(ki + 1) * n];
+            for (j, &kj) in model.active[..=i].iter().enumerate() {
+                let rj = &mat[kj * n..(kj + 1) * n];
+                chol[i * ma + j] = ri.iter().zip(rj).map(|(a, b)| a * b).sum();
             }
+            let n2 = chol[i * ma + i];
+            if !(n2 > 0.0) {
+                return singular;
+            }
+            norms[i] = n2.sqrt();
         }
+        // In place, the Cholesky factor L of G = ÂÂᵀ, G_ij = (AAᵀ)_ij/(‖aᵢ‖‖aⱼ‖).
         for i in 0..ma {
             for j in 0..=i {
-                let g: f64 = (0..n).map(|c| abar[i * n + c] * abar[j * n + c]).sum();
-                gram[i * ma + j] = g;
-                gram[j * ma + i] = g;
+                let mut g = chol[i * ma + j] / (norms[i] * norms[j]);
+                for k in 0..j {
+                    g -= chol[i * ma + k] * chol[j * ma + k];
+                }
+                if i == j {
+                    if !(g > 0.0) {
+                        return singular;
+                    }
+                    chol[i * ma + i] = g.sqrt();
+                } else {
+                    chol[i * ma + j] = g / chol[j * ma + j];
+                }
             }
         }
-        if dense::cholesky(gram, ma).is_err() {
-            return singular;
+        // λ_min(G) ≥ det G / λ_max^(m−1) ≥ det G / m^(m−1) (tr G = m), and
+        // s² ≥ λ_min/m: far from rank loss that settles w = 0 without G⁻¹.
+        if !exact {
+            let det: f64 = (0..ma)
+                .map(|i| chol[i * ma + i] * chol[i * ma + i])
+                .product();
+            let hi = Self::REGULAR_ABOVE;
+            if det >= hi * hi * (ma as f64).powi(ma as i32) {
+                return Regularization {
+                    w: 0.0,
+                    dw: 0.0,
+                    s: hi,
+                };
+            }
         }
         // L⁻¹ (lower triangular) column by column; tr G⁻¹ = ‖L⁻¹‖_F².
-        linv.fill(0.0);
         let mut trace = 0.0;
         for j in 0..ma {
             for i in j..ma {
                 let mut v = if i == j { 1.0 } else { 0.0 };
                 for k in j..i {
-                    v -= gram[i * ma + k] * linv[k * ma + j];
+                    v -= chol[i * ma + k] * linv[k * ma + j];
                 }
-                v /= gram[i * ma + i];
+                v /= chol[i * ma + i];
                 linv[i * ma + j] = v;
                 trace += v * v;
             }
@@ -617,6 +635,16 @@ impl DynamicsKernel {
         let (vrows, rest) = rest.split_at_mut(m * n);
         let (hrows, rest) = rest.split_at_mut(m * n);
         let (norms, ds) = rest[ma..].split_at_mut(ma);
+        // Â from the active rows of Φ_q.
+        model.jacobian_into(q, hrows);
+        for (r, &k) in model.active.iter().enumerate() {
+            for (a, v) in abar[r * n..(r + 1) * n]
+                .iter_mut()
+                .zip(&hrows[k * n..(k + 1) * n])
+            {
+                *a = v / norms[r];
+            }
+        }
         // G⁻² where L⁻¹ was.
         for i in 0..ma {
             for j in 0..ma {
@@ -714,7 +742,7 @@ impl DynamicsKernel {
 
         // K = [M Aᵀ; A −E] and the right-hand side [Q; c].
         model.jacobian_into(q, mat);
-        let reg = Self::measure(model, mat, scratch);
+        let reg = Self::measure(model, mat, scratch, false);
         kkt.fill(0.0);
         for i in 0..n {
             for j in 0..n {

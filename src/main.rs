@@ -348,41 +348,22 @@ fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Resul
     let line = summary_line(options, &summary);
     output.summary(&line);
     for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
-        eprintln!(
-            "warning: step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations",
-            f.step,
-            round_time(f.t),
-            f.report.termination,
-            f.report.cost,
-            f.report.iterations
-        );
+        eprintln!("warning: {}", f.message());
     }
     if let (true, Some(f)) = (stopped, first_failure) {
-        let singular = if f.constraint_conditioning < 1e-2 {
-            format!(
-                "; Φ_q is close to losing rank there (σ_r/σ₁ = {:.1e}): a singular configuration",
-                f.constraint_conditioning
-            )
-        } else {
-            String::new()
-        };
         let what = if writable {
             format!("the {} steps before it were written", trajectory.len())
         } else {
             "nothing was written".into()
         };
-        return Err(Failure::Run(format!(
-            "step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations{singular}; {what} \
-             (--continue-on-failure goes on, --max-iterations allows more)",
-            f.step, round_time(f.t), f.report.termination, f.report.cost, f.report.iterations
-        )));
+        let hint = if f.singular.is_some() {
+            "dependent coordinates (--coords dc) do not depend on that choice"
+        } else {
+            "--continue-on-failure goes on, --max-iterations allows more"
+        };
+        return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
     }
     Ok(())
-}
-
-/// A time for messages: t₀ + k·Δt carries round-off (1.2690000000000001).
-fn round_time(t: f64) -> f64 {
-    (t * 1e9).round() / 1e9
 }
 
 fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
@@ -404,8 +385,12 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
     if let Some(d) = s.energy_drift {
         line += &format!("; energy drift {d:.2e} J");
     }
-    if !s.failures.is_empty() {
-        line += &format!("; {} step(s) did not converge", s.failures.len());
+    let unconverged = s.failures.iter().filter(|f| f.singular.is_none()).count();
+    if unconverged > 0 {
+        line += &format!("; {unconverged} step(s) did not converge");
+    }
+    if s.failures.iter().any(|f| f.singular.is_some()) {
+        line += "; stopped ahead of a singular configuration";
     }
     line
 }

@@ -460,11 +460,9 @@ fn simulate_run<'py>(
     let (tr, s) = py
         .detach(|| forward::simulate(model, &options, &mut |_, _| {}))
         .map_err(|e| SolveError::new_err(e.to_string()))?;
-    if let (false, Some(f)) = (continue_on_failure, s.failures.first()) {
-        return Err(SolveError::new_err(format!(
-            "step {} (t = {} s) did not converge: {}, cost {:.3e} after {} iterations",
-            f.step, f.t, f.report.termination, f.report.cost, f.report.iterations
-        )));
+    let stopped = s.failures.iter().find(|f| f.singular.is_some());
+    if let Some(f) = stopped.or(s.failures.first().filter(|_| !continue_on_failure)) {
+        return Err(SolveError::new_err(f.message()));
     }
     let out = run_table(py, &tr, None)?;
     let summary = PyDict::new(py);
@@ -481,7 +479,11 @@ fn simulate_run<'py>(
         let d = PyDict::new(py);
         d.set_item("step", f.step)?;
         d.set_item("t", f.t)?;
-        d.set_item("reason", f.report.termination.to_string())?;
+        let reason = match f.singular {
+            Some(_) => "singular configuration".to_string(),
+            None => f.report.termination.to_string(),
+        };
+        d.set_item("reason", reason)?;
         d.set_item("cost", f.report.cost)?;
         failures.append(d)?;
     }

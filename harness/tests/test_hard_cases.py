@@ -10,6 +10,7 @@ KNOWN: dict[str, str] = {}
 
 CASES = {
     "parallelogram-dc-1ms": lambda: hc.parallelogram([1e-3], ["dc"]),
+    "parallelogram-ic-1ms-ill-posed": lambda: hc.parallelogram([1e-3], ["ic"]),
     "slider-crank-dead-centres": lambda: hc.dead_centres(["dc", "ic"]),
     "fourbar-60s": lambda: hc.long_run(60.0, ["dc", "ic"]),
     "stiff-spring": hc.stiff_spring,
