@@ -2035,34 +2035,27 @@ mod tests {
     fn exact_hessian_is_the_second_derivative_of_the_cost_on_the_manifold() {
         let (fg, mut values, prior, mut solver, k) = window();
         let s = solver.s;
+        let linearize = |solver: &mut WindowSolver, values: &[f64]| {
+            solver
+                .evaluate(
+                    &fg.graph,
+                    values,
+                    k,
+                    k + 1,
+                    Some(&prior),
+                    Scope::Window,
+                    true,
+                )
+                .unwrap();
+        };
         // Away from the optimum (large residuals): a step along the manifold.
-        solver
-            .evaluate(
-                &fg.graph,
-                &values,
-                k,
-                k + 1,
-                Some(&prior),
-                Scope::Window,
-                true,
-            )
-            .unwrap();
+        linearize(&mut solver, &values);
         for i in 0..s {
             let (_, row) = solver.hard[0].reduction.row(i);
             values[k * s + i] += 0.2 * row.iter().sum::<f64>();
         }
         cost_on_manifold(&mut solver, &fg, &mut values, k, &prior);
-        solver
-            .evaluate(
-                &fg.graph,
-                &values,
-                k,
-                k + 1,
-                Some(&prior),
-                Scope::Window,
-                true,
-            )
-            .unwrap();
+        linearize(&mut solver, &values);
         let gauss_newton = solver.h.diag(0).to_vec();
         solver
             .exact_hessian(&fg.graph, &mut values, k, k + 1, Some(&prior))
