@@ -198,6 +198,29 @@ struct Instance {
     step: usize,
 }
 
+/// The buffers of one factor instance.
+fn buffers<'a>(
+    initial: &'a mut [FactorBuffers],
+    step: &'a mut [FactorBuffers],
+    inst: Instance,
+) -> &'a mut FactorBuffers {
+    if inst.initial {
+        &mut initial[inst.index]
+    } else {
+        &mut step[inst.index]
+    }
+}
+
+/// Names the factor, step and time in a factor's `Singular` error.
+fn located(factor: &dyn Factor, step: usize, t: f64) -> impl FnOnce(Error) -> Error + '_ {
+    move |e| match e {
+        Error::Singular(m) => {
+            Error::Singular(format!("{} at step {step} (t = {t}): {m}", factor.name()))
+        }
+        other => other,
+    }
+}
+
 fn factor_of(graph: &ChainGraph, inst: Instance) -> &dyn Factor {
     if inst.initial {
         graph.initial_factors[inst.index].as_ref()
@@ -535,11 +558,7 @@ impl WindowSolver {
     ) -> Result<()> {
         let s = self.s;
         let factor = factor_of(graph, inst);
-        let buf = if inst.initial {
-            &mut self.initial_buffers[inst.index]
-        } else {
-            &mut self.step_buffers[inst.index]
-        };
+        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
         let keys = factor.keys();
         let mut xs: [&[f64]; 8] = [&[]; 8];
         for (slot, k) in xs.iter_mut().zip(keys) {
@@ -556,14 +575,7 @@ impl WindowSolver {
                 linearize.then_some(buf.jac.as_mut_slice()),
                 &mut self.ws,
             )
-            .map_err(|e| match e {
-                Error::Singular(m) => Error::Singular(format!(
-                    "{} at step {} (t = {t}): {m}",
-                    factor.name(),
-                    inst.step
-                )),
-                other => other,
-            })
+            .map_err(located(factor, inst.step, t))
     }
 
     /// Evaluates the hard factors of block `b` (step k0 + b) of the listed instances,
@@ -589,11 +601,7 @@ impl WindowSolver {
                 continue;
             }
             self.evaluate_instance(graph, values, inst, linearize)?;
-            let buf = if inst.initial {
-                &self.initial_buffers[inst.index]
-            } else {
-                &self.step_buffers[inst.index]
-            };
+            let buf = &*buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
             let w = Noise::Hard.weight(0);
             self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
             if mode == HardPass::Cost {
@@ -695,11 +703,7 @@ impl WindowSolver {
         if !along {
             self.evaluate_instance(graph, values, inst, linearize)?;
         }
-        let buf = if inst.initial {
-            &mut self.initial_buffers[inst.index]
-        } else {
-            &mut self.step_buffers[inst.index]
-        };
+        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
         let keys = factor.keys();
         let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
         buf.whiten(factor, linearize && !along);
@@ -817,11 +821,7 @@ impl WindowSolver {
         for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
             *d = &self.along_dirs[a..b];
         }
-        let buf = if inst.initial {
-            &mut self.initial_buffers[inst.index]
-        } else {
-            &mut self.step_buffers[inst.index]
-        };
+        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
         let t = graph.time(inst.step);
         factor
             .evaluate_along(
@@ -833,14 +833,7 @@ impl WindowSolver {
                 &mut self.along_out[..factor.dim() * c],
                 &mut self.ws,
             )
-            .map_err(|e| match e {
-                Error::Singular(m) => Error::Singular(format!(
-                    "{} at step {} (t = {t}): {m}",
-                    factor.name(),
-                    inst.step
-                )),
-                other => other,
-            })
+            .map_err(located(factor, inst.step, t))
     }
 
     /// Evaluates the factors of a scope at `values` (the whole trajectory, step-major)
@@ -1012,11 +1005,7 @@ impl WindowSolver {
             let inst = self.instances[i];
             let factor = factor_of(graph, inst);
             self.evaluate_instance(graph, values, inst, true)?;
-            let buf = if inst.initial {
-                &mut self.initial_buffers[inst.index]
-            } else {
-                &mut self.step_buffers[inst.index]
-            };
+            let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
             let hard = is_hard(factor);
             let dim = factor.dim();
             // What multiplies each row: its whitened residual, or its multiplier.
