@@ -10,7 +10,7 @@ use crate::linalg::dense;
 
 use crate::model::Model;
 use crate::smoother::{self, Mode, Next};
-use crate::solver::{Settings, SolveReport, Termination};
+use crate::solver::{Past, Settings, SolveReport, Termination};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -119,7 +119,11 @@ impl ForwardOptions {
             mode,
             integrator: Integrator::Trapezoidal,
             noise: NoiseModels::default(),
-            settings: Settings::default(),
+            // Marginal priors while they carry the solves, then conditioned (see [`Past`]).
+            settings: Settings {
+                past: Past::Adaptive,
+                ..Settings::default()
+            },
             continue_on_failure: false,
         }
     }
@@ -575,6 +579,9 @@ pub struct RunSummary {
     /// max |E(t) − E(0)| when the scene is conservative.
     pub energy_drift: Option<f64>,
     pub failures: Vec<StepFailure>,
+    /// With [`Past::Adaptive`], the step from which the smoother conditioned on its
+    /// past: its window solve had not converged after a marginal prior.
+    pub conditioned_from: Option<(usize, f64)>,
 }
 
 /// Simulates the model's motion. `progress(done, total)` is called after each step.
@@ -592,6 +599,7 @@ pub fn simulate(
     let mut iterations: Vec<usize> = Vec::new();
     let mut failures = Vec::new();
     let mut completed = steps;
+    let mut conditioned_from = None;
     // In independent coordinates, how well z determines the rest, step by step.
     let mut determinacy = (options.coordinates == Coordinates::Independent)
         .then(|| (Determinacy::new(&model), (0.0, f64::INFINITY)));
@@ -649,6 +657,7 @@ pub fn simulate(
                     }
                     Next::Continue
                 },
+                |k| conditioned_from = Some((k, fg.graph.time(k))),
             )?;
         }
         Mode::Batch => {
@@ -687,7 +696,8 @@ pub fn simulate(
     }
     let wall_time = start.elapsed();
     let trajectory = extract(&fg, &model, &values[..completed * s], completed);
-    let summary = summarize(&model, &trajectory, wall_time, &iterations, failures)?;
+    let mut summary = summarize(&model, &trajectory, wall_time, &iterations, failures)?;
+    summary.conditioned_from = conditioned_from;
     Ok((trajectory, summary))
 }
 
@@ -775,5 +785,6 @@ fn summarize(
         worst_velocity_constraint: worst_vel,
         energy_drift: conservative.then_some(drift),
         failures,
+        conditioned_from: None,
     })
 }

@@ -6,6 +6,7 @@ use mbfg::forward::{
     self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary, Trajectory,
 };
 use mbfg::smoother::Mode;
+use mbfg::solver::Past;
 use mbfg::{Error, Model, Scene};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -65,6 +66,11 @@ enum Command {
         /// Noise models: mbfg's defaults, or the paper's Table 2.
         #[arg(long, value_enum, default_value_t = NoiseArg::Default)]
         noise: NoiseArg,
+        /// What a step leaving the window leaves behind: the paper's Gaussian marginal
+        /// until a window solve fails, then the factors to the next step with it held
+        /// at its estimate (adaptive); always one or always the other.
+        #[arg(long, value_enum, default_value_t = PastArg::Adaptive)]
+        past: PastArg,
         /// Keep going after a step whose solve did not converge (it is reported).
         #[arg(long = "continue-on-failure")]
         continue_on_failure: bool,
@@ -117,6 +123,13 @@ enum CoordsArg {
 enum IntegratorArg {
     Trapezoidal,
     Euler,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum PastArg {
+    Adaptive,
+    Conditioned,
+    Marginalized,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -178,6 +191,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             out,
             integrator,
             noise,
+            past,
             continue_on_failure,
         } => {
             let (_, model) = load(&scene)?;
@@ -200,6 +214,11 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 NoiseArg::Paper => NoiseModels::paper(),
             };
             options.settings.max_iterations = max_iterations;
+            options.settings.past = match past {
+                PastArg::Adaptive => Past::Adaptive,
+                PastArg::Conditioned => Past::Conditioned,
+                PastArg::Marginalized => Past::Marginalized,
+            };
             options.continue_on_failure = continue_on_failure;
             options.validate(&model).map_err(plain)?;
             simulate(model, &options, out.as_deref())
@@ -384,6 +403,12 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
     );
     if let Some(d) = s.energy_drift {
         line += &format!("; energy drift {d:.2e} J");
+    }
+    if let Some((k, t)) = s.conditioned_from {
+        line += &format!(
+            "; past conditioned from step {k} (t = {} s)",
+            forward::round_time(t)
+        );
     }
     let unconverged = s.failures.iter().filter(|f| f.singular.is_none()).count();
     if unconverged > 0 {

@@ -8,6 +8,7 @@ use crate::io::{read_table, Table};
 use crate::model::PointSlot;
 use crate::scene::{ConstraintKind, Effect, RelativeKind};
 use crate::smoother::Mode;
+use crate::solver::Past;
 use crate::{Error, Model, Scene};
 use nalgebra::{DMatrix, DVector};
 use pyo3::create_exception;
@@ -412,7 +413,7 @@ fn run_table<'py>(
 
 #[pyfunction]
 #[pyo3(signature = (scene, coords="dc", dt=1e-3, t_end=5.0, window=1, batch=false,
-    max_iterations=50, integrator="trapezoidal", noise="default", continue_on_failure=false))]
+    max_iterations=50, integrator="trapezoidal", noise="default", continue_on_failure=false, past="adaptive"))]
 #[pyo3(name = "simulate")]
 #[allow(clippy::too_many_arguments)] // the CLI's options, one keyword each
 fn simulate_run<'py>(
@@ -427,6 +428,7 @@ fn simulate_run<'py>(
     integrator: &str,
     noise: &str,
     continue_on_failure: bool,
+    past: &str,
 ) -> PyResult<Bound<'py, PyDict>> {
     let model = load_model(&scene)?;
     let mode = if batch {
@@ -454,6 +456,16 @@ fn simulate_run<'py>(
         }
     };
     options.settings.max_iterations = max_iterations;
+    options.settings.past = match past {
+        "adaptive" => Past::Adaptive,
+        "conditioned" => Past::Conditioned,
+        "marginalized" => Past::Marginalized,
+        _ => {
+            return Err(PyValueError::new_err(format!(
+                "past must be 'adaptive', 'conditioned' or 'marginalized', not '{past}'"
+            )))
+        }
+    };
     options.continue_on_failure = continue_on_failure;
     options.validate(&model).map_err(value_error)?;
     let model = Arc::new(model);
@@ -473,6 +485,7 @@ fn simulate_run<'py>(
     summary.set_item("worst_phi", s.worst_phi)?;
     summary.set_item("worst_velocity_constraint", s.worst_velocity_constraint)?;
     summary.set_item("energy_drift", s.energy_drift)?;
+    summary.set_item("conditioned_from", s.conditioned_from)?;
     out.set_item("summary", summary)?;
     let failures = PyList::empty(py);
     for f in &s.failures {

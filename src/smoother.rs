@@ -4,7 +4,7 @@
 
 use crate::error::Result;
 use crate::graph::ChainGraph;
-use crate::solver::{LinearPrior, Settings, SolveReport, WindowSolver};
+use crate::solver::{LinearPrior, Past, Settings, SolveReport, Termination, WindowSolver};
 
 /// How a horizon is solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -26,6 +26,11 @@ pub enum Next {
 /// initial guess from the steps before. After each window solve, `on_step(k, report,
 /// values)` sees the newest step k; it may stop the run. Each step's final estimate
 /// is the one it has when it leaves the window (or at the end of the run).
+///
+/// With [`Past::Adaptive`], a window solve that does not converge after a marginal
+/// prior is solved again from the same guess after a conditioned one, and every
+/// later prior is conditioned; `on_switch(k)` is told the step.
+#[allow(clippy::too_many_arguments)] // the run's callbacks, one per event
 pub fn fixed_lag(
     graph: &ChainGraph,
     values: &mut [f64],
@@ -34,38 +39,104 @@ pub fn fixed_lag(
     settings: Settings,
     mut predict: impl FnMut(&mut [f64], usize),
     mut on_step: impl FnMut(usize, &SolveReport, &[f64]) -> Next,
+    mut on_switch: impl FnMut(usize),
 ) -> Result<()> {
     let window = window.max(1);
+    let s = graph.layout.size();
     let mut solver = WindowSolver::new(graph, window + 1, settings)?;
+    let mut adaptive = settings.past == Past::Adaptive;
     let mut prior: Option<LinearPrior> = None;
+    // The prior on the window's first step and the window's guess, kept to solve it
+    // again after a conditioned prior (adaptive runs only).
+    let mut earlier: Option<LinearPrior> = None;
+    let mut guess = Vec::new();
     let mut k0 = 0;
     for k in 0..steps {
         if k > 0 {
             predict(values, k);
         }
         if k + 1 - k0 > window {
-            let mut p = solver.marginalize(graph, values, k0, prior.as_ref())?;
-            k0 += 1;
-            if settings.tangent_priors {
-                solver.project_prior(graph, values, k0, &mut p)?;
+            if adaptive {
+                earlier = prior.clone();
             }
-            prior = Some(p);
+            prior = Some(leave(
+                &mut solver,
+                graph,
+                values,
+                k0,
+                prior.as_ref(),
+                settings,
+            )?);
+            k0 += 1;
         }
-        let mut warm = 0;
-        if k > k0 {
-            // Bring the new step to its optimum given the one before, then solve the
-            // window from there: usually a single iteration that confirms it.
-            warm = solver
-                .solve_conditional(graph, values, k, k + 1)?
-                .iterations;
+        if adaptive {
+            guess.clear();
+            guess.extend_from_slice(&values[(k0.max(1) - 1) * s..(k + 1) * s]);
         }
-        let mut report = solver.solve(graph, values, k0, k + 1, prior.as_ref())?;
-        report.iterations += warm;
+        let mut report = solve_window(&mut solver, graph, values, k0, k, prior.as_ref())?;
+        if adaptive && k0 > 0 && report.termination != Termination::Converged {
+            // The marginal information along the motion no longer carries the solve:
+            // condition from here on, starting with this window's prior.
+            adaptive = false;
+            solver.condition_on_past();
+            on_switch(k);
+            values[(k0 - 1) * s..(k + 1) * s].copy_from_slice(&guess);
+            prior = Some(leave(
+                &mut solver,
+                graph,
+                values,
+                k0 - 1,
+                earlier.as_ref(),
+                settings,
+            )?);
+            let again = solve_window(&mut solver, graph, values, k0, k, prior.as_ref())?;
+            report = SolveReport {
+                iterations: report.iterations + again.iterations,
+                ..again
+            };
+        }
         if let Next::Stop = on_step(k, &report, values) {
             break;
         }
     }
     Ok(())
+}
+
+/// The prior that step k0 leaves on k0 + 1 as it leaves the window.
+fn leave(
+    solver: &mut WindowSolver,
+    graph: &ChainGraph,
+    values: &mut [f64],
+    k0: usize,
+    prior: Option<&LinearPrior>,
+    settings: Settings,
+) -> Result<LinearPrior> {
+    let mut p = solver.marginalize(graph, values, k0, prior)?;
+    if settings.tangent_priors {
+        solver.project_prior(graph, values, k0 + 1, &mut p)?;
+    }
+    Ok(p)
+}
+
+/// One window solve [k0, k]: the newest step first brought to its optimum given the
+/// one before, then the window from there (usually one iteration that confirms it).
+fn solve_window(
+    solver: &mut WindowSolver,
+    graph: &ChainGraph,
+    values: &mut [f64],
+    k0: usize,
+    k: usize,
+    prior: Option<&LinearPrior>,
+) -> Result<SolveReport> {
+    let mut warm = 0;
+    if k > k0 {
+        warm = solver
+            .solve_conditional(graph, values, k, k + 1)?
+            .iterations;
+    }
+    let mut report = solver.solve(graph, values, k0, k + 1, prior)?;
+    report.iterations += warm;
+    Ok(report)
 }
 
 /// Solves all steps 0..steps of `values` at once, from the guess they hold.

@@ -161,6 +161,7 @@ fn newest_smoother_estimate_equals_the_batch_solution() {
                 newest.push(v[k * s..(k + 1) * s].to_vec());
                 Next::Continue
             },
+            |_| {},
         )
         .unwrap();
         for k in 0..steps {
@@ -195,6 +196,7 @@ fn smoother_with_whole_horizon_window_reproduces_the_batch_everywhere() {
         settings(),
         |_, _| {},
         |_, _, _| Next::Continue,
+        |_| {},
     )
     .unwrap();
     let mut batch = vec![0.0; steps * s];
