@@ -273,7 +273,7 @@ impl ForwardGraph {
     /// The initial guess of step 0: the model's initial state and its accelerations.
     fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
         let init = &model.initial;
-        let ddq = dynamics::lagrange(model, &init.q, &init.dq, 0.0)?.ddq;
+        let ddq = dynamics::lagrange(model, &init.q, &init.dq, self.graph.t0)?.ddq;
         let mut block = Vec::with_capacity(self.graph.layout.size());
         block.extend_from_slice(init.q.as_slice());
         block.extend_from_slice(init.dq.as_slice());
@@ -336,6 +336,28 @@ impl Trajectory {
 
     pub fn n(&self) -> usize {
         self.names.len()
+    }
+
+    /// Keeps the first `len` samples.
+    pub fn truncate(&mut self, len: usize) {
+        let n = self.n();
+        self.t.truncate(len);
+        for v in [&mut self.q, &mut self.dq, &mut self.ddq] {
+            v.truncate(len * n);
+        }
+    }
+
+    /// Appends `other` but its first sample (the state this one ends with).
+    fn append_after_first(&mut self, other: &Trajectory) {
+        let n = self.n();
+        self.t.extend_from_slice(other.t.get(1..).unwrap_or(&[]));
+        for (v, o) in [
+            (&mut self.q, &other.q),
+            (&mut self.dq, &other.dq),
+            (&mut self.ddq, &other.ddq),
+        ] {
+            v.extend_from_slice(o.get(n..).unwrap_or(&[]));
+        }
     }
 
     pub fn q_at(&self, k: usize) -> &[f64] {
@@ -437,51 +459,156 @@ pub fn round_time(t: f64) -> f64 {
 pub struct Determinacy {
     dependent: Vec<usize>,
     jac: Vec<f64>,
+    column_norms: Vec<f64>,
     rows: Vec<f64>,
     chol: Vec<f64>,
     linv: Vec<f64>,
 }
 
 impl Determinacy {
-    /// A run in independent coordinates stops where s falls below this. In the
-    /// regular motion of the scene suite s stays above 0.04 (the slider-crank's dead
-    /// centres and the four-bars come closest). Approaching the parallelogram's flat
-    /// configuration the solves in independent coordinates fail from s ≈ 1.2e-3 (at
-    /// every Δt and phase tried; s ≈ 0.5 |θ − kπ| there), so the run stops about 3 ms
-    /// (at 3 rad/s) ahead of it with its steps sound. Pick-and-place heads for such a
-    /// configuration at t ≈ 0.33 s and stops at 0.18 s.
-    pub const STOP_BELOW: f64 = 5e-3;
+    /// Where the coordinates in use determine the others less well than this and
+    /// worse from step to step (or will at the next step, extrapolated), a run in
+    /// independent coordinates looks for a better set. The pick-and-place robot's
+    /// motor angles start just above it and head for s = 0 at t ≈ 0.33 s, while
+    /// Φ_q's smallest row-normalized singular value only dips from 2.5e-2 to 4.6e-3
+    /// at 0.4 s and recovers: the run switches three times and passes.
+    pub const SEARCH_BELOW: f64 = 5e-3;
+
+    /// A run switches to the best set where it determines the others this many times
+    /// better than the set in use (so that it does not switch back at once).
+    pub const SWITCH_GAIN: f64 = 1.5;
+
+    /// A run in independent coordinates stops where even the best set's s falls
+    /// below this: Φ_q itself is about to lose a rank, and no choice of coordinates
+    /// helps. Approaching the parallelogram's flat configuration the solves in
+    /// independent coordinates fail a step or two before the flat point; the run
+    /// stops 1.6 ms (at 3 rad/s, Δt = 1 ms) ahead of it with its steps sound, and
+    /// at coarse steps (5–20 ms), where s falls past the threshold in one step, on
+    /// the extrapolation.
+    pub const STOP_BELOW: f64 = 2.5e-3;
 
     pub fn new(model: &Model) -> Self {
         let dependent: Vec<usize> = (0..model.n())
             .filter(|i| !model.independent.contains(i))
             .collect();
         let ma = model.active.len();
-        Determinacy {
+        let mut det = Determinacy {
             jac: vec![0.0; model.m() * model.n()],
+            column_norms: vec![1.0; model.n()],
             rows: vec![0.0; ma * dependent.len()],
             chol: vec![0.0; ma * ma],
             linv: vec![0.0; ma * ma],
             dependent,
-        }
+        };
+        det.set_column_scales(model, model.initial.q.as_slice());
+        det
     }
 
     /// s at q: 0 where the dependent block has lost a rank (or is not square).
     pub fn distance(&mut self, model: &Model, q: &[f64]) -> f64 {
-        let (n, ma, d) = (model.n(), model.active.len(), self.dependent.len());
+        self.jacobian(model, q);
+        let dependent = std::mem::take(&mut self.dependent);
+        let s = self.distance_over(model, &dependent);
+        self.dependent = dependent;
+        s
+    }
+
+    /// The set of independent coordinates that determines the others best at q, and
+    /// its distance to rank loss s: over every set where there are at most 2000,
+    /// else by swaps of one coordinate from the current set while s improves. Where
+    /// even the best s is small, Φ_q itself is close to losing a rank.
+    pub fn best(&mut self, model: &Model, q: &[f64]) -> (f64, Vec<usize>) {
+        let (n, f) = (model.n(), model.independent.len());
+        self.jacobian(model, q);
+        let mut best = (
+            self.distance_over(model, &complement(n, &model.independent)),
+            model.independent.clone(),
+        );
+        let consider = |det: &mut Determinacy, set: &[usize], best: &mut (f64, Vec<usize>)| {
+            let s = det.distance_over(model, &complement(n, set));
+            if s > best.0 {
+                *best = (s, set.to_vec());
+            }
+        };
+        if binomial(n, f) <= 2000 {
+            let mut set: Vec<usize> = (0..f).collect();
+            loop {
+                consider(self, &set, &mut best);
+                // The next f-subset of 0..n in lexicographic order.
+                let Some(i) = (0..f).rev().find(|&i| set[i] < n - f + i) else {
+                    break;
+                };
+                set[i] += 1;
+                for j in i + 1..f {
+                    set[j] = set[j - 1] + 1;
+                }
+            }
+        } else {
+            loop {
+                let before = best.0;
+                let current = best.1.clone();
+                for i in 0..f {
+                    for c in (0..n).filter(|c| !current.contains(c)) {
+                        let mut set = current.clone();
+                        set[i] = c;
+                        set.sort_unstable();
+                        consider(self, &set, &mut best);
+                    }
+                }
+                if best.0 <= before {
+                    break;
+                }
+            }
+        }
+        best
+    }
+
+    fn jacobian(&mut self, model: &Model, q: &[f64]) {
+        model.jacobian_into(q, &mut self.jac);
+    }
+
+    /// The norms of Φ_q's columns over the active rows at q (1 for a column without
+    /// entries): the coordinates' scales, taken once at the initial configuration so
+    /// that a column that shrinks towards a singular configuration is not rescaled.
+    fn set_column_scales(&mut self, model: &Model, q: &[f64]) {
+        self.jacobian(model, q);
+        let n = model.n();
+        for (c, norm) in self.column_norms.iter_mut().enumerate() {
+            let sq: f64 = model
+                .active
+                .iter()
+                .map(|&k| self.jac[k * n + c].powi(2))
+                .sum();
+            *norm = if sq > 0.0 { sq.sqrt() } else { 1.0 };
+        }
+    }
+
+    /// s of Φ_q (in `self.jac`) restricted to the columns `dependent`.
+    fn distance_over(&mut self, model: &Model, dependent: &[usize]) -> f64 {
+        let (n, ma, d) = (model.n(), model.active.len(), dependent.len());
         if ma != d {
             return 0.0;
         }
         if ma == 0 {
             return f64::INFINITY;
         }
-        model.jacobian_into(q, &mut self.jac);
         for (r, &k) in model.active.iter().enumerate() {
             let row = &mut self.rows[r * d..(r + 1) * d];
-            for (o, &c) in row.iter_mut().zip(&self.dependent) {
+            for (o, &c) in row.iter_mut().zip(dependent) {
                 *o = self.jac[k * n + c];
             }
-            let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
+            // Columns scaled by the coordinates' scales (mixed units and sizes: a
+            // 7 mm crank's angle column is 100× smaller than its points'), rows by
+            // their whole scaled row: an equation whose dependent part vanishes (a
+            // point on a crank at the top of its circle, with its y independent) no
+            // longer determines them, whatever the size of that part.
+            for (o, &c) in row.iter_mut().zip(dependent) {
+                *o /= self.column_norms[c];
+            }
+            let norm = (0..n)
+                .map(|c| (self.jac[k * n + c] / self.column_norms[c]).powi(2))
+                .sum::<f64>()
+                .sqrt();
             if !(norm > 0.0) {
                 return 0.0;
             }
@@ -549,6 +676,16 @@ impl Determinacy {
     }
 }
 
+/// The coordinates of 0..n not in `set`.
+fn complement(n: usize, set: &[usize]) -> Vec<usize> {
+    (0..n).filter(|i| !set.contains(i)).collect()
+}
+
+/// n choose k, saturating.
+fn binomial(n: usize, k: usize) -> usize {
+    (0..k.min(n)).fold(1usize, |acc, i| acc.saturating_mul(n - i) / (i + 1))
+}
+
 /// σ_r/σ₁ of Φ_q(q), r = the number of independent constraints at the start.
 fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
     let r = model.active.len();
@@ -582,29 +719,139 @@ pub struct RunSummary {
     /// With [`Past::Adaptive`], the step from which the smoother conditioned on its
     /// past: its window solve had not converged after a marginal prior.
     pub conditioned_from: Option<(usize, f64)>,
+    /// In independent coordinates, where the run switched to another set.
+    pub reselections: Vec<Reselection>,
+}
+
+/// A switch of the independent coordinates during a run: at `step` the coordinates in
+/// use were approaching a configuration where they stop determining the others,
+/// while Φ_q kept its rank.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reselection {
+    pub step: usize,
+    pub t: f64,
+    pub from: Vec<String>,
+    pub to: Vec<String>,
 }
 
 /// Simulates the model's motion. `progress(done, total)` is called after each step.
+///
+/// In independent coordinates the run goes in segments: where the coordinates in use
+/// approach a configuration where they stop determining the others while Φ_q keeps
+/// its rank, the segment ends at the current step and the next one starts there with
+/// a well-conditioned set chosen from q ([`Determinacy::reselect`]), conditioned on
+/// that step's state (its graph's initial priors), as generalized coordinate
+/// partitioning does. Where Φ_q itself loses rank no set helps: the run stops.
 pub fn simulate(
     model: Arc<Model>,
     options: &ForwardOptions,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<(Trajectory, RunSummary)> {
-    let fg = ForwardGraph::new(model.clone(), options)?;
-    let steps = options.steps();
+    options.validate(&model)?;
+    let total = options.steps();
+    let start = Instant::now();
+    let mut run = Run::default();
+    let mut trajectory: Option<Trajectory> = None;
+    let mut segment_model = model.clone();
+    let mut first = 0;
+    loop {
+        let seg = segment(
+            segment_model.clone(),
+            options,
+            first,
+            total,
+            progress,
+            &mut run,
+        )?;
+        let next = seg.reselect;
+        match trajectory.as_mut() {
+            None => trajectory = Some(seg.trajectory),
+            Some(tr) => tr.append_after_first(&seg.trajectory),
+        }
+        let Some((k, independent)) = next else { break };
+        let tr = trajectory.as_ref().expect("a segment was run");
+        run.reselections.push(Reselection {
+            step: k,
+            t: round_time(tr.t[k]),
+            from: names_of(&model, &segment_model.independent),
+            to: names_of(&model, &independent),
+        });
+        let mut next_model = (*segment_model).clone();
+        next_model.independent = independent;
+        next_model.initial.q = nalgebra::DVector::from_column_slice(tr.q_at(k));
+        next_model.initial.dq = nalgebra::DVector::from_column_slice(tr.dq_at(k));
+        // The rest of the run continues from step k (its row is kept from this
+        // segment; the next segment's first row is the same state).
+        trajectory.as_mut().unwrap().truncate(k + 1);
+        segment_model = Arc::new(next_model);
+        first = k;
+    }
+    let trajectory = trajectory.expect("a segment was run");
+    let wall_time = start.elapsed();
+    let mut summary = summarize(
+        &model,
+        &trajectory,
+        wall_time,
+        &run.iterations,
+        run.failures,
+    )?;
+    summary.conditioned_from = run.conditioned_from;
+    summary.reselections = run.reselections;
+    Ok((trajectory, summary))
+}
+
+fn names_of(model: &Model, idx: &[usize]) -> Vec<String> {
+    idx.iter().map(|&i| model.names[i].clone()).collect()
+}
+
+/// What the segments of a run add up.
+#[derive(Default)]
+struct Run {
+    iterations: Vec<usize>,
+    failures: Vec<StepFailure>,
+    conditioned_from: Option<(usize, f64)>,
+    reselections: Vec<Reselection>,
+}
+
+/// A segment's motion, and where (global step) and to which independent coordinates
+/// the next segment switches.
+struct Segment {
+    trajectory: Trajectory,
+    reselect: Option<(usize, Vec<usize>)>,
+}
+
+/// Steps first..total of a run with `model` (its initial state is step `first`'s).
+fn segment(
+    model: Arc<Model>,
+    options: &ForwardOptions,
+    first: usize,
+    total: usize,
+    progress: &mut dyn FnMut(usize, usize),
+    run: &mut Run,
+) -> Result<Segment> {
+    let mut fg = ForwardGraph::new(model.clone(), options)?;
+    fg.graph.t0 = first as f64 * options.dt;
+    let steps = total - first;
     let s = fg.graph.layout.size();
     let mut values = vec![0.0; steps * s];
     values[..s].copy_from_slice(&fg.initial_block(&model)?);
-    let start = Instant::now();
-    let mut iterations: Vec<usize> = Vec::new();
-    let mut failures = Vec::new();
     let mut completed = steps;
-    let mut conditioned_from = None;
-    // In independent coordinates, how well z determines the rest, step by step.
-    let mut determinacy = (options.coordinates == Coordinates::Independent)
-        .then(|| (Determinacy::new(&model), (0.0, f64::INFINITY)));
+    let mut reselect = None;
+    let failure = |k: usize, report: &SolveReport, q: &[f64]| StepFailure {
+        step: first + k,
+        t: fg.graph.time(k),
+        report: *report,
+        constraint_conditioning: constraint_conditioning(&model, q),
+        singular: None,
+    };
     match options.mode {
         Mode::FixedLag(window) => {
+            // In independent coordinates, how well z determines the rest, step by step.
+            let mut determinacy = (options.coordinates == Coordinates::Independent)
+                .then(|| (Determinacy::new(&model), (0.0, f64::INFINITY)));
+            let mut failures = Vec::new();
+            let mut iterations = Vec::new();
+            let mut conditioned_from = None;
             smoother::fixed_lag(
                 &fg.graph,
                 &mut values,
@@ -618,16 +865,10 @@ pub fn simulate(
                 |v, k| fg.predict(v, k),
                 |k, report, v| {
                     iterations.push(report.iterations);
-                    progress(k + 1, steps);
+                    progress(first + k + 1, total);
+                    let q = &v[k * s..k * s + model.n()];
                     if report.termination != Termination::Converged {
-                        let q = &v[k * s..k * s + model.n()];
-                        failures.push(StepFailure {
-                            step: k,
-                            t: fg.graph.time(k),
-                            report: *report,
-                            constraint_conditioning: constraint_conditioning(&model, q),
-                            singular: None,
-                        });
+                        failures.push(failure(k, report, q));
                         if !options.continue_on_failure
                             || report.termination == Termination::Diverged
                         {
@@ -638,18 +879,31 @@ pub fn simulate(
                     }
                     if let Some((det, before)) = determinacy.as_mut() {
                         // Approaching a configuration where z stops determining the
-                        // other coordinates, the problem itself becomes ill-posed:
-                        // stop while the solves are still sound, and say where.
-                        let q = &v[k * s..k * s + model.n()];
+                        // other coordinates: switch to coordinates that do, or, where
+                        // Φ_q itself loses rank (the problem is ill-posed), stop while
+                        // the solves are still sound, and say where.
                         let now = (fg.graph.time(k), det.distance(&model, q));
-                        if now.1 < Determinacy::STOP_BELOW && now.1 < before.1 {
-                            failures.push(StepFailure {
-                                step: k,
-                                t: now.0,
-                                report: *report,
-                                constraint_conditioning: constraint_conditioning(&model, q),
-                                singular: Some(det.singular_configuration(&model, q, *before, now)),
-                            });
+                        // At coarse steps s can fall from well above the thresholds
+                        // to beyond the singular point in one step: judge by the
+                        // lower of s and its linear extrapolation to the next step.
+                        let ahead = if before.1.is_finite() {
+                            now.1.min(2.0 * now.1 - before.1).max(0.0)
+                        } else {
+                            now.1
+                        };
+                        let falling = now.1 < before.1;
+                        if falling && ahead < Determinacy::SEARCH_BELOW {
+                            let (best, set) = det.best(&model, q);
+                            if k > 0 && best >= Determinacy::SWITCH_GAIN * now.1 {
+                                reselect = Some((first + k, set));
+                                completed = k + 1;
+                                return Next::Stop;
+                            }
+                        }
+                        if falling && ahead < Determinacy::STOP_BELOW {
+                            let mut f = failure(k, report, q);
+                            f.singular = Some(det.singular_configuration(&model, q, *before, now));
+                            failures.push(f);
                             completed = k;
                             return Next::Stop;
                         }
@@ -657,48 +911,59 @@ pub fn simulate(
                     }
                     Next::Continue
                 },
-                |k| conditioned_from = Some((k, fg.graph.time(k))),
+                |k| conditioned_from = Some((first + k, round_time(fg.graph.time(k)))),
             )?;
+            run.iterations.extend(iterations);
+            run.failures.extend(failures);
+            if run.conditioned_from.is_none() {
+                run.conditioned_from = conditioned_from;
+            }
         }
         Mode::Batch => {
-            // Start from the one-step smoother's solution, then solve all at once.
-            let mut warm = options.clone();
-            warm.mode = Mode::FixedLag(1);
-            let (guess, summary) = simulate(model.clone(), &warm, &mut |_, _| {})?;
-            if let Some(f) = summary.failures.iter().find(|f| f.singular.is_some()) {
+            // Start from the one-step smoother's solution over this segment (which
+            // may end it where the independent coordinates are re-selected), then
+            // solve all of it at once.
+            let mut warm_options = options.clone();
+            warm_options.mode = Mode::FixedLag(1);
+            let mut warm = Run::default();
+            let guess = segment(
+                model.clone(),
+                &warm_options,
+                first,
+                total,
+                &mut |_, _| {},
+                &mut warm,
+            )?;
+            if let Some(f) = warm.failures.iter().find(|f| f.singular.is_some()) {
                 // Ill-posed ahead: no batch solve of the whole horizon exists.
-                failures.push(f.clone());
+                run.failures.push(f.clone());
                 completed = 0;
-            } else if !summary.failures.is_empty() {
-                let f = &summary.failures[0];
+            } else if let Some(f) = warm.failures.first() {
                 return Err(Error::InvalidArgument(format!(
                     "the warm start for the batch solve failed at step {} (t = {}): {}",
-                    f.step, f.t, f.report.termination
+                    f.step,
+                    round_time(f.t),
+                    f.report.termination
                 )));
-            }
-            if failures.is_empty() {
-                fg.fill_from_trajectory(&model, &guess, &mut values);
-                let report = smoother::batch(&fg.graph, &mut values, steps, options.settings)?;
-                iterations.push(report.iterations);
-                progress(steps, steps);
+            } else {
+                reselect = guess.reselect;
+                completed = guess.trajectory.len();
+                fg.fill_from_trajectory(&model, &guess.trajectory, &mut values);
+                let report = smoother::batch(&fg.graph, &mut values, completed, options.settings)?;
+                run.iterations.push(report.iterations);
+                progress(first + completed, total);
                 if report.termination != Termination::Converged {
-                    let q = &values[(steps - 1) * s..(steps - 1) * s + model.n()];
-                    failures.push(StepFailure {
-                        step: steps - 1,
-                        t: fg.graph.time(steps - 1),
-                        report,
-                        constraint_conditioning: constraint_conditioning(&model, q),
-                        singular: None,
-                    });
+                    let k = completed - 1;
+                    let q = &values[k * s..k * s + model.n()];
+                    run.failures.push(failure(k, &report, q));
                 }
             }
         }
     }
-    let wall_time = start.elapsed();
-    let trajectory = extract(&fg, &model, &values[..completed * s], completed);
-    let mut summary = summarize(&model, &trajectory, wall_time, &iterations, failures)?;
-    summary.conditioned_from = conditioned_from;
-    Ok((trajectory, summary))
+    Ok(Segment {
+        trajectory: extract(&fg, &model, &values[..completed * s], completed),
+        reselect,
+    })
 }
 
 impl ForwardGraph {
@@ -786,5 +1051,6 @@ fn summarize(
         energy_drift: conservative.then_some(drift),
         failures,
         conditioned_from: None,
+        reselections: Vec::new(),
     })
 }

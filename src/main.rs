@@ -404,6 +404,15 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
     if let Some(d) = s.energy_drift {
         line += &format!("; energy drift {d:.2e} J");
     }
+    for r in &s.reselections {
+        line += &format!(
+            "; independent coordinates [{}] replaced by [{}] at step {} (t = {} s)",
+            r.from.join(", "),
+            r.to.join(", "),
+            r.step,
+            r.t
+        );
+    }
     if let Some((k, t)) = s.conditioned_from {
         line += &format!(
             "; past conditioned from step {k} (t = {} s)",

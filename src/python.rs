@@ -486,6 +486,16 @@ fn simulate_run<'py>(
     summary.set_item("worst_velocity_constraint", s.worst_velocity_constraint)?;
     summary.set_item("energy_drift", s.energy_drift)?;
     summary.set_item("conditioned_from", s.conditioned_from)?;
+    let reselections = PyList::empty(py);
+    for r in &s.reselections {
+        let d = PyDict::new(py);
+        d.set_item("step", r.step)?;
+        d.set_item("t", r.t)?;
+        d.set_item("from", &r.from)?;
+        d.set_item("to", &r.to)?;
+        reselections.append(d)?;
+    }
+    summary.set_item("reselections", reselections)?;
     out.set_item("summary", summary)?;
     let failures = PyList::empty(py);
     for f in &s.failures {
