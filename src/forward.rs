@@ -377,8 +377,9 @@ pub struct StepFailure {
     pub step: usize,
     pub t: f64,
     pub report: SolveReport,
-    /// σ_r/σ₁ of Φ_q at the step's configuration, r the constraints' rank at the
-    /// start: near 0 where the mechanism approaches a singular configuration.
+    /// σ_r/σ₁ of Φ_q at the step's configuration, scaled by the coordinates' scales and
+    /// row-normalized, r the constraints' rank at the start: near 0 where the
+    /// mechanism approaches a singular configuration.
     pub constraint_conditioning: f64,
     /// Set when the run stopped because the independent coordinates approach a
     /// configuration where they do not determine the others (the step's own solve
@@ -686,14 +687,33 @@ fn binomial(n: usize, k: usize) -> usize {
     (0..k.min(n)).fold(1usize, |acc, i| acc.saturating_mul(n - i) / (i + 1))
 }
 
-/// σ_r/σ₁ of Φ_q(q), r = the number of independent constraints at the start.
+/// σ_r/σ₁ of Φ_q(q), r = the number of independent constraints at the start, scale-free:
+/// its active rows, columns scaled by their norms at the initial configuration (the
+/// coordinates' scales: mm-size links and angles in radians weigh alike), each row
+/// then normalized. Raw, a well-conditioned mechanism with a 7 mm crank reads 1e-4.
 fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
     let r = model.active.len();
     if r == 0 {
         return 1.0;
     }
-    let jac = model.jacobian(&nalgebra::DVector::from_column_slice(q));
-    let mut sv: Vec<f64> = jac.singular_values().iter().copied().collect();
+    let active = |q: &[f64]| {
+        let jac = model.jacobian(&nalgebra::DVector::from_column_slice(q));
+        nalgebra::DMatrix::from_fn(r, model.n(), |i, c| jac[(model.active[i], c)])
+    };
+    let initial = active(model.initial.q.as_slice());
+    let mut a = active(q);
+    for (c, scale) in initial.column_iter().map(|col| col.norm()).enumerate() {
+        if scale > 0.0 {
+            a.column_mut(c).unscale_mut(scale);
+        }
+    }
+    for mut row in a.row_iter_mut() {
+        let norm = row.norm();
+        if norm > 0.0 {
+            row.unscale_mut(norm);
+        }
+    }
+    let mut sv: Vec<f64> = a.singular_values().iter().copied().collect();
     sv.sort_by(|a, b| b.total_cmp(a));
     if sv[0] > 0.0 {
         sv.get(r - 1).copied().unwrap_or(0.0) / sv[0]

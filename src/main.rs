@@ -375,10 +375,14 @@ fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Resul
         } else {
             "nothing was written".into()
         };
+        // More iterations do not help the solves that stall (they crawl along a
+        // direction the cost barely sees), so --max-iterations is not suggested.
         let hint = if f.singular.is_some() {
             "dependent coordinates (--coords dc) do not depend on that choice"
+        } else if f.report.termination == mbfg::solver::Termination::Diverged {
+            "a diverged solve ends the run, --continue-on-failure too"
         } else {
-            "--continue-on-failure goes on, --max-iterations allows more"
+            "--continue-on-failure goes on past it"
         };
         return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
     }

@@ -2,7 +2,7 @@
 //! N_w newest steps is optimized; the step leaving it is marginalized into a Gaussian
 //! prior on the ones that remain) and the batch solve of the whole horizon.
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::graph::ChainGraph;
 use crate::solver::{LinearPrior, Past, Settings, SolveReport, Termination, WindowSolver};
 
@@ -59,14 +59,18 @@ pub fn fixed_lag(
             if adaptive {
                 earlier = prior.clone();
             }
-            prior = Some(leave(
-                &mut solver,
-                graph,
-                values,
-                k0,
-                prior.as_ref(),
-                settings,
-            )?);
+            let left = leave(&mut solver, graph, values, k0, prior.as_ref(), settings);
+            prior = Some(match left {
+                // The marginal leaves a direction without information (its Schur
+                // complement cannot be formed): condition from here on instead.
+                Err(Error::Singular(_)) if adaptive => {
+                    adaptive = false;
+                    solver.condition_on_past();
+                    on_switch(k);
+                    leave(&mut solver, graph, values, k0, None, settings)?
+                }
+                other => other?,
+            });
             k0 += 1;
         }
         if adaptive {

@@ -66,7 +66,7 @@ pub enum Past {
     Conditioned,
     /// Marginalized while the window solves converge; from the first that does not,
     /// that window is solved again after a conditioned prior, and so is every later
-    /// one ([`crate::smoother::fixed_lag`]). Where the marginal prior works it keeps
+    /// one, as after a marginal that cannot be formed ([`crate::smoother::fixed_lag`]). Where the marginal prior works it keeps
     /// its smoothing (dependent coordinates: 1.6× lower RMSE on the chaotic double
     /// pendulum at 1 ms; identical in independent coordinates, whose graph
     /// is square).
@@ -1144,7 +1144,22 @@ impl WindowSolver {
             std::mem::take(&mut self.newton.minus),
         );
         // ε per block, relative to its largest entry.
-        let step = |x: &[f64]| 1e-6 * (1.0 + x.iter().fold(0.0f64, |m, v| m.max(v.abs())));
+        // ε per direction, relative to the size of the values it moves: a block holds
+        // q, q̇ and q̈ of very different sizes (a 7 mm crank at 6e5 rad/s²), and an ε
+        // taken from the block's largest entry moved the positions by 0.1 m.
+        let step = |red: &NullSpace, j: usize, x: &[f64]| {
+            let along: f64 = (0..x.len())
+                .map(|i| {
+                    let (start, row) = red.row(i);
+                    if j >= start && j < start + row.len() {
+                        row[j - start].abs() * x[i].abs()
+                    } else {
+                        0.0
+                    }
+                })
+                .sum();
+            1e-6 * (1.0 + along)
+        };
         let mut column = std::mem::take(&mut self.newton.column);
         let mut result: Result<()> = Ok(());
         'columns: for color in 0..colors {
@@ -1158,7 +1173,7 @@ impl WindowSolver {
                             continue;
                         }
                         let x = &mut window[b * s..(b + 1) * s];
-                        let eps = sign * step(x);
+                        let eps = sign * step(red, j, x);
                         for (i, xi) in x.iter_mut().enumerate() {
                             let (start, row) = red.row(i);
                             if j >= start && j < start + row.len() {
@@ -1177,7 +1192,7 @@ impl WindowSolver {
                     if j >= self.hard[b].reduction.dim {
                         continue;
                     }
-                    let h = 2.0 * step(&self.saved[b * s..(b + 1) * s]);
+                    let h = 2.0 * step(&self.hard[b].reduction, j, &self.saved[b * s..(b + 1) * s]);
                     // H_bb and H_{b+1,b} both have d_b columns (packed, stride d_b).
                     let db = self.hard[b].reduction.dim;
                     for target in [b, b + 1] {
@@ -1560,7 +1575,7 @@ impl WindowSolver {
                     || (no_progress && (largest <= 1e-6 || predicted <= 1e-6 * cost.abs())));
             let converged = (small || flat) && mu == 0.0;
             if std::env::var("LMTRACE").is_ok() {
-                eprintln!("k0={k0} k1={k1} it={iterations} cost={cost:.6e} trial={:?} mu={mu:.1e} pred={predicted:.3e} |d|={largest:.2e} small={small} restored={restored}", trial.as_ref().ok());
+                eprintln!("k0={k0} k1={k1} it={iterations} newton={newton} cost={cost:.6e} trial={:?} mu={mu:.1e} pred={predicted:.3e} |d|={largest:.2e} small={small} restored={restored}", trial.as_ref().ok());
             }
 
             match trial {

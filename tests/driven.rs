@@ -88,7 +88,7 @@ fn marginal_priors_stall_where_conditioned_ones_converge() {
         DOCS_EXAMPLE,
         Coordinates::Dependent,
         1e-3,
-        3.0,
+        6.0,
         mode,
         Past::Marginalized,
     );
@@ -100,7 +100,7 @@ fn marginal_priors_stall_where_conditioned_ones_converge() {
         DOCS_EXAMPLE,
         Coordinates::Dependent,
         1e-3,
-        3.0,
+        6.0,
         mode,
         Past::Conditioned,
     );
@@ -110,7 +110,7 @@ fn marginal_priors_stall_where_conditioned_ones_converge() {
         "{}",
         conditioned.max_iterations
     );
-    let adaptive = converges(DOCS_EXAMPLE, Coordinates::Dependent, 1e-3, 3.0, mode);
+    let adaptive = converges(DOCS_EXAMPLE, Coordinates::Dependent, 1e-3, 6.0, mode);
     let (k, _) = adaptive.conditioned_from.expect("the switch is reported");
     assert_eq!(k, marginal.failures[0].step);
 }

@@ -200,11 +200,7 @@ fn independent_coordinates_reselect_themselves_where_the_mechanism_is_regular() 
         assert_eq!(tr.len(), 1001);
         let first = s.reselections.first().expect("a switch");
         assert_eq!(first.from, ["motor1", "motor2"]);
-        assert!(
-            first.t < 0.33,
-            "{mode:?}: switched at {}",
-            first.t
-        );
+        assert!(first.t < 0.33, "{mode:?}: switched at {}", first.t);
         assert!(s
             .reselections
             .iter()
