@@ -27,22 +27,10 @@ const SUITE: &[&str] = &[
     "pick-and-place-mbse.yaml",
 ];
 
-/// Whether an angle coordinate sits near the switch between its two equation sets,
-/// where a finite-difference stencil could straddle both.
-fn near_angle_switch(model: &Model, q: &DVector<f64>) -> bool {
-    (model.relative_offset..model.n())
-        .any(|i| (q[i].sin().abs() - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-3)
-}
-
 /// A configuration near the initial one, perturbed (not on the constraint manifold:
 /// the derivative identities hold everywhere).
 fn random_configuration(model: &Model, rng: &mut Rng) -> DVector<f64> {
-    loop {
-        let q = &model.initial.q + DVector::from_vec(rng.values(model.n(), 0.3));
-        if !near_angle_switch(model, &q) {
-            return q;
-        }
-    }
+    &model.initial.q + DVector::from_vec(rng.values(model.n(), 0.3))
 }
 
 /// Central-difference derivative of a matrix- or vector-valued function of q, column

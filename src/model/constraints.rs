@@ -9,12 +9,6 @@
 /// Most coordinates one constraint involves (four points and an angle).
 pub const MAX_LOCAL: usize = 9;
 
-/// The switch between the two equation sets of an angle (Appendix III): the cosine
-/// form is used where |sin| > 1/√2, so that the derivative in the angle stays large.
-fn use_cos_form(angle: f64) -> bool {
-    angle.sin().abs() > std::f64::consts::FRAC_1_SQRT_2
-}
-
 /// The scalar equation of one constraint, over its local coordinates.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Equation {
@@ -23,12 +17,21 @@ pub enum Equation {
     /// u = [x, y, xi, yi, xj, yj]: (xj−xi)(y−yi) − (yj−yi)(x−xi) = 0; the fixed and
     /// the mobile pinned slider (their line points fixed or not).
     PointOnLine,
-    /// u = [xi, yi, xj, yj, θ]: xj−xi − L cos θ = 0 where |sin θ| > 1/√2, else
-    /// yj−yi − L sin θ = 0.
-    AbsoluteAngle { length: f64 },
-    /// u = [ri, rj, rk, rl, φ], a = rj−ri, b = rl−rk, K = |a||b|:
-    /// a·b − K cos φ = 0 where |sin φ| > 1/√2, else a×b − K sin φ = 0.
-    RelativeAngle { k: f64 },
+    /// u = [xi, yi, xj, yj, θ], d = rj−ri: d × (cos θ, sin θ) = 0, i.e.
+    /// (xj−xi) sin θ − (yj−yi) cos θ = 0 (the segment points along θ).
+    ///
+    /// Appendix III pairs xj−xi − L cos θ and yj−yi − L sin θ and switches between them
+    /// at |sin θ| = 1/√2. Both vanish on the same motion, but the switch makes Φ_q and
+    /// its derivatives jump off the manifold, and a step whose iterates straddle it
+    /// stalls (a crank spun through π/4 at speed). The cross-product form is one smooth
+    /// equation whose derivative in θ, d·(cos θ, sin θ) = |d|, never vanishes near the
+    /// solution; the anti-parallel root θ + π is a half turn away.
+    AbsoluteAngle,
+    /// u = [ri, rj, rk, rl, φ], a = rj−ri, b = rl−rk:
+    /// (a×b) cos φ − (a·b) sin φ = 0, i.e. |a||b| sin(∠(a, b) − φ) = 0: one smooth
+    /// equation instead of Appendix III's switched pair, for the reason given above;
+    /// its derivative in φ is −|a||b| on the solution.
+    RelativeAngle,
     /// u = [rp, ri, rj, s], e = rj−ri of length L: (rp−ri)·e − s L = 0.
     DistanceAlong { length: f64 },
 }
@@ -40,8 +43,8 @@ impl Equation {
         match self {
             Equation::Distance { .. } => 4,
             Equation::PointOnLine => 6,
-            Equation::AbsoluteAngle { .. } => 5,
-            Equation::RelativeAngle { .. } => 9,
+            Equation::AbsoluteAngle => 5,
+            Equation::RelativeAngle => 9,
             Equation::DistanceAlong { .. } => 7,
         }
     }
@@ -54,22 +57,14 @@ impl Equation {
                 dx * dx + dy * dy - length * length
             }
             Equation::PointOnLine => (u[4] - u[2]) * (u[1] - u[3]) - (u[5] - u[3]) * (u[0] - u[2]),
-            Equation::AbsoluteAngle { length } => {
-                let th = u[4];
-                if use_cos_form(th) {
-                    u[2] - u[0] - length * th.cos()
-                } else {
-                    u[3] - u[1] - length * th.sin()
-                }
+            Equation::AbsoluteAngle => {
+                let (s, c) = u[4].sin_cos();
+                (u[2] - u[0]) * s - (u[3] - u[1]) * c
             }
-            Equation::RelativeAngle { k } => {
+            Equation::RelativeAngle => {
                 let (a, b) = segments(u);
-                let phi = u[8];
-                if use_cos_form(phi) {
-                    a[0] * b[0] + a[1] * b[1] - k * phi.cos()
-                } else {
-                    a[0] * b[1] - a[1] * b[0] - k * phi.sin()
-                }
+                let (s, c) = u[8].sin_cos();
+                cross(a, b) * c - dot(a, b) * s
             }
             Equation::DistanceAlong { length } => {
                 let d = [u[0] - u[2], u[1] - u[3]];
@@ -87,24 +82,16 @@ impl Equation {
                 g[..4].copy_from_slice(&[-2.0 * dx, -2.0 * dy, 2.0 * dx, 2.0 * dy]);
             }
             Equation::PointOnLine => point_on_line_linear(u, g),
-            Equation::AbsoluteAngle { length } => {
-                let th = u[4];
-                if use_cos_form(th) {
-                    g[..5].copy_from_slice(&[-1.0, 0.0, 1.0, 0.0, length * th.sin()]);
-                } else {
-                    g[..5].copy_from_slice(&[0.0, -1.0, 0.0, 1.0, -length * th.cos()]);
-                }
+            Equation::AbsoluteAngle => {
+                let (s, c) = u[4].sin_cos();
+                let d = [u[2] - u[0], u[3] - u[1]];
+                g[..5].copy_from_slice(&[-s, c, s, -c, d[0] * c + d[1] * s]);
             }
-            Equation::RelativeAngle { k } => {
+            Equation::RelativeAngle => {
                 let (a, b) = segments(u);
-                let phi = u[8];
-                let cos_form = use_cos_form(phi);
-                relative_angle_bilinear(cos_form, a, b, g);
-                g[8] = if cos_form {
-                    k * phi.sin()
-                } else {
-                    -k * phi.cos()
-                };
+                let (s, c) = u[8].sin_cos();
+                relative_angle_bilinear(s, c, a, b, g);
+                g[8] = -cross(a, b) * s - dot(a, b) * c;
             }
             Equation::DistanceAlong { length } => {
                 distance_along_bilinear(u, g);
@@ -123,25 +110,41 @@ impl Equation {
             // The gradient is linear in u, so the Hessian applied to v is the
             // gradient's formula evaluated at v.
             Equation::PointOnLine => point_on_line_linear(v, out),
-            Equation::AbsoluteAngle { length } => {
-                let th = u[4];
-                out[..4].fill(0.0);
-                out[4] = if use_cos_form(th) {
-                    length * th.cos() * v[4]
-                } else {
-                    length * th.sin() * v[4]
-                };
+            Equation::AbsoluteAngle => {
+                let (s, c) = u[4].sin_cos();
+                let d = [u[2] - u[0], u[3] - u[1]];
+                let dv = [v[2] - v[0], v[3] - v[1]];
+                let w = v[4];
+                out[..5].copy_from_slice(&[
+                    -c * w,
+                    -s * w,
+                    c * w,
+                    s * w,
+                    c * dv[0] + s * dv[1] + (d[1] * c - d[0] * s) * w,
+                ]);
             }
-            Equation::RelativeAngle { k } => {
+            Equation::RelativeAngle => {
+                // Φ = c·X(a, b) − s·D(a, b) with X = a×b, D = a·b bilinear: the
+                // (a, b) block applied to v is the gradient's bilinear part at (va, b)
+                // and (a, vb); the φ column is the gradient's derivative in φ.
+                let (a, b) = segments(u);
                 let (va, vb) = segments(v);
-                let phi = u[8];
-                let cos_form = use_cos_form(phi);
-                relative_angle_bilinear(cos_form, va, vb, out);
-                out[8] = if cos_form {
-                    k * phi.cos() * v[8]
-                } else {
-                    k * phi.sin() * v[8]
-                };
+                let (s, c) = u[8].sin_cos();
+                let w = v[8];
+                let mut along_a = [0.0; MAX_LOCAL];
+                let mut along_b = [0.0; MAX_LOCAL];
+                let mut turned = [0.0; MAX_LOCAL];
+                relative_angle_bilinear(s, c, a, vb, &mut along_b);
+                relative_angle_bilinear(s, c, va, b, &mut along_a);
+                // ∂/∂φ of the gradient's (a, b) part: (−s, −c) in place of (s, c).
+                relative_angle_bilinear(c, -s, a, b, &mut turned);
+                for i in 0..4 {
+                    // ∂/∂a rows take b-directions, ∂/∂b rows take a-directions.
+                    out[i] = along_b[i] + turned[i] * w;
+                    out[4 + i] = along_a[4 + i] + turned[4 + i] * w;
+                }
+                let (x1, d1) = (cross(va, b) + cross(a, vb), dot(va, b) + dot(a, vb));
+                out[8] = -s * x1 - c * d1 + (-c * cross(a, b) + s * dot(a, b)) * w;
             }
             Equation::DistanceAlong { .. } => {
                 distance_along_bilinear(v, out);
@@ -155,21 +158,40 @@ impl Equation {
     pub fn third_order(&self, u: &[f64], v: &[f64], out: &mut [f64]) {
         out[..self.len()].fill(0.0);
         match *self {
-            Equation::AbsoluteAngle { length } => {
-                let (th, w) = (u[4], v[4]);
-                out[4] = if use_cos_form(th) {
-                    -length * th.sin() * w * w
-                } else {
-                    length * th.cos() * w * w
-                };
+            Equation::AbsoluteAngle => {
+                // vᵀΦ_qq v = 2w (c Δv_x + s Δv_y) + (d_y c − d_x s) w².
+                let (s, c) = u[4].sin_cos();
+                let d = [u[2] - u[0], u[3] - u[1]];
+                let dv = [v[2] - v[0], v[3] - v[1]];
+                let (w, w2) = (v[4], v[4] * v[4]);
+                out[..5].copy_from_slice(&[
+                    s * w2,
+                    -c * w2,
+                    -s * w2,
+                    c * w2,
+                    2.0 * w * (c * dv[1] - s * dv[0]) - (d[0] * c + d[1] * s) * w2,
+                ]);
             }
-            Equation::RelativeAngle { k } => {
-                let (phi, w) = (u[8], v[8]);
-                out[8] = if use_cos_form(phi) {
-                    -k * phi.sin() * w * w
-                } else {
-                    k * phi.cos() * w * w
-                };
+            Equation::RelativeAngle => {
+                // vᵀΦ_qq v = 2(c X(va, vb) − s D(va, vb)) + 2w(−s X₁ − c D₁)
+                //          + w²(−c X + s D), X = a×b, D = a·b, X₁ = X(va, b) + X(a, vb),
+                // D₁ likewise. Each bracket is a bilinear form c′X − s′D whose gradient
+                // relative_angle_bilinear gives.
+                let (a, b) = segments(u);
+                let (va, vb) = segments(v);
+                let (s, c) = u[8].sin_cos();
+                let (w, w2) = (v[8], v[8] * v[8]);
+                let mut first = [0.0; MAX_LOCAL];
+                relative_angle_bilinear(c, -s, va, vb, &mut first);
+                let mut second = [0.0; MAX_LOCAL];
+                relative_angle_bilinear(-s, -c, a, b, &mut second);
+                for i in 0..8 {
+                    out[i] = 2.0 * w * first[i] + w2 * second[i];
+                }
+                let (x1, d1) = (cross(va, b) + cross(a, vb), dot(va, b) + dot(a, vb));
+                out[8] = 2.0 * (-s * cross(va, vb) - c * dot(va, vb))
+                    + 2.0 * w * (-c * x1 + s * d1)
+                    + w2 * (s * cross(a, b) + c * dot(a, b));
             }
             _ => {}
         }
@@ -187,14 +209,20 @@ fn point_on_line_linear(u: &[f64], g: &mut [f64]) {
     g[..6].copy_from_slice(&[yi - yj, xj - xi, yj - y, x - xj, y - yi, xi - x]);
 }
 
-/// Gradient of a·b (cos form) or a×b over the four points, for segments a and b.
-fn relative_angle_bilinear(cos_form: bool, a: [f64; 2], b: [f64; 2], g: &mut [f64]) {
-    // ∂/∂a and ∂/∂b of the product; ri, rk enter with a minus sign.
-    let (da, db) = if cos_form {
-        (b, a)
-    } else {
-        ([b[1], -b[0]], [-a[1], a[0]])
-    };
+fn cross(a: [f64; 2], b: [f64; 2]) -> f64 {
+    a[0] * b[1] - a[1] * b[0]
+}
+
+fn dot(a: [f64; 2], b: [f64; 2]) -> f64 {
+    a[0] * b[0] + a[1] * b[1]
+}
+
+/// Gradient of the bilinear form c (a×b) − s (a·b) over the four points [ri, rj, rk,
+/// rl]: the a-rows from b, the b-rows from a.
+fn relative_angle_bilinear(s: f64, c: f64, a: [f64; 2], b: [f64; 2], g: &mut [f64]) {
+    // ∂/∂a and ∂/∂b of the form; ri, rk enter with a minus sign.
+    let da = [c * b[1] - s * b[0], -c * b[0] - s * b[1]];
+    let db = [-c * a[1] - s * a[0], c * a[0] - s * a[1]];
     g[..8].copy_from_slice(&[-da[0], -da[1], da[0], da[1], -db[0], -db[1], db[0], db[1]]);
 }
 
@@ -240,14 +268,14 @@ mod tests {
     }
 
     /// Every equation's gradient, Hessian product and third-order term against
-    /// central finite differences at random points, away from the angle switch.
+    /// central finite differences at random points (angles over several quadrants).
     #[test]
     fn derivatives_match_finite_differences() {
         let eqs = [
             Equation::Distance { length: 1.3 },
             Equation::PointOnLine,
-            Equation::AbsoluteAngle { length: 0.8 },
-            Equation::RelativeAngle { k: 1.7 },
+            Equation::AbsoluteAngle,
+            Equation::RelativeAngle,
             Equation::DistanceAlong { length: 2.1 },
         ];
         let mut seed = 7;
@@ -257,17 +285,12 @@ mod tests {
                 let mut u: Vec<f64> = (0..n).map(|_| 3.0 * rng(&mut seed)).collect();
                 let v: Vec<f64> = (0..n).map(|_| 2.0 * rng(&mut seed)).collect();
                 let angle = match eq {
-                    Equation::AbsoluteAngle { .. } => Some(4),
-                    Equation::RelativeAngle { .. } => Some(8),
+                    Equation::AbsoluteAngle => Some(4),
+                    Equation::RelativeAngle => Some(8),
                     _ => None,
                 };
                 if let Some(a) = angle {
                     u[a] *= 2.0;
-                    // Keep the finite-difference stencil on one side of the switch.
-                    let s = u[a].sin().abs();
-                    if (s - std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-3 {
-                        continue;
-                    }
                 }
                 let mut g = vec![0.0; MAX_LOCAL];
                 eq.gradient(&u, &mut g);

@@ -297,19 +297,12 @@ impl Model {
                 (pb.x - pa.x).hypot(pb.y - pa.y)
             };
             let (equation, pts): (Equation, Vec<usize>) = match coord.kind {
-                RelativeKind::AbsoluteAngle { from, to } => (
-                    Equation::AbsoluteAngle {
-                        length: self.rigid_length(from, to).unwrap_or(len(from, to)),
-                    },
-                    vec![from, to],
-                ),
-                RelativeKind::RelativeAngle { a, b } => (
-                    Equation::RelativeAngle {
-                        k: self.rigid_length(a[0], a[1]).unwrap_or(len(a[0], a[1]))
-                            * self.rigid_length(b[0], b[1]).unwrap_or(len(b[0], b[1])),
-                    },
-                    vec![a[0], a[1], b[0], b[1]],
-                ),
+                RelativeKind::AbsoluteAngle { from, to } => {
+                    (Equation::AbsoluteAngle, vec![from, to])
+                }
+                RelativeKind::RelativeAngle { a, b } => {
+                    (Equation::RelativeAngle, vec![a[0], a[1], b[0], b[1]])
+                }
                 RelativeKind::Distance { point, along } => (
                     Equation::DistanceAlong {
                         length: self
