@@ -479,6 +479,13 @@ impl Determinacy {
     /// better than the set in use (so that it does not switch back at once).
     pub const SWITCH_GAIN: f64 = 1.5;
 
+    /// A solve in independent coordinates that fails while s, falling, extrapolates
+    /// to 0 within this many steps, and no set of coordinates does materially better
+    /// ([`Determinacy::SWITCH_GAIN`]), is reported as the singular configuration
+    /// ahead: the N four-bar under gravity fails 13 steps (1 ms) before its flat
+    /// point, at s = 0.034, above [`Determinacy::STOP_BELOW`].
+    pub const ATTRIBUTE_WITHIN: f64 = 20.0;
+
     /// A run in independent coordinates stops where even the best set's s falls
     /// below this: Φ_q itself is about to lose a rank, and no choice of coordinates
     /// helps. Approaching the parallelogram's flat configuration the solves in
@@ -867,8 +874,10 @@ fn segment(
     match options.mode {
         Mode::FixedLag(window) => {
             // In independent coordinates, how well z determines the rest, step by step.
-            let mut determinacy = (options.coordinates == Coordinates::Independent)
-                .then(|| (Determinacy::new(&model), (0.0, f64::INFINITY)));
+            let mut determinacy = (options.coordinates == Coordinates::Independent).then(|| {
+                let far = (0.0, f64::INFINITY);
+                (Determinacy::new(&model), far, far)
+            });
             let mut failures = Vec::new();
             let mut iterations = Vec::new();
             let mut conditioned_from = None;
@@ -888,7 +897,31 @@ fn segment(
                     progress(first + k + 1, total);
                     let q = &v[k * s..k * s + model.n()];
                     if report.termination != Termination::Converged {
-                        failures.push(failure(k, report, q));
+                        let mut f = failure(k, report, q);
+                        if let Some((det, before, older)) = determinacy.as_mut() {
+                            // A solve that fails while z and every other set of
+                            // coordinates approach a rank loss fails because of it:
+                            // name the singular configuration, located from the last
+                            // two converged steps.
+                            let prev = &v[(k.max(1) - 1) * s..(k.max(1) - 1) * s + model.n()];
+                            let rate = (older.1 - before.1) / (before.0 - older.0);
+                            let steps_to_rank_loss = before.1 / (rate * fg.graph.dt);
+                            if k >= 2
+                                && rate > 0.0
+                                && steps_to_rank_loss <= Determinacy::ATTRIBUTE_WITHIN
+                            {
+                                let (best, _) = det.best(&model, prev);
+                                if best < Determinacy::SWITCH_GAIN * before.1 {
+                                    f.singular = Some(
+                                        det.singular_configuration(&model, prev, *older, *before),
+                                    );
+                                    failures.push(f);
+                                    completed = k;
+                                    return Next::Stop;
+                                }
+                            }
+                        }
+                        failures.push(f);
                         if !options.continue_on_failure
                             || report.termination == Termination::Diverged
                         {
@@ -897,7 +930,7 @@ fn segment(
                             return Next::Stop;
                         }
                     }
-                    if let Some((det, before)) = determinacy.as_mut() {
+                    if let Some((det, before, older)) = determinacy.as_mut() {
                         // Approaching a configuration where z stops determining the
                         // other coordinates: switch to coordinates that do, or, where
                         // Φ_q itself loses rank (the problem is ill-posed), stop while
@@ -927,6 +960,7 @@ fn segment(
                             completed = k;
                             return Next::Stop;
                         }
+                        *older = *before;
                         *before = now;
                     }
                     Next::Continue
