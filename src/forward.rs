@@ -385,6 +385,8 @@ pub struct StepFailure {
     /// configuration where they do not determine the others (the step's own solve
     /// converged; `report` is its report).
     pub singular: Option<SingularConfiguration>,
+    /// Set when the step failed in the one-step run that starts a batch solve.
+    pub warm_start: bool,
 }
 
 /// A configuration ahead where the independent coordinates z stop determining the
@@ -437,8 +439,13 @@ impl StepFailure {
                 } else {
                     String::new()
                 };
+                let stage = if self.warm_start {
+                    "in the one-step run that starts the batch solve, "
+                } else {
+                    ""
+                };
                 format!(
-                    "step {} (t = {t} s) did not converge: {}, cost {:.3e} after {} \
+                    "{stage}step {} (t = {t} s) did not converge: {}, cost {:.3e} after {} \
                      iterations{singular}",
                     self.step, self.report.termination, self.report.cost, self.report.iterations
                 )
@@ -870,6 +877,7 @@ fn segment(
         report: *report,
         constraint_conditioning: constraint_conditioning(&model, q),
         singular: None,
+        warm_start: false,
     };
     match options.mode {
         Mode::FixedLag(window) => {
@@ -997,12 +1005,13 @@ fn segment(
                 run.failures.push(f.clone());
                 completed = 0;
             } else if let Some(f) = warm.failures.first() {
-                return Err(Error::InvalidArgument(format!(
-                    "the warm start for the batch solve failed at step {} (t = {}): {}",
-                    f.step,
-                    round_time(f.t),
-                    f.report.termination
-                )));
+                // No batch solve without its start: the step that failed there ends
+                // the run, named as such.
+                run.failures.push(StepFailure {
+                    warm_start: true,
+                    ..f.clone()
+                });
+                completed = 0;
             } else {
                 reselect = guess.reselect;
                 completed = guess.trajectory.len();

@@ -379,6 +379,8 @@ fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Resul
         // direction the cost barely sees), so --max-iterations is not suggested.
         let hint = if f.singular.is_some() {
             "dependent coordinates (--coords dc) do not depend on that choice"
+        } else if f.warm_start {
+            "--window 1 writes the run up to there"
         } else if f.report.termination == mbfg::solver::Termination::Diverged {
             "a diverged solve ends the run, --continue-on-failure too"
         } else {

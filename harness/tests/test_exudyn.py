@@ -33,8 +33,12 @@ def test_rest_stays_at_rest(solver):
     assert traj.q.shape == (51, model.n)
     np.testing.assert_allclose(traj.t, np.arange(51) * 1e-2, atol=1e-12)
     np.testing.assert_allclose(traj.q - model.initial_q, 0, atol=1e-12)
-    np.testing.assert_allclose(traj.dq, 0, atol=1e-12)
-    np.testing.assert_allclose(traj.ddq, 0, atol=1e-12)
+    # Generalized-α carries its own acceleration variables, which its Newton iteration
+    # fits to the start's round-off (|Φ| ~ 1e-16) to its tolerance 1e-12 over h² = 1e-6:
+    # q̈ up to ~1e-7, q̇ ~ h·q̈. The trapezoidal index-2 solver keeps exact zeros.
+    rates = (1e-10, 1e-6) if solver == "generalized_alpha" else (1e-12, 1e-12)
+    np.testing.assert_allclose(traj.dq, 0, atol=rates[0])
+    np.testing.assert_allclose(traj.ddq, 0, atol=rates[1])
     assert prov["steps"] == 500 and prov["max_abs_phi"] < 1e-12
 
 
