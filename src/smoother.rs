@@ -46,8 +46,8 @@ pub fn fixed_lag(
     let mut solver = WindowSolver::new(graph, window + 1, settings)?;
     let mut adaptive = settings.past == Past::Adaptive;
     let mut prior: Option<LinearPrior> = None;
-    // The prior on the window's first step and the window's guess, kept to solve it
-    // again after a conditioned prior (adaptive runs only).
+    // The prior on the step before the window's first, and the window's guess (adaptive
+    // runs only), kept to solve the window again after a conditioned prior.
     let mut earlier: Option<LinearPrior> = None;
     let mut guess = Vec::new();
     let mut k0 = 0;
@@ -56,10 +56,10 @@ pub fn fixed_lag(
             predict(values, k);
         }
         if k + 1 - k0 > window {
-            if adaptive {
-                earlier = prior.clone();
-            }
-            let left = leave(&mut solver, graph, values, k0, prior.as_ref(), settings);
+            // The prior on k0 moves to `earlier` (no copy): it is what a re-solve of
+            // this window after a conditioned prior starts from.
+            earlier = prior.take();
+            let left = leave(&mut solver, graph, values, k0, earlier.as_ref(), settings);
             prior = Some(match left {
                 // The marginal leaves a direction without information (its Schur
                 // complement cannot be formed): condition from here on instead.
