@@ -25,6 +25,12 @@
 //! orthonormal basis of the same space and the particular solution the same
 //! least-norm one.
 //!
+//! The QR sees each equation normalized by its size on the unknowns of its own
+//! segment, so that "nearly dependent" means nearly dependent: a pivot is compared
+//! with its own equation's size, not with the largest equation's. A 7 mm crank's
+//! constraint next to a 0.6 m rod's, or an acceleration row whose coefficients on q
+//! and q̇ grow like q̇², would otherwise read as a rank loss and be damped or dropped.
+//!
 //! Equations that are kept but nearly dependent (a pivot far below the largest, as
 //! near a singular configuration, where the position and velocity constraints lose a
 //! rank together and the step's pivot falls like the square of the distance) are
@@ -79,6 +85,11 @@ pub struct NullSpace {
     norms: Vec<f64>,
     w: Vec<f64>,
     rhs: Vec<f64>,
+    /// Per QR column (an equation of `others`), 1/its norm on the free unknowns: the
+    /// QR factors the equations normalized, so that its rank test and damping compare
+    /// each pivot with its own equation's size, not with the largest equation's (a
+    /// 7 mm crank's constraint next to a 0.6 m rod's, or a velocity row scaled by q̇).
+    row_scale: Vec<f64>,
     pin_coef: Vec<f64>,
     others_pinned: Vec<f64>,
     /// The basis' dense part: the QR's null vectors on the free unknowns, row-major
@@ -147,6 +158,7 @@ impl NullSpace {
             norms: vec![0.0; 2 * max_rows],
             w: vec![0.0; s],
             rhs: vec![0.0; max_rows],
+            row_scale: vec![1.0; max_rows],
             dense: Vec::new(),
             dense_row: vec![usize::MAX; s],
             summation: Summation::Sequential,
@@ -319,6 +331,22 @@ impl NullSpace {
                 .iter()
                 .rposition(|v| *v != 0.0)
                 .map_or(0, |a| self.segment[self.qr_rows[a]]);
+            // Its size on the unknowns of its own segment, those its pivot is taken
+            // from: an acceleration row's coefficients on q and q̇ grow like q̇², its
+            // pivot on q̈ does not.
+            let g = self.group[k];
+            let norm = col
+                .iter()
+                .zip(&self.qr_rows)
+                .filter(|(_, &i)| self.segment[i] == g)
+                .map(|(v, _)| v * v)
+                .sum::<f64>()
+                .sqrt();
+            let scale = if norm > 0.0 { 1.0 / norm } else { 1.0 };
+            self.row_scale[k] = scale;
+            for o in col.iter_mut() {
+                *o *= scale;
+            }
         }
         let rank = householder_grouped(
             &mut self.a,
@@ -445,7 +473,7 @@ impl NullSpace {
             for (c, &i) in row.iter().zip(&self.pinned) {
                 v -= c * x[i];
             }
-            self.rhs[k] = v;
+            self.rhs[k] = v * self.row_scale[k];
         }
         // The selected equations read R₁ᵀ Q₁ᵀ x_free = b_sel: R₁ᵀ w = b_sel, x = Q₁ w,
         // with a damped division by pivots below 10 μ (CORRECTION_TOLERANCE).
@@ -565,8 +593,10 @@ impl NullSpace {
                 self.w[i] = acc / self.rdiag[i];
             }
         }
+        // The QR's multipliers are those of the normalized equations.
         for i in 0..rank {
-            mu[self.others[self.perm[i]]] = self.w[i];
+            let k = self.perm[i];
+            mu[self.others[k]] = self.w[i] * self.row_scale[k];
         }
         let np = self.pinned.len();
         for (t, &i) in self.pinned.iter().enumerate() {
@@ -929,6 +959,40 @@ mod tests {
                 ns.basis()[2 * ns.dim],
                 1.0,
                 "the untouched unknown stays free"
+            );
+        }
+    }
+
+    /// Equations of very different sizes are independent all the same: the
+    /// reduction's rank, particular solution and multipliers do not change when one
+    /// equation is scaled by 1e-8 (as the damping would, were the pivots compared
+    /// with the largest equation's).
+    #[test]
+    fn equations_of_very_different_sizes_are_solved_exactly() {
+        let c = [2.0, 1.0, 0.0, 0.0, 1.0, 3.0];
+        let b = [1.0, 2.0];
+        let mut plain = NullSpace::new(3, 2);
+        plain.reduce(&c, &b, 2);
+        for scale in [1e-8, 1e8] {
+            let cs = [2.0, 1.0, 0.0, 0.0, scale, 3.0 * scale];
+            let bs = [1.0, 2.0 * scale];
+            let mut ns = NullSpace::new(3, 2);
+            ns.reduce(&cs, &bs, 2);
+            assert_eq!(ns.rank, 2, "scale {scale:e}");
+            for (p, q) in ns.particular.iter().zip(&plain.particular) {
+                assert!(
+                    (p - q).abs() <= 1e-12,
+                    "scale {scale:e}: {p:e} against {q:e}"
+                );
+            }
+            let g = [0.3, -0.7, 1.1];
+            let (mut l, mut lp) = ([0.0; 2], [0.0; 2]);
+            ns.multipliers(&g, &mut l);
+            plain.multipliers(&g, &mut lp);
+            assert!(
+                (l[0] - lp[0]).abs() <= 1e-12
+                    && (l[1] * scale - lp[1]).abs() <= 1e-9 * lp[1].abs().max(1.0),
+                "scale {scale:e}: multipliers {l:?} against {lp:?}"
             );
         }
     }
