@@ -412,7 +412,7 @@ impl WindowSolver {
                 along_dim = along_dim.max(f.dim());
             }
         }
-        Ok(WindowSolver {
+        let mut solver = WindowSolver {
             settings,
             s,
             h: BlockTridiagonal::new(capacity, s),
@@ -477,7 +477,9 @@ impl WindowSolver {
                 column: vec![0.0; s],
                 max_hard,
             },
-        })
+        };
+        solver.segment_by_order(graph);
+        Ok(solver)
     }
 
     /// Sets the solver up for long batch horizons (inverse dynamics):
@@ -499,6 +501,20 @@ impl WindowSolver {
     ///
     /// [`VarKind::order`]: crate::graph::VarKind::order
     pub fn optimize_for_batch(&mut self, graph: &ChainGraph) {
+        self.segment_by_order(graph);
+        for block in &mut self.hard {
+            block.reduction.set_summation(Summation::Lanes);
+        }
+        self.h.set_summation(Summation::Lanes);
+        self.chol.set_summation(Summation::Lanes);
+        self.step_major = true;
+    }
+
+    /// Reduces each step's hard equations segment by segment, positions first, then
+    /// velocities, accelerations, forces ([`VarKind::order`]).
+    ///
+    /// [`VarKind::order`]: crate::graph::VarKind::order
+    fn segment_by_order(&mut self, graph: &ChainGraph) {
         let mut segment = vec![0; self.s];
         for (kind, d) in graph.layout.kinds() {
             let (off, _) = graph.layout.slot(kind).expect("a kind of the layout");
@@ -506,11 +522,7 @@ impl WindowSolver {
         }
         for block in &mut self.hard {
             block.reduction.set_segments(&segment);
-            block.reduction.set_summation(Summation::Lanes);
         }
-        self.h.set_summation(Summation::Lanes);
-        self.chol.set_summation(Summation::Lanes);
-        self.step_major = true;
     }
 
     /// Whether marginalization conditions on the leaving step (see [`Past`]).

@@ -26,9 +26,6 @@ ILL_POSED = {
 }
 
 ANDREWS = "fails within its first steps from the benchmark's published (regular) start"
-FLAT_DC = "DC fails at the flat configuration (t ≈ 0.72 s), where Φ_q loses N ranks"
-FLAT_DC_BATCH = ("the DC batch solve across the flat configuration does not converge (reported at "
-                 "its last step)")
 MM_SLIDER_CRANK = ("5 mm crank on a 0.6 m rod with a 5000 N/m spring: IC fails at 10-20 ms; "
                    "DC diverges at 10-20 ms and its batch does not converge")
 FAST_CRANK_DC = "DC diverges at its first step at dt = 20 ms (0.6 rad per step); IC converges"
@@ -62,16 +59,6 @@ KNOWN_FAILING: dict[str, str] = {
         'benchmarks/andrews-squeezer-ic-batch-10ms',
         'benchmarks/andrews-squeezer-ic-batch-20ms',
     ], ANDREWS),
-    **dict.fromkeys([
-        'benchmarks/n-fourbar-5-dc-w5-1ms',
-        'benchmarks/n-fourbar-10-dc-w1-10ms',
-        'benchmarks/n-fourbar-10-dc-w5-5ms',
-        'benchmarks/n-fourbar-10-dc-w5-10ms',
-        'benchmarks/n-fourbar-10-dc-w5-20ms',
-    ], FLAT_DC),
-    **dict.fromkeys([
-        'benchmarks/n-fourbar-10-dc-batch-10ms',
-    ], FLAT_DC_BATCH),
     **dict.fromkeys([
         'driven/fast-crank-dc-w1-20ms',
         'driven/fast-crank-dc-batch-20ms',

@@ -115,20 +115,20 @@ impl NullSpace {
     /// Relative size below which a pivot counts as zero (rank-deficient direction).
     pub const RANK_TOLERANCE: f64 = 1e-10;
 
-    /// Relative size μ (to the largest pivot) below which a kept pivot R gets a
-    /// damped correction: the component w = b/R of the least-norm solution becomes
-    /// b/(R(1 + (μ/R)¹⁶)), which is b/R to round-off for R ≥ 10μ (exactly b/R is
-    /// used there) and below 0.8 b/μ everywhere. Near a singular configuration the
-    /// pivot of a step's position and velocity constraints together falls like the
-    /// square of the distance to it; an exact correction there divides the round-off
-    /// in the residual by the pivot and, in the parallelogram, moves the state along
-    /// the anti-parallelogram velocity by up to 1e-7 per iteration, so the window
-    /// solves stall on that noise. The residual a damped correction leaves in that
-    /// equation is of the order of its round-off. Regular motion stays above 10μ:
-    /// the smallest pivot in the scene suite is 2.9e-5 (the four-bar in independent
-    /// coordinates, whose acceleration rows scale with q̇); μ from 1e-7 to 1e-6 lets
-    /// the parallelogram pass in dependent coordinates at every Δt and phase tried.
-    pub const CORRECTION_TOLERANCE: f64 = 3e-7;
+    /// Relative size μ (to the largest pivot; the equations are normalized) below
+    /// which a kept pivot R gets a damped correction: the component w = b/R of the
+    /// least-norm solution becomes b/(R(1 + (μ/R)¹⁶)), which is b/R to round-off for
+    /// R ≥ 10μ (exactly b/R is used there) and below 0.8 b/μ everywhere. Near a
+    /// singular configuration a step's position pivot, and its velocity pivot in
+    /// the next segment, fall like the distance to it; an exact correction there
+    /// divides the round-off in the residual by the pivot and, in the parallelogram,
+    /// moves the state along the anti-parallelogram velocity every iteration, so the
+    /// window solves stall on that noise. The residual a damped correction leaves
+    /// in that equation is of the order of its round-off. μ from 1e-5 to 1e-4 lets
+    /// the parallelogram and the N four-bars (N up to 40) pass their flat
+    /// configurations in dependent coordinates; 5e-4 stalls the parallelogram, and
+    /// 3e-7 leaves it a 1e-3 J energy error.
+    pub const CORRECTION_TOLERANCE: f64 = 1e-5;
 
     pub fn new(s: usize, max_rows: usize) -> Self {
         let mut ns = NullSpace {
