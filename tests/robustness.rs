@@ -71,7 +71,7 @@ fn independent_coordinates_converge_for_60_s_at_1_ms() {
 
 #[test]
 fn windows_converge_at_10_ms() {
-    // DC with N_w = 10 at 10 ms still stalls near t = 4.7 s (docs/dc-stall.md).
     converges(1e-2, 5.0, 2);
+    converges(1e-2, 5.0, 10);
     converges_in(Coordinates::Independent, 2e-2, 5.0, 10);
 }
