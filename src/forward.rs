@@ -490,7 +490,10 @@ impl Determinacy {
     /// to 0 within this many steps, and no set of coordinates does materially better
     /// ([`Determinacy::SWITCH_GAIN`]), is reported as the singular configuration
     /// ahead: the N four-bar under gravity fails 13 steps (1 ms) before its flat
-    /// point, at s = 0.034, above [`Determinacy::STOP_BELOW`].
+    /// point, at s = 0.034, above [`Determinacy::STOP_BELOW`]. A failure where s is
+    /// already below [`Determinacy::SEARCH_BELOW`] is attributed whatever the number
+    /// of steps: at fine steps (the parallelogram at 0.01 ms fails 140 steps, 1.4 ms,
+    /// before its flat point, at s = 4.2e-3) steps are no measure of the distance.
     pub const ATTRIBUTE_WITHIN: f64 = 20.0;
 
     /// A run in independent coordinates stops where even the best set's s falls
@@ -916,7 +919,8 @@ fn segment(
                             let steps_to_rank_loss = before.1 / (rate * fg.graph.dt);
                             if k >= 2
                                 && rate > 0.0
-                                && steps_to_rank_loss <= Determinacy::ATTRIBUTE_WITHIN
+                                && (steps_to_rank_loss <= Determinacy::ATTRIBUTE_WITHIN
+                                    || before.1 < Determinacy::SEARCH_BELOW)
                             {
                                 let (best, _) = det.best(&model, prev);
                                 if best < Determinacy::SWITCH_GAIN * before.1 {

@@ -366,7 +366,7 @@ pub fn solve(
     }
     debug_assert_eq!(values.len(), steps * s);
     let mut solver = WindowSolver::new(&graph, steps, options.settings)?;
-    solver.optimize_for_batch(&graph);
+    solver.optimize_for_batch();
     let report = solver.solve(&graph, &mut values, 0, steps, None)?;
     let wall_time = start.elapsed();
 

@@ -483,25 +483,16 @@ impl WindowSolver {
     }
 
     /// Sets the solver up for long batch horizons (inverse dynamics):
-    /// - each step's hard equations are reduced segment by segment, positions first,
-    ///   then velocities, accelerations, forces ([`VarKind::order`],
-    ///   [`NullSpace::set_segments`]): a fraction of the work of one QR of them all
-    ///   when they are block triangular, and a null-space basis exactly 0 on what the
-    ///   earlier segments fix;
     /// - linearizations go step by step (a step's hard equations, then its factors
     ///   into its blocks of H) instead of factor by factor over the whole horizon, so
     ///   each block of H is filled while it is in cache;
     /// - dot products in the reductions, the banded factorization and its solves are
     ///   summed in four lanes ([`Summation::Lanes`]).
     ///
-    /// The basis is another one of the same space and the sums run in another order,
-    /// so results agree with the default to the solve's tolerance, not to the bit.
-    /// Off by default, so that the forward runs keep theirs (their window solves stop
-    /// at the step tolerance, and another basis moves them by up to ~1e-7 relative).
-    ///
-    /// [`VarKind::order`]: crate::graph::VarKind::order
-    pub fn optimize_for_batch(&mut self, graph: &ChainGraph) {
-        self.segment_by_order(graph);
+    /// The sums run in another order, so results agree with the default to the
+    /// solve's tolerance, not to the bit. Off by default, so that forward runs keep
+    /// theirs.
+    pub fn optimize_for_batch(&mut self) {
         for block in &mut self.hard {
             block.reduction.set_summation(Summation::Lanes);
         }
@@ -511,7 +502,12 @@ impl WindowSolver {
     }
 
     /// Reduces each step's hard equations segment by segment, positions first, then
-    /// velocities, accelerations, forces ([`VarKind::order`]).
+    /// velocities, accelerations, forces ([`VarKind::order`],
+    /// [`NullSpace::set_segments`]): each equation's pivot is then measured against
+    /// the equation on its own unknowns (an acceleration row's coefficients on q and
+    /// q̇ grow like q̇², its pivot on q̈ does not), the basis is exactly 0 on what the
+    /// earlier segments fix, and block-triangular equations cost a fraction of one
+    /// QR of them all.
     ///
     /// [`VarKind::order`]: crate::graph::VarKind::order
     fn segment_by_order(&mut self, graph: &ChainGraph) {
