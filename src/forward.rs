@@ -496,6 +496,12 @@ impl Determinacy {
     /// before its flat point, at s = 4.2e-3) steps are no measure of the distance.
     pub const ATTRIBUTE_WITHIN: f64 = 20.0;
 
+    /// ... and only where s is below this: a violent transient at a coarse step
+    /// (a six-bar press whose crank reaches 350 rad/s within 20 ms, at 1 ms) makes s
+    /// fall fast from 0.08 in a mechanism that has no singular configuration, and the
+    /// extrapolation alone would name one.
+    pub const ATTRIBUTE_BELOW: f64 = 0.05;
+
     /// A run in independent coordinates stops where even the best set's s falls
     /// below this: Φ_q itself is about to lose a rank, and no choice of coordinates
     /// helps. Approaching the parallelogram's flat configuration the solves in
@@ -919,7 +925,8 @@ fn segment(
                             let steps_to_rank_loss = before.1 / (rate * fg.graph.dt);
                             if k >= 2
                                 && rate > 0.0
-                                && (steps_to_rank_loss <= Determinacy::ATTRIBUTE_WITHIN
+                                && ((steps_to_rank_loss <= Determinacy::ATTRIBUTE_WITHIN
+                                    && before.1 < Determinacy::ATTRIBUTE_BELOW)
                                     || before.1 < Determinacy::SEARCH_BELOW)
                             {
                                 let (best, _) = det.best(&model, prev);
