@@ -127,8 +127,8 @@ def test_squeezer_ida_matches_published_reference_at_30ms(squeezer):
 def test_squeezer_mbfg_completes_the_benchmark_at_a_tenth_of_a_millisecond(coords, bound):
     """mbfg's own solves over the published 0.03 s at dt = 0.1 ms: every step converges and
     the end angles (β, Θ ≈ ±15.8 rad) are within `bound` of the published ones (today DC
-    3.4e-2 rad: its soft integrators share the error with the constraints; IC 2.6e-3). IC's
-    error falls by more than 3× when dt halves (second order: 4×)."""
+    3.4e-2 rad: its soft integrators share the error with the constraints; IC 2.9e-3). IC's
+    error falls by more than 3× when dt halves (8.5× today)."""
     m = mbfg.load(str(SQUEEZER))
     idx = [m.names.index(a) for a in ANGLES]
     errors = []
