@@ -54,9 +54,9 @@ def failed(case, setting, criteria, message, start) -> Outcome:
 # The stop of a run in independent coordinates ahead of a singular configuration
 # (mbfg's StepFailure::message).
 ILL_POSED = re.compile(
-    r"singular configuration at t ≈ (?P<located>[0-9.e+-]+) s \(extrapolated\): the independent "
-    r"coordinates \[(?P<independent>[^]]*)\] do not determine the other coordinates' velocities "
-    r"there \(rank of Φ_q over the dependent coordinates \[[^]]*\] (?P<rank>\d+) < (?P<full>\d+)\); "
+    r"singular configuration at t ≈ (?P<located>[0-9.e+-]+) s \(extrapolated\): independent "
+    r"coordinates \[(?P<independent>[^]]*)\] stop determining \[[^]]*\] "
+    r"\(rank (?P<rank>\d+) < (?P<full>\d+)\); "
     r"stopped at step (?P<step>\d+) \(t = (?P<t>[0-9.e+-]+) s\)")
 
 

@@ -29,16 +29,35 @@ pub fn lagrange(
     let jac = model.jacobian(q);
     let c = model.acceleration_rhs(q, dq);
     let force = model.generalized_forces(q, dq, t)?;
+    // Equilibrated: M scaled by its largest entry and Φ_q by its, so that the pivot
+    // test below reads the same for a 1 g and a 30 t pendulum, for mm and m links.
+    let mu_m = model.mass.amax();
+    let mu_j = rows
+        .iter()
+        .flat_map(|&k| jac.row(k).iter().map(|v| v.abs()).collect::<Vec<_>>())
+        .fold(0.0f64, f64::max);
+    if !(mu_m > 0.0 && mu_m.is_finite()) || (m > 0 && !(mu_j > 0.0 && mu_j.is_finite())) {
+        return Err(Error::Singular(
+            "the mass matrix or the constraint Jacobian is zero or not finite at this configuration".into(),
+        ));
+    }
+    let mu_j = if m > 0 { mu_j } else { 1.0 };
     let mut kkt = DMatrix::zeros(n + m, n + m);
-    kkt.view_mut((0, 0), (n, n)).copy_from(&model.mass);
+    kkt.view_mut((0, 0), (n, n))
+        .copy_from(&(&model.mass / mu_m));
     let mut rhs = DVector::zeros(n + m);
-    rhs.rows_mut(0, n).copy_from(&force);
+    rhs.rows_mut(0, n).copy_from(&(&force / mu_m));
     for (r, &k) in rows.iter().enumerate() {
         for j in 0..n {
-            kkt[(n + r, j)] = jac[(k, j)];
-            kkt[(j, n + r)] = jac[(k, j)];
+            kkt[(n + r, j)] = jac[(k, j)] / mu_j;
+            kkt[(j, n + r)] = jac[(k, j)] / mu_j;
         }
-        rhs[n + r] = c[k];
+        rhs[n + r] = c[k] / mu_j;
+    }
+    if !rhs.iter().all(|v| v.is_finite()) {
+        return Err(Error::Singular(
+            "the generalized forces or the constraints' acceleration terms are not finite at this state".into(),
+        ));
     }
     let lu = kkt.full_piv_lu();
     if !well_conditioned(lu.u().diagonal().as_slice()) {
@@ -51,7 +70,7 @@ pub fn lagrange(
         .ok_or_else(|| Error::Singular("augmented (KKT) system".into()))?;
     Ok(LagrangeSolution {
         ddq: x.rows(0, n).into_owned(),
-        lambda: x.rows(n, m).into_owned(),
+        lambda: x.rows(n, m) * (mu_m / mu_j),
     })
 }
 

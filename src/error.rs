@@ -46,7 +46,7 @@ pub enum Error {
 
     /// The position problem did not close: the named constraints stay violated.
     #[error("the position problem did not converge after {iterations} iterations; constraints left violated: {}",
-        .violated.iter().map(|(n, v)| format!("{n} (|Φ| = {v:.3e})")).collect::<Vec<_>>().join(", "))]
+        list_violated(.violated))]
     PositionProblem {
         violated: Vec<(String, f64)>,
         iterations: usize,
@@ -65,6 +65,21 @@ pub enum Error {
     /// An argument given to a library call is out of its domain.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),
+}
+
+/// The worst few violated constraints, for a one-line message.
+fn list_violated(violated: &[(String, f64)]) -> String {
+    const SHOWN: usize = 4;
+    let mut text = violated
+        .iter()
+        .take(SHOWN)
+        .map(|(n, v)| format!("{n} (|Φ| = {v:.3e})"))
+        .collect::<Vec<_>>()
+        .join(", ");
+    if violated.len() > SHOWN {
+        text += &format!(" and {} more", violated.len() - SHOWN);
+    }
+    text
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;

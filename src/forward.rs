@@ -11,6 +11,7 @@ use crate::linalg::dense;
 use crate::model::Model;
 use crate::smoother::{self, Mode, Next};
 use crate::solver::{Past, Settings, SolveReport, Termination};
+use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -128,9 +129,25 @@ impl ForwardOptions {
         }
     }
 
-    /// Number of steps including t = 0: t_k = k·dt for k = 0..=round(t_end/dt).
+    /// Number of steps including t = 0: t_k = k·dt for k = 0..=round(t_end/dt)
+    /// (for options that [`validate`](Self::validate) accepts).
     pub fn steps(&self) -> usize {
-        (self.t_end / self.dt).round() as usize + 1
+        crate::limits::step_count(self.dt, self.t_end).unwrap_or(0)
+    }
+
+    /// Bytes a run of `model` with these options holds at its peak, roughly: the
+    /// variables of every step and the trajectory built from them, the window's
+    /// linear system, and for a batch solve the system of the whole horizon.
+    pub fn memory_estimate(&self, model: &Model) -> f64 {
+        let n = model.n() as f64;
+        let s = 3.0 * (n + model.independent.len() as f64);
+        let steps = self.steps() as f64;
+        let per_step_system = 8.0 * s * (3.0 * s + 2.0 * model.m() as f64) * 4.0;
+        let solved = match self.mode {
+            Mode::FixedLag(w) => (w as f64).min(steps) + 1.0,
+            Mode::Batch => steps,
+        };
+        8.0 * steps * (s + 3.0 * n) * 2.0 + per_step_system * solved
     }
 
     /// Refuses options that make no sense, with the reason.
@@ -145,6 +162,7 @@ impl ForwardOptions {
                 self.dt, self.t_end
             ));
         }
+        crate::limits::step_count(self.dt, self.t_end)?;
         if let Mode::FixedLag(0) = self.mode {
             return bad("the window must hold at least 1 step".into());
         }
@@ -165,7 +183,15 @@ impl ForwardOptions {
             }
         }
         self.noise.validate()?;
-        self.settings.validate()
+        self.settings.validate()?;
+        crate::limits::ensure_fits(
+            &format!(
+                "a run of {} steps of {} coordinates",
+                self.steps(),
+                model.n()
+            ),
+            self.memory_estimate(model),
+        )
     }
 }
 
@@ -387,6 +413,8 @@ pub struct StepFailure {
     pub singular: Option<SingularConfiguration>,
     /// Set when the step failed in the one-step run that starts a batch solve.
     pub warm_start: bool,
+    /// Where the cost went non-finite: the effect that cannot be evaluated there.
+    pub cause: Option<String>,
 }
 
 /// A configuration ahead where the independent coordinates z stop determining the
@@ -417,10 +445,9 @@ impl StepFailure {
         let t = round_time(self.t);
         match &self.singular {
             Some(c) => format!(
-                "singular configuration at t ≈ {:.6} s (extrapolated): the independent \
-                 coordinates [{}] do not determine the other coordinates' velocities there \
-                 (rank of Φ_q over the dependent coordinates [{}] {} < {}); stopped at step {} \
-                 (t = {t} s), where its distance to rank loss is {:.1e} and falling",
+                "singular configuration at t ≈ {:.6} s (extrapolated): independent coordinates \
+                 [{}] stop determining [{}] (rank {} < {}); stopped at step {} (t = {t} s), \
+                 distance to rank loss {:.1e}",
                 c.t_singular,
                 c.independent.join(", "),
                 c.dependent.join(", "),
@@ -444,6 +471,12 @@ impl StepFailure {
                 } else {
                     ""
                 };
+                if let Some(cause) = &self.cause {
+                    return format!(
+                        "{stage}step {} (t = {t} s) cannot be solved: {cause}",
+                        self.step
+                    );
+                }
                 format!(
                     "{stage}step {} (t = {t} s) did not converge: {}, cost {:.3e} after {} \
                      iterations{singular}",
@@ -758,12 +791,16 @@ pub struct RunSummary {
     pub worst_velocity_constraint: f64,
     /// max |E(t) − E(0)| when the scene is conservative.
     pub energy_drift: Option<f64>,
+    /// The largest kinetic energy along the trajectory: the scale of the drift.
+    pub peak_kinetic_energy: f64,
     pub failures: Vec<StepFailure>,
     /// With [`Past::Adaptive`], the step from which the smoother conditioned on its
     /// past: its window solve had not converged after a marginal prior.
     pub conditioned_from: Option<(usize, f64)>,
     /// In independent coordinates, where the run switched to another set.
     pub reselections: Vec<Reselection>,
+    /// Set (to the last step kept) when the caller interrupted the run.
+    pub interrupted: Option<usize>,
 }
 
 /// A switch of the independent coordinates during a run: at `step` the coordinates in
@@ -778,6 +815,21 @@ pub struct Reselection {
 }
 
 /// Simulates the model's motion. `progress(done, total)` is called after each step.
+pub fn simulate(
+    model: Arc<Model>,
+    options: &ForwardOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(Trajectory, RunSummary)> {
+    simulate_interruptible(model, options, &mut |done, total| {
+        progress(done, total);
+        ControlFlow::Continue(())
+    })
+}
+
+/// [`simulate`], where `progress` returning `Break` after a step ends the run there
+/// (a user's Ctrl-C): the steps solved so far are returned, and
+/// [`RunSummary::interrupted`] names the last one. A batch solve is interrupted only
+/// during its one-step start, and then returns no step.
 ///
 /// In independent coordinates the run goes in segments: where the coordinates in use
 /// approach a configuration where they stop determining the others while Φ_q keeps
@@ -785,10 +837,10 @@ pub struct Reselection {
 /// a well-conditioned set chosen from q ([`Determinacy::reselect`]), conditioned on
 /// that step's state (its graph's initial priors), as generalized coordinate
 /// partitioning does. Where Φ_q itself loses rank no set helps: the run stops.
-pub fn simulate(
+pub fn simulate_interruptible(
     model: Arc<Model>,
     options: &ForwardOptions,
-    progress: &mut dyn FnMut(usize, usize),
+    progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
 ) -> Result<(Trajectory, RunSummary)> {
     options.validate(&model)?;
     let total = options.steps();
@@ -806,7 +858,7 @@ pub fn simulate(
             progress,
             &mut run,
         )?;
-        let next = seg.reselect;
+        let next = seg.reselect.filter(|_| run.interrupted.is_none());
         match trajectory.as_mut() {
             None => trajectory = Some(seg.trajectory),
             Some(tr) => tr.append_after_first(&seg.trajectory),
@@ -840,6 +892,7 @@ pub fn simulate(
     )?;
     summary.conditioned_from = run.conditioned_from;
     summary.reselections = run.reselections;
+    summary.interrupted = run.interrupted;
     Ok((trajectory, summary))
 }
 
@@ -854,6 +907,7 @@ struct Run {
     failures: Vec<StepFailure>,
     conditioned_from: Option<(usize, f64)>,
     reselections: Vec<Reselection>,
+    interrupted: Option<usize>,
 }
 
 /// A segment's motion, and where (global step) and to which independent coordinates
@@ -869,7 +923,7 @@ fn segment(
     options: &ForwardOptions,
     first: usize,
     total: usize,
-    progress: &mut dyn FnMut(usize, usize),
+    progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
     run: &mut Run,
 ) -> Result<Segment> {
     let mut fg = ForwardGraph::new(model.clone(), options)?;
@@ -880,13 +934,28 @@ fn segment(
     values[..s].copy_from_slice(&fg.initial_block(&model)?);
     let mut completed = steps;
     let mut reselect = None;
-    let failure = |k: usize, report: &SolveReport, q: &[f64]| StepFailure {
-        step: first + k,
-        t: fg.graph.time(k),
-        report: *report,
-        constraint_conditioning: constraint_conditioning(&model, q),
-        singular: None,
-        warm_start: false,
+    let n = model.n();
+    let failure = |k: usize, report: &SolveReport, v: &[f64]| {
+        let q = &v[k * s..k * s + n];
+        // A non-finite cost: look for the effect that cannot be evaluated, at the
+        // step's state or, where that is not finite, at the step before's.
+        let cause = (!report.cost.is_finite()).then(|| {
+            let at = |j: usize| (&v[j * s..j * s + n], &v[j * s + n..j * s + 2 * n]);
+            let (mut qk, mut dqk) = at(k);
+            if !qk.iter().chain(dqk).all(|x| x.is_finite()) {
+                (qk, dqk) = at(k.saturating_sub(1));
+            }
+            model.effect_fault(qk, dqk, fg.graph.time(k))
+        });
+        StepFailure {
+            step: first + k,
+            t: fg.graph.time(k),
+            report: *report,
+            constraint_conditioning: constraint_conditioning(&model, q),
+            singular: None,
+            warm_start: false,
+            cause: cause.flatten(),
+        }
     };
     match options.mode {
         Mode::FixedLag(window) => {
@@ -898,6 +967,7 @@ fn segment(
             let mut failures = Vec::new();
             let mut iterations = Vec::new();
             let mut conditioned_from = None;
+            let mut interrupted = None;
             smoother::fixed_lag(
                 &fg.graph,
                 &mut values,
@@ -911,10 +981,16 @@ fn segment(
                 |v, k| fg.predict(v, k),
                 |k, report, v| {
                     iterations.push(report.iterations);
-                    progress(first + k + 1, total);
+                    if progress(first + k + 1, total).is_break() {
+                        // Interrupted: this step converged or not, it is kept as
+                        // solved and reported as the last one.
+                        interrupted = Some(first + k);
+                        completed = k + 1;
+                        return Next::Stop;
+                    }
                     let q = &v[k * s..k * s + model.n()];
                     if report.termination != Termination::Converged {
-                        let mut f = failure(k, report, q);
+                        let mut f = failure(k, report, v);
                         if let Some((det, before, older)) = determinacy.as_mut() {
                             // A solve that fails while z and every other set of
                             // coordinates approach a rank loss fails because of it:
@@ -977,7 +1053,7 @@ fn segment(
                         // seen at coarse steps must not stop the run.
                         let crossing = before.1.is_finite() && 2.0 * now.1 <= before.1;
                         if falling && (now.1 < Determinacy::STOP_BELOW || crossing) {
-                            let mut f = failure(k, report, q);
+                            let mut f = failure(k, report, v);
                             f.singular = Some(det.singular_configuration(&model, q, *before, now));
                             failures.push(f);
                             completed = k;
@@ -992,6 +1068,7 @@ fn segment(
             )?;
             run.iterations.extend(iterations);
             run.failures.extend(failures);
+            run.interrupted = run.interrupted.or(interrupted);
             if run.conditioned_from.is_none() {
                 run.conditioned_from = conditioned_from;
             }
@@ -1008,10 +1085,14 @@ fn segment(
                 &warm_options,
                 first,
                 total,
-                &mut |_, _| {},
+                progress,
                 &mut warm,
             )?;
-            if let Some(f) = warm.failures.iter().find(|f| f.singular.is_some()) {
+            if warm.interrupted.is_some() {
+                // The one-step start is not the batch solution: nothing to return.
+                run.interrupted = warm.interrupted;
+                completed = 0;
+            } else if let Some(f) = warm.failures.iter().find(|f| f.singular.is_some()) {
                 // Ill-posed ahead: no batch solve of the whole horizon exists.
                 run.failures.push(f.clone());
                 completed = 0;
@@ -1029,11 +1110,9 @@ fn segment(
                 fg.fill_from_trajectory(&model, &guess.trajectory, &mut values);
                 let report = smoother::batch(&fg.graph, &mut values, completed, options.settings)?;
                 run.iterations.push(report.iterations);
-                progress(first + completed, total);
                 if report.termination != Termination::Converged {
                     let k = completed - 1;
-                    let q = &values[k * s..k * s + model.n()];
-                    run.failures.push(failure(k, &report, q));
+                    run.failures.push(failure(k, &report, &values));
                 }
             }
         }
@@ -1098,6 +1177,7 @@ fn summarize(
     let conservative = model.scene.is_conservative();
     let mut e0 = None;
     let mut drift = 0.0f64;
+    let mut peak_kinetic = 0.0f64;
     for k in 0..tr.len() {
         let (q, dq) = (tr.q_at(k), tr.dq_at(k));
         if !q.iter().chain(dq).all(|v| v.is_finite()) {
@@ -1110,10 +1190,12 @@ fn summarize(
             let v: f64 = (0..n).map(|j| jac[r * n + j] * dq[j]).sum();
             worst_vel = worst_vel.max(v.abs());
         }
+        let dv = nalgebra::DVector::from_column_slice(dq);
+        let kinetic = model.kinetic_energy(&dv);
+        peak_kinetic = peak_kinetic.max(kinetic);
         if conservative {
             let qv = nalgebra::DVector::from_column_slice(q);
-            let dv = nalgebra::DVector::from_column_slice(dq);
-            let e = model.kinetic_energy(&dv) + model.potential_energy(&qv);
+            let e = kinetic + model.potential_energy(&qv);
             let e0 = *e0.get_or_insert(e);
             drift = drift.max((e - e0).abs());
         }
@@ -1127,8 +1209,10 @@ fn summarize(
         worst_phi,
         worst_velocity_constraint: worst_vel,
         energy_drift: conservative.then_some(drift),
+        peak_kinetic_energy: peak_kinetic,
         failures,
         conditioned_from: None,
         reselections: Vec::new(),
+        interrupted: None,
     })
 }

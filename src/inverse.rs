@@ -207,6 +207,21 @@ pub fn solve(
     let n = model.n();
     let (dt, steps) = (prescription.dt, prescription.steps);
     let idx = &prescription.indices;
+    if idx.len() > model.dof() {
+        return Err(Error::InvalidArgument(format!(
+            "{}: {} prescribed coordinates over-prescribe a mechanism of {} degree(s) of freedom",
+            model.scene.file,
+            idx.len(),
+            model.dof()
+        )));
+    }
+    // The batch system of the whole horizon, roughly: each step's variables
+    // (q, q̇, q̈, Q and the independent ones) and a banded Hessian three steps wide.
+    let per_step = 4.0 * n as f64 + 3.0 * model.independent.len() as f64;
+    crate::limits::ensure_fits(
+        &format!("an inverse solve of {steps} samples of {n} coordinates"),
+        8.0 * steps as f64 * per_step * (3.0 * per_step + 2.0 * model.m() as f64),
+    )?;
     let unactuated: Vec<usize> = (0..n).filter(|i| !idx.contains(i)).collect();
     let nm = options.noise;
     let (d1, d2): (Vec<f64>, Vec<f64>) = (0..idx.len())

@@ -43,13 +43,16 @@ pub fn solve_position(
     let tol = position_tolerance(q);
     let mut phi = model.phi(q);
     let mut iterations = 0;
-    while phi.amax() > tol {
-        if iterations == MAX_ITERATIONS || free.is_empty() {
+    while !(phi.amax() <= tol) {
+        if iterations == MAX_ITERATIONS || free.is_empty() || !phi.iter().all(|v| v.is_finite()) {
             return Err(violated(model, &phi, tol, iterations));
         }
         iterations += 1;
         let jac = model.jacobian(q);
         let jf = DMatrix::from_fn(model.m(), free.len(), |r, c| jac[(r, free[c])]);
+        if !jf.iter().all(|v| v.is_finite()) {
+            return Err(violated(model, &phi, tol, iterations));
+        }
         let svd = jf.svd(true, true);
         let eps = RANK_TOL * svd.singular_values.max();
         let Ok(step) = svd.solve(&(-&phi), eps) else {
@@ -85,7 +88,7 @@ fn violated(model: &Model, phi: &DVector<f64>, tol: f64, iterations: usize) -> E
     let mut bad: Vec<(String, f64)> = phi
         .iter()
         .enumerate()
-        .filter(|(_, v)| v.abs() > tol)
+        .filter(|(_, v)| !(v.abs() <= tol))
         .map(|(k, v)| (model.constraints[k].name.clone(), v.abs()))
         .collect();
     bad.sort_by(|a, b| b.1.total_cmp(&a.1));

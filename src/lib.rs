@@ -21,9 +21,11 @@ pub mod graph;
 pub mod inverse;
 pub mod io;
 pub mod kinematics;
+pub mod limits;
 pub mod linalg;
 pub mod model;
 pub mod motions;
+pub mod plausibility;
 #[cfg(feature = "python")]
 mod python;
 pub mod reference;

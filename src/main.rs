@@ -1,14 +1,18 @@
-//! The `mbfg` command line. Errors end with exit code 2 and one line on stderr.
+//! The `mbfg` command line. Every error is one line on stderr; the exit code says
+//! which kind: 2 bad input, 1 a run that failed or ended early, 130 interrupted,
+//! 70 a bug (a panic, caught here).
+
+mod cli;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use cli::output::Output;
 use mbfg::check::CheckReport;
-use mbfg::forward::{
-    self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary, Trajectory,
-};
+use mbfg::forward::{self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary};
 use mbfg::smoother::Mode;
 use mbfg::solver::Past;
 use mbfg::{Error, Model, Scene};
 use std::io::IsTerminal;
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -74,6 +78,12 @@ enum Command {
         /// Keep going after a step whose solve did not converge (it is reported).
         #[arg(long = "continue-on-failure")]
         continue_on_failure: bool,
+        /// Make the plausibility warnings errors: a time step too coarse for the
+        /// stiffest spring or damper (refused before the run), and the energy drift
+        /// of a conservative scene beyond 1 % of its largest kinetic energy (the
+        /// trajectory is then not written).
+        #[arg(long)]
+        strict: bool,
     },
     /// Inverse dynamics: the forces on the prescribed coordinates that produce their
     /// motion, and the motion of all the others, solved over the whole horizon.
@@ -98,6 +108,10 @@ enum Command {
         /// standard output.
         #[arg(long, value_name = "FILE.csv")]
         out: Option<PathBuf>,
+        /// Write the result of a solve that did not converge too, to
+        /// `<out>.partial.csv` (or to standard output, ended by `# incomplete`).
+        #[arg(long = "keep-unconverged")]
+        keep_unconverged: bool,
     },
 }
 
@@ -138,10 +152,12 @@ enum NoiseArg {
     Paper,
 }
 
-/// Why a command failed: bad input (exit 2) or a run that did not converge (exit 1).
+/// Why a command failed: bad input (exit 2), a run that failed or ended early
+/// (exit 1), or a run the user interrupted (exit 130).
 enum Failure {
     Input(String),
     Run(String),
+    Interrupted(String),
 }
 
 impl From<String> for Failure {
@@ -150,26 +166,86 @@ impl From<String> for Failure {
     }
 }
 
+/// The longest error message: with `error: `, a line of 300 characters at most;
+/// longer messages are cut with an ellipsis.
+const MAX_MESSAGE_CHARS: usize = 300 - "error: ".len();
+
 fn main() -> ExitCode {
-    let cli = match Cli::try_parse() {
+    cli::panic::install_hook();
+    let cli = match Cli::try_parse_from(join_negative_values(std::env::args_os())) {
         Ok(cli) => cli,
-        Err(e) => {
-            let code = if e.use_stderr() { 2 } else { 0 };
+        Err(e) if !e.use_stderr() => {
+            // --help and --version.
             let _ = e.print();
-            return ExitCode::from(code);
+            return ExitCode::SUCCESS;
+        }
+        Err(e) => {
+            eprintln!("error: {}", clap_line(&e));
+            return ExitCode::from(2);
         }
     };
-    match run(cli) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(Failure::Input(message)) => {
-            eprintln!("error: {message}");
-            ExitCode::from(2)
-        }
-        Err(Failure::Run(message)) => {
-            eprintln!("error: {message}");
-            ExitCode::from(1)
+    let (code, message) = match std::panic::catch_unwind(|| run(cli)) {
+        Ok(Ok(())) => return ExitCode::SUCCESS,
+        Ok(Err(Failure::Input(m))) => (2, m),
+        Ok(Err(Failure::Run(m))) => (1, m),
+        Ok(Err(Failure::Interrupted(m))) => (130, m),
+        Err(_) => (
+            70,
+            format!(
+                "internal error (a bug in mbfg; please report it with the command): {}",
+                cli::panic::last_message()
+            ),
+        ),
+    };
+    eprintln!("error: {}", shorten(&message));
+    ExitCode::from(code)
+}
+
+/// One line of at most [`MAX_MESSAGE_CHARS`] characters.
+fn shorten(message: &str) -> String {
+    let line = message.replace(['\n', '\r'], " ");
+    if line.chars().count() <= MAX_MESSAGE_CHARS {
+        return line;
+    }
+    let mut cut: String = line.chars().take(MAX_MESSAGE_CHARS - 1).collect();
+    cut.push('…');
+    cut
+}
+
+/// clap's error as one line: its first line without the `error: ` prefix, and where
+/// to read more.
+fn clap_line(e: &clap::Error) -> String {
+    let text = e.render().to_string();
+    let first = text
+        .lines()
+        .find(|l| !l.trim().is_empty())
+        .unwrap_or("invalid arguments");
+    let first = first.strip_prefix("error: ").unwrap_or(first).trim();
+    shorten(&format!("{first} (mbfg --help lists the arguments)"))
+}
+
+/// `--dt -inf` as `--dt=-inf`: clap takes a value that starts with `-` and is not a
+/// plain number for a flag; the value is then checked like any other.
+fn join_negative_values(args: impl Iterator<Item = std::ffi::OsString>) -> Vec<std::ffi::OsString> {
+    let mut out: Vec<std::ffi::OsString> = Vec::new();
+    for arg in args {
+        let joined = match (out.last().and_then(|p| p.to_str()), arg.to_str()) {
+            (Some(prev), Some(value))
+                if prev.starts_with("--")
+                    && !prev.contains('=')
+                    && value.starts_with('-')
+                    && value.parse::<f64>().is_ok() =>
+            {
+                Some(format!("{prev}={value}"))
+            }
+            _ => None,
+        };
+        match joined {
+            Some(j) => *out.last_mut().expect("a previous argument") = j.into(),
+            None => out.push(arg),
         }
     }
+    out
 }
 
 /// Runs a command; the error is the one line to print.
@@ -177,7 +253,19 @@ fn run(cli: Cli) -> Result<(), Failure> {
     match cli.command {
         Command::Check { scene } => {
             let (scene, model) = load(&scene)?;
-            println!("{}", CheckReport::new(&scene, &model));
+            let report = CheckReport::new(&scene, &model);
+            let numbers = [
+                ("max |Φ|", report.initial_residual),
+                ("kinetic energy", report.kinetic_energy),
+                ("potential energy", report.potential_energy),
+            ];
+            if let Some((what, v)) = numbers.iter().find(|(_, v)| !v.is_finite()) {
+                return Err(Failure::Input(format!(
+                    "{}: the initial state's {what} is {v}: a value in the scene is out of range",
+                    scene.file
+                )));
+            }
+            println!("{report}");
             Ok(())
         }
         Command::Simulate {
@@ -193,6 +281,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             noise,
             past,
             continue_on_failure,
+            strict,
         } => {
             let (_, model) = load(&scene)?;
             let mode = if batch {
@@ -221,7 +310,11 @@ fn run(cli: Cli) -> Result<(), Failure> {
             };
             options.continue_on_failure = continue_on_failure;
             options.validate(&model).map_err(plain)?;
-            simulate(model, &options, out.as_deref())
+            if let Mode::FixedLag(w) = options.mode {
+                // A window longer than the run is the whole run.
+                options.mode = Mode::FixedLag(w.min(options.steps()));
+            }
+            simulate(model, &options, out.as_deref(), &scene, strict)
         }
         Command::Inverse {
             scene,
@@ -230,6 +323,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             max_iterations,
             start,
             out,
+            keep_unconverged,
         } => {
             let (_, model) = load(&scene)?;
             if max_iterations == 0 {
@@ -239,13 +333,15 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 StartArg::Kinematic => mbfg::inverse::Start::Kinematic,
                 StartArg::Staged => mbfg::inverse::Start::Staged,
             };
+            let output = Output::open(out.as_deref(), &[&scene, &trajectory])?;
             inverse(
                 model,
                 &trajectory,
                 coords,
                 max_iterations,
                 start,
-                out.as_deref(),
+                output,
+                keep_unconverged,
             )
         }
     }
@@ -258,13 +354,13 @@ fn inverse(
     coords: InverseCoords,
     max_iterations: usize,
     start: mbfg::inverse::Start,
-    out: Option<&Path>,
+    output: Output,
+    keep_unconverged: bool,
 ) -> Result<(), Failure> {
     let table = mbfg::io::read_table(trajectory).map_err(plain)?;
     let prescription =
         mbfg::inverse::Prescription::from_table(&model, &table, &trajectory.display().to_string())
             .map_err(plain)?;
-    let mut output = Output::open(out)?;
     let mut options = mbfg::inverse::InverseOptions::default();
     options.settings.max_iterations = max_iterations;
     options.start = start;
@@ -277,7 +373,6 @@ fn inverse(
         Error::InvalidArgument(m) => Failure::Input(m),
         other => Failure::Run(plain(other)),
     })?;
-    output.write(&sol.trajectory, Some(&sol.forces))?;
     let s = &sol.summary;
     let line = format!(
         "{} steps (dt = {} s, batch) in {:.3} s; {} LM iterations ({}); worst tracking error {:.2e}; worst |Φ| {:.2e}",
@@ -289,53 +384,40 @@ fn inverse(
         s.worst_tracking,
         s.worst_phi
     );
-    output.summary(&line);
+    let to_file = output.to_file();
     if s.report.termination != mbfg::solver::Termination::Converged {
-        return Err(Failure::Run(format!(
-            "the inverse solve did not converge: {}, cost {:.3e} after {} iterations (--max-iterations allows more)",
+        let why = format!(
+            "the inverse solve did not converge: {}, cost {:.3e} after {} iterations",
             s.report.termination, s.report.cost, s.report.iterations
+        );
+        let what = if keep_unconverged {
+            output
+                .keep_partial(&sol.trajectory, Some(&sol.forces), &why)
+                .map_err(Failure::Run)?
+                .replacen(" steps ", " unconverged steps ", 1)
+        } else {
+            output.discard();
+            "nothing was written (--keep-unconverged writes it, marked)".into()
+        };
+        print_summary(to_file, &line);
+        return Err(Failure::Run(format!(
+            "{why}; {what}; --max-iterations allows more"
         )));
     }
+    output
+        .commit(&sol.trajectory, Some(&sol.forces))
+        .map_err(Failure::Run)?;
+    print_summary(to_file, &line);
     Ok(())
 }
 
-/// Where a command's CSV goes: the `--out` file (opened before the run, so that an
-/// unwritable path is refused as bad input) or standard output. The summary line goes
-/// to standard output beside a file, to standard error beside CSV on standard output.
-struct Output {
-    file: Option<std::fs::File>,
-    to_file: bool,
-}
-
-impl Output {
-    fn open(out: Option<&Path>) -> Result<Self, Failure> {
-        let file = match out {
-            Some(p) => Some(
-                std::fs::File::create(p)
-                    .map_err(|e| format!("cannot write {}: {e}", p.display()))?,
-            ),
-            None => None,
-        };
-        Ok(Output {
-            to_file: file.is_some(),
-            file,
-        })
-    }
-
-    fn write(&mut self, trajectory: &Trajectory, forces: Option<&[f64]>) -> Result<(), Failure> {
-        let written = match self.file.take() {
-            Some(f) => mbfg::io::write_trajectory(std::io::BufWriter::new(f), trajectory, forces),
-            None => mbfg::io::write_trajectory(std::io::stdout().lock(), trajectory, forces),
-        };
-        written.map_err(|e| Failure::Run(plain(e)))
-    }
-
-    fn summary(&self, line: &str) {
-        if self.to_file {
-            println!("{line}");
-        } else {
-            eprintln!("{line}");
-        }
+/// The summary line goes to standard output beside a CSV file, to standard error
+/// beside CSV on standard output.
+fn print_summary(to_file: bool, line: &str) {
+    if to_file {
+        println!("{line}");
+    } else {
+        eprintln!("{line}");
     }
 }
 
@@ -348,37 +430,82 @@ fn plain(e: Error) -> String {
 }
 
 /// `mbfg simulate`: runs, writes the CSV, prints the summary.
-fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Result<(), Failure> {
+fn simulate(
+    model: Model,
+    options: &ForwardOptions,
+    out: Option<&Path>,
+    scene: &Path,
+    strict: bool,
+) -> Result<(), Failure> {
     // Open the output first: an unwritable path is bad input, found before the run.
-    let mut output = Output::open(out)?;
+    let output = Output::open(out, &[scene])?;
+    if let Some(w) = mbfg::plausibility::step_warning(&model, options.dt) {
+        if strict {
+            return Err(Failure::Input(format!("{w} (--strict)")));
+        }
+        eprintln!("warning: {w}");
+    }
+    cli::interrupt::install();
     let mut bar = Progress::new();
-    let result = forward::simulate(Arc::new(model), options, &mut |done, total| {
-        bar.update(done, total)
+    let result = forward::simulate_interruptible(Arc::new(model), options, &mut |done, total| {
+        bar.update(done, total);
+        if cli::interrupt::requested() {
+            ControlFlow::Break(())
+        } else {
+            ControlFlow::Continue(())
+        }
     });
     bar.finish();
     let (trajectory, summary) = result.map_err(|e| Failure::Run(plain(e)))?;
-    let first_failure = summary.failures.first().cloned();
-    let stopped = first_failure.is_some() && !options.continue_on_failure;
-    // A batch that did not converge has no trustworthy step to write.
-    let writable = !(stopped && options.mode == Mode::Batch);
-    if writable {
-        output.write(&trajectory, None)?;
-    }
+    let to_file = output.to_file();
     let line = summary_line(options, &summary);
-    output.summary(&line);
-    for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
-        eprintln!("warning: {}", f.message());
-    }
-    if let (true, Some(f)) = (stopped, first_failure) {
-        let what = if writable {
-            format!("the {} steps before it were written", trajectory.len())
+    if let Some(k) = summary.interrupted {
+        let why = format!("interrupted after step {k}");
+        let what = if trajectory.is_empty() {
+            output.discard();
+            "nothing was written".to_string()
         } else {
-            "nothing was written".into()
+            output
+                .keep_partial(&trajectory, None, &why)
+                .map_err(Failure::Run)?
         };
+        print_summary(to_file, &line);
+        return Err(Failure::Interrupted(format!("{why}; {what}")));
+    }
+    let first_failure = summary.failures.first().cloned();
+    let stopped = match options.mode {
+        // A batch that did not converge has no trustworthy step.
+        Mode::Batch => first_failure.is_some(),
+        Mode::FixedLag(_) => trajectory.len() < options.steps(),
+    };
+    for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
+        eprintln!("warning: {}", shorten(&f.message()));
+    }
+    if stopped {
+        let Some(f) = first_failure else {
+            return Err(Failure::Run(format!(
+                "the run ended after {} of {} steps",
+                trajectory.len(),
+                options.steps()
+            )));
+        };
+        let what = if options.mode == Mode::Batch || trajectory.is_empty() {
+            output.discard();
+            "nothing was written".to_string()
+        } else {
+            output
+                .keep_partial(&trajectory, None, &f.message())
+                .map_err(Failure::Run)?
+        };
+        print_summary(to_file, &line);
         // More iterations do not help the solves that stall (they crawl along a
         // direction the cost barely sees), so --max-iterations is not suggested.
-        let hint = if f.singular.is_some() {
-            "dependent coordinates (--coords dc) do not depend on that choice"
+        let hint = if f.cause.is_some() {
+            "an effect must be finite over the whole run"
+        } else if options.mode == Mode::Batch && !f.warm_start {
+            "the fixed-lag smoother (--window N) or a smaller dt may converge"
+        } else if f.singular.is_some() {
+            "--coords dc does not stop there"
         } else if f.warm_start {
             "--window 1 writes the run up to there"
         } else if f.report.termination == mbfg::solver::Termination::Diverged {
@@ -388,6 +515,16 @@ fn simulate(model: Model, options: &ForwardOptions, out: Option<&Path>) -> Resul
         };
         return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
     }
+    if let Some(w) = mbfg::plausibility::energy_warning(&summary) {
+        if strict {
+            output.discard();
+            print_summary(to_file, &line);
+            return Err(Failure::Run(format!("{w}; nothing was written (--strict)")));
+        }
+        eprintln!("warning: {w}");
+    }
+    output.commit(&trajectory, None).map_err(Failure::Run)?;
+    print_summary(to_file, &line);
     Ok(())
 }
 

@@ -41,7 +41,8 @@ pub fn fixed_lag(
     mut on_step: impl FnMut(usize, &SolveReport, &[f64]) -> Next,
     mut on_switch: impl FnMut(usize),
 ) -> Result<()> {
-    let window = window.max(1);
+    // A window longer than the run is the whole run.
+    let window = window.max(1).min(steps.max(1));
     let s = graph.layout.size();
     let mut solver = WindowSolver::new(graph, window + 1, settings)?;
     let mut adaptive = settings.past == Past::Adaptive;
@@ -115,7 +116,16 @@ fn leave(
     prior: Option<&LinearPrior>,
     settings: Settings,
 ) -> Result<LinearPrior> {
-    let mut p = solver.marginalize(graph, values, k0, prior)?;
+    let mut p = solver
+        .marginalize(graph, values, k0, prior)
+        .map_err(|e| match e {
+            crate::Error::Singular(m) => crate::Error::Singular(format!(
+                "{m} (t = {} s); --past conditioned holds the past at its estimate instead of \
+                 marginalizing it",
+                crate::forward::round_time(graph.time(k0))
+            )),
+            other => other,
+        })?;
     if settings.tangent_priors {
         solver.project_prior(graph, values, k0 + 1, &mut p)?;
     }

@@ -1,6 +1,6 @@
 //! `mbfg simulate` end to end: the CSV contract of DESIGN.md, the summary line, bad
 //! arguments (exit 2, one line naming what is wrong) and a run that does not converge
-//! (exit 1, the steps before it written, never a NaN).
+//! (exit 1, the steps before it kept in `<out>.partial.csv`, never a NaN).
 
 use std::path::PathBuf;
 use std::process::{Command, Output};
@@ -163,8 +163,10 @@ fn bad_arguments_exit_2_with_a_clear_message() {
 }
 
 #[test]
-fn a_solve_that_does_not_converge_exits_1_and_keeps_what_converged() {
+fn a_solve_that_does_not_converge_exits_1_and_keeps_what_converged_apart() {
     let csv = temp("stalled.csv");
+    let partial = temp("stalled.partial.csv");
+    std::fs::write(&csv, "an earlier run's result\n").unwrap();
     let out = mbfg(&[
         "simulate",
         "scenes/fourbar.yaml",
@@ -182,8 +184,13 @@ fn a_solve_that_does_not_converge_exits_1_and_keeps_what_converged() {
         line.contains("did not converge") && line.contains("iteration limit"),
         "{line}"
     );
-    let text = std::fs::read_to_string(&csv).unwrap();
+    assert!(line.contains(&*partial.to_string_lossy()), "{line}");
+    // The file asked for keeps what it held; the steps that converged are beside it.
+    let kept = std::fs::read_to_string(&csv).unwrap();
+    let text = std::fs::read_to_string(&partial).unwrap();
     std::fs::remove_file(&csv).ok();
+    std::fs::remove_file(&partial).ok();
+    assert_eq!(kept, "an earlier run's result\n");
     assert!(!text.contains("NaN") && !text.contains("inf"));
     assert!(
         text.lines().count() >= 2,

@@ -122,6 +122,7 @@ pub struct State {
 impl Model {
     /// Assembles a validated scene.
     pub fn new(scene: &Scene) -> Result<Model> {
+        check_extent(scene)?;
         let mut points = Vec::with_capacity(scene.points.len());
         let mut n = 0;
         for p in &scene.points {
@@ -134,6 +135,12 @@ impl Model {
         }
         let relative_offset = n;
         n += scene.coordinates.len();
+        // The model's dense matrices: M, Φ_q and the KKT system of the initial state.
+        let m_rows = scene.constraints.len() + 2 * scene.bodies.len();
+        crate::limits::ensure_fits(
+            &format!("{}: a model of {n} coordinates", scene.file),
+            8.0 * ((n + m_rows) as f64).powi(2) * 4.0,
+        )?;
         let names = scene::coordinate_names(scene);
 
         let mut model = Model {
@@ -162,6 +169,13 @@ impl Model {
             .collect::<Option<Vec<_>>>()
             .ok_or_else(|| Error::InvalidArgument("independent coordinate not in q".into()))?;
         model.assemble_initial_state()?;
+        let init = &model.initial;
+        if let Some(i) = (0..n).find(|&i| !(init.q[i].is_finite() && init.dq[i].is_finite())) {
+            return Err(Error::Singular(format!(
+                "{}: the initial state is not finite at coordinate `{}` (q = {}, q̇ = {})",
+                scene.file, model.names[i], init.q[i], init.dq[i]
+            )));
+        }
         Ok(model)
     }
 
@@ -550,6 +564,26 @@ impl Model {
         Ok(out)
     }
 
+    /// The first effect whose force at (q, q̇, t) cannot be evaluated or is not finite,
+    /// named as `mbfg check` names it, with the reason: why a step's cost went
+    /// non-finite.
+    pub fn effect_fault(&self, q: &[f64], dq: &[f64], t: f64) -> Option<String> {
+        let mut out = vec![0.0; self.n()];
+        for (i, f) in self.forces.iter().enumerate() {
+            out.fill(0.0);
+            let effect = self.scene.effects[i].describe(&self.scene);
+            match f.add_to(self, q, dq, t, &mut out) {
+                Err(Error::InvalidArgument(m)) => return Some(format!("effect {effect}: {m}")),
+                Err(e) => return Some(format!("effect {effect}: {e}")),
+                Ok(()) if !out.iter().all(|v| v.is_finite()) => {
+                    return Some(format!("effect {effect} is not finite at t = {t} s"))
+                }
+                Ok(()) => {}
+            }
+        }
+        None
+    }
+
     /// ∂Q/∂q and ∂Q/∂q̇ (n × n each), in closed form.
     pub fn force_jacobians(
         &self,
@@ -584,6 +618,38 @@ impl Model {
             .iter()
             .any(|e| matches!(e, Effect::Gravity { .. }))
     }
+}
+
+/// Refuses points placed beyond [`crate::limits::MAX_COORDINATE`] or masses that are
+/// not finite: the constraint equations square lengths and would lose every digit.
+fn check_extent(scene: &Scene) -> Result<()> {
+    let limit = crate::limits::MAX_COORDINATE;
+    let refuse = |i: usize, key: &str, message: String| {
+        Err(Error::Scene(crate::error::SceneError {
+            file: scene.file.clone(),
+            line: None,
+            key: format!("points[{i}].{key}"),
+            message,
+        }))
+    };
+    for (i, p) in scene.points.iter().enumerate() {
+        for (axis, v) in [("x", p.x), ("y", p.y)] {
+            if !(v.abs() <= limit) {
+                return refuse(
+                    i,
+                    axis,
+                    format!(
+                        "point '{}' at {axis} = {v:e} m is beyond the ±{limit:e} m a scene may span",
+                        p.name
+                    ),
+                );
+            }
+        }
+        if !p.mass.is_finite() {
+            return refuse(i, "mass", format!("mass {} is not finite", p.mass));
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -1,0 +1,197 @@
+//! Where a command's CSV goes, all or marked, never silently partial:
+//! - to a file: written to a temporary file beside it and renamed over it only when
+//!   the run succeeded, so a failure, a kill or a full disk leaves the old file as it
+//!   was; the steps of a run that ended early go to `<out>.partial.csv` instead;
+//! - to standard output: the rows, and after those of a run that ended early a last
+//!   line `# incomplete: …` that no CSV reader takes for a row of numbers.
+
+use mbfg::forward::Trajectory;
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+pub struct Output {
+    /// The file asked for, or None for standard output.
+    target: Option<PathBuf>,
+    /// The temporary file beside it, created when the output is opened (so that an
+    /// unwritable directory is refused before the run) and removed unless renamed.
+    temp: Option<PathBuf>,
+}
+
+impl Output {
+    /// Opens the output; refuses a target that is one of the command's `inputs` or
+    /// whose directory cannot be written. The error is the message (bad input).
+    pub fn open(out: Option<&Path>, inputs: &[&Path]) -> Result<Self, String> {
+        let Some(target) = out else {
+            return Ok(Output {
+                target: None,
+                temp: None,
+            });
+        };
+        for input in inputs {
+            if same_file(target, input) {
+                return Err(format!(
+                    "--out {} is the input {}: refusing to overwrite it",
+                    target.display(),
+                    input.display()
+                ));
+            }
+        }
+        if target.is_dir() {
+            return Err(format!(
+                "cannot write {}: it is a directory",
+                target.display()
+            ));
+        }
+        let temp = temp_beside(target);
+        File::options()
+            .write(true)
+            .create_new(true)
+            .open(&temp)
+            .map_err(|e| format!("cannot write {}: {e}", target.display()))?;
+        Ok(Output {
+            target: Some(target.to_path_buf()),
+            temp: Some(temp),
+        })
+    }
+
+    /// Whether the CSV goes to a file (the summary then goes to standard output).
+    pub fn to_file(&self) -> bool {
+        self.target.is_some()
+    }
+
+    /// Writes the complete result: to the temporary file, then renamed over the
+    /// target in one step.
+    pub fn commit(mut self, trajectory: &Trajectory, forces: Option<&[f64]>) -> Result<(), String> {
+        match (self.target.clone(), self.temp.take()) {
+            (Some(target), Some(temp)) => {
+                let written = write_file(&temp, trajectory, forces)
+                    .and_then(|()| std::fs::rename(&temp, &target).map_err(|e| e.to_string()));
+                if let Err(e) = written {
+                    std::fs::remove_file(&temp).ok();
+                    return Err(format!("cannot write {}: {e}", target.display()));
+                }
+                // A partial file of an earlier failed run is stale now.
+                std::fs::remove_file(partial_path(&target)).ok();
+                Ok(())
+            }
+            _ => {
+                let mut out = std::io::stdout().lock();
+                mbfg::io::write_trajectory(&mut out, trajectory, forces).map_err(|e| {
+                    // Rows may have gone out before the error: mark them.
+                    writeln!(out, "# incomplete: {}", one_line(&e.to_string())).ok();
+                    format!("cannot write the CSV to standard output: {e}")
+                })
+            }
+        }
+    }
+
+    /// Keeps the steps of a run that ended early, marked as such; the target file is
+    /// left as it was. Returns where they went, for the error line.
+    pub fn keep_partial(
+        mut self,
+        trajectory: &Trajectory,
+        forces: Option<&[f64]>,
+        why: &str,
+    ) -> Result<String, String> {
+        let steps = trajectory.len();
+        match (self.target.clone(), self.temp.take()) {
+            (Some(target), Some(temp)) => {
+                let partial = partial_path(&target);
+                let written = write_file(&temp, trajectory, forces)
+                    .and_then(|()| std::fs::rename(&temp, &partial).map_err(|e| e.to_string()));
+                if let Err(e) = written {
+                    std::fs::remove_file(&temp).ok();
+                    return Err(format!("cannot write {}: {e}", partial.display()));
+                }
+                Ok(format!("{steps} steps kept in {}", partial.display()))
+            }
+            _ => {
+                let mut out = std::io::stdout().lock();
+                let written = mbfg::io::write_trajectory(&mut out, trajectory, forces)
+                    .map_err(|e| e.to_string())
+                    .and_then(|()| {
+                        writeln!(out, "# incomplete: {}", one_line(why)).map_err(|e| e.to_string())
+                    });
+                written.map_err(|e| format!("cannot write the CSV to standard output: {e}"))?;
+                Ok(format!("{steps} steps written, then `# incomplete`"))
+            }
+        }
+    }
+
+    /// Leaves nothing behind (the target keeps its old contents).
+    pub fn discard(mut self) {
+        if let Some(temp) = self.temp.take() {
+            std::fs::remove_file(temp).ok();
+        }
+    }
+}
+
+impl Drop for Output {
+    fn drop(&mut self) {
+        if let Some(temp) = self.temp.take() {
+            std::fs::remove_file(temp).ok();
+        }
+    }
+}
+
+/// `run.csv` → `run.partial.csv` (beside it).
+pub fn partial_path(target: &Path) -> PathBuf {
+    let name = target
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let stem = name.strip_suffix(".csv").unwrap_or(&name);
+    target.with_file_name(format!("{stem}.partial.csv"))
+}
+
+/// A hidden name in the target's directory, unique to this process.
+fn temp_beside(target: &Path) -> PathBuf {
+    let name = target
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    target.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
+}
+
+fn write_file(path: &Path, trajectory: &Trajectory, forces: Option<&[f64]>) -> Result<(), String> {
+    let file = File::options()
+        .write(true)
+        .truncate(true)
+        .open(path)
+        .map_err(|e| e.to_string())?;
+    let mut w = std::io::BufWriter::new(file);
+    mbfg::io::write_trajectory(&mut w, trajectory, forces).map_err(|e| e.to_string())?;
+    let file = w.into_inner().map_err(|e| e.error().to_string())?;
+    // On disk before the rename, so that a crash cannot leave a renamed empty file.
+    file.sync_all().map_err(|e| e.to_string())
+}
+
+/// Whether two paths name the same existing file.
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    }
+}
+
+fn one_line(text: &str) -> String {
+    text.replace(['\n', '\r'], " ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn partial_files_sit_beside_the_target() {
+        assert_eq!(
+            partial_path(Path::new("out/run.csv")),
+            PathBuf::from("out/run.partial.csv")
+        );
+        assert_eq!(
+            partial_path(Path::new("run")),
+            PathBuf::from("run.partial.csv")
+        );
+    }
+}

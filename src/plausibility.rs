@@ -1,0 +1,162 @@
+//! Whether a run's answer can be trusted beyond convergence: a step too coarse for the
+//! scene's stiffest spring or damper, and energy that a conservative scene should keep
+//! but did not. Both are reported with their numbers; `mbfg simulate --strict` makes
+//! them errors.
+
+use crate::forward::RunSummary;
+use crate::model::Model;
+use nalgebra::{DMatrix, DVector};
+
+/// The largest ω·Δt (ω the fastest natural frequency one effect gives the mechanism,
+/// in rad/s; or its damping rate c/m, in 1/s) at which the trapezoidal rule still
+/// follows the motion: at ω·Δt = 1 a step is a sixth of the period, and the period
+/// comes out about 8 % long; beyond it the motion is not resolved.
+pub const MAX_OMEGA_DT: f64 = 1.0;
+
+/// The largest energy drift of a conservative scene, as a fraction of the largest
+/// kinetic energy along the run, that is still taken as integration error.
+pub const ENERGY_DRIFT_TOLERANCE: f64 = 0.01;
+
+/// The fastest time scale of one effect at the initial state.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TimeScale {
+    /// The effect, as `mbfg check` describes it.
+    pub effect: String,
+    /// Fastest natural frequency from its stiffness, rad/s (0 when it has none).
+    pub omega: f64,
+    /// Fastest decay rate from its damping, 1/s (0 when it has none).
+    pub rate: f64,
+}
+
+impl TimeScale {
+    /// The larger of ω and the damping rate, in 1/s.
+    pub fn speed(&self) -> f64 {
+        self.omega.max(self.rate)
+    }
+}
+
+/// The spring and damper effects' time scales at the model's initial state, on the
+/// motions the constraints allow: ω² and the rates are the largest generalized
+/// eigenvalues of the effect's stiffness −∂Q/∂q and damping −∂Q/∂q̇ against M, both
+/// projected on the null space of Φ_q. Empty when the mass matrix does not cover the
+/// free motion (massless coordinates): then nothing can be said this way.
+pub fn time_scales(model: &Model) -> Vec<TimeScale> {
+    let n = model.n();
+    let (q, dq) = (&model.initial.q, &model.initial.dq);
+    let Some(basis) = free_motions(model, q) else {
+        return Vec::new();
+    };
+    if basis.ncols() == 0 {
+        return Vec::new();
+    }
+    let mr = basis.transpose() * &model.mass * &basis;
+    let Some(chol) = mr.clone().cholesky() else {
+        return Vec::new();
+    };
+    let l_inv = match chol.l().try_inverse() {
+        Some(l) => l,
+        None => return Vec::new(),
+    };
+    let largest = |k: &DMatrix<f64>| -> f64 {
+        let kr = basis.transpose() * k * &basis;
+        let a = &l_inv * kr * l_inv.transpose();
+        let sym = (&a + a.transpose()) * 0.5;
+        if !sym.iter().all(|v| v.is_finite()) {
+            return 0.0;
+        }
+        sym.symmetric_eigenvalues().max().max(0.0)
+    };
+    let mut out = Vec::new();
+    for (i, force) in model.forces.iter().enumerate() {
+        let (mut kq, mut kv) = (vec![0.0; n * n], vec![0.0; n * n]);
+        if force
+            .add_jacobians(model, q.as_slice(), dq.as_slice(), &mut kq, &mut kv)
+            .is_err()
+        {
+            continue;
+        }
+        if kq.iter().chain(&kv).all(|v| *v == 0.0) {
+            continue;
+        }
+        let stiffness = -DMatrix::from_row_slice(n, n, &kq);
+        let damping = -DMatrix::from_row_slice(n, n, &kv);
+        let scale = TimeScale {
+            effect: model.scene.effects[i].describe(&model.scene),
+            omega: largest(&stiffness).sqrt(),
+            rate: largest(&damping),
+        };
+        if scale.speed() > 0.0 {
+            out.push(scale);
+        }
+    }
+    out
+}
+
+/// An orthonormal basis of the motions Φ_q allows at q (n × dof), or None when Φ_q
+/// is not finite there.
+fn free_motions(model: &Model, q: &DVector<f64>) -> Option<DMatrix<f64>> {
+    let n = model.n();
+    let jac = model.jacobian(q);
+    let rows = &model.active;
+    if rows.is_empty() {
+        return Some(DMatrix::identity(n, n));
+    }
+    let a = DMatrix::from_fn(rows.len(), n, |r, c| jac[(rows[r], c)]);
+    if !a.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    // The eigenvectors of AᵀA with eigenvalue ~0 span its null space.
+    let ata = a.transpose() * &a;
+    let eig = ata.symmetric_eigen();
+    let top = eig.eigenvalues.amax();
+    let keep: Vec<usize> = (0..n)
+        .filter(|&i| eig.eigenvalues[i] <= 1e-10 * top)
+        .collect();
+    Some(DMatrix::from_fn(n, keep.len(), |r, c| {
+        eig.eigenvectors[(r, keep[c])]
+    }))
+}
+
+/// A warning when `dt` is too coarse for the fastest effect, with its numbers.
+pub fn step_warning(model: &Model, dt: f64) -> Option<String> {
+    let fastest = time_scales(model)
+        .into_iter()
+        .max_by(|a, b| a.speed().total_cmp(&b.speed()))?;
+    let speed = fastest.speed();
+    if speed * dt <= MAX_OMEGA_DT {
+        return None;
+    }
+    let what = if fastest.omega >= fastest.rate {
+        format!(
+            "its period is {:.3e} s (ω = {:.3e} rad/s)",
+            2.0 * std::f64::consts::PI / fastest.omega,
+            fastest.omega
+        )
+    } else {
+        format!("its damping rate is {:.3e} 1/s", fastest.rate)
+    };
+    Some(format!(
+        "dt = {dt} s is too coarse for {}: {what}, and ω·dt = {:.2} > {MAX_OMEGA_DT}; \
+         dt ≤ {:.2e} s resolves it",
+        fastest.effect,
+        speed * dt,
+        MAX_OMEGA_DT / speed
+    ))
+}
+
+/// A warning when a conservative scene's energy drifted beyond
+/// [`ENERGY_DRIFT_TOLERANCE`] of its largest kinetic energy.
+pub fn energy_warning(summary: &RunSummary) -> Option<String> {
+    let drift = summary.energy_drift?;
+    let scale = summary.peak_kinetic_energy;
+    if !(drift > ENERGY_DRIFT_TOLERANCE * scale) {
+        return None;
+    }
+    Some(format!(
+        "the energy of this conservative scene drifted by {drift:.3e} J, {:.1} % of its \
+         largest kinetic energy {scale:.3e} J (tolerance {} %): the step is too coarse \
+         for the motion",
+        100.0 * drift / scale.max(f64::MIN_POSITIVE),
+        100.0 * ENERGY_DRIFT_TOLERANCE
+    ))
+}
