@@ -216,11 +216,15 @@ fn shorten(message: &str) -> String {
 /// to read more.
 fn clap_line(e: &clap::Error) -> String {
     let text = e.render().to_string();
-    let first = text
+    // The first paragraph (a list of missing arguments runs over several lines).
+    let first: Vec<&str> = text
         .lines()
-        .find(|l| !l.trim().is_empty())
-        .unwrap_or("invalid arguments");
-    let first = first.strip_prefix("error: ").unwrap_or(first).trim();
+        .map(str::trim)
+        .skip_while(|l| l.is_empty())
+        .take_while(|l| !l.is_empty())
+        .collect();
+    let first = first.join(" ");
+    let first = first.strip_prefix("error: ").unwrap_or(&first);
     shorten(&format!("{first} (mbfg --help lists the arguments)"))
 }
 

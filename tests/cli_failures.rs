@@ -1,0 +1,407 @@
+//! The command line under abuse: every bad input exits 2 with one line of at most 300
+//! characters; no run that failed or ended early exits 0 or leaves an output that
+//! looks complete; the file asked for is replaced only by a complete result.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn mbfg_in(args: &[&str], env: &[(&str, &str)]) -> Output {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_mbfg"));
+    c.args(args).current_dir(env!("CARGO_MANIFEST_DIR"));
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().expect("run mbfg")
+}
+
+fn mbfg(args: &[&str]) -> Output {
+    mbfg_in(args, &[])
+}
+
+/// A fresh directory for one test's files.
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("mbfg-failures-{}-{name}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn text(p: &Path) -> String {
+    std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+/// Exit `code` and exactly one line `error: …` of at most 300 characters.
+fn error_line(out: &Output, code: i32) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(code), "stderr: {err}");
+    let line = err.lines().last().unwrap_or("").to_string();
+    assert!(line.starts_with("error: "), "{err}");
+    assert!(
+        line.chars().count() <= 300,
+        "{} chars: {line}",
+        line.chars().count()
+    );
+    assert!(
+        !line.contains("panicked") && !line.contains(" { "),
+        "{line}"
+    );
+    line
+}
+
+/// Bad input: exit 2 and nothing but the error line on stderr.
+fn bad_input(args: &[&str]) -> String {
+    let out = mbfg(args);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        err.lines().count(),
+        1,
+        "{args:?}: one line expected:\n{err}"
+    );
+    error_line(&out, 2)
+}
+
+const FOURBAR: &str = "scenes/fourbar.yaml";
+
+#[test]
+fn step_counts_that_overflow_are_bad_input() {
+    for (dt, t_end) in [("1e-300", "1"), ("0.001", "1e300"), ("1", "1e18")] {
+        let line = bad_input(&["simulate", FOURBAR, "--dt", dt, "--t-end", t_end]);
+        assert!(line.contains("steps, more than"), "{line}");
+    }
+}
+
+#[test]
+fn runs_beyond_the_memory_are_refused_before_they_start() {
+    let started = Instant::now();
+    // 1e8 steps fit the step limit but not the memory: refused at once, with the estimate.
+    let line = bad_input(&["simulate", FOURBAR, "--dt", "1e-3", "--t-end", "1e5"]);
+    assert!(
+        line.contains("needs about") && line.contains("GB of memory"),
+        "{line}"
+    );
+    // The limit can be lowered, for shared machines: a 10 001-step run then does not fit.
+    let out = mbfg_in(
+        &["simulate", FOURBAR, "--dt", "1e-3", "--t-end", "10"],
+        &[("MBFG_MEMORY_LIMIT", "1e5")],
+    );
+    let line = error_line(&out, 2);
+    assert!(line.contains("more than the 100.0 kB available"), "{line}");
+    assert!(started.elapsed() < Duration::from_secs(10));
+}
+
+#[test]
+fn a_window_longer_than_the_run_is_the_whole_run() {
+    for window in ["10000000", "18446744073709551615"] {
+        let out = mbfg(&[
+            "simulate", FOURBAR, "--dt", "0.01", "--t-end", "0.2", "--window", window,
+        ]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{err}");
+        assert!(err.contains("21 steps (dt = 0.01 s, window 21)"), "{err}");
+    }
+}
+
+#[test]
+fn argument_errors_are_one_line() {
+    let line = bad_input(&["simulate", FOURBAR, "--dt", "-inf", "--t-end", "1"]);
+    assert!(
+        line.contains("time step must be positive, got -inf"),
+        "{line}"
+    );
+    let line = bad_input(&[
+        "simulate", FOURBAR, "--dt", "0.1", "--t-end", "1", "--bogus",
+    ]);
+    assert!(line.contains("--bogus"), "{line}");
+    let line = bad_input(&["simulate", FOURBAR, "--dt", "abc", "--t-end", "1"]);
+    assert!(line.contains("abc"), "{line}");
+    let line = bad_input(&["simulate", FOURBAR]);
+    assert!(line.contains("--dt"), "{line}");
+}
+
+#[test]
+fn an_output_that_names_an_input_is_refused() {
+    let dir = scratch("out-is-input");
+    let scene = dir.join("fourbar.yaml");
+    std::fs::copy(FOURBAR, &scene).unwrap();
+    let before = text(&scene);
+    let s = scene.to_str().unwrap();
+    let line = bad_input(&["simulate", s, "--dt", "0.01", "--t-end", "0.1", "--out", s]);
+    assert!(line.contains("refusing to overwrite"), "{line}");
+    // The same file by another name.
+    let other = format!("{}/./fourbar.yaml", dir.display());
+    bad_input(&[
+        "simulate", s, "--dt", "0.01", "--t-end", "0.1", "--out", &other,
+    ]);
+    let traj = "scenes/trajectories/fourbar-theta.csv";
+    bad_input(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        traj,
+        "--out",
+        traj,
+    ]);
+    assert_eq!(text(&scene), before);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_run_that_ends_early_on_stdout_ends_with_an_incomplete_line() {
+    let out = mbfg(&[
+        "simulate",
+        FOURBAR,
+        "--dt",
+        "0.001",
+        "--t-end",
+        "0.5",
+        "--max-iterations",
+        "1",
+    ]);
+    error_line(&out, 1);
+    let csv = String::from_utf8_lossy(&out.stdout);
+    let last = csv.lines().last().unwrap();
+    assert!(last.starts_with("# incomplete: step "), "{last}");
+}
+
+/// A torque that turns NaN at t > 0.3 s: the step that meets it is named with the
+/// effect; the run ends there, and --continue-on-failure does not make that a success.
+#[test]
+fn a_non_finite_effect_is_named_and_ends_the_run_whatever_the_flags() {
+    let dir = scratch("nan-torque");
+    let scene = dir.join("nan.yaml");
+    let mut yaml = text(Path::new("scenes/pendulum.yaml"));
+    yaml += "  - {type: torque, coordinate: theta, value: \"sqrt(0.3-t)\"}\n";
+    std::fs::write(&scene, yaml).unwrap();
+    let csv = dir.join("run.csv");
+    for (coords, extra) in [("dc", None), ("ic", Some("--continue-on-failure"))] {
+        let mut args = vec![
+            "simulate",
+            scene.to_str().unwrap(),
+            "--coords",
+            coords,
+            "--dt",
+            "0.01",
+            "--t-end",
+            "1",
+            "--out",
+            csv.to_str().unwrap(),
+        ];
+        args.extend(extra);
+        let line = error_line(&mbfg(&args), 1);
+        assert!(
+            line.contains("step 31 (t = 0.31 s)") && line.contains("torque on theta = sqrt(0.3-t)"),
+            "{line}"
+        );
+        assert!(!csv.exists());
+        let partial = text(&dir.join("run.partial.csv"));
+        assert_eq!(partial.lines().count(), 1 + 31);
+        assert!(!partial.contains("NaN"));
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn points_beyond_the_scene_extent_are_refused() {
+    let dir = scratch("far");
+    let scene = dir.join("far.yaml");
+    let yaml = text(Path::new("scenes/pendulum.yaml"))
+        .replace(
+            "{name: A, x: 0, y: 0, fixed: true}",
+            "{name: A, x: 1e308, y: 0, fixed: true}",
+        )
+        .replace("{name: P, x: 1, y: 0}", "{name: P, x: 1e308, y: 1e307}");
+    std::fs::write(&scene, yaml).unwrap();
+    let line = bad_input(&["check", scene.to_str().unwrap()]);
+    assert!(
+        line.contains("points[0].x") && line.contains("beyond"),
+        "{line}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A 30 t pendulum is as regular as a 1 kg one: its accelerations do not depend on the
+/// mass, and neither does the run.
+#[test]
+fn mass_scale_does_not_make_the_dynamics_singular() {
+    let dir = scratch("heavy");
+    let scene = dir.join("heavy.yaml");
+    let yaml = text(Path::new("scenes/pendulum.yaml")).replace("mass: 1}", "mass: 3e7}");
+    std::fs::write(&scene, yaml).unwrap();
+    let s = scene.to_str().unwrap();
+    let check = mbfg(&["check", s]);
+    assert!(check.status.success());
+    assert!(String::from_utf8_lossy(&check.stdout).contains("initial max |q̈| = 14.715"));
+    for coords in ["dc", "ic"] {
+        let out = mbfg(&[
+            "simulate", s, "--coords", coords, "--dt", "0.001", "--t-end", "1",
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The stiff spring (period 99 ms) stepped at 0.1 s: warned with its numbers, or
+/// refused with --strict.
+#[test]
+fn a_step_too_coarse_for_the_stiffest_spring_is_not_silent() {
+    let args = [
+        "simulate",
+        "scenes/hard/stiff-spring.yaml",
+        "--dt",
+        "0.1",
+        "--t-end",
+        "5",
+    ];
+    let out = mbfg(&args);
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("warning: dt = 0.1 s is too coarse for spring")
+            && err.contains("period is 9.935e-2 s"),
+        "{err}"
+    );
+    assert!(
+        err.contains("warning: the energy of this conservative scene drifted"),
+        "{err}"
+    );
+    let mut strict = args.to_vec();
+    strict.push("--strict");
+    let line = bad_input(&strict);
+    assert!(line.contains("dt ≤ 1.58e-2 s resolves it"), "{line}");
+    // At a tenth of the period: no warning.
+    let out = mbfg(&[
+        "simulate",
+        "scenes/hard/stiff-spring.yaml",
+        "--dt",
+        "0.01",
+        "--t-end",
+        "1",
+    ]);
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("warning"));
+}
+
+#[test]
+fn an_unconverged_inverse_solve_writes_nothing_unless_asked() {
+    let dir = scratch("inverse");
+    let csv = dir.join("q.csv");
+    let base = [
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        "scenes/trajectories/fourbar-theta.csv",
+        "--max-iterations",
+        "1",
+        "--out",
+        csv.to_str().unwrap(),
+    ];
+    let line = error_line(&mbfg(&base), 1);
+    assert!(
+        line.contains("did not converge") && line.contains("nothing was written"),
+        "{line}"
+    );
+    assert!(!csv.exists() && !dir.join("q.partial.csv").exists());
+    let mut keep = base.to_vec();
+    keep.push("--keep-unconverged");
+    let line = error_line(&mbfg(&keep), 1);
+    assert!(line.contains("unconverged steps kept in"), "{line}");
+    assert!(!csv.exists() && dir.join("q.partial.csv").exists());
+    let over = dir.join("over.csv");
+    let rows: String = (0..20)
+        .map(|k| format!("{},{},{}\n", k as f64 * 0.005, 6e-5 * k as f64, 1.0))
+        .collect();
+    std::fs::write(&over, format!("t,theta,P1.x\n{rows}")).unwrap();
+    let line = bad_input(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        over.to_str().unwrap(),
+    ]);
+    assert!(line.contains("over-prescribe"), "{line}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A long run in the background, its CSV to `csv`.
+fn long_run(csv: &Path) -> std::process::Child {
+    Command::new(env!("CARGO_BIN_EXE_mbfg"))
+        .args([
+            "simulate", FOURBAR, "--dt", "1e-4", "--t-end", "1000", "--out",
+        ])
+        .arg(csv)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run mbfg")
+}
+
+fn signal(child: &std::process::Child, name: &str) {
+    let ok = Command::new("kill")
+        .args([format!("-{name}"), child.id().to_string()])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill -{name}");
+}
+
+#[test]
+fn ctrl_c_keeps_the_steps_solved_and_kill_leaves_the_old_file() {
+    let dir = scratch("signals");
+    let csv = dir.join("run.csv");
+    std::fs::write(&csv, "old\n").unwrap();
+    let child = long_run(&csv);
+    std::thread::sleep(Duration::from_millis(700));
+    signal(&child, "INT");
+    let asked = Instant::now();
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        asked.elapsed() < Duration::from_secs(2),
+        "{:?}",
+        asked.elapsed()
+    );
+    let line = error_line(&out, 130);
+    assert!(
+        line.contains("interrupted after step") && line.contains("run.partial.csv"),
+        "{line}"
+    );
+    assert_eq!(text(&csv), "old\n");
+    let partial = text(&dir.join("run.partial.csv"));
+    assert!(partial.lines().count() > 10, "{}", partial.lines().count());
+
+    let child = long_run(&csv);
+    std::thread::sleep(Duration::from_millis(500));
+    signal(&child, "KILL");
+    child.wait_with_output().unwrap();
+    assert_eq!(text(&csv), "old\n");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Two runs writing the same file: each result is complete, so the file is one of
+/// them, never a mix.
+#[test]
+fn concurrent_runs_to_one_file_leave_one_whole_result() {
+    let dir = scratch("concurrent");
+    let csv = dir.join("run.csv");
+    let spawn = |t_end: &str| {
+        Command::new(env!("CARGO_BIN_EXE_mbfg"))
+            .args([
+                "simulate", FOURBAR, "--dt", "1e-3", "--t-end", t_end, "--out",
+            ])
+            .arg(&csv)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap()
+    };
+    let (mut a, mut b) = (spawn("3"), spawn("2"));
+    assert!(a.wait().unwrap().success() && b.wait().unwrap().success());
+    let rows = text(&csv).lines().count() - 1;
+    assert!(rows == 3001 || rows == 2001, "{rows} rows");
+    let leftovers = std::fs::read_dir(&dir).unwrap().count();
+    assert_eq!(leftovers, 1, "temporary files left behind");
+    std::fs::remove_dir_all(&dir).ok();
+}
