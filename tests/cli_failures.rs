@@ -405,3 +405,19 @@ fn concurrent_runs_to_one_file_leave_one_whole_result() {
     assert_eq!(leftovers, 1, "temporary files left behind");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A full disk (Linux's /dev/full) is named in the error; a device is written in
+/// place, never replaced by a rename.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_full_device_is_named_and_left_a_device() {
+    use std::os::unix::fs::FileTypeExt;
+    let full = Path::new("/dev/full");
+    if !full.exists() {
+        return;
+    }
+    let out = mbfg(&["simulate", FOURBAR, "--dt", "0.01", "--t-end", "0.1", "--out", "/dev/full"]);
+    let line = error_line(&out, 1);
+    assert!(line.contains("cannot write /dev/full") && line.contains("No space left"), "{line}");
+    assert!(std::fs::metadata(full).unwrap().file_type().is_char_device());
+}

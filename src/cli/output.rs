@@ -43,6 +43,18 @@ impl Output {
                 target.display()
             ));
         }
+        if target.exists() && !target.is_file() {
+            // A device or a pipe (/dev/stdout, a FIFO): written directly, never
+            // replaced by a rename.
+            File::options()
+                .write(true)
+                .open(target)
+                .map_err(|e| format!("cannot write {}: {e}", target.display()))?;
+            return Ok(Output {
+                target: Some(target.to_path_buf()),
+                temp: None,
+            });
+        }
         let temp = temp_beside(target);
         File::options()
             .write(true)
@@ -75,6 +87,14 @@ impl Output {
                 std::fs::remove_file(partial_path(&target)).ok();
                 Ok(())
             }
+            (Some(target), None) => {
+                let file = File::options()
+                    .write(true)
+                    .open(&target)
+                    .map_err(|e| format!("cannot write {}: {e}", target.display()))?;
+                mbfg::io::write_trajectory(std::io::BufWriter::new(file), trajectory, forces)
+                    .map_err(|e| format!("cannot write {}: {e}", target.display()))
+            }
             _ => {
                 let mut out = std::io::stdout().lock();
                 mbfg::io::write_trajectory(&mut out, trajectory, forces).map_err(|e| {
@@ -106,6 +126,10 @@ impl Output {
                 }
                 Ok(format!("{steps} steps kept in {}", partial.display()))
             }
+            (Some(target), None) => Err(format!(
+                "the {steps} steps before it were not written to {}, which is not a regular file",
+                target.display()
+            )),
             _ => {
                 let mut out = std::io::stdout().lock();
                 let written = mbfg::io::write_trajectory(&mut out, trajectory, forces)
