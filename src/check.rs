@@ -48,8 +48,15 @@ impl CheckReport {
             kinetic_energy: model.kinetic_energy(&init.dq),
             potential_energy: model.potential_energy(&init.q),
             initial_acceleration: dynamics::lagrange(model, &init.q, &init.dq, 0.0)
-                .map(|s| s.ddq.amax())
-                .map_err(|e| e.to_string()),
+                .map_err(|e| e.to_string())
+                .and_then(|s| {
+                    let a = s.ddq.amax();
+                    if s.ddq.iter().all(|v| v.is_finite()) {
+                        Ok(a)
+                    } else {
+                        Err("not finite: a value in the scene is out of range".into())
+                    }
+                }),
         }
     }
 }
@@ -94,12 +101,24 @@ impl fmt::Display for CheckReport {
         }
         writeln!(
             f,
-            "initial state: max |Φ| = {:.2e}, kinetic energy {:.6} J, potential energy {:.6} J",
-            self.initial_residual, self.kinetic_energy, self.potential_energy
+            "initial state: max |Φ| = {:.2e}, kinetic energy {} J, potential energy {} J",
+            self.initial_residual,
+            readable(self.kinetic_energy),
+            readable(self.potential_energy)
         )?;
         match &self.initial_acceleration {
-            Ok(a) => write!(f, "initial max |q̈| = {a:.6}"),
+            Ok(a) => write!(f, "initial max |q̈| = {}", readable(*a)),
             Err(e) => write!(f, "initial accelerations: {e}"),
         }
+    }
+}
+
+/// Six decimals where that reads well, scientific notation beyond (1e300 J would
+/// otherwise print 300 digits).
+fn readable(v: f64) -> String {
+    if v == 0.0 || (1e-3..1e9).contains(&v.abs()) {
+        format!("{v:.6}")
+    } else {
+        format!("{v:.6e}")
     }
 }

@@ -128,6 +128,11 @@ pub fn actuator_forces(
     for (c, &i) in actuated.iter().enumerate() {
         a[(i, m + c)] = -1.0;
     }
+    if !(a.iter().chain(rhs.iter()).all(|v| v.is_finite())) {
+        return Err(Error::Singular(format!(
+            "inverse dynamics at t = {t}: the state gives non-finite constraint forces"
+        )));
+    }
     let svd = a.svd(true, true);
     let x = svd
         .solve(&rhs, 1e-12 * svd.singular_values.max())

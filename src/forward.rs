@@ -714,11 +714,15 @@ impl Determinacy {
         self.distance(model, q);
         let d = self.dependent.len();
         let rows = nalgebra::DMatrix::from_row_slice(model.active.len(), d, &self.rows);
-        let rank = rows
-            .singular_values()
-            .iter()
-            .filter(|&&v| v > 10.0 * s)
-            .count();
+        // nalgebra's SVD does not return on a non-finite matrix.
+        let rank = if rows.iter().all(|v| v.is_finite()) {
+            rows.singular_values()
+                .iter()
+                .filter(|&&v| v > 10.0 * s)
+                .count()
+        } else {
+            0
+        };
         let names = |idx: &mut dyn Iterator<Item = usize>| -> Vec<String> {
             idx.map(|i| model.names[i].clone()).collect()
         };
@@ -731,6 +735,50 @@ impl Determinacy {
             dependent: names(&mut self.dependent.iter().copied()),
         }
     }
+}
+
+/// The first step whose state is not finite (a solve that "converged" on an
+/// overflowing force), as a failure naming the cause; an error when it is the
+/// initial state.
+fn first_non_finite(model: &Model, tr: &Trajectory) -> Result<Option<StepFailure>> {
+    let n = tr.n();
+    let finite = |k: usize| {
+        tr.q_at(k)
+            .iter()
+            .chain(tr.dq_at(k))
+            .chain(&tr.ddq[k * n..(k + 1) * n])
+            .all(|v| v.is_finite())
+    };
+    let Some(k) = (0..tr.len()).find(|&k| !finite(k)) else {
+        return Ok(None);
+    };
+    let (q, dq) = if k > 0 {
+        (tr.q_at(k - 1), tr.dq_at(k - 1))
+    } else {
+        (tr.q_at(0), tr.dq_at(0))
+    };
+    let cause = model.effect_fault(q, dq, tr.t[k]).unwrap_or_else(|| {
+        "the state is not finite: the forces or the accelerations overflow".into()
+    });
+    if k == 0 {
+        return Err(Error::Singular(format!(
+            "{}: the initial state cannot be used: {cause}",
+            model.scene.file
+        )));
+    }
+    Ok(Some(StepFailure {
+        step: k,
+        t: tr.t[k],
+        report: SolveReport {
+            iterations: 0,
+            termination: Termination::Diverged,
+            cost: f64::INFINITY,
+        },
+        constraint_conditioning: 1.0,
+        singular: None,
+        warm_start: false,
+        cause: Some(cause),
+    }))
 }
 
 /// The coordinates of 0..n not in `set`.
@@ -768,6 +816,10 @@ fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
         if norm > 0.0 {
             row.unscale_mut(norm);
         }
+    }
+    if !a.iter().all(|v| v.is_finite()) {
+        // Not a configuration (nalgebra's SVD would not return on it).
+        return 0.0;
     }
     let mut sv: Vec<f64> = a.singular_values().iter().copied().collect();
     sv.sort_by(|a, b| b.total_cmp(a));
@@ -881,7 +933,13 @@ pub fn simulate_interruptible(
         segment_model = Arc::new(next_model);
         first = k;
     }
-    let trajectory = trajectory.expect("a segment was run");
+    let mut trajectory = trajectory.expect("a segment was run");
+    if let Some(f) = first_non_finite(&model, &trajectory)? {
+        // Keep the steps before it; the step itself is a failure, named.
+        trajectory.truncate(f.step);
+        run.failures.retain(|g| g.step < f.step);
+        run.failures.push(f);
+    }
     let wall_time = start.elapsed();
     let mut summary = summarize(
         &model,
@@ -981,13 +1039,8 @@ fn segment(
                 |v, k| fg.predict(v, k),
                 |k, report, v| {
                     iterations.push(report.iterations);
-                    if progress(first + k + 1, total).is_break() {
-                        // Interrupted: this step converged or not, it is kept as
-                        // solved and reported as the last one.
-                        interrupted = Some(first + k);
-                        completed = k + 1;
-                        return Next::Stop;
-                    }
+                    // Asked to stop: after this step's own outcome is recorded.
+                    let stop = progress(first + k + 1, total).is_break();
                     let q = &v[k * s..k * s + model.n()];
                     if report.termination != Termination::Converged {
                         let mut f = failure(k, report, v);
@@ -1061,6 +1114,12 @@ fn segment(
                         }
                         *older = *before;
                         *before = now;
+                    }
+                    if stop {
+                        // Interrupted: this step is kept as the last one.
+                        interrupted = Some(first + k);
+                        completed = k + 1;
+                        return Next::Stop;
                     }
                     Next::Continue
                 },

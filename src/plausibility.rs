@@ -107,6 +107,9 @@ fn free_motions(model: &Model, q: &DVector<f64>) -> Option<DMatrix<f64>> {
     }
     // The eigenvectors of AᵀA with eigenvalue ~0 span its null space.
     let ata = a.transpose() * &a;
+    if !ata.iter().all(|v| v.is_finite()) {
+        return None;
+    }
     let eig = ata.symmetric_eigen();
     let top = eig.eigenvalues.amax();
     let keep: Vec<usize> = (0..n)
@@ -136,10 +139,10 @@ pub fn step_warning(model: &Model, dt: f64) -> Option<String> {
         format!("its damping rate is {:.3e} 1/s", fastest.rate)
     };
     Some(format!(
-        "dt = {dt} s is too coarse for {}: {what}, and ω·dt = {:.2} > {MAX_OMEGA_DT}; \
+        "dt = {dt} s is too coarse for {}: {what}, and ω·dt = {} > {MAX_OMEGA_DT}; \
          dt ≤ {:.2e} s resolves it",
         fastest.effect,
-        speed * dt,
+        short(speed * dt),
         MAX_OMEGA_DT / speed
     ))
 }
@@ -159,4 +162,13 @@ pub fn energy_warning(summary: &RunSummary) -> Option<String> {
         100.0 * drift / scale.max(f64::MIN_POSITIVE),
         100.0 * ENERGY_DRIFT_TOLERANCE
     ))
+}
+
+/// Three decimals, or scientific notation for numbers far from 1.
+fn short(v: f64) -> String {
+    if (1e-3..1e4).contains(&v.abs()) {
+        format!("{v:.3}")
+    } else {
+        format!("{v:.3e}")
+    }
 }
