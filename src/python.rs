@@ -1,41 +1,285 @@
 //! The `mbfg` Python module (PyO3, feature `python`): the scene parser, the assembled
 //! model and the forward/inverse runs, for the harness and for users. Arrays cross
-//! the boundary as flat lists; `python/mbfg/__init__.py` shapes them into numpy.
+//! the boundary as flat lists (a run's table as a buffer of float64s);
+//! `python/mbfg/__init__.py` shapes them into numpy.
+//!
+//! Every entry point runs inside [`guard`]: a Rust panic becomes `mbfg.InternalError`
+//! instead of pyo3's `PanicException`, which `except Exception` does not catch.
+//! Arguments are taken as Python objects and checked here (`arg_*`), so a float
+//! window or a 2-D q is refused with `mbfg.InvalidArgument` rather than coerced.
 
-use crate::forward::{self, Coordinates, ForwardOptions, Integrator, NoiseModels, Trajectory};
-use crate::inverse::{self, InverseOptions, Prescription, Start};
+use crate::forward::{
+    self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary, Trajectory,
+};
+use crate::inverse::{self, InverseOptions, InverseSolution, Prescription, Start};
 use crate::io::{read_table, Table};
 use crate::model::PointSlot;
 use crate::scene::{ConstraintKind, Effect, RelativeKind};
 use crate::smoother::Mode;
-use crate::solver::Past;
+use crate::solver::{Past, Termination};
 use crate::{Error, Model, Scene};
 use nalgebra::{DMatrix, DVector};
 use pyo3::create_exception;
-use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::exceptions::{PyOverflowError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::{PyDict, PyList};
+use pyo3::types::{PyBool, PyByteArray, PyBytes, PyDict, PyFloat, PyInt, PyList, PySet, PyString};
+use std::any::Any;
+use std::ops::ControlFlow;
+use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 create_exception!(
-    _native,
+    mbfg,
     SceneError,
     PyValueError,
     "A scene that cannot be read or assembled."
 );
 create_exception!(
-    _native,
+    mbfg,
     SolveError,
     PyRuntimeError,
-    "A solve that did not converge."
+    "A run that stopped because a solve did not converge; `.result` holds what was \
+     solved (or None)."
+);
+create_exception!(
+    mbfg,
+    InvalidArgument,
+    PyValueError,
+    "An argument of the wrong type, shape or value; the message names it."
+);
+create_exception!(
+    mbfg,
+    InternalError,
+    PyRuntimeError,
+    "A bug in mbfg (a Rust panic), caught at the module's boundary."
 );
 
-fn value_error(e: Error) -> PyErr {
-    match e {
-        Error::InvalidArgument(m) | Error::Data(m) => PyValueError::new_err(m),
-        other => PyValueError::new_err(other.to_string()),
+/// Longest message of an `InvalidArgument`.
+const MESSAGE_LIMIT: usize = 300;
+/// How often a run looks for a pending signal (Ctrl-C): each look takes the GIL.
+const SIGNAL_CHECK: Duration = Duration::from_millis(25);
+
+/// The panic's message, as the default hook prints it.
+fn panic_message(payload: &(dyn Any + Send)) -> String {
+    if let Some(s) = payload.downcast_ref::<&str>() {
+        s.to_string()
+    } else if let Some(s) = payload.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "a panic without a message".to_string()
     }
+}
+
+/// Runs `f`, returning a panic's message as an error. Unwind safety is asserted: after
+/// a panic nothing `f` touched is used again (models are immutable and shared).
+fn catch_panic<T>(f: impl FnOnce() -> T) -> Result<T, String> {
+    catch_unwind(AssertUnwindSafe(f)).map_err(|p| panic_message(&*p))
+}
+
+/// An entry point's body, with a panic turned into `mbfg.InternalError`.
+fn guard<T>(f: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
+    catch_panic(f).unwrap_or_else(|m| {
+        Err(InternalError::new_err(one_line(&format!(
+            "internal error (a bug in mbfg, please report it): {m}"
+        ))))
+    })
+}
+
+/// One line of at most [`MESSAGE_LIMIT`] characters.
+fn one_line(m: &str) -> String {
+    let flat = m.split_whitespace().collect::<Vec<_>>().join(" ");
+    if flat.chars().count() <= MESSAGE_LIMIT {
+        flat
+    } else {
+        let cut: String = flat.chars().take(MESSAGE_LIMIT - 1).collect();
+        format!("{cut}…")
+    }
+}
+
+fn invalid(m: impl AsRef<str>) -> PyErr {
+    InvalidArgument::new_err(one_line(m.as_ref()))
+}
+
+/// A library error about the caller's input, as `InvalidArgument`.
+fn arg_error(e: Error) -> PyErr {
+    match e {
+        Error::InvalidArgument(m) | Error::Data(m) => invalid(m),
+        other => invalid(other.to_string()),
+    }
+}
+
+/// A short description of a value for a message: its repr (clipped) and type.
+fn describe(obj: &Bound<'_, PyAny>) -> String {
+    let repr = obj
+        .repr()
+        .and_then(|r| r.extract::<String>())
+        .unwrap_or_else(|_| "?".into());
+    let repr = if repr.chars().count() > 60 {
+        format!("{}…", repr.chars().take(59).collect::<String>())
+    } else {
+        repr
+    };
+    let ty = obj
+        .get_type()
+        .name()
+        .and_then(|n| n.extract::<String>())
+        .unwrap_or_else(|_| "?".into());
+    format!("{repr} ({ty})")
+}
+
+/// Python's bool, or numpy's (named `bool_`, or `bool` in numpy 2): ints to Python,
+/// but never a count or a coordinate here.
+fn is_bool(obj: &Bound<'_, PyAny>) -> bool {
+    obj.is_instance_of::<PyBool>()
+        || obj
+            .get_type()
+            .name()
+            .and_then(|n| n.extract::<String>())
+            .is_ok_and(|n| n == "bool" || n == "bool_")
+}
+
+/// A scalar number: not a bool, a string, or a container (a size-1 numpy array
+/// converts to float, silently flattening a wrong shape).
+fn is_number(obj: &Bound<'_, PyAny>) -> bool {
+    if obj.is_instance_of::<PyFloat>() || obj.is_instance_of::<PyInt>() {
+        return !is_bool(obj);
+    }
+    !is_bool(obj)
+        && !obj.is_instance_of::<PyString>()
+        && !obj.get_type().hasattr("__len__").unwrap_or(true)
+        && obj.hasattr("__float__").unwrap_or(false)
+}
+
+/// A count ≥ `min`: an int (numpy's too), not a float or a bool.
+fn arg_count(obj: &Bound<'_, PyAny>, name: &str, min: usize) -> PyResult<usize> {
+    let not_int = || invalid(format!("{name} must be an integer, got {}", describe(obj)));
+    if is_bool(obj) || obj.is_instance_of::<PyFloat>() {
+        return Err(not_int());
+    }
+    let v = obj.extract::<i64>().map_err(|e: PyErr| {
+        if e.is_instance_of::<PyOverflowError>(obj.py()) {
+            invalid(format!("{name} is out of range, got {}", describe(obj)))
+        } else {
+            not_int()
+        }
+    })?;
+    match usize::try_from(v) {
+        Ok(v) if v >= min => Ok(v),
+        _ => Err(invalid(format!("{name} must be at least {min}, got {v}"))),
+    }
+}
+
+/// True or False (Python's or numpy's), nothing else.
+fn arg_bool(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<bool> {
+    if !is_bool(obj) {
+        return Err(invalid(format!(
+            "{name} must be True or False, got {}",
+            describe(obj)
+        )));
+    }
+    obj.is_truthy()
+}
+
+/// A finite real number (an int is one).
+fn arg_real(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<f64> {
+    let v = if is_number(obj) {
+        obj.extract::<f64>().ok()
+    } else {
+        None
+    };
+    match v {
+        Some(v) if v.is_finite() => Ok(v),
+        Some(v) => Err(invalid(format!("{name} must be finite, got {v}"))),
+        None => Err(invalid(format!(
+            "{name} must be a number, got {}",
+            describe(obj)
+        ))),
+    }
+}
+
+fn arg_str(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<String> {
+    if obj.is_instance_of::<PyString>() {
+        obj.extract()
+    } else {
+        Err(invalid(format!(
+            "{name} must be a string, got {}",
+            describe(obj)
+        )))
+    }
+}
+
+/// One of `choices`, named in the message.
+fn arg_choice<'a>(obj: &Bound<'_, PyAny>, name: &str, choices: &[&'a str]) -> PyResult<&'a str> {
+    let given = obj
+        .is_instance_of::<PyString>()
+        .then(|| obj.extract::<String>().ok())
+        .flatten();
+    if let Some(c) = choices.iter().find(|c| given.as_deref() == Some(**c)) {
+        return Ok(c);
+    }
+    let listed: Vec<String> = choices.iter().map(|c| format!("'{c}'")).collect();
+    let listed = match listed.split_last() {
+        Some((last, [])) => last.clone(),
+        Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+        None => String::new(),
+    };
+    let got = match given {
+        Some(s) if s.chars().count() <= 60 => format!("'{s}'"),
+        _ => describe(obj),
+    };
+    Err(invalid(format!("{name} must be {listed}, not {got}")))
+}
+
+/// A file path: a str or an os.PathLike.
+fn arg_path(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<PathBuf> {
+    let bad = || {
+        invalid(format!(
+            "{name} must be a path (str or os.PathLike), got {}",
+            describe(obj)
+        ))
+    };
+    if is_bool(obj) || obj.is_instance_of::<PyBytes>() {
+        return Err(bad());
+    }
+    obj.extract::<PathBuf>().map_err(|_| bad())
+}
+
+/// A flat sequence of numbers (a list, tuple or 1-D array), as floats; NaN and Inf
+/// are left to the caller.
+fn arg_numbers(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<Vec<f64>> {
+    let not_seq = || {
+        invalid(format!(
+            "{name} must be a 1-D sequence of numbers, got {}",
+            describe(obj)
+        ))
+    };
+    if obj.is_instance_of::<PyString>()
+        || obj.is_instance_of::<PyBytes>()
+        || obj.is_instance_of::<PyDict>()
+        || obj.is_instance_of::<PySet>()
+        || !obj.hasattr("__len__").unwrap_or(false)
+    {
+        return Err(not_seq());
+    }
+    let mut out = Vec::with_capacity(obj.len().unwrap_or(0));
+    for (i, item) in obj.try_iter().map_err(|_| not_seq())?.enumerate() {
+        let item = item?;
+        let v = if is_number(&item) {
+            item.extract::<f64>().ok()
+        } else {
+            None
+        };
+        let Some(v) = v else {
+            return Err(invalid(format!(
+                "{name} must be a 1-D sequence of numbers; entry {i} is {}",
+                describe(&item)
+            )));
+        };
+        out.push(v);
+    }
+    Ok(out)
 }
 
 fn load_model(path: &PathBuf) -> PyResult<Model> {
@@ -50,25 +294,31 @@ struct PyModel {
 }
 
 impl PyModel {
-    fn vector(&self, v: Vec<f64>, what: &str) -> PyResult<DVector<f64>> {
+    /// A state vector: n finite numbers.
+    fn vector(&self, obj: &Bound<'_, PyAny>, what: &str) -> PyResult<DVector<f64>> {
+        let v = arg_numbers(obj, what)?;
         let n = self.model.n();
         if v.len() != n {
-            return Err(PyValueError::new_err(format!(
+            return Err(invalid(format!(
                 "{what} has {} entries, the model has {n} coordinates",
                 v.len()
             )));
         }
-        if v.iter().any(|x| !x.is_finite()) {
-            return Err(PyValueError::new_err(format!("{what} holds NaN or Inf")));
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(invalid(format!(
+                "{what} holds NaN or Inf (entry {i}: {})",
+                v[i]
+            )));
         }
         Ok(DVector::from_vec(v))
     }
 
-    fn point_index(&self, name: &str) -> PyResult<usize> {
-        self.model
-            .scene
-            .point_index(name)
-            .ok_or_else(|| PyValueError::new_err(format!("no point named '{name}'")))
+    fn point_index(&self, obj: &Bound<'_, PyAny>) -> PyResult<usize> {
+        let name = arg_str(obj, "name")?;
+        self.model.scene.point_index(&name).ok_or_else(|| {
+            let name = one_line(&name).chars().take(60).collect::<String>();
+            invalid(format!("no point named '{name}'"))
+        })
     }
 
     fn point_name(&self, p: usize) -> String {
@@ -88,305 +338,380 @@ fn rows(m: &DMatrix<f64>) -> Vec<f64> {
 #[pymethods]
 impl PyModel {
     #[getter]
-    fn file(&self) -> String {
-        self.model.scene.file.clone()
+    fn file(&self) -> PyResult<String> {
+        guard(|| Ok(self.model.scene.file.clone()))
     }
     #[getter]
-    fn names(&self) -> Vec<String> {
-        self.model.names.clone()
+    fn names(&self) -> PyResult<Vec<String>> {
+        guard(|| Ok(self.model.names.clone()))
     }
     #[getter]
-    fn n(&self) -> usize {
-        self.model.n()
+    fn n(&self) -> PyResult<usize> {
+        guard(|| Ok(self.model.n()))
     }
     #[getter]
-    fn m(&self) -> usize {
-        self.model.m()
+    fn m(&self) -> PyResult<usize> {
+        guard(|| Ok(self.model.m()))
     }
     #[getter]
-    fn dof(&self) -> usize {
-        self.model.dof()
+    fn dof(&self) -> PyResult<usize> {
+        guard(|| Ok(self.model.dof()))
     }
     #[getter]
     fn points<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
-        let list = PyList::empty(py);
-        for (p, slot) in self.model.scene.points.iter().zip(&self.model.points) {
-            let d = PyDict::new(py);
-            d.set_item("name", &p.name)?;
-            d.set_item("x", p.x)?;
-            d.set_item("y", p.y)?;
-            d.set_item("fixed", p.fixed)?;
-            d.set_item("mass", p.mass)?;
-            match slot {
-                PointSlot::Free(i) => d.set_item("index", *i)?,
-                PointSlot::Fixed(_) => d.set_item("index", py.None())?,
+        guard(|| {
+            let list = PyList::empty(py);
+            for (p, slot) in self.model.scene.points.iter().zip(&self.model.points) {
+                let d = PyDict::new(py);
+                d.set_item("name", &p.name)?;
+                d.set_item("x", p.x)?;
+                d.set_item("y", p.y)?;
+                d.set_item("fixed", p.fixed)?;
+                d.set_item("mass", p.mass)?;
+                match slot {
+                    PointSlot::Free(i) => d.set_item("index", *i)?,
+                    PointSlot::Fixed(_) => d.set_item("index", py.None())?,
+                }
+                list.append(d)?;
             }
-            list.append(d)?;
-        }
-        Ok(list)
+            Ok(list)
+        })
     }
     #[getter]
     fn bodies<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
-        let list = PyList::empty(py);
-        for b in &self.model.scene.bodies {
-            let d = PyDict::new(py);
-            d.set_item("name", &b.name)?;
-            d.set_item("points", self.point_names(&b.points))?;
-            d.set_item("mass", b.mass)?;
-            d.set_item("cog", (b.cog[0], b.cog[1]))?;
-            d.set_item("i0", b.i0)?;
-            d.set_item("inertia_cog", b.inertia_at_cog())?;
-            d.set_item("length", b.length)?;
-            list.append(d)?;
-        }
-        Ok(list)
+        guard(|| {
+            let list = PyList::empty(py);
+            for b in &self.model.scene.bodies {
+                let d = PyDict::new(py);
+                d.set_item("name", &b.name)?;
+                d.set_item("points", self.point_names(&b.points))?;
+                d.set_item("mass", b.mass)?;
+                d.set_item("cog", (b.cog[0], b.cog[1]))?;
+                d.set_item("i0", b.i0)?;
+                d.set_item("inertia_cog", b.inertia_at_cog())?;
+                d.set_item("length", b.length)?;
+                list.append(d)?;
+            }
+            Ok(list)
+        })
     }
     #[getter]
     fn coordinates<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
-        let list = PyList::empty(py);
-        for (k, c) in self.model.scene.coordinates.iter().enumerate() {
-            let d = PyDict::new(py);
-            d.set_item("name", &c.name)?;
-            d.set_item("index", self.model.relative_offset + k)?;
-            let (kind, points) = match c.kind {
-                RelativeKind::AbsoluteAngle { from, to } => ("angle", vec![from, to]),
-                RelativeKind::RelativeAngle { a, b } => {
-                    ("relative_angle", vec![a[0], a[1], b[0], b[1]])
-                }
-                RelativeKind::Distance { point, along } => {
-                    ("distance", vec![point, along[0], along[1]])
-                }
-            };
-            d.set_item("type", kind)?;
-            d.set_item("points", self.point_names(&points))?;
-            list.append(d)?;
-        }
-        Ok(list)
+        guard(|| {
+            let list = PyList::empty(py);
+            for (k, c) in self.model.scene.coordinates.iter().enumerate() {
+                let d = PyDict::new(py);
+                d.set_item("name", &c.name)?;
+                d.set_item("index", self.model.relative_offset + k)?;
+                let (kind, points) = match c.kind {
+                    RelativeKind::AbsoluteAngle { from, to } => ("angle", vec![from, to]),
+                    RelativeKind::RelativeAngle { a, b } => {
+                        ("relative_angle", vec![a[0], a[1], b[0], b[1]])
+                    }
+                    RelativeKind::Distance { point, along } => {
+                        ("distance", vec![point, along[0], along[1]])
+                    }
+                };
+                d.set_item("type", kind)?;
+                d.set_item("points", self.point_names(&points))?;
+                list.append(d)?;
+            }
+            Ok(list)
+        })
     }
     #[getter]
     fn constraints<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
-        let list = PyList::empty(py);
-        for c in &self.model.scene.constraints {
-            let d = PyDict::new(py);
-            d.set_item("name", &c.name)?;
-            let (kind, points, length) = match c.kind {
-                ConstraintKind::Distance { points, length } => {
-                    ("distance", points.to_vec(), Some(length))
-                }
-                ConstraintKind::FixedSlider { point, line } => {
-                    ("fixed_slider", vec![point, line[0], line[1]], None)
-                }
-                ConstraintKind::MobileSlider { point, line } => {
-                    ("mobile_slider", vec![point, line[0], line[1]], None)
-                }
-            };
-            d.set_item("type", kind)?;
-            d.set_item("points", self.point_names(&points))?;
-            d.set_item("length", length)?;
-            list.append(d)?;
-        }
-        Ok(list)
+        guard(|| {
+            let list = PyList::empty(py);
+            for c in &self.model.scene.constraints {
+                let d = PyDict::new(py);
+                d.set_item("name", &c.name)?;
+                let (kind, points, length) = match c.kind {
+                    ConstraintKind::Distance { points, length } => {
+                        ("distance", points.to_vec(), Some(length))
+                    }
+                    ConstraintKind::FixedSlider { point, line } => {
+                        ("fixed_slider", vec![point, line[0], line[1]], None)
+                    }
+                    ConstraintKind::MobileSlider { point, line } => {
+                        ("mobile_slider", vec![point, line[0], line[1]], None)
+                    }
+                };
+                d.set_item("type", kind)?;
+                d.set_item("points", self.point_names(&points))?;
+                d.set_item("length", length)?;
+                list.append(d)?;
+            }
+            Ok(list)
+        })
     }
     #[getter]
-    fn equations(&self) -> Vec<String> {
-        self.model
-            .constraints
-            .iter()
-            .map(|c| c.name.clone())
-            .collect()
+    fn equations(&self) -> PyResult<Vec<String>> {
+        guard(|| {
+            Ok(self
+                .model
+                .constraints
+                .iter()
+                .map(|c| c.name.clone())
+                .collect())
+        })
     }
     #[getter]
-    fn redundant(&self) -> Vec<String> {
-        self.model
-            .redundant
-            .iter()
-            .map(|&i| self.model.constraints[i].name.clone())
-            .collect()
+    fn redundant(&self) -> PyResult<Vec<String>> {
+        guard(|| {
+            Ok(self
+                .model
+                .redundant
+                .iter()
+                .map(|&i| self.model.constraints[i].name.clone())
+                .collect())
+        })
     }
     #[getter]
     fn effects<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
-        let list = PyList::empty(py);
-        let coordinate = |i: usize| self.model.names[self.model.relative_offset + i].clone();
-        for e in &self.model.scene.effects {
-            let d = PyDict::new(py);
-            match e {
-                Effect::Gravity { vector } => {
-                    d.set_item("type", "gravity")?;
-                    d.set_item("vector", (vector[0], vector[1]))?;
+        guard(|| {
+            let list = PyList::empty(py);
+            let coordinate = |i: usize| self.model.names[self.model.relative_offset + i].clone();
+            for e in &self.model.scene.effects {
+                let d = PyDict::new(py);
+                match e {
+                    Effect::Gravity { vector } => {
+                        d.set_item("type", "gravity")?;
+                        d.set_item("vector", (vector[0], vector[1]))?;
+                    }
+                    Effect::SpringDamper {
+                        name,
+                        points,
+                        stiffness,
+                        rest_length,
+                        damping,
+                    } => {
+                        d.set_item("type", "spring_damper")?;
+                        d.set_item("name", name)?;
+                        d.set_item("points", self.point_names(points))?;
+                        d.set_item("stiffness", stiffness)?;
+                        d.set_item("rest_length", rest_length)?;
+                        d.set_item("damping", damping)?;
+                    }
+                    Effect::RotationalSpringDamper {
+                        name,
+                        coordinate: c,
+                        stiffness,
+                        rest_angle,
+                        damping,
+                    } => {
+                        d.set_item("type", "rotational_spring_damper")?;
+                        d.set_item("name", name)?;
+                        d.set_item("coordinate", coordinate(*c))?;
+                        d.set_item("stiffness", stiffness)?;
+                        d.set_item("rest_angle", rest_angle)?;
+                        d.set_item("damping", damping)?;
+                    }
+                    Effect::Torque {
+                        name,
+                        coordinate: c,
+                        value,
+                    } => {
+                        d.set_item("type", "torque")?;
+                        d.set_item("name", name)?;
+                        d.set_item("coordinate", coordinate(*c))?;
+                        d.set_item("value", &value.text)?;
+                    }
+                    Effect::Force { name, point, value } => {
+                        d.set_item("type", "force")?;
+                        d.set_item("name", name)?;
+                        d.set_item("point", self.point_name(*point))?;
+                        d.set_item("value", (&value[0].text, &value[1].text))?;
+                    }
                 }
-                Effect::SpringDamper {
-                    name,
-                    points,
-                    stiffness,
-                    rest_length,
-                    damping,
-                } => {
-                    d.set_item("type", "spring_damper")?;
-                    d.set_item("name", name)?;
-                    d.set_item("points", self.point_names(points))?;
-                    d.set_item("stiffness", stiffness)?;
-                    d.set_item("rest_length", rest_length)?;
-                    d.set_item("damping", damping)?;
-                }
-                Effect::RotationalSpringDamper {
-                    name,
-                    coordinate: c,
-                    stiffness,
-                    rest_angle,
-                    damping,
-                } => {
-                    d.set_item("type", "rotational_spring_damper")?;
-                    d.set_item("name", name)?;
-                    d.set_item("coordinate", coordinate(*c))?;
-                    d.set_item("stiffness", stiffness)?;
-                    d.set_item("rest_angle", rest_angle)?;
-                    d.set_item("damping", damping)?;
-                }
-                Effect::Torque {
-                    name,
-                    coordinate: c,
-                    value,
-                } => {
-                    d.set_item("type", "torque")?;
-                    d.set_item("name", name)?;
-                    d.set_item("coordinate", coordinate(*c))?;
-                    d.set_item("value", &value.text)?;
-                }
-                Effect::Force { name, point, value } => {
-                    d.set_item("type", "force")?;
-                    d.set_item("name", name)?;
-                    d.set_item("point", self.point_name(*point))?;
-                    d.set_item("value", (&value[0].text, &value[1].text))?;
-                }
+                list.append(d)?;
             }
-            list.append(d)?;
-        }
-        Ok(list)
+            Ok(list)
+        })
     }
     /// Value of effect `i` at time t: a torque (float) or a force (fx, fy).
-    fn effect_value<'py>(&self, py: Python<'py>, i: usize, t: f64) -> PyResult<Bound<'py, PyAny>> {
-        let effects = &self.model.scene.effects;
-        let e = effects.get(i).ok_or_else(|| {
-            PyValueError::new_err(format!(
-                "effect {i} does not exist ({} effects)",
-                effects.len()
-            ))
-        })?;
-        match e {
-            Effect::Torque { value, .. } => Ok(value
-                .at(t)
-                .map_err(value_error)?
-                .into_pyobject(py)?
-                .into_any()),
-            Effect::Force { value, .. } => {
-                let f = (
-                    value[0].at(t).map_err(value_error)?,
-                    value[1].at(t).map_err(value_error)?,
-                );
-                Ok(f.into_pyobject(py)?.into_any())
+    fn effect_value<'py>(
+        &self,
+        py: Python<'py>,
+        i: &Bound<'py, PyAny>,
+        t: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        guard(|| {
+            let (i, t) = (arg_count(i, "i", 0)?, arg_real(t, "t")?);
+            let effects = &self.model.scene.effects;
+            let e = effects.get(i).ok_or_else(|| {
+                invalid(format!(
+                    "i: effect {i} does not exist ({} effects)",
+                    effects.len()
+                ))
+            })?;
+            match e {
+                Effect::Torque { value, .. } => Ok(value
+                    .at(t)
+                    .map_err(arg_error)?
+                    .into_pyobject(py)?
+                    .into_any()),
+                Effect::Force { value, .. } => {
+                    let f = (
+                        value[0].at(t).map_err(arg_error)?,
+                        value[1].at(t).map_err(arg_error)?,
+                    );
+                    Ok(f.into_pyobject(py)?.into_any())
+                }
+                _ => Err(invalid(format!("i: effect {i} is not a torque or a force"))),
             }
-            _ => Err(PyValueError::new_err(format!(
-                "effect {i} is not a torque or a force"
-            ))),
-        }
+        })
     }
     #[getter]
-    fn independent(&self) -> Vec<String> {
-        self.model
-            .independent
-            .iter()
-            .map(|&i| self.model.names[i].clone())
-            .collect()
+    fn independent(&self) -> PyResult<Vec<String>> {
+        guard(|| {
+            Ok(self
+                .model
+                .independent
+                .iter()
+                .map(|&i| self.model.names[i].clone())
+                .collect())
+        })
     }
     #[getter]
-    fn initial_q(&self) -> Vec<f64> {
-        self.model.initial.q.as_slice().to_vec()
+    fn initial_q(&self) -> PyResult<Vec<f64>> {
+        guard(|| Ok(self.model.initial.q.as_slice().to_vec()))
     }
     #[getter]
-    fn initial_dq(&self) -> Vec<f64> {
-        self.model.initial.dq.as_slice().to_vec()
+    fn initial_dq(&self) -> PyResult<Vec<f64>> {
+        guard(|| Ok(self.model.initial.dq.as_slice().to_vec()))
     }
     #[getter]
-    fn is_conservative(&self) -> bool {
-        self.model.scene.is_conservative()
+    fn is_conservative(&self) -> PyResult<bool> {
+        guard(|| Ok(self.model.scene.is_conservative()))
     }
-    fn mass_matrix(&self) -> Vec<f64> {
-        rows(&self.model.mass)
+    fn mass_matrix(&self) -> PyResult<Vec<f64>> {
+        guard(|| Ok(rows(&self.model.mass)))
     }
-    fn phi(&self, q: Vec<f64>) -> PyResult<Vec<f64>> {
-        let q = self.vector(q, "q")?;
-        Ok(self.model.phi(&q).as_slice().to_vec())
+    fn phi(&self, q: &Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
+        guard(|| {
+            let q = self.vector(q, "q")?;
+            Ok(self.model.phi(&q).as_slice().to_vec())
+        })
     }
-    fn phi_q(&self, q: Vec<f64>) -> PyResult<Vec<f64>> {
-        let q = self.vector(q, "q")?;
-        Ok(rows(&self.model.jacobian(&q)))
+    fn phi_q(&self, q: &Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
+        guard(|| {
+            let q = self.vector(q, "q")?;
+            Ok(rows(&self.model.jacobian(&q)))
+        })
     }
-    fn phi_q_dot(&self, q: Vec<f64>, dq: Vec<f64>) -> PyResult<Vec<f64>> {
-        let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
-        Ok(rows(&self.model.jacobian_dot(&q, &dq)))
+    fn phi_q_dot(&self, q: &Bound<'_, PyAny>, dq: &Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
+        guard(|| {
+            let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
+            Ok(rows(&self.model.jacobian_dot(&q, &dq)))
+        })
     }
-    fn generalized_forces(&self, q: Vec<f64>, dq: Vec<f64>, t: f64) -> PyResult<Vec<f64>> {
-        let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
-        let f = self
-            .model
-            .generalized_forces(&q, &dq, t)
-            .map_err(value_error)?;
-        Ok(f.as_slice().to_vec())
+    fn generalized_forces(
+        &self,
+        q: &Bound<'_, PyAny>,
+        dq: &Bound<'_, PyAny>,
+        t: &Bound<'_, PyAny>,
+    ) -> PyResult<Vec<f64>> {
+        guard(|| {
+            let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
+            let t = arg_real(t, "t")?;
+            let f = self
+                .model
+                .generalized_forces(&q, &dq, t)
+                .map_err(arg_error)?;
+            Ok(f.as_slice().to_vec())
+        })
     }
-    fn accelerations(&self, q: Vec<f64>, dq: Vec<f64>, t: f64) -> PyResult<Vec<f64>> {
-        let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
-        let s = crate::dynamics::lagrange(&self.model, &q, &dq, t).map_err(value_error)?;
-        Ok(s.ddq.as_slice().to_vec())
+    fn accelerations(
+        &self,
+        q: &Bound<'_, PyAny>,
+        dq: &Bound<'_, PyAny>,
+        t: &Bound<'_, PyAny>,
+    ) -> PyResult<Vec<f64>> {
+        guard(|| {
+            let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
+            let t = arg_real(t, "t")?;
+            let s = crate::dynamics::lagrange(&self.model, &q, &dq, t).map_err(arg_error)?;
+            Ok(s.ddq.as_slice().to_vec())
+        })
     }
-    fn point_position(&self, q: Vec<f64>, name: &str) -> PyResult<(f64, f64)> {
-        let q = self.vector(q, "q")?;
-        let p = self
-            .model
-            .point_position(q.as_slice(), self.point_index(name)?);
-        Ok((p[0], p[1]))
+    fn point_position(
+        &self,
+        q: &Bound<'_, PyAny>,
+        name: &Bound<'_, PyAny>,
+    ) -> PyResult<(f64, f64)> {
+        guard(|| {
+            let q = self.vector(q, "q")?;
+            let p = self
+                .model
+                .point_position(q.as_slice(), self.point_index(name)?);
+            Ok((p[0], p[1]))
+        })
     }
-    fn point_velocity(&self, dq: Vec<f64>, name: &str) -> PyResult<(f64, f64)> {
-        let dq = self.vector(dq, "dq")?;
-        let p = self
-            .model
-            .point_velocity(dq.as_slice(), self.point_index(name)?);
-        Ok((p[0], p[1]))
+    fn point_velocity(
+        &self,
+        dq: &Bound<'_, PyAny>,
+        name: &Bound<'_, PyAny>,
+    ) -> PyResult<(f64, f64)> {
+        guard(|| {
+            let dq = self.vector(dq, "dq")?;
+            let p = self
+                .model
+                .point_velocity(dq.as_slice(), self.point_index(name)?);
+            Ok((p[0], p[1]))
+        })
     }
-    fn kinetic_energy(&self, dq: Vec<f64>) -> PyResult<f64> {
-        Ok(self.model.kinetic_energy(&self.vector(dq, "dq")?))
+    fn kinetic_energy(&self, dq: &Bound<'_, PyAny>) -> PyResult<f64> {
+        guard(|| Ok(self.model.kinetic_energy(&self.vector(dq, "dq")?)))
     }
-    fn potential_energy(&self, q: Vec<f64>) -> PyResult<f64> {
-        Ok(self.model.potential_energy(&self.vector(q, "q")?))
+    fn potential_energy(&self, q: &Bound<'_, PyAny>) -> PyResult<f64> {
+        guard(|| Ok(self.model.potential_energy(&self.vector(q, "q")?)))
     }
-    fn __repr__(&self) -> String {
-        format!(
-            "<mbfg.Model '{}': n = {}, m = {}, dof = {}>",
-            self.model.scene.file,
-            self.model.n(),
-            self.model.m(),
-            self.model.dof()
-        )
+    fn __repr__(&self) -> PyResult<String> {
+        guard(|| {
+            Ok(format!(
+                "<mbfg.Model '{}': n = {}, m = {}, dof = {}>",
+                self.model.scene.file,
+                self.model.n(),
+                self.model.m(),
+                self.model.dof()
+            ))
+        })
     }
 }
 
 #[pyfunction]
-fn load(path: PathBuf) -> PyResult<PyModel> {
-    Ok(PyModel {
-        model: Arc::new(load_model(&path)?),
+fn load(path: &Bound<'_, PyAny>) -> PyResult<PyModel> {
+    guard(|| {
+        Ok(PyModel {
+            model: Arc::new(load_model(&arg_path(path, "scene")?)?),
+        })
     })
 }
 
-fn coordinates(name: &str) -> PyResult<Coordinates> {
-    match name {
-        "dc" => Ok(Coordinates::Dependent),
-        "ic" => Ok(Coordinates::Independent),
-        _ => Err(PyValueError::new_err(format!(
-            "coords must be 'dc' or 'ic', not '{name}'"
-        ))),
-    }
+fn coordinates(obj: &Bound<'_, PyAny>) -> PyResult<Coordinates> {
+    Ok(match arg_choice(obj, "coords", &["dc", "ic"])? {
+        "dc" => Coordinates::Dependent,
+        _ => Coordinates::Independent,
+    })
 }
 
-/// The run's table in the CSV contract: (columns, row-major values, rows).
+/// `err` with a run's result (or None) as its `result` attribute, so that a failed or
+/// interrupted run does not lose the steps it solved.
+fn with_result(py: Python<'_>, err: PyErr, result: Option<&Bound<'_, PyDict>>) -> PyErr {
+    let value = err.value(py);
+    // Setting an attribute on an exception instance does not fail in practice; if it
+    // did, the exception itself still says what happened.
+    let _ = match result {
+        Some(r) => value.setattr("result", r),
+        None => value.setattr("result", py.None()),
+    };
+    err
+}
+
+/// The run's table in the CSV contract: columns, row-major values, rows. The values
+/// are float64s in native byte order in a bytearray, which numpy wraps without a copy:
+/// a list of a million floats would hold an interrupted run's KeyboardInterrupt back.
 fn run_table<'py>(
     py: Python<'py>,
     tr: &Trajectory,
@@ -394,16 +719,21 @@ fn run_table<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let columns = crate::io::header(&tr.names, forces.is_some());
     let n = tr.n();
-    let mut data = Vec::with_capacity(tr.len() * columns.len());
-    for k in 0..tr.len() {
-        data.push(tr.t[k]);
-        data.extend_from_slice(tr.q_at(k));
-        data.extend_from_slice(tr.dq_at(k));
-        data.extend_from_slice(&tr.ddq[k * n..(k + 1) * n]);
-        if let Some(f) = forces {
-            data.extend_from_slice(&f[k * n..(k + 1) * n]);
+    let row = 8 * columns.len();
+    let data = PyByteArray::new_with(py, tr.len() * row, |buf| {
+        for (k, out) in buf.chunks_exact_mut(row).enumerate() {
+            let f = forces.map(|f| &f[k * n..(k + 1) * n]);
+            let values = std::iter::once(&tr.t[k])
+                .chain(tr.q_at(k))
+                .chain(tr.dq_at(k))
+                .chain(&tr.ddq[k * n..(k + 1) * n])
+                .chain(f.into_iter().flatten());
+            for (o, v) in out.chunks_exact_mut(8).zip(values) {
+                o.copy_from_slice(&v.to_ne_bytes());
+            }
         }
-    }
+        Ok(())
+    })?;
     let d = PyDict::new(py);
     d.set_item("columns", columns)?;
     d.set_item("data", data)?;
@@ -411,74 +741,18 @@ fn run_table<'py>(
     Ok(d)
 }
 
-#[pyfunction]
-#[pyo3(signature = (scene, coords="dc", dt=1e-3, t_end=5.0, window=1, batch=false,
-    max_iterations=50, integrator="trapezoidal", noise="default", continue_on_failure=false, past="adaptive"))]
-#[pyo3(name = "simulate")]
-#[allow(clippy::too_many_arguments)] // the CLI's options, one keyword each
-fn simulate_run<'py>(
+/// A forward run's result, complete or not: `requested` is the number of steps asked
+/// for, so that a partial one says so in its summary.
+fn forward_result<'py>(
     py: Python<'py>,
-    scene: PathBuf,
-    coords: &str,
-    dt: f64,
-    t_end: f64,
-    window: usize,
-    batch: bool,
-    max_iterations: usize,
-    integrator: &str,
-    noise: &str,
-    continue_on_failure: bool,
-    past: &str,
+    tr: &Trajectory,
+    s: &RunSummary,
+    requested: usize,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let model = load_model(&scene)?;
-    let mode = if batch {
-        Mode::Batch
-    } else {
-        Mode::FixedLag(window)
-    };
-    let mut options = ForwardOptions::new(coordinates(coords)?, dt, t_end, mode);
-    options.integrator = match integrator {
-        "trapezoidal" => Integrator::Trapezoidal,
-        "euler" => Integrator::Euler,
-        _ => {
-            return Err(PyValueError::new_err(format!(
-                "integrator must be 'trapezoidal' or 'euler', not '{integrator}'"
-            )))
-        }
-    };
-    options.noise = match noise {
-        "default" => NoiseModels::default(),
-        "paper" => NoiseModels::paper(),
-        _ => {
-            return Err(PyValueError::new_err(format!(
-                "noise must be 'default' or 'paper', not '{noise}'"
-            )))
-        }
-    };
-    options.settings.max_iterations = max_iterations;
-    options.settings.past = match past {
-        "adaptive" => Past::Adaptive,
-        "conditioned" => Past::Conditioned,
-        "marginalized" => Past::Marginalized,
-        _ => {
-            return Err(PyValueError::new_err(format!(
-                "past must be 'adaptive', 'conditioned' or 'marginalized', not '{past}'"
-            )))
-        }
-    };
-    options.continue_on_failure = continue_on_failure;
-    options.validate(&model).map_err(value_error)?;
-    let model = Arc::new(model);
-    let (tr, s) = py
-        .detach(|| forward::simulate(model, &options, &mut |_, _| {}))
-        .map_err(|e| SolveError::new_err(e.to_string()))?;
-    let stopped = s.failures.iter().find(|f| f.singular.is_some());
-    if let Some(f) = stopped.or(s.failures.first().filter(|_| !continue_on_failure)) {
-        return Err(SolveError::new_err(f.message()));
-    }
-    let out = run_table(py, &tr, None)?;
+    let out = run_table(py, tr, None)?;
     let summary = PyDict::new(py);
     summary.set_item("steps", s.steps)?;
+    summary.set_item("requested_steps", requested)?;
     summary.set_item("wall_time", s.wall_time.as_secs_f64())?;
     summary.set_item("mean_iterations", s.mean_iterations)?;
     summary.set_item("max_iterations", s.max_iterations)?;
@@ -496,6 +770,13 @@ fn simulate_run<'py>(
         reselections.append(d)?;
     }
     summary.set_item("reselections", reselections)?;
+    let converged = s.failures.is_empty();
+    summary.set_item("converged", converged)?;
+    summary.set_item("interrupted", s.interrupted)?;
+    summary.set_item(
+        "complete",
+        converged && s.interrupted.is_none() && tr.len() == requested,
+    )?;
     out.set_item("summary", summary)?;
     let failures = PyList::empty(py);
     for f in &s.failures {
@@ -514,104 +795,323 @@ fn simulate_run<'py>(
     Ok(out)
 }
 
-/// `trajectory` is a CSV path, or the columns and row-major values of a table.
-#[pyfunction]
-#[pyo3(signature = (scene, trajectory=None, columns=None, values=None, coords="dc",
-    start="kinematic", max_iterations=50))]
-#[pyo3(name = "inverse")]
-#[allow(clippy::too_many_arguments)] // the CLI's options, one keyword each
-fn inverse_run<'py>(
-    py: Python<'py>,
-    scene: PathBuf,
-    trajectory: Option<PathBuf>,
-    columns: Option<Vec<String>>,
-    values: Option<Vec<f64>>,
-    coords: &str,
-    start: &str,
-    max_iterations: usize,
-) -> PyResult<Bound<'py, PyDict>> {
-    let model = load_model(&scene)?;
-    let (table, source) = match (trajectory, columns, values) {
-        (Some(path), None, None) => (
-            read_table(&path).map_err(value_error)?,
-            path.display().to_string(),
-        ),
-        (None, Some(columns), Some(values)) => {
-            let w = columns.len().max(1);
-            if values.len() % w != 0 {
-                return Err(PyValueError::new_err(
-                    "values do not fill whole rows of the columns",
-                ));
+/// Runs `work` with the GIL released, giving it a `progress` callback that, at most
+/// every [`SIGNAL_CHECK`], takes the GIL to run Python's signal handlers: the error
+/// one raises (KeyboardInterrupt for Ctrl-C) stops the run and is returned beside
+/// the run's own outcome.
+fn interruptible<T: Send>(
+    py: Python<'_>,
+    work: impl Send + FnOnce(&mut dyn FnMut(usize, usize) -> ControlFlow<()>) -> T,
+) -> (T, Option<PyErr>) {
+    let mut signal = None;
+    let mut last = Instant::now();
+    let out = py.detach(|| {
+        work(&mut |_, _| {
+            if last.elapsed() < SIGNAL_CHECK {
+                return ControlFlow::Continue(());
             }
-            let rows = values.len() / w;
-            (
-                Table {
-                    columns,
-                    values,
-                    rows,
-                },
-                "trajectory".to_string(),
-            )
+            last = Instant::now();
+            match Python::attach(|py| py.check_signals()) {
+                Ok(()) => ControlFlow::Continue(()),
+                Err(e) => {
+                    signal = Some(e);
+                    ControlFlow::Break(())
+                }
+            }
+        })
+    });
+    (out, signal)
+}
+
+/// Forward dynamics. Every argument is required (`mbfg.simulate` gives the defaults).
+#[pyfunction]
+#[pyo3(name = "simulate")]
+#[allow(clippy::too_many_arguments)] // the CLI's options, one keyword each
+fn simulate_run<'py>(
+    py: Python<'py>,
+    scene: &Bound<'py, PyAny>,
+    coords: &Bound<'py, PyAny>,
+    dt: &Bound<'py, PyAny>,
+    t_end: &Bound<'py, PyAny>,
+    window: &Bound<'py, PyAny>,
+    batch: &Bound<'py, PyAny>,
+    max_iterations: &Bound<'py, PyAny>,
+    integrator: &Bound<'py, PyAny>,
+    noise: &Bound<'py, PyAny>,
+    continue_on_failure: &Bound<'py, PyAny>,
+    past: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    guard(|| {
+        let scene = arg_path(scene, "scene")?;
+        let coordinates = coordinates(coords)?;
+        let dt = arg_real(dt, "dt")?;
+        if dt <= 0.0 {
+            return Err(invalid(format!(
+                "dt: the time step must be positive, got {dt}"
+            )));
         }
-        _ => {
-            return Err(PyValueError::new_err(
-                "give a trajectory path, or columns and values",
-            ))
+        let t_end = arg_real(t_end, "t_end")?;
+        if t_end < dt {
+            return Err(invalid(format!(
+                "t_end must be at least one time step (dt = {dt}), got {t_end}"
+            )));
         }
-    };
-    let prescription = Prescription::from_table(&model, &table, &source).map_err(value_error)?;
-    let start = match start {
-        "kinematic" => Start::Kinematic,
-        "staged" => Start::Staged,
-        _ => {
-            return Err(PyValueError::new_err(format!(
-                "start must be 'kinematic' or 'staged', not '{start}'"
-            )))
+        let window = arg_count(window, "window", 1)?;
+        let batch = arg_bool(batch, "batch")?;
+        let max_iterations = arg_count(max_iterations, "max_iterations", 1)?;
+        let integrator = arg_choice(integrator, "integrator", &["trapezoidal", "euler"])?;
+        let noise = arg_choice(noise, "noise", &["default", "paper"])?;
+        let continue_on_failure = arg_bool(continue_on_failure, "continue_on_failure")?;
+        let past = arg_choice(past, "past", &["adaptive", "conditioned", "marginalized"])?;
+
+        let mode = if batch {
+            Mode::Batch
+        } else {
+            Mode::FixedLag(window)
+        };
+        let mut options = ForwardOptions::new(coordinates, dt, t_end, mode);
+        options.integrator = match integrator {
+            "trapezoidal" => Integrator::Trapezoidal,
+            _ => Integrator::Euler,
+        };
+        options.noise = match noise {
+            "default" => NoiseModels::default(),
+            _ => NoiseModels::paper(),
+        };
+        options.settings.max_iterations = max_iterations;
+        options.settings.past = match past {
+            "adaptive" => Past::Adaptive,
+            "conditioned" => Past::Conditioned,
+            _ => Past::Marginalized,
+        };
+        options.continue_on_failure = continue_on_failure;
+        let model = load_model(&scene)?;
+        // What is left to refuse depends on the scene (its independent coordinates)
+        // or on dt and t_end together (the number of steps).
+        options.validate(&model).map_err(arg_error)?;
+        let requested = options.steps();
+        let model = Arc::new(model);
+        let (run, signal) = interruptible(py, |progress| {
+            forward::simulate_interruptible(model, &options, progress)
+        });
+        let (tr, s) = match run {
+            Ok(run) => run,
+            // No trajectory comes back from a library error; an interrupt came first.
+            Err(e) => {
+                let err = match (signal, e) {
+                    (Some(signal), _) => signal,
+                    (None, e @ Error::InvalidArgument(_)) => return Err(arg_error(e)),
+                    (None, e) => SolveError::new_err(e.to_string()),
+                };
+                return Err(with_result(py, err, None));
+            }
+        };
+        let out = forward_result(py, &tr, &s, requested)?;
+        if let Some(signal) = signal {
+            return Err(with_result(py, signal, Some(&out)));
         }
-    };
-    if max_iterations == 0 {
-        return Err(PyValueError::new_err("max_iterations must be at least 1"));
-    }
-    let mut options = InverseOptions {
-        coordinates: coordinates(coords)?,
-        start,
-        ..InverseOptions::default()
-    };
-    options.settings.max_iterations = max_iterations;
-    let model = Arc::new(model);
-    let sol = py
-        .detach(|| inverse::solve(model, &prescription, &options))
-        .map_err(|e| match e {
-            Error::InvalidArgument(m) => PyValueError::new_err(m),
-            other => SolveError::new_err(other.to_string()),
-        })?;
+        // A singular configuration stops the run whatever continue_on_failure says; so
+        // does a diverged solve, and then the trajectory ends short.
+        let stopped = s.failures.iter().find(|f| f.singular.is_some());
+        let short = (tr.len() < requested).then(|| s.failures.last()).flatten();
+        let fatal = stopped
+            .or(s.failures.first().filter(|_| !continue_on_failure))
+            .or(short);
+        if let Some(f) = fatal {
+            return Err(with_result(
+                py,
+                SolveError::new_err(f.message()),
+                Some(&out),
+            ));
+        }
+        if tr.len() < requested {
+            let m = format!(
+                "the run ended after {} of {requested} steps without naming a failure",
+                tr.len()
+            );
+            return Err(with_result(py, SolveError::new_err(m), Some(&out)));
+        }
+        // A Ctrl-C after the last look: raise it here, with the run, rather than lose
+        // the run to it on the next Python instruction.
+        py.check_signals()
+            .map_err(|e| with_result(py, e, Some(&out)))?;
+        Ok(out)
+    })
+}
+
+/// An inverse solve's result; `converged` False marks the last iterate of a solve
+/// that did not converge.
+fn inverse_result<'py>(py: Python<'py>, sol: &InverseSolution) -> PyResult<Bound<'py, PyDict>> {
     let s = &sol.summary;
-    if s.report.termination != crate::solver::Termination::Converged {
-        return Err(SolveError::new_err(format!(
-            "the inverse solve did not converge: {}, cost {:.3e} after {} iterations",
-            s.report.termination, s.report.cost, s.report.iterations
-        )));
-    }
     let out = run_table(py, &sol.trajectory, Some(&sol.forces))?;
+    let converged = s.report.termination == Termination::Converged;
     let summary = PyDict::new(py);
     summary.set_item("steps", s.steps)?;
+    summary.set_item("requested_steps", s.steps)?;
     summary.set_item("wall_time", s.wall_time.as_secs_f64())?;
     summary.set_item("iterations", s.report.iterations)?;
     summary.set_item("worst_tracking", s.worst_tracking)?;
     summary.set_item("worst_phi", s.worst_phi)?;
+    summary.set_item("converged", converged)?;
+    summary.set_item("termination", s.report.termination.to_string())?;
+    summary.set_item("cost", s.report.cost)?;
+    summary.set_item("interrupted", py.None())?;
+    summary.set_item("complete", converged)?;
     out.set_item("summary", summary)?;
     out.set_item("failures", PyList::empty(py))?;
     Ok(out)
 }
 
+/// The prescribed motion given as columns and row-major values.
+fn table_from(columns: &Bound<'_, PyAny>, values: &Bound<'_, PyAny>) -> PyResult<Table> {
+    let bad_columns = || {
+        invalid(format!(
+            "columns must be a list of strings, got {}",
+            describe(columns)
+        ))
+    };
+    if columns.is_instance_of::<PyString>() {
+        return Err(bad_columns());
+    }
+    let columns: Vec<String> = columns.extract().map_err(|_| bad_columns())?;
+    if columns.is_empty() {
+        return Err(invalid(
+            "columns is empty: the trajectory needs `t` and a coordinate",
+        ));
+    }
+    let values = arg_numbers(values, "values")?;
+    let w = columns.len();
+    if values.len() % w != 0 {
+        return Err(invalid(format!(
+            "values: {} numbers do not fill whole rows of the {w} columns",
+            values.len()
+        )));
+    }
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err(invalid(format!(
+            "trajectory: column '{}' holds NaN or Inf at row {}",
+            one_line(&columns[i % w])
+                .chars()
+                .take(60)
+                .collect::<String>(),
+            i / w
+        )));
+    }
+    let rows = values.len() / w;
+    Ok(Table {
+        columns,
+        values,
+        rows,
+    })
+}
+
+/// Inverse dynamics: `trajectory` is a CSV path, or `columns` and row-major `values`
+/// of a table. Every argument is required (`mbfg.inverse` gives the defaults). One
+/// batch solve: Ctrl-C takes effect when it returns.
+#[pyfunction]
+#[pyo3(signature = (scene, trajectory, columns, values, coords, start, max_iterations))]
+#[pyo3(name = "inverse")]
+#[allow(clippy::too_many_arguments)] // the CLI's options, one keyword each
+fn inverse_run<'py>(
+    py: Python<'py>,
+    scene: &Bound<'py, PyAny>,
+    trajectory: Option<&Bound<'py, PyAny>>,
+    columns: Option<&Bound<'py, PyAny>>,
+    values: Option<&Bound<'py, PyAny>>,
+    coords: &Bound<'py, PyAny>,
+    start: &Bound<'py, PyAny>,
+    max_iterations: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    guard(|| {
+        let scene = arg_path(scene, "scene")?;
+        let coordinates = coordinates(coords)?;
+        let start = match arg_choice(start, "start", &["kinematic", "staged"])? {
+            "kinematic" => Start::Kinematic,
+            _ => Start::Staged,
+        };
+        let max_iterations = arg_count(max_iterations, "max_iterations", 1)?;
+        let (table, source) = match (trajectory, columns, values) {
+            (Some(path), None, None) => {
+                let path = arg_path(path, "trajectory")?;
+                let table = read_table(&path)
+                    .map_err(|e| invalid(format!("trajectory: {}", one_line(&e.to_string()))))?;
+                (table, path.display().to_string())
+            }
+            (None, Some(columns), Some(values)) => {
+                (table_from(columns, values)?, "trajectory".to_string())
+            }
+            _ => {
+                return Err(invalid(
+                    "trajectory: give a CSV path, or columns and values",
+                ))
+            }
+        };
+        let model = load_model(&scene)?;
+        let prescription = Prescription::from_table(&model, &table, &source).map_err(arg_error)?;
+        let mut options = InverseOptions {
+            coordinates,
+            start,
+            ..InverseOptions::default()
+        };
+        options.settings.max_iterations = max_iterations;
+        let model = Arc::new(model);
+        let sol = py
+            .detach(|| inverse::solve(model, &prescription, &options))
+            .map_err(|e| match e {
+                Error::InvalidArgument(_) => arg_error(e),
+                other => with_result(py, SolveError::new_err(other.to_string()), None),
+            })?;
+        let out = inverse_result(py, &sol)?;
+        // The solve cannot stop midway: a Ctrl-C during it is raised now, with it.
+        py.check_signals()
+            .map_err(|e| with_result(py, e, Some(&out)))?;
+        let s = &sol.summary;
+        if s.report.termination != Termination::Converged {
+            let m = format!(
+                "the inverse solve did not converge: {}, cost {:.3e} after {} iterations",
+                s.report.termination, s.report.cost, s.report.iterations
+            );
+            return Err(with_result(py, SolveError::new_err(m), Some(&out)));
+        }
+        Ok(out)
+    })
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
     m.add_class::<PyModel>()?;
     m.add_function(wrap_pyfunction!(load, m)?)?;
     m.add_function(wrap_pyfunction!(simulate_run, m)?)?;
     m.add_function(wrap_pyfunction!(inverse_run, m)?)?;
-    m.add("SceneError", m.py().get_type::<SceneError>())?;
-    m.add("SolveError", m.py().get_type::<SolveError>())?;
+    m.add("SceneError", py.get_type::<SceneError>())?;
+    // Every SolveError has `.result`: None where nothing was solved.
+    py.get_type::<SolveError>().setattr("result", py.None())?;
+    m.add("SolveError", py.get_type::<SolveError>())?;
+    m.add("InvalidArgument", py.get_type::<InvalidArgument>())?;
+    m.add("InternalError", py.get_type::<InternalError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_panic_becomes_its_message() {
+        let r: Result<(), String> = catch_panic(|| panic!("Singular value was {}", "NaN"));
+        assert_eq!(r, Err("Singular value was NaN".to_string()));
+        let r: Result<(), String> = catch_panic(|| std::panic::panic_any(7u8));
+        assert_eq!(r, Err("a panic without a message".to_string()));
+        assert_eq!(catch_panic(|| 3), Ok(3));
+    }
+
+    #[test]
+    fn messages_are_one_clipped_line() {
+        assert_eq!(one_line("a\n  b\tc"), "a b c");
+        let long = one_line(&"x".repeat(1000));
+        assert_eq!(long.chars().count(), MESSAGE_LIMIT);
+        assert!(long.ends_with('…'));
+    }
 }

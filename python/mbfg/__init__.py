@@ -3,8 +3,9 @@
     model = mbfg.load("scenes/fourbar.yaml")
     run = mbfg.simulate("scenes/fourbar.yaml", coords="dc", dt=1e-3, t_end=5.0)
 
-The native module hands over flat lists; this layer shapes them into numpy arrays.
-API reference: docs/python.md.
+The native module checks the arguments and hands over flat lists and buffers; this
+layer gives the defaults and shapes them into numpy arrays, also the partial result an
+interrupted or failed run attaches to its exception (`.result`). API: docs/python.md.
 """
 from __future__ import annotations
 
@@ -14,9 +15,10 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from . import _native
-from ._native import SceneError, SolveError, __version__
+from ._native import InternalError, InvalidArgument, SceneError, SolveError, __version__
 
-__all__ = ["Model", "Result", "SceneError", "SolveError", "inverse", "load", "simulate"]
+__all__ = ["InternalError", "InvalidArgument", "Model", "Result", "SceneError", "SolveError",
+           "inverse", "load", "simulate"]
 
 
 class Model:
@@ -51,48 +53,52 @@ class Model:
         try:
             return self.names.index(name)
         except ValueError:
-            raise ValueError(f"no coordinate named '{name}' (coordinates: {', '.join(self.names)})") from None
+            raise InvalidArgument(_clip(f"no coordinate named {name!r:.60} (coordinates: "
+                                        f"{', '.join(self.names)})")) from None
 
     def mass_matrix(self) -> np.ndarray:
         return np.asarray(self._m.mass_matrix()).reshape(self.n, self.n)
 
+    # The native methods check q, dq and t (1-D, n finite numbers): passed as given.
     def phi(self, q) -> np.ndarray:
-        return np.asarray(self._m.phi(_vec(q)))
+        return np.asarray(self._m.phi(q))
 
     def phi_q(self, q) -> np.ndarray:
-        return np.asarray(self._m.phi_q(_vec(q))).reshape(self.m, self.n)
+        return np.asarray(self._m.phi_q(q)).reshape(self.m, self.n)
 
     def phi_q_dot(self, q, dq) -> np.ndarray:
-        return np.asarray(self._m.phi_q_dot(_vec(q), _vec(dq))).reshape(self.m, self.n)
+        return np.asarray(self._m.phi_q_dot(q, dq)).reshape(self.m, self.n)
 
     def generalized_forces(self, q, dq, t: float) -> np.ndarray:
-        return np.asarray(self._m.generalized_forces(_vec(q), _vec(dq), float(t)))
+        return np.asarray(self._m.generalized_forces(q, dq, t))
 
     def accelerations(self, q, dq, t: float) -> np.ndarray:
-        return np.asarray(self._m.accelerations(_vec(q), _vec(dq), float(t)))
+        return np.asarray(self._m.accelerations(q, dq, t))
 
     def effect_value(self, i: int, t: float):
-        return self._m.effect_value(int(i), float(t))
+        return self._m.effect_value(i, t)
 
     def point_position(self, q, name: str) -> tuple[float, float]:
-        return self._m.point_position(_vec(q), name)
+        return self._m.point_position(q, name)
 
     def point_velocity(self, dq, name: str) -> tuple[float, float]:
-        return self._m.point_velocity(_vec(dq), name)
+        return self._m.point_velocity(dq, name)
 
     def kinetic_energy(self, dq) -> float:
-        return self._m.kinetic_energy(_vec(dq))
+        return self._m.kinetic_energy(dq)
 
     def potential_energy(self, q) -> float:
-        return self._m.potential_energy(_vec(q))
+        return self._m.potential_energy(q)
 
 
 class Result:
-    """A run's trajectory in the CSV contract (plus `Q` for inverse dynamics)."""
+    """A run's trajectory in the CSV contract (plus `Q` for inverse dynamics). A partial
+    one (on an exception's `.result`) has `summary["complete"]` False."""
 
     def __init__(self, raw: dict):
         self.columns: list[str] = raw["columns"]
-        self.data = np.asarray(raw["data"], dtype=float).reshape(raw["rows"], len(self.columns))
+        # Row-major float64s in native byte order, in a bytearray: wrapped, not copied.
+        self.data = np.frombuffer(raw["data"], dtype=float).reshape(raw["rows"], len(self.columns))
         self.summary: dict = raw["summary"]
         self.failures: list[dict] = raw["failures"]
         self.names = [c[2:] for c in self.columns if c.startswith("q:")]
@@ -107,7 +113,7 @@ class Result:
         try:
             return self.data[:, self.columns.index(name)]
         except ValueError:
-            raise ValueError(f"no column '{name}'") from None
+            raise InvalidArgument(_clip(f"no column {name!r:.60}")) from None
 
     def __repr__(self) -> str:
         return f"<mbfg.Result: {len(self.t)} rows, {len(self.columns)} columns, summary {self.summary}>"
@@ -115,33 +121,72 @@ class Result:
 
 def load(scene: str | os.PathLike) -> Model:
     """Reads and assembles a scene (or MBSE mechanism) file."""
-    return Model(_native.load(os.fspath(scene)))
+    return Model(_native.load(scene))
 
 
 def simulate(scene: str | os.PathLike, coords: str = "dc", dt: float = 1e-3, t_end: float = 5.0,
              window: int = 1, batch: bool = False, max_iterations: int = 50,
              integrator: str = "trapezoidal", noise: str = "default",
-             continue_on_failure: bool = False) -> Result:
-    """Forward dynamics, as `mbfg simulate` runs it."""
-    return Result(_native.simulate(os.fspath(scene), coords, float(dt), float(t_end), int(window),
-                                   bool(batch), int(max_iterations), integrator, noise,
-                                   bool(continue_on_failure)))
+             continue_on_failure: bool = False, past: str = "adaptive") -> Result:
+    """Forward dynamics, as `mbfg simulate` runs it. Ctrl-C stops it within ~0.1 s
+    with KeyboardInterrupt; that and SolveError carry the steps solved as `.result`."""
+    return _run(_native.simulate, scene, coords, dt, t_end, window, batch, max_iterations,
+                integrator, noise, continue_on_failure, past)
 
 
 def inverse(scene: str | os.PathLike, trajectory: str | os.PathLike | Mapping[str, Sequence[float]],
             coords: str = "dc", start: str = "kinematic", max_iterations: int = 50) -> Result:
     """Inverse dynamics, as `mbfg inverse` runs it. `trajectory` is a CSV path or a
-    mapping {"t": times, "<coordinate>": values, ...}."""
+    mapping {"t": times, "<coordinate>": values, ...}. One batch solve: Ctrl-C takes
+    effect when it returns. A SolveError carries the last iterate as `.result`."""
     if isinstance(trajectory, Mapping):
-        columns = list(trajectory.keys())
-        table = np.column_stack([np.asarray(trajectory[c], dtype=float) for c in columns])
-        raw = _native.inverse(os.fspath(scene), None, columns, table.ravel().tolist(), coords,
-                              start, int(max_iterations))
-    else:
-        raw = _native.inverse(os.fspath(scene), os.fspath(trajectory), None, None, coords, start,
-                              int(max_iterations))
+        columns, values = _table(trajectory)
+        return _run(_native.inverse, scene, None, columns, values, coords, start, max_iterations)
+    if not isinstance(trajectory, (str, os.PathLike)):
+        raise InvalidArgument(_clip("trajectory must be a CSV path or a mapping "
+                                    f"{{column: values}}, got {trajectory!r:.60} "
+                                    f"({type(trajectory).__name__})"))
+    return _run(_native.inverse, scene, trajectory, None, None, coords, start, max_iterations)
+
+
+def _run(native, *args) -> Result:
+    """A native run as a Result; the raw partial result an exception carries is shaped
+    the same way (the exception is re-raised as it came)."""
+    try:
+        raw = native(*args)
+    except BaseException as e:
+        if isinstance(getattr(e, "result", None), dict):
+            e.result = Result(e.result)
+        raise
     return Result(raw)
 
 
-def _vec(x) -> list[float]:
-    return np.asarray(x, dtype=float).ravel().tolist()
+def _table(trajectory: Mapping) -> tuple[list[str], list[float]]:
+    """A mapping {column: values} as its columns and row-major values."""
+    columns, arrays = [], []
+    for name, v in trajectory.items():
+        if not isinstance(name, str):
+            raise InvalidArgument(_clip(f"trajectory: column names must be strings, got {name!r:.60}"))
+        try:
+            a = np.asarray(v)
+        except Exception:  # ragged or odd objects: say which column
+            a = None
+        if a is None or a.ndim != 1 or a.dtype.kind not in "iuf":
+            what = "an unreadable value" if a is None else f"shape {a.shape}, dtype {a.dtype}"
+            raise InvalidArgument(_clip(f"trajectory: column {name!r:.60} must be a 1-D sequence "
+                                        f"of numbers, got {what}"))
+        columns.append(name)
+        arrays.append(a.astype(float))
+    if not arrays:
+        raise InvalidArgument("trajectory: the mapping has no columns")
+    lengths = {len(a) for a in arrays}
+    if len(lengths) > 1:
+        counts = ", ".join(f"{c}: {len(a)}" for c, a in zip(columns, arrays))
+        raise InvalidArgument(_clip(f"trajectory: the columns differ in length ({counts})"))
+    return columns, np.column_stack(arrays).ravel().tolist()
+
+
+def _clip(message: str, limit: int = 300) -> str:
+    """One line of at most `limit` characters, as the native module's messages."""
+    flat = " ".join(message.split())
+    return flat if len(flat) <= limit else flat[:limit - 1] + "…"
