@@ -55,3 +55,36 @@ venv: .venv/.installed
 # The mbfg Python module (PyO3), built in release mode into .venv.
 python: .venv/.installed
 	VIRTUAL_ENV=$(CURDIR)/.venv .venv/bin/maturin develop --release --quiet
+
+# Fuzzing the parsers (docs/fuzzing.md) on the stable toolchain: libFuzzer comes with
+# libfuzzer-sys, the coverage instrumentation from these flags. FUZZ_SECONDS is the
+# budget per target; fuzz-ci is the short fixed run for CI, built with less
+# optimization (profile fuzz-ci in fuzz/Cargo.toml) as its build dominates.
+FUZZ_TARGETS := scene expr trajectory
+FUZZ_SECONDS ?= 600
+FUZZ_CI_SECONDS := 10
+FUZZ_HOST = $(shell rustc -vV | sed -n 's/^host: //p')
+FUZZ_FLAGS := --cfg fuzzing -Cpasses=sancov-module -Cllvm-args=-sanitizer-coverage-level=4 -Cllvm-args=-sanitizer-coverage-inline-8bit-counters -Cllvm-args=-sanitizer-coverage-pc-table -Cllvm-args=-sanitizer-coverage-trace-compares
+FUZZ_MAX_LEN_scene := 16384
+FUZZ_MAX_LEN_expr := 24576
+FUZZ_MAX_LEN_trajectory := 65536
+# An explicit --target keeps the flags off build scripts and proc macros.
+FUZZ_BUILD = cd fuzz && RUSTFLAGS="$(FUZZ_FLAGS)" $(CARGO) build --profile $(1) --target $(FUZZ_HOST) --target-dir target
+# One target for $(2) seconds, built with profile $(3): new inputs go to fuzz/target/work/$(1) (the committed
+# seeds are only read), the log to fuzz/target/$(1).log, a crash to fuzz/target/artifacts/$(1)/.
+FUZZ_ONE = mkdir -p fuzz/target/work/$(1) fuzz/target/artifacts/$(1); echo "fuzz $(1): $(2) s"; \
+	if fuzz/target/$(FUZZ_HOST)/$(3)/$(1) fuzz/target/work/$(1) fuzz/corpus/$(1) -max_total_time=$(2) \
+		-max_len=$(FUZZ_MAX_LEN_$(1)) -timeout=10 -rss_limit_mb=2048 -artifact_prefix=fuzz/target/artifacts/$(1)/ \
+		-print_final_stats=1 > fuzz/target/$(1).log 2>&1; \
+	then grep -E '^(Done|stat::number_of_executed_units)' fuzz/target/$(1).log; \
+	else tail -n 40 fuzz/target/$(1).log; echo "fuzz $(1) failed: see docs/fuzzing.md"; exit 1; fi;
+FUZZ_RUN = $(foreach t,$(FUZZ_TARGETS),$(call FUZZ_ONE,$(t),$(1),$(2)))
+
+.PHONY: fuzz fuzz-ci
+fuzz:
+	$(call FUZZ_BUILD,release)
+	@set -e; $(call FUZZ_RUN,$(FUZZ_SECONDS),release)
+
+fuzz-ci:
+	$(call FUZZ_BUILD,fuzz-ci)
+	@set -e; $(call FUZZ_RUN,$(FUZZ_CI_SECONDS),fuzz-ci)

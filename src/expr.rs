@@ -3,8 +3,25 @@
 //!
 //! An expression is parsed once into a small syntax tree; names are looked up when it
 //! is evaluated, so the same text can be checked early and evaluated later (for `t`).
+//!
+//! The parser and every walk over the tree recurse, so input size is bounded
+//! ([`MAX_LEN`], [`MAX_NODES`], [`MAX_DEPTH`]): no text can overflow the stack.
+//! Sums and products are flat lists, so a long sum is a wide tree, not a deep one.
 
+use std::collections::HashSet;
 use std::fmt;
+
+/// Longest expression text accepted, in bytes.
+pub const MAX_LEN: usize = 100_000;
+/// Most numbers, names, operators and calls in one expression.
+pub const MAX_NODES: usize = 10_000;
+/// Deepest nesting of parentheses, function calls, unary signs and exponents. Each
+/// level costs a few stack frames in the parser and in every walk over the tree;
+/// 100 keeps all of them far inside a 256 kB stack.
+pub const MAX_DEPTH: usize = 100;
+
+/// Longest piece of the input (a name, a number) quoted in a message, in characters.
+const QUOTE: usize = 40;
 
 /// Why an expression could not be parsed or evaluated.
 #[derive(Debug, Clone, PartialEq)]
@@ -15,16 +32,45 @@ pub enum ExprError {
     Undefined(String),
     /// The value is NaN or infinite (for example `sqrt(-1)` or `1/0`).
     NotFinite,
+    /// The text exceeds one of the size limits; the message names it.
+    TooLarge(String),
 }
 
 impl fmt::Display for ExprError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             ExprError::Syntax { at, message } => write!(f, "{message} at character {}", at + 1),
-            ExprError::Undefined(name) => write!(f, "undefined name '{name}'"),
+            ExprError::Undefined(name) => write!(f, "undefined name '{}'", excerpt(name, QUOTE)),
             ExprError::NotFinite => write!(f, "evaluates to a non-finite number"),
+            ExprError::TooLarge(message) => write!(f, "{message}"),
         }
     }
+}
+
+/// `text` cut to at most `max` characters (an ellipsis marks the cut), on one line:
+/// messages quote user input, which may be huge or span lines.
+pub fn excerpt(text: &str, max: usize) -> String {
+    let mut out = String::new();
+    let mut count = 0;
+    for c in text.chars() {
+        let piece = if c.is_control() {
+            c.escape_default().to_string()
+        } else {
+            c.to_string()
+        };
+        let n = piece.chars().count();
+        if count + n > max {
+            // Room for the ellipsis: drop the last characters if needed.
+            while count + 1 > max && out.pop().is_some() {
+                count -= 1;
+            }
+            out.push('…');
+            return out;
+        }
+        count += n;
+        out.push_str(&piece);
+    }
+    out
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -100,7 +146,10 @@ enum Node {
     Num(f64),
     Var(String),
     Neg(Box<Node>),
-    Bin(char, Box<Node>, Box<Node>),
+    /// `first op₁ x₁ op₂ x₂ …` with the operators of one precedence level (`+ -` or
+    /// `* /`), evaluated left to right like the nested binary form it replaces.
+    Chain(Box<Node>, Vec<(char, Node)>),
+    Pow(Box<Node>, Box<Node>),
     Call(Func, Vec<Node>),
 }
 
@@ -113,14 +162,22 @@ pub struct Expr {
 impl Expr {
     /// Parses `text`; names stay unresolved until evaluation.
     pub fn parse(text: &str) -> Result<Expr, ExprError> {
+        if text.len() > MAX_LEN {
+            return Err(ExprError::TooLarge(format!(
+                "expression too long: {} bytes, the limit is {MAX_LEN}",
+                text.len()
+            )));
+        }
         let mut p = Parser {
             chars: text.chars().collect(),
             pos: 0,
+            depth: 0,
+            nodes: 0,
         };
         let root = p.expr()?;
         p.skip_ws();
         if p.pos < p.chars.len() {
-            return Err(p.error(format!("unexpected '{}'", p.chars[p.pos])));
+            return Err(p.error(format!("unexpected '{}'", p.chars[p.pos].escape_default())));
         }
         Ok(Expr { root })
     }
@@ -146,7 +203,7 @@ impl Expr {
     /// Names the expression refers to (not functions), in order of appearance.
     pub fn names(&self) -> Vec<String> {
         let mut out = Vec::new();
-        collect_names(&self.root, &mut out);
+        collect_names(&self.root, &mut HashSet::new(), &mut out);
         out
     }
 
@@ -176,20 +233,24 @@ impl Expr {
     }
 }
 
-fn collect_names(n: &Node, out: &mut Vec<String>) {
+fn collect_names<'a>(n: &'a Node, seen: &mut HashSet<&'a str>, out: &mut Vec<String>) {
     match n {
         Node::Num(_) => {}
         Node::Var(v) => {
-            if !out.contains(v) {
+            if seen.insert(v) {
                 out.push(v.clone())
             }
         }
-        Node::Neg(a) => collect_names(a, out),
-        Node::Bin(_, a, b) => {
-            collect_names(a, out);
-            collect_names(b, out);
+        Node::Neg(a) => collect_names(a, seen, out),
+        Node::Chain(first, rest) => {
+            collect_names(first, seen, out);
+            rest.iter().for_each(|(_, x)| collect_names(x, seen, out));
         }
-        Node::Call(_, args) => args.iter().for_each(|a| collect_names(a, out)),
+        Node::Pow(a, b) => {
+            collect_names(a, seen, out);
+            collect_names(b, seen, out);
+        }
+        Node::Call(_, args) => args.iter().for_each(|a| collect_names(a, seen, out)),
     }
 }
 
@@ -200,6 +261,15 @@ fn builtin(name: &str) -> Option<f64> {
     }
 }
 
+fn apply_op(op: char, x: f64, y: f64) -> f64 {
+    match op {
+        '+' => x + y,
+        '-' => x - y,
+        '*' => x * y,
+        _ => x / y,
+    }
+}
+
 fn eval_node(n: &Node, lookup: &dyn Fn(&str) -> Option<f64>) -> Result<f64, ExprError> {
     Ok(match n {
         Node::Num(v) => *v,
@@ -207,22 +277,20 @@ fn eval_node(n: &Node, lookup: &dyn Fn(&str) -> Option<f64>) -> Result<f64, Expr
             .or_else(|| builtin(name))
             .ok_or_else(|| ExprError::Undefined(name.clone()))?,
         Node::Neg(a) => -eval_node(a, lookup)?,
-        Node::Bin(op, a, b) => {
-            let (x, y) = (eval_node(a, lookup)?, eval_node(b, lookup)?);
-            match op {
-                '+' => x + y,
-                '-' => x - y,
-                '*' => x * y,
-                '/' => x / y,
-                _ => x.powf(y),
+        Node::Chain(first, rest) => {
+            let mut acc = eval_node(first, lookup)?;
+            for (op, x) in rest {
+                acc = apply_op(*op, acc, eval_node(x, lookup)?);
             }
+            acc
         }
+        Node::Pow(a, b) => eval_node(a, lookup)?.powf(eval_node(b, lookup)?),
         Node::Call(f, args) => {
             let mut vals = [0.0; 2];
             for (slot, a) in vals.iter_mut().zip(args) {
                 *slot = eval_node(a, lookup)?;
             }
-            f.apply(&vals[..args.len()])
+            f.apply(&vals[..args.len().min(2)])
         }
     })
 }
@@ -232,26 +300,32 @@ fn bind_node(
     keep: &[&str],
     lookup: &dyn Fn(&str) -> Option<f64>,
 ) -> Result<Node, ExprError> {
+    let bind = |a: &Node| bind_node(a, keep, lookup);
     let folded = match n {
         Node::Var(name) if keep.contains(&name.as_str()) => return Ok(n.clone()),
-        Node::Num(_) | Node::Var(_) => Node::Num(eval_node(n, lookup)?),
-        Node::Neg(a) => Node::Neg(Box::new(bind_node(a, keep, lookup)?)),
-        Node::Bin(op, a, b) => Node::Bin(
-            *op,
-            Box::new(bind_node(a, keep, lookup)?),
-            Box::new(bind_node(b, keep, lookup)?),
+        Node::Num(_) | Node::Var(_) => return Ok(Node::Num(eval_node(n, lookup)?)),
+        Node::Neg(a) => Node::Neg(Box::new(bind(a)?)),
+        Node::Chain(first, rest) => Node::Chain(
+            Box::new(bind(first)?),
+            rest.iter()
+                .map(|(op, x)| Ok((*op, bind(x)?)))
+                .collect::<Result<_, ExprError>>()?,
         ),
-        Node::Call(f, args) => Node::Call(
-            *f,
-            args.iter()
-                .map(|a| bind_node(a, keep, lookup))
-                .collect::<Result<_, _>>()?,
-        ),
+        Node::Pow(a, b) => Node::Pow(Box::new(bind(a)?), Box::new(bind(b)?)),
+        Node::Call(f, args) => Node::Call(*f, args.iter().map(bind).collect::<Result<_, _>>()?),
     };
-    // Fold subtrees that no longer depend on any kept name.
-    let mut names = Vec::new();
-    collect_names(&folded, &mut names);
-    if names.is_empty() {
+    // A subtree whose children all folded to numbers no longer depends on a kept
+    // name: fold it too.
+    let constant = match &folded {
+        Node::Neg(a) => matches!(**a, Node::Num(_)),
+        Node::Chain(first, rest) => {
+            matches!(**first, Node::Num(_)) && rest.iter().all(|(_, x)| matches!(x, Node::Num(_)))
+        }
+        Node::Pow(a, b) => matches!(**a, Node::Num(_)) && matches!(**b, Node::Num(_)),
+        Node::Call(_, args) => args.iter().all(|a| matches!(a, Node::Num(_))),
+        Node::Num(_) | Node::Var(_) => false,
+    };
+    if constant {
         let v = eval_node(&folded, &|_| None)?;
         if !v.is_finite() {
             return Err(ExprError::NotFinite);
@@ -264,6 +338,10 @@ fn bind_node(
 struct Parser {
     chars: Vec<char>,
     pos: usize,
+    /// Current nesting (active `unary` calls, through which every recursion passes).
+    depth: usize,
+    /// Nodes built so far.
+    nodes: usize,
 }
 
 impl Parser {
@@ -272,6 +350,17 @@ impl Parser {
             at: self.pos,
             message,
         }
+    }
+
+    /// Counts one more node against [`MAX_NODES`].
+    fn node(&mut self, n: Node) -> Result<Node, ExprError> {
+        self.nodes += 1;
+        if self.nodes > MAX_NODES {
+            return Err(ExprError::TooLarge(format!(
+                "expression too large: more than {MAX_NODES} numbers, names and operators"
+            )));
+        }
+        Ok(n)
     }
 
     fn skip_ws(&mut self) {
@@ -285,38 +374,56 @@ impl Parser {
         self.chars.get(self.pos).copied()
     }
 
-    fn expr(&mut self) -> Result<Node, ExprError> {
-        let mut lhs = self.term()?;
-        while let Some(op @ ('+' | '-')) = self.peek() {
+    /// One precedence level of left-associative operators `ops` over `operand`.
+    fn chain(
+        &mut self,
+        ops: [char; 2],
+        operand: fn(&mut Parser) -> Result<Node, ExprError>,
+    ) -> Result<Node, ExprError> {
+        let first = operand(self)?;
+        let mut rest = Vec::new();
+        while let Some(op) = self.peek().filter(|c| ops.contains(c)) {
             self.pos += 1;
-            let rhs = self.term()?;
-            lhs = Node::Bin(op, Box::new(lhs), Box::new(rhs));
+            let x = operand(self)?;
+            rest.push((op, self.node(x)?));
         }
-        Ok(lhs)
+        if rest.is_empty() {
+            Ok(first)
+        } else {
+            Ok(Node::Chain(Box::new(first), rest))
+        }
+    }
+
+    fn expr(&mut self) -> Result<Node, ExprError> {
+        self.chain(['+', '-'], Parser::term)
     }
 
     fn term(&mut self) -> Result<Node, ExprError> {
-        let mut lhs = self.unary()?;
-        while let Some(op @ ('*' | '/')) = self.peek() {
-            self.pos += 1;
-            let rhs = self.unary()?;
-            lhs = Node::Bin(op, Box::new(lhs), Box::new(rhs));
-        }
-        Ok(lhs)
+        self.chain(['*', '/'], Parser::unary)
     }
 
     fn unary(&mut self) -> Result<Node, ExprError> {
-        match self.peek() {
+        self.depth += 1;
+        if self.depth > MAX_DEPTH {
+            return Err(ExprError::TooLarge(format!(
+                "expression nested too deeply at character {}: more than {MAX_DEPTH} levels of parentheses, calls, signs and powers",
+                self.pos + 1
+            )));
+        }
+        let n = match self.peek() {
             Some('-') => {
                 self.pos += 1;
-                Ok(Node::Neg(Box::new(self.unary()?)))
+                let a = self.unary()?;
+                self.node(Node::Neg(Box::new(a)))
             }
             Some('+') => {
                 self.pos += 1;
                 self.unary()
             }
             _ => self.power(),
-        }
+        };
+        self.depth -= 1;
+        n
     }
 
     /// `a^b^c` is `a^(b^c)`, and `-a^2` is `-(a^2)`, as in mathematics.
@@ -325,7 +432,7 @@ impl Parser {
         if self.peek() == Some('^') {
             self.pos += 1;
             let exp = self.unary()?;
-            return Ok(Node::Bin('^', Box::new(base), Box::new(exp)));
+            return self.node(Node::Pow(Box::new(base), Box::new(exp)));
         }
         Ok(base)
     }
@@ -354,12 +461,17 @@ impl Parser {
                 if self.peek() == Some('(') {
                     let Some((func, arity)) = Func::lookup(&name) else {
                         self.pos = start;
-                        return Err(self.error(format!("unknown function '{name}'")));
+                        return Err(
+                            self.error(format!("unknown function '{}'", excerpt(&name, QUOTE)))
+                        );
                     };
                     self.pos += 1;
                     let mut args = vec![self.expr()?];
                     while self.peek() == Some(',') {
                         self.pos += 1;
+                        if args.len() == arity {
+                            return Err(self.error(format!("{name} takes {arity} argument(s)")));
+                        }
                         args.push(self.expr()?);
                     }
                     if self.peek() != Some(')') {
@@ -372,11 +484,11 @@ impl Parser {
                             args.len()
                         )));
                     }
-                    return Ok(Node::Call(func, args));
+                    return self.node(Node::Call(func, args));
                 }
-                Ok(Node::Var(name))
+                self.node(Node::Var(name))
             }
-            Some(c) => Err(self.error(format!("unexpected '{c}'"))),
+            Some(c) => Err(self.error(format!("unexpected '{}'", c.escape_default()))),
         }
     }
 
@@ -399,12 +511,13 @@ impl Parser {
             }
         }
         let text: String = self.chars[start..self.pos].iter().collect();
-        text.parse::<f64>()
-            .map(Node::Num)
-            .map_err(|_| ExprError::Syntax {
+        match text.parse::<f64>() {
+            Ok(v) => self.node(Node::Num(v)),
+            Err(_) => Err(ExprError::Syntax {
                 at: start,
-                message: format!("malformed number '{text}'"),
-            })
+                message: format!("malformed number '{}'", excerpt(&text, QUOTE)),
+            }),
+        }
     }
 }
 
@@ -432,6 +545,30 @@ mod tests {
         assert!((ev("pi").unwrap() - std::f64::consts::PI).abs() < 1e-15);
         assert_eq!(ev("1.5e-3*2").unwrap(), 3e-3);
         assert_eq!(ev("atan2(0, -1)").unwrap(), std::f64::consts::PI);
+        // Flat chains keep left associativity.
+        assert_eq!(ev("1-2-3").unwrap(), -4.0);
+        assert_eq!(ev("8/4/2").unwrap(), 1.0);
+        assert_eq!(
+            ev("2*3/4*5-1+L").unwrap(),
+            ((2.0 * 3.0) / 4.0) * 5.0 - 1.0 + 2.0
+        );
+    }
+
+    #[test]
+    fn excerpt_cuts_and_escapes() {
+        assert_eq!(excerpt("abc", 3), "abc");
+        assert_eq!(excerpt("abcdef", 4), "abc…");
+        assert_eq!(excerpt("a\nb", 10), "a\\nb");
+        assert_eq!(excerpt("é€日本", 3), "é€…");
+    }
+
+    #[test]
+    fn bind_folds_partly_constant_chains() {
+        let e = Expr::parse("t + 2*L - -mass^2").unwrap();
+        let b = e
+            .bind(&["t"], &|n| (n == "L").then_some(2.0).or(Some(3.0)))
+            .unwrap();
+        assert_eq!(b.eval(&|_| Some(1.0)).unwrap(), 1.0 + 4.0 + 9.0);
     }
 
     #[test]

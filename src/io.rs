@@ -4,6 +4,7 @@
 //! form, so reading a file back gives the same bits.
 
 use crate::error::{Error, Result};
+use crate::expr::excerpt;
 use crate::forward::Trajectory;
 use std::io::Write;
 use std::path::Path;
@@ -97,9 +98,48 @@ impl Table {
     }
 }
 
+/// Size limits for reading a table: a table beyond them is refused while it is
+/// read, so a small compressed file cannot make the reader decompress and store
+/// gigabytes before its first error.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TableLimits {
+    /// Most values (rows × columns) kept.
+    pub max_cells: usize,
+    /// Most bytes read (after decompression), header included.
+    pub max_bytes: u64,
+}
+
+impl Default for TableLimits {
+    /// 10 million values (80 MB), a hundred times the largest reference; 256 MiB of
+    /// text.
+    fn default() -> Self {
+        TableLimits {
+            max_cells: 10_000_000,
+            max_bytes: 256 << 20,
+        }
+    }
+}
+
+/// Longest column name accepted: names are quoted in messages.
+const MAX_COLUMN_NAME: usize = 200;
+/// Longest piece of a field quoted in a message.
+const QUOTE: usize = 40;
+
 /// Reads a numeric CSV table (gzip-compressed when the name ends in `.gz`, as the
 /// committed references are); errors name the file, the line and the column.
+/// The default [`TableLimits`] apply.
 pub fn read_table(path: &Path) -> Result<Table> {
+    read_table_with(path, &TableLimits::default(), &mut |_| Ok(()))
+}
+
+/// [`read_table`] with explicit limits and a check of the header that runs before
+/// any row is read (say, that the columns are coordinates of a model), so a header
+/// error surfaces at once however long the file.
+pub fn read_table_with(
+    path: &Path,
+    limits: &TableLimits,
+    check_header: &mut dyn FnMut(&[String]) -> Result<()>,
+) -> Result<Table> {
     let file = path.display().to_string();
     let raw = std::fs::File::open(path).map_err(|e| Error::Data(format!("{file}: {e}")))?;
     let input: Box<dyn std::io::Read> = if path.extension().is_some_and(|e| e == "gz") {
@@ -107,41 +147,99 @@ pub fn read_table(path: &Path) -> Result<Table> {
     } else {
         Box::new(raw)
     };
+    read_table_from(input, &file, limits, check_header)
+}
+
+/// Reads a table from uncompressed CSV text; `file` names it in messages.
+pub fn read_table_from<R: std::io::Read>(
+    input: R,
+    file: &str,
+    limits: &TableLimits,
+    check_header: &mut dyn FnMut(&[String]) -> Result<()>,
+) -> Result<Table> {
     let mut r = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
-        .from_reader(input);
-    let columns: Vec<String> = r
+        .from_reader(Bounded {
+            inner: input,
+            left: limits.max_bytes,
+            exceeded: false,
+        });
+    let too_big = |file: &str| {
+        Error::Data(format!(
+            "{file}: larger than {} bytes, the limit for a table; refused",
+            limits.max_bytes
+        ))
+    };
+    let headers = r
         .headers()
-        .map_err(|e| Error::Data(format!("{file}: {e}")))?
-        .iter()
-        .map(str::to_string)
-        .collect();
+        .map(|h| h.iter().map(str::to_string).collect::<Vec<_>>());
+    let columns = match headers {
+        Ok(columns) => columns,
+        Err(_) if r.get_ref().exceeded => return Err(too_big(file)),
+        Err(e) => return Err(Error::Data(format!("{file}: {}", csv_error(&e)))),
+    };
     if columns.is_empty() || columns.iter().all(|c| c.is_empty()) {
         return Err(Error::Data(format!("{file}: no header row")));
     }
+    if columns.len() > limits.max_cells {
+        return Err(Error::Data(format!(
+            "{file}: {} columns, more than the limit of {} values for a table",
+            columns.len(),
+            limits.max_cells
+        )));
+    }
+    for c in &columns {
+        if c.chars().count() > MAX_COLUMN_NAME || c.chars().any(char::is_control) {
+            return Err(Error::Data(format!(
+                "{file}:1: column name `{}` is not one line of at most {MAX_COLUMN_NAME} characters",
+                excerpt(c, QUOTE)
+            )));
+        }
+    }
+    check_header(&columns)?;
+    let width = columns.len();
+    let max_rows = limits.max_cells / width;
     let mut values = Vec::new();
     let mut rows = 0;
-    for (i, record) in r.records().enumerate() {
-        let line = i + 2;
-        let record = record.map_err(|e| Error::Data(format!("{file}:{line}: {e}")))?;
-        if record.len() != columns.len() {
+    let mut record = csv::StringRecord::new();
+    loop {
+        let more = match r.read_record(&mut record) {
+            Ok(more) => more,
+            Err(_) if r.get_ref().exceeded => return Err(too_big(file)),
+            Err(e) => {
+                let line = e.position().map_or(rows as u64 + 2, |p| p.line());
+                return Err(Error::Data(format!("{file}:{line}: {}", csv_error(&e))));
+            }
+        };
+        if !more {
+            break;
+        }
+        let line = record.position().map_or(rows as u64 + 2, |p| p.line());
+        if rows == max_rows {
+            return Err(Error::Data(format!(
+                "{file}:{line}: more than {max_rows} rows of {width} columns, beyond the limit of {} values for a table; refused",
+                limits.max_cells
+            )));
+        }
+        if record.len() != width {
             return Err(Error::InvalidArgument(format!(
-                "{file}:{line}: {} fields where the header has {}",
+                "{file}:{line}: {} fields where the header has {width}",
                 record.len(),
-                columns.len()
             )));
         }
         for (j, field) in record.iter().enumerate() {
             let v: f64 = field.parse().map_err(|_| {
                 Error::InvalidArgument(format!(
-                    "{file}:{line}: column `{}`: `{field}` is not a number",
-                    columns[j]
+                    "{file}:{line}: column `{}`: `{}` is not a number",
+                    excerpt(&columns[j], QUOTE),
+                    excerpt(field, QUOTE)
                 ))
             })?;
             if !v.is_finite() {
                 return Err(Error::InvalidArgument(format!(
-                    "{file}:{line}: column `{}`: {field} is not finite",
-                    columns[j]
+                    "{file}:{line}: column `{}`: {} is not finite",
+                    excerpt(&columns[j], QUOTE),
+                    excerpt(field, QUOTE)
                 )));
             }
             values.push(v);
@@ -153,6 +251,41 @@ pub fn read_table(path: &Path) -> Result<Table> {
         values,
         rows,
     })
+}
+
+/// A CSV error in one line of plain words (the csv crate's messages for bad UTF-8
+/// and I/O may carry Debug text and positions already named).
+fn csv_error(e: &csv::Error) -> String {
+    match e.kind() {
+        csv::ErrorKind::Utf8 { .. } => "invalid UTF-8".to_string(),
+        csv::ErrorKind::Io(io) => format!("read error: {}", excerpt(&io.to_string(), 120)),
+        _ => excerpt(&e.to_string(), 120),
+    }
+}
+
+/// A reader that fails once more than `left` bytes have been read.
+struct Bounded<R> {
+    inner: R,
+    left: u64,
+    exceeded: bool,
+}
+
+impl<R: std::io::Read> std::io::Read for Bounded<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        // One byte past the limit tells a file of exactly the limit from a longer one.
+        let want = buf.len().min(
+            usize::try_from(self.left)
+                .unwrap_or(usize::MAX)
+                .saturating_add(1),
+        );
+        let n = self.inner.read(&mut buf[..want])?;
+        if n as u64 > self.left {
+            self.exceeded = true;
+            return Err(std::io::Error::other("size limit exceeded"));
+        }
+        self.left -= n as u64;
+        Ok(n)
+    }
 }
 
 #[cfg(test)]

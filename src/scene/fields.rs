@@ -4,7 +4,7 @@
 use super::yaml::{Node, Value};
 use super::TimeFunction;
 use crate::error::SceneError;
-use crate::expr::{Expr, ExprError};
+use crate::expr::{excerpt, Expr, ExprError};
 
 /// Whether a document is an MBSE mechanism file (it has `planar_bodies`).
 pub fn is_mbse(root: &Node) -> bool {
@@ -30,12 +30,18 @@ impl<'a> Ctx<'a> {
         }
     }
 
+    /// An error at `line`; key and message are cut so that the whole one-line
+    /// message stays within [`MAX_MESSAGE`] characters (unless the file name alone
+    /// is that long): messages quote the file, whose values may be huge.
     pub fn err(&self, line: u64, key: &str, message: impl Into<String>) -> SceneError {
+        let key = excerpt(key, MAX_KEY);
+        let used = self.file.chars().count() + key.chars().count() + 30;
+        let room = MAX_MESSAGE.saturating_sub(used).max(60);
         SceneError {
             file: self.file.to_string(),
             line: (line > 0).then_some(line),
-            key: one_line(key),
-            message: one_line(&message.into()),
+            key,
+            message: excerpt(&message.into(), room),
         }
     }
 
@@ -127,7 +133,9 @@ impl<'a> Ctx<'a> {
             ExprError::Syntax { .. } => "malformed expression",
             ExprError::Undefined(_) => "undefined name in expression",
             ExprError::NotFinite => "expression is not finite",
+            ExprError::TooLarge(_) => "expression refused",
         };
+        let text = excerpt(text, QUOTE);
         self.err(node.line, key, format!("{what} '{text}': {e}"))
     }
 
@@ -149,22 +157,12 @@ impl<'a> Ctx<'a> {
     }
 }
 
-/// Text quoted from the file (a key, a type, an expression) may hold line breaks;
-/// an error is one line, so control characters are written escaped.
-fn one_line(text: &str) -> String {
-    if !text.chars().any(char::is_control) {
-        return text.to_string();
-    }
-    text.chars()
-        .map(|c| {
-            if c.is_control() {
-                c.escape_default().to_string()
-            } else {
-                c.to_string()
-            }
-        })
-        .collect()
-}
+/// Longest message an error may have, file, line and key included, in characters.
+pub const MAX_MESSAGE: usize = 300;
+/// Longest key path quoted in a message.
+const MAX_KEY: usize = 80;
+/// Longest piece of the file (an expression, a name) quoted in a message.
+pub const QUOTE: usize = 60;
 
 /// A valid name: letters, digits, `_`, `-`, starting with a letter or `_`.
 pub fn name_of(ctx: &Ctx, node: &Node, key: &str) -> Result<String, SceneError> {
@@ -188,7 +186,8 @@ pub fn name_of(ctx: &Ctx, node: &Node, key: &str) -> Result<String, SceneError> 
             node.line,
             key,
             format!(
-                "'{s}' is not a valid name (letters, digits, '_' and '-', starting with a letter)"
+                "'{}' is not a valid name (letters, digits, '_' and '-', starting with a letter)",
+                excerpt(s, QUOTE)
             ),
         ))
     }
@@ -313,7 +312,8 @@ impl<'n> Fields<'n> {
                     k.line,
                     &path,
                     format!(
-                        "unknown key '{name}' (expected one of: {})",
+                        "unknown key '{}' (expected one of: {})",
+                        excerpt(&name, QUOTE),
                         allowed.join(", ")
                     ),
                 ));

@@ -6,11 +6,12 @@
 //! relative coordinates `r<index>`, bodies `body<index>`.
 
 use super::build;
-use super::fields::{boolean, seq, Ctx, Fields};
+use super::fields::{boolean, seq, Ctx, Fields, QUOTE};
 use super::native::{body_spec, empty, BodyStyle};
 use super::yaml::Node;
 use super::{Point, RelativeCoordinate, RelativeKind, Scene};
 use crate::error::SceneError;
+use crate::expr::excerpt;
 
 pub fn read(root: &Node, file: &str) -> Result<Scene, SceneError> {
     let mut ctx = Ctx::new(file);
@@ -137,7 +138,8 @@ fn read_relative(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneE
                 ty_node.line,
                 &f.key("type"),
                 format!(
-                    "unknown relative coordinate type '{ty}' (expected RelativeAngleAbsoluteDOF)"
+                    "unknown relative coordinate type '{}' (expected RelativeAngleAbsoluteDOF)",
+                    excerpt(&ty, QUOTE)
                 ),
             ));
         }

@@ -129,9 +129,10 @@ impl TimeFunction {
         if let Some(c) = self.expr.as_constant() {
             return Ok(c);
         }
-        self.expr
-            .eval(&|n| (n == "t").then_some(t))
-            .map_err(|e| Error::InvalidArgument(format!("'{}' at t = {t}: {e}", self.text)))
+        self.expr.eval(&|n| (n == "t").then_some(t)).map_err(|e| {
+            let text = crate::expr::excerpt(&self.text, fields::QUOTE);
+            Error::InvalidArgument(format!("'{text}' at t = {t}: {e}"))
+        })
     }
 
     pub fn is_constant(&self) -> bool {
@@ -198,7 +199,7 @@ impl Scene {
     /// Reads and validates a scene or MBSE mechanism file.
     pub fn load(path: impl AsRef<Path>) -> crate::Result<Scene> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
+        let text = read_text(path).map_err(|source| Error::Io {
             path: path.display().to_string(),
             source,
         })?;
@@ -208,6 +209,18 @@ impl Scene {
     /// Parses scene text; `path` names the file in messages and resolves `mechanism:`.
     pub fn from_str(text: &str, path: &Path) -> crate::Result<Scene> {
         let file = path.display().to_string();
+        if text.len() > MAX_SCENE_BYTES {
+            return Err(SceneError {
+                file,
+                line: None,
+                key: String::new(),
+                message: format!(
+                    "file too large: {} bytes, the limit is {MAX_SCENE_BYTES}",
+                    text.len()
+                ),
+            }
+            .into());
+        }
         let root = parse_root(text, &file)?;
         if fields::is_mbse(&root) {
             Ok(mbse::read(&root, &file)?)
@@ -234,6 +247,25 @@ impl Scene {
             Effect::Torque { .. } | Effect::Force { .. } => false,
         })
     }
+}
+
+/// Largest scene or mechanism file read, in bytes. Real scenes are a few kB; the
+/// bound keeps a file such as /dev/zero from being read forever.
+pub const MAX_SCENE_BYTES: usize = 4 << 20;
+
+/// Reads a text file of at most [`MAX_SCENE_BYTES`], stopping there.
+fn read_text(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut text = String::new();
+    std::fs::File::open(path)?
+        .take(MAX_SCENE_BYTES as u64 + 1)
+        .read_to_string(&mut text)?;
+    if text.len() > MAX_SCENE_BYTES {
+        return Err(std::io::Error::other(format!(
+            "file larger than {MAX_SCENE_BYTES} bytes"
+        )));
+    }
+    Ok(text)
 }
 
 /// Parses YAML text into a located tree; a syntax error names `file` and its line.

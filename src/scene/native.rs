@@ -1,12 +1,13 @@
 //! The mbfg scene format (see `docs/scene-format.md`).
 
 use super::build::{self, BodySpec};
-use super::fields::{boolean, name_of, pair, seq, Ctx, Fields};
+use super::fields::{boolean, name_of, pair, seq, Ctx, Fields, QUOTE};
 use super::yaml::{Node, Value};
 use super::{
     ConstraintDef, ConstraintKind, Effect, Point, RelativeCoordinate, RelativeKind, Scene,
 };
 use crate::error::{Error, SceneError};
+use crate::expr::excerpt;
 use std::path::Path;
 
 const TOP_KEYS: &[&str] = &[
@@ -51,11 +52,25 @@ pub fn read(root: &Node, file: &str, dir: &Path) -> crate::Result<Scene> {
                 .into());
         };
         let path = dir.join(rel);
-        let text = std::fs::read_to_string(&path).map_err(|source| {
+        // Only a regular file: a device or a pipe could be read forever.
+        let regular = std::fs::metadata(&path).map(|m| m.is_file());
+        if let Ok(false) = regular {
+            return Err(ctx
+                .err(
+                    mech.line,
+                    "mechanism",
+                    format!("'{}' is not a regular file", excerpt(rel, QUOTE)),
+                )
+                .into());
+        }
+        let text = super::read_text(&path).map_err(|source| {
             Error::Scene(ctx.err(
                 mech.line,
                 "mechanism",
-                format!("cannot read '{}': {source}", path.display()),
+                format!(
+                    "cannot read '{}': {source}",
+                    excerpt(&path.display().to_string(), 120)
+                ),
             ))
         })?;
         // Only an MBSE file: a scene as its own mechanism would be read forever.
@@ -140,9 +155,13 @@ pub fn point_ref(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<usi
             format!("expected a point name, found {}", node.kind()),
         )
     })?;
-    scene
-        .point_index(&name)
-        .ok_or_else(|| ctx.err(node.line, key, format!("unknown point '{name}'")))
+    scene.point_index(&name).ok_or_else(|| {
+        ctx.err(
+            node.line,
+            key,
+            format!("unknown point '{}'", excerpt(&name, QUOTE)),
+        )
+    })
 }
 
 fn point_pair(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<[usize; 2], SceneError> {
@@ -395,7 +414,7 @@ fn read_constraints(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
                 }
             }
             other => {
-                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown constraint type '{other}' (expected distance, fixed_slider or mobile_slider)")))
+                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown constraint type '{}' (expected distance, fixed_slider or mobile_slider)", excerpt(other, QUOTE))))
             }
         };
         scene.constraints.push(ConstraintDef { name, kind });
@@ -429,25 +448,45 @@ fn read_coordinates(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
         let (kind, allowed): (RelativeKind, &[&str]) = match ty.as_str() {
             "angle" => {
                 let [from, to] = point_pair(ctx, scene, f.req(ctx, "points")?, &f.key("points"))?;
-                (RelativeKind::AbsoluteAngle { from, to }, &["type", "name", "points", "initial"])
+                (
+                    RelativeKind::AbsoluteAngle { from, to },
+                    &["type", "name", "points", "initial"],
+                )
             }
             "relative_angle" => {
                 let segs_node = f.req(ctx, "segments")?;
                 let segs = seq(ctx, segs_node, &f.key("segments"))?;
                 if segs.len() != 2 {
-                    return Err(ctx.err(segs_node.line, &f.key("segments"), "expected two segments [[A, B], [C, D]]"));
+                    return Err(ctx.err(
+                        segs_node.line,
+                        &f.key("segments"),
+                        "expected two segments [[A, B], [C, D]]",
+                    ));
                 }
                 let a = point_pair(ctx, scene, &segs[0], &f.key("segments"))?;
                 let b = point_pair(ctx, scene, &segs[1], &f.key("segments"))?;
-                (RelativeKind::RelativeAngle { a, b }, &["type", "name", "segments", "initial"])
+                (
+                    RelativeKind::RelativeAngle { a, b },
+                    &["type", "name", "segments", "initial"],
+                )
             }
             "distance" => {
                 let point = point_ref(ctx, scene, f.req(ctx, "point")?, &f.key("point"))?;
                 let along = point_pair(ctx, scene, f.req(ctx, "along")?, &f.key("along"))?;
-                (RelativeKind::Distance { point, along }, &["type", "name", "point", "along", "initial"])
+                (
+                    RelativeKind::Distance { point, along },
+                    &["type", "name", "point", "along", "initial"],
+                )
             }
             other => {
-                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown coordinate type '{other}' (expected angle, relative_angle or distance)")))
+                return Err(ctx.err(
+                    ty_line,
+                    &f.key("type"),
+                    format!(
+                        "unknown coordinate type '{}' (expected angle, relative_angle or distance)",
+                        excerpt(other, QUOTE)
+                    ),
+                ))
             }
         };
         build::check_relative(ctx, scene, item.line, &path, &kind)?;
@@ -473,7 +512,10 @@ fn angle_coordinate(ctx: &Ctx, scene: &Scene, f: &mut Fields) -> Result<usize, S
         ctx.err(
             n.line,
             &key,
-            format!("unknown coordinate '{name}' (effects act on relative coordinates)"),
+            format!(
+                "unknown coordinate '{}' (effects act on relative coordinates)",
+                excerpt(&name, QUOTE)
+            ),
         )
     })?;
     if !scene.coordinates[idx].kind.is_angle() {
@@ -563,7 +605,7 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                 Effect::Force { name: name.clone(), point, value }
             }
             other => {
-                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown effect type '{other}' (expected gravity, spring_damper, rotational_spring_damper, torque or force)")))
+                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown effect type '{}' (expected gravity, spring_damper, rotational_spring_damper, torque or force)", excerpt(other, QUOTE))))
             }
         };
         names.push(name);
@@ -597,7 +639,7 @@ fn q_name(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<String, Sc
         }
         _ => String::new(),
     };
-    Err(ctx.err(node.line, key, format!("unknown coordinate '{name}'{hint}; coordinates are <point>.x, <point>.y of free points and relative coordinates")))
+    Err(ctx.err(node.line, key, format!("unknown coordinate '{}'{hint}; coordinates are <point>.x, <point>.y of free points and relative coordinates", excerpt(&name, QUOTE))))
 }
 
 fn read_independent(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {

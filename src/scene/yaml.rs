@@ -3,7 +3,9 @@
 //!
 //! Parsing is serde-saphyr's; this module only keeps its spans on every node.
 
+use crate::expr::excerpt;
 use serde::de::{self, Deserialize, Deserializer, MapAccess, SeqAccess, Visitor};
+use serde_saphyr::budget::BudgetBreach;
 use serde_saphyr::Spanned;
 use std::fmt;
 
@@ -66,17 +68,60 @@ pub fn parse(text: &str) -> Result<Node, SyntaxError> {
         Err(e) => {
             let inner = e.without_snippet();
             let line = e.location().map(|l| l.line()).filter(|&l| l > 0);
-            // The user-facing wording: the default one gives advice on the
-            // parser's own API ("set DuplicateKeyPolicy in Options").
-            let message = inner
-                .render_with_formatter(&serde_saphyr::UserMessageFormatter)
-                .lines()
-                .next()
-                .unwrap_or("invalid YAML")
-                .to_string();
+            let message = match inner {
+                serde_saphyr::Error::Budget { breach, .. } => budget_words(breach),
+                // The user-facing wording: the default one gives advice on the
+                // parser's own API ("set DuplicateKeyPolicy in Options").
+                _ => {
+                    let text = inner.render_with_formatter(&serde_saphyr::UserMessageFormatter);
+                    let first = text.lines().next().unwrap_or("invalid YAML");
+                    // A breach wrapped in another error still renders in Debug form.
+                    match first.find("limits breached") {
+                        Some(_) => "YAML document too large or too complex".to_string(),
+                        None => excerpt(first, 200),
+                    }
+                }
+            };
             Err(SyntaxError { message, line })
         }
     }
+}
+
+/// A budget breach in plain words (the parser's own message is Rust Debug text).
+fn budget_words(breach: &BudgetBreach) -> String {
+    let what = match breach {
+        BudgetBreach::Events { events } => {
+            format!("more than {} parser events", events.saturating_sub(1))
+        }
+        BudgetBreach::Aliases { aliases } => {
+            format!("more than {} aliases", aliases.saturating_sub(1))
+        }
+        BudgetBreach::Anchors { anchors } => {
+            format!("more than {} anchors", anchors.saturating_sub(1))
+        }
+        BudgetBreach::Depth { depth } => {
+            format!("nested {depth} levels deep (lists and mappings)")
+        }
+        BudgetBreach::Documents { documents } => format!("{documents} documents"),
+        BudgetBreach::Nodes { nodes } => format!("more than {} values", nodes.saturating_sub(1)),
+        BudgetBreach::ScalarBytes { total_scalar_bytes } => {
+            format!("{total_scalar_bytes} bytes of text in values")
+        }
+        BudgetBreach::MergeKeys { merge_keys } => format!("{merge_keys} merge keys"),
+        BudgetBreach::AliasAnchorRatio { aliases, anchors } => {
+            format!("{aliases} aliases for {anchors} anchors")
+        }
+        BudgetBreach::SequenceUnbalanced => "unbalanced lists or mappings".to_string(),
+        BudgetBreach::InputBytes { input_bytes } => format!("{input_bytes} bytes"),
+        BudgetBreach::RecordedAnchorEvents {
+            recorded_anchor_events,
+        } => format!("{recorded_anchor_events} values copied through aliases"),
+        BudgetBreach::RecordedAnchorBytes {
+            recorded_anchor_bytes,
+        } => format!("{recorded_anchor_bytes} bytes copied through aliases"),
+        _ => "a size limit exceeded".to_string(),
+    };
+    format!("YAML document too large or too complex: {what}")
 }
 
 /// The node as parsed, before its span is attached.
