@@ -42,21 +42,27 @@ pub struct Prescription {
 pub const MIN_SAMPLES: usize = 5;
 
 impl Prescription {
-    /// Reads a table with header `t,<coordinate>,...`; `file` names it in errors.
-    pub fn from_table(model: &Model, table: &Table, file: &str) -> Result<Self> {
+    /// The prescribed coordinates' indices from a header `t,<coordinate>,...`, or
+    /// why it is not one; checked before a file's rows are read.
+    pub fn check_header(model: &Model, columns: &[String], file: &str) -> Result<Vec<usize>> {
         let bad = |m: String| Err(Error::Data(format!("{file}: {m}")));
-        if table.columns.first().map(String::as_str) != Some("t") {
+        if columns.first().map(String::as_str) != Some("t") {
             return bad("the first column must be `t` (time, in seconds)".into());
         }
-        if table.columns.len() < 2 {
+        if columns.len() < 2 {
             return bad("no prescribed coordinate: the header is `t` alone".into());
         }
         let mut indices = Vec::new();
-        for name in &table.columns[1..] {
+        for name in &columns[1..] {
             let Some(i) = model.names.iter().position(|c| c == name) else {
+                const SHOWN: usize = 8;
+                let mut known = model.names[..model.names.len().min(SHOWN)].join(", ");
+                if model.names.len() > SHOWN {
+                    known += &format!(", … ({} in all: mbfg check lists them)", model.names.len());
+                }
+                let name = crate::expr::excerpt(name, 40);
                 return bad(format!(
-                    "unknown coordinate `{name}`; the scene's coordinates are {}",
-                    model.names.join(", ")
+                    "unknown coordinate `{name}`; the scene's coordinates are {known}"
                 ));
             };
             if indices.contains(&i) {
@@ -64,6 +70,13 @@ impl Prescription {
             }
             indices.push(i);
         }
+        Ok(indices)
+    }
+
+    /// Reads a table with header `t,<coordinate>,...`; `file` names it in errors.
+    pub fn from_table(model: &Model, table: &Table, file: &str) -> Result<Self> {
+        let bad = |m: String| Err(Error::Data(format!("{file}: {m}")));
+        let indices = Self::check_header(model, &table.columns, file)?;
         if table.rows < MIN_SAMPLES {
             return bad(format!(
                 "{} samples; at least {MIN_SAMPLES} are needed",

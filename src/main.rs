@@ -361,7 +361,13 @@ fn inverse(
     output: Output,
     keep_unconverged: bool,
 ) -> Result<(), Failure> {
-    let table = mbfg::io::read_table(trajectory).map_err(plain)?;
+    let file = trajectory.display().to_string();
+    let table = mbfg::io::read_table_with(
+        trajectory,
+        &mbfg::io::TableLimits::default(),
+        &mut |columns| mbfg::inverse::Prescription::check_header(&model, columns, &file).map(drop),
+    )
+    .map_err(plain)?;
     let prescription =
         mbfg::inverse::Prescription::from_table(&model, &table, &trajectory.display().to_string())
             .map_err(plain)?;

@@ -435,3 +435,25 @@ fn check_refuses_a_scene_whose_numbers_overflow() {
     assert!(line.contains("potential energy is inf"), "{line}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A trajectory whose header names no coordinate of the scene is refused at its
+/// header, however many rows follow, and the message stays one short line.
+#[test]
+fn a_trajectory_header_is_checked_before_its_rows() {
+    let dir = scratch("header");
+    let csv = dir.join("q.csv");
+    let name = "x".repeat(5000);
+    let mut text = format!("t,{name}\n");
+    for k in 0..200_000 {
+        text += &format!("{},0\n", k as f64 * 1e-3);
+    }
+    std::fs::write(&csv, text).unwrap();
+    let line = bad_input(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        csv.to_str().unwrap(),
+    ]);
+    assert!(line.contains("unknown coordinate"), "{line}");
+    std::fs::remove_dir_all(&dir).ok();
+}

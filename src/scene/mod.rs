@@ -283,8 +283,11 @@ impl Effect {
     pub fn describe(&self, scene: &Scene) -> String {
         let p = |i: usize| scene.points[i].name.as_str();
         let c = |i: usize| scene.coordinates[i].name.as_str();
+        let v = |x: f64| number(x);
         match self {
-            Effect::Gravity { vector } => format!("gravity ({}, {}) m/s²", vector[0], vector[1]),
+            Effect::Gravity { vector } => {
+                format!("gravity ({}, {}) m/s²", v(vector[0]), v(vector[1]))
+            }
             Effect::SpringDamper {
                 name,
                 points,
@@ -292,9 +295,12 @@ impl Effect {
                 rest_length,
                 damping,
             } => format!(
-                "{name}: spring-damper {}–{}: k = {stiffness} N/m, rest length {rest_length} m, c = {damping} N·s/m",
+                "{name}: spring-damper {}–{}: k = {} N/m, rest length {} m, c = {} N·s/m",
                 p(points[0]),
-                p(points[1])
+                p(points[1]),
+                v(*stiffness),
+                v(*rest_length),
+                v(*damping)
             ),
             Effect::RotationalSpringDamper {
                 name,
@@ -303,8 +309,11 @@ impl Effect {
                 rest_angle,
                 damping,
             } => format!(
-                "{name}: rotational spring-damper on {}: k = {stiffness} N·m/rad, rest angle {rest_angle} rad, c = {damping} N·m·s/rad",
-                c(*coordinate)
+                "{name}: rotational spring-damper on {}: k = {} N·m/rad, rest angle {} rad, c = {} N·m·s/rad",
+                c(*coordinate),
+                v(*stiffness),
+                v(*rest_angle),
+                v(*damping)
             ),
             Effect::Torque {
                 name,
@@ -318,5 +327,15 @@ impl Effect {
                 value[1].text
             ),
         }
+    }
+}
+
+/// A scene value as written for people: Rust's shortest form, or scientific notation
+/// for magnitudes that would print dozens of digits.
+fn number(x: f64) -> String {
+    if x == 0.0 || (1e-4..1e9).contains(&x.abs()) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
     }
 }
