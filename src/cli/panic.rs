@@ -32,3 +32,18 @@ pub fn last_message() -> String {
         .and_then(|l| l.clone())
         .unwrap_or_else(|| "unknown panic".into())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_caught_panic_leaves_its_message_and_place() {
+        install_hook();
+        let caught = std::panic::catch_unwind(|| panic!("boom {}", 42));
+        let _ = std::panic::take_hook();
+        assert!(caught.is_err());
+        let m = last_message();
+        assert!(m.starts_with("boom 42 at ") && m.contains("panic.rs"), "{m}");
+    }
+}
