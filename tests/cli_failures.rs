@@ -416,10 +416,25 @@ fn a_full_device_is_named_and_left_a_device() {
     if !full.exists() {
         return;
     }
-    let out = mbfg(&["simulate", FOURBAR, "--dt", "0.01", "--t-end", "0.1", "--out", "/dev/full"]);
+    let out = mbfg(&[
+        "simulate",
+        FOURBAR,
+        "--dt",
+        "0.01",
+        "--t-end",
+        "0.1",
+        "--out",
+        "/dev/full",
+    ]);
     let line = error_line(&out, 1);
-    assert!(line.contains("cannot write /dev/full") && line.contains("No space left"), "{line}");
-    assert!(std::fs::metadata(full).unwrap().file_type().is_char_device());
+    assert!(
+        line.contains("cannot write /dev/full") && line.contains("No space left"),
+        "{line}"
+    );
+    assert!(std::fs::metadata(full)
+        .unwrap()
+        .file_type()
+        .is_char_device());
 }
 
 /// `check` never prints NaN or Inf as a result: a spring of 1e308 N/m stretched by
@@ -428,8 +443,10 @@ fn a_full_device_is_named_and_left_a_device() {
 fn check_refuses_a_scene_whose_numbers_overflow() {
     let dir = scratch("overflow");
     let scene = dir.join("inf.yaml");
-    let yaml = text(Path::new("scenes/spring-damper.yaml"))
-        .replace("stiffness: 20, rest_length: 0.8", "stiffness: 1e308, rest_length: 100");
+    let yaml = text(Path::new("scenes/spring-damper.yaml")).replace(
+        "stiffness: 20, rest_length: 0.8",
+        "stiffness: 1e308, rest_length: 100",
+    );
     std::fs::write(&scene, yaml).unwrap();
     let line = bad_input(&["check", scene.to_str().unwrap()]);
     assert!(line.contains("potential energy is inf"), "{line}");

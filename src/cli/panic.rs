@@ -44,6 +44,9 @@ mod tests {
         let _ = std::panic::take_hook();
         assert!(caught.is_err());
         let m = last_message();
-        assert!(m.starts_with("boom 42 at ") && m.contains("panic.rs"), "{m}");
+        assert!(
+            m.starts_with("boom 42 at ") && m.contains("panic.rs"),
+            "{m}"
+        );
     }
 }
