@@ -890,6 +890,7 @@ fn simulate_run<'py>(
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
         let requested = options.steps();
+        let step_warning = crate::plausibility::step_warning(&model, options.dt);
         let model = Arc::new(model);
         let (run, signal) = interruptible(py, |progress| {
             forward::simulate_interruptible(model, &options, progress)
@@ -907,6 +908,15 @@ fn simulate_run<'py>(
             }
         };
         let out = forward_result(py, &tr, &s, requested)?;
+        // What converged but may not be right (mbfg simulate prints these as warnings).
+        let warnings: Vec<String> = step_warning
+            .iter()
+            .cloned()
+            .chain(crate::plausibility::energy_warning(&s))
+            .collect();
+        out.get_item("summary")?
+            .ok_or_else(|| PyRuntimeError::new_err("a result without a summary"))?
+            .set_item("warnings", warnings)?;
         if let Some(signal) = signal {
             return Err(with_result(py, signal, Some(&out)));
         }

@@ -266,3 +266,17 @@ def test_ctrl_c_during_an_inverse_solve_is_raised_with_its_result():
     if "finished" in report:
         pytest.skip("the solve ended before the signal arrived")
     assert report["Q"] == [1001, 22] and report["summary"]["converged"] is True
+
+
+def test_a_step_too_coarse_for_the_stiffest_spring_warns_with_its_numbers():
+    scene = pathlib.Path(__file__).resolve().parents[2] / "scenes/hard/stiff-spring.yaml"
+    with pytest.warns(mbfg.PlausibilityWarning) as record:
+        r = mbfg.simulate(scene, dt=0.1, t_end=2.0)
+    assert any("too coarse for spring" in str(w.message) for w in record)
+    assert any("period is 9.935e-2 s" in w for w in r.summary["warnings"])
+    assert any("energy of this conservative scene drifted" in w for w in r.summary["warnings"])
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = mbfg.simulate(scene, dt=0.01, t_end=0.5)
+    assert r.summary["warnings"] == []

@@ -10,6 +10,7 @@ interrupted or failed run attaches to its exception (`.result`). API: docs/pytho
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -17,7 +18,7 @@ import numpy as np
 from . import _native
 from ._native import InternalError, InvalidArgument, SceneError, SolveError, __version__
 
-__all__ = ["InternalError", "InvalidArgument", "Model", "Result", "SceneError", "SolveError",
+__all__ = ["InternalError", "InvalidArgument", "Model", "PlausibilityWarning", "Result", "SceneError", "SolveError",
            "inverse", "load", "simulate"]
 
 
@@ -91,6 +92,12 @@ class Model:
         return self._m.potential_energy(q)
 
 
+class PlausibilityWarning(UserWarning):
+    """A run converged, but its step is too coarse for the scene's stiffest spring or
+    damper, or a conservative scene's energy drifted beyond 1 % of its largest kinetic
+    energy."""
+
+
 class Result:
     """A run's trajectory in the CSV contract (plus `Q` for inverse dynamics). A partial
     one (on an exception's `.result`) has `summary["complete"]` False."""
@@ -158,7 +165,12 @@ def _run(native, *args) -> Result:
         if isinstance(getattr(e, "result", None), dict):
             e.result = Result(e.result)
         raise
-    return Result(raw)
+    result = Result(raw)
+    # A converged run that may not be right: dt too coarse for the stiffest effect,
+    # energy drift of a conservative scene (summary["warnings"] keeps them too).
+    for w in result.summary.get("warnings", []):
+        warnings.warn(w, PlausibilityWarning, stacklevel=3)
+    return result
 
 
 def _table(trajectory: Mapping) -> tuple[list[str], list[float]]:
