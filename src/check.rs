@@ -24,6 +24,8 @@ pub struct CheckReport {
     pub potential_energy: f64,
     /// max |q̈| at the initial state, or why it could not be computed.
     pub initial_acceleration: Result<f64, String>,
+    /// What the reader ignored (`note: …`) and what looks unintended (`warning: …`).
+    pub remarks: Vec<String>,
 }
 
 impl CheckReport {
@@ -47,6 +49,20 @@ impl CheckReport {
             initial_residual: model.phi(&init.q).amax(),
             kinetic_energy: model.kinetic_energy(&init.dq),
             potential_energy: model.potential_energy(&init.q),
+            remarks: scene
+                .notes
+                .iter()
+                .map(|n| format!("note: {n}"))
+                .chain(
+                    [
+                        crate::plausibility::placement_warning(model),
+                        crate::plausibility::idle_warning(model),
+                    ]
+                    .into_iter()
+                    .flatten()
+                    .map(|w| format!("warning: {w}")),
+                )
+                .collect(),
             initial_acceleration: dynamics::lagrange(model, &init.q, &init.dq, 0.0)
                 .map_err(|e| e.to_string())
                 .and_then(|s| {
@@ -107,9 +123,13 @@ impl fmt::Display for CheckReport {
             readable(self.potential_energy)
         )?;
         match &self.initial_acceleration {
-            Ok(a) => write!(f, "initial max |q̈| = {}", readable(*a)),
-            Err(e) => write!(f, "initial accelerations: {e}"),
+            Ok(a) => write!(f, "initial max |q̈| = {}", readable(*a))?,
+            Err(e) => write!(f, "initial accelerations: {e}")?,
         }
+        for r in &self.remarks {
+            write!(f, "\n{r}")?;
+        }
+        Ok(())
     }
 }
 

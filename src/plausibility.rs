@@ -172,3 +172,68 @@ fn short(v: f64) -> String {
         format!("{v:.3e}")
     }
 }
+
+/// The largest move, as a fraction of the scene's extent, from a placed point to where
+/// the position problem assembled it that is taken as rounding in the placement.
+pub const PLACEMENT_TOLERANCE: f64 = 1e-3;
+
+/// A warning when assembly moved points from where the scene placed them by more
+/// than [`PLACEMENT_TOLERANCE`] of the scene's extent (a length that contradicts the
+/// drawing assembles the mechanism elsewhere), naming the points and distances.
+pub fn placement_warning(model: &Model) -> Option<String> {
+    let scene = &model.scene;
+    let q = model.initial.q.as_slice();
+    let extent = scene
+        .points
+        .iter()
+        .flat_map(|a| {
+            scene
+                .points
+                .iter()
+                .map(move |b| (a.x - b.x).hypot(a.y - b.y))
+        })
+        .fold(0.0f64, f64::max);
+    let tolerance = PLACEMENT_TOLERANCE * extent.max(f64::MIN_POSITIVE);
+    let mut moved: Vec<(&str, f64)> = scene
+        .points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let [x, y] = model.point_position(q, i);
+            (p.name.as_str(), (x - p.x).hypot(y - p.y))
+        })
+        .filter(|(_, d)| *d > tolerance)
+        .collect();
+    if moved.is_empty() {
+        return None;
+    }
+    moved.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let shown: Vec<String> = moved
+        .iter()
+        .take(4)
+        .map(|(n, d)| format!("{n} by {d:.3e} m"))
+        .collect();
+    let more = if moved.len() > 4 {
+        format!(" and {} more", moved.len() - 4)
+    } else {
+        String::new()
+    };
+    Some(format!(
+        "assembling the constraints moved {}{more} from where the scene places them \
+         (tolerance {tolerance:.1e} m): a length or an initial value contradicts the drawing",
+        shown.join(", ")
+    ))
+}
+
+/// A warning when nothing can set the mechanism moving: no effect, and at rest.
+pub fn idle_warning(model: &Model) -> Option<String> {
+    let at_rest = model.initial.dq.iter().all(|v| *v == 0.0);
+    (model.scene.effects.is_empty() && at_rest).then(|| {
+        format!(
+            "{}: no effects (no gravity either) and at rest: nothing moves the mechanism \
+             (an MBSE mechanism file declares none; name it with `mechanism:` in a scene \
+             that adds `effects:`)",
+            model.scene.file
+        )
+    })
+}

@@ -135,8 +135,16 @@ impl<'a> Ctx<'a> {
             ExprError::NotFinite => "expression is not finite",
             ExprError::TooLarge(_) => "expression refused",
         };
+        // YAML's {…} ends the value at a comma: `{value: 20*min(1, t)}` arrives as
+        // `20*min(1`.
+        let opened = text.matches('(').count() > text.matches(')').count();
+        let hint = if matches!(e, ExprError::Syntax { .. }) && opened {
+            "; in {…} a comma ends the value: quote an expression that has one (value: \"20*min(1, t)\")"
+        } else {
+            ""
+        };
         let text = excerpt(text, QUOTE);
-        self.err(node.line, key, format!("{what} '{text}': {e}"))
+        self.err(node.line, key, format!("{what} '{text}': {e}{hint}"))
     }
 
     /// The `parameters` section: name → number or expression over earlier parameters.

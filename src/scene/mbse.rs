@@ -121,7 +121,14 @@ fn read_bodies(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneErr
             points,
             BodyStyle::Mbse,
         )?;
-        f.finish(ctx, &["points", "length", "mass", "I0", "cog"])?;
+        // Drawing hints of the paper's library: no part of the dynamics.
+        if f.get("visual").is_some() {
+            scene.notes.push(format!(
+                "{}: {path}.visual is a drawing hint: ignored",
+                ctx.file
+            ));
+        }
+        f.finish(ctx, &["points", "length", "mass", "I0", "cog", "visual"])?;
         build::add_body(ctx, scene, item.line, &path, spec)?;
     }
     Ok(())

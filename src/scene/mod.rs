@@ -193,6 +193,9 @@ pub struct Scene {
     pub initial_positions: Vec<(String, f64)>,
     /// Initial velocities of independent coordinates, by name.
     pub initial_velocities: Vec<(String, f64)>,
+    /// What the reader accepted but does not use (an MBSE body's `visual` drawing
+    /// hints), for `mbfg check` to mention.
+    pub notes: Vec<String>,
 }
 
 impl Scene {

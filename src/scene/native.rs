@@ -143,6 +143,7 @@ pub fn empty(file: &str) -> Scene {
         independent: Vec::new(),
         initial_positions: Vec::new(),
         initial_velocities: Vec::new(),
+        notes: Vec::new(),
     }
 }
 
