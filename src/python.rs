@@ -282,9 +282,77 @@ fn arg_numbers(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<Vec<f64>> {
     Ok(out)
 }
 
-fn load_model(path: &PathBuf) -> PyResult<Model> {
-    let scene = Scene::load(path).map_err(|e| SceneError::new_err(e.to_string()))?;
-    Model::new(&scene).map_err(|e| SceneError::new_err(e.to_string()))
+/// `{name: number}` (None: empty), every value a finite real.
+fn arg_values(obj: Option<&Bound<'_, PyAny>>, name: &str) -> PyResult<Vec<(String, f64)>> {
+    let Some(obj) = obj.filter(|o| !o.is_none()) else {
+        return Ok(Vec::new());
+    };
+    let dict = obj.cast::<PyDict>().map_err(|_| {
+        invalid(format!(
+            "{name} must be a dict {{name: number}}, got {}",
+            describe(obj)
+        ))
+    })?;
+    let mut out = Vec::with_capacity(dict.len());
+    for (k, v) in dict.iter() {
+        let key: String = k.extract().map_err(|_| {
+            invalid(format!(
+                "{name}: keys must be strings, got {}",
+                describe(&k)
+            ))
+        })?;
+        let value = arg_real(&v, &format!("{name}[{key:?}]"))?;
+        out.push((key, value));
+    }
+    Ok(out)
+}
+
+/// The model of a run: a path, or a `Model` already loaded; re-read from its file
+/// when parameters are overridden, and re-assembled when the initial state is
+/// (positions of coordinates of q, velocities of independent coordinates).
+fn study_model(
+    scene: &Bound<'_, PyAny>,
+    params: &[(String, f64)],
+    q0: &[(String, f64)],
+    dq0: &[(String, f64)],
+) -> PyResult<Arc<Model>> {
+    let loaded = scene.cast::<PyModel>().ok().map(|m| m.get().model.clone());
+    if let Some(model) = &loaded {
+        if params.is_empty() && q0.is_empty() && dq0.is_empty() {
+            return Ok(model.clone());
+        }
+    }
+    let path = match &loaded {
+        Some(m) => PathBuf::from(&m.scene.file),
+        None => arg_path(scene, "scene")?,
+    };
+    let mut sc = match (&loaded, params.is_empty()) {
+        (Some(m), true) => m.scene.clone(),
+        _ => Scene::load_with(&path, params).map_err(|e| SceneError::new_err(e.to_string()))?,
+    };
+    let names = crate::scene::coordinate_names(&sc);
+    for (name, v) in q0 {
+        if !names.contains(name) {
+            return Err(invalid(format!(
+                "q0: no coordinate '{name}' in the scene (Model.names lists them)"
+            )));
+        }
+        sc.initial_positions.retain(|(n, _)| n != name);
+        sc.initial_positions.push((name.clone(), *v));
+    }
+    for (name, v) in dq0 {
+        if !sc.independent.contains(name) {
+            return Err(invalid(format!(
+                "dq0: '{name}' is not an independent coordinate; initial velocities are given for those ({})",
+                sc.independent.join(", ")
+            )));
+        }
+        sc.initial_velocities.retain(|(n, _)| n != name);
+        sc.initial_velocities.push((name.clone(), *v));
+    }
+    Model::new(&sc)
+        .map(Arc::new)
+        .map_err(|e| SceneError::new_err(e.to_string()))
 }
 
 /// An assembled model, immutable.
@@ -681,10 +749,12 @@ impl PyModel {
 }
 
 #[pyfunction]
-fn load(path: &Bound<'_, PyAny>) -> PyResult<PyModel> {
+#[pyo3(signature = (path, params=None))]
+fn load(path: &Bound<'_, PyAny>, params: Option<&Bound<'_, PyAny>>) -> PyResult<PyModel> {
     guard(|| {
+        let params = arg_values(params, "params")?;
         Ok(PyModel {
-            model: Arc::new(load_model(&arg_path(path, "scene")?)?),
+            model: study_model(path, &params, &[], &[])?,
         })
     })
 }
@@ -840,9 +910,14 @@ fn simulate_run<'py>(
     noise: &Bound<'py, PyAny>,
     continue_on_failure: &Bound<'py, PyAny>,
     past: &Bound<'py, PyAny>,
+    params: &Bound<'py, PyAny>,
+    q0: &Bound<'py, PyAny>,
+    dq0: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
-        let scene = arg_path(scene, "scene")?;
+        let params = arg_values(Some(params), "params")?;
+        let q0 = arg_values(Some(q0), "q0")?;
+        let dq0 = arg_values(Some(dq0), "dq0")?;
         let coordinates = coordinates(coords)?;
         let dt = arg_real(dt, "dt")?;
         if dt <= 0.0 {
@@ -885,13 +960,12 @@ fn simulate_run<'py>(
             _ => Past::Marginalized,
         };
         options.continue_on_failure = continue_on_failure;
-        let model = load_model(&scene)?;
+        let model = study_model(scene, &params, &q0, &dq0)?;
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
         let requested = options.steps();
         let step_warning = crate::plausibility::step_warning(&model, options.dt);
-        let model = Arc::new(model);
         let (run, signal) = interruptible(py, |progress| {
             forward::simulate_interruptible(model, &options, progress)
         });
@@ -1033,7 +1107,7 @@ fn inverse_run<'py>(
     max_iterations: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
-        let scene = arg_path(scene, "scene")?;
+        let model = study_model(scene, &[], &[], &[])?;
         let coordinates = coordinates(coords)?;
         let start = match arg_choice(start, "start", &["kinematic", "staged"])? {
             "kinematic" => Start::Kinematic,
@@ -1056,7 +1130,6 @@ fn inverse_run<'py>(
                 ))
             }
         };
-        let model = load_model(&scene)?;
         let prescription = Prescription::from_table(&model, &table, &source).map_err(arg_error)?;
         let mut options = InverseOptions {
             coordinates,
@@ -1064,7 +1137,6 @@ fn inverse_run<'py>(
             ..InverseOptions::default()
         };
         options.settings.max_iterations = max_iterations;
-        let model = Arc::new(model);
         let sol = py
             .detach(|| inverse::solve(model, &prescription, &options))
             .map_err(|e| match e {

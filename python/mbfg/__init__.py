@@ -126,19 +126,35 @@ class Result:
         return f"<mbfg.Result: {len(self.t)} rows, {len(self.columns)} columns, summary {self.summary}>"
 
 
-def load(scene: str | os.PathLike) -> Model:
-    """Reads and assembles a scene (or MBSE mechanism) file."""
-    return Model(_native.load(scene))
+def load(scene: str | os.PathLike, params: Mapping[str, float] | None = None) -> Model:
+    """Reads and assembles a scene (or MBSE mechanism) file. `params` gives some of the
+    file's `parameters` other values (every expression using them sees the new ones);
+    naming a parameter the file does not have raises SceneError."""
+    return Model(_native.load(scene, None if params is None else dict(params)))
 
 
-def simulate(scene: str | os.PathLike, coords: str = "dc", dt: float = 1e-3, t_end: float = 5.0,
-             window: int = 1, batch: bool = False, max_iterations: int = 50,
+def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1e-3,
+             t_end: float = 5.0, window: int = 1, batch: bool = False, max_iterations: int = 50,
              integrator: str = "trapezoidal", noise: str = "default",
-             continue_on_failure: bool = False, past: str = "adaptive") -> Result:
-    """Forward dynamics, as `mbfg simulate` runs it. Ctrl-C stops it within ~0.1 s
+             continue_on_failure: bool = False, past: str = "adaptive",
+             params: Mapping[str, float] | None = None, q0: Mapping[str, float] | None = None,
+             dq0: Mapping[str, float] | None = None) -> Result:
+    """Forward dynamics, as `mbfg simulate` runs it, of a scene file or a loaded Model.
+    For studies without writing files: `params` overrides the scene's parameters (as
+    `load` does), `q0` the initial values of coordinates of q by name (the position
+    problem keeps those of independent coordinates and closes the others), `dq0` the
+    initial velocities of independent coordinates. Ctrl-C stops the run within ~0.1 s
     with KeyboardInterrupt; that and SolveError carry the steps solved as `.result`."""
-    return _run(_native.simulate, scene, coords, dt, t_end, window, batch, max_iterations,
-                integrator, noise, continue_on_failure, past)
+    native = scene._m if isinstance(scene, Model) else scene
+    return _run(_native.simulate, native, coords, dt, t_end, window, batch, max_iterations,
+                integrator, noise, continue_on_failure, past, _dict(params), _dict(q0),
+                _dict(dq0))
+
+
+def _dict(values):
+    """A mapping as a dict for the native call; anything else as given, for the
+    native call to refuse by name."""
+    return dict(values) if isinstance(values, Mapping) else values
 
 
 def inverse(scene: str | os.PathLike, trajectory: str | os.PathLike | Mapping[str, Sequence[float]],
@@ -146,6 +162,8 @@ def inverse(scene: str | os.PathLike, trajectory: str | os.PathLike | Mapping[st
     """Inverse dynamics, as `mbfg inverse` runs it. `trajectory` is a CSV path or a
     mapping {"t": times, "<coordinate>": values, ...}. One batch solve: Ctrl-C takes
     effect when it returns. A SolveError carries the last iterate as `.result`."""
+    if isinstance(scene, Model):
+        scene = scene._m
     if isinstance(trajectory, Mapping):
         columns, values = _table(trajectory)
         return _run(_native.inverse, scene, None, columns, values, coords, start, max_iterations)

@@ -20,13 +20,17 @@ pub fn is_mbse(root: &Node) -> bool {
 pub struct Ctx<'a> {
     pub file: &'a str,
     pub params: Vec<(String, f64)>,
+    /// Values that replace the file's own for parameters of these names (a study's
+    /// sweep), checked to name parameters the file has.
+    pub overrides: &'a [(String, f64)],
 }
 
 impl<'a> Ctx<'a> {
-    pub fn new(file: &'a str) -> Self {
+    pub fn with_overrides(file: &'a str, overrides: &'a [(String, f64)]) -> Self {
         Ctx {
             file,
             params: Vec::new(),
+            overrides,
         }
     }
 
@@ -158,8 +162,46 @@ impl<'a> Ctx<'a> {
             if self.params.iter().any(|(n, _)| *n == name) {
                 return Err(self.err(k.line, &key, format!("duplicate parameter '{name}'")));
             }
-            let value = self.num(v, &key, &[])?;
+            let value = match self.overrides.iter().find(|(n, _)| *n == name) {
+                Some((_, v)) => *v,
+                None => self.num(v, &key, &[])?,
+            };
             self.params.push((name, value));
+        }
+        Ok(())
+    }
+
+    /// Refuses overrides of parameters the file does not have, naming those it has.
+    pub fn check_overrides(&self, line: u64) -> Result<(), SceneError> {
+        for (name, value) in self.overrides {
+            if !value.is_finite() {
+                return Err(self.err(
+                    line,
+                    "parameters",
+                    format!("override of '{}' is not finite", excerpt(name, QUOTE)),
+                ));
+            }
+            if !self.params.iter().any(|(n, _)| n == name) {
+                let known: Vec<&str> = self
+                    .params
+                    .iter()
+                    .take(12)
+                    .map(|(n, _)| n.as_str())
+                    .collect();
+                let known = if known.is_empty() {
+                    "none".to_string()
+                } else {
+                    known.join(", ")
+                };
+                return Err(self.err(
+                    line,
+                    "parameters",
+                    format!(
+                        "no parameter '{}' to override (the file's parameters: {known})",
+                        excerpt(name, QUOTE)
+                    ),
+                ));
+            }
         }
         Ok(())
     }

@@ -13,12 +13,13 @@ use super::{Point, RelativeCoordinate, RelativeKind, Scene};
 use crate::error::SceneError;
 use crate::expr::excerpt;
 
-pub fn read(root: &Node, file: &str) -> Result<Scene, SceneError> {
-    let mut ctx = Ctx::new(file);
+pub fn read(root: &Node, file: &str, overrides: &[(String, f64)]) -> Result<Scene, SceneError> {
+    let mut ctx = Ctx::with_overrides(file, overrides);
     let mut top = Fields::new(&ctx, root, "")?;
     if let Some(p) = top.get("parameters") {
         ctx.read_parameters(p)?;
     }
+    ctx.check_overrides(top.get("parameters").map_or(0, |p| p.line))?;
     let mut scene = empty(file);
     let points = top.req(&ctx, "points")?;
     read_points(&mut ctx, &mut scene, points)?;

@@ -211,6 +211,27 @@ impl Scene {
 
     /// Parses scene text; `path` names the file in messages and resolves `mechanism:`.
     pub fn from_str(text: &str, path: &Path) -> crate::Result<Scene> {
+        Scene::from_str_with(text, path, &[])
+    }
+
+    /// [`Scene::load`] with some of the file's `parameters` given other values (a
+    /// parameter study): expressions that use them, later parameters included, see the
+    /// new values. Naming a parameter the file does not have is an error.
+    pub fn load_with(path: impl AsRef<Path>, overrides: &[(String, f64)]) -> crate::Result<Scene> {
+        let path = path.as_ref();
+        let text = read_text(path).map_err(|source| Error::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Scene::from_str_with(&text, path, overrides)
+    }
+
+    /// [`Scene::from_str`] with parameter overrides ([`Scene::load_with`]).
+    pub fn from_str_with(
+        text: &str,
+        path: &Path,
+        overrides: &[(String, f64)],
+    ) -> crate::Result<Scene> {
         let file = path.display().to_string();
         if text.len() > MAX_SCENE_BYTES {
             return Err(SceneError {
@@ -226,9 +247,14 @@ impl Scene {
         }
         let root = parse_root(text, &file)?;
         if fields::is_mbse(&root) {
-            Ok(mbse::read(&root, &file)?)
+            Ok(mbse::read(&root, &file, overrides)?)
         } else {
-            native::read(&root, &file, path.parent().unwrap_or(Path::new(".")))
+            native::read(
+                &root,
+                &file,
+                path.parent().unwrap_or(Path::new(".")),
+                overrides,
+            )
         }
     }
 

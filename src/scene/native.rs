@@ -24,8 +24,13 @@ const TOP_KEYS: &[&str] = &[
     "initial",
 ];
 
-pub fn read(root: &Node, file: &str, dir: &Path) -> crate::Result<Scene> {
-    let mut ctx = Ctx::new(file);
+pub fn read(
+    root: &Node,
+    file: &str,
+    dir: &Path,
+    overrides: &[(String, f64)],
+) -> crate::Result<Scene> {
+    let mut ctx = Ctx::with_overrides(file, overrides);
     let mut top = Fields::new(&ctx, root, "")?;
     for k in ["name", "description"] {
         if let Some(n) = top.get(k) {
@@ -87,16 +92,18 @@ pub fn read(root: &Node, file: &str, dir: &Path) -> crate::Result<Scene> {
                 )
                 .into());
         }
-        let mut base = super::mbse::read(&mech_root, &mech_file)?;
+        let mut base = super::mbse::read(&mech_root, &mech_file, &[])?;
         base.file = file.to_string();
         if let Some(p) = top.get("parameters") {
             ctx.read_parameters(p)?;
         }
+        ctx.check_overrides(top.get("parameters").map_or(0, |p| p.line))?;
         base
     } else {
         if let Some(p) = top.get("parameters") {
             ctx.read_parameters(p)?;
         }
+        ctx.check_overrides(top.get("parameters").map_or(0, |p| p.line))?;
         let mut scene = empty(file);
         read_points(&ctx, &mut scene, top.req(&ctx, "points")?)?;
         if let Some(b) = top.get("bodies") {
