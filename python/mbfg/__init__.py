@@ -58,37 +58,53 @@ class Model:
                                         f"{', '.join(self.names)})")) from None
 
     def mass_matrix(self) -> np.ndarray:
+        """M (n × n), constant in natural coordinates: the bodies' masses and inertias
+        on their points, and the point masses."""
         return np.asarray(self._m.mass_matrix()).reshape(self.n, self.n)
 
     # The native methods check q, dq and t (1-D, n finite numbers): passed as given.
     def phi(self, q) -> np.ndarray:
+        """Φ(q), the m constraint residuals (m² for distance constraints, m for
+        sliders, rad-free for angles); 0 on a consistent configuration."""
         return np.asarray(self._m.phi(q))
 
     def phi_q(self, q) -> np.ndarray:
+        """Φ_q(q) = ∂Φ/∂q (m × n)."""
         return np.asarray(self._m.phi_q(q)).reshape(self.m, self.n)
 
     def phi_q_dot(self, q, dq) -> np.ndarray:
+        """dΦ_q/dt = Σ ∂Φ_q/∂q_i q̇_i (m × n): what the acceleration problem needs."""
         return np.asarray(self._m.phi_q_dot(q, dq)).reshape(self.m, self.n)
 
     def generalized_forces(self, q, dq, t: float) -> np.ndarray:
+        """Q(q, q̇, t), the n generalized forces of every effect (gravity, springs,
+        dampers, torques, forces) at that state and time."""
         return np.asarray(self._m.generalized_forces(q, dq, t))
 
     def accelerations(self, q, dq, t: float) -> np.ndarray:
+        """q̈ from the augmented (KKT) system [M Φ_qᵀ; Φ_q 0] at a consistent state:
+        the classical forward dynamics at one instant."""
         return np.asarray(self._m.accelerations(q, dq, t))
 
     def effect_value(self, i: int, t: float):
+        """The value of effect i (in `effects` order) at time t: a torque in N·m, a
+        force as (Fx, Fy) in N; other effects (gravity, springs) raise InvalidArgument."""
         return self._m.effect_value(i, t)
 
     def point_position(self, q, name: str) -> tuple[float, float]:
+        """(x, y) of a named point at q, in m (fixed points included)."""
         return self._m.point_position(q, name)
 
     def point_velocity(self, dq, name: str) -> tuple[float, float]:
+        """(ẋ, ẏ) of a named point for the velocities q̇, in m/s."""
         return self._m.point_velocity(dq, name)
 
     def kinetic_energy(self, dq) -> float:
+        """½ q̇ᵀ M q̇, in J."""
         return self._m.kinetic_energy(dq)
 
     def potential_energy(self, q) -> float:
+        """Potential energy of gravity and the springs at q, in J (0 without them)."""
         return self._m.potential_energy(q)
 
 
