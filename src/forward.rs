@@ -413,6 +413,8 @@ pub struct StepFailure {
     pub singular: Option<SingularConfiguration>,
     /// Set when the step failed in the one-step run that starts a batch solve.
     pub warm_start: bool,
+    /// Set when the batch solve of the whole horizon failed (`step` is its last).
+    pub batch: bool,
     /// Where the cost went non-finite: the effect that cannot be evaluated there.
     pub cause: Option<String>,
 }
@@ -471,6 +473,16 @@ impl StepFailure {
                 } else {
                     ""
                 };
+                if self.batch && self.cause.is_none() {
+                    return format!(
+                        "the batch solve of {} steps (t = 0 to {t} s) did not converge: {}, cost \
+                         {:.3e} after {} iterations{singular}",
+                        self.step + 1,
+                        self.report.termination,
+                        self.report.cost,
+                        self.report.iterations
+                    );
+                }
                 if let Some(cause) = &self.cause {
                     return format!(
                         "{stage}step {} (t = {t} s) cannot be solved: {cause}",
@@ -777,6 +789,7 @@ fn first_non_finite(model: &Model, tr: &Trajectory) -> Result<Option<StepFailure
         constraint_conditioning: 1.0,
         singular: None,
         warm_start: false,
+        batch: false,
         cause: Some(cause),
     }))
 }
@@ -1012,6 +1025,7 @@ fn segment(
             constraint_conditioning: constraint_conditioning(&model, q),
             singular: None,
             warm_start: false,
+            batch: false,
             cause: cause.flatten(),
         }
     };
@@ -1171,7 +1185,10 @@ fn segment(
                 run.iterations.push(report.iterations);
                 if report.termination != Termination::Converged {
                     let k = completed - 1;
-                    run.failures.push(failure(k, &report, &values));
+                    run.failures.push(StepFailure {
+                        batch: true,
+                        ..failure(k, &report, &values)
+                    });
                 }
             }
         }
@@ -1274,4 +1291,43 @@ fn summarize(
         reselections: Vec::new(),
         interrupted: None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn failure(batch: bool, cause: Option<&str>) -> StepFailure {
+        StepFailure {
+            step: 100,
+            t: 1.0000000000000002,
+            report: SolveReport {
+                iterations: 50,
+                termination: Termination::IterationLimit,
+                cost: 3.3,
+            },
+            constraint_conditioning: 0.5,
+            singular: None,
+            warm_start: false,
+            batch,
+            cause: cause.map(str::to_string),
+        }
+    }
+
+    #[test]
+    fn failures_say_what_failed() {
+        assert_eq!(
+            failure(false, None).message(),
+            "step 100 (t = 1 s) did not converge: iteration limit, cost 3.300e0 after 50 iterations"
+        );
+        assert_eq!(
+            failure(true, None).message(),
+            "the batch solve of 101 steps (t = 0 to 1 s) did not converge: iteration limit, \
+             cost 3.300e0 after 50 iterations"
+        );
+        assert_eq!(
+            failure(false, Some("effect e is not finite")).message(),
+            "step 100 (t = 1 s) cannot be solved: effect e is not finite"
+        );
+    }
 }

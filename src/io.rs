@@ -1,7 +1,9 @@
 //! Trajectory CSV files (the contract of DESIGN.md): header `t`, then `q:<c>` for
 //! every coordinate in model order, then `dq:<c>`, then `ddq:<c>`, and `Q:<c>` when
-//! generalized forces are known. Numbers are written in Rust's shortest round-trip
-//! form, so reading a file back gives the same bits.
+//! generalized forces are known, then any optional columns asked for (see
+//! [`crate::derived`]). Numbers are written in Rust's shortest round-trip form, so
+//! reading a file back gives the same bits. A writer may keep every k-th sample only
+//! ([`sampled_rows`]).
 
 use crate::error::{Error, Result};
 use crate::expr::excerpt;
@@ -30,13 +32,52 @@ pub fn write_trajectory<W: Write>(
     trajectory: &Trajectory,
     forces: Option<&[f64]>,
 ) -> Result<()> {
+    write_trajectory_with(
+        out,
+        trajectory,
+        &CsvOptions {
+            forces,
+            ..CsvOptions::default()
+        },
+    )
+}
+
+/// What a trajectory CSV holds besides the trajectory, and which of its samples.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct CsvOptions<'a> {
+    /// Generalized forces, row-major samples × n: the `Q:<c>` columns.
+    pub forces: Option<&'a [f64]>,
+    /// Columns written after the standard ones: their names, and their values
+    /// row-major samples × names (every sample of the trajectory).
+    pub extra: Option<(&'a [String], &'a [f64])>,
+    /// The samples written, in order; None writes them all.
+    pub rows: Option<&'a [usize]>,
+}
+
+/// [`write_trajectory`] with extra columns and a choice of samples.
+pub fn write_trajectory_with<W: Write>(
+    out: W,
+    trajectory: &Trajectory,
+    options: &CsvOptions,
+) -> Result<()> {
     let n = trajectory.n();
     let mut w = csv::Writer::from_writer(out);
     let io = |e: csv::Error| Error::Data(e.to_string());
-    w.write_record(header(&trajectory.names, forces.is_some()))
-        .map_err(io)?;
-    let mut record: Vec<String> = Vec::with_capacity(1 + 4 * n);
-    for k in 0..trajectory.len() {
+    let mut names = header(&trajectory.names, options.forces.is_some());
+    let (extra_names, extra): (&[String], &[f64]) = options.extra.unwrap_or((&[], &[]));
+    names.extend(extra_names.iter().cloned());
+    w.write_record(names).map_err(io)?;
+    let width = extra_names.len();
+    let all: Vec<usize>;
+    let rows = match options.rows {
+        Some(rows) => rows,
+        None => {
+            all = (0..trajectory.len()).collect();
+            &all
+        }
+    };
+    let mut record: Vec<String> = Vec::with_capacity(1 + 4 * n + width);
+    for &k in rows {
         record.clear();
         let mut push = |v: f64, what: &str| -> Result<()> {
             if !v.is_finite() {
@@ -58,15 +99,46 @@ pub fn write_trajectory<W: Write>(
                 push(x, what)?;
             }
         }
-        if let Some(f) = forces {
+        if let Some(f) = options.forces {
             for &x in &f[k * n..(k + 1) * n] {
                 push(x, "generalized force")?;
             }
+        }
+        for (j, &x) in extra[k * width..(k + 1) * width].iter().enumerate() {
+            push(x, &extra_names[j])?;
         }
         w.write_record(&record).map_err(io)?;
     }
     w.flush().map_err(|e| Error::Data(e.to_string()))?;
     Ok(())
+}
+
+/// The sample stride of `--sample-dt`: `sample_dt / dt`, which must be a positive
+/// integer to within 1e-9 relative. The error is the message (bad input).
+pub fn sample_stride(dt: f64, sample_dt: f64) -> std::result::Result<usize, String> {
+    let ratio = sample_dt / dt;
+    let stride = ratio.round();
+    if !(sample_dt > 0.0 && ratio.is_finite() && stride >= 1.0)
+        || (ratio - stride).abs() > 1e-9 * ratio
+    {
+        return Err(format!(
+            "--sample-dt {sample_dt} must be a positive integer multiple of the time step {dt}"
+        ));
+    }
+    if stride > usize::MAX as f64 {
+        return Err(format!("--sample-dt {sample_dt} is too large"));
+    }
+    Ok(stride as usize)
+}
+
+/// The samples kept out of `len` at every `stride`-th one: 0, stride, 2·stride, …,
+/// and the last, so that the end state is always there.
+pub fn sampled_rows(len: usize, stride: usize) -> Vec<usize> {
+    let mut rows: Vec<usize> = (0..len).step_by(stride.max(1)).collect();
+    if len > 0 && rows.last() != Some(&(len - 1)) {
+        rows.push(len - 1);
+    }
+    rows
 }
 
 /// Shortest round-trip text of a number: plain for moderate magnitudes, scientific
@@ -326,5 +398,52 @@ mod tests {
         };
         let err = write_trajectory(Vec::new(), &tr, None).unwrap_err();
         assert!(err.to_string().contains("non-finite position"), "{err}");
+    }
+
+    #[test]
+    fn extra_columns_follow_and_rows_are_chosen() {
+        let tr = Trajectory {
+            names: vec!["a".into()],
+            t: vec![0.0, 0.5, 1.0],
+            q: vec![1.0, 2.0, 3.0],
+            dq: vec![0.0; 3],
+            ddq: vec![0.0; 3],
+        };
+        let names = vec!["kinetic".to_string()];
+        let values = [10.0, 20.0, 30.0];
+        let mut buf = Vec::new();
+        let options = CsvOptions {
+            extra: Some((&names, &values)),
+            rows: Some(&[0, 2]),
+            ..CsvOptions::default()
+        };
+        write_trajectory_with(&mut buf, &tr, &options).unwrap();
+        assert_eq!(
+            String::from_utf8(buf).unwrap(),
+            "t,q:a,dq:a,ddq:a,kinetic\n0,1,0,0,10\n1,3,0,0,30\n"
+        );
+        let bad = [10.0, f64::INFINITY, 30.0];
+        let options = CsvOptions {
+            extra: Some((&names, &bad)),
+            ..CsvOptions::default()
+        };
+        let err = write_trajectory_with(Vec::new(), &tr, &options).unwrap_err();
+        assert!(err.to_string().contains("non-finite kinetic"), "{err}");
+    }
+
+    #[test]
+    fn sample_stride_is_a_whole_number_of_steps() {
+        assert_eq!(sample_stride(0.001, 0.01), Ok(10));
+        assert_eq!(sample_stride(0.001, 0.001), Ok(1));
+        // 0.003 / 0.001 is 2.9999999999999996 in floating point.
+        assert_eq!(sample_stride(0.001, 0.003), Ok(3));
+        for bad in [0.0015, 0.0005, 0.0, -0.01, f64::NAN, f64::INFINITY] {
+            let e = sample_stride(0.001, bad).unwrap_err();
+            assert!(e.contains("integer multiple"), "{e}");
+        }
+        assert_eq!(sampled_rows(7, 3), [0, 3, 6]);
+        assert_eq!(sampled_rows(8, 3), [0, 3, 6, 7]);
+        assert_eq!(sampled_rows(1, 3), [0]);
+        assert!(sampled_rows(0, 3).is_empty());
     }
 }

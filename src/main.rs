@@ -61,9 +61,12 @@ enum Command {
         /// Linear solves allowed per window solve.
         #[arg(long = "max-iterations", value_name = "K", default_value_t = 50)]
         max_iterations: usize,
-        /// Trajectory CSV to write; the summary then goes to standard output.
+        /// Trajectory CSV to write (gzip-compressed when it ends in `.gz`); the
+        /// summary then goes to standard output.
         #[arg(long, value_name = "FILE.csv")]
         out: Option<PathBuf>,
+        #[command(flatten)]
+        written: WrittenArgs,
         /// Integrator factor between steps.
         #[arg(long, value_enum, default_value_t = IntegratorArg::Trapezoidal)]
         integrator: IntegratorArg,
@@ -104,15 +107,90 @@ enum Command {
         /// paper's four stages from the scene's configuration.
         #[arg(long, value_enum, default_value_t = StartArg::Kinematic)]
         start: StartArg,
-        /// Output CSV (trajectory plus `Q:<c>` columns); the summary then goes to
-        /// standard output.
+        /// Output CSV (trajectory plus `Q:<c>` columns; gzip-compressed when it ends
+        /// in `.gz`); the summary then goes to standard output.
         #[arg(long, value_name = "FILE.csv")]
         out: Option<PathBuf>,
+        #[command(flatten)]
+        written: WrittenArgs,
         /// Write the result of a solve that did not converge too, to
         /// `<out>.partial.csv` (or to standard output, ended by `# incomplete`).
         #[arg(long = "keep-unconverged")]
         keep_unconverged: bool,
     },
+}
+
+/// What the CSV holds beyond the standard columns, and which rows.
+#[derive(clap::Args)]
+struct WrittenArgs {
+    /// Write the rows at t = 0, S, 2S, … only (and the last); S must be a whole
+    /// number of time steps. The solve is unchanged.
+    #[arg(long = "sample-dt", value_name = "S")]
+    sample_dt: Option<f64>,
+    /// Optional columns after the standard ones, comma-separated: `bodies` (angle,
+    /// centre of mass position and velocity of every body), `energy` (kinetic,
+    /// potential, work of every non-conservative effect, energy_balance).
+    #[arg(long, value_name = "LIST")]
+    columns: Option<String>,
+}
+
+/// [`WrittenArgs`] checked: the sample stride in steps and the column groups.
+struct Written {
+    stride: usize,
+    groups: Vec<mbfg::derived::Group>,
+}
+
+impl Written {
+    /// Checks the options against the time step; errors are bad input.
+    fn new(args: &WrittenArgs, dt: f64) -> Result<Self, String> {
+        let stride = match args.sample_dt {
+            Some(s) => mbfg::io::sample_stride(dt, s)?,
+            None => 1,
+        };
+        let groups = match &args.columns {
+            Some(list) => mbfg::derived::Group::parse_list(list)?,
+            None => Vec::new(),
+        };
+        Ok(Written { stride, groups })
+    }
+
+    /// The optional columns over every step (the work integrals need them all), and
+    /// the rows to write.
+    fn prepare(
+        &self,
+        model: &Model,
+        trajectory: &forward::Trajectory,
+        actuators: Option<&[f64]>,
+    ) -> Result<Prepared, Failure> {
+        let extra = if self.groups.is_empty() {
+            None
+        } else {
+            let c = mbfg::derived::columns(model, trajectory, &self.groups, actuators)
+                .map_err(|e| Failure::Run(plain(e)))?;
+            Some(c)
+        };
+        let rows = (self.stride > 1).then(|| mbfg::io::sampled_rows(trajectory.len(), self.stride));
+        Ok(Prepared { extra, rows })
+    }
+}
+
+/// The optional columns and rows of one trajectory, ready to write.
+struct Prepared {
+    extra: Option<mbfg::derived::Columns>,
+    rows: Option<Vec<usize>>,
+}
+
+impl Prepared {
+    fn csv<'a>(&'a self, forces: Option<&'a [f64]>) -> mbfg::io::CsvOptions<'a> {
+        mbfg::io::CsvOptions {
+            forces,
+            extra: self
+                .extra
+                .as_ref()
+                .map(|c| (c.names.as_slice(), c.values.as_slice())),
+            rows: self.rows.as_deref(),
+        }
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -281,6 +359,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             batch,
             max_iterations,
             out,
+            written,
             integrator,
             noise,
             past,
@@ -318,7 +397,8 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 // A window longer than the run is the whole run.
                 options.mode = Mode::FixedLag(w.min(options.steps()));
             }
-            simulate(model, &options, out.as_deref(), &scene, strict)
+            let written = Written::new(&written, dt)?;
+            simulate(model, &options, out.as_deref(), &scene, strict, &written)
         }
         Command::Inverse {
             scene,
@@ -327,6 +407,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             max_iterations,
             start,
             out,
+            written,
             keep_unconverged,
         } => {
             let (_, model) = load(&scene)?;
@@ -337,15 +418,21 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 StartArg::Kinematic => mbfg::inverse::Start::Kinematic,
                 StartArg::Staged => mbfg::inverse::Start::Staged,
             };
+            let mut options = mbfg::inverse::InverseOptions::default();
+            options.settings.max_iterations = max_iterations;
+            options.start = start;
+            options.coordinates = match coords {
+                InverseCoords::Dc => Coordinates::Dependent,
+                InverseCoords::Ic => Coordinates::Independent,
+            };
             let output = Output::open(out.as_deref(), &[&scene, &trajectory])?;
             inverse(
                 model,
                 &trajectory,
-                coords,
-                max_iterations,
-                start,
+                &options,
                 output,
                 keep_unconverged,
+                &written,
             )
         }
     }
@@ -355,11 +442,10 @@ fn run(cli: Cli) -> Result<(), Failure> {
 fn inverse(
     model: Model,
     trajectory: &Path,
-    coords: InverseCoords,
-    max_iterations: usize,
-    start: mbfg::inverse::Start,
+    options: &mbfg::inverse::InverseOptions,
     output: Output,
     keep_unconverged: bool,
+    written: &WrittenArgs,
 ) -> Result<(), Failure> {
     let file = trajectory.display().to_string();
     let table = mbfg::io::read_table_with(
@@ -371,15 +457,9 @@ fn inverse(
     let prescription =
         mbfg::inverse::Prescription::from_table(&model, &table, &trajectory.display().to_string())
             .map_err(plain)?;
-    let mut options = mbfg::inverse::InverseOptions::default();
-    options.settings.max_iterations = max_iterations;
-    options.start = start;
-    options.coordinates = match coords {
-        InverseCoords::Dc => Coordinates::Dependent,
-        InverseCoords::Ic => Coordinates::Independent,
-    };
+    let written = Written::new(written, prescription.dt)?;
     let model = Arc::new(model);
-    let sol = mbfg::inverse::solve(model, &prescription, &options).map_err(|e| match e {
+    let sol = mbfg::inverse::solve(model.clone(), &prescription, options).map_err(|e| match e {
         Error::InvalidArgument(m) => Failure::Input(m),
         other => Failure::Run(plain(other)),
     })?;
@@ -395,6 +475,9 @@ fn inverse(
         s.worst_phi
     );
     let to_file = output.to_file();
+    // Computed only for what is written.
+    let prepare = || written.prepare(&model, &sol.trajectory, Some(&sol.forces));
+    let forces = Some(sol.forces.as_slice());
     if s.report.termination != mbfg::solver::Termination::Converged {
         let why = format!(
             "the inverse solve did not converge: {}, cost {:.3e} after {} iterations",
@@ -402,7 +485,7 @@ fn inverse(
         );
         let what = if keep_unconverged {
             output
-                .keep_partial(&sol.trajectory, Some(&sol.forces), &why)
+                .keep_partial(&sol.trajectory, &prepare()?.csv(forces), &why)
                 .map_err(Failure::Run)?
                 .replacen(" steps ", " unconverged steps ", 1)
         } else {
@@ -415,7 +498,7 @@ fn inverse(
         )));
     }
     output
-        .commit(&sol.trajectory, Some(&sol.forces))
+        .commit(&sol.trajectory, &prepare()?.csv(forces))
         .map_err(Failure::Run)?;
     print_summary(to_file, &line);
     Ok(())
@@ -446,9 +529,13 @@ fn simulate(
     out: Option<&Path>,
     scene: &Path,
     strict: bool,
+    written: &Written,
 ) -> Result<(), Failure> {
     // Open the output first: an unwritable path is bad input, found before the run.
     let output = Output::open(out, &[scene])?;
+    if let Some(w) = mbfg::plausibility::idle_warning(&model) {
+        eprintln!("warning: {w}");
+    }
     if let Some(w) = mbfg::plausibility::step_warning(&model, options.dt) {
         if strict {
             return Err(Failure::Input(format!("{w} (--strict)")));
@@ -457,7 +544,8 @@ fn simulate(
     }
     cli::interrupt::install();
     let mut bar = Progress::new();
-    let result = forward::simulate_interruptible(Arc::new(model), options, &mut |done, total| {
+    let model = Arc::new(model);
+    let result = forward::simulate_interruptible(model.clone(), options, &mut |done, total| {
         bar.update(done, total);
         if cli::interrupt::requested() {
             ControlFlow::Break(())
@@ -469,6 +557,8 @@ fn simulate(
     let (trajectory, summary) = result.map_err(|e| Failure::Run(plain(e)))?;
     let to_file = output.to_file();
     let line = summary_line(options, &summary);
+    // Computed only for what is written.
+    let prepare = || written.prepare(&model, &trajectory, None);
     if let Some(k) = summary.interrupted {
         let why = format!("interrupted after step {k}");
         let what = if trajectory.is_empty() {
@@ -476,7 +566,7 @@ fn simulate(
             "nothing was written".to_string()
         } else {
             output
-                .keep_partial(&trajectory, None, &why)
+                .keep_partial(&trajectory, &prepare()?.csv(None), &why)
                 .map_err(Failure::Run)?
         };
         print_summary(to_file, &line);
@@ -504,7 +594,7 @@ fn simulate(
             "nothing was written".to_string()
         } else {
             output
-                .keep_partial(&trajectory, None, &f.message())
+                .keep_partial(&trajectory, &prepare()?.csv(None), &f.message())
                 .map_err(Failure::Run)?
         };
         print_summary(to_file, &line);
@@ -533,7 +623,9 @@ fn simulate(
         }
         eprintln!("warning: {w}");
     }
-    output.commit(&trajectory, None).map_err(Failure::Run)?;
+    output
+        .commit(&trajectory, &prepare()?.csv(None))
+        .map_err(Failure::Run)?;
     print_summary(to_file, &line);
     Ok(())
 }
@@ -583,7 +675,10 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
 }
 
 /// A progress bar on stderr, shown only when stderr is a terminal and the run has
-/// lasted over a second.
+/// lasted over a second. Its clock runs from the start of the run, and its ETA is
+/// the mean time per step so far times the steps left ([`eta`]): indicatif's own
+/// estimator, first fed at the bar's creation with every step done in the first
+/// second at once, saw a near-infinite rate and said 0 s.
 struct Progress {
     start: Instant,
     bar: Option<indicatif::ProgressBar>,
@@ -603,13 +698,24 @@ impl Progress {
         if !self.enabled {
             return;
         }
-        if self.bar.is_none() && self.start.elapsed() > Duration::from_secs(1) {
-            let bar = indicatif::ProgressBar::new(total as u64);
+        let elapsed = self.start.elapsed();
+        if self.bar.is_none() && elapsed > Duration::from_secs(1) {
+            let bar = indicatif::ProgressBar::new(total as u64).with_elapsed(elapsed);
             bar.set_style(
                 indicatif::ProgressStyle::with_template(
-                    "{elapsed_precise} [{bar:40}] {pos}/{len} steps, eta {eta}",
+                    "{elapsed_precise} [{bar:40}] {pos}/{len} steps, eta {left}",
                 )
                 .expect("a valid template")
+                .with_key(
+                    "left",
+                    |state: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+                        let left = eta(state.elapsed(), state.pos(), state.len().unwrap_or(0));
+                        let _ = match left {
+                            Some(d) => write!(w, "{:#}", indicatif::HumanDuration(d)),
+                            None => write!(w, "?"),
+                        };
+                    },
+                )
                 .progress_chars("=> "),
             );
             self.bar = Some(bar);
@@ -626,6 +732,16 @@ impl Progress {
     }
 }
 
+/// The time left at the mean pace so far: `elapsed` for `done` of `total` steps;
+/// None before the first step.
+fn eta(elapsed: Duration, done: u64, total: u64) -> Option<Duration> {
+    if done == 0 {
+        return None;
+    }
+    let left = total.saturating_sub(done) as f64;
+    Some(elapsed.mul_f64(left / done as f64))
+}
+
 /// Reads and assembles a scene; errors name the file.
 fn load(path: &Path) -> Result<(Scene, Model), String> {
     let scene = Scene::load(path).map_err(|e| e.to_string())?;
@@ -634,4 +750,33 @@ fn load(path: &Path) -> Result<(Scene, Model), String> {
         other => format!("{}: {other}", path.display()),
     })?;
     Ok((scene, model))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn eta_is_the_mean_pace_times_the_steps_left() {
+        let s = Duration::from_secs;
+        assert_eq!(eta(s(2), 0, 100), None);
+        assert_eq!(eta(s(2), 50, 100), Some(s(2)));
+        assert_eq!(eta(s(2), 25, 100), Some(s(6)));
+        assert_eq!(eta(s(2), 100, 100), Some(s(0)));
+        // A position past the length (never expected) is not negative time.
+        assert_eq!(eta(s(2), 120, 100), Some(s(0)));
+    }
+
+    #[test]
+    fn sample_and_column_options_are_checked() {
+        let args = |sample_dt, columns: Option<&str>| WrittenArgs {
+            sample_dt,
+            columns: columns.map(str::to_string),
+        };
+        let w = Written::new(&args(Some(0.01), Some("energy")), 0.001).unwrap();
+        assert_eq!(w.stride, 10);
+        assert_eq!(w.groups, [mbfg::derived::Group::Energy]);
+        assert!(Written::new(&args(Some(0.0015), None), 0.001).is_err());
+        assert!(Written::new(&args(None, Some("nope")), 0.001).is_err());
+    }
 }

@@ -17,6 +17,9 @@ pub const MAX_OMEGA_DT: f64 = 1.0;
 /// kinetic energy along the run, that is still taken as integration error.
 pub const ENERGY_DRIFT_TOLERANCE: f64 = 0.01;
 
+/// The drift, in J, below which no energy warning is given (round-off).
+pub const ENERGY_DRIFT_FLOOR: f64 = 1e-12;
+
 /// The fastest time scale of one effect at the initial state.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TimeScale {
@@ -152,7 +155,8 @@ pub fn step_warning(model: &Model, dt: f64) -> Option<String> {
 pub fn energy_warning(summary: &RunSummary) -> Option<String> {
     let drift = summary.energy_drift?;
     let scale = summary.peak_kinetic_energy;
-    if !(drift > ENERGY_DRIFT_TOLERANCE * scale) {
+    // Below a picojoule the drift is round-off of a mechanism barely moving.
+    if !(drift > ENERGY_DRIFT_TOLERANCE * scale && drift > ENERGY_DRIFT_FLOOR) {
         return None;
     }
     Some(format!(

@@ -1,11 +1,13 @@
 //! Where a command's CSV goes, all or marked, never silently partial:
 //! - to a file: written to a temporary file beside it and renamed over it only when
 //!   the run succeeded, so a failure, a kill or a full disk leaves the old file as it
-//!   was; the steps of a run that ended early go to `<out>.partial.csv` instead;
+//!   was; the steps of a run that ended early go to `<out>.partial.csv` instead; a
+//!   name ending in `.gz` is written gzip-compressed (its partial file too);
 //! - to standard output: the rows, and after those of a run that ended early a last
 //!   line `# incomplete: …` that no CSV reader takes for a row of numbers.
 
 use mbfg::forward::Trajectory;
+use mbfg::io::CsvOptions;
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -74,10 +76,10 @@ impl Output {
 
     /// Writes the complete result: to the temporary file, then renamed over the
     /// target in one step.
-    pub fn commit(mut self, trajectory: &Trajectory, forces: Option<&[f64]>) -> Result<(), String> {
+    pub fn commit(mut self, trajectory: &Trajectory, csv: &CsvOptions) -> Result<(), String> {
         match (self.target.clone(), self.temp.take()) {
             (Some(target), Some(temp)) => {
-                let written = write_file(&temp, trajectory, forces)
+                let written = write_file(&temp, is_gzip(&target), trajectory, csv)
                     .and_then(|()| std::fs::rename(&temp, &target).map_err(|e| e.to_string()));
                 if let Err(e) = written {
                     std::fs::remove_file(&temp).ok();
@@ -92,12 +94,14 @@ impl Output {
                     .write(true)
                     .open(&target)
                     .map_err(|e| format!("cannot write {}: {e}", target.display()))?;
-                mbfg::io::write_trajectory(std::io::BufWriter::new(file), trajectory, forces)
+                let w = std::io::BufWriter::new(file);
+                encode(w, is_gzip(&target), trajectory, csv)
+                    .map(drop)
                     .map_err(|e| format!("cannot write {}: {e}", target.display()))
             }
             _ => {
                 let mut out = std::io::stdout().lock();
-                mbfg::io::write_trajectory(&mut out, trajectory, forces).map_err(|e| {
+                mbfg::io::write_trajectory_with(&mut out, trajectory, csv).map_err(|e| {
                     // Rows may have gone out before the error: mark them.
                     writeln!(out, "# incomplete: {}", one_line(&e.to_string())).ok();
                     format!("cannot write the CSV to standard output: {e}")
@@ -111,14 +115,14 @@ impl Output {
     pub fn keep_partial(
         mut self,
         trajectory: &Trajectory,
-        forces: Option<&[f64]>,
+        csv: &CsvOptions,
         why: &str,
     ) -> Result<String, String> {
-        let steps = trajectory.len();
+        let steps = csv.rows.map_or(trajectory.len(), <[usize]>::len);
         match (self.target.clone(), self.temp.take()) {
             (Some(target), Some(temp)) => {
                 let partial = partial_path(&target);
-                let written = write_file(&temp, trajectory, forces)
+                let written = write_file(&temp, is_gzip(&target), trajectory, csv)
                     .and_then(|()| std::fs::rename(&temp, &partial).map_err(|e| e.to_string()));
                 if let Err(e) = written {
                     std::fs::remove_file(&temp).ok();
@@ -132,7 +136,7 @@ impl Output {
             )),
             _ => {
                 let mut out = std::io::stdout().lock();
-                let written = mbfg::io::write_trajectory(&mut out, trajectory, forces)
+                let written = mbfg::io::write_trajectory_with(&mut out, trajectory, csv)
                     .map_err(|e| e.to_string())
                     .and_then(|()| {
                         writeln!(out, "# incomplete: {}", one_line(why)).map_err(|e| e.to_string())
@@ -159,14 +163,24 @@ impl Drop for Output {
     }
 }
 
-/// `run.csv` → `run.partial.csv` (beside it).
+/// `run.csv` → `run.partial.csv`, `run.csv.gz` → `run.partial.csv.gz` (beside it).
 pub fn partial_path(target: &Path) -> PathBuf {
     let name = target
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let stem = name.strip_suffix(".csv").unwrap_or(&name);
-    target.with_file_name(format!("{stem}.partial.csv"))
+    let (name, gz) = match name.strip_suffix(".gz") {
+        Some(stem) => (stem, ".gz"),
+        None => (name.as_str(), ""),
+    };
+    let stem = name.strip_suffix(".csv").unwrap_or(name);
+    target.with_file_name(format!("{stem}.partial.csv{gz}"))
+}
+
+/// Whether the output is written gzip-compressed: by its name, as `read_table`
+/// reads it.
+fn is_gzip(target: &Path) -> bool {
+    target.extension().is_some_and(|e| e == "gz")
 }
 
 /// A hidden name in the target's directory, unique to this process.
@@ -178,17 +192,40 @@ fn temp_beside(target: &Path) -> PathBuf {
     target.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
 }
 
-fn write_file(path: &Path, trajectory: &Trajectory, forces: Option<&[f64]>) -> Result<(), String> {
+fn write_file(
+    path: &Path,
+    gzip: bool,
+    trajectory: &Trajectory,
+    csv: &CsvOptions,
+) -> Result<(), String> {
     let file = File::options()
         .write(true)
         .truncate(true)
         .open(path)
         .map_err(|e| e.to_string())?;
-    let mut w = std::io::BufWriter::new(file);
-    mbfg::io::write_trajectory(&mut w, trajectory, forces).map_err(|e| e.to_string())?;
+    let w = encode(std::io::BufWriter::new(file), gzip, trajectory, csv)?;
     let file = w.into_inner().map_err(|e| e.error().to_string())?;
     // On disk before the rename, so that a crash cannot leave a renamed empty file.
     file.sync_all().map_err(|e| e.to_string())
+}
+
+/// Writes the CSV into `w`, through a gzip encoder if asked (finished, so that the
+/// stream is complete), and gives `w` back flushed.
+fn encode<W: Write>(
+    mut w: W,
+    gzip: bool,
+    trajectory: &Trajectory,
+    csv: &CsvOptions,
+) -> Result<W, String> {
+    if gzip {
+        let mut z = flate2::write::GzEncoder::new(w, flate2::Compression::default());
+        mbfg::io::write_trajectory_with(&mut z, trajectory, csv).map_err(|e| e.to_string())?;
+        w = z.finish().map_err(|e| e.to_string())?;
+    } else {
+        mbfg::io::write_trajectory_with(&mut w, trajectory, csv).map_err(|e| e.to_string())?;
+    }
+    w.flush().map_err(|e| e.to_string())?;
+    Ok(w)
 }
 
 /// Whether two paths name the same existing file.
@@ -217,5 +254,32 @@ mod tests {
             partial_path(Path::new("run")),
             PathBuf::from("run.partial.csv")
         );
+        assert_eq!(
+            partial_path(Path::new("out/run.csv.gz")),
+            PathBuf::from("out/run.partial.csv.gz")
+        );
+        assert_eq!(
+            partial_path(Path::new("run.gz")),
+            PathBuf::from("run.partial.csv.gz")
+        );
+    }
+
+    #[test]
+    fn gzip_output_reads_back() {
+        let tr = Trajectory {
+            names: vec!["a".into()],
+            t: vec![0.0, 0.5],
+            q: vec![1.0, 2.0],
+            dq: vec![0.0; 2],
+            ddq: vec![0.0; 2],
+        };
+        let target = std::env::temp_dir().join(format!("mbfg-out-{}.csv.gz", std::process::id()));
+        let output = Output::open(Some(&target), &[]).unwrap();
+        output.commit(&tr, &CsvOptions::default()).unwrap();
+        let bytes = std::fs::read(&target).unwrap();
+        let table = mbfg::io::read_table(&target).unwrap();
+        std::fs::remove_file(&target).ok();
+        assert_eq!(&bytes[..2], &[0x1f, 0x8b], "not gzip");
+        assert_eq!(table.column("q:a").unwrap(), [1.0, 2.0]);
     }
 }
