@@ -266,7 +266,8 @@ def table(outcomes: list[Outcome]) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m harness.hard_cases",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("--fast", action="store_true", help="the fast form run by make test")
     args = ap.parse_args(argv)
     outcomes = suite(args.fast)

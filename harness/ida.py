@@ -193,7 +193,8 @@ def provenance_path(out: pathlib.Path) -> pathlib.Path:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m harness.ida",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("scene", type=pathlib.Path)
     ap.add_argument("--t-end", type=float, default=5.0)
     ap.add_argument("--dt", type=float, default=1e-3, help="sample step of the output")
@@ -204,8 +205,12 @@ def main(argv=None) -> int:
     ap.add_argument("--max-steps", type=int, default=1_000_000,
                     help="bound on the internal steps of the whole run")
     args = ap.parse_args(argv)
-    traj, prov = generate(args.scene, args.t_end, args.dt, args.formulation, args.rtol,
-                          args.atol, args.max_steps)
+    try:
+        traj, prov = generate(args.scene, args.t_end, args.dt, args.formulation, args.rtol,
+                              args.atol, args.max_steps)
+    except (RuntimeError, ValueError) as e:  # IDA's failure, a scene error: one line
+        print(f"ida: {' '.join(str(e).split())}", file=sys.stderr)
+        return 1
     tj.write(args.out, traj)
     tj.write_provenance(provenance_path(args.out), prov)
     print(f"{args.out}: {prov['steps']} steps in {prov['wall_time_s']:.2f} s, "

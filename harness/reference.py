@@ -1,19 +1,25 @@
-"""`make reference`: the ground truth of the scene suite, regenerated from the scenes.
+"""`make reference`: the ground truth of the scene suite, regenerated from the scenes;
+and a reference of the same kind for any scene file.
 
 For every scene of SUITE, the most accurate generator available for it writes
 `references/<scene>/reference.csv.gz` (the CSV contract, sampled every SAMPLE_DT) and
-`references/<scene>/provenance.json`; a second generator cross-checks it and the
-disagreement of the two (max and RMSE over the point coordinates) is recorded there.
+`references/<scene>/provenance.json`; other generators cross-check it and the
+disagreement (max and RMSE over the point coordinates) is recorded there. Generators
+come from the registry (harness/generators.py) at their reference settings.
 
-    python -m harness.reference            # regenerate everything
-    python -m harness.reference fourbar    # one scene
-    python -m harness.reference --check    # regenerate into a temporary folder and
-                                           # compare with the committed references
+    python -m harness.reference                     # regenerate the whole suite
+    python -m harness.reference fourbar             # one scene of the suite
+    python -m harness.reference --check             # regenerate into a temporary folder
+                                                    # and compare with the committed ones
+    python -m harness.reference my-scene.yaml --t-end 2
+                                                    # your scene: my-scene.reference/
+    python -m harness.reference --check my-scene.yaml --t-end 2
+                                                    # is my-scene.reference/ reproduced?
 """
 from __future__ import annotations
 
 import argparse
-import importlib
+import dataclasses
 import json
 import pathlib
 import sys
@@ -23,6 +29,7 @@ import time
 import numpy as np
 
 import mbfg
+from harness import generators
 from harness import trajectory as tj
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -31,11 +38,12 @@ REFERENCES = ROOT / "references"
 # dt < 1 ms at these).
 SAMPLE_DT = 1e-3
 
-# rtol 1e-14: 1.6e-11 m on the four-bar over 5 s against a minimal-coordinate ODE
-# (1e-12 gives 1.9e-9 m), about 3 s per scene.
-IDA = ("ida", {"formulation": "ggl", "rtol": 1e-14})
-EXUDYN = ("exudyn_ref", {"solver": "generalized_alpha", "h": 1e-5})
-PINOCCHIO = ("pinocchio_ref", {"h": 1e-5})
+# (generator, settings over its reference settings). IDA at rtol 1e-14: 1.6e-11 m on
+# the four-bar over 5 s against a minimal-coordinate ODE (1e-12 gives 1.9e-9 m), about
+# 3 s per scene; exudyn and Pinocchio at h = 1e-5.
+IDA = ("ida", {})
+EXUDYN = ("exudyn", {})
+PINOCCHIO = ("pinocchio", {})
 
 # scene → horizon, the generator that writes the reference, those that check it.
 SUITE = {
@@ -48,8 +56,8 @@ SUITE = {
     "slotted-lever": (5.0, IDA, [EXUDYN]),
     # Falls into a singular configuration after ~1.3 s: the reference stops before.
     # IDA's corrector fails at rtol ≤ 1e-13 on this 22-coordinate model (t ≈ 0.3 s).
-    "pick-and-place": (1.0, ("ida", {"formulation": "ggl", "rtol": 1e-12}), [PINOCCHIO]),
-    "pick-and-place-mbse": (1.0, ("ida", {"formulation": "ggl", "rtol": 1e-12}), [PINOCCHIO]),
+    "pick-and-place": (1.0, ("ida", {"rtol": 1e-12}), [PINOCCHIO]),
+    "pick-and-place-mbse": (1.0, ("ida", {"rtol": 1e-12}), [PINOCCHIO]),
     # Hard cases with a reference (the parallelogram's is its exact motion, and IDA
     # fails at its first flat configuration).
     "hard/slider-crank-dead-centres": (5.0, IDA, [EXUDYN]),
@@ -57,6 +65,45 @@ SUITE = {
     "hard/redundant-fourbar": (5.0, IDA, [PINOCCHIO]),
     "hard/fourbar-lower-branch": (5.0, IDA, [EXUDYN]),
 }
+
+
+@dataclasses.dataclass
+class Job:
+    """One reference to write: a scene of the suite or any scene file."""
+    label: str
+    scene: pathlib.Path
+    t_end: float
+    primary: tuple[str, dict]
+    checks: list[tuple[str, dict]]
+    out: pathlib.Path                  # where the reference lives
+    quick_checks: bool = False         # cross-checks at their fast defaults
+
+
+def suite_job(name: str) -> Job:
+    t_end, primary, checks = SUITE[name]
+    return Job(name, ROOT / "scenes" / f"{name}.yaml", t_end, primary, checks,
+               REFERENCES / name)
+
+
+def suite_name(path: pathlib.Path) -> str | None:
+    """The suite's name of a scene file, if it is one of the suite's."""
+    for name in SUITE:
+        if (ROOT / "scenes" / f"{name}.yaml").resolve() == path.resolve():
+            return name
+    return None
+
+
+def scene_file(arg: str) -> pathlib.Path | None:
+    """A scene argument as a file: as given, or with .yaml added."""
+    for p in (pathlib.Path(arg), pathlib.Path(arg + ".yaml")):
+        if p.is_file():
+            return p
+    return None
+
+
+def default_out(scene: pathlib.Path) -> pathlib.Path:
+    """my-scene.yaml → my-scene.reference/ beside it."""
+    return scene.with_name(scene.name.removesuffix(".yaml") + ".reference")
 
 
 def point_columns(model: mbfg.Model) -> list[int]:
@@ -89,27 +136,48 @@ def disagreement(model: mbfg.Model, a: tj.Trajectory, b: tj.Trajectory) -> dict:
     return {"max_m": mx, "rmse_m": rmse}
 
 
-def run(generator: tuple[str, dict], scene: pathlib.Path, t_end: float):
+class GeneratorFailed(RuntimeError):
+    """The primary generator refused or failed: no reference."""
+
+
+def run(generator: tuple[str, dict], scene: pathlib.Path, t_end: float, quick: bool = False):
+    """(trajectory, provenance, wall time) of one generator at its reference settings
+    (its fast defaults with quick) updated by the tuple's."""
     name, settings = generator
-    module = importlib.import_module(f"harness.{name}")
+    gen = generators.get(name)
+    why = gen.refusal(mbfg.load(str(scene)))
+    if why:
+        raise tj.Unsupported(why)
     start = time.perf_counter()
-    traj, prov = module.generate(scene, t_end, SAMPLE_DT, **settings)
+    traj, prov = gen.generate(scene, t_end, SAMPLE_DT, settings, accurate=not quick)
     return traj, prov, time.perf_counter() - start
 
 
-def generate(name: str, out_dir: pathlib.Path) -> dict:
-    """Writes one scene's reference and provenance into out_dir; returns the provenance."""
-    t_end, primary, checks = SUITE[name]
-    scene = ROOT / "scenes" / f"{name}.yaml"
-    model = mbfg.load(scene)
-    print(f"{name}: {primary[0]} {primary[1]} over {t_end} s …", flush=True)
-    truth, prov, wall = run(primary, scene, t_end)
+def label(generator: tuple[str, dict]) -> str:
+    return generator[0] + (f" {generator[1]}" if generator[1] else "")
+
+
+def generate(job: Job | str, out_dir: pathlib.Path | None = None) -> dict:
+    """Writes one reference and its provenance into out_dir (default: the job's);
+    returns the provenance. A suite name stands for its job."""
+    if isinstance(job, str):
+        job = suite_job(job)
+    out_dir = job.out if out_dir is None else out_dir
+    name, scene, t_end, primary = job.label, job.scene, job.t_end, job.primary
+    model = mbfg.load(str(scene))
+    print(f"{name}: {label(primary)} over {t_end} s …", flush=True)
+    try:
+        truth, prov, wall = run(primary, scene, t_end)
+    except Exception as e:  # refused or failed: one line, no reference
+        raise GeneratorFailed(f"{name}: {primary[0]} cannot make the reference: "
+                              f"{generators.one_line(e)} (another --generator, or looser "
+                              "settings with --set, may)") from e
     print(f"{name}:   done in {wall:.1f} s", flush=True)
     prov["cross_checks"] = []
-    for check in checks:
-        print(f"{name}:   cross-check with {check[0]} {check[1]} …", flush=True)
+    for check in job.checks:
+        print(f"{name}:   cross-check with {label(check)} …", flush=True)
         try:
-            other, other_prov, other_wall = run(check, scene, t_end)
+            other, other_prov, other_wall = run(check, scene, t_end, job.quick_checks)
             diff = disagreement(model, truth, other)
             prov["cross_checks"].append({
                 "generator": other_prov.get("generator", check[0]),
@@ -121,6 +189,10 @@ def generate(name: str, out_dir: pathlib.Path) -> dict:
         except tj.Unsupported as e:
             prov["cross_checks"].append({"generator": check[0], "refused": str(e)})
             print(f"{name}:   {check[0]} refuses the scene: {e}", flush=True)
+        except Exception as e:  # a cross-check's failure is recorded, not fatal
+            prov["cross_checks"].append({"generator": check[0],
+                                         "failed": generators.one_line(e)})
+            print(f"{name}:   {check[0]} failed: {generators.one_line(e)}", flush=True)
     prov["sample_dt"] = SAMPLE_DT
     prov["t_end"] = t_end
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -129,21 +201,31 @@ def generate(name: str, out_dir: pathlib.Path) -> dict:
     return prov
 
 
-def check(names: list[str]) -> int:
-    """Regenerates into a temporary folder and compares with the committed references."""
+def check(jobs: list[Job | str]) -> int:
+    """Regenerates into a temporary folder and compares with the stored references."""
     bad = 0
     with tempfile.TemporaryDirectory() as tmp:
-        for name in names:
-            committed = tj.read(REFERENCES / name / "reference.csv.gz")
-            generate(name, pathlib.Path(tmp) / name)
-            fresh = tj.read(pathlib.Path(tmp) / name / "reference.csv.gz")
-            model = mbfg.load(ROOT / "scenes" / f"{name}.yaml")
+        for job in jobs:
+            if isinstance(job, str):
+                job = suite_job(job)
+            committed = tj.read(job.out / "reference.csv.gz")
+            stated = json.loads((job.out / "provenance.json").read_text())
+            fresh_dir = pathlib.Path(tmp) / job.label.replace("/", "_")
+            generate(job, fresh_dir)
+            fresh = tj.read(fresh_dir / "reference.csv.gz")
+            model = mbfg.load(str(job.scene))
+            if len(fresh.t) != len(committed.t):
+                print(f"{job.label}: fresh has {len(fresh.t)} samples, the stored one "
+                      f"{len(committed.t)} (another --t-end?): DIFFERS")
+                bad += 1
+                continue
             diff = disagreement(model, committed, fresh)
-            stated = json.loads((REFERENCES / name / "provenance.json").read_text())
             tol = tolerance(stated)
             ok = diff["max_m"] <= tol
+            if not tj.is_current(stated, job.scene):
+                print(f"{job.label}: the scene's files changed since the stored reference was written")
             bad += not ok
-            print(f"{name}: fresh vs committed max {diff['max_m']:.2e} m "
+            print(f"{job.label}: fresh vs stored max {diff['max_m']:.2e} m "
                   f"(stated tolerance {tol:.1e}): {'ok' if ok else 'DIFFERS'}")
     return bad
 
@@ -154,25 +236,107 @@ def tolerance(prov: dict) -> float:
     return max(min(found, default=1e-10), 1e-10)
 
 
+def tool_list(text: str, ap: argparse.ArgumentParser) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    for n in names:
+        if n not in generators.REGISTRY:
+            ap.error(f"unknown generator {n!r}; registered: {', '.join(generators.REGISTRY)}")
+    return names
+
+
+def jobs_from(args, ap: argparse.ArgumentParser) -> list[Job]:
+    try:
+        settings = generators.parse_settings(args.set)
+    except ValueError as e:
+        ap.error(f"--set: {e}")
+    if args.t_end is not None and (round(args.t_end / SAMPLE_DT) < 1 or
+                                   abs(round(args.t_end / SAMPLE_DT) * SAMPLE_DT - args.t_end) > 1e-9):
+        ap.error(f"--t-end must be a positive multiple of {SAMPLE_DT} s")
+    other_settings = (args.t_end is not None or args.generator or args.checks is not None
+                      or args.set or args.quick)
+    jobs = []
+    for arg in args.scenes or list(SUITE):
+        name, path = (arg, None) if arg in SUITE else (None, scene_file(arg))
+        if name is None:
+            if path is None:
+                ap.error(f"unknown scene {arg!r}: neither a scene of the suite "
+                         f"({', '.join(SUITE)}) nor a scene file")
+            name = suite_name(path)
+        if name is not None:
+            job = suite_job(name)
+            if other_settings and args.out is None and not args.check:
+                # The committed references are made with the suite's settings only.
+                ap.error(f"{arg} is a scene of the suite: its reference in references/ takes "
+                         "the suite's settings; give --out DIR to write one with others")
+        else:
+            job = Job(path.name.removesuffix(".yaml"), path, 5.0, ("ida", {}), [],
+                      default_out(path))
+            job.checks = [(g.name, {}) for g in generators.REGISTRY.values() if g.accuracy > 0]
+        if args.t_end is not None:
+            job.t_end = args.t_end
+        if args.generator:
+            job.primary = (args.generator, {})
+        if settings:
+            job.primary = (job.primary[0], {**job.primary[1], **settings})
+        if args.checks is not None:
+            job.checks = [(c, {}) for c in tool_list(args.checks, ap)]
+        job.checks = [c for c in job.checks if c[0] != job.primary[0]]
+        job.quick_checks = args.quick
+        if args.out is not None:
+            job.out = args.out
+        jobs.append(job)
+    if args.out is not None and len(jobs) > 1:
+        ap.error("--out takes one scene")
+    return jobs
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("scenes", nargs="*", help=f"scenes (default: all of {', '.join(SUITE)})")
+    ap = argparse.ArgumentParser(
+        prog="python -m harness.reference", description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="A scene outside the suite gets --t-end (default 5 s), the primary generator "
+               "(--generator, default ida at its reference settings) and cross-checks by every "
+               "other registered simulator that models it (--checks). Options for scenes outside "
+               "the suite: --t-end, --out, --generator, --checks, --set, --quick.")
+    ap.add_argument("scenes", nargs="*", metavar="SCENE",
+                    help=f"a scene of the suite ({', '.join(SUITE)}; default: all) or a path "
+                    "to a scene file")
     ap.add_argument("--check", action="store_true",
-                    help="regenerate into a temporary folder and compare with the committed ones")
+                    help="regenerate into a temporary folder and compare with the stored ones")
+    ap.add_argument("--t-end", type=float, help="horizon in s (scenes outside the suite; default 5)")
+    ap.add_argument("--out", type=pathlib.Path,
+                    help="folder of the reference (default: SCENE.reference/ beside the scene file)")
+    ap.add_argument("--generator", metavar="NAME",
+                    help=f"the generator that writes it (default ida; one of {', '.join(generators.REGISTRY)})")
+    ap.add_argument("--checks", metavar="A,B",
+                    help="cross-checking generators (default: every other registered one but mbfg; '' for none)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a setting of the primary generator over its reference settings, e.g. rtol=1e-12")
+    ap.add_argument("--quick", action="store_true",
+                    help="cross-checks at their fast defaults instead of their reference settings")
     args = ap.parse_args(argv)
-    names = args.scenes or list(SUITE)
-    unknown = [n for n in names if n not in SUITE]
-    if unknown:
-        ap.error(f"unknown scene(s) {', '.join(unknown)}; the suite is {', '.join(SUITE)}")
+    if args.generator:
+        tool_list(args.generator, ap)
+    jobs = jobs_from(args, ap)
     start = time.perf_counter()
-    if args.check:
-        bad = check(names)
-        print(f"{len(names) - bad} of {len(names)} references reproduced "
-              f"in {time.perf_counter() - start:.0f} s")
-        return 1 if bad else 0
-    for name in names:
-        generate(name, REFERENCES / name)
-    print(f"wrote {len(names)} references in {time.perf_counter() - start:.0f} s")
+    try:
+        if args.check:
+            missing = [j for j in jobs if not (j.out / "reference.csv.gz").is_file()]
+            if missing:
+                print(f"reference: no stored reference to check at {missing[0].out} "
+                      "(make one without --check first)", file=sys.stderr)
+                return 2
+            bad = check(jobs)
+            print(f"{len(jobs) - bad} of {len(jobs)} references reproduced "
+                  f"in {time.perf_counter() - start:.0f} s")
+            return 1 if bad else 0
+        for job in jobs:
+            generate(job)
+            print(f"{job.label}: wrote {tj.display_path(job.out)}/reference.csv.gz, provenance.json")
+    except (GeneratorFailed, mbfg.SceneError) as e:
+        print(f"reference: {generators.one_line(e)}", file=sys.stderr)
+        return 1
+    print(f"wrote {len(jobs)} references in {time.perf_counter() - start:.0f} s")
     return 0
 
 

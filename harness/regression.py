@@ -3,16 +3,18 @@ checks against the committed references: every row is measured now and its bound
 the measured value with a 5 % margin, rounded up. Run after an improvement to lock
 it in (then review the diff: a bound should only ever go down).
 
-    python -m harness.regression
+    python -m harness.regression [--out FILE]     # a few minutes
 """
 from __future__ import annotations
 
+import argparse
 import math
 import pathlib
 import sys
 
 import mbfg
 from harness import report
+from harness import trajectory as tj
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OUT = ROOT / "tests" / "data" / "rmse-bounds.csv"
@@ -44,7 +46,12 @@ def round_up(x: float) -> float:
     return math.ceil(x / 10 ** e) * 10 ** e
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m harness.regression",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=pathlib.Path, default=OUT,
+                    help="the bounds file (default: tests/data/rmse-bounds.csv)")
+    out = ap.parse_args(argv).out
     lines = ["scene,reference,coords,window,dt,t_end,rmse_bound_m"]
     for scene, ref, c, w, dt, t_end in rows():
         truth, _ = report.load_reference(ref)
@@ -59,8 +66,8 @@ def main() -> int:
         bound = round_up(rmse * MARGIN)
         print(f"{scene:<16} {c} N_w={w!s:<5} dt={dt:g}: {rmse:.4e} → bound {bound:.3e}", file=sys.stderr)
         lines.append(f"{scene},{ref},{c},{w},{dt:g},{t_end:g},{bound:.3e}")
-    OUT.write_text("\n".join(lines) + "\n")
-    print(f"wrote {OUT.relative_to(ROOT)} ({len(lines) - 1} rows)")
+    out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {tj.display_path(out)} ({len(lines) - 1} rows)")
     return 0
 
 

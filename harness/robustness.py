@@ -170,7 +170,7 @@ def reference(name: str) -> tj.Trajectory | None:
         truth, prov = report.load_reference(name)
     except FileNotFoundError:
         return None
-    return truth if prov.get("scene_hash") == tj.scene_hash(scene_path(name)) else None
+    return truth if tj.is_current(prov, scene_path(name)) else None
 
 
 @functools.lru_cache(maxsize=None)
@@ -469,7 +469,8 @@ def write(outcomes: list[Outcome], out: pathlib.Path, fast: bool, seconds: float
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m harness.robustness",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("--fast", action="store_true",
                     help="dt ∈ {1, 5, 10, 20} ms, N_w ∈ {1, 5, batch}, horizons ≤ 1 s")
     ap.add_argument("--scenes", nargs="+", metavar="GLOB", default=SCENE_GLOBS,

@@ -1,25 +1,24 @@
 """Accuracy against wall time, every tool measured in one run on one machine.
 
-For each scene of SCENES: mbfg (DC and IC, a few windows, dt from 10 to 0.1 ms),
-exudyn (generalized-alpha and trapezoidal index-2, h from 1 ms to 10 µs), IDA
-(tolerances 1e-4…1e-12) and Pinocchio where it models the scene. Errors (RMSE and
-max over the moving points' x, y) against the committed reference; wall times are
-medians of REPEATS runs of the whole call. Writes accuracy-vs-time.md, .csv and one
-PNG per scene.
+For each scene of SCENES: mbfg (DC and IC, a few windows, dt from 10 to 0.1 ms) and
+every registered generator's sweeps (harness/generators.py: exudyn generalized-alpha
+and trapezoidal index-2, h from 1 ms to 10 µs; IDA, tolerances 1e-4…1e-12; Pinocchio
+where it models the scene). Errors (RMSE and max over the moving points' x, y)
+against the committed reference; wall times are medians of REPEATS runs of the whole
+call. Writes accuracy-vs-time.md, .csv and one PNG per scene (several minutes).
+
+    python -m harness.timing [--out DIR] [--scenes four-bar,slider-crank] [--repeats N]
 """
 from __future__ import annotations
 
-import csv
-import importlib
+import argparse
 import pathlib
 import statistics
 import sys
 import time
 
-import numpy as np
-
 import mbfg
-from harness import report
+from harness import generators, report
 from harness import trajectory as tj
 
 REPEATS = 3
@@ -53,22 +52,17 @@ def configurations(dc_scene, ic_scene, t_end):
                     r = mbfg.simulate(scene, coords=coords.lower(), dt=dt, t_end=t_end, window=w)
                     return r.t, r.q
                 yield "mbfg", f"{coords}, N_w = {w}", f"dt = {dt * 1e3:g} ms", run
-    generators = [
-        ("exudyn", "generalized-alpha", "exudyn_ref", "h",
-         [1e-3, 1e-4, 1e-5], {"solver": "generalized_alpha"}),
-        ("exudyn", "trapezoidal index-2", "exudyn_ref", "h",
-         [1e-3, 1e-4, 1e-5], {"solver": "trapezoidal_index2"}),
-        ("IDA", "GGL index-2", "ida", "rtol",
-         [1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12], {"formulation": "ggl"}),
-        ("Pinocchio", "RK4", "pinocchio_ref", "h", [1e-3, 1e-4], {}),
-    ]
-    for tool, variant, module, key, values, extra in generators:
-        gen = importlib.import_module(f"harness.{module}")
-        for v in values:
-            def run(gen=gen, key=key, v=v, extra=extra):
-                traj, _ = gen.generate(dc, t_end, 1e-3, **{key: v}, **extra)
-                return traj.t, traj.q
-            yield tool, variant, f"{key} = {v:g}", run
+    model = mbfg.load(str(dc))
+    for gen in generators.REGISTRY.values():
+        why = gen.refusal(model)       # checked here: not part of the timed call
+        for variant, key, values, extra in gen.sweeps:
+            for v in values:
+                def run(gen=gen, key=key, v=v, extra=extra, why=why):
+                    if why:
+                        raise tj.Unsupported(why)
+                    traj, _ = gen.generate(dc, t_end, 1e-3, {**extra, key: v})
+                    return traj.t, traj.q
+                yield gen.label, variant, f"{key} = {v:g}", run
 
 
 def measure(title, dc_scene, ic_scene, ref, t_end) -> list[dict]:
@@ -137,9 +131,12 @@ def plot(rows: list[dict], title: str, path: pathlib.Path) -> None:
     plt.close(fig)
 
 
-def write(reports: pathlib.Path, machine: str) -> list[dict]:
+def write(reports: pathlib.Path, machine: str, scenes=None) -> list[dict]:
     all_rows, parts = [], []
+    reports.mkdir(parents=True, exist_ok=True)
     for title, (dc, ic, ref, t_end) in SCENES.items():
+        if scenes is not None and title not in scenes:
+            continue
         report.progress(f"accuracy against time: {title}")
         rows = measure(title, dc, ic, ref, t_end)
         all_rows += rows
@@ -158,10 +155,31 @@ def write(reports: pathlib.Path, machine: str) -> list[dict]:
             "Raw numbers: [accuracy-vs-time.csv](accuracy-vs-time.csv).\n\n" + "\n".join(parts))
     (reports / "accuracy-vs-time.md").write_text(page)
     report.write_csv(reports / "accuracy-vs-time.csv", all_rows)
-    report.progress("wrote reports/accuracy-vs-time.md, .csv, .png")
+    report.progress(f"wrote {tj.display_path(reports)}/accuracy-vs-time.md, .csv, .png")
     return all_rows
 
 
+def main(argv=None) -> int:
+    global REPEATS
+    ap = argparse.ArgumentParser(prog="python -m harness.timing",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=pathlib.Path, default=report.REPORTS,
+                    help="folder for accuracy-vs-time.md, .csv, .png (default: reports/)")
+    ap.add_argument("--scenes", default=",".join(SCENES),
+                    help="comma-separated scene titles (default: %(default)s)")
+    ap.add_argument("--repeats", type=int, default=REPEATS,
+                    help="runs per point, the median is kept (default: %(default)s)")
+    args = ap.parse_args(argv)
+    chosen = [t.strip() for t in args.scenes.split(",") if t.strip()]
+    unknown = [t for t in chosen if t not in SCENES]
+    if unknown or not chosen:
+        ap.error(f"unknown scene title(s) {', '.join(unknown)}; one of {', '.join(SCENES)}")
+    if args.repeats < 1:
+        ap.error("--repeats must be at least 1")
+    REPEATS = args.repeats
+    write(args.out, report.machine(), chosen)
+    return 0
+
+
 if __name__ == "__main__":
-    write(report.REPORTS, report.machine())
-    sys.exit(0)
+    sys.exit(main())

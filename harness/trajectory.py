@@ -7,12 +7,15 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import functools
 import gzip
 import hashlib
 import io
 import json
 import pathlib
 import platform
+import re
+import subprocess
 from importlib import metadata
 
 import numpy as np
@@ -75,10 +78,76 @@ def read(path: pathlib.Path) -> Trajectory:
                       data[:, 1 + 2 * n:1 + 3 * n])
 
 
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+# A scene's `mechanism:` key (block style at the top level, or inside a top-level flow
+# mapping): the only other file a scene reads (docs/scene-format.md, section 10).
+_MECHANISM = re.compile(r"""(?:^|[{,][ \t]*)mechanism[ \t]*:[ \t]*(?P<v>"[^"]*"|'[^']*'|[^\s,}#][^,}#\n]*)""",
+                        re.MULTILINE)
+
+
+def display_path(path: str | pathlib.Path) -> str:
+    """A path for a record: relative to the repository when inside it (so that records
+    do not carry the writing machine's folders), else as given."""
+    try:
+        return pathlib.Path(path).resolve().relative_to(ROOT).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def scene_files(scene: str | pathlib.Path) -> list[pathlib.Path]:
+    """Every file the scene reads: itself, then the MBSE file it names with `mechanism:`
+    (relative to the scene's folder), if any."""
+    scene = pathlib.Path(scene)
+    files = [scene]
+    text = scene.read_bytes().decode("utf-8", errors="replace")
+    m = _MECHANISM.search(text)
+    if m:
+        name = m.group("v").strip()
+        if name[:1] in "'\"" and name[-1:] == name[:1]:
+            name = name[1:-1]
+        files.append(scene.parent / name)
+    return files
+
+
+def file_hash(path: str | pathlib.Path) -> str:
+    return "sha256:" + hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
 def scene_hash(scene: str | pathlib.Path) -> str:
-    """sha256 of the scene file's bytes (and of the MBSE file it names, if any)."""
-    h = hashlib.sha256(pathlib.Path(scene).read_bytes())
+    """sha256 of what the scene reads. A scene alone: of its bytes; a scene naming an
+    MBSE file: of the sha256 digests of the scene's and the MBSE file's bytes, in that
+    order (names left out, so that moving the files keeps the hash)."""
+    files = scene_files(scene)
+    if len(files) == 1:
+        return file_hash(files[0])
+    h = hashlib.sha256()
+    for f in files:
+        h.update(hashlib.sha256(f.read_bytes()).digest())
     return "sha256:" + h.hexdigest()
+
+
+def is_current(record: dict, scene: str | pathlib.Path) -> bool:
+    """Whether a provenance record was written from the scene's files as they are now.
+    Records written before `files` was recorded hashed the scene file alone."""
+    if "files" not in record:
+        return record.get("scene_hash") == file_hash(scene)
+    return record.get("scene_hash") == scene_hash(scene)
+
+
+@functools.lru_cache(maxsize=None)
+def git_state() -> dict:
+    """The repository's commit and whether its tracked files differ from it (the
+    harness and the scenes of the suite live there); {} outside a git checkout."""
+    def git(*args):
+        return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True,
+                              text=True, timeout=30, check=True).stdout.strip()
+    try:
+        commit = git("rev-parse", "HEAD")
+        dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    return {"commit": commit, "dirty": dirty}
 
 
 def versions(*packages: str) -> dict[str, str]:
@@ -100,8 +169,10 @@ def provenance(generator: str, scene: str | pathlib.Path, formulation: str,
         "formulation": formulation,
         "settings": settings,
         "wall_time_s": wall_time,
-        "scene": str(scene),
+        "scene": display_path(scene),
         "scene_hash": scene_hash(scene),
+        "files": {display_path(f): file_hash(f) for f in scene_files(scene)},
+        "git": git_state(),
         "versions": versions("numpy", *packages),
         "machine": platform.machine(),
         "date": datetime.date.today().isoformat(),
@@ -115,3 +186,42 @@ def write_provenance(path: pathlib.Path, record: dict) -> None:
 
 class Unsupported(ValueError):
     """A scene element a generator cannot model: it refuses rather than drop it."""
+
+
+def main(argv=None) -> int:
+    """Summarizes a trajectory file, or the difference of two on their common times."""
+    import argparse
+    import sys
+    ap = argparse.ArgumentParser(
+        prog="python -m harness.trajectory",
+        description="Summarize a trajectory in the CSV contract (plain or .gz), or compare "
+                    "two (max |Δq| per coordinate at the times both have).")
+    ap.add_argument("file", type=pathlib.Path)
+    ap.add_argument("other", type=pathlib.Path, nargs="?")
+    args = ap.parse_args(argv)
+    try:
+        a = read(args.file)
+        b = read(args.other) if args.other else None
+    except (OSError, ValueError) as e:
+        print(f"trajectory: {' '.join(str(e).split())}", file=sys.stderr)
+        return 1
+    print(f"{args.file}: {len(a.t)} rows, t from {a.t[0]:g} to {a.t[-1]:g} s, "
+          f"{len(a.names)} coordinates: {', '.join(a.names)}")
+    if b is None:
+        return 0
+    if a.names != b.names:
+        print(f"trajectory: the coordinates differ ({', '.join(b.names)})", file=sys.stderr)
+        return 1
+    common, ia, ib = np.intersect1d(np.round(a.t, 9), np.round(b.t, 9), return_indices=True)
+    if not len(common):
+        print("trajectory: no common times", file=sys.stderr)
+        return 1
+    d = np.max(np.abs(a.q[ia] - b.q[ib]), axis=0)
+    print(f"max |Δq| over {len(common)} common times:")
+    for name, v in zip(a.names, d):
+        print(f"  {name:<16} {v:.3e}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

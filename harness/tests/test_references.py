@@ -20,7 +20,7 @@ def provenance(name):
 @pytest.mark.parametrize("name", list(refs.SUITE))
 def test_reference_is_current_and_finite(name):
     prov = provenance(name)
-    assert prov["scene_hash"] == tj.scene_hash(ROOT / "scenes" / f"{name}.yaml"), \
+    assert tj.is_current(prov, ROOT / "scenes" / f"{name}.yaml"), \
         f"references/{name} is stale: its scene changed (make reference)"
     traj = tj.read(ROOT / "references" / name / "reference.csv.gz")
     assert np.all(np.isfinite(traj.q))
