@@ -198,7 +198,9 @@ fn non_conservative(force: &Force) -> Option<Force> {
             rest_angle: *rest_angle,
             damping: *damping,
         }),
-        Force::Torque { .. } | Force::PointForce { .. } => Some(force.clone()),
+        Force::Torque { .. } | Force::PointForce { .. } | Force::Motor { .. } => {
+            Some(force.clone())
+        }
     }
 }
 
@@ -208,6 +210,7 @@ fn effect_name(effect: &Effect) -> &str {
         Effect::SpringDamper { name, .. }
         | Effect::RotationalSpringDamper { name, .. }
         | Effect::Torque { name, .. }
+        | Effect::Motor { name, .. }
         | Effect::Force { name, .. } => name,
     }
 }

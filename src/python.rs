@@ -575,6 +575,18 @@ impl PyModel {
                         d.set_item("rest_angle", rest_angle)?;
                         d.set_item("damping", damping)?;
                     }
+                    Effect::Motor {
+                        name,
+                        coordinate: c,
+                        stall_torque,
+                        no_load_speed,
+                    } => {
+                        d.set_item("type", "dc_motor")?;
+                        d.set_item("name", name)?;
+                        d.set_item("coordinate", coordinate(*c))?;
+                        d.set_item("stall_torque", stall_torque)?;
+                        d.set_item("no_load_speed", no_load_speed)?;
+                    }
                     Effect::Torque {
                         name,
                         coordinate: c,

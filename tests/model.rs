@@ -220,7 +220,12 @@ fn conservative_forces_are_minus_the_gradient_of_the_potential() {
 #[test]
 fn force_jacobians_match_finite_differences() {
     let mut rng = Rng(9);
-    for name in ["spring-damper.yaml", "slotted-lever.yaml", "fourbar.yaml"] {
+    for name in [
+        "spring-damper.yaml",
+        "slotted-lever.yaml",
+        "fourbar.yaml",
+        "driven/dc-motor-crank-rocker.yaml",
+    ] {
         let model = load(name);
         for _ in 0..10 {
             let q = random_configuration(&model, &mut rng);

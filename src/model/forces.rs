@@ -30,6 +30,12 @@ pub enum Force {
         rest_angle: f64,
         damping: f64,
     },
+    /// T_s (1 − θ̇/ω₀) on the coordinate at `index`.
+    Motor {
+        index: usize,
+        stall_torque: f64,
+        no_load_speed: f64,
+    },
     Torque {
         index: usize,
         value: TimeFunction,
@@ -97,6 +103,16 @@ pub fn assemble(model: &Model) -> Result<Vec<Force>> {
                 stiffness: *stiffness,
                 rest_angle: *rest_angle,
                 damping: *damping,
+            },
+            Effect::Motor {
+                coordinate,
+                stall_torque,
+                no_load_speed,
+                ..
+            } => Force::Motor {
+                index: rel(*coordinate),
+                stall_torque: *stall_torque,
+                no_load_speed: *no_load_speed,
             },
             Effect::Torque {
                 coordinate, value, ..
@@ -215,6 +231,11 @@ impl Force {
             } => {
                 out[*index] -= stiffness * (q[*index] - rest_angle) + damping * dq[*index];
             }
+            Force::Motor {
+                index,
+                stall_torque,
+                no_load_speed,
+            } => out[*index] += stall_torque * (1.0 - dq[*index] / no_load_speed),
             Force::Torque { index, value } => out[*index] += value.at(t)?,
             Force::PointForce { index, value } => {
                 out[*index] += value[0].at(t)?;
@@ -298,6 +319,11 @@ impl Force {
                 kq[index * n + index] -= stiffness;
                 kv[index * n + index] -= damping;
             }
+            Force::Motor {
+                index,
+                stall_torque,
+                no_load_speed,
+            } => kv[index * n + index] -= stall_torque / no_load_speed,
             Force::Gravity { .. } | Force::Torque { .. } | Force::PointForce { .. } => {}
         }
         Ok(())
@@ -340,7 +366,7 @@ impl Force {
                 rest_angle,
                 ..
             } => 0.5 * stiffness * (q[*index] - rest_angle).powi(2),
-            Force::Torque { .. } | Force::PointForce { .. } => 0.0,
+            Force::Torque { .. } | Force::PointForce { .. } | Force::Motor { .. } => 0.0,
         }
     }
 }

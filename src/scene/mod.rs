@@ -161,6 +161,15 @@ pub enum Effect {
         rest_angle: f64,
         damping: f64,
     },
+    /// A DC motor on an angle coordinate: its torque falls linearly with its speed,
+    /// T = T_s (1 − ω/ω₀), from the stall torque T_s at rest to 0 at the no-load
+    /// speed ω₀ (and brakes beyond it).
+    Motor {
+        name: String,
+        coordinate: usize,
+        stall_torque: f64,
+        no_load_speed: f64,
+    },
     /// A torque on an angle coordinate.
     Torque {
         name: String,
@@ -273,7 +282,7 @@ impl Scene {
             Effect::Gravity { .. } => true,
             Effect::SpringDamper { damping, .. }
             | Effect::RotationalSpringDamper { damping, .. } => *damping == 0.0,
-            Effect::Torque { .. } | Effect::Force { .. } => false,
+            Effect::Torque { .. } | Effect::Force { .. } | Effect::Motor { .. } => false,
         })
     }
 }
@@ -343,6 +352,17 @@ impl Effect {
                 v(*stiffness),
                 v(*rest_angle),
                 v(*damping)
+            ),
+            Effect::Motor {
+                name,
+                coordinate,
+                stall_torque,
+                no_load_speed,
+            } => format!(
+                "{name}: DC motor on {}: stall torque {} N·m, no-load speed {} rad/s",
+                c(*coordinate),
+                v(*stall_torque),
+                v(*no_load_speed)
             ),
             Effect::Torque {
                 name,

@@ -589,6 +589,16 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                 }
                 Effect::RotationalSpringDamper { name: name.clone(), coordinate, stiffness, rest_angle, damping }
             }
+            "dc_motor" => {
+                let coordinate = angle_coordinate(ctx, scene, &mut f)?;
+                let stall_torque = ctx.num(f.req(ctx, "stall_torque")?, &f.key("stall_torque"), &[])?;
+                let no_load_speed = ctx.num(f.req(ctx, "no_load_speed")?, &f.key("no_load_speed"), &[])?;
+                if !(no_load_speed != 0.0) {
+                    return Err(ctx.err(item.line, &f.key("no_load_speed"), "must not be 0 (the speed at which the motor's torque falls to 0, rad/s; negative turns it the other way)"));
+                }
+                f.finish(ctx, &["type", "name", "coordinate", "stall_torque", "no_load_speed"])?;
+                Effect::Motor { name: name.clone(), coordinate, stall_torque, no_load_speed }
+            }
             "torque" => {
                 let coordinate = angle_coordinate(ctx, scene, &mut f)?;
                 let value = ctx.time_function(f.req(ctx, "value")?, &f.key("value"))?;
@@ -613,7 +623,7 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                 Effect::Force { name: name.clone(), point, value }
             }
             other => {
-                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown effect type '{}' (expected gravity, spring_damper, rotational_spring_damper, torque or force)", excerpt(other, QUOTE))))
+                return Err(ctx.err(ty_line, &f.key("type"), format!("unknown effect type '{}' (expected gravity, spring_damper, rotational_spring_damper, dc_motor, torque or force)", excerpt(other, QUOTE))))
             }
         };
         names.push(name);
