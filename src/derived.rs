@@ -4,7 +4,9 @@
 //!   point, unwrapped over time), the position and the velocity of its centre of mass;
 //! - `energy`: kinetic and potential energy, the work done since t = 0 by every
 //!   effect that has no potential (dampers, torques, forces), and the energy balance
-//!   that these should close.
+//!   that these should close;
+//! - `joints`: the force the rest of the mechanism exerts on every body at each of its
+//!   points ([`crate::reactions`]).
 
 use crate::error::{Error, Result};
 use crate::forward::Trajectory;
@@ -18,16 +20,18 @@ use std::f64::consts::PI;
 pub enum Group {
     Bodies,
     Energy,
+    Joints,
 }
 
 impl Group {
     /// Every group, in the order their columns are written.
-    pub const ALL: [Group; 2] = [Group::Bodies, Group::Energy];
+    pub const ALL: [Group; 3] = [Group::Bodies, Group::Energy, Group::Joints];
 
     pub fn name(self) -> &'static str {
         match self {
             Group::Bodies => "bodies",
             Group::Energy => "energy",
+            Group::Joints => "joints",
         }
     }
 
@@ -109,10 +113,43 @@ pub fn columns(
         let next = match g {
             Group::Bodies => bodies(model, trajectory),
             Group::Energy => energy(model, trajectory, actuators)?,
+            Group::Joints => joints(model, trajectory, actuators)?,
         };
         out = out.beside(next, trajectory.len());
     }
     Ok(out)
+}
+
+/// `F:<body>@<point>.x`, `.y` for every body and each of its points: the force on
+/// the body there, N. `actuators` (an inverse solve's) are among the loads.
+pub fn joints(
+    model: &Model,
+    trajectory: &Trajectory,
+    actuators: Option<&[f64]>,
+) -> Result<Columns> {
+    let scene = &model.scene;
+    let mut names = Vec::new();
+    for b in &scene.bodies {
+        for &p in &b.points {
+            for axis in ["x", "y"] {
+                names.push(format!("F:{}@{}.{axis}", b.name, scene.points[p].name));
+            }
+        }
+    }
+    let n = model.n();
+    let mut values = Vec::with_capacity(trajectory.len() * names.len());
+    for k in 0..trajectory.len() {
+        let forces = crate::reactions::joint_forces(
+            model,
+            trajectory.q_at(k),
+            trajectory.dq_at(k),
+            &trajectory.ddq[k * n..(k + 1) * n],
+            trajectory.t[k],
+            actuators.map(|a| &a[k * n..(k + 1) * n]),
+        )?;
+        values.extend(forces.iter().flatten().flatten());
+    }
+    Ok(Columns { names, values })
 }
 
 /// `angle:<body>`, `x:<body>`, `y:<body>`, `vx:<body>`, `vy:<body>` for every body.

@@ -29,6 +29,7 @@ pub mod motions;
 pub mod plausibility;
 #[cfg(feature = "python")]
 mod python;
+pub mod reactions;
 pub mod reference;
 pub mod scene;
 pub mod smoother;

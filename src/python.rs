@@ -715,6 +715,41 @@ impl PyModel {
             Ok(s.ddq.as_slice().to_vec())
         })
     }
+    /// Joint forces: (body, point, fx, fy) for every body and each of its points.
+    fn joint_forces(
+        &self,
+        q: &Bound<'_, PyAny>,
+        dq: &Bound<'_, PyAny>,
+        ddq: &Bound<'_, PyAny>,
+        t: &Bound<'_, PyAny>,
+    ) -> PyResult<Vec<(String, String, f64, f64)>> {
+        guard(|| {
+            let (q, dq, ddq) = (
+                self.vector(q, "q")?,
+                self.vector(dq, "dq")?,
+                self.vector(ddq, "ddq")?,
+            );
+            let t = arg_real(t, "t")?;
+            let forces = crate::reactions::joint_forces(
+                &self.model,
+                q.as_slice(),
+                dq.as_slice(),
+                ddq.as_slice(),
+                t,
+                None,
+            )
+            .map_err(arg_error)?;
+            let scene = &self.model.scene;
+            let mut out = Vec::new();
+            for (b, per_point) in forces.iter().enumerate() {
+                let body = &scene.bodies[b];
+                for (&p, f) in body.points.iter().zip(per_point) {
+                    out.push((body.name.clone(), scene.points[p].name.clone(), f[0], f[1]));
+                }
+            }
+            Ok(out)
+        })
+    }
     fn point_position(
         &self,
         q: &Bound<'_, PyAny>,

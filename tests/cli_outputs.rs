@@ -304,3 +304,53 @@ fn inverse_writes_gzip_samples_and_closes_the_balance_with_the_drive_work() {
     let balance = max_abs(&table.column("energy_balance").unwrap());
     assert!(balance <= 1e-3 * peak, "{balance} vs {peak}");
 }
+
+/// `--columns joints`: the forces on the bodies at a pin balance (the four-bar's pins
+/// carry no mass and no load), and the ground's reactions hold the mechanism up.
+#[test]
+fn joint_force_columns_balance_at_the_pins() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_mbfg"))
+        .args([
+            "simulate",
+            "scenes/fourbar.yaml",
+            "--dt",
+            "0.001",
+            "--t-end",
+            "0.5",
+            "--columns",
+            "joints",
+        ])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| {
+        header
+            .iter()
+            .position(|h| *h == name)
+            .unwrap_or_else(|| panic!("{name}"))
+    };
+    let (a, b) = (col("F:crank@P1.x"), col("F:coupler@P1.x"));
+    let (c, d) = (col("F:coupler@P2.y"), col("F:rocker@P2.y"));
+    let mut rows = 0;
+    for line in lines {
+        let v: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
+        assert!(
+            (v[a] + v[b]).abs() <= 1e-6 * v[a].abs().max(1.0),
+            "P1: {} {}",
+            v[a],
+            v[b]
+        );
+        assert!(
+            (v[c] + v[d]).abs() <= 1e-6 * v[c].abs().max(1.0),
+            "P2: {} {}",
+            v[c],
+            v[d]
+        );
+        rows += 1;
+    }
+    assert_eq!(rows, 501);
+}

@@ -91,6 +91,13 @@ class Model:
         force as (Fx, Fy) in N; other effects (gravity, springs) raise InvalidArgument."""
         return self._m.effect_value(i, t)
 
+    def joint_forces(self, q, dq, ddq, t: float) -> dict[tuple[str, str], np.ndarray]:
+        """The force the rest of the mechanism exerts on each body at each of its points,
+        N, global axes, at a consistent state (a row of a result): {(body, point):
+        array([fx, fy])}. At a pin the forces on the bodies that meet there balance the
+        pin's own load; at a fixed point, minus their sum is the ground's reaction."""
+        return {(b, p): np.array([fx, fy]) for b, p, fx, fy in self._m.joint_forces(q, dq, ddq, t)}
+
     def point_position(self, q, name: str) -> tuple[float, float]:
         """(x, y) of a named point at q, in m (fixed points included)."""
         return self._m.point_position(q, name)

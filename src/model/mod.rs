@@ -10,7 +10,8 @@ pub mod mass;
 
 use crate::error::{Error, Result};
 use crate::scene::{self, ConstraintKind, Effect, RelativeKind, Scene};
-use constraints::{Equation, MAX_LOCAL};
+use constraints::Equation;
+pub use constraints::MAX_LOCAL;
 use forces::Force;
 use nalgebra::{DMatrix, DVector};
 
@@ -26,6 +27,10 @@ pub enum PointSlot {
 pub struct Constraint {
     pub name: String,
     pub equation: Equation,
+    /// The scene points of its local coordinates, in order (two entries of u each).
+    pub points: Vec<usize>,
+    /// The body whose rigidity it states, if any.
+    pub body: Option<usize>,
     /// For each local coordinate, its index in q, or `None` for a fixed point's.
     index: [Option<usize>; MAX_LOCAL],
     /// Values of the fixed local coordinates.
@@ -46,9 +51,18 @@ impl Constraint {
         Constraint {
             name,
             equation,
+            points: Vec::new(),
+            body: None,
             index,
             fixed,
         }
+    }
+
+    /// Records which scene points its local coordinates belong to, and its body.
+    fn on(mut self, points: &[usize], body: Option<usize>) -> Self {
+        self.points = points.to_vec();
+        self.body = body;
+        self
     }
 
     /// Indices in q of the coordinates this constraint involves.
@@ -266,7 +280,7 @@ impl Model {
         let scene = self.scene.clone();
         let pname = |i: usize| scene.points[i].name.clone();
         let mut out = Vec::new();
-        for body in &scene.bodies {
+        for (bi, body) in scene.bodies.iter().enumerate() {
             let pts = &body.points;
             let distance = |a: usize, b: usize, length: f64| {
                 Constraint::new(
@@ -274,6 +288,7 @@ impl Model {
                     Equation::Distance { length },
                     &self.slots(&[a, b], None),
                 )
+                .on(&[a, b], Some(bi))
             };
             out.push(distance(pts[0], pts[1], body.length));
             let p = |i: usize| [scene.points[i].x, scene.points[i].y];
@@ -290,17 +305,20 @@ impl Model {
                     // A point on the line of the first two: two distances would
                     // leave it free across the line to first order.
                     out.push(distance(a, c, dac));
-                    out.push(Constraint::new(
-                        format!(
-                            "{}: on line({},{}) of {}",
-                            body.name,
-                            pname(a),
-                            pname(b),
-                            pname(c)
-                        ),
-                        Equation::PointOnLine,
-                        &self.slots(&[c, a, b], None),
-                    ));
+                    out.push(
+                        Constraint::new(
+                            format!(
+                                "{}: on line({},{}) of {}",
+                                body.name,
+                                pname(a),
+                                pname(b),
+                                pname(c)
+                            ),
+                            Equation::PointOnLine,
+                            &self.slots(&[c, a, b], None),
+                        )
+                        .on(&[c, a, b], Some(bi)),
+                    );
                 }
             }
         }
@@ -326,11 +344,14 @@ impl Model {
                     vec![point, along[0], along[1]],
                 ),
             };
-            out.push(Constraint::new(
-                format!("coordinate {}", coord.name),
-                equation,
-                &self.slots(&pts, qi),
-            ));
+            out.push(
+                Constraint::new(
+                    format!("coordinate {}", coord.name),
+                    equation,
+                    &self.slots(&pts, qi),
+                )
+                .on(&pts, None),
+            );
         }
         for c in &scene.constraints {
             out.push(match c.kind {
@@ -338,13 +359,15 @@ impl Model {
                     c.name.clone(),
                     Equation::Distance { length },
                     &self.slots(&points, None),
-                ),
+                )
+                .on(&points, None),
                 ConstraintKind::FixedSlider { point, line }
                 | ConstraintKind::MobileSlider { point, line } => Constraint::new(
                     c.name.clone(),
                     Equation::PointOnLine,
                     &self.slots(&[point, line[0], line[1]], None),
-                ),
+                )
+                .on(&[point, line[0], line[1]], None),
             });
         }
         self.constraints = out;
