@@ -56,10 +56,19 @@ def test_the_docs_hold_snippets():
     assert len(PYTHON) >= 3 and len(COMMANDS) >= 3
 
 
+def workdir(tmp_path):
+    """A folder that looks like the repository's root to a snippet (its data folders
+    linked in), so that what a snippet writes lands outside the repository."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    for name in ("scenes", "examples", "harness", "references", "tests", "target"):
+        (tmp_path / name).symlink_to(ROOT / name)
+    return tmp_path
+
+
 @pytest.mark.parametrize("doc, line, code", PYTHON, ids=[f"{d}:{n}" for d, n, _ in PYTHON])
-def test_python_snippet_runs(doc, line, code):
-    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                       timeout=120)
+def test_python_snippet_runs(doc, line, code, tmp_path):
+    r = subprocess.run([sys.executable, "-c", code], cwd=workdir(tmp_path), capture_output=True,
+                       text=True, timeout=120)
     assert r.returncode == 0, f"{doc}:{line}:\n{r.stderr[-2000:]}"
 
 
@@ -69,7 +78,8 @@ def test_command_runs(doc, line, argv, tmp_path):
     if "--out" in argv:
         i = argv.index("--out") + 1
         argv[i] = str(tmp_path / pathlib.Path(argv[i]).name)
-    r = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    r = subprocess.run(argv, cwd=workdir(tmp_path / "root"), capture_output=True, text=True,
+                       timeout=120)
     assert r.returncode == 0, f"{doc}:{line}: {' '.join(argv)}\n{r.stderr[-2000:]}"
 
 
