@@ -88,6 +88,29 @@ enum Command {
         #[arg(long)]
         strict: bool,
     },
+    /// Draw a run: the mechanism's motion from a trajectory CSV, as a GIF or an MP4
+    /// (matplotlib, through the mbfg Python module: `make python`; MBFG_PYTHON names
+    /// the interpreter, default .venv/bin/python beside the current directory, then
+    /// python3).
+    Animate {
+        /// Trajectory CSV written by `mbfg simulate` (.csv or .csv.gz).
+        run: PathBuf,
+        /// The scene the run was made from.
+        #[arg(long)]
+        scene: PathBuf,
+        /// GIF or MP4 to write [default: the run's name with .gif].
+        #[arg(long, value_name = "FILE.gif")]
+        out: Option<PathBuf>,
+        /// Frames per second of video.
+        #[arg(long, default_value_t = 25)]
+        fps: u32,
+        /// Seconds of motion per second of video.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        /// Draw the path of this point.
+        #[arg(long, value_name = "POINT")]
+        trail: Option<String>,
+    },
     /// Inverse dynamics: the forces on the prescribed coordinates that produce their
     /// motion, and the motion of all the others, solved over the whole horizon.
     Inverse {
@@ -400,6 +423,14 @@ fn run(cli: Cli) -> Result<(), Failure> {
             let written = Written::new(&written, dt)?;
             simulate(model, &options, out.as_deref(), &scene, strict, &written)
         }
+        Command::Animate {
+            run,
+            scene,
+            out,
+            fps,
+            speed,
+            trail,
+        } => animate(&run, &scene, out.as_deref(), fps, speed, trail.as_deref()),
         Command::Inverse {
             scene,
             trajectory,
@@ -779,4 +810,58 @@ mod tests {
         assert!(Written::new(&args(Some(0.0015), None), 0.001).is_err());
         assert!(Written::new(&args(None, Some("nope")), 0.001).is_err());
     }
+}
+
+/// `mbfg animate`: hands the drawing to the Python module's `mbfg.animate`.
+fn animate(
+    run: &Path,
+    scene: &Path,
+    out: Option<&Path>,
+    fps: u32,
+    speed: f64,
+    trail: Option<&str>,
+) -> Result<(), Failure> {
+    let python = std::env::var_os("MBFG_PYTHON")
+        .map(PathBuf::from)
+        .or_else(|| Some(PathBuf::from(".venv/bin/python")).filter(|p| p.exists()))
+        .unwrap_or_else(|| PathBuf::from("python3"));
+    let mut cmd = std::process::Command::new(&python);
+    cmd.args(["-m", "mbfg.animation"])
+        .arg(run)
+        .arg("--scene")
+        .arg(scene)
+        .args(["--fps", &fps.to_string(), "--speed", &speed.to_string()]);
+    if let Some(out) = out {
+        cmd.arg("--out").arg(out);
+    }
+    if let Some(p) = trail {
+        cmd.args(["--trail", p]);
+    }
+    let done = cmd
+        .stderr(std::process::Stdio::piped())
+        .output()
+        .map_err(|e| {
+            Failure::Input(format!(
+                "mbfg animate runs {} (the mbfg Python module and matplotlib; MBFG_PYTHON names another interpreter): {e}",
+                python.display()
+            ))
+        })?;
+    if done.status.success() {
+        return Ok(());
+    }
+    // One line: the module's own error line, or what stopped the interpreter.
+    let err = String::from_utf8_lossy(&done.stderr);
+    let last = err
+        .lines()
+        .rev()
+        .find(|l| !l.trim().is_empty())
+        .unwrap_or("");
+    Err(match last.strip_prefix("error: ") {
+        Some(m) => Failure::Input(m.to_string()),
+        None if last.contains("No module named") => Failure::Input(format!(
+            "{} cannot import the mbfg Python module ({last}): make python builds it into .venv; MBFG_PYTHON names another interpreter",
+            python.display()
+        )),
+        None => Failure::Run(format!("drawing the run failed: {last}")),
+    })
 }

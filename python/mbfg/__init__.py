@@ -19,7 +19,7 @@ from . import _native
 from ._native import InternalError, InvalidArgument, SceneError, SolveError, __version__
 
 __all__ = ["InternalError", "InvalidArgument", "Model", "PlausibilityWarning", "Result", "SceneError", "SolveError",
-           "inverse", "load", "simulate"]
+           "animate", "inverse", "load", "simulate"]
 
 
 class Model:
@@ -126,6 +126,8 @@ class Result:
     one (on an exception's `.result`) has `summary["complete"]` False."""
 
     def __init__(self, raw: dict):
+        # The scene (path or Model) it was run on, for `animate`; set by `simulate`.
+        self.scene = None
         self.columns: list[str] = raw["columns"]
         # Row-major float64s in native byte order, in a bytearray: wrapped, not copied.
         self.data = np.frombuffer(raw["data"], dtype=float).reshape(raw["rows"], len(self.columns))
@@ -169,9 +171,28 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
     initial velocities of independent coordinates. Ctrl-C stops the run within ~0.1 s
     with KeyboardInterrupt; that and SolveError carry the steps solved as `.result`."""
     native = scene._m if isinstance(scene, Model) else scene
-    return _run(_native.simulate, native, coords, dt, t_end, window, batch, max_iterations,
-                integrator, noise, continue_on_failure, past, _dict(params), _dict(q0),
-                _dict(dq0))
+    try:
+        result = _run(_native.simulate, native, coords, dt, t_end, window, batch,
+                      max_iterations, integrator, noise, continue_on_failure, past,
+                      _dict(params), _dict(q0), _dict(dq0))
+    except BaseException as e:
+        if isinstance(getattr(e, "result", None), Result):
+            e.result.scene = scene
+        raise
+    # What `animate` draws it with (the overridden parameters' geometry, if any).
+    result.scene = scene if params is None else (
+        load(scene.file, params) if isinstance(scene, Model) else load(scene, params))
+    return result
+
+
+def animate(result: "Result", model: "Model | None" = None, out: str | os.PathLike = "mbfg.gif",
+            fps: int = 25, speed: float = 1.0, trail: str | None = None) -> str:
+    """Writes the mechanism's motion in `result` to a GIF (or an MP4 when `out` ends in
+    .mp4; that needs ffmpeg): bodies as lines, fixed points as triangles, point masses
+    as squares, the time in a corner. `model` defaults to the scene of a result from
+    `simulate`. Returns the path written."""
+    from .animation import animate as draw
+    return draw(result, model, out, fps=fps, speed=speed, trail=trail)
 
 
 def _dict(values):
