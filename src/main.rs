@@ -783,35 +783,6 @@ fn load(path: &Path) -> Result<(Scene, Model), String> {
     Ok((scene, model))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn eta_is_the_mean_pace_times_the_steps_left() {
-        let s = Duration::from_secs;
-        assert_eq!(eta(s(2), 0, 100), None);
-        assert_eq!(eta(s(2), 50, 100), Some(s(2)));
-        assert_eq!(eta(s(2), 25, 100), Some(s(6)));
-        assert_eq!(eta(s(2), 100, 100), Some(s(0)));
-        // A position past the length (never expected) is not negative time.
-        assert_eq!(eta(s(2), 120, 100), Some(s(0)));
-    }
-
-    #[test]
-    fn sample_and_column_options_are_checked() {
-        let args = |sample_dt, columns: Option<&str>| WrittenArgs {
-            sample_dt,
-            columns: columns.map(str::to_string),
-        };
-        let w = Written::new(&args(Some(0.01), Some("energy")), 0.001).unwrap();
-        assert_eq!(w.stride, 10);
-        assert_eq!(w.groups, [mbfg::derived::Group::Energy]);
-        assert!(Written::new(&args(Some(0.0015), None), 0.001).is_err());
-        assert!(Written::new(&args(None, Some("nope")), 0.001).is_err());
-    }
-}
-
 /// `mbfg animate`: hands the drawing to the Python module's `mbfg.animate`.
 fn animate(
     run: &Path,
@@ -864,4 +835,33 @@ fn animate(
         )),
         None => Failure::Run(format!("drawing the run failed: {last}")),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn eta_is_the_mean_pace_times_the_steps_left() {
+        let s = Duration::from_secs;
+        assert_eq!(eta(s(2), 0, 100), None);
+        assert_eq!(eta(s(2), 50, 100), Some(s(2)));
+        assert_eq!(eta(s(2), 25, 100), Some(s(6)));
+        assert_eq!(eta(s(2), 100, 100), Some(s(0)));
+        // A position past the length (never expected) is not negative time.
+        assert_eq!(eta(s(2), 120, 100), Some(s(0)));
+    }
+
+    #[test]
+    fn sample_and_column_options_are_checked() {
+        let args = |sample_dt, columns: Option<&str>| WrittenArgs {
+            sample_dt,
+            columns: columns.map(str::to_string),
+        };
+        let w = Written::new(&args(Some(0.01), Some("energy")), 0.001).unwrap();
+        assert_eq!(w.stride, 10);
+        assert_eq!(w.groups, [mbfg::derived::Group::Energy]);
+        assert!(Written::new(&args(Some(0.0015), None), 0.001).is_err());
+        assert!(Written::new(&args(None, Some("nope")), 0.001).is_err());
+    }
 }
