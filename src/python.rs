@@ -1012,7 +1012,10 @@ fn simulate_run<'py>(
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
         let requested = options.steps();
-        let step_warning = crate::plausibility::step_warning(&model, options.dt);
+        let step_warning: Vec<String> = crate::plausibility::idle_warning(&model)
+            .into_iter()
+            .chain(crate::plausibility::step_warning(&model, options.dt))
+            .collect();
         let (run, signal) = interruptible(py, |progress| {
             forward::simulate_interruptible(model, &options, progress)
         });

@@ -280,3 +280,10 @@ def test_a_step_too_coarse_for_the_stiffest_spring_warns_with_its_numbers():
         warnings.simplefilter("error")
         r = mbfg.simulate(scene, dt=0.01, t_end=0.5)
     assert r.summary["warnings"] == []
+
+
+def test_a_mechanism_nothing_moves_warns():
+    scene = pathlib.Path(__file__).resolve().parents[2] / "scenes/mbse/pick-and-place.yaml"
+    with pytest.warns(mbfg.PlausibilityWarning, match="nothing moves the mechanism"):
+        r = mbfg.simulate(scene, dt=0.01, t_end=0.05)
+    assert r.summary["complete"]
