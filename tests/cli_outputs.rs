@@ -4,36 +4,13 @@
 
 use mbfg::io::{read_table, Table};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
-fn mbfg(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_mbfg"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("run mbfg")
-}
+mod common;
+use common::{mbfg, one_error_line, stderr};
 
 /// A fresh directory of this test's own.
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("mbfg-outputs-{}-{name}", std::process::id()));
-    std::fs::remove_dir_all(&dir).ok();
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// A failing call: the exit code, and exactly one line `error: …` on stderr.
-fn one_error_line(out: &Output, code: i32) -> String {
-    let err = stderr(out);
-    assert_eq!(out.status.code(), Some(code), "stderr: {err}");
-    let text = err.strip_suffix('\n').unwrap_or(&err);
-    assert!(!text.contains('\n'), "one line expected, got:\n{err}");
-    assert!(text.starts_with("error: "), "{text}");
-    text.to_string()
+    common::scratch("outputs", name)
 }
 
 /// `mbfg simulate SCENE --dt 0.001 --t-end T --out OUT` and `extra`; must succeed.
