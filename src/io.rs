@@ -143,7 +143,7 @@ pub fn sampled_rows(len: usize, stride: usize) -> Vec<usize> {
 
 /// Shortest round-trip text of a number: plain for moderate magnitudes, scientific
 /// otherwise (Rust's plain form would spell 1e-30 with thirty zeros).
-fn number(v: f64) -> String {
+pub(crate) fn number(v: f64) -> String {
     let a = v.abs();
     if a == 0.0 || (1e-4..1e7).contains(&a) {
         format!("{v}")

@@ -321,7 +321,8 @@ impl Effect {
     pub fn describe(&self, scene: &Scene) -> String {
         let p = |i: usize| scene.points[i].name.as_str();
         let c = |i: usize| scene.coordinates[i].name.as_str();
-        let v = |x: f64| number(x);
+        // Shortest round-trip form, scientific where plain would run to dozens of digits.
+        let v = crate::io::number;
         match self {
             Effect::Gravity { vector } => {
                 format!("gravity ({}, {}) m/s²", v(vector[0]), v(vector[1]))
@@ -376,15 +377,5 @@ impl Effect {
                 value[1].text
             ),
         }
-    }
-}
-
-/// A scene value as written for people: Rust's shortest form, or scientific notation
-/// for magnitudes that would print dozens of digits.
-fn number(x: f64) -> String {
-    if x == 0.0 || (1e-4..1e9).contains(&x.abs()) {
-        format!("{x}")
-    } else {
-        format!("{x:e}")
     }
 }
