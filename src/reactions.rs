@@ -131,17 +131,14 @@ fn owners(model: &Model) -> Vec<Vec<Option<usize>>> {
             .iter()
             .position(|body| body.points.contains(&a) && body.points.contains(&b))
     };
-    let offset = model.constraints.len() - scene.coordinates.len() - scene.constraints.len();
     model
         .constraints
         .iter()
-        .enumerate()
-        .map(|(k, c)| {
+        .map(|c| {
             if let Some(b) = c.body {
                 return vec![Some(b); c.points.len()];
             }
-            let coordinate = k.checked_sub(offset).and_then(|i| scene.coordinates.get(i));
-            match coordinate.map(|co| &co.kind) {
+            match c.coordinate.map(|i| &scene.coordinates[i].kind) {
                 Some(RelativeKind::AbsoluteAngle { from, to }) => {
                     vec![body_of(*from, *to); 2]
                 }

@@ -31,6 +31,8 @@ pub struct Constraint {
     pub points: Vec<usize>,
     /// The body whose rigidity it states, if any.
     pub body: Option<usize>,
+    /// The scene coordinate (index in `scene.coordinates`) it defines, if any.
+    pub coordinate: Option<usize>,
     /// For each local coordinate, its index in q, or `None` for a fixed point's.
     index: [Option<usize>; MAX_LOCAL],
     /// Values of the fixed local coordinates.
@@ -53,9 +55,16 @@ impl Constraint {
             equation,
             points: Vec::new(),
             body: None,
+            coordinate: None,
             index,
             fixed,
         }
+    }
+
+    /// Records the scene coordinate it defines.
+    fn defining(mut self, coordinate: usize) -> Self {
+        self.coordinate = Some(coordinate);
+        self
     }
 
     /// Records which scene points its local coordinates belong to, and its body.
@@ -350,7 +359,8 @@ impl Model {
                     equation,
                     &self.slots(&pts, qi),
                 )
-                .on(&pts, None),
+                .on(&pts, None)
+                .defining(k),
             );
         }
         for c in &scene.constraints {
