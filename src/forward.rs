@@ -8,9 +8,11 @@ use crate::factors::*;
 use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
 use crate::linalg::dense;
 
-use crate::model::Model;
+use crate::model::{Model, State};
 use crate::smoother::{self, Mode, Next};
 use crate::solver::{Past, Settings, SolveReport, Termination};
+use crate::tangent::{Rule, TangentIntegrator};
+use nalgebra::DVector;
 use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -29,6 +31,22 @@ pub enum Coordinates {
 pub enum Integrator {
     Trapezoidal,
     Euler,
+}
+
+/// What the integrator factors ask of a step in dependent coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DcIntegrators {
+    /// The paper's ([`DcIntegrators::Full`]); a run in which a solve fails with them
+    /// (not at an ill-posed configuration, not interrupted) is run again with
+    /// [`DcIntegrators::Tangent`], and [`RunSummary::tangent_after`] says so.
+    Auto,
+    /// Only along the directions the constraints leave free (see [`crate::tangent`]):
+    /// one soft equation per unknown, all of them satisfied, so that every window
+    /// length and the batch have the solution of N_w = 1.
+    Tangent,
+    /// On all n coordinates, as in the paper: 2m more equations than unknowns per
+    /// step, solved as a least-squares compromise weighted by the σ's.
+    Full,
 }
 
 /// Standard deviations of the soft factors. Constraint factors (f_pc, f_vc, f^i_ac)
@@ -105,6 +123,8 @@ pub struct ForwardOptions {
     pub t_end: f64,
     pub mode: Mode,
     pub integrator: Integrator,
+    /// The integrator factors of dependent coordinates (IC is unaffected).
+    pub dc_integrators: DcIntegrators,
     pub noise: NoiseModels,
     pub settings: Settings,
     /// Go on after a step whose solve did not converge (it is still reported).
@@ -119,6 +139,7 @@ impl ForwardOptions {
             t_end,
             mode,
             integrator: Integrator::Trapezoidal,
+            dc_integrators: DcIntegrators::Auto,
             noise: NoiseModels::default(),
             // Marginal priors while they carry the solves, then conditioned (see [`Past`]).
             settings: Settings {
@@ -220,6 +241,23 @@ impl ForwardGraph {
                 Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt, Noise::Isotropic(sigma))),
             }
         };
+        let dc_integrate = |x: VarKind, dx: VarKind, sigma: f64| -> Box<dyn Factor> {
+            let rule = match options.integrator {
+                Integrator::Trapezoidal => Rule::Trapezoidal,
+                Integrator::Euler => Rule::Euler,
+            };
+            match options.dc_integrators {
+                DcIntegrators::Tangent => Box::new(TangentIntegrator::new(
+                    model.clone(),
+                    x,
+                    dx,
+                    rule,
+                    dt,
+                    Noise::Isotropic(sigma),
+                )),
+                DcIntegrators::Full | DcIntegrators::Auto => integrate(x, dx, n, sigma),
+            }
+        };
         let graph = match options.coordinates {
             Coordinates::Dependent => ChainGraph {
                 layout: Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]),
@@ -229,8 +267,8 @@ impl ForwardGraph {
                     Box::new(PositionConstraints::new(model.clone(), hard.clone())),
                     Box::new(VelocityConstraints::new(model.clone(), hard.clone())),
                     Box::new(Dynamics::new(model.clone(), Noise::Isotropic(nm.dynamics))),
-                    integrate(VarKind::Q, VarKind::Dq, n, nm.integrator_position),
-                    integrate(VarKind::Dq, VarKind::Ddq, n, nm.integrator_velocity),
+                    dc_integrate(VarKind::Q, VarKind::Dq, nm.integrator_position),
+                    dc_integrate(VarKind::Dq, VarKind::Ddq, nm.integrator_velocity),
                 ],
                 initial_factors: vec![
                     Box::new(Prior::new(
@@ -866,6 +904,9 @@ pub struct RunSummary {
     pub reselections: Vec<Reselection>,
     /// Set (to the last step kept) when the caller interrupted the run.
     pub interrupted: Option<usize>,
+    /// With [`DcIntegrators::Auto`]: the failure with the paper's integrator factors
+    /// after which this run was made again with tangent ones.
+    pub tangent_after: Option<StepFailure>,
 }
 
 /// A switch of the independent coordinates during a run: at `step` the coordinates in
@@ -903,6 +944,30 @@ pub fn simulate(
 /// that step's state (its graph's initial priors), as generalized coordinate
 /// partitioning does. Where Φ_q itself loses rank no set helps: the run stops.
 pub fn simulate_interruptible(
+    model: Arc<Model>,
+    options: &ForwardOptions,
+    progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+) -> Result<(Trajectory, RunSummary)> {
+    let (trajectory, summary) = simulate_with(model.clone(), options, progress)?;
+    let retry = options.coordinates == Coordinates::Dependent
+        && options.dc_integrators == DcIntegrators::Auto
+        && summary.interrupted.is_none()
+        && summary.failures.iter().all(|f| f.singular.is_none());
+    let Some(failure) = summary.failures.first().filter(|_| retry) else {
+        return Ok((trajectory, summary));
+    };
+    // The paper's factors ask more equations than a step has unknowns; where their
+    // least-squares compromise does not converge, the tangent ones (one equation per
+    // unknown) usually do.
+    let failure = failure.clone();
+    let mut tangent = options.clone();
+    tangent.dc_integrators = DcIntegrators::Tangent;
+    let (trajectory, mut summary) = simulate_with(model, &tangent, progress)?;
+    summary.tangent_after = Some(failure);
+    Ok((trajectory, summary))
+}
+
+fn simulate_with(
     model: Arc<Model>,
     options: &ForwardOptions,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
@@ -1040,17 +1105,19 @@ fn segment(
             let mut iterations = Vec::new();
             let mut conditioned_from = None;
             let mut interrupted = None;
-            smoother::fixed_lag(
+            let settings = Settings {
+                // The DC graph's integrators conflict with its constraints.
+                tangent_priors: options.coordinates == Coordinates::Dependent,
+                ..options.settings
+            };
+            smoother::fixed_lag_with_rescue(
                 &fg.graph,
                 &mut values,
                 steps,
                 window,
-                Settings {
-                    // The DC graph's integrators conflict with its constraints.
-                    tangent_priors: options.coordinates == Coordinates::Dependent,
-                    ..options.settings
-                },
+                settings,
                 |v, k| fg.predict(v, k),
+                |v, k| fg.substep_guess(&model, options, settings, first + k, v, k),
                 |k, report, v| {
                     iterations.push(report.iterations);
                     // Asked to stop: after this step's own outcome is recorded.
@@ -1199,7 +1266,74 @@ fn segment(
     })
 }
 
+/// At most 2^this substeps integrate a step whose solve failed from its guess.
+const MAX_SUBSTEP_LEVELS: u32 = 6;
+
 impl ForwardGraph {
+    /// A guess for step k (run step `step`) from the state of step k − 1 in `values`,
+    /// integrated over the step in 2, 4, … 2^[`MAX_SUBSTEP_LEVELS`] substeps by the
+    /// same graph at the finer step (N_w = 1), until all of them converge. Where the
+    /// step's own solve fails from the Taylor guess (a coarse step through a fast or
+    /// stiff stretch, whose implicit equations Newton's method does not reach from
+    /// so far), this guess lies within the step's error of its solution. Writes the
+    /// guess and returns true, or false when no substep count converged.
+    fn substep_guess(
+        &self,
+        model: &Arc<Model>,
+        options: &ForwardOptions,
+        settings: Settings,
+        step: usize,
+        values: &mut [f64],
+        k: usize,
+    ) -> bool {
+        let (n, s) = (self.n, self.graph.layout.size());
+        let before = &values[(k - 1) * s..k * s];
+        let mut start = (**model).clone();
+        start.initial = State {
+            q: DVector::from_column_slice(&before[..n]),
+            dq: DVector::from_column_slice(&before[n..2 * n]),
+        };
+        let start = Arc::new(start);
+        for level in 1..=MAX_SUBSTEP_LEVELS {
+            let substeps = 1usize << level;
+            let mut fine = options.clone();
+            fine.dt = options.dt / substeps as f64;
+            fine.mode = Mode::FixedLag(1);
+            let Ok(mut graph) = ForwardGraph::new(start.clone(), &fine) else {
+                return false;
+            };
+            graph.graph.t0 = (step - 1) as f64 * options.dt;
+            let Ok(first) = graph.initial_block(&start) else {
+                return false;
+            };
+            let mut fine_values = vec![0.0; (substeps + 1) * s];
+            fine_values[..s].copy_from_slice(&first);
+            let mut converged = true;
+            let solved = smoother::fixed_lag(
+                &graph.graph,
+                &mut fine_values,
+                substeps + 1,
+                1,
+                settings,
+                |v, j| graph.predict(v, j),
+                |_, report, _| {
+                    converged &= report.termination == Termination::Converged;
+                    if converged {
+                        Next::Continue
+                    } else {
+                        Next::Stop
+                    }
+                },
+                |_| {},
+            );
+            if solved.is_ok() && converged {
+                values[k * s..(k + 1) * s].copy_from_slice(&fine_values[substeps * s..]);
+                return true;
+            }
+        }
+        false
+    }
+
     /// The graph's variables (step-major) filled from a trajectory of the same model:
     /// a starting point for a solve, or the state a benchmark linearizes at.
     pub fn fill_from_trajectory(&self, model: &Model, tr: &Trajectory, values: &mut [f64]) {
@@ -1290,6 +1424,7 @@ fn summarize(
         conditioned_from: None,
         reselections: Vec::new(),
         interrupted: None,
+        tangent_after: None,
     })
 }
 

@@ -34,6 +34,7 @@ pub mod reference;
 pub mod scene;
 pub mod smoother;
 pub mod solver;
+pub mod tangent;
 
 pub use error::{Error, Result, SceneError};
 pub use model::Model;

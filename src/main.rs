@@ -7,7 +7,9 @@ mod cli;
 use clap::{Parser, Subcommand, ValueEnum};
 use cli::output::Output;
 use mbfg::check::CheckReport;
-use mbfg::forward::{self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary};
+use mbfg::forward::{
+    self, Coordinates, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary,
+};
 use mbfg::smoother::Mode;
 use mbfg::solver::Past;
 use mbfg::{Error, Model, Scene};
@@ -70,6 +72,14 @@ enum Command {
         /// Integrator factor between steps.
         #[arg(long, value_enum, default_value_t = IntegratorArg::Trapezoidal)]
         integrator: IntegratorArg,
+        /// In dependent coordinates, what the integrator factors ask: on all n
+        /// coordinates as in the paper (`full`: a least-squares compromise), only along
+        /// the directions the constraints leave free (`tangent`: one equation per
+        /// unknown, all satisfied, every window and the batch give N_w = 1's
+        /// solution), or `full` with the run made again with `tangent` where a solve
+        /// fails (`auto`)
+        #[arg(long = "dc-integrators", value_enum, default_value_t = DcIntegratorsArg::Auto)]
+        dc_integrators: DcIntegratorsArg,
         /// Noise models: mbfg's defaults, or the paper's Table 2.
         #[arg(long, value_enum, default_value_t = NoiseArg::Default)]
         noise: NoiseArg,
@@ -241,6 +251,13 @@ enum IntegratorArg {
 }
 
 #[derive(Clone, Copy, ValueEnum)]
+enum DcIntegratorsArg {
+    Auto,
+    Tangent,
+    Full,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
 enum PastArg {
     Adaptive,
     Conditioned,
@@ -384,6 +401,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             out,
             written,
             integrator,
+            dc_integrators,
             noise,
             past,
             continue_on_failure,
@@ -403,6 +421,11 @@ fn run(cli: Cli) -> Result<(), Failure> {
             options.integrator = match integrator {
                 IntegratorArg::Trapezoidal => Integrator::Trapezoidal,
                 IntegratorArg::Euler => Integrator::Euler,
+            };
+            options.dc_integrators = match dc_integrators {
+                DcIntegratorsArg::Auto => DcIntegrators::Auto,
+                DcIntegratorsArg::Tangent => DcIntegrators::Tangent,
+                DcIntegratorsArg::Full => DcIntegrators::Full,
             };
             options.noise = match noise {
                 NoiseArg::Default => NoiseModels::default(),
@@ -687,6 +710,13 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
             r.to.join(", "),
             r.step,
             r.t
+        );
+    }
+    if let Some(f) = &s.tangent_after {
+        line += &format!(
+            "; tangent integrators (the paper's did not converge at step {}, t = {} s)",
+            f.step,
+            forward::round_time(f.t)
         );
     }
     if let Some((k, t)) = s.conditioned_from {

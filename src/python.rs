@@ -9,7 +9,8 @@
 //! window or a 2-D q is refused with `mbfg.InvalidArgument` rather than coerced.
 
 use crate::forward::{
-    self, Coordinates, ForwardOptions, Integrator, NoiseModels, RunSummary, Trajectory,
+    self, Coordinates, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary,
+    Trajectory,
 };
 use crate::inverse::{self, InverseOptions, InverseSolution, Prescription, Start};
 use crate::io::{read_table, Table};
@@ -877,6 +878,10 @@ fn forward_result<'py>(
     summary.set_item("worst_velocity_constraint", s.worst_velocity_constraint)?;
     summary.set_item("energy_drift", s.energy_drift)?;
     summary.set_item("conditioned_from", s.conditioned_from)?;
+    summary.set_item(
+        "tangent_after",
+        s.tangent_after.as_ref().map(|f| (f.step, f.t)),
+    )?;
     let reselections = PyList::empty(py);
     for r in &s.reselections {
         let d = PyDict::new(py);
@@ -957,6 +962,7 @@ fn simulate_run<'py>(
     noise: &Bound<'py, PyAny>,
     continue_on_failure: &Bound<'py, PyAny>,
     past: &Bound<'py, PyAny>,
+    dc_integrators: &Bound<'py, PyAny>,
     params: &Bound<'py, PyAny>,
     q0: &Bound<'py, PyAny>,
     dq0: &Bound<'py, PyAny>,
@@ -985,6 +991,11 @@ fn simulate_run<'py>(
         let noise = arg_choice(noise, "noise", &["default", "paper"])?;
         let continue_on_failure = arg_bool(continue_on_failure, "continue_on_failure")?;
         let past = arg_choice(past, "past", &["adaptive", "conditioned", "marginalized"])?;
+        let dc_integrators = arg_choice(
+            dc_integrators,
+            "dc_integrators",
+            &["auto", "tangent", "full"],
+        )?;
 
         let mode = if batch {
             Mode::Batch
@@ -995,6 +1006,11 @@ fn simulate_run<'py>(
         options.integrator = match integrator {
             "trapezoidal" => Integrator::Trapezoidal,
             _ => Integrator::Euler,
+        };
+        options.dc_integrators = match dc_integrators {
+            "auto" => DcIntegrators::Auto,
+            "tangent" => DcIntegrators::Tangent,
+            _ => DcIntegrators::Full,
         };
         options.noise = match noise {
             "default" => NoiseModels::default(),

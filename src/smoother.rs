@@ -37,7 +37,36 @@ pub fn fixed_lag(
     steps: usize,
     window: usize,
     settings: Settings,
+    predict: impl FnMut(&mut [f64], usize),
+    on_step: impl FnMut(usize, &SolveReport, &[f64]) -> Next,
+    on_switch: impl FnMut(usize),
+) -> Result<()> {
+    fixed_lag_with_rescue(
+        graph,
+        values,
+        steps,
+        window,
+        settings,
+        predict,
+        |_, _| false,
+        on_step,
+        on_switch,
+    )
+}
+
+/// [`fixed_lag`], and where a window solve fails, `rescue(values, k)` may replace the
+/// guess of the newest step k by a better one (the forward problem integrates from
+/// step k − 1 in substeps); the window is then solved again from the guesses it had,
+/// but for step k's. `rescue` returns whether it wrote a guess.
+#[allow(clippy::too_many_arguments)] // the run's callbacks, one per event
+pub fn fixed_lag_with_rescue(
+    graph: &ChainGraph,
+    values: &mut [f64],
+    steps: usize,
+    window: usize,
+    settings: Settings,
     mut predict: impl FnMut(&mut [f64], usize),
+    mut rescue: impl FnMut(&mut [f64], usize) -> bool,
     mut on_step: impl FnMut(usize, &SolveReport, &[f64]) -> Next,
     mut on_switch: impl FnMut(usize),
 ) -> Result<()> {
@@ -78,6 +107,9 @@ pub fn fixed_lag(
             guess.clear();
             guess.extend_from_slice(&values[(k0.max(1) - 1) * s..(k + 1) * s]);
         }
+        // The window's guess, from before the step that left it (if one did).
+        let first = k0.max(1) - 1;
+        let start = values[first * s..(k + 1) * s].to_vec();
         let mut report = solve_window(&mut solver, graph, values, k0, k, prior.as_ref())?;
         if adaptive && k0 > 0 && report.termination != Termination::Converged {
             // The marginal information along the motion no longer carries the solve:
@@ -99,6 +131,21 @@ pub fn fixed_lag(
                 iterations: report.iterations + again.iterations,
                 ..again
             };
+        }
+        if k > 0 && report.termination != Termination::Converged {
+            // The newest step's guess may be too far from its solution (a coarse
+            // step through a fast or stiff stretch): ask for a better one.
+            let failed = values[k0 * s..(k + 1) * s].to_vec();
+            values[k0 * s..(k + 1) * s].copy_from_slice(&start[(k0 - first) * s..]);
+            if rescue(values, k) {
+                let again = solve_window(&mut solver, graph, values, k0, k, prior.as_ref())?;
+                report = SolveReport {
+                    iterations: report.iterations + again.iterations,
+                    ..again
+                };
+            } else {
+                values[k0 * s..(k + 1) * s].copy_from_slice(&failed);
+            }
         }
         if let Next::Stop = on_step(k, &report, values) {
             break;

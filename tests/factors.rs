@@ -12,6 +12,7 @@ use mbfg::factors::{
 };
 use mbfg::graph::{Factor, Key, Noise, VarKind, Workspace};
 use mbfg::kinematics;
+use mbfg::tangent::{Rule, TangentIntegrator};
 use mbfg::{Model, Scene};
 use nalgebra::DVector;
 use std::collections::BTreeMap;
@@ -410,6 +411,26 @@ fn generic_factors_match_finite_differences() {
     ] {
         assert!(errors.0.contains_key(label), "{label} not checked");
     }
+}
+
+#[test]
+fn tangent_integrators_match_finite_differences() {
+    // P(q_t) e for q and q̇, trapezoidal and Euler, at coarse and fine steps; the
+    // scenes include a redundant constraint (pick-and-place: the SVD path).
+    let errors = check_family("tangent integrators", 7, |m, _| {
+        let mut list: Vec<(String, Box<dyn Factor>)> = Vec::new();
+        for (x, dx) in [(VarKind::Q, VarKind::Dq), (VarKind::Dq, VarKind::Ddq)] {
+            for (rule, dt) in [(Rule::Trapezoidal, 0.05), (Rule::Euler, 0.001)] {
+                let f = TangentIntegrator::new(m.clone(), x, dx, rule, dt, Noise::Isotropic(0.01));
+                list.push((format!("{} dt={dt}", f.name()), Box::new(f)));
+            }
+        }
+        list
+    });
+    assert!(
+        errors.0.contains_key("P f_ti(dq) dt=0.05"),
+        "P f_ti(dq) not checked"
+    );
 }
 
 #[test]

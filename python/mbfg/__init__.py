@@ -162,19 +162,22 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
              t_end: float = 5.0, window: int = 1, batch: bool = False, max_iterations: int = 50,
              integrator: str = "trapezoidal", noise: str = "default",
              continue_on_failure: bool = False, past: str = "adaptive",
-             params: Mapping[str, float] | None = None, q0: Mapping[str, float] | None = None,
+             dc_integrators: str = "auto", params: Mapping[str, float] | None = None, q0: Mapping[str, float] | None = None,
              dq0: Mapping[str, float] | None = None) -> Result:
     """Forward dynamics, as `mbfg simulate` runs it, of a scene file or a loaded Model.
     For studies without writing files: `params` overrides the scene's parameters (as
     `load` does), `q0` the initial values of coordinates of q by name (the position
     problem keeps those of independent coordinates and closes the others), `dq0` the
-    initial velocities of independent coordinates. Ctrl-C stops the run within ~0.1 s
+    initial velocities of independent coordinates. `dc_integrators` chooses the integrator
+    factors of dependent coordinates: "auto", "full" (the paper's) or "tangent" (see
+    `mbfg simulate --help`).
+    Ctrl-C stops the run within ~0.1 s
     with KeyboardInterrupt; that and SolveError carry the steps solved as `.result`."""
     native = scene._m if isinstance(scene, Model) else scene
     try:
         result = _run(_native.simulate, native, coords, dt, t_end, window, batch,
                       max_iterations, integrator, noise, continue_on_failure, past,
-                      _dict(params), _dict(q0), _dict(dq0))
+                      dc_integrators, _dict(params), _dict(q0), _dict(dq0))
     except BaseException as e:
         if isinstance(getattr(e, "result", None), Result):
             e.result.scene = scene

@@ -515,9 +515,27 @@ impl Model {
     /// Adds Σ_k λ_k ∂²Φ_k/∂q² over the active constraints (λ indexed like
     /// `active`) to the row-major n × n `out`: the derivative of Φ_qᵀλ with λ fixed.
     pub fn add_weighted_hessians(&self, q: &[f64], lambda: &[f64], out: &mut [f64]) {
+        self.add_hessians_of(
+            q,
+            self.active.iter().copied().zip(lambda.iter().copied()),
+            out,
+        );
+    }
+
+    /// Adds Σ_k λ_k ∂²Φ_k/∂q² over all m constraints to the row-major n × n `out`.
+    pub fn add_all_weighted_hessians(&self, q: &[f64], lambda: &[f64], out: &mut [f64]) {
+        self.add_hessians_of(q, lambda.iter().copied().enumerate(), out);
+    }
+
+    fn add_hessians_of(
+        &self,
+        q: &[f64],
+        weights: impl Iterator<Item = (usize, f64)>,
+        out: &mut [f64],
+    ) {
         let n = self.n();
         let (mut u, mut e, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
-        for (&k, &l) in self.active.iter().zip(lambda) {
+        for (k, l) in weights {
             let c = &self.constraints[k];
             c.gather(q, &mut u);
             let len = c.equation.len();

@@ -1,0 +1,227 @@
+//! Integrator factors projected onto the constraint manifold's tangent space, for
+//! dependent coordinates.
+//!
+//! In dependent coordinates the paper's integrators, e = x_t − x_{t−1} − Δt/2
+//! (ẋ_{t−1} + ẋ_t), ask n equations of a step whose positions and velocities have only
+//! n − m free directions each (the hard constraints fix the rest). Together with
+//! f_dyn's n equations on q̈ that is 2m more equations than unknowns per step: the
+//! soft factors can not all hold, and each solve settles on a compromise weighted by
+//! the σ's. Over a long window or a batch, the compromise is a least-squares problem
+//! with a nonzero residual whose minimum is ill-determined along slow directions (a
+//! drift of the whole motion costs almost nothing), and Gauss–Newton converges
+//! linearly or not at all.
+//!
+//! Here the residual is P(q_t) e, with P = I − Φ_q⁺Φ_q the orthogonal projector onto
+//! the null space of Φ_q at the step's positions: the integrator is asked only along
+//! the directions the constraints leave free, as in a projected (GGL-type) index-2
+//! integration, where x_t − x_{t−1} − Δt/2 (ẋ_{t−1} + ẋ_t) = Φ_qᵀμ with a
+//! multiplier μ. Each step then has as many soft equations as unknowns, they hold
+//! exactly, and every window length (and the batch) has the same solution as N_w = 1.
+//!
+//! **Jacobian.** With u = Pe and λ = (Φ_q⁺)ᵀe, for a direction δ of q_t (rank
+//! constant): d(Pe) = −Φ_q⁺ (Φ_qq u) δ − P (Σₖ λₖ Φᵏ_qq) δ; the other keys enter
+//! through e only (P ∂e/∂x). Rows of Φ_q are normalized first (row space and
+//! projector are unchanged) so that rank is judged relative to each row's size.
+
+use crate::error::{Error, Result};
+use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::model::Model;
+use nalgebra::{DMatrix, DVector};
+use std::sync::Arc;
+
+/// Singular values of the row-normalized Φ_q below this (relative to the largest)
+/// count as a lost rank: the direction is not projected out.
+const RANK_TOLERANCE: f64 = 1e-10;
+
+/// The integration rule the projected residual e comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rule {
+    /// e = x_t − x_{t−1} − Δt/2 (ẋ_{t−1} + ẋ_t).
+    Trapezoidal,
+    /// e = x_t − x_{t−1} − Δt ẋ_{t−1}.
+    Euler,
+}
+
+/// P(q_t) e for the integration of `dx` into `x` (x is q or q̇).
+pub struct TangentIntegrator {
+    model: Arc<Model>,
+    name: String,
+    keys: Vec<Key>,
+    /// Index in `keys` of q_t (the positions P is taken at).
+    q_key: usize,
+    rule: Rule,
+    dt: f64,
+    noise: Noise,
+}
+
+impl TangentIntegrator {
+    pub fn new(
+        model: Arc<Model>,
+        x: VarKind,
+        dx: VarKind,
+        rule: Rule,
+        dt: f64,
+        noise: Noise,
+    ) -> Self {
+        let mut keys = vec![Key::before(x), Key::now(x), Key::before(dx), Key::now(dx)];
+        let q_key = if x == VarKind::Q {
+            1
+        } else {
+            keys.push(Key::now(VarKind::Q));
+            4
+        };
+        let name = match rule {
+            Rule::Trapezoidal => format!("P f_ti({})", x.symbol()),
+            Rule::Euler => format!("P f_ei({})", x.symbol()),
+        };
+        TangentIntegrator {
+            model,
+            name,
+            keys,
+            q_key,
+            rule,
+            dt,
+            noise,
+        }
+    }
+
+    /// e, the unprojected residual, and the coefficients of x_{t−1}, x_t, ẋ_{t−1}, ẋ_t.
+    fn residual(&self, x: &[&[f64]], e: &mut [f64]) -> [f64; 4] {
+        let c = match self.rule {
+            Rule::Trapezoidal => [-1.0, 1.0, -0.5 * self.dt, -0.5 * self.dt],
+            Rule::Euler => [-1.0, 1.0, -self.dt, 0.0],
+        };
+        for (i, ei) in e.iter_mut().enumerate() {
+            *ei = c[0] * x[0][i] + c[1] * x[1][i] + c[2] * x[2][i] + c[3] * x[3][i];
+        }
+        c
+    }
+}
+
+/// The row space of Φ_q at q, from the active rows (redundant constraints left out:
+/// on the manifold they add no direction) normalized, Â = D Φ_q,active: the
+/// projector P = I − Â⁺Â onto the null space (n × n) and Φ_q⁺ = Â⁺D (n × m over all
+/// m constraints, zero columns for the redundant ones), Â⁺ restricted to Â's rank.
+struct RowSpace {
+    p: DMatrix<f64>,
+    pinv: DMatrix<f64>,
+}
+
+fn row_space(model: &Model, q: &[f64]) -> Result<RowSpace> {
+    let (m, n) = (model.m(), model.n());
+    let mut all = vec![0.0; m * n];
+    model.jacobian_into(q, &mut all);
+    if all.iter().any(|v| !v.is_finite()) {
+        return Err(Error::Singular(
+            "Φ_q is not finite at the step's positions".into(),
+        ));
+    }
+    let rows = &model.active;
+    let mut a = DMatrix::zeros(rows.len(), n);
+    let mut d = vec![0.0; rows.len()];
+    for (i, &k) in rows.iter().enumerate() {
+        let row = &all[k * n..(k + 1) * n];
+        let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if norm > 0.0 {
+            d[i] = 1.0 / norm;
+            for (j, v) in row.iter().enumerate() {
+                a[(i, j)] = v * d[i];
+            }
+        }
+    }
+    // Â⁺ = Âᵀ(ÂÂᵀ)⁻¹ by Cholesky while the Gram matrix is well conditioned (the
+    // usual case), the SVD otherwise: near a singular configuration the Gram matrix
+    // squares a large condition number.
+    let pinv_hat = match (&a * a.transpose()).cholesky() {
+        Some(ch) if well_conditioned(&ch.l()) => a.transpose() * ch.inverse(),
+        _ => svd_pseudo_inverse(&a),
+    };
+    let mut p = -(&pinv_hat * &a);
+    for i in 0..n {
+        p[(i, i)] += 1.0;
+    }
+    let mut pinv = DMatrix::zeros(n, m);
+    for (i, &k) in rows.iter().enumerate() {
+        pinv.set_column(k, &(pinv_hat.column(i) * d[i]));
+    }
+    Ok(RowSpace { p, pinv })
+}
+
+/// The Gram matrix's Cholesky factor is trusted while its diagonal stays within this
+/// ratio (Â's rows far from dependent; with unit rows, L's diagonal bounds the
+/// distance of each row from the span of the ones before).
+const GRAM_DIAGONAL_RATIO: f64 = 1e-2;
+
+fn well_conditioned(l: &DMatrix<f64>) -> bool {
+    let diagonal = l.diagonal();
+    let largest = diagonal.iter().cloned().fold(0.0, f64::max);
+    diagonal.iter().all(|&v| v > GRAM_DIAGONAL_RATIO * largest)
+}
+
+/// Â⁺ from the SVD, singular values below RANK_TOLERANCE of the largest dropped.
+fn svd_pseudo_inverse(a: &DMatrix<f64>) -> DMatrix<f64> {
+    let svd = a.clone().svd(true, true);
+    let largest = svd.singular_values.iter().cloned().fold(0.0, f64::max);
+    svd.pseudo_inverse(RANK_TOLERANCE * largest)
+        .unwrap_or_else(|_| DMatrix::zeros(a.ncols(), a.nrows()))
+}
+
+impl Factor for TangentIntegrator {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn noise(&self) -> &Noise {
+        &self.noise
+    }
+    fn dim(&self) -> usize {
+        self.model.n()
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        let q = x[self.q_key];
+        let mut e = DVector::zeros(n);
+        let c = self.residual(x, e.as_mut_slice());
+        let rows = row_space(&self.model, q)?;
+        let u = &rows.p * &e;
+        r.copy_from_slice(u.as_slice());
+        let Some(j) = jac else { return Ok(()) };
+        for (block, coefficient) in j.iter_mut().zip(c) {
+            for i in 0..n {
+                for k in 0..n {
+                    block[i * n + k] = coefficient * rows.p[(i, k)];
+                }
+            }
+        }
+        if self.q_key != 1 {
+            j[self.q_key].fill(0.0);
+        }
+        // The projector's own derivative: −P (Σₖ λₖ Φᵏ_qq) − Φ_q⁺ (Φ_qq u).
+        let lambda = rows.pinv.tr_mul(&e);
+        let mut w = vec![0.0; n * n];
+        self.model
+            .add_all_weighted_hessians(q, lambda.as_slice(), &mut w);
+        let w = DMatrix::from_row_slice(n, n, &w);
+        let mut jw = vec![0.0; m * n];
+        self.model
+            .jacobian_derivative_into(q, u.as_slice(), &mut jw);
+        let jw = DMatrix::from_row_slice(m, n, &jw);
+        let dp = &rows.p * w + &rows.pinv * jw;
+        let block = &mut j[self.q_key];
+        for i in 0..n {
+            for k in 0..n {
+                block[i * n + k] -= dp[(i, k)];
+            }
+        }
+        Ok(())
+    }
+}
