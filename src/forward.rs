@@ -1105,9 +1105,20 @@ fn segment(
             let mut iterations = Vec::new();
             let mut conditioned_from = None;
             let mut interrupted = None;
+            let tangent = options.coordinates == Coordinates::Dependent
+                && options.dc_integrators == DcIntegrators::Tangent;
             let settings = Settings {
                 // The DC graph's integrators conflict with its constraints.
                 tangent_priors: options.coordinates == Coordinates::Dependent,
+                // Tangent integrators leave every step with as many equations as
+                // unknowns: a marginal prior adds nothing to the next step's solution
+                // (each window has N_w = 1's) but its linearization about the step's
+                // prediction; the exact conditional is the step's own solution.
+                past: if tangent && options.settings.past == Past::Adaptive {
+                    Past::Conditioned
+                } else {
+                    options.settings.past
+                },
                 ..options.settings
             };
             smoother::fixed_lag_with_rescue(

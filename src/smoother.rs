@@ -85,6 +85,32 @@ pub fn fixed_lag_with_rescue(
         if k > 0 {
             predict(values, k);
         }
+        if k > 0 && window == 1 && solver.settings().past == Past::Conditioned {
+            // One step held on the one before, fixed: the exact conditional, every
+            // factor joining them evaluated as it is (a linearized prior would hold
+            // the factors nonlinear in the new step only to first order about its
+            // prediction).
+            k0 = k;
+            let start = values[k * s..(k + 1) * s].to_vec();
+            let mut report = solver.solve_conditional(graph, values, k, k + 1)?;
+            if report.termination != Termination::Converged {
+                let failed = values[k * s..(k + 1) * s].to_vec();
+                values[k * s..(k + 1) * s].copy_from_slice(&start);
+                if rescue(values, k) {
+                    let again = solver.solve_conditional(graph, values, k, k + 1)?;
+                    report = SolveReport {
+                        iterations: report.iterations + again.iterations,
+                        ..again
+                    };
+                } else {
+                    values[k * s..(k + 1) * s].copy_from_slice(&failed);
+                }
+            }
+            if let Next::Stop = on_step(k, &report, values) {
+                break;
+            }
+            continue;
+        }
         if k + 1 - k0 > window {
             // The prior on k0 moves to `earlier` (no copy): it is what a re-solve of
             // this window after a conditioned prior starts from.
