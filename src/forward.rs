@@ -455,6 +455,9 @@ pub struct StepFailure {
     pub batch: bool,
     /// Where the cost went non-finite: the effect that cannot be evaluated there.
     pub cause: Option<String>,
+    /// The body that turned fastest at the last step kept before this one: its name
+    /// and its turn per step (rad), when that is more than [`StepFailure::LARGE_TURN`].
+    pub fast_body: Option<(String, f64)>,
 }
 
 /// A configuration ahead where the independent coordinates z stop determining the
@@ -479,6 +482,16 @@ pub struct SingularConfiguration {
 }
 
 impl StepFailure {
+    /// A turn per step (rad) beyond which a failure names the fastest body: the
+    /// integrators relate positions by straight chords, and past about one radian a
+    /// step the implicit equations of a coarse step stop having a nearby solution.
+    pub const LARGE_TURN: f64 = 0.5;
+
+    /// The run's time step: t_k = k·Δt for every step of a run.
+    fn dt(&self) -> f64 {
+        self.t / self.step.max(1) as f64
+    }
+
     /// The reason for the failure, naming the step and the time (not what was
     /// written).
     pub fn message(&self) -> String {
@@ -527,9 +540,18 @@ impl StepFailure {
                         self.step
                     );
                 }
+                let turn = match &self.fast_body {
+                    Some((body, per_step)) => format!(
+                        "; body {body} turned {per_step:.2} rad per step before it: the step is \
+                         too coarse for the motion (dt below {:.2e} s keeps it under {} rad)",
+                        self.dt() * Self::LARGE_TURN / per_step,
+                        Self::LARGE_TURN
+                    ),
+                    None => String::new(),
+                };
                 format!(
                     "{stage}step {} (t = {t} s) did not converge: {}, cost {:.3e} after {} \
-                     iterations{singular}",
+                     iterations{singular}{turn}",
                     self.step, self.report.termination, self.report.cost, self.report.iterations
                 )
             }
@@ -829,6 +851,7 @@ fn first_non_finite(model: &Model, tr: &Trajectory) -> Result<Option<StepFailure
         warm_start: false,
         batch: false,
         cause: Some(cause),
+        fast_body: None,
     }))
 }
 
@@ -1071,6 +1094,14 @@ fn segment(
     let mut completed = steps;
     let mut reselect = None;
     let n = model.n();
+    // The body turning fastest at the step before k, where it turns more than
+    // LARGE_TURN a step.
+    let fast_body = |k: usize, v: &[f64]| {
+        let before = &v[k.checked_sub(1)? * s..k * s];
+        let (body, omega) = model.fastest_body(&before[..n], &before[n..2 * n])?;
+        let per_step = omega * options.dt;
+        (per_step > StepFailure::LARGE_TURN).then_some((body, per_step))
+    };
     let failure = |k: usize, report: &SolveReport, v: &[f64]| {
         let q = &v[k * s..k * s + n];
         // A non-finite cost: look for the effect that cannot be evaluated, at the
@@ -1092,6 +1123,7 @@ fn segment(
             warm_start: false,
             batch: false,
             cause: cause.flatten(),
+            fast_body: fast_body(k, v),
         }
     };
     match options.mode {
@@ -1457,6 +1489,7 @@ mod tests {
             warm_start: false,
             batch,
             cause: cause.map(str::to_string),
+            fast_body: None,
         }
     }
 

@@ -357,3 +357,31 @@ fn a_step_that_fails_from_its_guess_converges_from_substeps() {
     );
     assert!(s.worst_phi <= 1e-9);
 }
+
+/// A step too coarse for the motion says so: the six-bar press at 5 ms, whose crank
+/// turns ~0.75 rad a step in the transient, names the crank and a step that keeps its
+/// turn under half a radian (one that converges: 1 ms, see above).
+#[test]
+fn a_step_too_coarse_for_the_motion_names_the_fastest_body() {
+    let s = run(
+        "scenes/driven/six-bar-press.yaml",
+        Coordinates::Dependent,
+        5e-3,
+        0.1,
+        Mode::FixedLag(1),
+        Past::Adaptive,
+    );
+    let failure = s.failures.first().expect("the six-bar press fails at 5 ms");
+    let (body, per_step) = failure
+        .fast_body
+        .clone()
+        .expect("the fastest body is named");
+    assert_eq!(body, "crank");
+    assert!(per_step > 0.5, "{per_step}");
+    let message = failure.message();
+    assert!(
+        message.contains("body crank turned") && message.contains("too coarse for the motion"),
+        "{message}"
+    );
+    assert!(!message.contains("singular"), "{message}");
+}

@@ -438,6 +438,30 @@ impl Model {
         }
     }
 
+    /// The body turning fastest at (q, q̇): its name and |ω| (rad/s), from its first two
+    /// points (ω = (r₂ − r₁) × (v₂ − v₁) / |r₂ − r₁|²). None without bodies.
+    pub fn fastest_body(&self, q: &[f64], dq: &[f64]) -> Option<(String, f64)> {
+        self.scene
+            .bodies
+            .iter()
+            .filter_map(|b| {
+                let (r1, r2) = (
+                    self.point_position(q, b.points[0]),
+                    self.point_position(q, b.points[1]),
+                );
+                let (v1, v2) = (
+                    self.point_velocity(dq, b.points[0]),
+                    self.point_velocity(dq, b.points[1]),
+                );
+                let e = [r2[0] - r1[0], r2[1] - r1[1]];
+                let w = [v2[0] - v1[0], v2[1] - v1[1]];
+                let length2 = e[0] * e[0] + e[1] * e[1];
+                let omega = ((e[0] * w[1] - e[1] * w[0]) / length2).abs();
+                (length2 > 0.0 && omega.is_finite()).then(|| (b.name.clone(), omega))
+            })
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+    }
+
     /// Φ(q) into `out` (length m).
     pub fn phi_into(&self, q: &[f64], out: &mut [f64]) {
         let mut u = [0.0; MAX_LOCAL];
