@@ -37,8 +37,9 @@ pub enum Integrator {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum DcIntegrators {
     /// The paper's ([`DcIntegrators::Full`]); a run in which a solve fails with them
-    /// (not at an ill-posed configuration, not interrupted) is run again with
-    /// [`DcIntegrators::Tangent`], and [`RunSummary::tangent_after`] says so.
+    /// (not at an ill-posed configuration, not interrupted; a batch solve: within
+    /// [`AUTO_BATCH_ITERATIONS`]) is run again with [`DcIntegrators::Tangent`], and
+    /// [`RunSummary::tangent_after`] says so.
     Auto,
     /// Only along the directions the constraints leave free (see [`crate::tangent`]):
     /// one soft equation per unknown, all of them satisfied, so that every window
@@ -985,8 +986,10 @@ pub fn simulate_interruptible(
     let failure = failure.clone();
     let mut tangent = options.clone();
     tangent.dc_integrators = DcIntegrators::Tangent;
+    let first_attempt = summary.wall_time;
     let (trajectory, mut summary) = simulate_with(model, &tangent, progress)?;
     summary.tangent_after = Some(failure);
+    summary.wall_time += first_attempt;
     Ok((trajectory, summary))
 }
 
@@ -1291,7 +1294,16 @@ fn segment(
                 reselect = guess.reselect;
                 completed = guess.trajectory.len();
                 fg.fill_from_trajectory(&model, &guess.trajectory, &mut values);
-                let report = smoother::batch(&fg.graph, &mut values, completed, options.settings)?;
+                let mut settings = options.settings;
+                if options.coordinates == Coordinates::Dependent
+                    && options.dc_integrators == DcIntegrators::Auto
+                {
+                    // The paper's factors get the iterations a window needs; past them
+                    // their compromise crawls (the double pendulum at 1 ms: 30
+                    // iterations, 35 s) where tangent ones converge in one.
+                    settings.max_iterations = settings.max_iterations.min(AUTO_BATCH_ITERATIONS);
+                }
+                let report = smoother::batch(&fg.graph, &mut values, completed, settings)?;
                 run.iterations.push(report.iterations);
                 if report.termination != Termination::Converged {
                     let k = completed - 1;
@@ -1308,6 +1320,10 @@ fn segment(
         reselect,
     })
 }
+
+/// The iterations a batch solve with the paper's integrator factors gets under
+/// [`DcIntegrators::Auto`] before the run is made again with tangent ones.
+pub const AUTO_BATCH_ITERATIONS: usize = 10;
 
 /// At most 2^this substeps integrate a step whose solve failed from its guess.
 const MAX_SUBSTEP_LEVELS: u32 = 6;
