@@ -1325,13 +1325,17 @@ fn segment(
 /// [`DcIntegrators::Auto`] before the run is made again with tangent ones.
 pub const AUTO_BATCH_ITERATIONS: usize = 10;
 
-/// At most 2^this substeps integrate a step whose solve failed from its guess.
-const MAX_SUBSTEP_LEVELS: u32 = 6;
+/// The substep counts tried, in turn, for a step whose solve failed from its guess:
+/// a few, then finer (at most 74 substep solves per failed step).
+const SUBSTEPS: [usize; 3] = [2, 8, 64];
+/// Iterations a substep's solve gets: a step 8–64 times finer than one that failed
+/// converges in a few, or that count of substeps is given up.
+const SUBSTEP_ITERATIONS: usize = 10;
 
 impl ForwardGraph {
     /// A guess for step k (run step `step`) from the state of step k − 1 in `values`,
-    /// integrated over the step in 2, 4, … 2^[`MAX_SUBSTEP_LEVELS`] substeps by the
-    /// same graph at the finer step (N_w = 1), until all of them converge. Where the
+    /// integrated over the step in [`SUBSTEPS`] substeps by the same graph at the
+    /// finer step (N_w = 1), until all of them converge. Where the
     /// step's own solve fails from the Taylor guess (a coarse step through a fast or
     /// stiff stretch, whose implicit equations Newton's method does not reach from
     /// so far), this guess lies within the step's error of its solution. Writes the
@@ -1353,8 +1357,11 @@ impl ForwardGraph {
             dq: DVector::from_column_slice(&before[n..2 * n]),
         };
         let start = Arc::new(start);
-        for level in 1..=MAX_SUBSTEP_LEVELS {
-            let substeps = 1usize << level;
+        let settings = Settings {
+            max_iterations: settings.max_iterations.min(SUBSTEP_ITERATIONS),
+            ..settings
+        };
+        for substeps in SUBSTEPS {
             let mut fine = options.clone();
             fine.dt = options.dt / substeps as f64;
             fine.mode = Mode::FixedLag(1);
