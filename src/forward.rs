@@ -1142,6 +1142,8 @@ fn segment(
             let mut interrupted = None;
             let tangent = options.coordinates == Coordinates::Dependent
                 && options.dc_integrators == DcIntegrators::Tangent;
+            // One equation per unknown: IC, and DC with tangent integrators.
+            let square = tangent || options.coordinates == Coordinates::Independent;
             let settings = Settings {
                 // The DC graph's integrators conflict with its constraints.
                 tangent_priors: options.coordinates == Coordinates::Dependent,
@@ -1154,6 +1156,7 @@ fn segment(
                 } else {
                     options.settings.past
                 },
+                second_order: options.settings.second_order && !square,
                 ..options.settings
             };
             smoother::fixed_lag_with_rescue(
@@ -1295,6 +1298,9 @@ fn segment(
                 completed = guess.trajectory.len();
                 fg.fill_from_trajectory(&model, &guess.trajectory, &mut values);
                 let mut settings = options.settings;
+                // One equation per unknown: Gauss-Newton is Newton's method.
+                settings.second_order &= options.coordinates == Coordinates::Dependent
+                    && options.dc_integrators != DcIntegrators::Tangent;
                 if options.coordinates == Coordinates::Dependent
                     && options.dc_integrators == DcIntegrators::Auto
                 {

@@ -27,8 +27,6 @@ ILL_POSED = {
 
 ANDREWS = ("completes its 0.03 s at 0.1 ms (test_benchmarks), not at 1 ms and up, where the crank "
            "turns up to 1.1 rad per step at 1e5 rad/s²")
-MM_SLIDER_CRANK = ("5 mm crank on a 0.6 m rod with a 5000 N/m spring: IC fails at 20 ms "
-                   "(DC converges there, with tangent integrators)")
 SIX_BAR_PRESS = ("a stiff spring slams the 20 mm crank to 350 rad/s and 1.3e5 rad/s² within 20 ms: "
                  "DC converges at 0.1 and 1 ms, not at 5 ms and up (the crank turns 0.75 rad a step); "
                  "IC fails from 1 ms")
@@ -62,11 +60,6 @@ KNOWN_FAILING: dict[str, str] = {
         'benchmarks/andrews-squeezer-ic-batch-10ms',
         'benchmarks/andrews-squeezer-ic-batch-20ms',
     ], ANDREWS),
-    **dict.fromkeys([
-        'driven/slider-crank-mm-ic-w1-20ms',
-        'driven/slider-crank-mm-ic-w5-20ms',
-        'driven/slider-crank-mm-ic-batch-20ms',
-    ], MM_SLIDER_CRANK),
     **dict.fromkeys([
         'driven/six-bar-press-dc-w1-5ms',
         'driven/six-bar-press-dc-w1-10ms',
