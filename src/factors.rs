@@ -29,6 +29,7 @@ macro_rules! key_and_noise_accessors {
         }
     };
 }
+pub(crate) use key_and_noise_accessors;
 
 /// f_prior: e = x − x₀ on one variable.
 pub struct Prior {

@@ -151,6 +151,14 @@ impl ForwardOptions {
         }
     }
 
+    /// Whether the graph has one soft equation per unknown (IC, and DC with tangent
+    /// integrators): its residual is zero at the solution, where Gauss-Newton is
+    /// Newton's method ([`Settings::second_order`] is then of no use).
+    pub fn is_square(&self) -> bool {
+        self.coordinates == Coordinates::Independent
+            || self.dc_integrators == DcIntegrators::Tangent
+    }
+
     /// Number of steps including t = 0: t_k = k·dt for k = 0..=round(t_end/dt)
     /// (for options that [`validate`](Self::validate) accepts).
     pub fn steps(&self) -> usize {
@@ -1142,8 +1150,6 @@ fn segment(
             let mut interrupted = None;
             let tangent = options.coordinates == Coordinates::Dependent
                 && options.dc_integrators == DcIntegrators::Tangent;
-            // One equation per unknown: IC, and DC with tangent integrators.
-            let square = tangent || options.coordinates == Coordinates::Independent;
             let settings = Settings {
                 // The DC graph's integrators conflict with its constraints.
                 tangent_priors: options.coordinates == Coordinates::Dependent,
@@ -1156,7 +1162,7 @@ fn segment(
                 } else {
                     options.settings.past
                 },
-                second_order: options.settings.second_order && !square,
+                second_order: options.settings.second_order && !options.is_square(),
                 ..options.settings
             };
             smoother::fixed_lag_with_rescue(
@@ -1299,8 +1305,7 @@ fn segment(
                 fg.fill_from_trajectory(&model, &guess.trajectory, &mut values);
                 let mut settings = options.settings;
                 // One equation per unknown: Gauss-Newton is Newton's method.
-                settings.second_order &= options.coordinates == Coordinates::Dependent
-                    && options.dc_integrators != DcIntegrators::Tangent;
+                settings.second_order &= !options.is_square();
                 if options.coordinates == Coordinates::Dependent
                     && options.dc_integrators == DcIntegrators::Auto
                 {

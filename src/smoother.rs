@@ -76,10 +76,12 @@ pub fn fixed_lag_with_rescue(
     let mut solver = WindowSolver::new(graph, window + 1, settings)?;
     let mut adaptive = settings.past == Past::Adaptive;
     let mut prior: Option<LinearPrior> = None;
-    // The prior on the step before the window's first, and the window's guess (adaptive
-    // runs only), kept to solve the window again after a conditioned prior.
+    // The prior on the step before the window's first, kept to solve the window again
+    // after a conditioned prior.
     let mut earlier: Option<LinearPrior> = None;
-    let mut guess = Vec::new();
+    // The window's guess, from the step before it (steps `first`..=k): what a window
+    // solved again (after a conditioned prior, or from substeps) starts from.
+    let mut start = Vec::with_capacity((window + 1) * s);
     let mut k0 = 0;
     for k in 0..steps {
         if k > 0 {
@@ -91,20 +93,14 @@ pub fn fixed_lag_with_rescue(
             // the factors nonlinear in the new step only to first order about its
             // prediction).
             k0 = k;
-            let start = values[k * s..(k + 1) * s].to_vec();
+            start.clear();
+            start.extend_from_slice(&values[(k - 1) * s..(k + 1) * s]);
             let mut report = solver.solve_conditional(graph, values, k, k + 1)?;
             if report.termination != Termination::Converged {
-                let failed = values[k * s..(k + 1) * s].to_vec();
-                values[k * s..(k + 1) * s].copy_from_slice(&start);
-                if rescue(values, k) {
-                    let again = solver.solve_conditional(graph, values, k, k + 1)?;
-                    report = SolveReport {
-                        iterations: report.iterations + again.iterations,
-                        ..again
-                    };
-                } else {
-                    values[k * s..(k + 1) * s].copy_from_slice(&failed);
-                }
+                report =
+                    solve_from_rescue(values, s, &start, k - 1, k0, k, report, &mut rescue, |v| {
+                        solver.solve_conditional(graph, v, k, k + 1)
+                    })?;
             }
             if let Next::Stop = on_step(k, &report, values) {
                 break;
@@ -129,13 +125,9 @@ pub fn fixed_lag_with_rescue(
             });
             k0 += 1;
         }
-        if adaptive {
-            guess.clear();
-            guess.extend_from_slice(&values[(k0.max(1) - 1) * s..(k + 1) * s]);
-        }
-        // The window's guess, from before the step that left it (if one did).
         let first = k0.max(1) - 1;
-        let start = values[first * s..(k + 1) * s].to_vec();
+        start.clear();
+        start.extend_from_slice(&values[first * s..(k + 1) * s]);
         let mut report = solve_window(&mut solver, graph, values, k0, k, prior.as_ref())?;
         if adaptive && k0 > 0 && report.termination != Termination::Converged {
             // The marginal information along the motion no longer carries the solve:
@@ -143,7 +135,7 @@ pub fn fixed_lag_with_rescue(
             adaptive = false;
             solver.condition_on_past();
             on_switch(k);
-            values[(k0 - 1) * s..(k + 1) * s].copy_from_slice(&guess);
+            values[first * s..(k + 1) * s].copy_from_slice(&start);
             prior = Some(leave(
                 &mut solver,
                 graph,
@@ -161,23 +153,46 @@ pub fn fixed_lag_with_rescue(
         if k > 0 && report.termination != Termination::Converged {
             // The newest step's guess may be too far from its solution (a coarse
             // step through a fast or stiff stretch): ask for a better one.
-            let failed = values[k0 * s..(k + 1) * s].to_vec();
-            values[k0 * s..(k + 1) * s].copy_from_slice(&start[(k0 - first) * s..]);
-            if rescue(values, k) {
-                let again = solve_window(&mut solver, graph, values, k0, k, prior.as_ref())?;
-                report = SolveReport {
-                    iterations: report.iterations + again.iterations,
-                    ..again
-                };
-            } else {
-                values[k0 * s..(k + 1) * s].copy_from_slice(&failed);
-            }
+            let prior = prior.as_ref();
+            report =
+                solve_from_rescue(values, s, &start, first, k0, k, report, &mut rescue, |v| {
+                    solve_window(&mut solver, graph, v, k0, k, prior)
+                })?;
         }
         if let Next::Stop = on_step(k, &report, values) {
             break;
         }
     }
     Ok(())
+}
+
+/// After the window k0..=k failed to converge (`failed`): the window back at its guess
+/// (`start` holds steps `first`..=k), `rescue` asked for a new guess of step k, and
+/// `solve` run again from there; without a new guess the failed solve's values stay.
+#[allow(clippy::too_many_arguments)] // the window's bounds, its guess and two callbacks
+fn solve_from_rescue(
+    values: &mut [f64],
+    s: usize,
+    start: &[f64],
+    first: usize,
+    k0: usize,
+    k: usize,
+    failed: SolveReport,
+    rescue: &mut impl FnMut(&mut [f64], usize) -> bool,
+    mut solve: impl FnMut(&mut [f64]) -> Result<SolveReport>,
+) -> Result<SolveReport> {
+    let window = k0 * s..(k + 1) * s;
+    let failed_values = values[window.clone()].to_vec();
+    values[window.clone()].copy_from_slice(&start[(k0 - first) * s..]);
+    if !rescue(values, k) {
+        values[window].copy_from_slice(&failed_values);
+        return Ok(failed);
+    }
+    let again = solve(values)?;
+    Ok(SolveReport {
+        iterations: failed.iterations + again.iterations,
+        ..again
+    })
 }
 
 /// The prior that step k0 leaves on k0 + 1 as it leaves the window.

@@ -24,6 +24,7 @@
 //! projector are unchanged) so that rank is judged relative to each row's size.
 
 use crate::error::{Error, Result};
+use crate::factors::key_and_noise_accessors;
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
 use crate::model::Model;
 use nalgebra::{DMatrix, DVector};
@@ -170,12 +171,7 @@ impl Factor for TangentIntegrator {
     fn name(&self) -> &str {
         &self.name
     }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
-    }
+    key_and_noise_accessors!();
     fn dim(&self) -> usize {
         self.model.n()
     }
