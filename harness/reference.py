@@ -64,6 +64,10 @@ SUITE = {
     "hard/stiff-spring": (5.0, IDA, [EXUDYN]),
     "hard/redundant-fourbar": (5.0, IDA, [PINOCCHIO]),
     "hard/fourbar-lower-branch": (5.0, IDA, [EXUDYN]),
+    # The published benchmark's 0.03 s (docs/benchmarks.md): past it the motor keeps
+    # speeding the crank up, to ~10⁴ rad/s by 0.4 s. IDA at rtol 1e-12 agrees with the
+    # published end angles to 5e-9 rad; tighter tolerances stop before 0.03 s.
+    "benchmarks/andrews-squeezer": (0.03, ("ida", {"rtol": 1e-12}), []),
 }
 
 

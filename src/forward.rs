@@ -130,6 +130,11 @@ pub struct ForwardOptions {
     pub settings: Settings,
     /// Go on after a step whose solve did not converge (it is still reported).
     pub continue_on_failure: bool,
+    /// Where a step fails because it is too coarse for the motion (a body turns more
+    /// than [`StepFailure::LARGE_TURN`] a step), integrate the run again at a step
+    /// `dt / factor` and keep every `factor`-th state, so that the output stays on the
+    /// grid asked for ([`RunSummary::refinement`] says so).
+    pub refine: bool,
 }
 
 impl ForwardOptions {
@@ -148,6 +153,7 @@ impl ForwardOptions {
                 ..Settings::default()
             },
             continue_on_failure: false,
+            refine: true,
         }
     }
 
@@ -411,6 +417,25 @@ impl Trajectory {
         self.names.len()
     }
 
+    /// Every `stride`-th sample (0, stride, 2·stride, …), on the grid t_j = j·dt.
+    pub fn every(&self, stride: usize, dt: f64) -> Trajectory {
+        let n = self.n();
+        let rows: Vec<usize> = (0..self.len()).step_by(stride.max(1)).collect();
+        let pick = |v: &[f64]| {
+            rows.iter()
+                .flat_map(|&r| &v[r * n..(r + 1) * n])
+                .copied()
+                .collect()
+        };
+        Trajectory {
+            names: self.names.clone(),
+            t: (0..rows.len()).map(|j| j as f64 * dt).collect(),
+            q: pick(&self.q),
+            dq: pick(&self.dq),
+            ddq: pick(&self.ddq),
+        }
+    }
+
     /// Keeps the first `len` samples.
     pub fn truncate(&mut self, len: usize) {
         let n = self.n();
@@ -464,8 +489,9 @@ pub struct StepFailure {
     pub batch: bool,
     /// Where the cost went non-finite: the effect that cannot be evaluated there.
     pub cause: Option<String>,
-    /// The body that turned fastest at the last step kept before this one: its name
-    /// and its turn per step (rad), when that is more than [`StepFailure::LARGE_TURN`].
+    /// The body that turns fastest over this step, from the velocities and
+    /// accelerations of the step before: its name and its turn per step (rad). The
+    /// message names it when the turn is more than [`StepFailure::LARGE_TURN`].
     pub fast_body: Option<(String, f64)>,
 }
 
@@ -497,7 +523,7 @@ impl StepFailure {
     pub const LARGE_TURN: f64 = 0.5;
 
     /// The run's time step: t_k = k·Δt for every step of a run.
-    fn dt(&self) -> f64 {
+    pub fn dt(&self) -> f64 {
         self.t / self.step.max(1) as f64
     }
 
@@ -550,13 +576,13 @@ impl StepFailure {
                     );
                 }
                 let turn = match &self.fast_body {
-                    Some((body, per_step)) => format!(
-                        "; body {body} turned {per_step:.2} rad per step before it: the step is \
+                    Some((body, per_step)) if *per_step > Self::LARGE_TURN => format!(
+                        "; body {body} turns about {per_step:.2} rad over the step: the step is \
                          too coarse for the motion (dt below {:.2e} s keeps it under {} rad)",
                         self.dt() * Self::LARGE_TURN / per_step,
                         Self::LARGE_TURN
                     ),
-                    None => String::new(),
+                    _ => String::new(),
                 };
                 format!(
                     "{stage}step {} (t = {t} s) did not converge: {}, cost {:.3e} after {} \
@@ -939,6 +965,34 @@ pub struct RunSummary {
     /// With [`DcIntegrators::Auto`]: the failure with the paper's integrator factors
     /// after which this run was made again with tangent ones.
     pub tangent_after: Option<StepFailure>,
+    /// With [`ForwardOptions::refine`]: the finer step this run was integrated at.
+    pub refinement: Option<Refinement>,
+}
+
+/// A run integrated at a finer step than asked for, because a step at the coarser one
+/// failed while a body turned more than [`StepFailure::LARGE_TURN`] per step. The
+/// trajectory keeps every `factor`-th state: the grid asked for. Steps named in the
+/// summary's failures and counts are steps of the finer grid.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refinement {
+    /// Internal steps per step asked for.
+    pub factor: usize,
+    /// The internal step, dt / factor.
+    pub dt: f64,
+    /// The failure at the step asked for (or at the previous refinement).
+    pub after: StepFailure,
+}
+
+impl Refinement {
+    /// The most internal steps per step asked for: beyond it the motion is not what
+    /// makes the steps fail, or the run would be too long to be what the user meant.
+    pub const MAX_FACTOR: usize = 1024;
+    /// The turn per internal step the factor aims at: half of
+    /// [`StepFailure::LARGE_TURN`], for motions that speed up after the step measured.
+    pub const TARGET_TURN: f64 = 0.25;
+    /// A failed step over which no body turns this much (rad) is not refined: its
+    /// failure has another cause than the step's size against the motion.
+    pub const MIN_TURN: f64 = 0.05;
 }
 
 /// A switch of the independent coordinates during a run: at `step` the coordinates in
@@ -976,6 +1030,92 @@ pub fn simulate(
 /// that step's state (its graph's initial priors), as generalized coordinate
 /// partitioning does. Where Φ_q itself loses rank no set helps: the run stops.
 pub fn simulate_interruptible(
+    model: Arc<Model>,
+    options: &ForwardOptions,
+    progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+) -> Result<(Trajectory, RunSummary)> {
+    let (mut trajectory, mut summary) = simulate_integrators(model.clone(), options, progress)?;
+    if !options.refine {
+        return Ok((trajectory, summary));
+    }
+    // A step too coarse for the motion: the implicit equations of a step over which a
+    // body turns a radian or more have no nearby solution, at any window. The run is
+    // made again at a step that keeps the turn near TARGET_TURN, as many times as the
+    // finer run still fails that way, and the output stays on the grid asked for.
+    let mut factor: usize = 1;
+    // The unsampled motion of the last refined run, for the check of its turns.
+    let mut fine: Option<(Trajectory, f64)> = None;
+    while summary.interrupted.is_none() {
+        let failure = match summary.failures.first() {
+            Some(f) if f.singular.is_none() => f.clone(),
+            Some(_) => break,
+            // The first failure measured the motion where it was; a motion that
+            // speeds up later can still turn too far a step at the finer step and
+            // converge to a poor answer: that step is refined from too.
+            None => match fine
+                .as_ref()
+                .and_then(|(tr, dt)| coarse_turn(&model, tr, *dt))
+            {
+                Some(f) => f,
+                None => break,
+            },
+        };
+        let turn = match &failure.fast_body {
+            Some((_, turn)) if *turn >= Refinement::MIN_TURN => *turn,
+            _ => break,
+        };
+        let more = ((turn / Refinement::TARGET_TURN).ceil() as usize).max(2);
+        let next = factor.saturating_mul(more);
+        if next > Refinement::MAX_FACTOR {
+            break;
+        }
+        factor = next;
+        let mut finer = options.clone();
+        finer.dt = options.dt / factor as f64;
+        finer.t_end = (options.steps().saturating_sub(1) * factor) as f64 * finer.dt;
+        let (fine_trajectory, mut fine_summary) =
+            simulate_integrators(model.clone(), &finer, progress)?;
+        fine_summary.wall_time += summary.wall_time;
+        fine_summary.refinement = Some(Refinement {
+            factor,
+            dt: finer.dt,
+            after: failure,
+        });
+        trajectory = fine_trajectory.every(factor, options.dt);
+        fine_summary.steps = trajectory.len();
+        summary = fine_summary;
+        fine = Some((fine_trajectory, finer.dt));
+    }
+    Ok((trajectory, summary))
+}
+
+/// The first step of a converged run over which a body turned more than
+/// [`StepFailure::LARGE_TURN`], as a failure to refine from (its solve converged).
+fn coarse_turn(model: &Model, trajectory: &Trajectory, dt: f64) -> Option<StepFailure> {
+    (0..trajectory.len()).find_map(|k| {
+        let (body, omega) = model.fastest_body(trajectory.q_at(k), trajectory.dq_at(k))?;
+        let turn = omega * dt;
+        (turn > StepFailure::LARGE_TURN).then(|| StepFailure {
+            step: k + 1,
+            t: trajectory.t[k] + dt,
+            report: SolveReport {
+                iterations: 0,
+                termination: Termination::Converged,
+                cost: 0.0,
+            },
+            constraint_conditioning: 1.0,
+            singular: None,
+            warm_start: false,
+            batch: false,
+            cause: None,
+            fast_body: Some((body, turn)),
+        })
+    })
+}
+
+/// One run at `options.dt`; with [`DcIntegrators::Auto`], made again with tangent
+/// integrators where the paper's do not converge.
+fn simulate_integrators(
     model: Arc<Model>,
     options: &ForwardOptions,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
@@ -1105,13 +1245,16 @@ fn segment(
     let mut completed = steps;
     let mut reselect = None;
     let n = model.n();
-    // The body turning fastest at the step before k, where it turns more than
-    // LARGE_TURN a step.
+    // The body turning fastest over step k: its turn estimated from the step
+    // before's velocities and accelerations (the rate at mid-step), so that a run
+    // from rest is measured too.
     let fast_body = |k: usize, v: &[f64]| {
         let before = &v[k.checked_sub(1)? * s..k * s];
-        let (body, omega) = model.fastest_body(&before[..n], &before[n..2 * n])?;
-        let per_step = omega * options.dt;
-        (per_step > StepFailure::LARGE_TURN).then_some((body, per_step))
+        let mid: Vec<f64> = (0..n)
+            .map(|i| before[n + i] + 0.5 * options.dt * before[2 * n + i])
+            .collect();
+        let (body, omega) = model.fastest_body(&before[..n], &mid)?;
+        Some((body, omega * options.dt))
     };
     let failure = |k: usize, report: &SolveReport, v: &[f64]| {
         let q = &v[k * s..k * s + n];
@@ -1502,6 +1645,7 @@ fn summarize(
         reselections: Vec::new(),
         interrupted: None,
         tangent_after: None,
+        refinement: None,
     })
 }
 

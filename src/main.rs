@@ -91,6 +91,11 @@ enum Command {
         /// Keep going after a step whose solve did not converge (it is reported).
         #[arg(long = "continue-on-failure")]
         continue_on_failure: bool,
+        /// Fail where the step is too coarse for the motion, instead of integrating
+        /// the run again at a finer step (dt/K, K up to 1024) and writing every K-th
+        /// state, on the grid of --dt.
+        #[arg(long = "no-refine")]
+        no_refine: bool,
         /// Make the plausibility warnings errors: a time step too coarse for the
         /// stiffest spring or damper (refused before the run), and the energy drift
         /// of a conservative scene beyond 1 % of its largest kinetic energy (the
@@ -405,6 +410,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             noise,
             past,
             continue_on_failure,
+            no_refine,
             strict,
         } => {
             let (_, model) = load(&scene)?;
@@ -438,6 +444,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 PastArg::Marginalized => Past::Marginalized,
             };
             options.continue_on_failure = continue_on_failure;
+            options.refine = !no_refine;
             options.validate(&model).map_err(plain)?;
             if let Mode::FixedLag(w) = options.mode {
                 // A window longer than the run is the whole run.
@@ -717,6 +724,18 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
             "; tangent integrators (the paper's did not converge at step {}, t = {} s)",
             f.step,
             forward::round_time(f.t)
+        );
+    }
+    if let Some(r) = &s.refinement {
+        let (body, turn) = r.after.fast_body.clone().unwrap_or_default();
+        line += &format!(
+            "; integrated at dt = {:.3e} s ({} steps per step written): at dt = {:.3e} s body \
+             {body} turns about {turn:.2} rad a step at t = {} s, too coarse for the motion \
+             (steps and failures named here are the finer ones)",
+            r.dt,
+            r.factor,
+            r.after.dt(),
+            forward::round_time(r.after.t)
         );
     }
     if let Some((k, t)) = s.conditioned_from {

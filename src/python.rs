@@ -882,6 +882,18 @@ fn forward_result<'py>(
         "tangent_after",
         s.tangent_after.as_ref().map(|f| (f.step, f.t)),
     )?;
+    let refinement = match &s.refinement {
+        Some(r) => {
+            let d = PyDict::new(py);
+            d.set_item("factor", r.factor)?;
+            d.set_item("dt", r.dt)?;
+            d.set_item("after", (r.after.step, r.after.t))?;
+            d.set_item("message", r.after.message())?;
+            Some(d)
+        }
+        None => None,
+    };
+    summary.set_item("refinement", refinement)?;
     let reselections = PyList::empty(py);
     for r in &s.reselections {
         let d = PyDict::new(py);
@@ -963,6 +975,7 @@ fn simulate_run<'py>(
     continue_on_failure: &Bound<'py, PyAny>,
     past: &Bound<'py, PyAny>,
     dc_integrators: &Bound<'py, PyAny>,
+    refine: &Bound<'py, PyAny>,
     params: &Bound<'py, PyAny>,
     q0: &Bound<'py, PyAny>,
     dq0: &Bound<'py, PyAny>,
@@ -990,6 +1003,7 @@ fn simulate_run<'py>(
         let integrator = arg_choice(integrator, "integrator", &["trapezoidal", "euler"])?;
         let noise = arg_choice(noise, "noise", &["default", "paper"])?;
         let continue_on_failure = arg_bool(continue_on_failure, "continue_on_failure")?;
+        let refine = arg_bool(refine, "refine")?;
         let past = arg_choice(past, "past", &["adaptive", "conditioned", "marginalized"])?;
         let dc_integrators = arg_choice(
             dc_integrators,
@@ -1023,6 +1037,7 @@ fn simulate_run<'py>(
             _ => Past::Marginalized,
         };
         options.continue_on_failure = continue_on_failure;
+        options.refine = refine;
         let model = study_model(scene, &params, &q0, &dq0)?;
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).

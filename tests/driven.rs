@@ -5,7 +5,9 @@
 //! longer saw (`Past`). The adaptive default conditions on the past from the first
 //! window that does not converge after a marginal prior.
 
-use mbfg::forward::{simulate, Coordinates, DcIntegrators, ForwardOptions, RunSummary};
+use mbfg::forward::{
+    simulate, Coordinates, DcIntegrators, ForwardOptions, Refinement, RunSummary, StepFailure,
+};
 use mbfg::smoother::Mode;
 use mbfg::solver::Past;
 use mbfg::{Model, Scene};
@@ -358,19 +360,19 @@ fn a_step_that_fails_from_its_guess_converges_from_substeps() {
     assert!(s.worst_phi <= 1e-9);
 }
 
-/// A step too coarse for the motion says so: the six-bar press at 5 ms, whose crank
-/// turns ~0.75 rad a step in the transient, names the crank and a step that keeps its
-/// turn under half a radian (one that converges: 1 ms, see above).
+/// A step too coarse for the motion says so when refinement is off: the six-bar press
+/// at 5 ms, whose crank turns ~0.75 rad a step in the transient, names the crank and a
+/// step that keeps its turn under half a radian.
 #[test]
 fn a_step_too_coarse_for_the_motion_names_the_fastest_body() {
-    let s = run(
-        "scenes/driven/six-bar-press.yaml",
-        Coordinates::Dependent,
-        5e-3,
-        0.1,
-        Mode::FixedLag(1),
-        Past::Adaptive,
-    );
+    let mut opts = ForwardOptions::new(Coordinates::Dependent, 5e-3, 0.1, Mode::FixedLag(1));
+    opts.refine = false;
+    let (_, s) = simulate(
+        model("scenes/driven/six-bar-press.yaml"),
+        &opts,
+        &mut |_, _| {},
+    )
+    .unwrap();
     let failure = s.failures.first().expect("the six-bar press fails at 5 ms");
     let (body, per_step) = failure
         .fast_body
@@ -380,8 +382,69 @@ fn a_step_too_coarse_for_the_motion_names_the_fastest_body() {
     assert!(per_step > 0.5, "{per_step}");
     let message = failure.message();
     assert!(
-        message.contains("body crank turned") && message.contains("too coarse for the motion"),
+        message.contains("body crank turns about") && message.contains("too coarse for the motion"),
         "{message}"
     );
     assert!(!message.contains("singular"), "{message}");
+    assert!(s.refinement.is_none());
+}
+
+/// By default the same run is integrated again at a finer step and written on the
+/// 5 ms grid: every state equals the finer run's at the same time (it is that run),
+/// and no body turns more than half a radian per internal step.
+#[test]
+fn a_step_too_coarse_for_the_motion_is_refined() {
+    let m = model("scenes/driven/six-bar-press.yaml");
+    let opts = ForwardOptions::new(Coordinates::Dependent, 5e-3, 0.1, Mode::FixedLag(1));
+    let (tr, s) = simulate(m.clone(), &opts, &mut |_, _| {}).unwrap();
+    assert!(
+        s.failures.is_empty(),
+        "{:?}",
+        s.failures.first().map(|f| f.message())
+    );
+    let r = s.refinement.clone().expect("the run was refined");
+    assert!(r.factor >= 2, "{r:?}");
+    assert_eq!(r.after.fast_body.as_ref().unwrap().0, "crank");
+    assert!((r.dt * r.factor as f64 - 5e-3).abs() < 1e-15);
+    assert_eq!(tr.len(), opts.steps());
+    assert_eq!(s.steps, opts.steps());
+    for (j, t) in tr.t.iter().enumerate() {
+        assert!((t - j as f64 * 5e-3).abs() < 1e-15, "{t}");
+    }
+    let mut fine_opts = opts.clone();
+    fine_opts.dt = r.dt;
+    fine_opts.t_end = (opts.steps() - 1) as f64 * 5e-3;
+    let (fine, fs) = simulate(m.clone(), &fine_opts, &mut |_, _| {}).unwrap();
+    assert!(fs.failures.is_empty() && fs.refinement.is_none());
+    for j in 0..tr.len() {
+        assert_eq!(tr.q_at(j), fine.q_at(j * r.factor));
+        assert_eq!(tr.dq_at(j), fine.dq_at(j * r.factor));
+        let (_, omega) = m
+            .fastest_body(fine.q_at(j * r.factor), fine.dq_at(j * r.factor))
+            .unwrap();
+        assert!(omega * r.dt <= StepFailure::LARGE_TURN, "{}", omega * r.dt);
+    }
+}
+
+/// Refinement is for steps too coarse for the motion only: the six-bar press in IC
+/// fails where its crank creeps (turning far less than a tenth of a radian a step),
+/// and that failure is reported at the step asked for, not refined.
+#[test]
+fn a_failure_with_slow_motion_is_not_refined() {
+    let opts = ForwardOptions::new(Coordinates::Independent, 1e-3, 0.2, Mode::FixedLag(1));
+    let (_, s) = simulate(
+        model("scenes/driven/six-bar-press.yaml"),
+        &opts,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    let failure = s.failures.first().expect("IC fails near t = 0.1 s");
+    assert!(s.refinement.is_none());
+    let (_, turn) = failure.fast_body.clone().unwrap();
+    assert!(turn < Refinement::MIN_TURN, "{turn}");
+    assert!(
+        !failure.message().contains("too coarse"),
+        "{}",
+        failure.message()
+    );
 }

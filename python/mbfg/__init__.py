@@ -163,21 +163,24 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
              integrator: str = "trapezoidal", noise: str = "default",
              continue_on_failure: bool = False, past: str = "adaptive",
              dc_integrators: str = "auto", params: Mapping[str, float] | None = None, q0: Mapping[str, float] | None = None,
-             dq0: Mapping[str, float] | None = None) -> Result:
+             dq0: Mapping[str, float] | None = None, refine: bool = True) -> Result:
     """Forward dynamics, as `mbfg simulate` runs it, of a scene file or a loaded Model.
     For studies without writing files: `params` overrides the scene's parameters (as
     `load` does), `q0` the initial values of coordinates of q by name (the position
     problem keeps those of independent coordinates and closes the others), `dq0` the
     initial velocities of independent coordinates. `dc_integrators` chooses the integrator
     factors of dependent coordinates: "auto", "full" (the paper's) or "tangent" (see
-    `mbfg simulate --help`).
+    `mbfg simulate --help`). Where a step is too coarse for the motion (a body turns
+    over half a radian a step), the run is integrated again at dt/K (K ≤ 1024) and every
+    K-th state returned, on the grid of `dt`: `summary["refinement"]` then gives K, the
+    finer step and the failure that asked for it; `refine=False` fails there instead.
     Ctrl-C stops the run within ~0.1 s
     with KeyboardInterrupt; that and SolveError carry the steps solved as `.result`."""
     native = scene._m if isinstance(scene, Model) else scene
     try:
         result = _run(_native.simulate, native, coords, dt, t_end, window, batch,
                       max_iterations, integrator, noise, continue_on_failure, past,
-                      dc_integrators, _dict(params), _dict(q0), _dict(dq0))
+                      dc_integrators, refine, _dict(params), _dict(q0), _dict(dq0))
     except BaseException as e:
         if isinstance(getattr(e, "result", None), Result):
             e.result.scene = scene
