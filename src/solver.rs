@@ -52,7 +52,19 @@ pub struct Settings {
     /// finite-difference Hessian only adds its error (the six-bar press in IC at
     /// 0.1 ms crawled from t = 0.021 s with it, and reaches 0.116 s without).
     pub second_order: bool,
+    /// Smallest 1/cond(H) (as the Cholesky factor's pivots bound it) at which a
+    /// one-block window's Gauss-Newton step still comes from the normal equations;
+    /// below it the step is the least-squares solution of J itself, whose condition
+    /// is the square root of H's: a light crank against a stiff spring in
+    /// independent coordinates makes J's 1e8 into H's 1e16, where the Cholesky step
+    /// has no correct digit and the six-bar press's window solves wander for dozens
+    /// of iterations.
+    pub normal_equations_limit: f64,
 }
+
+/// Singular values of a one-block window's reduced Jacobian below this fraction of the
+/// largest are taken as 0 by `least_squares_step` (round-off in J itself).
+const LEAST_SQUARES_CUTOFF: f64 = 1e-14;
 
 /// What marginalization leaves of the step that leaves a fixed-lag window.
 ///
@@ -91,6 +103,7 @@ impl Default for Settings {
             tangent_priors: false,
             past: Past::Marginalized,
             second_order: true,
+            normal_equations_limit: 1e-10,
         }
     }
 }
@@ -336,6 +349,11 @@ pub struct WindowSolver {
     along_out: Vec<f64>,
     /// In a conditional solve the step before the window is held fixed.
     conditional: bool,
+    /// The whitened, reduced rows [J N | r + J p] of a one-block window without a
+    /// prior, kept beside H for the least-squares step where H itself cannot be
+    /// factored (see `least_squares_step`); row-major, `d + 1` columns.
+    rows: Vec<f64>,
+    rows_width: Option<usize>,
     /// Set when a window solve ended on a small step: its linearization of the
     /// oldest block is still at hand (see `marginalize`).
     last: Option<LastSolve>,
@@ -468,6 +486,8 @@ impl WindowSolver {
                 capacity * graph.step_factors.len() + graph.initial_factors.len(),
             ),
             conditional: false,
+            rows: Vec::new(),
+            rows_width: None,
             last: None,
             cost_first: 0.0,
             correction: vec![0.0; s],
@@ -814,6 +834,15 @@ impl WindowSolver {
                     s,
                 );
             }
+            if let Some(d) = self.rows_width.filter(|_| step == 0 && !lagged) {
+                for (row, &rr) in self.shifted[..factor.dim()].iter().enumerate() {
+                    let (lo, hi) = self.reduced_spans[0][row];
+                    let jr = &self.reduced[0][row * s..row * s + d];
+                    self.rows
+                        .extend((0..d).map(|a| if a >= lo && a < hi { jr[a] } else { 0.0 }));
+                    self.rows.push(rr);
+                }
+            }
             accumulate(
                 &mut self.h,
                 &mut self.g,
@@ -917,6 +946,9 @@ impl WindowSolver {
             HardPass::Cost
         };
         let (mut soft, mut soft_first) = (0.0, 0.0);
+        self.rows.clear();
+        self.rows_width = None;
+        let record = linearize && blocks == 1 && prior.is_none();
         if self.step_major && linearize {
             // Step by step: each step's hard equations, then its factors into its
             // blocks of H (and the lagged ones into the previous step's) while they
@@ -929,6 +961,9 @@ impl WindowSolver {
                 }
                 self.h.reset_block(b, self.hard[b].reduction.dim);
                 self.g[b * s..(b + 1) * s].fill(0.0);
+                if record {
+                    self.rows_width = Some(self.hard[0].reduction.dim);
+                }
                 for at in self.block_start[b]..self.block_start[b + 1] {
                     let i = self.by_step[at];
                     if !is_hard(factor_of(graph, self.instances[i])) {
@@ -950,6 +985,9 @@ impl WindowSolver {
                 let hard = &self.hard;
                 self.h.reset_active(blocks, |b| hard[b].reduction.dim);
                 self.g[..blocks * s].fill(0.0);
+                if record {
+                    self.rows_width = Some(self.hard[0].reduction.dim);
+                }
             }
         }
         let (mut cost, mut cost_first) = self.hard_cost_sum(graph, k0);
@@ -1493,6 +1531,9 @@ impl WindowSolver {
         let mut gauss_newton = true;
         let mut previous = f64::INFINITY;
         let mut slow = false;
+        // The last accepted step was below the tolerance and kept the hard equations:
+        // the point is an optimum as far as a damped model can tell.
+        let mut settled = false;
         while iterations < self.settings.max_iterations {
             iterations += 1;
             if newton && gauss_newton {
@@ -1509,21 +1550,38 @@ impl WindowSolver {
                     *v = mu * x.max(1e-12);
                 }
             }
-            if self
+            let factored = self
                 .chol
                 .factor(&self.h, if lm { &self.damping[..n] } else { &[] })
-                .is_err()
-            {
+                .is_ok();
+            // Gauss-Newton from J itself where H = JᵀJ is too ill-conditioned for its
+            // Cholesky factor to give the step to more than a few digits.
+            let from_rows = mu == 0.0
+                && !newton
+                && (!factored || self.chol.pivot_ratio() < self.settings.normal_equations_limit)
+                && self.least_squares_step();
+            if factored && !from_rows {
+                for i in 0..n {
+                    self.delta[i] = -self.g[i];
+                }
+                self.chol.solve(&mut self.delta[..n]);
+            } else if !from_rows {
+                if mu == 0.0 && settled {
+                    // H is singular to working precision where the damped steps have
+                    // already come to rest: no undamped step can say more (the six-bar
+                    // press's windows in IC, cycling from 1e-4 down to 1e-12 and back).
+                    return Ok(SolveReport {
+                        iterations,
+                        termination: Termination::Converged,
+                        cost,
+                    });
+                }
                 if !lm || mu > 1e16 {
                     return Ok(diverged(cost, iterations));
                 }
                 mu = (mu * 10.0).max(self.settings.initial_damping);
                 continue;
             }
-            for i in 0..n {
-                self.delta[i] = -self.g[i];
-            }
-            self.chol.solve(&mut self.delta[..n]);
             // The decrease the linear model predicts for the soft factors in y:
             // −gᵀy − ½yᵀHy.
             self.h.multiply(&self.delta[..n], &mut self.hd[..n]);
@@ -1587,9 +1645,11 @@ impl WindowSolver {
                 Ok(c) => *c >= cost,
                 Err(_) => true,
             };
-            let flat = restored
-                && (predicted <= 1e-12 * cost.abs()
-                    || (no_progress && (largest <= 1e-6 || predicted <= 1e-6 * cost.abs())));
+            // A negative prediction is no "little left to gain": the model itself is
+            // off (H's round-off), and the step may be anything.
+            let little = |fraction: f64| (0.0..=fraction * cost.abs()).contains(&predicted);
+            let flat =
+                restored && (little(1e-12) || (no_progress && (largest <= 1e-6 || little(1e-6))));
             let converged = (small || flat) && mu == 0.0;
             if std::env::var("LMTRACE").is_ok() {
                 eprintln!("k0={k0} k1={k1} it={iterations} newton={newton} cost={cost:.6e} trial={:?} mu={mu:.1e} pred={predicted:.3e} |d|={largest:.2e} small={small} restored={restored}", trial.as_ref().ok());
@@ -1597,6 +1657,17 @@ impl WindowSolver {
 
             match trial {
                 Ok(c) if converged || c <= cost || !lm => {
+                    if converged && c > cost {
+                        // Converged where the step could not lower the cost: the point
+                        // before the step is the answer (within round-off of the trial
+                        // where the comparison is round-off, far better where not).
+                        values[k0 * s..k1 * s].copy_from_slice(&self.saved[..n]);
+                        return Ok(SolveReport {
+                            iterations,
+                            termination: Termination::Converged,
+                            cost,
+                        });
+                    }
                     if converged {
                         return Ok(SolveReport {
                             iterations,
@@ -1616,8 +1687,11 @@ impl WindowSolver {
                         slow = slower;
                         previous = largest;
                     }
+                    settled = small && restored;
                     let ratio = (cost - c) / predicted.max(f64::MIN_POSITIVE);
-                    mu = if ratio > 0.75 || mu < 1e-12 {
+                    // A step below the tolerance leaves only round-off to compare, and
+                    // says no more about the model than that the undamped step is due.
+                    mu = if ratio > 0.75 || mu < 1e-12 || settled {
                         0.0
                     } else {
                         mu / 3.0
@@ -1636,6 +1710,7 @@ impl WindowSolver {
                         if let Some(c) = self.backtrack(graph, values, k0, k1, prior, cost)? {
                             previous = f64::INFINITY;
                             slow = false;
+                            settled = false;
                             cost = c;
                             continue;
                         }
@@ -1680,6 +1755,37 @@ impl WindowSolver {
             termination: Termination::IterationLimit,
             cost,
         })
+    }
+
+    /// The Gauss-Newton step of a one-block window from its rows (`rows`), by an SVD
+    /// of the reduced Jacobian itself, into `delta`; false when the rows are not at
+    /// hand or the step is not finite. H = JᵀJ squares J's condition number: a stiff
+    /// force's row next to the integrators' (a light crank against a stiff spring, in
+    /// independent coordinates) makes J's 1e8 into H's 1e16, where the Cholesky factor
+    /// fails although J still determines the step to 8 digits.
+    fn least_squares_step(&mut self) -> bool {
+        let Some(d) = self.rows_width else {
+            return false;
+        };
+        let m = self.rows.len() / (d + 1);
+        if d == 0 || m < d {
+            return false;
+        }
+        let a = nalgebra::DMatrix::from_fn(m, d, |i, j| self.rows[i * (d + 1) + j]);
+        let b = nalgebra::DVector::from_fn(m, |i, _| -self.rows[i * (d + 1) + d]);
+        let svd = a.svd(true, true);
+        let Some(&largest) = svd.singular_values.iter().max_by(|x, y| x.total_cmp(y)) else {
+            return false;
+        };
+        let Ok(y) = svd.solve(&b, largest * LEAST_SQUARES_CUTOFF) else {
+            return false;
+        };
+        if !y.iter().all(|v| v.is_finite()) {
+            return false;
+        }
+        self.delta[..self.s].fill(0.0);
+        self.delta[..d].copy_from_slice(y.as_slice());
+        true
     }
 
     /// Marginalizes step k0 (with `prior` on it, if any) into a prior on step k0+1:

@@ -133,22 +133,28 @@ fn an_output_that_names_an_input_is_refused() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A run that ends early (here at a torque that turns NaN at t > 0.3 s) and writes to
+/// standard output ends it with a line that says so.
 #[test]
 fn a_run_that_ends_early_on_stdout_ends_with_an_incomplete_line() {
+    let dir = scratch("incomplete-stdout");
+    let scene = dir.join("nan.yaml");
+    let mut yaml = text(Path::new("scenes/pendulum.yaml"));
+    yaml += "  - {type: torque, coordinate: theta, value: \"sqrt(0.3-t)\"}\n";
+    std::fs::write(&scene, yaml).unwrap();
     let out = mbfg(&[
         "simulate",
-        FOURBAR,
+        scene.to_str().unwrap(),
         "--dt",
-        "0.001",
+        "0.01",
         "--t-end",
         "0.5",
-        "--max-iterations",
-        "1",
     ]);
     error_line(&out, 1);
     let csv = String::from_utf8_lossy(&out.stdout);
     let last = csv.lines().last().unwrap();
     assert!(last.starts_with("# incomplete: step "), "{last}");
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// A torque that turns NaN at t > 0.3 s: the step that meets it is named with the

@@ -187,9 +187,9 @@ def test_continuing_past_failures_is_marked_incomplete():
 
 def test_a_diverged_run_raises_even_when_continuing():
     # A diverged solve ends the run short: never a short trajectory that looks complete.
-    # The mm slider-crank at 50 ms: its crank turns more than a radian a step (by default
-    # the run would be refined to a finer step and converge).
-    scene = ROOT / "scenes" / "driven" / "slider-crank-mm.yaml"
+    # Andrews' squeezer at 50 ms: its bodies turn hundreds of radians a step (by default
+    # the run would be refined to a finer step).
+    scene = ROOT / "scenes" / "benchmarks" / "andrews-squeezer.yaml"
     with pytest.raises(mbfg.SolveError, match="diverged") as info:
         mbfg.simulate(scene, dt=0.05, t_end=1.0, continue_on_failure=True, refine=False)
     r = info.value.result

@@ -25,29 +25,9 @@ ILL_POSED = {
     ("benchmarks/n-fourbar-40", "ic"),
 }
 
-SIX_BAR_PRESS = ("IC only: where the 20 mm crank creeps over its limit position against the stiff "
-                 "ram spring (t ≈ 0.09–0.12 s), the step's equations in the crank angle become "
-                 "nearly singular (Gauss-Newton matrix conditioned beyond 1e16) at every dt from "
-                 "0.02 ms to 20 ms; DC converges at every dt and window")
-
 # Cell id → why it fails today: every cell of a fresh `python -m harness.robustness --fast`
 # that `acceptable` refuses.
-KNOWN_FAILING: dict[str, str] = {
-    **dict.fromkeys([
-        'driven/six-bar-press-ic-w1-1ms',
-        'driven/six-bar-press-ic-w1-5ms',
-        'driven/six-bar-press-ic-w1-10ms',
-        'driven/six-bar-press-ic-w1-20ms',
-        'driven/six-bar-press-ic-w5-1ms',
-        'driven/six-bar-press-ic-w5-5ms',
-        'driven/six-bar-press-ic-w5-10ms',
-        'driven/six-bar-press-ic-w5-20ms',
-        'driven/six-bar-press-ic-batch-1ms',
-        'driven/six-bar-press-ic-batch-5ms',
-        'driven/six-bar-press-ic-batch-10ms',
-        'driven/six-bar-press-ic-batch-20ms',
-    ], SIX_BAR_PRESS),
-}
+KNOWN_FAILING: dict[str, str] = {}
 
 
 def acceptable(o: rb.Outcome) -> bool:

@@ -321,6 +321,25 @@ impl BandedCholesky {
         Ok(())
     }
 
+    /// The square of the ratio of the smallest to the largest diagonal entry of the
+    /// last factor L: a cheap lower bound on 1/cond(H) (1 without blocks).
+    pub fn pivot_ratio(&self) -> f64 {
+        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        for k in 0..self.blocks {
+            let (dk, at) = (self.dims[k], self.diag_at[k]);
+            for i in 0..dk {
+                let v = self.l[at + i * dk + i].abs();
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+        }
+        if hi > 0.0 {
+            (lo / hi).powi(2)
+        } else {
+            1.0
+        }
+    }
+
     /// Solves H x = b in place (b with stride s per block; entries outside the active
     /// parts come out 0).
     pub fn solve(&self, b: &mut [f64]) {
