@@ -8,7 +8,7 @@ use crate::factors::*;
 use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
 use crate::linalg::dense;
 
-use crate::model::{Model, State};
+use crate::model::{Model, PointSlot, State};
 use crate::smoother::{self, Mode, Next};
 use crate::solver::{Past, Settings, SolveReport, Termination};
 use crate::tangent::{Rule, TangentIntegrator};
@@ -646,7 +646,7 @@ impl Determinacy {
     /// below this: Φ_q itself is about to lose a rank, and no choice of coordinates
     /// helps. Approaching the parallelogram's flat configuration the solves in
     /// independent coordinates fail a step or two before the flat point; the run
-    /// stops 0.6 ms (at 3 rad/s, Δt = 1 ms) ahead of it with its steps sound, and
+    /// stops 1.6 ms (at 3 rad/s, Δt = 1 ms) ahead of it with its steps sound, and
     /// at coarse steps (5–20 ms), where s falls past the threshold in one step, where
     /// its linear extrapolation crosses 0 within the next step.
     pub const STOP_BELOW: f64 = 2.5e-3;
@@ -734,15 +734,33 @@ impl Determinacy {
     /// The norms of Φ_q's columns over the active rows at q (1 for a column without
     /// entries): the coordinates' scales, taken once at the initial configuration so
     /// that a column that shrinks towards a singular configuration is not rescaled.
+    ///
+    /// A point's x and y share one scale, the root mean square of their two columns:
+    /// a point placed level with its neighbour has an x column as small as that link
+    /// (2·length from its distance equation alone) and a y column of 1 (its angle
+    /// equation's), and scaling them apart made a 1 cm link that turned by 0.2 rad
+    /// read as a rank loss three times closer than it was.
     fn set_column_scales(&mut self, model: &Model, q: &[f64]) {
         self.jacobian(model, q);
         let n = model.n();
-        for (c, norm) in self.column_norms.iter_mut().enumerate() {
-            let sq: f64 = model
-                .active
-                .iter()
-                .map(|&k| self.jac[k * n + c].powi(2))
-                .sum();
+        let squares: Vec<f64> = (0..n)
+            .map(|c| {
+                model
+                    .active
+                    .iter()
+                    .map(|&k| self.jac[k * n + c].powi(2))
+                    .sum()
+            })
+            .collect();
+        let mut scale = squares.clone();
+        for slot in &model.points {
+            if let PointSlot::Free(x) = *slot {
+                let both = 0.5 * (squares[x] + squares[x + 1]);
+                scale[x] = squares[x].max(both);
+                scale[x + 1] = squares[x + 1].max(both);
+            }
+        }
+        for (norm, sq) in self.column_norms.iter_mut().zip(scale) {
             *norm = if sq > 0.0 { sq.sqrt() } else { 1.0 };
         }
     }
@@ -1334,10 +1352,19 @@ fn segment(
                             let prev = &v[(k.max(1) - 1) * s..(k.max(1) - 1) * s + model.n()];
                             let rate = (older.1 - before.1) / (before.0 - older.0);
                             let steps_to_rank_loss = before.1 / (rate * fg.graph.dt);
+                            // A step too coarse for the motion fails for that reason: in
+                            // a violent transient s moves fast too (Andrews' squeezer at
+                            // 1.7 ms, a body turning 1.8 rad a step, s = 0.026 falling),
+                            // and the extrapolation alone would name a singular point.
+                            let too_coarse = f
+                                .fast_body
+                                .as_ref()
+                                .is_some_and(|(_, turn)| *turn > StepFailure::LARGE_TURN);
                             if k >= 2
                                 && rate > 0.0
                                 && ((steps_to_rank_loss <= Determinacy::ATTRIBUTE_WITHIN
-                                    && before.1 < Determinacy::ATTRIBUTE_BELOW)
+                                    && before.1 < Determinacy::ATTRIBUTE_BELOW
+                                    && !too_coarse)
                                     || before.1 < Determinacy::SEARCH_BELOW)
                             {
                                 let (best, _) = det.best(&model, prev);

@@ -306,6 +306,10 @@ struct LastSolve {
 struct HardBlock {
     rows: usize,
     reduction: NullSpace,
+    /// Every residual of the last linearization within NOISE_MARGIN of its round-off:
+    /// the block's equations hold, and its particular solution is round-off divided
+    /// by its pivots, no correction to wait for.
+    at_round_off: bool,
 }
 
 /// A reusable solver for windows of up to `capacity` steps; it allocates once.
@@ -341,6 +345,8 @@ pub struct WindowSolver {
     /// One step's hard equations: C row-major rows × s, and −c.
     hard_jac: Vec<f64>,
     hard_rhs: Vec<f64>,
+    /// Round-off in each hard residual (see [`NullSpace::set_noise`]).
+    hard_noise: Vec<f64>,
     /// Evaluate step by step (see `optimize_for_batch`).
     step_major: bool,
     /// Directions and products of [`Factor::evaluate_along`]: per key size × c, and
@@ -463,6 +469,7 @@ impl WindowSolver {
             hard: (0..capacity)
                 .map(|_| HardBlock {
                     rows: 0,
+                    at_round_off: false,
                     reduction: NullSpace::new(s, max_hard),
                 })
                 .collect(),
@@ -476,6 +483,7 @@ impl WindowSolver {
             ),
             hard_jac: vec![0.0; max_hard * s],
             hard_rhs: vec![0.0; max_hard],
+            hard_noise: vec![0.0; max_hard],
             step_major: false,
             along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
             along_out: vec![0.0; along_dim * (1 + 2 * s)],
@@ -670,6 +678,7 @@ impl WindowSolver {
         let linearize = mode == HardPass::Linearize;
         self.hard_cache = None;
         let mut rows = 0;
+        let mut at_round_off = true;
         for at in self.block_start[b]..self.block_start[b + 1] {
             let i = self.by_step[at];
             let inst = self.instances[i];
@@ -699,11 +708,24 @@ impl WindowSolver {
             for r in 0..dim {
                 self.hard_rhs[rows + r] = -buf.r[r];
             }
+            if linearize {
+                // Round-off in each residual: ε times the size of its terms, Σ|C||x|.
+                let x = &values[inst.step * s..(inst.step + 1) * s];
+                for r in 0..dim {
+                    let row = &self.hard_jac[(rows + r) * s..(rows + r + 1) * s];
+                    let terms: f64 = row.iter().zip(x).map(|(c, v)| (c * v).abs()).sum();
+                    let noise = f64::EPSILON * (terms + buf.r[r].abs());
+                    self.hard_noise[rows + r] = noise;
+                    at_round_off &= buf.r[r].abs() <= NullSpace::NOISE_MARGIN * noise;
+                }
+            }
             rows += dim;
         }
         let block = &mut self.hard[b];
         block.rows = rows;
         if linearize {
+            block.at_round_off = at_round_off;
+            block.reduction.set_noise(&self.hard_noise[..rows]);
             block
                 .reduction
                 .reduce(&self.hard_jac, &self.hard_rhs[..rows], rows);
@@ -1594,6 +1616,7 @@ impl WindowSolver {
             let (mut largest, mut restored) = (0.0f64, true);
             for b in 0..k1 - k0 {
                 let red = &self.hard[b].reduction;
+                let at_round_off = self.hard[b].at_round_off;
                 let y = &self.delta[b * s..(b + 1) * s];
                 let x = &mut window[b * s..(b + 1) * s];
                 for i in 0..s {
@@ -1606,7 +1629,7 @@ impl WindowSolver {
                         .sum::<f64>();
                     let scale = 1.0 + x[i].abs();
                     largest = largest.max(step.abs() / scale);
-                    restored &= p.abs() <= self.settings.step_tolerance * scale;
+                    restored &= at_round_off || p.abs() <= self.settings.step_tolerance * scale;
                     x[i] += step;
                     self.direction[b * s + i] = step;
                 }
