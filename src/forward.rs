@@ -538,7 +538,7 @@ impl StepFailure {
                  distance to rank loss {:.1e}",
                 c.t_singular,
                 c.independent.join(", "),
-                c.dependent.join(", "),
+                abbreviated(&c.dependent),
                 c.rank,
                 c.full_rank,
                 self.step,
@@ -646,7 +646,7 @@ impl Determinacy {
     /// below this: Φ_q itself is about to lose a rank, and no choice of coordinates
     /// helps. Approaching the parallelogram's flat configuration the solves in
     /// independent coordinates fail a step or two before the flat point; the run
-    /// stops 1.6 ms (at 3 rad/s, Δt = 1 ms) ahead of it with its steps sound, and
+    /// stops 0.6 ms (at 3 rad/s, Δt = 1 ms) ahead of it with its steps sound, and
     /// at coarse steps (5–20 ms), where s falls past the threshold in one step, where
     /// its linear extrapolation crosses 0 within the next step.
     pub const STOP_BELOW: f64 = 2.5e-3;
@@ -735,11 +735,11 @@ impl Determinacy {
     /// entries): the coordinates' scales, taken once at the initial configuration so
     /// that a column that shrinks towards a singular configuration is not rescaled.
     ///
-    /// A point's x and y share one scale, the root mean square of their two columns:
-    /// a point placed level with its neighbour has an x column as small as that link
-    /// (2·length from its distance equation alone) and a y column of 1 (its angle
-    /// equation's), and scaling them apart made a 1 cm link that turned by 0.2 rad
-    /// read as a rank loss three times closer than it was.
+    /// A point's x and y columns are scaled by no less than the root mean square of
+    /// the two: a point placed level with its neighbour has an x column as small as
+    /// that link (2·length from its distance equation alone) and a y column of 1 (its
+    /// angle equation's), and scaling them apart made a 1 cm link that turned by
+    /// 0.2 rad read as a rank loss three times closer than it was.
     fn set_column_scales(&mut self, model: &Model, q: &[f64]) {
         self.jacobian(model, q);
         let n = model.n();
@@ -823,10 +823,18 @@ impl Determinacy {
     }
 
     /// The report of a run stopped at q (time t, distance s) with the step before
-    /// at (t0, s0): where s extrapolates to 0, and the rank kept there.
+    /// at q0 (t0, s0): where s extrapolates to 0, and the rank kept there.
+    ///
+    /// The rank is what is left where the scaled dependent block's singular values,
+    /// each extrapolated linearly from q0 and q to that time, have not fallen to a
+    /// tenth of their value at q: a chain of N loops loses N ranks together at its
+    /// flat configuration, whose singular values fall at different rates, and a
+    /// count of those already small at the stop saw 5 of 40. Where s is not falling
+    /// (no time to extrapolate to), those below 10 s at q are counted as lost.
     fn singular_configuration(
         &mut self,
         model: &Model,
+        q0: &[f64],
         q: &[f64],
         (t0, s0): (f64, f64),
         (t, s): (f64, f64),
@@ -836,17 +844,31 @@ impl Determinacy {
         } else {
             t
         };
-        self.distance(model, q);
         let d = self.dependent.len();
-        let rows = nalgebra::DMatrix::from_row_slice(model.active.len(), d, &self.rows);
-        // nalgebra's SVD does not return on a non-finite matrix.
-        let rank = if rows.iter().all(|v| v.is_finite()) {
-            rows.singular_values()
-                .iter()
-                .filter(|&&v| v > 10.0 * s)
-                .count()
-        } else {
-            0
+        let singular_values = |det: &mut Self, at: &[f64]| -> Option<Vec<f64>> {
+            det.distance(model, at);
+            let rows = nalgebra::DMatrix::from_row_slice(model.active.len(), d, &det.rows);
+            // nalgebra's SVD does not return on a non-finite matrix.
+            rows.iter().all(|v| v.is_finite()).then(|| {
+                let mut sv: Vec<f64> = rows.singular_values().iter().copied().collect();
+                sv.sort_by(|a, b| b.total_cmp(a));
+                sv
+            })
+        };
+        let before = singular_values(self, q0);
+        let now = singular_values(self, q);
+        let rank = match (before, now) {
+            (Some(before), Some(now)) if t_singular > t && t > t0 => {
+                let ahead = (t_singular - t) / (t - t0);
+                let lost = now
+                    .iter()
+                    .zip(&before)
+                    .filter(|(&v, &v0)| v + (v - v0) * ahead <= 0.1 * v)
+                    .count();
+                d - lost.max(1)
+            }
+            (_, Some(now)) => now.iter().filter(|&&v| v > 10.0 * s).count(),
+            _ => 0,
         };
         let names = |idx: &mut dyn Iterator<Item = usize>| -> Vec<String> {
             idx.map(|i| model.names[i].clone()).collect()
@@ -859,6 +881,16 @@ impl Determinacy {
             independent: names(&mut model.independent.iter().copied()),
             dependent: names(&mut self.dependent.iter().copied()),
         }
+    }
+}
+
+/// Names joined with ", ", or for more than eight the first four, "…" and the last:
+/// a 40-loop chain's 82 dependent coordinates would fill a one-line message before
+/// its rank is said.
+fn abbreviated(names: &[String]) -> String {
+    match names {
+        [first @ .., last] if names.len() > 8 => format!("{}, …, {last}", first[..4].join(", ")),
+        _ => names.join(", "),
     }
 }
 
@@ -1350,6 +1382,7 @@ fn segment(
                             // name the singular configuration, located from the last
                             // two converged steps.
                             let prev = &v[(k.max(1) - 1) * s..(k.max(1) - 1) * s + model.n()];
+                            let older_q = &v[(k.max(2) - 2) * s..(k.max(2) - 2) * s + model.n()];
                             let rate = (older.1 - before.1) / (before.0 - older.0);
                             let steps_to_rank_loss = before.1 / (rate * fg.graph.dt);
                             // A step too coarse for the motion fails for that reason: in
@@ -1369,9 +1402,9 @@ fn segment(
                             {
                                 let (best, _) = det.best(&model, prev);
                                 if best < Determinacy::SWITCH_GAIN * before.1 {
-                                    f.singular = Some(
-                                        det.singular_configuration(&model, prev, *older, *before),
-                                    );
+                                    f.singular = Some(det.singular_configuration(
+                                        &model, older_q, prev, *older, *before,
+                                    ));
                                     failures.push(f);
                                     completed = k;
                                     return Next::Stop;
@@ -1416,7 +1449,9 @@ fn segment(
                         let crossing = before.1.is_finite() && 2.0 * now.1 <= before.1;
                         if falling && (now.1 < Determinacy::STOP_BELOW || crossing) {
                             let mut f = failure(k, report, v);
-                            f.singular = Some(det.singular_configuration(&model, q, *before, now));
+                            let q0 = &v[(k - 1) * s..(k - 1) * s + model.n()];
+                            f.singular =
+                                Some(det.singular_configuration(&model, q0, q, *before, now));
                             failures.push(f);
                             completed = k;
                             return Next::Stop;

@@ -158,6 +158,30 @@ fn an_open_chain_of_mixed_scales_names_no_singular_configuration() {
     }
 }
 
+/// A chain of N square loops loses N ranks at once at its flat configuration, and
+/// the stop says so: with N = 40, 40 of the 82 dependent coordinates' ranks. Their
+/// singular values fall at different rates, and a count of those already small at
+/// the stop found 5.
+#[test]
+fn the_stop_names_every_rank_a_chain_of_loops_loses() {
+    let model = Arc::new(
+        Model::new(&Scene::load(root().join("scenes/benchmarks/n-fourbar-40.yaml")).unwrap())
+            .unwrap(),
+    );
+    let opts = ForwardOptions::new(Coordinates::Independent, 1e-2, 1.0, Mode::FixedLag(1));
+    let (_, s) = simulate(model, &opts, &mut |_, _| {}).unwrap();
+    let c = s.failures[0].singular.as_ref().expect("an ill-posed stop");
+    assert_eq!(
+        (c.rank, c.full_rank),
+        (42, 82),
+        "{}",
+        s.failures[0].message()
+    );
+    assert!((c.t_singular - 0.722).abs() < 2e-3, "{}", c.t_singular);
+    let message = s.failures[0].message();
+    assert!(message.contains("(rank 42 < 82)"), "{message}");
+}
+
 /// Independent coordinates: the run stops a few milliseconds before the flat
 /// point, with the singular configuration located to within a step of π/6, and the
 /// steps before it sound.
