@@ -676,7 +676,10 @@ fn simulate(
         };
         return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
     }
-    if let Some(w) = mbfg::plausibility::energy_warning(&summary) {
+    let euler = (options.integrator == Integrator::Euler)
+        .then(|| mbfg::plausibility::euler_warning(&model, &trajectory, &summary))
+        .flatten();
+    if let Some(w) = mbfg::plausibility::energy_warning(&summary).or(euler) {
         if strict {
             output.discard();
             print_summary(to_file, &line);

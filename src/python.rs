@@ -1047,6 +1047,7 @@ fn simulate_run<'py>(
             .into_iter()
             .chain(crate::plausibility::step_warning(&model, options.dt))
             .collect();
+        let model_for_checks = model.clone();
         let (run, signal) = interruptible(py, |progress| {
             forward::simulate_interruptible(model, &options, progress)
         });
@@ -1064,10 +1065,14 @@ fn simulate_run<'py>(
         };
         let out = forward_result(py, &tr, &s, requested)?;
         // What converged but may not be right (mbfg simulate prints these as warnings).
+        let euler = (options.integrator == Integrator::Euler)
+            .then(|| crate::plausibility::euler_warning(&model_for_checks, &tr, &s))
+            .flatten();
         let warnings: Vec<String> = step_warning
             .iter()
             .cloned()
             .chain(crate::plausibility::energy_warning(&s))
+            .chain(euler)
             .collect();
         out.get_item("summary")?
             .ok_or_else(|| PyRuntimeError::new_err("a result without a summary"))?
