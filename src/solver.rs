@@ -356,8 +356,9 @@ pub struct WindowSolver {
     /// In a conditional solve the step before the window is held fixed.
     conditional: bool,
     /// The whitened, reduced rows [J N | r + J p] of a one-block window without a
-    /// prior, kept beside H for the least-squares step where H itself cannot be
-    /// factored (see `least_squares_step`); row-major, `d + 1` columns.
+    /// prior, kept beside H for the least-squares step where H cannot be factored or
+    /// is conditioned past `Settings::normal_equations_limit` (see
+    /// `least_squares_step`); row-major, `d + 1` columns.
     rows: Vec<f64>,
     rows_width: Option<usize>,
     /// Set when a window solve ended on a small step: its linearization of the
