@@ -1104,13 +1104,15 @@ pub fn simulate_interruptible(
             // step, ended 7e-4 m off where its failed 5 ms run, refined, ended 5e-5
             // m off); so does a finer run whose motion sped up after the step the
             // first failure measured: both are refined from that step.
-            None => match match fine.as_ref() {
-                Some((tr, dt)) => coarse_turn(&model, tr, *dt),
-                None => coarse_turn(&model, &trajectory, options.dt),
-            } {
-                Some(f) => f,
-                None => break,
-            },
+            None => {
+                let (tr, dt) = fine
+                    .as_ref()
+                    .map_or((&trajectory, options.dt), |(tr, dt)| (tr, *dt));
+                match coarse_turn(&model, tr, dt) {
+                    Some(f) => f,
+                    None => break,
+                }
+            }
         };
         let turn = match &failure.fast_body {
             Some((_, turn)) if *turn >= Refinement::MIN_TURN => *turn,
@@ -1375,7 +1377,9 @@ fn segment(
                     iterations.push(report.iterations);
                     // Asked to stop: after this step's own outcome is recorded.
                     let stop = progress(first + k + 1, total).is_break();
-                    let q = &v[k * s..k * s + model.n()];
+                    // The positions of step j of the window's values.
+                    let q_at = |j: usize| &v[j * s..j * s + model.n()];
+                    let q = q_at(k);
                     if report.termination != Termination::Converged {
                         let mut f = failure(k, report, v);
                         if let Some((det, before, older)) = determinacy.as_mut() {
@@ -1383,8 +1387,7 @@ fn segment(
                             // coordinates approach a rank loss fails because of it:
                             // name the singular configuration, located from the last
                             // two converged steps.
-                            let prev = &v[(k.max(1) - 1) * s..(k.max(1) - 1) * s + model.n()];
-                            let older_q = &v[(k.max(2) - 2) * s..(k.max(2) - 2) * s + model.n()];
+                            let (prev, older_q) = (q_at(k.max(1) - 1), q_at(k.max(2) - 2));
                             let rate = (older.1 - before.1) / (before.0 - older.0);
                             let steps_to_rank_loss = before.1 / (rate * fg.graph.dt);
                             // A step too coarse for the motion fails for that reason: in
@@ -1451,9 +1454,13 @@ fn segment(
                         let crossing = before.1.is_finite() && 2.0 * now.1 <= before.1;
                         if falling && (now.1 < Determinacy::STOP_BELOW || crossing) {
                             let mut f = failure(k, report, v);
-                            let q0 = &v[(k - 1) * s..(k - 1) * s + model.n()];
-                            f.singular =
-                                Some(det.singular_configuration(&model, q0, q, *before, now));
+                            f.singular = Some(det.singular_configuration(
+                                &model,
+                                q_at(k - 1),
+                                q,
+                                *before,
+                                now,
+                            ));
                             failures.push(f);
                             completed = k;
                             return Next::Stop;

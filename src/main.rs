@@ -676,9 +676,8 @@ fn simulate(
         };
         return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
     }
-    let euler = (options.integrator == Integrator::Euler)
-        .then(|| mbfg::plausibility::euler_warning(&model, &trajectory, &summary))
-        .flatten();
+    let euler =
+        mbfg::plausibility::euler_warning(&model, &trajectory, &summary, options.integrator);
     if let Some(w) = mbfg::plausibility::energy_warning(&summary).or(euler) {
         if strict {
             output.discard();

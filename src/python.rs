@@ -1065,9 +1065,8 @@ fn simulate_run<'py>(
         };
         let out = forward_result(py, &tr, &s, requested)?;
         // What converged but may not be right (mbfg simulate prints these as warnings).
-        let euler = (options.integrator == Integrator::Euler)
-            .then(|| crate::plausibility::euler_warning(&model_for_checks, &tr, &s))
-            .flatten();
+        let euler =
+            crate::plausibility::euler_warning(&model_for_checks, &tr, &s, options.integrator);
         let warnings: Vec<String> = step_warning
             .iter()
             .cloned()

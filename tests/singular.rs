@@ -20,8 +20,12 @@ fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
+fn load(scene: &str) -> Arc<Model> {
+    Arc::new(Model::new(&Scene::load(root().join(scene)).unwrap()).unwrap())
+}
+
 fn parallelogram() -> Arc<Model> {
-    Arc::new(Model::new(&Scene::load(root().join(SCENE)).unwrap()).unwrap())
+    load(SCENE)
 }
 
 fn run(coords: Coordinates, dt: f64, t_end: f64, mode: Mode) -> (Trajectory, RunSummary) {
@@ -125,10 +129,7 @@ fn dependent_coordinates_pass_several_flat_points_at_fine_steps() {
 /// round-off, and is corrected exactly; damped, it stalled the solve at step 7203.
 #[test]
 fn dependent_coordinates_pass_the_flat_point_of_ten_loops_at_a_fine_step() {
-    let model = Arc::new(
-        Model::new(&Scene::load(root().join("scenes/benchmarks/n-fourbar-10.yaml")).unwrap())
-            .unwrap(),
-    );
+    let model = load("scenes/benchmarks/n-fourbar-10.yaml");
     let opts = ForwardOptions::new(Coordinates::Dependent, 1e-4, 0.75, Mode::FixedLag(1));
     let (_, s) = simulate(model, &opts, &mut |_, _| {}).unwrap();
     assert!(s.failures.is_empty(), "{}", s.failures[0].message());
@@ -142,10 +143,7 @@ fn dependent_coordinates_pass_the_flat_point_of_ten_loops_at_a_fine_step() {
 /// 0.2 rad read as a rank loss at t ≈ 2.7 ms.
 #[test]
 fn an_open_chain_of_mixed_scales_names_no_singular_configuration() {
-    let model = Arc::new(
-        Model::new(&Scene::load(root().join("scenes/hard/mixed-scale-pendulum.yaml")).unwrap())
-            .unwrap(),
-    );
+    let model = load("scenes/hard/mixed-scale-pendulum.yaml");
     for mode in [Mode::FixedLag(1), Mode::Batch] {
         let opts = ForwardOptions::new(Coordinates::Independent, 1e-3, 0.5, mode);
         let (_, s) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
@@ -164,10 +162,7 @@ fn an_open_chain_of_mixed_scales_names_no_singular_configuration() {
 /// the stop found 5.
 #[test]
 fn the_stop_names_every_rank_a_chain_of_loops_loses() {
-    let model = Arc::new(
-        Model::new(&Scene::load(root().join("scenes/benchmarks/n-fourbar-40.yaml")).unwrap())
-            .unwrap(),
-    );
+    let model = load("scenes/benchmarks/n-fourbar-40.yaml");
     let opts = ForwardOptions::new(Coordinates::Independent, 1e-2, 1.0, Mode::FixedLag(1));
     let (_, s) = simulate(model, &opts, &mut |_, _| {}).unwrap();
     let c = s.failures[0].singular.as_ref().expect("an ill-posed stop");

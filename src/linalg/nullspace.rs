@@ -110,6 +110,9 @@ pub struct NullSpace {
     /// Per equation, the round-off in its residual (∞: unknown, every nearly
     /// dependent equation is damped); see [`NullSpace::set_noise`].
     noise: Vec<f64>,
+    /// The largest round-off of the last reduction's normalized residuals (of the
+    /// equations the QR sees): what a pivot's division must stand above.
+    noise_floor: f64,
     /// Dimension of the null space.
     pub dim: usize,
     /// Rank of C.
@@ -171,6 +174,7 @@ impl NullSpace {
             span: vec![(0, 0); s],
             particular: vec![0.0; s],
             noise: vec![f64::INFINITY; max_rows],
+            noise_floor: f64::INFINITY,
             dim: s,
             rank: 0,
         };
@@ -388,6 +392,12 @@ impl NullSpace {
         self.rank = fixed_count + rank;
         self.dim = sf - rank + self.untouched.len();
         let q = sf - rank;
+        self.noise_floor = self
+            .others
+            .iter()
+            .enumerate()
+            .map(|(k, &j)| self.noise[j] * self.row_scale[k])
+            .fold(0.0f64, f64::max);
         let mut p = std::mem::take(&mut self.particular);
         self.solve(b, &mut p);
         self.particular = p;
@@ -501,13 +511,6 @@ impl NullSpace {
             * self.rdiag[..rank]
                 .iter()
                 .fold(0.0f64, |m, r| m.max(r.abs()));
-        // The round-off of the normalized residuals the pivots divide.
-        let floor = self
-            .others
-            .iter()
-            .enumerate()
-            .map(|(k, &j)| self.noise[j] * self.row_scale[k])
-            .fold(0.0f64, f64::max);
         // A group apart is finished at once: its reflectors turn its w into x on its
         // rows, which the later equations (C's coefficients there) then read.
         for gi in 0..self.made.len() {
@@ -525,12 +528,13 @@ impl NullSpace {
                     }
                 }
                 let r = self.rdiag[i];
-                self.w[i] = if r.abs() >= 10.0 * mu || acc.abs() > Self::NOISE_MARGIN * floor {
-                    acc / r
-                } else {
-                    let x = (mu / r).powi(2).powi(2).powi(2).powi(2);
-                    acc / (r * (1.0 + x))
-                };
+                self.w[i] =
+                    if r.abs() >= 10.0 * mu || acc.abs() > Self::NOISE_MARGIN * self.noise_floor {
+                        acc / r
+                    } else {
+                        let x = (mu / r).powi(2).powi(2).powi(2).powi(2);
+                        acc / (r * (1.0 + x))
+                    };
             }
             if apart {
                 for k in (ks..ke).rev() {
