@@ -334,6 +334,9 @@ class Mechanism:
     def _effect(self, i, e):
         mbs, model = self.mbs, self.model
         kind = e["type"]
+        if e.get("state_dependent"):
+            raise Unsupported(f"effect {e['name']!r}: a load that depends on the state "
+                              f"({e.get('value', 'a Python callable')})")
         if kind == "gravity":
             g = e["vector"]
             for b in self.bodies:

@@ -282,6 +282,9 @@ class PinocchioModel:
         coords = {c["name"]: c for c in self.mb.coordinates}
         for i, e in enumerate(self.mb.effects):
             kind = e["type"]
+            if e.get("state_dependent"):
+                raise tj.Unsupported(f"effect {e['name']!r}: a load that depends on the state "
+                                     f"({e.get('value', 'a Python callable')})")
             if kind == "gravity":
                 self.model.gravity.linear = self.model.gravity.linear + np.r_[e["vector"], 0.0]
             elif kind in ("torque", "rotational_spring_damper"):

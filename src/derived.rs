@@ -235,21 +235,15 @@ fn non_conservative(force: &Force) -> Option<Force> {
             rest_angle: *rest_angle,
             damping: *damping,
         }),
-        Force::Torque { .. } | Force::PointForce { .. } | Force::Motor { .. } => {
-            Some(force.clone())
-        }
+        Force::Torque { .. }
+        | Force::PointForce { .. }
+        | Force::Motor { .. }
+        | Force::External { .. } => Some(force.clone()),
     }
 }
 
 fn effect_name(effect: &Effect) -> &str {
-    match effect {
-        Effect::Gravity { .. } => "gravity",
-        Effect::SpringDamper { name, .. }
-        | Effect::RotationalSpringDamper { name, .. }
-        | Effect::Torque { name, .. }
-        | Effect::Motor { name, .. }
-        | Effect::Force { name, .. } => name,
-    }
+    effect.name().unwrap_or("gravity")
 }
 
 /// `kinetic`, `potential`, `work:<effect>` for every effect with a non-conservative

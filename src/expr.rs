@@ -1,8 +1,13 @@
 //! Arithmetic expressions in scene files: `2*L`, `sqrt(13)`, `(1/3)*mass*length^2`,
-//! `pi`, and functions of time such as `5*sin(2*t)`.
+//! `pi`, functions of time such as `5*sin(2*t)`, and of the mechanism's state such as
+//! `20 - 0.8*rate(theta)`.
 //!
 //! An expression is parsed once into a small syntax tree; names are looked up when it
 //! is evaluated, so the same text can be checked early and evaluated later (for `t`).
+//! A state quantity (`rate(theta)`, `x(P)`, `angle(crank)`, see [`STATE_ACCESSORS`])
+//! is parsed as one name, `"rate(theta)"`, that the model resolves. Derivatives are
+//! symbolic ([`Expr::derivative`]): the dynamics factor's Jacobians need ∂Q/∂q and
+//! ∂Q/∂q̇ of a state-dependent load, and a tree gives them exactly.
 //!
 //! The parser and every walk over the tree recurse, so input size is bounded
 //! ([`MAX_LEN`], [`MAX_NODES`], [`MAX_DEPTH`]): no text can overflow the stack.
@@ -92,7 +97,12 @@ enum Func {
     Sinh,
     Cosh,
     Tanh,
+    Sign,
 }
+
+/// Functions of the state an expression may call on one name: a coordinate's rate,
+/// a point's position and velocity, a body's angle and angular velocity.
+pub const STATE_ACCESSORS: [&str; 7] = ["rate", "x", "y", "vx", "vy", "angle", "omega"];
 
 impl Func {
     fn lookup(name: &str) -> Option<(Func, usize)> {
@@ -114,6 +124,7 @@ impl Func {
             "sinh" => (Func::Sinh, 1),
             "cosh" => (Func::Cosh, 1),
             "tanh" => (Func::Tanh, 1),
+            "sign" => (Func::Sign, 1),
             _ => return None,
         })
     }
@@ -137,6 +148,17 @@ impl Func {
             Func::Sinh => a[0].sinh(),
             Func::Cosh => a[0].cosh(),
             Func::Tanh => a[0].tanh(),
+            // 0 at 0 (f64::signum gives ±1 there): the derivative of abs and of
+            // min/max at a tie is then the mean of both sides.
+            Func::Sign => {
+                if a[0] > 0.0 {
+                    1.0
+                } else if a[0] < 0.0 {
+                    -1.0
+                } else {
+                    a[0]
+                }
+            }
         }
     }
 }
@@ -151,6 +173,8 @@ enum Node {
     Chain(Box<Node>, Vec<(char, Node)>),
     Pow(Box<Node>, Box<Node>),
     Call(Func, Vec<Node>),
+    /// A name resolved to a position in a slice of values ([`Expr::resolve`]).
+    Slot(usize),
 }
 
 /// A parsed expression.
@@ -192,11 +216,41 @@ impl Expr {
     /// Evaluates with `lookup` giving the value of each name (`pi` is built in and
     /// may be shadowed by a parameter of that name).
     pub fn eval(&self, lookup: &dyn Fn(&str) -> Option<f64>) -> Result<f64, ExprError> {
-        let v = eval_node(&self.root, lookup)?;
+        let v = eval_node(&self.root, lookup, &[])?;
         if v.is_finite() {
             Ok(v)
         } else {
             Err(ExprError::NotFinite)
+        }
+    }
+
+    /// Evaluates an expression whose names were all resolved to slots of `values`
+    /// ([`Expr::resolve`]); the value may be non-finite, for the caller to name.
+    pub fn eval_slots(&self, values: &[f64]) -> f64 {
+        eval_node(&self.root, &|_| None, values).unwrap_or(f64::NAN)
+    }
+
+    /// Replaces every name by its slot from `slot_of` (a name without one is an
+    /// error), for [`Expr::eval_slots`]: no string is compared in a hot loop.
+    pub fn resolve(&self, slot_of: &dyn Fn(&str) -> Option<usize>) -> Result<Expr, ExprError> {
+        Ok(Expr {
+            root: resolve_node(&self.root, slot_of)?,
+        })
+    }
+
+    /// The symbolic derivative with respect to `name`, simplified where a factor is 0
+    /// or 1 or every operand is a number. `abs`, `min` and `max` differentiate through
+    /// `sign` (the mean of both sides at a kink).
+    pub fn derivative(&self, name: &str) -> Expr {
+        Expr {
+            root: derive(&self.root, &|n| matches!(n, Node::Var(v) if v == name)),
+        }
+    }
+
+    /// [`Expr::derivative`] with respect to a resolved slot.
+    pub fn derivative_slot(&self, slot: usize) -> Expr {
+        Expr {
+            root: derive(&self.root, &|n| matches!(n, Node::Slot(k) if *k == slot)),
         }
     }
 
@@ -216,7 +270,7 @@ impl Expr {
     /// the result depends on `keep` only (used to bind parameters, leaving `t`).
     pub fn bind(
         &self,
-        keep: &[&str],
+        keep: &dyn Fn(&str) -> bool,
         lookup: &dyn Fn(&str) -> Option<f64>,
     ) -> Result<Expr, ExprError> {
         Ok(Expr {
@@ -235,7 +289,7 @@ impl Expr {
 
 fn collect_names<'a>(n: &'a Node, seen: &mut HashSet<&'a str>, out: &mut Vec<String>) {
     match n {
-        Node::Num(_) => {}
+        Node::Num(_) | Node::Slot(_) => {}
         Node::Var(v) => {
             if seen.insert(v) {
                 out.push(v.clone())
@@ -270,40 +324,235 @@ fn apply_op(op: char, x: f64, y: f64) -> f64 {
     }
 }
 
-fn eval_node(n: &Node, lookup: &dyn Fn(&str) -> Option<f64>) -> Result<f64, ExprError> {
+fn eval_node(
+    n: &Node,
+    lookup: &dyn Fn(&str) -> Option<f64>,
+    slots: &[f64],
+) -> Result<f64, ExprError> {
+    let eval = |a: &Node| eval_node(a, lookup, slots);
     Ok(match n {
         Node::Num(v) => *v,
+        Node::Slot(k) => slots[*k],
         Node::Var(name) => lookup(name)
             .or_else(|| builtin(name))
             .ok_or_else(|| ExprError::Undefined(name.clone()))?,
-        Node::Neg(a) => -eval_node(a, lookup)?,
+        Node::Neg(a) => -eval(a)?,
         Node::Chain(first, rest) => {
-            let mut acc = eval_node(first, lookup)?;
+            let mut acc = eval(first)?;
             for (op, x) in rest {
-                acc = apply_op(*op, acc, eval_node(x, lookup)?);
+                acc = apply_op(*op, acc, eval(x)?);
             }
             acc
         }
-        Node::Pow(a, b) => eval_node(a, lookup)?.powf(eval_node(b, lookup)?),
+        Node::Pow(a, b) => eval(a)?.powf(eval(b)?),
         Node::Call(f, args) => {
             let mut vals = [0.0; 2];
             for (slot, a) in vals.iter_mut().zip(args) {
-                *slot = eval_node(a, lookup)?;
+                *slot = eval(a)?;
             }
             f.apply(&vals[..args.len().min(2)])
         }
     })
 }
 
+fn resolve_node(n: &Node, slot_of: &dyn Fn(&str) -> Option<usize>) -> Result<Node, ExprError> {
+    let r = |a: &Node| resolve_node(a, slot_of);
+    Ok(match n {
+        Node::Num(_) | Node::Slot(_) => n.clone(),
+        Node::Var(name) => match (slot_of(name), builtin(name)) {
+            (Some(k), _) => Node::Slot(k),
+            (None, Some(v)) => Node::Num(v),
+            (None, None) => return Err(ExprError::Undefined(name.clone())),
+        },
+        Node::Neg(a) => Node::Neg(Box::new(r(a)?)),
+        Node::Chain(first, rest) => Node::Chain(
+            Box::new(r(first)?),
+            rest.iter()
+                .map(|(op, x)| Ok((*op, r(x)?)))
+                .collect::<Result<_, ExprError>>()?,
+        ),
+        Node::Pow(a, b) => Node::Pow(Box::new(r(a)?), Box::new(r(b)?)),
+        Node::Call(f, args) => Node::Call(*f, args.iter().map(r).collect::<Result<_, _>>()?),
+    })
+}
+
+// Builders that fold numbers and drop factors of 0 and 1, so that a derivative stays
+// about as small as the expression it came from.
+
+fn num(n: &Node) -> Option<f64> {
+    match n {
+        Node::Num(v) => Some(*v),
+        _ => None,
+    }
+}
+
+fn add(a: Node, b: Node) -> Node {
+    match (num(&a), num(&b)) {
+        (Some(x), Some(y)) => Node::Num(x + y),
+        (Some(0.0), _) => b,
+        (_, Some(0.0)) => a,
+        _ => Node::Chain(Box::new(a), vec![('+', b)]),
+    }
+}
+
+fn sub(a: Node, b: Node) -> Node {
+    match (num(&a), num(&b)) {
+        (Some(x), Some(y)) => Node::Num(x - y),
+        (Some(0.0), _) => neg(b),
+        (_, Some(0.0)) => a,
+        _ => Node::Chain(Box::new(a), vec![('-', b)]),
+    }
+}
+
+fn neg(a: Node) -> Node {
+    match a {
+        Node::Num(x) => Node::Num(-x),
+        Node::Neg(inner) => *inner,
+        a => Node::Neg(Box::new(a)),
+    }
+}
+
+fn mul(a: Node, b: Node) -> Node {
+    match (num(&a), num(&b)) {
+        (Some(x), Some(y)) => Node::Num(x * y),
+        (Some(0.0), _) | (_, Some(0.0)) => Node::Num(0.0),
+        (Some(1.0), _) => b,
+        (_, Some(1.0)) => a,
+        _ => Node::Chain(Box::new(a), vec![('*', b)]),
+    }
+}
+
+fn div(a: Node, b: Node) -> Node {
+    match (num(&a), num(&b)) {
+        (Some(0.0), _) => Node::Num(0.0),
+        (_, Some(1.0)) => a,
+        _ => Node::Chain(Box::new(a), vec![('/', b)]),
+    }
+}
+
+fn call(f: Func, args: Vec<Node>) -> Node {
+    Node::Call(f, args)
+}
+
+/// d n / d v, where `is_v` recognises the variable.
+fn derive(n: &Node, is_v: &dyn Fn(&Node) -> bool) -> Node {
+    let d = |a: &Node| derive(a, is_v);
+    match n {
+        Node::Num(_) => Node::Num(0.0),
+        Node::Var(_) | Node::Slot(_) => Node::Num(if is_v(n) { 1.0 } else { 0.0 }),
+        Node::Neg(a) => neg(d(a)),
+        Node::Chain(first, rest) => {
+            // Left to right: (acc, dacc) through each operator.
+            let mut acc = (**first).clone();
+            let mut dacc = d(first);
+            for (op, x) in rest {
+                let dx = d(x);
+                dacc = match op {
+                    '+' => add(dacc, dx),
+                    '-' => sub(dacc, dx),
+                    '*' => add(mul(dacc, x.clone()), mul(acc.clone(), dx)),
+                    // (u/v)' = u'/v − u v'/v²
+                    _ => sub(
+                        div(dacc, x.clone()),
+                        div(mul(acc.clone(), dx), mul(x.clone(), x.clone())),
+                    ),
+                };
+                acc = Node::Chain(Box::new(acc), vec![(*op, x.clone())]);
+            }
+            dacc
+        }
+        Node::Pow(a, b) => power_derivative(a, b, d(a), d(b)),
+        Node::Call(f, args) => {
+            let a = &args[0];
+            let da = d(a);
+            if *f == Func::Sign {
+                return Node::Num(0.0);
+            }
+            if num(&da) == Some(0.0) && args.len() == 1 {
+                return Node::Num(0.0);
+            }
+            let one = || Node::Num(1.0);
+            let sq = |x: &Node| mul(x.clone(), x.clone());
+            match f {
+                Func::Sqrt => div(da, mul(Node::Num(2.0), n.clone())),
+                Func::Sin => mul(call(Func::Cos, vec![a.clone()]), da),
+                Func::Cos => neg(mul(call(Func::Sin, vec![a.clone()]), da)),
+                Func::Tan => mul(add(one(), sq(n)), da),
+                Func::Asin => div(da, call(Func::Sqrt, vec![sub(one(), sq(a))])),
+                Func::Acos => neg(div(da, call(Func::Sqrt, vec![sub(one(), sq(a))]))),
+                Func::Atan => div(da, add(one(), sq(a))),
+                Func::Exp => mul(n.clone(), da),
+                Func::Ln => div(da, a.clone()),
+                Func::Abs => mul(call(Func::Sign, vec![a.clone()]), da),
+                Func::Sinh => mul(call(Func::Cosh, vec![a.clone()]), da),
+                Func::Cosh => mul(call(Func::Sinh, vec![a.clone()]), da),
+                Func::Tanh => mul(sub(one(), sq(n)), da),
+                Func::Sign => Node::Num(0.0),
+                Func::Atan2 => {
+                    // atan2(y, x)' = (x y' − y x') / (x² + y²)
+                    let (y, x) = (a, &args[1]);
+                    let dx = d(x);
+                    div(
+                        sub(mul(x.clone(), da), mul(y.clone(), dx)),
+                        add(sq(x), sq(y)),
+                    )
+                }
+                Func::Min | Func::Max => {
+                    // min(a, b) = (a + b − |a − b|)/2, max with +|a − b|.
+                    let b = &args[1];
+                    let db = d(b);
+                    let s = call(Func::Sign, vec![sub(a.clone(), b.clone())]);
+                    let kink = mul(s, sub(da.clone(), db.clone()));
+                    let mean = add(da, db);
+                    let sum = if *f == Func::Min {
+                        sub(mean, kink)
+                    } else {
+                        add(mean, kink)
+                    };
+                    mul(Node::Num(0.5), sum)
+                }
+                Func::Pow => power_derivative(a, &args[1], da, d(&args[1])),
+            }
+        }
+    }
+}
+
+/// (aᵇ)' = b aᵇ⁻¹ a' for a constant exponent, aᵇ (b' ln a + b a'/a) otherwise.
+fn power_derivative(a: &Node, b: &Node, da: Node, db: Node) -> Node {
+    if num(&db) == Some(0.0) {
+        if num(&da) == Some(0.0) {
+            return Node::Num(0.0);
+        }
+        let lowered = match num(b) {
+            Some(e) => Node::Num(e - 1.0),
+            None => sub(b.clone(), Node::Num(1.0)),
+        };
+        let p = match num(&lowered) {
+            Some(1.0) => a.clone(),
+            _ => Node::Pow(Box::new(a.clone()), Box::new(lowered)),
+        };
+        return mul(mul(b.clone(), p), da);
+    }
+    let ab = Node::Pow(Box::new(a.clone()), Box::new(b.clone()));
+    mul(
+        ab,
+        add(
+            mul(db, call(Func::Ln, vec![a.clone()])),
+            div(mul(b.clone(), da), a.clone()),
+        ),
+    )
+}
+
 fn bind_node(
     n: &Node,
-    keep: &[&str],
+    keep: &dyn Fn(&str) -> bool,
     lookup: &dyn Fn(&str) -> Option<f64>,
 ) -> Result<Node, ExprError> {
     let bind = |a: &Node| bind_node(a, keep, lookup);
     let folded = match n {
-        Node::Var(name) if keep.contains(&name.as_str()) => return Ok(n.clone()),
-        Node::Num(_) | Node::Var(_) => return Ok(Node::Num(eval_node(n, lookup)?)),
+        Node::Var(name) if keep(name) => return Ok(n.clone()),
+        Node::Slot(_) => return Ok(n.clone()),
+        Node::Num(_) | Node::Var(_) => return Ok(Node::Num(eval_node(n, lookup, &[])?)),
         Node::Neg(a) => Node::Neg(Box::new(bind(a)?)),
         Node::Chain(first, rest) => Node::Chain(
             Box::new(bind(first)?),
@@ -323,10 +572,10 @@ fn bind_node(
         }
         Node::Pow(a, b) => matches!(**a, Node::Num(_)) && matches!(**b, Node::Num(_)),
         Node::Call(_, args) => args.iter().all(|a| matches!(a, Node::Num(_))),
-        Node::Num(_) | Node::Var(_) => false,
+        Node::Num(_) | Node::Var(_) | Node::Slot(_) => false,
     };
     if constant {
-        let v = eval_node(&folded, &|_| None)?;
+        let v = eval_node(&folded, &|_| None, &[])?;
         if !v.is_finite() {
             return Err(ExprError::NotFinite);
         }
@@ -458,6 +707,9 @@ impl Parser {
                     self.pos += 1;
                 }
                 let name: String = self.chars[start..self.pos].iter().collect();
+                if self.peek() == Some('(') && STATE_ACCESSORS.contains(&name.as_str()) {
+                    return self.state_quantity(name);
+                }
                 if self.peek() == Some('(') {
                     let Some((func, arity)) = Func::lookup(&name) else {
                         self.pos = start;
@@ -490,6 +742,34 @@ impl Parser {
             }
             Some(c) => Err(self.error(format!("unexpected '{}'", c.escape_default()))),
         }
+    }
+
+    /// `rate(theta)`: one name in parentheses, kept whole as the name `"rate(theta)"`.
+    fn state_quantity(&mut self, accessor: String) -> Result<Node, ExprError> {
+        self.pos += 1; // '('
+        self.skip_ws();
+        let start = self.pos;
+        while self.pos < self.chars.len()
+            && (self.chars[self.pos].is_alphanumeric() || self.chars[self.pos] == '_')
+        {
+            self.pos += 1;
+        }
+        if self.pos == start {
+            return Err(self.error(format!(
+                "{accessor}(…) takes the name of a {}",
+                match accessor.as_str() {
+                    "rate" => "coordinate",
+                    "angle" | "omega" => "body",
+                    _ => "point",
+                }
+            )));
+        }
+        let arg: String = self.chars[start..self.pos].iter().collect();
+        if self.peek() != Some(')') {
+            return Err(self.error(format!("missing ')' after {accessor}({arg}")));
+        }
+        self.pos += 1;
+        self.node(Node::Var(format!("{accessor}({arg})")))
     }
 
     fn number(&mut self) -> Result<Node, ExprError> {
@@ -566,7 +846,7 @@ mod tests {
     fn bind_folds_partly_constant_chains() {
         let e = Expr::parse("t + 2*L - -mass^2").unwrap();
         let b = e
-            .bind(&["t"], &|n| (n == "L").then_some(2.0).or(Some(3.0)))
+            .bind(&|n| n == "t", &|n| (n == "L").then_some(2.0).or(Some(3.0)))
             .unwrap();
         assert_eq!(b.eval(&|_| Some(1.0)).unwrap(), 1.0 + 4.0 + 9.0);
     }
@@ -587,15 +867,128 @@ mod tests {
     fn bind_keeps_time() {
         let e = Expr::parse("L*sin(2*t) + mass").unwrap();
         let b = e
-            .bind(&["t"], &|n| if n == "L" { Some(2.0) } else { Some(3.0) })
+            .bind(&|n| n == "t", &|n| {
+                if n == "L" {
+                    Some(2.0)
+                } else {
+                    Some(3.0)
+                }
+            })
             .unwrap();
         assert_eq!(b.names(), vec!["t".to_string()]);
         let v = b.eval(&|n| (n == "t").then_some(0.25)).unwrap();
         assert!((v - (2.0 * 0.5f64.sin() + 3.0)).abs() < 1e-15);
         let c = Expr::parse("2*L")
             .unwrap()
-            .bind(&["t"], &|_| Some(1.5))
+            .bind(&|n| n == "t", &|_| Some(1.5))
             .unwrap();
         assert_eq!(c.as_constant(), Some(3.0));
+    }
+
+    /// Central differences of `e` in `name` at `at` (other names from `values`).
+    fn numeric(e: &Expr, name: &str, values: &[(&str, f64)]) -> f64 {
+        let at = |shift: f64| {
+            e.eval(&|n| {
+                values
+                    .iter()
+                    .find(|(k, _)| *k == n)
+                    .map(|(k, v)| if *k == name { v + shift } else { *v })
+            })
+            .unwrap()
+        };
+        let x = values.iter().find(|(k, _)| *k == name).unwrap().1;
+        let h = 1e-6 * x.abs().max(1.0);
+        (at(h) - at(-h)) / (2.0 * h)
+    }
+
+    #[test]
+    fn derivatives_match_finite_differences() {
+        let values = [("a", 0.7), ("b", -1.3), ("t", 0.4)];
+        let texts = [
+            "3*a - 2*b + 5",
+            "a*b/(1 + a^2) - b/a",
+            "sqrt(a^2 + b^2) * sin(3*a) * cos(b - t)",
+            "tan(a) + asin(a/2) + acos(b/3) + atan(a*b)",
+            "atan2(b, a) + atan2(a, b*t)",
+            "exp(-a*b) + ln(a) + log(a*a + 1)",
+            "abs(b) * abs(a - 2) + sign(b)*a",
+            "min(a, b) + max(a^2, b) + min(2*a, 1)",
+            "a^b + pow(a, 3) + 2^a + b^2 + a^(1/2)",
+            "sinh(a) + cosh(b) + tanh(a*b)",
+            "-(a - b)^3 / (a + 2) - -a",
+            "1/a/b*a*b - t",
+        ];
+        for text in texts {
+            let e = Expr::parse(text).unwrap();
+            for name in ["a", "b", "t"] {
+                let exact = e
+                    .derivative(name)
+                    .eval(&|n| values.iter().find(|(k, _)| *k == n).map(|(_, v)| *v))
+                    .unwrap();
+                let fd = numeric(&e, name, &values);
+                assert!(
+                    (exact - fd).abs() <= 1e-7 * (1.0 + fd.abs()),
+                    "d({text})/d{name}: {exact} against {fd}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn derivatives_stay_small() {
+        // Constants vanish, and a term without the name costs nothing.
+        let e = Expr::parse("5*sin(2*t) + 3*a").unwrap();
+        assert_eq!(e.derivative("a").as_constant(), Some(3.0));
+        assert_eq!(e.derivative("b").as_constant(), Some(0.0));
+        assert_eq!(
+            Expr::parse("a*a").unwrap().derivative("c").as_constant(),
+            Some(0.0)
+        );
+    }
+
+    #[test]
+    fn state_quantities_are_names() {
+        let e = Expr::parse("20 - 0.8*rate(theta) + x( P1 ) * angle(crank)").unwrap();
+        assert_eq!(e.names(), vec!["rate(theta)", "x(P1)", "angle(crank)"]);
+        assert!(matches!(
+            Expr::parse("rate()"),
+            Err(ExprError::Syntax { .. })
+        ));
+        assert!(matches!(
+            Expr::parse("rate(a b)"),
+            Err(ExprError::Syntax { .. })
+        ));
+        assert!(matches!(
+            Expr::parse("vx(1+2)"),
+            Err(ExprError::Syntax { .. })
+        ));
+        // A parameter may still be called x.
+        assert_eq!(
+            Expr::parse("2*x")
+                .unwrap()
+                .eval(&|n| (n == "x").then_some(4.0)),
+            Ok(8.0)
+        );
+    }
+
+    #[test]
+    fn resolved_slots_evaluate_and_differentiate() {
+        let e = Expr::parse("k*(1 - rate(theta)/w) + t")
+            .unwrap()
+            .bind(&|n| n == "t" || n == "rate(theta)", &|n| match n {
+                "k" => Some(2.0),
+                "w" => Some(4.0),
+                _ => None,
+            })
+            .unwrap();
+        let slot = |n: &str| match n {
+            "t" => Some(0),
+            "rate(theta)" => Some(1),
+            _ => None,
+        };
+        let r = e.resolve(&slot).unwrap();
+        assert_eq!(r.eval_slots(&[0.5, 2.0]), 2.0 * 0.5 + 0.5);
+        assert_eq!(r.derivative_slot(1).eval_slots(&[0.5, 2.0]), -0.5);
+        assert!(e.resolve(&|_| None).is_err());
     }
 }

@@ -793,7 +793,7 @@ impl DynamicsKernel {
         kq.fill(0.0);
         kv.fill(0.0);
         for f in &model.forces {
-            f.add_jacobians(model, q, dq, kq, kv)?;
+            f.add_jacobians(model, (q, dq, t), kq, kv)?;
         }
         // kq −= ∂(Φ_qᵀλ)/∂q, accumulated with −λ.
         for (t, l) in tmp.iter_mut().zip(&sol[n..big]) {
@@ -928,8 +928,7 @@ impl DynamicsKernel {
     #[allow(clippy::too_many_arguments)]
     pub fn along(
         model: &Model,
-        q: &[f64],
-        dq: &[f64],
+        (q, dq, t): (&[f64], &[f64], f64),
         directions: [&[f64]; 3],
         columns: &[usize],
         rows: Option<&[usize]>,
@@ -983,7 +982,7 @@ impl DynamicsKernel {
         kq.fill(0.0);
         kv.fill(0.0);
         for f in &model.forces {
-            f.add_jacobians(model, q, dq, kq, kv)?;
+            f.add_jacobians(model, (q, dq, t), kq, kv)?;
         }
         for (t, lam) in tmp.iter_mut().zip(&sol[n..big]) {
             *t = -lam;
@@ -1209,8 +1208,7 @@ impl Factor for Dynamics {
         )?;
         if !DynamicsKernel::along(
             &self.model,
-            x[0],
-            x[1],
+            (x[0], x[1], t),
             [dirs[0], dirs[1], dirs[3]],
             &a.indices,
             None,
@@ -1586,8 +1584,7 @@ impl Factor for IndependentDynamics {
         )?;
         if !DynamicsKernel::along(
             &self.model,
-            x[0],
-            x[1],
+            (x[0], x[1], t),
             [dirs[0], dirs[1], dirs[3]],
             &self.all,
             Some(ind),

@@ -37,6 +37,7 @@ pub mod solver;
 pub mod tangent;
 
 pub use error::{Error, Result, SceneError};
+pub use model::forces::ExternalLoad;
 pub use model::Model;
 pub use scene::Scene;
 

@@ -73,7 +73,7 @@ pub fn time_scales(model: &Model) -> Vec<TimeScale> {
     for (i, force) in model.forces.iter().enumerate() {
         let (mut kq, mut kv) = (vec![0.0; n * n], vec![0.0; n * n]);
         if force
-            .add_jacobians(model, q.as_slice(), dq.as_slice(), &mut kq, &mut kv)
+            .add_jacobians(model, (q.as_slice(), dq.as_slice(), 0.0), &mut kq, &mut kv)
             .is_err()
         {
             continue;

@@ -597,12 +597,22 @@ impl PyModel {
                         d.set_item("name", name)?;
                         d.set_item("coordinate", coordinate(*c))?;
                         d.set_item("value", &value.text)?;
+                        d.set_item("state_dependent", value.is_state_dependent())?;
                     }
                     Effect::Force { name, point, value } => {
                         d.set_item("type", "force")?;
                         d.set_item("name", name)?;
                         d.set_item("point", self.point_name(*point))?;
                         d.set_item("value", (&value[0].text, &value[1].text))?;
+                        d.set_item(
+                            "state_dependent",
+                            value.iter().any(|v| v.is_state_dependent()),
+                        )?;
+                    }
+                    Effect::External { name } => {
+                        d.set_item("type", "external")?;
+                        d.set_item("name", name)?;
+                        d.set_item("state_dependent", true)?;
                     }
                 }
                 list.append(d)?;
@@ -701,6 +711,20 @@ impl PyModel {
                 .generalized_forces(&q, &dq, t)
                 .map_err(arg_error)?;
             Ok(f.as_slice().to_vec())
+        })
+    }
+    /// (∂Q/∂q, ∂Q/∂q̇) as two row-major n × n lists.
+    fn force_jacobians(
+        &self,
+        q: &Bound<'_, PyAny>,
+        dq: &Bound<'_, PyAny>,
+        t: &Bound<'_, PyAny>,
+    ) -> PyResult<(Vec<f64>, Vec<f64>)> {
+        guard(|| {
+            let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
+            let t = arg_real(t, "t")?;
+            let (kq, kv) = self.model.force_jacobians(&q, &dq, t).map_err(arg_error)?;
+            Ok((rows(&kq), rows(&kv)))
         })
     }
     fn accelerations(
@@ -957,6 +981,121 @@ fn interruptible<T: Send>(
     (out, signal)
 }
 
+/// A Python callable f(t, q, q̇) → Q (n generalized forces in q's order) as an effect
+/// of the model. The first exception it raises is kept, to be raised again in place of
+/// the failed run's SolveError.
+#[derive(Debug)]
+struct PyLoad {
+    name: String,
+    callable: Py<PyAny>,
+    raised: std::sync::Mutex<Option<PyErr>>,
+}
+
+impl crate::model::forces::ExternalLoad for PyLoad {
+    fn add_to(&self, t: f64, q: &[f64], dq: &[f64], out: &mut [f64]) -> crate::Result<()> {
+        let name = &self.name;
+        Python::attach(|py| {
+            let value = self
+                .callable
+                .call1(py, (t, q.to_vec(), dq.to_vec()))
+                .and_then(|v| v.extract::<Vec<f64>>(py));
+            let v = match value {
+                Ok(v) => v,
+                Err(e) => {
+                    let message = one_line(&e.to_string());
+                    if let Ok(mut slot) = self.raised.lock() {
+                        slot.get_or_insert(e);
+                    }
+                    return Err(Error::InvalidArgument(format!(
+                        "effect '{name}' at t = {t}: {message}"
+                    )));
+                }
+            };
+            if v.len() != out.len() {
+                return Err(Error::InvalidArgument(format!(
+                    "effect '{name}' returned {} values at t = {t}; it must return one generalized force per coordinate of q ({})",
+                    v.len(),
+                    out.len()
+                )));
+            }
+            if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+                return Err(Error::InvalidArgument(format!(
+                    "effect '{name}' returned {} for coordinate {k} at t = {t}",
+                    v[k]
+                )));
+            }
+            for (o, x) in out.iter_mut().zip(&v) {
+                *o += x;
+            }
+            Ok(())
+        })
+    }
+}
+
+/// `effects` of a study: None or a dict {name: callable(t, q, dq) -> Q}.
+fn arg_effects(effects: &Bound<'_, PyAny>) -> PyResult<Vec<Arc<PyLoad>>> {
+    if effects.is_none() {
+        return Ok(Vec::new());
+    }
+    let dict = effects.cast::<PyDict>().map_err(|_| {
+        invalid(format!(
+            "effects must be a dict {{name: callable(t, q, dq)}}, got {}",
+            type_name(effects)
+        ))
+    })?;
+    let mut out = Vec::new();
+    for (k, v) in dict.iter() {
+        let name: String = k.extract().map_err(|_| {
+            invalid(format!(
+                "effects: names must be strings, got {}",
+                type_name(&k)
+            ))
+        })?;
+        if !v.is_callable() {
+            return Err(invalid(format!(
+                "effects: '{name}' must be a callable f(t, q, dq) returning the generalized forces, got {}",
+                type_name(&v)
+            )));
+        }
+        out.push(Arc::new(PyLoad {
+            name,
+            callable: v.unbind(),
+            raised: std::sync::Mutex::new(None),
+        }));
+    }
+    Ok(out)
+}
+
+/// `model` with the Python effects added.
+fn with_loads(model: Arc<Model>, loads: &[Arc<PyLoad>]) -> PyResult<Arc<Model>> {
+    if loads.is_empty() {
+        return Ok(model);
+    }
+    let mut m = Arc::unwrap_or_clone(model);
+    for load in loads {
+        m.add_external_load(&load.name, load.clone())
+            .map_err(|e| match e {
+                Error::InvalidArgument(m) => invalid(format!("effects: {m}")),
+                other => arg_error(other),
+            })?;
+    }
+    Ok(Arc::new(m))
+}
+
+/// The first exception a Python effect raised, if any.
+fn raised(loads: &[Arc<PyLoad>]) -> Option<PyErr> {
+    loads
+        .iter()
+        .find_map(|l| l.raised.lock().ok().and_then(|mut e| e.take()))
+}
+
+fn type_name(v: &Bound<'_, PyAny>) -> String {
+    v.get_type()
+        .name()
+        .map(|n| n.to_string())
+        .unwrap_or_else(|_| "?".into())
+}
+
 /// Forward dynamics. Every argument is required (`mbfg.simulate` gives the defaults).
 #[pyfunction]
 #[pyo3(name = "simulate")]
@@ -979,8 +1118,10 @@ fn simulate_run<'py>(
     params: &Bound<'py, PyAny>,
     q0: &Bound<'py, PyAny>,
     dq0: &Bound<'py, PyAny>,
+    effects: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
+        let loads = arg_effects(effects)?;
         let params = arg_values(Some(params), "params")?;
         let q0 = arg_values(Some(q0), "q0")?;
         let dq0 = arg_values(Some(dq0), "dq0")?;
@@ -1038,7 +1179,7 @@ fn simulate_run<'py>(
         };
         options.continue_on_failure = continue_on_failure;
         options.refine = refine;
-        let model = study_model(scene, &params, &q0, &dq0)?;
+        let model = with_loads(study_model(scene, &params, &q0, &dq0)?, &loads)?;
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
@@ -1055,10 +1196,11 @@ fn simulate_run<'py>(
             Ok(run) => run,
             // No trajectory comes back from a library error; an interrupt came first.
             Err(e) => {
-                let err = match (signal, e) {
-                    (Some(signal), _) => signal,
-                    (None, e @ Error::InvalidArgument(_)) => return Err(arg_error(e)),
-                    (None, e) => SolveError::new_err(e.to_string()),
+                let err = match (signal, raised(&loads), e) {
+                    (Some(signal), _, _) => signal,
+                    (None, Some(python), _) => python,
+                    (None, None, e @ Error::InvalidArgument(_)) => return Err(arg_error(e)),
+                    (None, None, e) => SolveError::new_err(e.to_string()),
                 };
                 return Err(with_result(py, err, None));
             }
@@ -1087,11 +1229,8 @@ fn simulate_run<'py>(
             .or(s.failures.first().filter(|_| !continue_on_failure))
             .or(short);
         if let Some(f) = fatal {
-            return Err(with_result(
-                py,
-                SolveError::new_err(f.message()),
-                Some(&out),
-            ));
+            let err = raised(&loads).unwrap_or_else(|| SolveError::new_err(f.message()));
+            return Err(with_result(py, err, Some(&out)));
         }
         if tr.len() < requested {
             let m = format!(
@@ -1178,7 +1317,7 @@ fn table_from(columns: &Bound<'_, PyAny>, values: &Bound<'_, PyAny>) -> PyResult
 /// of a table. Every argument is required (`mbfg.inverse` gives the defaults). One
 /// batch solve: Ctrl-C takes effect when it returns.
 #[pyfunction]
-#[pyo3(signature = (scene, trajectory, columns, values, coords, start, max_iterations))]
+#[pyo3(signature = (scene, trajectory, columns, values, coords, start, max_iterations, effects))]
 #[pyo3(name = "inverse")]
 #[allow(clippy::too_many_arguments)] // the CLI's options, one keyword each
 fn inverse_run<'py>(
@@ -1190,9 +1329,11 @@ fn inverse_run<'py>(
     coords: &Bound<'py, PyAny>,
     start: &Bound<'py, PyAny>,
     max_iterations: &Bound<'py, PyAny>,
+    effects: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
-        let model = study_model(scene, &[], &[], &[])?;
+        let loads = arg_effects(effects)?;
+        let model = with_loads(study_model(scene, &[], &[], &[])?, &loads)?;
         let coordinates = coordinates(coords)?;
         let start = match arg_choice(start, "start", &["kinematic", "staged"])? {
             "kinematic" => Start::Kinematic,
@@ -1224,9 +1365,10 @@ fn inverse_run<'py>(
         options.settings.max_iterations = max_iterations;
         let sol = py
             .detach(|| inverse::solve(model, &prescription, &options))
-            .map_err(|e| match e {
-                Error::InvalidArgument(_) => arg_error(e),
-                other => with_result(py, SolveError::new_err(other.to_string()), None),
+            .map_err(|e| match (raised(&loads), e) {
+                (Some(python), _) => with_result(py, python, None),
+                (None, e @ Error::InvalidArgument(_)) => arg_error(e),
+                (None, other) => with_result(py, SolveError::new_err(other.to_string()), None),
             })?;
         let out = inverse_result(py, &sol)?;
         // The solve cannot stop midway: a Ctrl-C during it is raised now, with it.

@@ -225,17 +225,57 @@ fn force_jacobians_match_finite_differences() {
         "slotted-lever.yaml",
         "fourbar.yaml",
         "driven/dc-motor-crank-rocker.yaml",
+        "driven/controlled-crank-rocker.yaml",
+        "driven/compressor-slider-crank.yaml",
     ] {
         let model = load(name);
         for _ in 0..10 {
             let q = random_configuration(&model, &mut rng);
             let dq = DVector::from_vec(rng.values(model.n(), 1.0));
-            let (kq, kv) = model.force_jacobians(&q, &dq).unwrap();
+            let (kq, kv) = model.force_jacobians(&q, &dq, 0.3).unwrap();
             let fd_q = fd_columns(&q, &|x| model.generalized_forces(x, &dq, 0.3).unwrap());
             let fd_v = fd_columns(&dq, &|v| model.generalized_forces(&q, v, 0.3).unwrap());
             assert_close(&kq, &fd_q, 1e-6, &format!("{name}: ∂Q/∂q"));
             assert_close(&kv, &fd_v, 1e-6, &format!("{name}: ∂Q/∂q̇"));
         }
+    }
+}
+
+/// Loads written as expressions in every state quantity, through every function:
+/// their symbolic Jacobians against finite differences of Q at the same time.
+#[test]
+fn state_dependent_load_jacobians_match_finite_differences() {
+    let text = r#"
+points:
+  - {name: A, x: 0, y: 0, fixed: true}
+  - {name: P1, x: 1, y: 0.2}
+  - {name: P2, x: 1.3, y: 2}
+  - {name: B, x: 4, y: 0, fixed: true}
+bodies:
+  - {name: crank, points: [A, P1], mass: 1}
+  - {name: coupler, points: [P1, P2], mass: 2}
+  - {name: rocker, points: [P2, B], mass: 4}
+coordinates:
+  - {name: theta, type: angle, points: [A, P1]}
+  - {name: phi, type: relative_angle, segments: [[A, P1], [P1, P2]]}
+effects:
+  - {name: m1, type: torque, coordinate: theta, value: "sin(angle(coupler))*omega(rocker) + x(P1)*y(P2) - vy(P1)^2 + theta*rate(theta)*t"}
+  - {name: m2, type: torque, coordinate: phi, value: "exp(-phi^2)*tanh(rate(phi)) + sqrt(1 + vx(P2)^2) - abs(omega(crank))*cos(t)"}
+  - {name: f, type: force, point: P2, value: ["atan2(y(P1), x(P2)) * vx(P2)", "min(x(P1), y(P2)) + max(0.1, omega(coupler))^3 / (2 + angle(crank)^2)"]}
+"#;
+    let scene = Scene::from_str(text, std::path::Path::new("loads.yaml")).unwrap();
+    let model = Model::new(&scene).unwrap();
+    let mut rng = Rng(5);
+    for _ in 0..20 {
+        let q = random_configuration(&model, &mut rng);
+        let dq = DVector::from_vec(rng.values(model.n(), 1.5));
+        let t = 0.7;
+        let (kq, kv) = model.force_jacobians(&q, &dq, t).unwrap();
+        let fd_q = fd_columns(&q, &|x| model.generalized_forces(x, &dq, t).unwrap());
+        let fd_v = fd_columns(&dq, &|v| model.generalized_forces(&q, v, t).unwrap());
+        assert_close(&kq, &fd_q, 1e-6, "∂Q/∂q");
+        assert_close(&kv, &fd_v, 1e-6, "∂Q/∂q̇");
+        assert!(kq.amax() > 0.0 && kv.amax() > 0.0);
     }
 }
 

@@ -90,7 +90,7 @@ fn the_largest_accepted_trees_fit_a_small_stack() {
             let lookup = |n: &str| (n == "t").then_some(0.5);
             e.eval(&lookup).unwrap();
             assert_eq!(e.names(), vec!["t".to_string()]);
-            let b = e.bind(&["t"], &lookup).unwrap();
+            let b = e.bind(&|n| n == "t", &lookup).unwrap();
             b.eval(&lookup).unwrap();
             drop((e, b));
         }
@@ -360,7 +360,7 @@ fn replay(target: &str, data: &[u8]) -> Result<(), String> {
                 Ok(e) => {
                     let lookup = |n: &str| (n == "t").then_some(0.5);
                     let _ = e.eval(&lookup);
-                    let _ = e.bind(&["t"], &lookup).map(|b| b.eval(&lookup));
+                    let _ = e.bind(&|n| n == "t", &lookup).map(|b| b.eval(&lookup));
                     Ok(())
                 }
                 Err(e) => check(e.to_string()),

@@ -1,4 +1,4 @@
-//! Expression text → `Expr::parse` → `eval`, `bind` and `names`, on a thread with a
+//! Expression text → `Expr::parse` → `eval`, `bind`, `names` and `derivative`, on a thread with a
 //! 256 kB stack: no input may panic or overflow it, and every error is one short line.
 #![no_main]
 
@@ -27,9 +27,13 @@ fn check(text: &str) {
         short(&e);
     }
     let _ = expr.names();
-    match expr.bind(&["t"], &lookup) {
+    match expr.bind(&|n| n == "t", &lookup) {
         Ok(bound) => {
             if let Err(e) = bound.eval(&|n| (n == "t").then_some(0.25)) {
+                short(&e);
+            }
+            // The symbolic derivative of any expression evaluates like the expression.
+            if let Err(e) = bound.derivative("t").eval(&|n| (n == "t").then_some(0.25)) {
                 short(&e);
             }
         }

@@ -3,7 +3,16 @@
 
 use super::{mass, Model, PointSlot};
 use crate::error::{Error, Result};
-use crate::scene::{Effect, TimeFunction};
+use crate::expr::Expr;
+use crate::scene::{Effect, LoadFunction, Scene, StateQuantity};
+use std::sync::Arc;
+
+/// Generalized forces computed outside the scene, Q_ext(t, q, q̇) (a Python callable).
+/// Its Jacobians are taken by forward differences: 2n + 1 calls per linearization.
+pub trait ExternalLoad: Send + Sync + std::fmt::Debug {
+    /// Adds the load's generalized forces at (q, q̇, t) to `out` (length n, q's order).
+    fn add_to(&self, t: f64, q: &[f64], dq: &[f64], out: &mut [f64]) -> Result<()>;
+}
 
 /// One effect, ready to evaluate.
 #[derive(Debug, Clone)]
@@ -38,12 +47,281 @@ pub enum Force {
     },
     Torque {
         index: usize,
-        value: TimeFunction,
+        value: Load,
     },
     PointForce {
         index: usize,
-        value: [TimeFunction; 2],
+        value: [Load; 2],
     },
+    External {
+        name: String,
+        load: Arc<dyn ExternalLoad>,
+    },
+}
+
+/// A state quantity located in q.
+#[derive(Debug, Clone, Copy)]
+enum Quantity {
+    Coordinate(usize),
+    Rate(usize),
+    Position {
+        point: usize,
+        axis: usize,
+    },
+    Velocity {
+        point: usize,
+        axis: usize,
+    },
+    /// The angle of the segment between a body's first two points, and its rate.
+    Angle([usize; 2]),
+    Omega([usize; 2]),
+}
+
+/// An effect's value compiled against q's layout: slot 0 of its expression is `t`,
+/// slot k + 1 the k-th state quantity, and `partials[k]` is ∂value/∂(quantity k),
+/// derived symbolically.
+#[derive(Debug, Clone)]
+pub struct Load {
+    value: Expr,
+    quantities: Vec<Quantity>,
+    partials: Vec<Expr>,
+    text: String,
+}
+
+/// Slots on the stack for expressions of up to this many state quantities.
+const STACK_SLOTS: usize = 16;
+
+impl Load {
+    fn compile(model: &Model, function: &LoadFunction) -> Result<Load> {
+        let scene = &model.scene;
+        let names = function.state_names();
+        let quantities = names
+            .iter()
+            .map(|name| locate(model, scene, name))
+            .collect::<Result<Vec<_>>>()?;
+        let value = function
+            .expr()
+            .resolve(&|n| {
+                if n == "t" {
+                    Some(0)
+                } else {
+                    names.iter().position(|m| m == n).map(|k| k + 1)
+                }
+            })
+            .map_err(|e| Error::InvalidArgument(format!("'{}': {e}", function.text)))?;
+        let partials = (1..=quantities.len())
+            .map(|k| value.derivative_slot(k))
+            .collect();
+        Ok(Load {
+            value,
+            quantities,
+            partials,
+            text: function.text.clone(),
+        })
+    }
+
+    /// Calls `f` with the slot values at (q, q̇, t).
+    fn with_slots<R>(
+        &self,
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        t: f64,
+        f: impl FnOnce(&[f64]) -> R,
+    ) -> R {
+        let fill = |slots: &mut [f64]| {
+            slots[0] = t;
+            for (s, quantity) in slots[1..].iter_mut().zip(&self.quantities) {
+                *s = quantity.value(model, q, dq);
+            }
+        };
+        let m = self.quantities.len() + 1;
+        if m <= STACK_SLOTS {
+            let mut buf = [0.0; STACK_SLOTS];
+            fill(&mut buf[..m]);
+            f(&buf[..m])
+        } else {
+            let mut buf = vec![0.0; m];
+            fill(&mut buf);
+            f(&buf)
+        }
+    }
+
+    fn value(&self, model: &Model, q: &[f64], dq: &[f64], t: f64) -> Result<f64> {
+        if self.quantities.is_empty() {
+            if let Some(c) = self.value.as_constant() {
+                return Ok(c);
+            }
+        }
+        let v = self.with_slots(model, q, dq, t, |s| self.value.eval_slots(s));
+        self.finite(v, t)
+    }
+
+    fn finite(&self, v: f64, t: f64) -> Result<f64> {
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            let text = crate::expr::excerpt(&self.text, 40);
+            Err(Error::InvalidArgument(format!(
+                "'{text}' at t = {t}: evaluates to a non-finite number"
+            )))
+        }
+    }
+
+    /// Adds ∂value/∂q and ∂value/∂q̇ to row `row` of `kq` and `kv`.
+    #[allow(clippy::too_many_arguments)] // the state, the time and two outputs
+    fn add_gradient(
+        &self,
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        t: f64,
+        row: usize,
+        kq: &mut [f64],
+        kv: &mut [f64],
+    ) -> Result<()> {
+        if self.quantities.is_empty() {
+            return Ok(());
+        }
+        let n = model.n();
+        let (kq, kv) = (
+            &mut kq[row * n..(row + 1) * n],
+            &mut kv[row * n..(row + 1) * n],
+        );
+        self.with_slots(model, q, dq, t, |slots| {
+            for (quantity, partial) in self.quantities.iter().zip(&self.partials) {
+                let p = self.finite(partial.eval_slots(slots), t)?;
+                if p != 0.0 {
+                    quantity.add_gradient(model, q, dq, p, kq, kv);
+                }
+            }
+            Ok(())
+        })
+    }
+
+    pub fn is_state_dependent(&self) -> bool {
+        !self.quantities.is_empty()
+    }
+}
+
+/// Where in q a state quantity of the scene lives.
+fn locate(model: &Model, scene: &Scene, name: &str) -> Result<Quantity> {
+    let rel = |c: usize| model.relative_offset + c;
+    let body = |b: usize| -> Result<[usize; 2]> {
+        let points = &scene.bodies[b].points;
+        Ok([points[0], points[1]])
+    };
+    Ok(
+        match scene.state_quantity(name).ok_or_else(|| {
+            Error::InvalidArgument(format!("'{name}' is not a state quantity of the scene"))
+        })? {
+            StateQuantity::Coordinate(c) => Quantity::Coordinate(rel(c)),
+            StateQuantity::Rate(c) => Quantity::Rate(rel(c)),
+            StateQuantity::X(p) => Quantity::Position { point: p, axis: 0 },
+            StateQuantity::Y(p) => Quantity::Position { point: p, axis: 1 },
+            StateQuantity::Vx(p) => Quantity::Velocity { point: p, axis: 0 },
+            StateQuantity::Vy(p) => Quantity::Velocity { point: p, axis: 1 },
+            StateQuantity::Angle(b) => Quantity::Angle(body(b)?),
+            StateQuantity::Omega(b) => Quantity::Omega(body(b)?),
+        },
+    )
+}
+
+/// d = r_b − r_a and ḋ of a body's first two points, and |d|².
+fn segment(model: &Model, q: &[f64], dq: &[f64], [a, b]: [usize; 2]) -> ([f64; 2], [f64; 2], f64) {
+    let (ra, rb) = (model.point_position(q, a), model.point_position(q, b));
+    let (va, vb) = (model.point_velocity(dq, a), model.point_velocity(dq, b));
+    let d = [rb[0] - ra[0], rb[1] - ra[1]];
+    let vd = [vb[0] - va[0], vb[1] - va[1]];
+    (d, vd, d[0] * d[0] + d[1] * d[1])
+}
+
+impl Quantity {
+    fn value(&self, model: &Model, q: &[f64], dq: &[f64]) -> f64 {
+        match *self {
+            Quantity::Coordinate(i) => q[i],
+            Quantity::Rate(i) => dq[i],
+            Quantity::Position { point, axis } => model.point_position(q, point)[axis],
+            Quantity::Velocity { point, axis } => model.point_velocity(dq, point)[axis],
+            Quantity::Angle(points) => {
+                let (d, _, _) = segment(model, q, dq, points);
+                d[1].atan2(d[0])
+            }
+            Quantity::Omega(points) => {
+                let (d, vd, l2) = segment(model, q, dq, points);
+                (d[0] * vd[1] - d[1] * vd[0]) / l2
+            }
+        }
+    }
+
+    /// Adds p·∂(quantity)/∂q to `kq` and p·∂(quantity)/∂q̇ to `kv` (one row each).
+    fn add_gradient(
+        &self,
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        p: f64,
+        kq: &mut [f64],
+        kv: &mut [f64],
+    ) {
+        let slot = |point: usize| match model.points[point] {
+            PointSlot::Free(i) => Some(i),
+            PointSlot::Fixed(_) => None,
+        };
+        // ∂/∂d of a body quantity lands on its second point, minus on its first.
+        let spread = |row: &mut [f64], [a, b]: [usize; 2], g: [f64; 2]| {
+            for (point, sign) in [(b, 1.0), (a, -1.0)] {
+                if let Some(i) = slot(point) {
+                    row[i] += sign * p * g[0];
+                    row[i + 1] += sign * p * g[1];
+                }
+            }
+        };
+        match *self {
+            Quantity::Coordinate(i) => kq[i] += p,
+            Quantity::Rate(i) => kv[i] += p,
+            Quantity::Position { point, axis } => {
+                if let Some(i) = slot(point) {
+                    kq[i + axis] += p;
+                }
+            }
+            Quantity::Velocity { point, axis } => {
+                if let Some(i) = slot(point) {
+                    kv[i + axis] += p;
+                }
+            }
+            Quantity::Angle(points) => {
+                // θ = atan2(d_y, d_x): ∂θ/∂d = (−d_y, d_x)/|d|².
+                let (d, _, l2) = segment(model, q, dq, points);
+                spread(kq, points, [-d[1] / l2, d[0] / l2]);
+            }
+            Quantity::Omega(points) => {
+                // ω = (d × ḋ)/|d|²: ∂ω/∂ḋ = (−d_y, d_x)/|d|², and
+                // ∂ω/∂d = (ḋ_y − 2ω d_x, −ḋ_x − 2ω d_y)/|d|².
+                let (d, vd, l2) = segment(model, q, dq, points);
+                let w = (d[0] * vd[1] - d[1] * vd[0]) / l2;
+                spread(kv, points, [-d[1] / l2, d[0] / l2]);
+                spread(
+                    kq,
+                    points,
+                    [
+                        (vd[1] - 2.0 * w * d[0]) / l2,
+                        (-vd[0] - 2.0 * w * d[1]) / l2,
+                    ],
+                );
+            }
+        }
+    }
+}
+
+impl Force {
+    /// A load computed outside the scene.
+    pub fn external(name: &str, load: Arc<dyn ExternalLoad>) -> Force {
+        Force::External {
+            name: name.to_string(),
+            load,
+        }
+    }
 }
 
 pub fn assemble(model: &Model) -> Result<Vec<Force>> {
@@ -118,12 +396,15 @@ pub fn assemble(model: &Model) -> Result<Vec<Force>> {
                 coordinate, value, ..
             } => Force::Torque {
                 index: rel(*coordinate),
-                value: value.clone(),
+                value: Load::compile(model, value)?,
             },
             Effect::Force { point, value, .. } => match model.points[*point] {
                 PointSlot::Free(index) => Force::PointForce {
                     index,
-                    value: value.clone(),
+                    value: [
+                        Load::compile(model, &value[0])?,
+                        Load::compile(model, &value[1])?,
+                    ],
                 },
                 PointSlot::Fixed(_) => {
                     return Err(Error::InvalidArgument(format!(
@@ -132,6 +413,11 @@ pub fn assemble(model: &Model) -> Result<Vec<Force>> {
                     )))
                 }
             },
+            Effect::External { name } => {
+                return Err(Error::InvalidArgument(format!(
+                    "effect '{name}': an external load is added to a model, not read from a scene"
+                )))
+            }
         });
     }
     Ok(out)
@@ -236,21 +522,21 @@ impl Force {
                 stall_torque,
                 no_load_speed,
             } => out[*index] += stall_torque * (1.0 - dq[*index] / no_load_speed),
-            Force::Torque { index, value } => out[*index] += value.at(t)?,
+            Force::Torque { index, value } => out[*index] += value.value(model, q, dq, t)?,
             Force::PointForce { index, value } => {
-                out[*index] += value[0].at(t)?;
-                out[*index + 1] += value[1].at(t)?;
+                out[*index] += value[0].value(model, q, dq, t)?;
+                out[*index + 1] += value[1].value(model, q, dq, t)?;
             }
+            Force::External { load, .. } => load.add_to(t, q, dq, out)?,
         }
         Ok(())
     }
 
-    /// Adds ∂Q/∂q to `kq` and ∂Q/∂q̇ to `kv` (row-major n × n).
+    /// Adds ∂Q/∂q to `kq` and ∂Q/∂q̇ to `kv` (row-major n × n) at (q, q̇, t).
     pub fn add_jacobians(
         &self,
         model: &Model,
-        q: &[f64],
-        dq: &[f64],
+        (q, dq, t): (&[f64], &[f64], f64),
         kq: &mut [f64],
         kv: &mut [f64],
     ) -> Result<()> {
@@ -324,7 +610,16 @@ impl Force {
                 stall_torque,
                 no_load_speed,
             } => kv[index * n + index] -= stall_torque / no_load_speed,
-            Force::Gravity { .. } | Force::Torque { .. } | Force::PointForce { .. } => {}
+            Force::Torque { index, value } => {
+                value.add_gradient(model, q, dq, t, *index, kq, kv)?;
+            }
+            Force::PointForce { index, value } => {
+                for (axis, v) in value.iter().enumerate() {
+                    v.add_gradient(model, q, dq, t, index + axis, kq, kv)?;
+                }
+            }
+            Force::External { load, .. } => external_jacobians(load.as_ref(), (q, dq, t), kq, kv)?,
+            Force::Gravity { .. } => {}
         }
         Ok(())
     }
@@ -366,7 +661,41 @@ impl Force {
                 rest_angle,
                 ..
             } => 0.5 * stiffness * (q[*index] - rest_angle).powi(2),
-            Force::Torque { .. } | Force::PointForce { .. } | Force::Motor { .. } => 0.0,
+            Force::Torque { .. }
+            | Force::PointForce { .. }
+            | Force::Motor { .. }
+            | Force::External { .. } => 0.0,
         }
     }
+}
+
+/// ∂Q/∂q and ∂Q/∂q̇ of an external load by forward differences, each column a step
+/// of √ε·max(1, |x|): about eight digits, enough for Newton's steps (the residual
+/// itself stays exact, so the solution does not lose them).
+fn external_jacobians(
+    load: &dyn ExternalLoad,
+    (q, dq, t): (&[f64], &[f64], f64),
+    kq: &mut [f64],
+    kv: &mut [f64],
+) -> Result<()> {
+    let n = q.len();
+    let mut base = vec![0.0; n];
+    load.add_to(t, q, dq, &mut base)?;
+    let mut x = [q.to_vec(), dq.to_vec()];
+    let mut shifted = vec![0.0; n];
+    for which in 0..2 {
+        for j in 0..n {
+            let saved = x[which][j];
+            let h = f64::EPSILON.sqrt() * saved.abs().max(1.0);
+            x[which][j] = saved + h;
+            shifted.fill(0.0);
+            load.add_to(t, &x[0], &x[1], &mut shifted)?;
+            x[which][j] = saved;
+            let k = if which == 0 { &mut *kq } else { &mut *kv };
+            for i in 0..n {
+                k[i * n + j] += (shifted[i] - base[i]) / h;
+            }
+        }
+    }
+    Ok(())
 }

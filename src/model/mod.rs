@@ -659,18 +659,42 @@ impl Model {
         None
     }
 
-    /// ∂Q/∂q and ∂Q/∂q̇ (n × n each), in closed form.
+    /// ∂Q/∂q and ∂Q/∂q̇ (n × n each) at (q, q̇, t), in closed form (by forward
+    /// differences for an external load).
     pub fn force_jacobians(
         &self,
         q: &DVector<f64>,
         dq: &DVector<f64>,
+        t: f64,
     ) -> Result<(DMatrix<f64>, DMatrix<f64>)> {
         let n = self.n();
         let (mut kq, mut kv) = (vec![0.0; n * n], vec![0.0; n * n]);
         for f in &self.forces {
-            f.add_jacobians(self, q.as_slice(), dq.as_slice(), &mut kq, &mut kv)?;
+            f.add_jacobians(self, (q.as_slice(), dq.as_slice(), t), &mut kq, &mut kv)?;
         }
         Ok((self.to_matrix(n, &kq), self.to_matrix(n, &kv)))
+    }
+
+    /// Adds generalized forces computed outside the scene (a Python controller) as the
+    /// effect `name`, after the scene's own. The name must not be taken.
+    pub fn add_external_load(
+        &mut self,
+        name: &str,
+        load: std::sync::Arc<dyn forces::ExternalLoad>,
+    ) -> Result<()> {
+        if name.trim().is_empty() {
+            return Err(Error::InvalidArgument("an effect needs a name".into()));
+        }
+        if self.scene.effects.iter().any(|e| e.name() == Some(name)) {
+            return Err(Error::InvalidArgument(format!(
+                "the scene already has an effect named '{name}'"
+            )));
+        }
+        self.scene.effects.push(Effect::External {
+            name: name.to_string(),
+        });
+        self.forces.push(Force::external(name, load));
+        Ok(())
     }
 
     /// Kinetic energy ½ q̇ᵀ M q̇.

@@ -2,7 +2,7 @@
 //! [`SceneError`] naming the file, the line and the key path.
 
 use super::yaml::{Node, Value};
-use super::TimeFunction;
+use super::{LoadFunction, Scene};
 use crate::error::SceneError;
 use crate::expr::{excerpt, Expr, ExprError};
 
@@ -109,27 +109,74 @@ impl<'a> Ctx<'a> {
         }
     }
 
-    /// A function of time: parameters are bound now, `t` stays free.
-    pub fn time_function(&self, node: &Node, key: &str) -> Result<TimeFunction, SceneError> {
+    /// An effect's value: a number or an expression in the time `t`, the parameters
+    /// (bound now) and the state quantities of `scene` ([`Scene::state_quantity`]).
+    pub fn load_function(
+        &self,
+        node: &Node,
+        key: &str,
+        scene: &Scene,
+    ) -> Result<LoadFunction, SceneError> {
         let text = node.as_text().ok_or_else(|| {
             self.err(
                 node.line,
                 key,
                 format!(
-                    "expected a number or an expression in t, found {}",
+                    "expected a number or an expression in t and the state, found {}",
                     node.kind()
                 ),
             )
         })?;
         let expr = Expr::parse(&text).map_err(|e| self.expr_err(node, key, &text, e))?;
+        let lookup = self.lookup(&[]);
+        for name in expr.names() {
+            let quantity = scene.state_quantity(&name);
+            if let Some((accessor, arg)) = name.strip_suffix(')').and_then(|n| n.split_once('(')) {
+                if quantity.is_none() {
+                    let (what, known) = match accessor {
+                        "rate" => (
+                            "relative coordinate",
+                            names(scene.coordinates.iter().map(|c| &c.name)),
+                        ),
+                        "angle" | "omega" => ("body", names(scene.bodies.iter().map(|b| &b.name))),
+                        _ => ("point", names(scene.points.iter().map(|p| &p.name))),
+                    };
+                    return Err(self.err(
+                        node.line,
+                        key,
+                        format!(
+                            "'{}' in '{}': no {what} named '{}' ({known})",
+                            excerpt(&name, QUOTE),
+                            excerpt(&text, QUOTE),
+                            excerpt(arg, QUOTE)
+                        ),
+                    ));
+                }
+            } else if quantity.is_some() && lookup(&name).is_some() {
+                return Err(self.err(
+                    node.line,
+                    key,
+                    format!(
+                        "'{name}' in '{}' is both a parameter and a coordinate: rename one",
+                        excerpt(&text, QUOTE)
+                    ),
+                ));
+            }
+        }
+        let keep = |n: &str| n == "t" || scene.state_quantity(n).is_some();
         let bound = expr
-            .bind(&["t"], &self.lookup(&[]))
+            .bind(&keep, &lookup)
             .map_err(|e| self.expr_err(node, key, &text, e))?;
-        // Catch a function that is not finite at the start of the motion.
-        bound
-            .eval(&|n| (n == "t").then_some(0.0))
-            .map_err(|e| self.expr_err(node, key, &text, e))?;
-        Ok(TimeFunction::new(bound, text))
+        let value = LoadFunction::new(bound, text);
+        // Catch a function of time that is not finite at the start of the motion (one
+        // of the state is checked at the initial state, by the model).
+        if !value.is_state_dependent() {
+            value
+                .expr()
+                .eval(&|n| (n == "t").then_some(0.0))
+                .map_err(|e| self.expr_err(node, key, &value.text, e))?;
+        }
+        Ok(value)
     }
 
     fn expr_err(&self, node: &Node, key: &str, text: &str, e: ExprError) -> SceneError {
@@ -142,10 +189,14 @@ impl<'a> Ctx<'a> {
         // YAML's {…} ends the value at a comma: `{value: 20*min(1, t)}` arrives as
         // `20*min(1`.
         let opened = text.matches('(').count() > text.matches(')').count();
-        let hint = if matches!(e, ExprError::Syntax { .. }) && opened {
-            "; in {…} a comma ends the value: quote an expression that has one (value: \"20*min(1, t)\")"
-        } else {
-            ""
+        let hint = match &e {
+            ExprError::Syntax { .. } if opened => {
+                "; in {…} a comma ends the value: quote an expression that has one (value: \"20*min(1, t)\")"
+            }
+            ExprError::Undefined(name) if name.contains('(') => {
+                "; state quantities such as rate(theta) or x(P) may appear only in the value of a torque or a force"
+            }
+            _ => "",
         };
         let text = excerpt(text, QUOTE);
         self.err(node.line, key, format!("{what} '{text}': {e}{hint}"))
@@ -370,5 +421,15 @@ impl<'n> Fields<'n> {
             }
         }
         Ok(())
+    }
+}
+
+/// Up to eight names, for a message that says what exists.
+fn names<'a>(all: impl Iterator<Item = &'a String>) -> String {
+    let all: Vec<&str> = all.map(String::as_str).collect();
+    match all.len() {
+        0 => "the scene has none".to_string(),
+        n if n > 8 => format!("{}, … ({n} in all)", all[..8].join(", ")),
+        _ => all.join(", "),
     }
 }

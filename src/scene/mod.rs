@@ -105,34 +105,61 @@ pub enum ConstraintKind {
     },
 }
 
-/// A function of time from the scene: a constant or an expression in `t`.
+/// An effect's value from the scene: a constant, an expression in the time `t`, or an
+/// expression in `t` and the mechanism's state (`rate(theta)`, `x(P)`, …), with the
+/// parameters already substituted.
 #[derive(Debug, Clone, PartialEq)]
-pub struct TimeFunction {
+pub struct LoadFunction {
     expr: Expr,
     pub text: String,
 }
 
-impl TimeFunction {
+impl LoadFunction {
     pub fn constant(value: f64) -> Self {
-        TimeFunction {
+        LoadFunction {
             expr: Expr::constant(value),
             text: format!("{value}"),
         }
     }
 
     pub(crate) fn new(expr: Expr, text: String) -> Self {
-        TimeFunction { expr, text }
+        LoadFunction { expr, text }
     }
 
-    /// Value at time `t`; a non-finite value (say `1/t` at 0) is reported as an error.
+    /// The expression, its names `t` and the state quantities of
+    /// [`Scene::is_state_name`].
+    pub fn expr(&self) -> &Expr {
+        &self.expr
+    }
+
+    /// The state quantities the value depends on, in order of appearance.
+    pub fn state_names(&self) -> Vec<String> {
+        let mut names = self.expr.names();
+        names.retain(|n| n != "t");
+        names
+    }
+
+    /// Whether the value depends on the state, not on time alone.
+    pub fn is_state_dependent(&self) -> bool {
+        !self.state_names().is_empty()
+    }
+
+    /// Value at time `t` of a value that depends on time alone; a non-finite value
+    /// (say `1/t` at 0) is reported as an error, and so is a state-dependent value.
     pub fn at(&self, t: f64) -> crate::Result<f64> {
         if let Some(c) = self.expr.as_constant() {
             return Ok(c);
         }
-        self.expr.eval(&|n| (n == "t").then_some(t)).map_err(|e| {
-            let text = crate::expr::excerpt(&self.text, fields::QUOTE);
-            Error::InvalidArgument(format!("'{text}' at t = {t}: {e}"))
-        })
+        let text = crate::expr::excerpt(&self.text, fields::QUOTE);
+        if self.is_state_dependent() {
+            return Err(Error::InvalidArgument(format!(
+                "'{text}' depends on the state ({}), not on time alone",
+                self.state_names().join(", ")
+            )));
+        }
+        self.expr
+            .eval(&|n| (n == "t").then_some(t))
+            .map_err(|e| Error::InvalidArgument(format!("'{text}' at t = {t}: {e}")))
     }
 
     pub fn is_constant(&self) -> bool {
@@ -174,14 +201,33 @@ pub enum Effect {
     Torque {
         name: String,
         coordinate: usize,
-        value: TimeFunction,
+        value: LoadFunction,
     },
     /// A force at a point, in global axes.
     Force {
         name: String,
         point: usize,
-        value: [TimeFunction; 2],
+        value: [LoadFunction; 2],
     },
+    /// Generalized forces computed outside the scene (a Python callable), added with
+    /// [`crate::Model::add_external_load`].
+    External { name: String },
+}
+
+/// A quantity of the mechanism's state that an effect's value may use: by its bare
+/// name a relative coordinate, `rate(c)` its rate, `x(P)`, `y(P)`, `vx(P)`, `vy(P)` a
+/// point's position and velocity, `angle(B)`, `omega(B)` the angle of a body's first
+/// two points against the x axis, in (−π, π], and its rate.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum StateQuantity {
+    Coordinate(usize),
+    Rate(usize),
+    X(usize),
+    Y(usize),
+    Vx(usize),
+    Vy(usize),
+    Angle(usize),
+    Omega(usize),
 }
 
 /// A validated scene.
@@ -275,6 +321,26 @@ impl Scene {
         self.coordinates.iter().position(|c| c.name == name)
     }
 
+    /// The state quantity `name` stands for in an effect's value (`theta`,
+    /// `rate(theta)`, `x(P)`, `omega(crank)`, …), if any.
+    pub fn state_quantity(&self, name: &str) -> Option<StateQuantity> {
+        let Some((accessor, arg)) = name.strip_suffix(')').and_then(|n| n.split_once('(')) else {
+            return self.coordinate_index(name).map(StateQuantity::Coordinate);
+        };
+        let point = || self.point_index(arg);
+        let body = || self.bodies.iter().position(|b| b.name == arg);
+        match accessor {
+            "rate" => self.coordinate_index(arg).map(StateQuantity::Rate),
+            "x" => point().map(StateQuantity::X),
+            "y" => point().map(StateQuantity::Y),
+            "vx" => point().map(StateQuantity::Vx),
+            "vy" => point().map(StateQuantity::Vy),
+            "angle" => body().map(StateQuantity::Angle),
+            "omega" => body().map(StateQuantity::Omega),
+            _ => None,
+        }
+    }
+
     /// Whether any effect is present that makes the scene non-conservative
     /// (dampers, or forces and torques that vary in time).
     pub fn is_conservative(&self) -> bool {
@@ -282,7 +348,10 @@ impl Scene {
             Effect::Gravity { .. } => true,
             Effect::SpringDamper { damping, .. }
             | Effect::RotationalSpringDamper { damping, .. } => *damping == 0.0,
-            Effect::Torque { .. } | Effect::Force { .. } | Effect::Motor { .. } => false,
+            Effect::Torque { .. }
+            | Effect::Force { .. }
+            | Effect::Motor { .. }
+            | Effect::External { .. } => false,
         })
     }
 }
@@ -376,6 +445,22 @@ impl Effect {
                 value[0].text,
                 value[1].text
             ),
+            Effect::External { name } => {
+                format!("{name}: generalized forces from a callable (outside the scene)")
+            }
+        }
+    }
+
+    /// The effect's name (gravity has none).
+    pub fn name(&self) -> Option<&str> {
+        match self {
+            Effect::Gravity { .. } => None,
+            Effect::SpringDamper { name, .. }
+            | Effect::RotationalSpringDamper { name, .. }
+            | Effect::Motor { name, .. }
+            | Effect::Torque { name, .. }
+            | Effect::Force { name, .. }
+            | Effect::External { name } => Some(name),
         }
     }
 }
