@@ -989,6 +989,8 @@ struct PyLoad {
     name: String,
     callable: Py<PyAny>,
     raised: std::sync::Mutex<Option<PyErr>>,
+    /// q's names, for messages (set when the load joins a model).
+    names: std::sync::OnceLock<Vec<String>>,
 }
 
 impl crate::model::forces::ExternalLoad for PyLoad {
@@ -1019,8 +1021,13 @@ impl crate::model::forces::ExternalLoad for PyLoad {
                 )));
             }
             if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+                let coordinate = self
+                    .names
+                    .get()
+                    .and_then(|n| n.get(k))
+                    .map_or(format!("{k}"), |n| format!("{k} ({n})"));
                 return Err(Error::InvalidArgument(format!(
-                    "effect '{name}' returned {} for coordinate {k} at t = {t}",
+                    "effect '{name}' returned {} for coordinate {coordinate} at t = {t}",
                     v[k]
                 )));
             }
@@ -1061,6 +1068,7 @@ fn arg_effects(effects: &Bound<'_, PyAny>) -> PyResult<Vec<Arc<PyLoad>>> {
             name,
             callable: v.unbind(),
             raised: std::sync::Mutex::new(None),
+            names: std::sync::OnceLock::new(),
         }));
     }
     Ok(out)
@@ -1073,6 +1081,7 @@ fn with_loads(model: Arc<Model>, loads: &[Arc<PyLoad>]) -> PyResult<Arc<Model>> 
     }
     let mut m = Arc::unwrap_or_clone(model);
     for load in loads {
+        let _ = load.names.set(m.names.clone());
         m.add_external_load(&load.name, load.clone())
             .map_err(|e| match e {
                 Error::InvalidArgument(m) => invalid(format!("effects: {m}")),

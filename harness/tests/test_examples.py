@@ -11,6 +11,7 @@ EXPECTED = {
     "parameter_sweep.py": ["sweep.png"],
     "joint_forces.py": ["pins.png"],
     "energy_and_animation.py": ["energy.png", "swing.gif"],
+    "controller.py": ["controller.png"],
 }
 
 
