@@ -1,7 +1,9 @@
 //! The `mbfg` Python module (PyO3, feature `python`): the scene parser, the assembled
 //! model and the forward/inverse runs, for the harness and for users. Arrays cross
-//! the boundary as flat lists (a run's table as a buffer of float64s);
-//! `python/mbfg/__init__.py` shapes them into numpy.
+//! the boundary as numpy arrays (rust-numpy): a result vector or matrix becomes an
+//! array that owns the Rust buffer, a float64 numpy argument is read in place, and a
+//! run's table is a buffer of float64s that numpy wraps; `python/mbfg/__init__.py`
+//! shapes them.
 //!
 //! Every entry point runs inside [`guard`]: a Rust panic becomes `mbfg.InternalError`
 //! instead of pyo3's `PanicException`, which `except Exception` does not catch.
@@ -20,6 +22,7 @@ use crate::smoother::Mode;
 use crate::solver::{Past, Termination};
 use crate::{Error, Model, Scene};
 use nalgebra::{DMatrix, DVector};
+use numpy::{PyArray1, PyArray2, PyArrayMethods};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyOverflowError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
@@ -250,6 +253,14 @@ fn arg_path(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<PathBuf> {
 /// A flat sequence of numbers (a list, tuple or 1-D array), as floats; NaN and Inf
 /// are left to the caller.
 fn arg_numbers(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<Vec<f64>> {
+    // A contiguous 1-D float64 array is read in place, without a call per entry.
+    if let Ok(a) = obj.cast::<PyArray1<f64>>() {
+        if let Ok(r) = a.try_readonly() {
+            if let Ok(s) = r.as_slice() {
+                return Ok(s.to_vec());
+            }
+        }
+    }
     let not_seq = || {
         invalid(format!(
             "{name} must be a 1-D sequence of numbers, got {}",
@@ -402,6 +413,17 @@ impl PyModel {
 /// Row-major entries of a matrix.
 fn rows(m: &DMatrix<f64>) -> Vec<f64> {
     m.transpose().as_slice().to_vec()
+}
+
+/// A vector as a numpy array that takes over its buffer.
+fn array(py: Python<'_>, v: Vec<f64>) -> Bound<'_, PyArray1<f64>> {
+    PyArray1::from_vec(py, v)
+}
+
+/// A matrix as a C-ordered numpy array (its one transpose written into the array's
+/// own buffer).
+fn matrix<'py>(py: Python<'py>, m: &DMatrix<f64>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    array(py, rows(m)).reshape([m.nrows(), m.ncols()])
 }
 
 #[pymethods]
@@ -665,44 +687,58 @@ impl PyModel {
         })
     }
     #[getter]
-    fn initial_q(&self) -> PyResult<Vec<f64>> {
-        guard(|| Ok(self.model.initial.q.as_slice().to_vec()))
+    fn initial_q<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        guard(|| Ok(array(py, self.model.initial.q.as_slice().to_vec())))
     }
     #[getter]
-    fn initial_dq(&self) -> PyResult<Vec<f64>> {
-        guard(|| Ok(self.model.initial.dq.as_slice().to_vec()))
+    fn initial_dq<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        guard(|| Ok(array(py, self.model.initial.dq.as_slice().to_vec())))
     }
     #[getter]
     fn is_conservative(&self) -> PyResult<bool> {
         guard(|| Ok(self.model.scene.is_conservative()))
     }
-    fn mass_matrix(&self) -> PyResult<Vec<f64>> {
-        guard(|| Ok(rows(&self.model.mass)))
+    fn mass_matrix<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        guard(|| matrix(py, &self.model.mass))
     }
-    fn phi(&self, q: &Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
+    fn phi<'py>(
+        &self,
+        py: Python<'py>,
+        q: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         guard(|| {
             let q = self.vector(q, "q")?;
-            Ok(self.model.phi(&q).as_slice().to_vec())
+            Ok(array(py, self.model.phi(&q).as_slice().to_vec()))
         })
     }
-    fn phi_q(&self, q: &Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
+    fn phi_q<'py>(
+        &self,
+        py: Python<'py>,
+        q: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         guard(|| {
             let q = self.vector(q, "q")?;
-            Ok(rows(&self.model.jacobian(&q)))
+            matrix(py, &self.model.jacobian(&q))
         })
     }
-    fn phi_q_dot(&self, q: &Bound<'_, PyAny>, dq: &Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
+    fn phi_q_dot<'py>(
+        &self,
+        py: Python<'py>,
+        q: &Bound<'py, PyAny>,
+        dq: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         guard(|| {
             let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
-            Ok(rows(&self.model.jacobian_dot(&q, &dq)))
+            matrix(py, &self.model.jacobian_dot(&q, &dq))
         })
     }
-    fn generalized_forces(
+    fn generalized_forces<'py>(
         &self,
-        q: &Bound<'_, PyAny>,
-        dq: &Bound<'_, PyAny>,
-        t: &Bound<'_, PyAny>,
-    ) -> PyResult<Vec<f64>> {
+        py: Python<'py>,
+        q: &Bound<'py, PyAny>,
+        dq: &Bound<'py, PyAny>,
+        t: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         guard(|| {
             let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
             let t = arg_real(t, "t")?;
@@ -710,34 +746,37 @@ impl PyModel {
                 .model
                 .generalized_forces(&q, &dq, t)
                 .map_err(arg_error)?;
-            Ok(f.as_slice().to_vec())
+            Ok(array(py, f.as_slice().to_vec()))
         })
     }
-    /// (∂Q/∂q, ∂Q/∂q̇) as two row-major n × n lists.
-    fn force_jacobians(
+    /// (∂Q/∂q, ∂Q/∂q̇), each n × n.
+    #[allow(clippy::type_complexity)] // a pair of arrays
+    fn force_jacobians<'py>(
         &self,
-        q: &Bound<'_, PyAny>,
-        dq: &Bound<'_, PyAny>,
-        t: &Bound<'_, PyAny>,
-    ) -> PyResult<(Vec<f64>, Vec<f64>)> {
+        py: Python<'py>,
+        q: &Bound<'py, PyAny>,
+        dq: &Bound<'py, PyAny>,
+        t: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<f64>>)> {
         guard(|| {
             let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
             let t = arg_real(t, "t")?;
             let (kq, kv) = self.model.force_jacobians(&q, &dq, t).map_err(arg_error)?;
-            Ok((rows(&kq), rows(&kv)))
+            Ok((matrix(py, &kq)?, matrix(py, &kv)?))
         })
     }
-    fn accelerations(
+    fn accelerations<'py>(
         &self,
-        q: &Bound<'_, PyAny>,
-        dq: &Bound<'_, PyAny>,
-        t: &Bound<'_, PyAny>,
-    ) -> PyResult<Vec<f64>> {
+        py: Python<'py>,
+        q: &Bound<'py, PyAny>,
+        dq: &Bound<'py, PyAny>,
+        t: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         guard(|| {
             let (q, dq) = (self.vector(q, "q")?, self.vector(dq, "dq")?);
             let t = arg_real(t, "t")?;
             let s = crate::dynamics::lagrange(&self.model, &q, &dq, t).map_err(arg_error)?;
-            Ok(s.ddq.as_slice().to_vec())
+            Ok(array(py, s.ddq.as_slice().to_vec()))
         })
     }
     /// Joint forces: (body, point, fx, fy) for every body and each of its points.
@@ -997,10 +1036,11 @@ impl crate::model::forces::ExternalLoad for PyLoad {
     fn add_to(&self, t: f64, q: &[f64], dq: &[f64], out: &mut [f64]) -> crate::Result<()> {
         let name = &self.name;
         Python::attach(|py| {
+            let args = (t, PyArray1::from_slice(py, q), PyArray1::from_slice(py, dq));
             let value = self
                 .callable
-                .call1(py, (t, q.to_vec(), dq.to_vec()))
-                .and_then(|v| v.extract::<Vec<f64>>(py));
+                .call1(py, args)
+                .and_then(|v| arg_numbers(v.bind(py), &format!("effect '{name}''s return")));
             let v = match value {
                 Ok(v) => v,
                 Err(e) => {

@@ -3,8 +3,9 @@
     model = mbfg.load("scenes/fourbar.yaml")
     run = mbfg.simulate("scenes/fourbar.yaml", coords="dc", dt=1e-3, t_end=5.0)
 
-The native module checks the arguments and hands over flat lists and buffers; this
-layer gives the defaults and shapes them into numpy arrays, also the partial result an
+The native module checks the arguments and hands over numpy arrays (float64 arrays
+are read in place, results own their buffers) and a run's table as a float64 buffer;
+this layer gives the defaults and shapes the table, also the partial result an
 interrupted or failed run attaches to its exception (`.result`). API: docs/python.md.
 """
 from __future__ import annotations
@@ -248,8 +249,9 @@ def inverse(scene: str | os.PathLike, trajectory: str | os.PathLike | Mapping[st
 
 
 def _effects(effects):
-    """Python effects for the native call: each f(t, q, dq) given numpy arrays. Anything
-    but a mapping of callables goes through as given, for the native call to refuse."""
+    """Python effects for the native call, each f(t, q, dq) returning a float64 array
+    (q and dq arrive as numpy arrays). Anything but a mapping of callables goes through
+    as given, for the native call to refuse."""
     if not isinstance(effects, Mapping):
         return effects
 
@@ -258,7 +260,7 @@ def _effects(effects):
             return f
 
         def call(t, q, dq):
-            return np.asarray(f(t, np.array(q), np.array(dq)), dtype=float).ravel().tolist()
+            return np.asarray(f(t, q, dq), dtype=float)
         return call
     return {name: adapt(f) for name, f in effects.items()}
 
