@@ -4,7 +4,7 @@
 //! (and the sliders' normal forces) by least squares, without multipliers.
 
 use mbfg::forward::{simulate, Coordinates, ForwardOptions};
-use mbfg::model::mass;
+use mbfg::model::{mass, PointSlot};
 use mbfg::reactions::joint_forces;
 use mbfg::scene::{ConstraintKind, Effect, RelativeKind};
 use mbfg::smoother::Mode;
@@ -110,12 +110,27 @@ fn newton_euler(model: &Model, q: &[f64], dq: &[f64], ddq: &[f64], t: f64) -> Ve
         }
         rows.push((row, i_g * alpha - torque_on(b)));
     }
-    // A free point: its mass times its acceleration is gravity, its slider's normal
-    // force, and the reactions of the bodies' pin forces on it.
+    // A free point: its mass times its acceleration is gravity, the forces applied
+    // there, its slider's normal force, and the reactions of the bodies' pin forces.
+    let applied = |p: usize| -> [f64; 2] {
+        let mut total = [0.0; 2];
+        for (force, effect) in model.forces.iter().zip(&scene.effects) {
+            if let (Effect::Force { point, .. }, PointSlot::Free(i)) = (effect, model.points[p]) {
+                if *point == p {
+                    let mut out = vec![0.0; model.n()];
+                    force.add_to(model, q, dq, t, &mut out).unwrap();
+                    total[0] += out[i];
+                    total[1] += out[i + 1];
+                }
+            }
+        }
+        total
+    };
     for (p, point) in scene.points.iter().enumerate() {
         if point.fixed {
             continue;
         }
+        let f = applied(p);
         for axis in 0..2 {
             let mut row = vec![0.0; unknowns];
             for (u, &(_, pp)) in pairs.iter().enumerate() {
@@ -128,7 +143,7 @@ fn newton_euler(model: &Model, q: &[f64], dq: &[f64], ddq: &[f64], t: f64) -> Ve
                     row[2 * pairs.len() + s] = n[axis];
                 }
             }
-            rows.push((row, point.mass * (a(p)[axis] - g[axis])));
+            rows.push((row, point.mass * (a(p)[axis] - g[axis]) - f[axis]));
         }
     }
     let m = DMatrix::from_fn(rows.len(), unknowns, |i, j| rows[i].0[j]);
@@ -196,4 +211,12 @@ fn a_motor_driven_crank_rocker_agrees_with_newton_euler() {
         "driven/dc-motor-crank-rocker.yaml",
         Coordinates::Independent,
     );
+}
+
+/// Loads that depend on the state (a PD controller on the crank, drag at the coupler
+/// point, a gas force on the piston): the pin forces balance them too.
+#[test]
+fn state_dependent_loads_agree_with_newton_euler() {
+    agree("driven/controlled-crank-rocker.yaml", Coordinates::Dependent);
+    agree("driven/compressor-slider-crank.yaml", Coordinates::Independent);
 }
