@@ -8,10 +8,11 @@ use crate::factors::*;
 use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
 use crate::linalg::dense;
 
+use crate::collocation::{HermitePosition, SimpsonVelocity};
 use crate::model::{Model, PointSlot, State};
 use crate::smoother::{self, Mode, Next};
 use crate::solver::{Past, Settings, SolveReport, Termination};
-use crate::tangent::{Rule, TangentIntegrator};
+use crate::tangent::{Projected, Rule, TangentIntegrator};
 use nalgebra::DVector;
 use std::ops::ControlFlow;
 use std::sync::Arc;
@@ -31,6 +32,8 @@ pub enum Coordinates {
 pub enum Integrator {
     Trapezoidal,
     Euler,
+    /// Hermite–Simpson collocation, fourth order ([`crate::collocation`]).
+    HermiteSimpson,
 }
 
 /// What the integrator factors ask of a step in dependent coordinates.
@@ -161,8 +164,25 @@ impl ForwardOptions {
     /// integrators): its residual is zero at the solution, where Gauss-Newton is
     /// Newton's method ([`Settings::second_order`] is then of no use).
     pub fn is_square(&self) -> bool {
-        self.coordinates == Coordinates::Independent
-            || self.dc_integrators == DcIntegrators::Tangent
+        self.coordinates == Coordinates::Independent || self.tangent_dc()
+    }
+
+    /// Whether the integrator factors of dependent coordinates are projected on the
+    /// tangent space: asked for, or Hermite–Simpson under `auto` (its full factors'
+    /// least-squares compromise costs windows two orders of accuracy, and a retry
+    /// would gain nothing).
+    pub fn tangent_dc(&self) -> bool {
+        self.dc_integrators == DcIntegrators::Tangent
+            || (self.dc_integrators == DcIntegrators::Auto
+                && self.integrator == Integrator::HermiteSimpson)
+    }
+
+    /// Whether a DC run whose full integrator factors fail is made again with
+    /// tangent ones ([`DcIntegrators::Auto`] with the trapezoidal rule or Euler).
+    fn retries_tangent(&self) -> bool {
+        self.coordinates == Coordinates::Dependent
+            && self.dc_integrators == DcIntegrators::Auto
+            && !self.tangent_dc()
     }
 
     /// Number of steps including t = 0: t_k = k·dt for k = 0..=round(t_end/dt)
@@ -250,7 +270,7 @@ impl ForwardGraph {
         let hard = Noise::Hard;
         let integrate = |x: VarKind, dx: VarKind, dim: usize, sigma: f64| -> Box<dyn Factor> {
             match options.integrator {
-                Integrator::Trapezoidal => {
+                Integrator::Trapezoidal | Integrator::HermiteSimpson => {
                     Box::new(Trapezoidal::new(x, dx, dim, dt, Noise::Isotropic(sigma)))
                 }
                 Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt, Noise::Isotropic(sigma))),
@@ -258,7 +278,7 @@ impl ForwardGraph {
         };
         let dc_integrate = |x: VarKind, dx: VarKind, sigma: f64| -> Box<dyn Factor> {
             let rule = match options.integrator {
-                Integrator::Trapezoidal => Rule::Trapezoidal,
+                Integrator::Trapezoidal | Integrator::HermiteSimpson => Rule::Trapezoidal,
                 Integrator::Euler => Rule::Euler,
             };
             match options.dc_integrators {
@@ -273,18 +293,73 @@ impl ForwardGraph {
                 DcIntegrators::Full | DcIntegrators::Auto => integrate(x, dx, n, sigma),
             }
         };
+        // The position and velocity integrators of each coordinate set.
+        let hermite = options.integrator == Integrator::HermiteSimpson;
+        let dc_integrators = || -> [Box<dyn Factor>; 2] {
+            if hermite {
+                let factors: [Box<dyn Factor>; 2] = [
+                    Box::new(HermitePosition::new(
+                        VarKind::Q,
+                        VarKind::Dq,
+                        VarKind::Ddq,
+                        n,
+                        dt,
+                        Noise::Isotropic(nm.integrator_position),
+                    )),
+                    Box::new(SimpsonVelocity::dependent(
+                        model.clone(),
+                        dt,
+                        Noise::Isotropic(nm.integrator_velocity),
+                    )),
+                ];
+                if options.tangent_dc() {
+                    return factors
+                        .map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>);
+                }
+                return factors;
+            }
+            [
+                dc_integrate(VarKind::Q, VarKind::Dq, nm.integrator_position),
+                dc_integrate(VarKind::Dq, VarKind::Ddq, nm.integrator_velocity),
+            ]
+        };
+        let ic_integrators = || -> [Box<dyn Factor>; 2] {
+            if hermite {
+                return [
+                    Box::new(HermitePosition::new(
+                        VarKind::Z,
+                        VarKind::Dz,
+                        VarKind::Ddz,
+                        f,
+                        dt,
+                        Noise::Isotropic(nm.integrator_position),
+                    )),
+                    Box::new(SimpsonVelocity::independent(
+                        model.clone(),
+                        dt,
+                        Noise::Isotropic(nm.integrator_velocity),
+                    )),
+                ];
+            }
+            [
+                integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
+                integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
+            ]
+        };
         let graph = match options.coordinates {
             Coordinates::Dependent => ChainGraph {
                 layout: Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]),
                 dt,
                 t0: 0.0,
-                step_factors: vec![
-                    Box::new(PositionConstraints::new(model.clone(), hard.clone())),
+                step_factors: [
+                    Box::new(PositionConstraints::new(model.clone(), hard.clone()))
+                        as Box<dyn Factor>,
                     Box::new(VelocityConstraints::new(model.clone(), hard.clone())),
                     Box::new(Dynamics::new(model.clone(), Noise::Isotropic(nm.dynamics))),
-                    dc_integrate(VarKind::Q, VarKind::Dq, nm.integrator_position),
-                    dc_integrate(VarKind::Dq, VarKind::Ddq, nm.integrator_velocity),
-                ],
+                ]
+                .into_iter()
+                .chain(dc_integrators())
+                .collect(),
                 initial_factors: vec![
                     Box::new(Prior::new(
                         VarKind::Q,
@@ -317,18 +392,23 @@ impl ForwardGraph {
                     ]),
                     dt,
                     t0: 0.0,
-                    step_factors: vec![
-                        Box::new(IndependentPosition::new(model.clone(), hard.clone())),
+                    step_factors: [
+                        Box::new(IndependentPosition::new(model.clone(), hard.clone()))
+                            as Box<dyn Factor>,
                         Box::new(IndependentVelocity::new(model.clone(), hard.clone())),
                         Box::new(IndependentAcceleration::new(model.clone(), hard.clone())),
                         Box::new(IndependentDynamics::new(
                             model.clone(),
                             Noise::Isotropic(nm.dynamics),
                         )),
-                        integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
-                        integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
-                        Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
-                    ],
+                    ]
+                    .into_iter()
+                    .chain(ic_integrators())
+                    .chain([
+                        Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality)))
+                            as Box<dyn Factor>,
+                    ])
+                    .collect(),
                     initial_factors: vec![
                         Box::new(Prior::new(VarKind::Z, z0, hard.clone())),
                         Box::new(Prior::new(VarKind::Dz, dz0, hard.clone())),
@@ -1175,8 +1255,7 @@ fn simulate_integrators(
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
 ) -> Result<(Trajectory, RunSummary)> {
     let (trajectory, summary) = simulate_with(model.clone(), options, progress)?;
-    let retry = options.coordinates == Coordinates::Dependent
-        && options.dc_integrators == DcIntegrators::Auto
+    let retry = options.retries_tangent()
         && summary.interrupted.is_none()
         && summary.failures.iter().all(|f| f.singular.is_none());
     let Some(failure) = summary.failures.first().filter(|_| retry) else {
@@ -1523,9 +1602,7 @@ fn segment(
                 let mut settings = options.settings;
                 // One equation per unknown: Gauss-Newton is Newton's method.
                 settings.second_order &= !options.is_square();
-                if options.coordinates == Coordinates::Dependent
-                    && options.dc_integrators == DcIntegrators::Auto
-                {
+                if options.retries_tangent() {
                     // The paper's factors get the iterations a window needs; past them
                     // their compromise crawls (the double pendulum at 1 ms: 30
                     // iterations, 35 s) where tangent ones converge in one.

@@ -12,6 +12,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod check;
+pub mod collocation;
 pub mod derived;
 pub mod dynamics;
 pub mod error;

@@ -251,8 +251,12 @@ enum CoordsArg {
 
 #[derive(Clone, Copy, ValueEnum)]
 enum IntegratorArg {
+    /// The paper's trapezoidal rule, second order.
     Trapezoidal,
+    /// Explicit Euler, first order.
     Euler,
+    /// Hermite–Simpson collocation, fourth order (the dynamics also at each step's middle).
+    HermiteSimpson,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -427,6 +431,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             options.integrator = match integrator {
                 IntegratorArg::Trapezoidal => Integrator::Trapezoidal,
                 IntegratorArg::Euler => Integrator::Euler,
+                IntegratorArg::HermiteSimpson => Integrator::HermiteSimpson,
             };
             options.dc_integrators = match dc_integrators {
                 DcIntegratorsArg::Auto => DcIntegrators::Auto,

@@ -1190,7 +1190,11 @@ fn simulate_run<'py>(
         let window = arg_count(window, "window", 1)?;
         let batch = arg_bool(batch, "batch")?;
         let max_iterations = arg_count(max_iterations, "max_iterations", 1)?;
-        let integrator = arg_choice(integrator, "integrator", &["trapezoidal", "euler"])?;
+        let integrator = arg_choice(
+            integrator,
+            "integrator",
+            &["trapezoidal", "euler", "hermite-simpson"],
+        )?;
         let noise = arg_choice(noise, "noise", &["default", "paper"])?;
         let continue_on_failure = arg_bool(continue_on_failure, "continue_on_failure")?;
         let refine = arg_bool(refine, "refine")?;
@@ -1209,6 +1213,7 @@ fn simulate_run<'py>(
         let mut options = ForwardOptions::new(coordinates, dt, t_end, mode);
         options.integrator = match integrator {
             "trapezoidal" => Integrator::Trapezoidal,
+            "hermite-simpson" => Integrator::HermiteSimpson,
             _ => Integrator::Euler,
         };
         options.dc_integrators = match dc_integrators {

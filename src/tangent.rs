@@ -183,7 +183,7 @@ impl Factor for TangentIntegrator {
         jac: Option<&mut [Vec<f64>]>,
         _ws: &mut Workspace,
     ) -> Result<()> {
-        let (m, n) = (self.model.m(), self.model.n());
+        let n = self.model.n();
         let q = x[self.q_key];
         let mut e = DVector::zeros(n);
         let c = self.residual(x, e.as_mut_slice());
@@ -201,23 +201,115 @@ impl Factor for TangentIntegrator {
         if self.q_key != 1 {
             j[self.q_key].fill(0.0);
         }
-        // The projector's own derivative: −P (Σₖ λₖ Φᵏ_qq) − Φ_q⁺ (Φ_qq u).
-        let lambda = rows.pinv.tr_mul(&e);
-        let mut w = vec![0.0; n * n];
-        self.model
-            .add_all_weighted_hessians(q, lambda.as_slice(), &mut w);
-        let w = DMatrix::from_row_slice(n, n, &w);
-        let mut jw = vec![0.0; m * n];
-        self.model
-            .jacobian_derivative_into(q, u.as_slice(), &mut jw);
-        let jw = DMatrix::from_row_slice(m, n, &jw);
-        let dp = &rows.p * w + &rows.pinv * jw;
-        let block = &mut j[self.q_key];
-        for i in 0..n {
-            for k in 0..n {
-                block[i * n + k] -= dp[(i, k)];
+        subtract_projector_derivative(&self.model, q, &rows, &e, &u, &mut j[self.q_key]);
+        Ok(())
+    }
+}
+
+/// Subtracts d(P e)/dq at fixed e, −P (Σₖ λₖ Φᵏ_qq) − Φ_q⁺ (Φ_qq u) with
+/// λ = (Φ_q⁺)ᵀe and u = P e, from the row-major n × n `block`.
+fn subtract_projector_derivative(
+    model: &Model,
+    q: &[f64],
+    rows: &RowSpace,
+    e: &DVector<f64>,
+    u: &DVector<f64>,
+    block: &mut [f64],
+) {
+    let (m, n) = (model.m(), model.n());
+    let lambda = rows.pinv.tr_mul(e);
+    let mut w = vec![0.0; n * n];
+    model.add_all_weighted_hessians(q, lambda.as_slice(), &mut w);
+    let w = DMatrix::from_row_slice(n, n, &w);
+    let mut jw = vec![0.0; m * n];
+    model.jacobian_derivative_into(q, u.as_slice(), &mut jw);
+    let jw = DMatrix::from_row_slice(m, n, &jw);
+    let dp = &rows.p * w + &rows.pinv * jw;
+    for i in 0..n {
+        for k in 0..n {
+            block[i * n + k] -= dp[(i, k)];
+        }
+    }
+}
+
+/// Any integrator factor of dependent coordinates (n rows) projected onto the
+/// tangent space at the step's positions: P(q_t) e. Used for the Hermite–Simpson
+/// factors ([`crate::collocation`]), whose residual is not a fixed linear rule.
+pub struct Projected {
+    model: Arc<Model>,
+    inner: Box<dyn Factor>,
+    name: String,
+    /// Index among the inner factor's keys of q_t.
+    q_key: usize,
+}
+
+impl Projected {
+    /// Projects `inner`, whose residual has one row per coordinate of q and whose
+    /// keys hold q at its own step.
+    pub fn new(model: Arc<Model>, inner: Box<dyn Factor>) -> Self {
+        let q_key = inner
+            .keys()
+            .iter()
+            .position(|k| *k == Key::now(VarKind::Q))
+            .expect("a projected factor touches the step's positions");
+        assert_eq!(inner.dim(), model.n(), "a projected factor has n rows");
+        Projected {
+            name: format!("P {}", inner.name()),
+            model,
+            inner,
+            q_key,
+        }
+    }
+}
+
+impl Factor for Projected {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn keys(&self) -> &[Key] {
+        self.inner.keys()
+    }
+    fn noise(&self) -> &Noise {
+        self.inner.noise()
+    }
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    fn scratch(&self) -> (usize, usize) {
+        self.inner.scratch()
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let n = self.model.n();
+        let q = x[self.q_key];
+        let mut e = DVector::zeros(n);
+        let rows = row_space(&self.model, q)?;
+        let Some(j) = jac else {
+            self.inner.evaluate(t, x, e.as_mut_slice(), None, ws)?;
+            r.copy_from_slice((&rows.p * &e).as_slice());
+            return Ok(());
+        };
+        self.inner
+            .evaluate(t, x, e.as_mut_slice(), Some(&mut *j), ws)?;
+        let u = &rows.p * &e;
+        r.copy_from_slice(u.as_slice());
+        for block in j.iter_mut() {
+            let cols = block.len() / n;
+            let inner = DMatrix::from_row_slice(n, cols, block);
+            let projected = &rows.p * inner;
+            for i in 0..n {
+                for k in 0..cols {
+                    block[i * cols + k] = projected[(i, k)];
+                }
             }
         }
+        subtract_projector_derivative(&self.model, q, &rows, &e, &u, &mut j[self.q_key]);
         Ok(())
     }
 }

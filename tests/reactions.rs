@@ -217,6 +217,12 @@ fn a_motor_driven_crank_rocker_agrees_with_newton_euler() {
 /// point, a gas force on the piston): the pin forces balance them too.
 #[test]
 fn state_dependent_loads_agree_with_newton_euler() {
-    agree("driven/controlled-crank-rocker.yaml", Coordinates::Dependent);
-    agree("driven/compressor-slider-crank.yaml", Coordinates::Independent);
+    agree(
+        "driven/controlled-crank-rocker.yaml",
+        Coordinates::Dependent,
+    );
+    agree(
+        "driven/compressor-slider-crank.yaml",
+        Coordinates::Independent,
+    );
 }

@@ -6,9 +6,10 @@
 //! is how an improvement is locked in (`python -m harness.regression` measures every
 //! row and rewrites the file with fresh values and the margin).
 
+mod common;
+
+use common::reference_rmse;
 use mbfg::forward::{simulate, Coordinates, ForwardOptions};
-use mbfg::io::read_table;
-use mbfg::model::PointSlot;
 use mbfg::smoother::Mode;
 use mbfg::{Model, Scene};
 use std::path::PathBuf;
@@ -58,44 +59,6 @@ fn bounds() -> Vec<Row> {
         .collect()
 }
 
-/// RMSE over the free points' x, y at the reference's samples that the run has.
-fn rmse(model: &Model, run: &mbfg::forward::Trajectory, reference: &str) -> f64 {
-    let path = root()
-        .join("references")
-        .join(reference)
-        .join("reference.csv.gz");
-    let truth = read_table(&path).unwrap_or_else(|e| panic!("{e}"));
-    let t_ref = truth.column("t").unwrap();
-    let step = t_ref[1] - t_ref[0];
-    let cols: Vec<usize> = model
-        .points
-        .iter()
-        .filter_map(|p| match p {
-            PointSlot::Free(i) => Some(*i),
-            PointSlot::Fixed(_) => None,
-        })
-        .flat_map(|i| [i, i + 1])
-        .collect();
-    let reference_cols: Vec<Vec<f64>> = cols
-        .iter()
-        .map(|&c| truth.column(&format!("q:{}", model.names[c])).unwrap())
-        .collect();
-    let (mut sum, mut count) = (0.0, 0usize);
-    for (k, &t) in run.t.iter().enumerate() {
-        let j = (t / step).round() as usize;
-        if j >= t_ref.len() || (t_ref[j] - t).abs() > 1e-9 {
-            continue;
-        }
-        for (c, col) in cols.iter().zip(&reference_cols) {
-            let d = run.q_at(k)[*c] - col[j];
-            sum += d * d;
-            count += 1;
-        }
-    }
-    assert!(count > 0, "no common samples with {}", path.display());
-    (sum / count as f64).sqrt()
-}
-
 #[test]
 fn rmse_stays_within_the_checked_in_bounds() {
     let rows = bounds();
@@ -107,7 +70,7 @@ fn rmse_stays_within_the_checked_in_bounds() {
         let options = ForwardOptions::new(row.coords, row.dt, row.t_end, row.mode);
         let (run, summary) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
         let measured = if summary.failures.is_empty() {
-            rmse(&model, &run, &row.reference)
+            reference_rmse(&model, &run, &row.reference)
         } else {
             f64::INFINITY
         };

@@ -66,3 +66,47 @@ pub fn one_error_line(out: &std::process::Output, code: i32) -> String {
     assert!(text.starts_with("error: "), "{text}");
     text.to_string()
 }
+
+/// RMSE over the free points' x, y of `run` against `references/<reference>/`, at
+/// the reference's samples that the run has.
+pub fn reference_rmse(
+    model: &mbfg::Model,
+    run: &mbfg::forward::Trajectory,
+    reference: &str,
+) -> f64 {
+    use mbfg::model::PointSlot;
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("references")
+        .join(reference)
+        .join("reference.csv.gz");
+    let truth = mbfg::io::read_table(&path).unwrap_or_else(|e| panic!("{e}"));
+    let t_ref = truth.column("t").unwrap();
+    let step = t_ref[1] - t_ref[0];
+    let cols: Vec<usize> = model
+        .points
+        .iter()
+        .filter_map(|p| match p {
+            PointSlot::Free(i) => Some(*i),
+            PointSlot::Fixed(_) => None,
+        })
+        .flat_map(|i| [i, i + 1])
+        .collect();
+    let reference_cols: Vec<Vec<f64>> = cols
+        .iter()
+        .map(|&c| truth.column(&format!("q:{}", model.names[c])).unwrap())
+        .collect();
+    let (mut sum, mut count) = (0.0, 0usize);
+    for (k, &t) in run.t.iter().enumerate() {
+        let j = (t / step).round() as usize;
+        if j >= t_ref.len() || (t_ref[j] - t).abs() > 1e-9 {
+            continue;
+        }
+        for (c, col) in cols.iter().zip(&reference_cols) {
+            let d = run.q_at(k)[*c] - col[j];
+            sum += d * d;
+            count += 1;
+        }
+    }
+    assert!(count > 0, "no common samples with {}", path.display());
+    (sum / count as f64).sqrt()
+}

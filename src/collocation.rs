@@ -1,0 +1,242 @@
+//! Hermite–Simpson integrator factors: fourth order, on the same variables per step
+//! as the trapezoidal rule (positions, velocities, accelerations).
+//!
+//! Hermite–Simpson collocation (the three-stage Lobatto IIIA method) puts a stage at
+//! the middle of each step, where the cubic Hermite interpolants of the step's ends
+//! give the state
+//!
+//! ```text
+//! q_m = (q₀ + q₁)/2 + h/8 (q̇₀ − q̇₁)      q̇_m = (q̇₀ + q̇₁)/2 + h/8 (q̈₀ − q̈₁)
+//! ```
+//!
+//! and the step is Simpson's rule on velocities and accelerations:
+//!
+//! ```text
+//! q₁ = q₀ + h/6 (q̇₀ + 4 q̇_m + q̇₁)      q̇₁ = q̇₀ + h/6 (q̈₀ + 4 q̈_m + q̈₁)
+//! ```
+//!
+//! with q̈_m = f(q_m, q̇_m, t + h/2) the dynamics at the stage. The stage's state is
+//! eliminated: substituting q̇_m, the position factor is linear in the step's six
+//! variables, e = q₁ − q₀ − h/2 (q̇₀ + q̇₁) − h²/12 (q̈₀ − q̈₁); the velocity factor
+//! evaluates the dynamics at the stage inside itself. Each stays a factor between two
+//! consecutive steps, so windows, the batch and marginalization see the same chain.
+//!
+//! **Constraints at the stage.** q_m is an interpolant, not a solution of Φ(q) = 0:
+//! it is off the manifold by O(h⁴). The dynamics there are the augmented (KKT)
+//! system's, which holds Φ_q q̈ = −Φ̇_q q̇ at whatever state it is given; the O(h⁴)
+//! offset enters q̈_m smoothly and the step's error stays O(h⁵). The constraints hold
+//! exactly at the nodes, where the hard factors are.
+
+use crate::error::Result;
+use crate::factors::{key_and_noise_accessors, DynamicsKernel};
+use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::model::Model;
+use std::sync::Arc;
+
+/// Writes `scale`·I into a row-major d × d block.
+fn diagonal(block: &mut [f64], d: usize, scale: f64) {
+    block.fill(0.0);
+    for i in 0..d {
+        block[i * d + i] = scale;
+    }
+}
+
+/// Hermite–Simpson for a position: e = x₁ − x₀ − h/2 (ẋ₀ + ẋ₁) − h²/12 (ẍ₀ − ẍ₁).
+pub struct HermitePosition {
+    name: String,
+    keys: [Key; 6],
+    dim: usize,
+    dt: f64,
+    noise: Noise,
+}
+
+impl HermitePosition {
+    /// The factor on `x` with rates `dx` and accelerations `ddx` (q, q̇, q̈ or z, ż, z̈).
+    pub fn new(x: VarKind, dx: VarKind, ddx: VarKind, dim: usize, dt: f64, noise: Noise) -> Self {
+        HermitePosition {
+            name: format!("f_hs({})", x.symbol()),
+            keys: [
+                Key::before(x),
+                Key::now(x),
+                Key::before(dx),
+                Key::now(dx),
+                Key::before(ddx),
+                Key::now(ddx),
+            ],
+            dim,
+            dt,
+            noise,
+        }
+    }
+
+    /// The coefficients of x₀, x₁, ẋ₀, ẋ₁, ẍ₀, ẍ₁.
+    pub fn coefficients(dt: f64) -> [f64; 6] {
+        let (h2, h12) = (0.5 * dt, dt * dt / 12.0);
+        [-1.0, 1.0, -h2, -h2, -h12, h12]
+    }
+}
+
+impl Factor for HermitePosition {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.dim
+    }
+    fn diagonal_jacobian(&self, _key: usize) -> bool {
+        true
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        let c = Self::coefficients(self.dt);
+        for (i, ri) in r.iter_mut().enumerate() {
+            *ri = c.iter().zip(x).map(|(c, x)| c * x[i]).sum();
+        }
+        if let Some(j) = jac {
+            for (block, &c) in j.iter_mut().zip(&c) {
+                diagonal(block, self.dim, c);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Hermite–Simpson for velocities: e = S (q̇₁ − q̇₀ − h/6 (q̈₀ + 4 q̈_m + q̈₁)), q̈_m the
+/// dynamics at the stage state built from q, q̇, q̈ at both ends. In dependent
+/// coordinates S = I; in independent ones S selects the independent coordinates (whose
+/// q̇, q̈ the hard factors hold equal to ż, z̈).
+pub struct SimpsonVelocity {
+    model: Arc<Model>,
+    name: String,
+    keys: Vec<Key>,
+    /// The independent coordinates (IC), or None (DC: v, a are q̇, q̈ themselves).
+    selection: Option<Vec<usize>>,
+    dt: f64,
+    noise: Noise,
+}
+
+impl SimpsonVelocity {
+    /// Dependent coordinates: keys q₀, q₁, q̇₀, q̇₁, q̈₀, q̈₁.
+    pub fn dependent(model: Arc<Model>, dt: f64, noise: Noise) -> Self {
+        SimpsonVelocity {
+            model,
+            name: "f_hs(dq)".into(),
+            keys: Self::state_keys(),
+            selection: None,
+            dt,
+            noise,
+        }
+    }
+
+    /// Independent coordinates: the keys of [`SimpsonVelocity::dependent`], the rows
+    /// of the independent coordinates.
+    pub fn independent(model: Arc<Model>, dt: f64, noise: Noise) -> Self {
+        let selection = model.independent.clone();
+        SimpsonVelocity {
+            model,
+            name: "f_hs(dz)".into(),
+            keys: Self::state_keys(),
+            selection: Some(selection),
+            dt,
+            noise,
+        }
+    }
+
+    fn state_keys() -> Vec<Key> {
+        [VarKind::Q, VarKind::Dq, VarKind::Ddq]
+            .into_iter()
+            .flat_map(|k| [Key::before(k), Key::now(k)])
+            .collect()
+    }
+
+    /// Scratch beyond the kernel's: q_m, q̇_m, q̈_m and ∂q̈_m/∂q_m, ∂q̈_m/∂q̇_m.
+    fn own_scratch(n: usize) -> usize {
+        3 * n + 2 * n * n
+    }
+}
+
+impl Factor for SimpsonVelocity {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.selection.as_ref().map_or(self.model.n(), |s| s.len())
+    }
+    fn scratch(&self) -> (usize, usize) {
+        let (r, i) = DynamicsKernel::scratch(&self.model);
+        (r + Self::own_scratch(self.model.n()), i)
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let n = self.model.n();
+        let h = self.dt;
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let (qm, own) = own.split_at_mut(n);
+        let (vm, own) = own.split_at_mut(n);
+        let (am, own) = own.split_at_mut(n);
+        let (jq, jv) = own[..2 * n * n].split_at_mut(n * n);
+        let (q0, q1, v0, v1, a0, a1) = (x[0], x[1], x[2], x[3], x[4], x[5]);
+        for i in 0..n {
+            qm[i] = 0.5 * (q0[i] + q1[i]) + 0.125 * h * (v0[i] - v1[i]);
+            vm[i] = 0.5 * (v0[i] + v1[i]) + 0.125 * h * (a0[i] - a1[i]);
+        }
+        let want = jac.is_some();
+        DynamicsKernel::evaluate(
+            &self.model,
+            qm,
+            vm,
+            t - 0.5 * h,
+            None,
+            am,
+            want.then_some((&mut *jq, &mut *jv)),
+            kernel,
+            &mut ws.indices,
+        )?;
+        // Rows of the residual: all n (DC) or the independent ones (IC).
+        let rows: Vec<usize> = match &self.selection {
+            Some(s) => s.clone(),
+            None => (0..n).collect(),
+        };
+        let h6 = h / 6.0;
+        for (k, &i) in rows.iter().enumerate() {
+            r[k] = v1[i] - v0[i] - h6 * (a0[i] + 4.0 * am[i] + a1[i]);
+        }
+        let Some(j) = jac else { return Ok(()) };
+        // ∂(4 h/6 q̈_m) through q_m, q̇_m: q_m = (q₀+q₁)/2 + h/8 (q̇₀−q̇₁),
+        // q̇_m = (q̇₀+q̇₁)/2 + h/8 (q̈₀−q̈₁); then the ends' own q̇₁ − q̇₀ − h/6 (q̈₀ + q̈₁).
+        let (c, c2) = (2.0 * h / 3.0, h * h / 12.0);
+        for (k, &i) in rows.iter().enumerate() {
+            for col in 0..n {
+                let (gq, gv) = (jq[i * n + col], jv[i * n + col]);
+                let at = k * n + col;
+                j[0][at] = -0.5 * c * gq;
+                j[1][at] = -0.5 * c * gq;
+                j[2][at] = -c2 * gq - 0.5 * c * gv;
+                j[3][at] = c2 * gq - 0.5 * c * gv;
+                j[4][at] = -c2 * gv;
+                j[5][at] = c2 * gv;
+            }
+            let at = k * n + i;
+            j[2][at] -= 1.0;
+            j[3][at] += 1.0;
+            j[4][at] -= h6;
+            j[5][at] -= h6;
+        }
+        Ok(())
+    }
+}
