@@ -180,8 +180,10 @@ register(Generator(
     "exudyn", "exudyn", "exudyn: the scene as planar rigid bodies, generalized-alpha", run_exudyn,
     defaults={"solver": "generalized_alpha", "h": 1e-4},
     reference={"solver": "generalized_alpha", "h": 1e-5}, packages=("exudyn",), accuracy=1,
-    sweeps=(("generalized-alpha", "h", (1e-3, 1e-4, 1e-5), {"solver": "generalized_alpha"}),
-            ("trapezoidal index-2", "h", (1e-3, 1e-4, 1e-5), {"solver": "trapezoidal_index2"}))))
+    sweeps=(("generalized-alpha", "h", (1e-3, 5e-4, 2e-4, 1e-4, 1e-5),
+             {"solver": "generalized_alpha"}),
+            ("trapezoidal index-2", "h", (1e-3, 5e-4, 2e-4, 1e-4, 1e-5),
+             {"solver": "trapezoidal_index2"}))))
 register(Generator(
     "ida", "IDA", "SUNDIALS IDA: BDF on mbfg's equations as a GGL index-2 DAE", run_ida,
     defaults={"formulation": "ggl", "rtol": 1e-12},
@@ -192,7 +194,8 @@ register(Generator(
     "pinocchio", "Pinocchio", "Pinocchio: joint coordinates of a revolute tree (+ loop "
     "closures), RK4", run_pinocchio,
     defaults={"h": 2e-4}, reference={"h": 1e-5}, packages=("pinocchio",), accuracy=2,
-    sweeps=(("RK4", "h", (1e-3, 1e-4), {}),)))
+    sweeps=(("RK4", "h", (2e-3, 1e-3, 5e-4, 1e-4), {}),
+            ("DOP853 adaptive", "rtol", (1e-6, 1e-8, 1e-10, 1e-12), {"method": "dop853"}))))
 
 
 def parse_settings(items: list[str]) -> dict:

@@ -1,9 +1,10 @@
 """Accuracy against wall time, every tool measured in one run on one machine.
 
-For each scene of SCENES: mbfg (DC and IC, a few windows, dt from 10 to 0.1 ms) and
-every registered generator's sweeps (harness/generators.py: exudyn generalized-alpha
-and trapezoidal index-2, h from 1 ms to 10 µs; IDA, tolerances 1e-4…1e-12; Pinocchio
-where it models the scene). Errors (RMSE and max over the moving points' x, y)
+For each scene of SCENES: mbfg (DC and IC; the trapezoidal rule with N_w = 1 and 5, dt
+from 10 to 0.1 ms; Hermite–Simpson with N_w = 1, dt from 20 to 0.25 ms) and every
+registered generator's sweeps (harness/generators.py: exudyn generalized-alpha and
+trapezoidal index-2, h from 1 ms to 10 µs; IDA, tolerances 1e-4…1e-12; Pinocchio RK4
+and adaptive DOP853 where it models the scene). Errors (RMSE and max over the moving points' x, y)
 against the committed reference; wall times are medians of REPEATS runs of the whole
 call. Writes accuracy-vs-time.md, .csv and one PNG per scene (several minutes).
 
@@ -23,12 +24,16 @@ from harness import trajectory as tj
 
 REPEATS = 3
 MBFG_DTS = [1e-2, 5e-3, 2e-3, 1e-3, 5e-4, 2e-4, 1e-4]
-LEVELS = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8]
+# Hermite–Simpson: fourth order, so coarser steps reach the same levels.
+HS_DTS = [2e-2, 1e-2, 5e-3, 2e-3, 1e-3, 5e-4, 2.5e-4]
+LEVELS = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10]
 
-# scene title → DC scene, IC scene, reference, horizon (s)
+# scene title → DC scene, IC scene (None: DC only), reference, horizon (s)
 SCENES = {
     "four-bar": ("fourbar", "fourbar-theta", "fourbar", 5.0),
     "slider-crank": ("slider-crank", "slider-crank", "slider-crank", 5.0),
+    "double pendulum": ("double-pendulum", "double-pendulum", "double-pendulum", 5.0),
+    "robot": ("pick-and-place", None, "pick-and-place", 1.0),
 }
 
 
@@ -44,14 +49,18 @@ def timed(fn):
 
 def configurations(dc_scene, ic_scene, t_end):
     """(tool, variant, setting, callable returning (t, q)) for every point of the plot."""
-    dc, ic = report.scene_path(dc_scene), report.scene_path(ic_scene)
-    for coords, scene in [("DC", dc), ("IC", ic)]:
-        for w in (1, 5):
-            for dt in MBFG_DTS:
-                def run(scene=scene, coords=coords, w=w, dt=dt):
-                    r = mbfg.simulate(scene, coords=coords.lower(), dt=dt, t_end=t_end, window=w)
+    dc = report.scene_path(dc_scene)
+    variants = [("DC", dc)] + ([("IC", report.scene_path(ic_scene))] if ic_scene else [])
+    for coords, scene in variants:
+        sweeps = [("trapezoidal", w, MBFG_DTS) for w in (1, 5)] + [("hermite-simpson", 1, HS_DTS)]
+        for integrator, w, dts in sweeps:
+            name = "HS " if integrator == "hermite-simpson" else ""
+            for dt in dts:
+                def run(scene=scene, coords=coords, w=w, dt=dt, integrator=integrator):
+                    r = mbfg.simulate(scene, coords=coords.lower(), dt=dt, t_end=t_end, window=w,
+                                      integrator=integrator)
                     return r.t, r.q
-                yield "mbfg", f"{coords}, N_w = {w}", f"dt = {dt * 1e3:g} ms", run
+                yield "mbfg", f"{name}{coords}, N_w = {w}", f"dt = {dt * 1e3:g} ms", run
     model = mbfg.load(str(dc))
     for gen in generators.REGISTRY.values():
         why = gen.refusal(model)       # checked here: not part of the timed call
@@ -151,7 +160,10 @@ def write(reports: pathlib.Path, machine: str, scenes=None) -> list[dict]:
             f"All tools measured in one run on one machine ({machine}); wall times are medians of "
             f"{REPEATS} runs of the whole call (model building included, files not written). Errors "
             "over the x, y of the moving points against the committed reference, at its 1 ms "
-            "samples. mbfg: trapezoidal, default noise, dt ∈ {10, 5, 2, 1, 0.5, 0.2, 0.1} ms. "
+            "samples. mbfg: default noise; the trapezoidal rule at dt ∈ {10, 5, 2, 1, 0.5, 0.2, "
+            "0.1} ms, and Hermite–Simpson (`HS`, fourth order) at dt ∈ {20, 10, 5, 2, 1, 0.5, "
+            "0.25} ms. Pinocchio: RK4 at fixed h, and scipy's adaptive DOP853 at rtol = atol. "
+            "IDA: BDF with the module's closed-form Jacobians. "
             "Raw numbers: [accuracy-vs-time.csv](accuracy-vs-time.csv).\n\n" + "\n".join(parts))
     (reports / "accuracy-vs-time.md").write_text(page)
     report.write_csv(reports / "accuracy-vs-time.csv", all_rows)

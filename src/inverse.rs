@@ -4,11 +4,13 @@
 //! whole horizon in batch.
 //!
 //! Per step the graph holds q, q̇, q̈ and the actuator forces Q; hard factors: the
-//! position and velocity constraints, the prescribed values, Q = 0 where nothing
-//! actuates; soft: f^d_idyn and the trapezoidal integrators. The prescribed
-//! coordinates' velocity and acceleration at the first sample are fixed by one-sided
-//! fourth-order differences of the samples: without them the trapezoidal rule leaves
-//! an alternating (−1)^k mode of q̇ and q̈ undetermined, and Q would oscillate with it.
+//! position and velocity constraints, the prescribed values and their velocities and
+//! accelerations, Q = 0 where nothing actuates; soft: f^d_idyn and the trapezoidal
+//! integrators. The prescribed coordinates' velocities and accelerations at every
+//! sample are fourth-order differences of the samples ([`Prescription::derivatives`]):
+//! left to the integrators, a derivative of sampled positions carries the trapezoidal
+//! rule's alternating (−1)^k mode, which nothing along the chain damps, and Q
+//! oscillated with it from one step to the next (1e-5 to 5e-5 of its peak).
 //!
 //! The solve starts from the classical answer (position, velocity and acceleration
 //! problems along the samples, then the augmented system for Q), so a single batch
@@ -121,26 +123,55 @@ impl Prescription {
         self.values[k * self.indices.len() + c]
     }
 
-    /// First and second derivative of prescribed coordinate `c` at the first sample,
-    /// by one-sided fourth- and third-order differences.
-    fn start_derivatives(&self, c: usize) -> (f64, f64) {
-        let v: Vec<f64> = (0..5).map(|k| self.value(k, c)).collect();
-        let h = self.dt;
-        let d1 = (-25.0 * v[0] + 48.0 * v[1] - 36.0 * v[2] + 16.0 * v[3] - 3.0 * v[4]) / (12.0 * h);
-        let d2 = (35.0 * v[0] - 104.0 * v[1] + 114.0 * v[2] - 56.0 * v[3] + 11.0 * v[4])
-            / (12.0 * h * h);
+    /// First and second derivatives of every prescribed coordinate at every sample
+    /// (row-major steps × indices.len(), like the values), from five samples: centred
+    /// fourth-order differences inside, the fourth-order (first derivative) and
+    /// third-order (second) off-centre stencils at the two samples at each end. A
+    /// smooth function's differences are smooth: their error has no step-to-step mode.
+    pub fn derivatives(&self) -> (Vec<f64>, Vec<f64>) {
+        let (h, steps, m) = (self.dt, self.steps, self.indices.len());
+        // Stencils over five consecutive samples starting at `first`, for the
+        // derivative at sample first + at; the last two by mirroring the first two.
+        const D1: [[f64; 5]; 3] = [
+            [-25.0, 48.0, -36.0, 16.0, -3.0],
+            [-3.0, -10.0, 18.0, -6.0, 1.0],
+            [1.0, -8.0, 0.0, 8.0, -1.0],
+        ];
+        const D2: [[f64; 5]; 3] = [
+            [35.0, -104.0, 114.0, -56.0, 11.0],
+            [11.0, -20.0, 6.0, 4.0, -1.0],
+            [-1.0, 16.0, -30.0, 16.0, -1.0],
+        ];
+        let (mut d1, mut d2) = (vec![0.0; steps * m], vec![0.0; steps * m]);
+        for k in 0..steps {
+            // (first sample of the stencil, which stencil, mirrored)
+            let (first, which, mirrored) = match k {
+                0 | 1 => (0, k, false),
+                _ if k + 2 >= steps => (steps - 5, steps - 1 - k, true),
+                _ => (k - 2, 2, false),
+            };
+            for c in 0..m {
+                let (mut a, mut b) = (0.0, 0.0);
+                for j in 0..5 {
+                    // Mirrored: the stencil read from the far end, the first
+                    // derivative's sign flipped.
+                    let sample = if mirrored { first + 4 - j } else { first + j };
+                    let v = self.value(sample, c);
+                    a += D1[which][j] * v;
+                    b += D2[which][j] * v;
+                }
+                d1[k * m + c] = if mirrored { -a } else { a } / (12.0 * h);
+                d2[k * m + c] = b / (12.0 * h * h);
+            }
+        }
         (d1, d2)
     }
 }
 
-/// σ of a weak f_eq between consecutive accelerations. The trapezoidal rule leaves
-/// an alternating (−1)^k mode of the accelerations (and of Q with them) that only the
-/// prior at the first sample determines; through the chain that information decays
-/// like 1/k, and on the robot (IC) the banded factorization lost definiteness after
-/// a few hundred steps and the solve ended with torques off by 70%. Measured (force
-/// RMSE over peak, DC/IC): σ = 1e4 gives four-bar 1.4e-5/8.3e-6, double pendulum
-/// ≤ 4.1e-5, robot 6.3e-5/3.2e-5; σ = 1e3 already biases the double pendulum to
-/// 1.6e-4, σ = 1 to 1e-2.
+/// σ of a weak f_eq between consecutive accelerations in the staged start
+/// ([`Start::Staged`]), whose integrators get the prescribed derivatives at the first
+/// sample only: it keeps the trapezoidal rule's alternating mode of q̈ from growing
+/// there (σ = 1e3 already biased the double pendulum's forces to 1.6e-4 of peak).
 const SMOOTHING: f64 = 1e4;
 
 /// How the batch solve is started.
@@ -236,11 +267,29 @@ pub fn solve(
         8.0 * steps as f64 * per_step * (3.0 * per_step + 2.0 * model.m() as f64),
     )?;
     let unactuated: Vec<usize> = (0..n).filter(|i| !idx.contains(i)).collect();
+    // With as many prescribed coordinates as degrees of freedom, each step's motion is
+    // known from its samples, hard constraints and prescribed derivatives; in DC the
+    // integrators would then only pull q̈ off the acceleration constraints by their
+    // truncation error (2e-6 of the forces' peak on the four-bar). They integrate
+    // what the prescription leaves free.
+    let underactuated = idx.len() < model.dof();
     let nm = options.noise;
-    let (d1, d2): (Vec<f64>, Vec<f64>) = (0..idx.len())
-        .map(|c| prescription.start_derivatives(c))
-        .unzip();
+    let (rates, accelerations) = prescription.derivatives();
+    let (d1, d2) = (
+        rates[..idx.len()].to_vec(),
+        accelerations[..idx.len()].to_vec(),
+    );
     let table = Arc::new(prescription.values.clone());
+    let prescribe = |kind: VarKind, indices: Vec<usize>, table: Vec<f64>| {
+        Box::new(PrescribedMotion::on(
+            kind,
+            indices,
+            Arc::new(table),
+            prescription.t0,
+            dt,
+            Noise::Hard,
+        )) as Box<dyn crate::graph::Factor>
+    };
     let integrate =
         |x: VarKind, dx: VarKind, dim: usize, sigma: f64| -> Box<dyn crate::graph::Factor> {
             Box::new(Trapezoidal::new(x, dx, dim, dt, Noise::Isotropic(sigma)))
@@ -264,8 +313,9 @@ pub fn solve(
             ]),
             dt,
             t0: prescription.t0,
-            step_factors: vec![
-                Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
+            step_factors: [
+                Box::new(PositionConstraints::new(model.clone(), Noise::Hard))
+                    as Box<dyn crate::graph::Factor>,
                 Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)),
                 Box::new(PrescribedMotion::new(
                     idx.clone(),
@@ -274,29 +324,28 @@ pub fn solve(
                     dt,
                     Noise::Hard,
                 )),
+                prescribe(VarKind::Dq, idx.clone(), rates.clone()),
+                prescribe(VarKind::Ddq, idx.clone(), accelerations.clone()),
                 Box::new(Dynamics::inverse_on(
                     model.clone(),
                     Noise::Isotropic(nm.dynamics),
                     idx.clone(),
                 )),
-                integrate(VarKind::Q, VarKind::Dq, n, nm.integrator_position),
-                integrate(VarKind::Dq, VarKind::Ddq, n, nm.integrator_velocity),
-                Box::new(Equality::new(VarKind::Ddq, n, Noise::Isotropic(SMOOTHING))),
-            ],
-            initial_factors: vec![
-                Box::new(ComponentPrior::new(
-                    VarKind::Dq,
-                    idx.clone(),
-                    d1.clone(),
-                    Noise::Hard,
-                )),
-                Box::new(ComponentPrior::new(
-                    VarKind::Ddq,
-                    idx.clone(),
-                    d2.clone(),
-                    Noise::Hard,
-                )),
-            ],
+            ]
+            .into_iter()
+            .chain(
+                underactuated
+                    .then(|| {
+                        [
+                            integrate(VarKind::Q, VarKind::Dq, n, nm.integrator_position),
+                            integrate(VarKind::Dq, VarKind::Ddq, n, nm.integrator_velocity),
+                        ]
+                    })
+                    .into_iter()
+                    .flatten(),
+            )
+            .collect(),
+            initial_factors: vec![],
         },
         Coordinates::Independent => {
             // z is the scene's independent set, in its order; the prescription
@@ -321,6 +370,11 @@ pub fn solve(
             let ztable: Vec<f64> = (0..steps)
                 .flat_map(|k| col.iter().map(move |&c| prescription.value(k, c)))
                 .collect();
+            let reorder = |d: &[f64]| -> Vec<f64> {
+                (0..steps)
+                    .flat_map(|k| col.iter().map(move |&c| d[k * idx.len() + c]))
+                    .collect()
+            };
             let all: Vec<usize> = (0..f).collect();
             ChainGraph {
                 layout: Layout::new(&[
@@ -346,6 +400,8 @@ pub fn solve(
                         dt,
                         Noise::Hard,
                     )),
+                    prescribe(VarKind::Dz, all.clone(), reorder(&rates)),
+                    prescribe(VarKind::Ddz, all.clone(), reorder(&accelerations)),
                     force_zero(),
                     Box::new(IndependentDynamics::inverse(
                         model.clone(),
@@ -354,28 +410,14 @@ pub fn solve(
                     integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
                     integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
                     Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
-                    Box::new(Equality::new(VarKind::Ddz, f, Noise::Isotropic(SMOOTHING))),
                 ],
-                initial_factors: vec![
-                    Box::new(ComponentPrior::new(
-                        VarKind::Dz,
-                        all.clone(),
-                        col.iter().map(|&c| d1[c]).collect(),
-                        Noise::Hard,
-                    )),
-                    Box::new(ComponentPrior::new(
-                        VarKind::Ddz,
-                        all,
-                        col.iter().map(|&c| d2[c]).collect(),
-                        Noise::Hard,
-                    )),
-                ],
+                initial_factors: vec![],
             }
         }
     };
     let s = graph.layout.size();
     let start_blocks = match options.start {
-        Start::Kinematic => kinematic_start(&model, prescription, &d1, &d2)?,
+        Start::Kinematic => kinematic_start(&model, prescription, &rates, &accelerations)?,
         Start::Staged => staged_start(&model, prescription, &d1, &d2, options)?,
     };
     let mut values = Vec::with_capacity(steps * s);
@@ -449,9 +491,10 @@ pub fn solve(
 
 /// The classical answer along the samples: positions by the position problem with the
 /// prescribed coordinates fixed (each step from a Taylor step of the previous one when
-/// that step is small, so the branch is kept), their velocities and accelerations by the trapezoidal rule from the starting
-/// derivatives, the other coordinates' by the velocity and acceleration problems, and
-/// Q by the augmented system.
+/// that step is small, so the branch is kept), their velocities and accelerations from
+/// `d1`, `d2` ([`Prescription::derivatives`], row-major steps × prescribed), the other
+/// coordinates' by the velocity and acceleration problems, and Q by the augmented
+/// system.
 fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> Result<Vec<f64>> {
     let n = model.n();
     let idx = &p.indices;
@@ -459,17 +502,11 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
     let mut kin = kinematics::PrescribedKinematics::new(model, idx);
     let mut q = model.initial.q.as_slice().to_vec();
     let mut guess = q.clone();
-    let (mut v, mut a) = (d1.to_vec(), d2.to_vec());
     let mut force = vec![0.0; idx.len()];
+    let m = idx.len();
     for (k, block) in out.chunks_exact_mut(4 * n).enumerate() {
         let t = p.t0 + k as f64 * p.dt;
-        if k > 0 {
-            for c in 0..idx.len() {
-                let dq_prev = v[c];
-                v[c] = 2.0 * (p.value(k, c) - p.value(k - 1, c)) / p.dt - dq_prev;
-                a[c] = 2.0 * (v[c] - dq_prev) / p.dt - a[c];
-            }
-        }
+        let (v, a) = (&d1[k * m..(k + 1) * m], &d2[k * m..(k + 1) * m]);
         for (c, &i) in idx.iter().enumerate() {
             q[i] = p.value(k, c);
             guess[i] = q[i];
@@ -493,8 +530,8 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
         let (bdq, rest) = rest.split_at_mut(n);
         let (bddq, bforce) = rest.split_at_mut(n);
         bq.copy_from_slice(&q);
-        kin.velocity(&v, bdq);
-        kin.acceleration(model, &q, bdq, &a, bddq);
+        kin.velocity(v, bdq);
+        kin.acceleration(model, &q, bdq, a, bddq);
         kin.forces(model, &q, bdq, bddq, t, &mut force)?;
         for (&i, &f) in idx.iter().zip(&force) {
             bforce[i] = f;
