@@ -259,6 +259,16 @@ pub fn solve(
             model.dof()
         )));
     }
+    if idx.len() < model.dof() {
+        let names: Vec<&str> = idx.iter().map(|&i| model.names[i].as_str()).collect();
+        return Err(Error::InvalidArgument(format!(
+            "{}: inverse dynamics needs one prescribed coordinate per degree of freedom ({}); the trajectory gives {} ({}): a motion that leaves coordinates free is a forward problem for them",
+            model.scene.file,
+            model.dof(),
+            idx.len(),
+            names.join(", ")
+        )));
+    }
     // The batch system of the whole horizon, roughly: each step's variables
     // (q, q̇, q̈, Q and the independent ones) and a banded Hessian three steps wide.
     let per_step = 4.0 * n as f64 + 3.0 * model.independent.len() as f64;
@@ -267,12 +277,10 @@ pub fn solve(
         8.0 * steps as f64 * per_step * (3.0 * per_step + 2.0 * model.m() as f64),
     )?;
     let unactuated: Vec<usize> = (0..n).filter(|i| !idx.contains(i)).collect();
-    // With as many prescribed coordinates as degrees of freedom, each step's motion is
-    // known from its samples, hard constraints and prescribed derivatives; in DC the
-    // integrators would then only pull q̈ off the acceleration constraints by their
-    // truncation error (2e-6 of the forces' peak on the four-bar). They integrate
-    // what the prescription leaves free.
-    let underactuated = idx.len() < model.dof();
+    // One prescribed coordinate per degree of freedom: each step's motion is known from
+    // its samples, the hard constraints and the prescribed derivatives, so the graph
+    // has no integrators. Kept soft beside them, their truncation error pulled q̈ off
+    // the acceleration constraints (2e-6 of the forces' peak on the four-bar, DC).
     let nm = options.noise;
     let (rates, accelerations) = prescription.derivatives();
     let (d1, d2) = (
@@ -290,10 +298,6 @@ pub fn solve(
             Noise::Hard,
         )) as Box<dyn crate::graph::Factor>
     };
-    let integrate =
-        |x: VarKind, dx: VarKind, dim: usize, sigma: f64| -> Box<dyn crate::graph::Factor> {
-            Box::new(Trapezoidal::new(x, dx, dim, dt, Noise::Isotropic(sigma)))
-        };
     let force_zero = || -> Box<dyn crate::graph::Factor> {
         Box::new(ComponentPrior::new(
             VarKind::Force,
@@ -313,9 +317,8 @@ pub fn solve(
             ]),
             dt,
             t0: prescription.t0,
-            step_factors: [
-                Box::new(PositionConstraints::new(model.clone(), Noise::Hard))
-                    as Box<dyn crate::graph::Factor>,
+            step_factors: vec![
+                Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
                 Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)),
                 Box::new(PrescribedMotion::new(
                     idx.clone(),
@@ -331,20 +334,7 @@ pub fn solve(
                     Noise::Isotropic(nm.dynamics),
                     idx.clone(),
                 )),
-            ]
-            .into_iter()
-            .chain(
-                underactuated
-                    .then(|| {
-                        [
-                            integrate(VarKind::Q, VarKind::Dq, n, nm.integrator_position),
-                            integrate(VarKind::Dq, VarKind::Ddq, n, nm.integrator_velocity),
-                        ]
-                    })
-                    .into_iter()
-                    .flatten(),
-            )
-            .collect(),
+            ],
             initial_factors: vec![],
         },
         Coordinates::Independent => {
@@ -407,8 +397,6 @@ pub fn solve(
                         model.clone(),
                         Noise::Isotropic(nm.dynamics),
                     )),
-                    integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
-                    integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
                     Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
                 ],
                 initial_factors: vec![],

@@ -226,3 +226,20 @@ fn robot_motor_torques_match_the_classical_solution() {
         assert!(sol.summary.worst_phi <= 1e-9);
     }
 }
+
+/// A prescription that leaves a degree of freedom free is refused up front, naming
+/// what is missing (it used to fail in the velocity problem as "out of reach").
+#[test]
+fn a_prescription_short_of_the_degrees_of_freedom_is_refused() {
+    let model = load("double-pendulum.yaml");
+    let tab = table("theta1", 5e-3, 1.0, |t| -0.8 * (1.0 - (1.5 * t).cos()));
+    let p = Prescription::from_table(&model, &tab, "test").unwrap();
+    let err = inverse::solve(model.clone(), &p, &options(Coordinates::Dependent))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("one prescribed coordinate per degree of freedom (2)")
+            && err.contains("gives 1 (theta1)"),
+        "{err}"
+    );
+}

@@ -178,7 +178,9 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
     For studies without writing files: `params` overrides the scene's parameters (as
     `load` does), `q0` the initial values of coordinates of q by name (the position
     problem keeps those of independent coordinates and closes the others), `dq0` the
-    initial velocities of independent coordinates. `dc_integrators` chooses the integrator
+    initial velocities of independent coordinates. `integrator` is "trapezoidal" (the
+    paper's, second order), "euler" or "hermite-simpson" (fourth order: the four-bar at
+    dt = 1 ms to 2e-11 m instead of 3e-5 m). `dc_integrators` chooses the integrator
     factors of dependent coordinates: "auto", "full" (the paper's) or "tangent" (see
     `mbfg simulate --help`). Where a step is too coarse for the motion (a body turns
     over half a radian a step), the run is integrated again at dt/K (K ≤ 1024) and every
