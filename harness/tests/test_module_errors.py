@@ -196,16 +196,17 @@ def test_a_diverged_run_raises_even_when_continuing():
     assert 0 < len(r.t) < 21 and not r.summary["complete"]
 
 
-def test_an_inverse_solve_that_does_not_converge_carries_its_last_iterate():
-    with pytest.raises(mbfg.SolveError, match="did not converge") as info:
-        mbfg.inverse(THETA, THETA_CSV, max_iterations=1)
-    r = info.value.result
-    assert r.Q.shape == (2001, 5)
-    s = r.summary
-    assert s["converged"] is False and s["complete"] is False
-    assert s["termination"] == "iteration limit" and s["iterations"] == 1
-    good = mbfg.inverse(THETA, THETA_CSV)
+def test_a_failed_inverse_solve_raises_and_one_iteration_solves_a_full_prescription():
+    # The staged start fails in its first stage: nothing was solved, so no result.
+    with pytest.raises(mbfg.SolveError, match="staged start did not converge") as info:
+        mbfg.inverse(THETA, THETA_CSV, start="staged")
+    assert info.value.result is None
+    # The default start is the solution of a fully prescribed problem: the batch
+    # confirms it in its first iteration.
+    good = mbfg.inverse(THETA, THETA_CSV, max_iterations=1)
+    assert good.Q.shape == (2001, 5)
     assert good.summary["converged"] and good.summary["complete"]
+    assert good.summary["iterations"] == 1
 
 
 # A child that runs until interrupted, then prints what the KeyboardInterrupt carried.
