@@ -13,6 +13,7 @@
 //! ([`MAX_LEN`], [`MAX_NODES`], [`MAX_DEPTH`]): no text can overflow the stack.
 //! Sums and products are flat lists, so a long sum is a wide tree, not a deep one.
 
+use std::cell::Cell;
 use std::collections::HashSet;
 use std::fmt;
 
@@ -240,18 +241,29 @@ impl Expr {
 
     /// The symbolic derivative with respect to `name`, simplified where a factor is 0
     /// or 1 or every operand is a number. `abs`, `min` and `max` differentiate through
-    /// `sign` (the mean of both sides at a kink).
-    pub fn derivative(&self, name: &str) -> Expr {
-        Expr {
-            root: derive(&self.root, &|n| matches!(n, Node::Var(v) if v == name)),
-        }
+    /// `sign` (the mean of both sides at a kink). An expression whose derivative would
+    /// copy more than [`MAX_DERIVATIVE_NODES`] nodes is refused.
+    pub fn derivative(&self, name: &str) -> Result<Expr, ExprError> {
+        let budget = Cell::new(MAX_DERIVATIVE_NODES);
+        Ok(Expr {
+            root: derive(
+                &self.root,
+                &|n| matches!(n, Node::Var(v) if v == name),
+                &budget,
+            )?,
+        })
     }
 
     /// [`Expr::derivative`] with respect to a resolved slot.
-    pub fn derivative_slot(&self, slot: usize) -> Expr {
-        Expr {
-            root: derive(&self.root, &|n| matches!(n, Node::Slot(k) if *k == slot)),
-        }
+    pub fn derivative_slot(&self, slot: usize) -> Result<Expr, ExprError> {
+        let budget = Cell::new(MAX_DERIVATIVE_NODES);
+        Ok(Expr {
+            root: derive(
+                &self.root,
+                &|n| matches!(n, Node::Slot(k) if *k == slot),
+                &budget,
+            )?,
+        })
     }
 
     /// Names the expression refers to (not functions), in order of appearance.
@@ -434,75 +446,117 @@ fn call(f: Func, args: Vec<Node>) -> Node {
     Node::Call(f, args)
 }
 
+/// Most nodes a derivative may copy from its expression: a product of k factors that
+/// depend on the variable copies O(k²) of them, and without a bound a long one would
+/// take seconds and gigabytes.
+pub const MAX_DERIVATIVE_NODES: usize = 200_000;
+
+fn size(n: &Node) -> usize {
+    1 + match n {
+        Node::Num(_) | Node::Var(_) | Node::Slot(_) => 0,
+        Node::Neg(a) => size(a),
+        Node::Chain(first, rest) => size(first) + rest.iter().map(|(_, x)| size(x)).sum::<usize>(),
+        Node::Pow(a, b) => size(a) + size(b),
+        Node::Call(_, args) => args.iter().map(size).sum(),
+    }
+}
+
+/// A copy of `n` for a derivative, paid from `budget`.
+fn copy(n: &Node, budget: &Cell<usize>) -> Result<Node, ExprError> {
+    let s = size(n);
+    if s > budget.get() {
+        return Err(ExprError::TooLarge(format!(
+            "expression too large to differentiate: its derivative would copy more than {MAX_DERIVATIVE_NODES} nodes (a long product of factors that depend on the state; give it fewer)"
+        )));
+    }
+    budget.set(budget.get() - s);
+    Ok(n.clone())
+}
+
 /// d n / d v, where `is_v` recognises the variable.
-fn derive(n: &Node, is_v: &dyn Fn(&Node) -> bool) -> Node {
-    let d = |a: &Node| derive(a, is_v);
-    match n {
+fn derive(n: &Node, is_v: &dyn Fn(&Node) -> bool, budget: &Cell<usize>) -> Result<Node, ExprError> {
+    let d = |a: &Node| derive(a, is_v, budget);
+    let c = |a: &Node| copy(a, budget);
+    Ok(match n {
         Node::Num(_) => Node::Num(0.0),
         Node::Var(_) | Node::Slot(_) => Node::Num(if is_v(n) { 1.0 } else { 0.0 }),
-        Node::Neg(a) => neg(d(a)),
+        Node::Neg(a) => neg(d(a)?),
         Node::Chain(first, rest) => {
-            // Left to right: (acc, dacc) through each operator.
-            let mut acc = (**first).clone();
-            let mut dacc = d(first);
-            for (op, x) in rest {
-                let dx = d(x);
-                dacc = match op {
-                    '+' => add(dacc, dx),
-                    '-' => sub(dacc, dx),
-                    '*' => add(mul(dacc, x.clone()), mul(acc.clone(), dx)),
-                    // (u/v)' = u'/v − u v'/v²
-                    _ => sub(
-                        div(dacc, x.clone()),
-                        div(mul(acc.clone(), dx), mul(x.clone(), x.clone())),
-                    ),
-                };
-                acc = Node::Chain(Box::new(acc), vec![(*op, x.clone())]);
+            // Every chain holds one precedence level, so its operands are terms of a
+            // sum (± x_j) or factors of a product (x₀ · x₁ / x₂ …). The derivative is
+            // kept flat, one level deeper than the chain at most: a sum of the ± x_j',
+            // or a sum of products, one per factor in the variable — x_j replaced by
+            // x_j' for a factor, −(P / x_j) x_j' for a divisor.
+            let items: Vec<(char, &Node)> = std::iter::once(('+', &**first))
+                .chain(rest.iter().map(|(op, x)| (*op, x)))
+                .collect();
+            let product = matches!(rest.first(), Some(('*' | '/', _)));
+            let mut terms: Vec<(char, Node)> = Vec::new();
+            for (j, &(op, x)) in items.iter().enumerate() {
+                let dx = d(x)?;
+                if num(&dx) == Some(0.0) {
+                    continue;
+                }
+                if !product {
+                    terms.push((op, dx));
+                    continue;
+                }
+                let mut factors: Vec<(char, Node)> = Vec::with_capacity(items.len() + 2);
+                for (i, &(o, xi)) in items.iter().enumerate() {
+                    let o = if i == 0 { '*' } else { o };
+                    if i != j {
+                        factors.push((o, c(xi)?));
+                    } else if o == '/' {
+                        factors.push(('/', c(xi)?));
+                        factors.push(('/', c(xi)?));
+                    }
+                }
+                if num(&dx) != Some(1.0) {
+                    factors.push(('*', dx));
+                }
+                terms.push((if op == '/' { '-' } else { '+' }, flat_product(factors)));
             }
-            dacc
+            flat_sum(terms)
         }
-        Node::Pow(a, b) => power_derivative(a, b, d(a), d(b)),
+        Node::Pow(a, b) => power_derivative(a, b, d(a)?, d(b)?, budget)?,
         Node::Call(f, args) => {
             let a = &args[0];
-            let da = d(a);
+            let da = d(a)?;
             if *f == Func::Sign {
-                return Node::Num(0.0);
+                return Ok(Node::Num(0.0));
             }
             if num(&da) == Some(0.0) && args.len() == 1 {
-                return Node::Num(0.0);
+                return Ok(Node::Num(0.0));
             }
             let one = || Node::Num(1.0);
-            let sq = |x: &Node| mul(x.clone(), x.clone());
+            let sq = |x: &Node| -> Result<Node, ExprError> { Ok(mul(c(x)?, c(x)?)) };
             match f {
-                Func::Sqrt => div(da, mul(Node::Num(2.0), n.clone())),
-                Func::Sin => mul(call(Func::Cos, vec![a.clone()]), da),
-                Func::Cos => neg(mul(call(Func::Sin, vec![a.clone()]), da)),
-                Func::Tan => mul(add(one(), sq(n)), da),
-                Func::Asin => div(da, call(Func::Sqrt, vec![sub(one(), sq(a))])),
-                Func::Acos => neg(div(da, call(Func::Sqrt, vec![sub(one(), sq(a))]))),
-                Func::Atan => div(da, add(one(), sq(a))),
-                Func::Exp => mul(n.clone(), da),
-                Func::Ln => div(da, a.clone()),
-                Func::Abs => mul(call(Func::Sign, vec![a.clone()]), da),
-                Func::Sinh => mul(call(Func::Cosh, vec![a.clone()]), da),
-                Func::Cosh => mul(call(Func::Sinh, vec![a.clone()]), da),
-                Func::Tanh => mul(sub(one(), sq(n)), da),
+                Func::Sqrt => div(da, mul(Node::Num(2.0), c(n)?)),
+                Func::Sin => mul(call(Func::Cos, vec![c(a)?]), da),
+                Func::Cos => neg(mul(call(Func::Sin, vec![c(a)?]), da)),
+                Func::Tan => mul(add(one(), sq(n)?), da),
+                Func::Asin => div(da, call(Func::Sqrt, vec![sub(one(), sq(a)?)])),
+                Func::Acos => neg(div(da, call(Func::Sqrt, vec![sub(one(), sq(a)?)]))),
+                Func::Atan => div(da, add(one(), sq(a)?)),
+                Func::Exp => mul(c(n)?, da),
+                Func::Ln => div(da, c(a)?),
+                Func::Abs => mul(call(Func::Sign, vec![c(a)?]), da),
+                Func::Sinh => mul(call(Func::Cosh, vec![c(a)?]), da),
+                Func::Cosh => mul(call(Func::Sinh, vec![c(a)?]), da),
+                Func::Tanh => mul(sub(one(), sq(n)?), da),
                 Func::Sign => Node::Num(0.0),
                 Func::Atan2 => {
                     // atan2(y, x)' = (x y' − y x') / (x² + y²)
                     let (y, x) = (a, &args[1]);
-                    let dx = d(x);
-                    div(
-                        sub(mul(x.clone(), da), mul(y.clone(), dx)),
-                        add(sq(x), sq(y)),
-                    )
+                    let dx = d(x)?;
+                    div(sub(mul(c(x)?, da), mul(c(y)?, dx)), add(sq(x)?, sq(y)?))
                 }
                 Func::Min | Func::Max => {
                     // min(a, b) = (a + b − |a − b|)/2, max with +|a − b|.
                     let b = &args[1];
-                    let db = d(b);
-                    let s = call(Func::Sign, vec![sub(a.clone(), b.clone())]);
-                    let kink = mul(s, sub(da.clone(), db.clone()));
+                    let db = d(b)?;
+                    let s = call(Func::Sign, vec![sub(c(a)?, c(b)?)]);
+                    let kink = mul(s, sub(c(&da)?, c(&db)?));
                     let mean = add(da, db);
                     let sum = if *f == Func::Min {
                         sub(mean, kink)
@@ -511,36 +565,77 @@ fn derive(n: &Node, is_v: &dyn Fn(&Node) -> bool) -> Node {
                     };
                     mul(Node::Num(0.5), sum)
                 }
-                Func::Pow => power_derivative(a, &args[1], da, d(&args[1])),
+                Func::Pow => power_derivative(a, &args[1], da, d(&args[1])?, budget)?,
             }
         }
+    })
+}
+
+/// x₀ op₁ x₁ … as one chain (ops `*`, `/`; the first operand's op is ignored as `*`, a
+/// leading divisor becomes 1/x).
+fn flat_product(mut factors: Vec<(char, Node)>) -> Node {
+    if factors.is_empty() {
+        return Node::Num(1.0);
+    }
+    if factors[0].0 == '/' {
+        factors.insert(0, ('*', Node::Num(1.0)));
+    }
+    let mut it = factors.into_iter();
+    let (_, first) = it.next().expect("not empty");
+    let rest: Vec<(char, Node)> = it.collect();
+    if rest.is_empty() {
+        first
+    } else {
+        Node::Chain(Box::new(first), rest)
+    }
+}
+
+/// ± t₀ ± t₁ … as one chain (0 when empty; a leading − as a negation).
+fn flat_sum(terms: Vec<(char, Node)>) -> Node {
+    let mut it = terms.into_iter();
+    let Some((sign, first)) = it.next() else {
+        return Node::Num(0.0);
+    };
+    let first = if sign == '-' { neg(first) } else { first };
+    let rest: Vec<(char, Node)> = it.collect();
+    if rest.is_empty() {
+        first
+    } else {
+        Node::Chain(Box::new(first), rest)
     }
 }
 
 /// (aᵇ)' = b aᵇ⁻¹ a' for a constant exponent, aᵇ (b' ln a + b a'/a) otherwise.
-fn power_derivative(a: &Node, b: &Node, da: Node, db: Node) -> Node {
+fn power_derivative(
+    a: &Node,
+    b: &Node,
+    da: Node,
+    db: Node,
+    budget: &Cell<usize>,
+) -> Result<Node, ExprError> {
+    let c = |x: &Node| copy(x, budget);
     if num(&db) == Some(0.0) {
         if num(&da) == Some(0.0) {
-            return Node::Num(0.0);
+            return Ok(Node::Num(0.0));
         }
         let lowered = match num(b) {
             Some(e) => Node::Num(e - 1.0),
-            None => sub(b.clone(), Node::Num(1.0)),
+            None => sub(c(b)?, Node::Num(1.0)),
         };
         let p = match num(&lowered) {
-            Some(1.0) => a.clone(),
-            _ => Node::Pow(Box::new(a.clone()), Box::new(lowered)),
+            Some(1.0) => c(a)?,
+            _ => Node::Pow(Box::new(c(a)?), Box::new(lowered)),
         };
-        return mul(mul(b.clone(), p), da);
+        return Ok(mul(mul(c(b)?, p), da));
     }
-    let ab = Node::Pow(Box::new(a.clone()), Box::new(b.clone()));
-    mul(
+    let ab = Node::Pow(Box::new(c(a)?), Box::new(c(b)?));
+    Ok(mul(
         ab,
         add(
-            mul(db, call(Func::Ln, vec![a.clone()])),
-            div(mul(b.clone(), da), a.clone()),
+            mul(db, call(Func::Ln, vec![c(a)?])),
+            div(mul(c(b)?, da), c(a)?),
         ),
-    )
+    ))
 }
 
 fn bind_node(
@@ -923,6 +1018,7 @@ mod tests {
             for name in ["a", "b", "t"] {
                 let exact = e
                     .derivative(name)
+                    .unwrap()
                     .eval(&|n| values.iter().find(|(k, _)| *k == n).map(|(_, v)| *v))
                     .unwrap();
                 let fd = numeric(&e, name, &values);
@@ -938,12 +1034,33 @@ mod tests {
     fn derivatives_stay_small() {
         // Constants vanish, and a term without the name costs nothing.
         let e = Expr::parse("5*sin(2*t) + 3*a").unwrap();
-        assert_eq!(e.derivative("a").as_constant(), Some(3.0));
-        assert_eq!(e.derivative("b").as_constant(), Some(0.0));
+        assert_eq!(e.derivative("a").unwrap().as_constant(), Some(3.0));
+        assert_eq!(e.derivative("b").unwrap().as_constant(), Some(0.0));
         assert_eq!(
-            Expr::parse("a*a").unwrap().derivative("c").as_constant(),
+            Expr::parse("a*a")
+                .unwrap()
+                .derivative("c")
+                .unwrap()
+                .as_constant(),
             Some(0.0)
         );
+        // A long product of factors in the variable is refused, not built for seconds.
+        let long = vec!["a"; 3000].join("*");
+        assert!(matches!(
+            Expr::parse(&long).unwrap().derivative("a"),
+            Err(ExprError::TooLarge(_))
+        ));
+        // Factors without the variable cost one node each, and the derivative stays as
+        // flat as the expression: it evaluates on a small stack.
+        let wide = format!("a*{}*a", vec!["b"; 3000].join("*"));
+        let d = Expr::parse(&wide).unwrap().derivative("a").unwrap();
+        let v = std::thread::Builder::new()
+            .stack_size(64 * 1024)
+            .spawn(move || d.eval(&|n| Some(if n == "a" { 3.0 } else { 1.0 })))
+            .unwrap()
+            .join()
+            .unwrap();
+        assert_eq!(v, Ok(6.0));
     }
 
     #[test]
@@ -988,7 +1105,7 @@ mod tests {
         };
         let r = e.resolve(&slot).unwrap();
         assert_eq!(r.eval_slots(&[0.5, 2.0]), 2.0 * 0.5 + 0.5);
-        assert_eq!(r.derivative_slot(1).eval_slots(&[0.5, 2.0]), -0.5);
+        assert_eq!(r.derivative_slot(1).unwrap().eval_slots(&[0.5, 2.0]), -0.5);
         assert!(e.resolve(&|_| None).is_err());
     }
 }

@@ -111,7 +111,11 @@ impl Load {
             .map_err(|e| Error::InvalidArgument(format!("'{}': {e}", function.text)))?;
         let partials = (1..=quantities.len())
             .map(|k| value.derivative_slot(k))
-            .collect();
+            .collect::<std::result::Result<Vec<_>, _>>()
+            .map_err(|e| {
+                let text = crate::expr::excerpt(&function.text, 40);
+                Error::InvalidArgument(format!("'{text}': {e}"))
+            })?;
         Ok(Load {
             value,
             quantities,
