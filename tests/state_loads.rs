@@ -221,3 +221,24 @@ fn a_load_that_goes_non_finite_names_itself() {
         "{message}"
     );
 }
+
+/// A value that is finite where its derivative is not (a square root of a rate that
+/// starts at 0) stops the run naming the effect and why, not as a bare divergence.
+#[test]
+fn a_load_whose_derivative_is_not_finite_names_itself() {
+    let text = scene_text("fourbar-theta.yaml");
+    let text = format!(
+        "{}\n  - {{name: root, type: torque, coordinate: theta, value: \"rate(theta)^0.5\"}}\n",
+        text.trim_end()
+    );
+    let model = Arc::new(model_of(&text));
+    let opts = ForwardOptions::new(Coordinates::Dependent, 1e-3, 0.1, Mode::FixedLag(1));
+    let message = match simulate(model, &opts, &mut |_, _| {}) {
+        Err(e) => e.to_string(),
+        Ok((_, s)) => s.failures.first().map(|f| f.message()).unwrap_or_default(),
+    };
+    assert!(
+        message.contains("effect root") && message.contains("derivative"),
+        "{message}"
+    );
+}

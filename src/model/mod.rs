@@ -643,7 +643,9 @@ impl Model {
     /// named as `mbfg check` names it, with the reason: why a step's cost went
     /// non-finite.
     pub fn effect_fault(&self, q: &[f64], dq: &[f64], t: f64) -> Option<String> {
-        let mut out = vec![0.0; self.n()];
+        let n = self.n();
+        let mut out = vec![0.0; n];
+        let (mut kq, mut kv) = (vec![0.0; n * n], vec![0.0; n * n]);
         for (i, f) in self.forces.iter().enumerate() {
             out.fill(0.0);
             let effect = self.scene.effects[i].describe(&self.scene);
@@ -654,6 +656,16 @@ impl Model {
                     return Some(format!("effect {effect} is not finite at t = {t} s"))
                 }
                 Ok(()) => {}
+            }
+            // A finite value whose derivative is not (a square root, a power below 1 or
+            // an atan2 at 0) leaves the solver without a Newton step.
+            kq.fill(0.0);
+            kv.fill(0.0);
+            let derivative = f.add_jacobians(self, (q, dq, t), &mut kq, &mut kv);
+            if derivative.is_err() || !kq.iter().chain(&kv).all(|v| v.is_finite()) {
+                return Some(format!(
+                    "effect {effect}: its derivative with respect to the state is not finite at t = {t} s (a square root, a power below 1 or an atan2 at 0?)"
+                ));
             }
         }
         None
