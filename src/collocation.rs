@@ -28,17 +28,46 @@
 //! exactly at the nodes, where the hard factors are.
 
 use crate::error::Result;
-use crate::factors::{key_and_noise_accessors, DynamicsKernel};
+use crate::factors::{identity, key_and_noise_accessors, DynamicsKernel};
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
-/// Writes `scale`·I into a row-major d × d block.
-fn diagonal(block: &mut [f64], d: usize, scale: f64) {
-    block.fill(0.0);
-    for i in 0..d {
-        block[i * d + i] = scale;
-    }
+/// The position and velocity factors of one coordinate set, σ = `sigma` (position,
+/// velocity): q, q̇, q̈ for dependent coordinates, or z, ż, z̈ with the velocity rule on
+/// the independent rows.
+pub fn factors(
+    model: &Arc<Model>,
+    independent: bool,
+    dt: f64,
+    sigma: [f64; 2],
+) -> [Box<dyn Factor>; 2] {
+    let (x, dx, ddx, dim) = if independent {
+        (
+            VarKind::Z,
+            VarKind::Dz,
+            VarKind::Ddz,
+            model.independent.len(),
+        )
+    } else {
+        (VarKind::Q, VarKind::Dq, VarKind::Ddq, model.n())
+    };
+    let velocity = if independent {
+        SimpsonVelocity::independent(model.clone(), dt, Noise::Isotropic(sigma[1]))
+    } else {
+        SimpsonVelocity::dependent(model.clone(), dt, Noise::Isotropic(sigma[1]))
+    };
+    [
+        Box::new(HermitePosition::new(
+            x,
+            dx,
+            ddx,
+            dim,
+            dt,
+            Noise::Isotropic(sigma[0]),
+        )),
+        Box::new(velocity),
+    ]
 }
 
 /// Hermite–Simpson for a position: e = x₁ − x₀ − h/2 (ẋ₀ + ẋ₁) − h²/12 (ẍ₀ − ẍ₁).
@@ -101,7 +130,7 @@ impl Factor for HermitePosition {
         }
         if let Some(j) = jac {
             for (block, &c) in j.iter_mut().zip(&c) {
-                diagonal(block, self.dim, c);
+                identity(block, self.dim, c);
             }
         }
         Ok(())
@@ -116,8 +145,8 @@ pub struct SimpsonVelocity {
     model: Arc<Model>,
     name: String,
     keys: Vec<Key>,
-    /// The independent coordinates (IC), or None (DC: v, a are q̇, q̈ themselves).
-    selection: Option<Vec<usize>>,
+    /// The coordinates whose rows the residual has: all n (DC) or the independent ones.
+    rows: Vec<usize>,
     dt: f64,
     noise: Noise,
 }
@@ -126,10 +155,10 @@ impl SimpsonVelocity {
     /// Dependent coordinates: keys q₀, q₁, q̇₀, q̇₁, q̈₀, q̈₁.
     pub fn dependent(model: Arc<Model>, dt: f64, noise: Noise) -> Self {
         SimpsonVelocity {
+            rows: (0..model.n()).collect(),
             model,
             name: "f_hs(dq)".into(),
             keys: Self::state_keys(),
-            selection: None,
             dt,
             noise,
         }
@@ -138,12 +167,11 @@ impl SimpsonVelocity {
     /// Independent coordinates: the keys of [`SimpsonVelocity::dependent`], the rows
     /// of the independent coordinates.
     pub fn independent(model: Arc<Model>, dt: f64, noise: Noise) -> Self {
-        let selection = model.independent.clone();
         SimpsonVelocity {
+            rows: model.independent.clone(),
             model,
             name: "f_hs(dz)".into(),
             keys: Self::state_keys(),
-            selection: Some(selection),
             dt,
             noise,
         }
@@ -168,7 +196,7 @@ impl Factor for SimpsonVelocity {
     }
     key_and_noise_accessors!();
     fn dim(&self) -> usize {
-        self.selection.as_ref().map_or(self.model.n(), |s| s.len())
+        self.rows.len()
     }
     fn scratch(&self) -> (usize, usize) {
         let (r, i) = DynamicsKernel::scratch(&self.model);
@@ -207,20 +235,15 @@ impl Factor for SimpsonVelocity {
             kernel,
             &mut ws.indices,
         )?;
-        // Rows of the residual: all n (DC) or the independent ones (IC).
-        let rows: Vec<usize> = match &self.selection {
-            Some(s) => s.clone(),
-            None => (0..n).collect(),
-        };
         let h6 = h / 6.0;
-        for (k, &i) in rows.iter().enumerate() {
+        for (k, &i) in self.rows.iter().enumerate() {
             r[k] = v1[i] - v0[i] - h6 * (a0[i] + 4.0 * am[i] + a1[i]);
         }
         let Some(j) = jac else { return Ok(()) };
         // ∂(4 h/6 q̈_m) through q_m, q̇_m: q_m = (q₀+q₁)/2 + h/8 (q̇₀−q̇₁),
         // q̇_m = (q̇₀+q̇₁)/2 + h/8 (q̈₀−q̈₁); then the ends' own q̇₁ − q̇₀ − h/6 (q̈₀ + q̈₁).
         let (c, c2) = (2.0 * h / 3.0, h * h / 12.0);
-        for (k, &i) in rows.iter().enumerate() {
+        for (k, &i) in self.rows.iter().enumerate() {
             for col in 0..n {
                 let (gq, gv) = (jq[i * n + col], jv[i * n + col]);
                 let at = k * n + col;

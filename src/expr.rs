@@ -79,6 +79,16 @@ pub fn excerpt(text: &str, max: usize) -> String {
     out
 }
 
+/// Names joined with ", ", or for more than eight the first four, "…" and the last:
+/// a list of dozens would fill a one-line message.
+pub fn abbreviated<S: AsRef<str>>(names: &[S]) -> String {
+    let all: Vec<&str> = names.iter().map(AsRef::as_ref).collect();
+    match all.as_slice() {
+        [first @ .., last] if all.len() > 8 => format!("{}, …, {last}", first[..4].join(", ")),
+        _ => all.join(", "),
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Func {
     Sqrt,
@@ -244,25 +254,18 @@ impl Expr {
     /// `sign` (the mean of both sides at a kink). An expression whose derivative would
     /// copy more than [`MAX_DERIVATIVE_NODES`] nodes is refused.
     pub fn derivative(&self, name: &str) -> Result<Expr, ExprError> {
-        let budget = Cell::new(MAX_DERIVATIVE_NODES);
-        Ok(Expr {
-            root: derive(
-                &self.root,
-                &|n| matches!(n, Node::Var(v) if v == name),
-                &budget,
-            )?,
-        })
+        self.derivative_by(&|n| matches!(n, Node::Var(v) if v == name))
     }
 
     /// [`Expr::derivative`] with respect to a resolved slot.
     pub fn derivative_slot(&self, slot: usize) -> Result<Expr, ExprError> {
+        self.derivative_by(&|n| matches!(n, Node::Slot(k) if *k == slot))
+    }
+
+    fn derivative_by(&self, is_v: &dyn Fn(&Node) -> bool) -> Result<Expr, ExprError> {
         let budget = Cell::new(MAX_DERIVATIVE_NODES);
         Ok(Expr {
-            root: derive(
-                &self.root,
-                &|n| matches!(n, Node::Slot(k) if *k == slot),
-                &budget,
-            )?,
+            root: derive(&self.root, is_v, &budget)?,
         })
     }
 

@@ -80,7 +80,7 @@ impl Factor for Prior {
 }
 
 /// Writes `scale`·I into a row-major d × d block.
-fn identity(block: &mut [f64], d: usize, scale: f64) {
+pub(crate) fn identity(block: &mut [f64], d: usize, scale: f64) {
     block.fill(0.0);
     for i in 0..d {
         block[i * d + i] = scale;

@@ -8,11 +8,11 @@ use crate::factors::*;
 use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
 use crate::linalg::dense;
 
-use crate::collocation::{HermitePosition, SimpsonVelocity};
+use crate::collocation;
 use crate::model::{Model, PointSlot, State};
 use crate::smoother::{self, Mode, Next};
 use crate::solver::{Past, Settings, SolveReport, Termination};
-use crate::tangent::{Projected, Rule, TangentIntegrator};
+use crate::tangent::{Projected, Rule};
 use nalgebra::DVector;
 use std::ops::ControlFlow;
 use std::sync::Arc;
@@ -282,7 +282,7 @@ impl ForwardGraph {
                 Integrator::Euler => Rule::Euler,
             };
             match options.dc_integrators {
-                DcIntegrators::Tangent => Box::new(TangentIntegrator::new(
+                DcIntegrators::Tangent => Box::new(Projected::integrator(
                     model.clone(),
                     x,
                     dx,
@@ -294,57 +294,29 @@ impl ForwardGraph {
             }
         };
         // The position and velocity integrators of each coordinate set.
-        let hermite = options.integrator == Integrator::HermiteSimpson;
+        let hermite = (options.integrator == Integrator::HermiteSimpson).then_some(|independent| {
+            let sigma = [nm.integrator_position, nm.integrator_velocity];
+            collocation::factors(&model, independent, dt, sigma)
+        });
         let dc_integrators = || -> [Box<dyn Factor>; 2] {
-            if hermite {
-                let factors: [Box<dyn Factor>; 2] = [
-                    Box::new(HermitePosition::new(
-                        VarKind::Q,
-                        VarKind::Dq,
-                        VarKind::Ddq,
-                        n,
-                        dt,
-                        Noise::Isotropic(nm.integrator_position),
-                    )),
-                    Box::new(SimpsonVelocity::dependent(
-                        model.clone(),
-                        dt,
-                        Noise::Isotropic(nm.integrator_velocity),
-                    )),
-                ];
-                if options.tangent_dc() {
-                    return factors
-                        .map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>);
-                }
-                return factors;
+            match &hermite {
+                Some(factors) if options.tangent_dc() => factors(false)
+                    .map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>),
+                Some(factors) => factors(false),
+                None => [
+                    dc_integrate(VarKind::Q, VarKind::Dq, nm.integrator_position),
+                    dc_integrate(VarKind::Dq, VarKind::Ddq, nm.integrator_velocity),
+                ],
             }
-            [
-                dc_integrate(VarKind::Q, VarKind::Dq, nm.integrator_position),
-                dc_integrate(VarKind::Dq, VarKind::Ddq, nm.integrator_velocity),
-            ]
         };
         let ic_integrators = || -> [Box<dyn Factor>; 2] {
-            if hermite {
-                return [
-                    Box::new(HermitePosition::new(
-                        VarKind::Z,
-                        VarKind::Dz,
-                        VarKind::Ddz,
-                        f,
-                        dt,
-                        Noise::Isotropic(nm.integrator_position),
-                    )),
-                    Box::new(SimpsonVelocity::independent(
-                        model.clone(),
-                        dt,
-                        Noise::Isotropic(nm.integrator_velocity),
-                    )),
-                ];
+            match &hermite {
+                Some(factors) => factors(true),
+                None => [
+                    integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
+                    integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
+                ],
             }
-            [
-                integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
-                integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
-            ]
         };
         let graph = match options.coordinates {
             Coordinates::Dependent => ChainGraph {
@@ -618,7 +590,7 @@ impl StepFailure {
                  distance to rank loss {:.1e}",
                 c.t_singular,
                 c.independent.join(", "),
-                abbreviated(&c.dependent),
+                crate::expr::abbreviated(&c.dependent),
                 c.rank,
                 c.full_rank,
                 self.step,
@@ -961,16 +933,6 @@ impl Determinacy {
             independent: names(&mut model.independent.iter().copied()),
             dependent: names(&mut self.dependent.iter().copied()),
         }
-    }
-}
-
-/// Names joined with ", ", or for more than eight the first four, "…" and the last:
-/// a 40-loop chain's 82 dependent coordinates would fill a one-line message before
-/// its rank is said.
-fn abbreviated(names: &[String]) -> String {
-    match names {
-        [first @ .., last] if names.len() > 8 => format!("{}, …, {last}", first[..4].join(", ")),
-        _ => names.join(", "),
     }
 }
 

@@ -1087,7 +1087,7 @@ fn arg_effects(effects: &Bound<'_, PyAny>) -> PyResult<Vec<Arc<PyLoad>>> {
     let dict = effects.cast::<PyDict>().map_err(|_| {
         invalid(format!(
             "effects must be a dict {{name: callable(t, q, dq)}}, got {}",
-            type_name(effects)
+            describe(effects)
         ))
     })?;
     let mut out = Vec::new();
@@ -1095,13 +1095,13 @@ fn arg_effects(effects: &Bound<'_, PyAny>) -> PyResult<Vec<Arc<PyLoad>>> {
         let name: String = k.extract().map_err(|_| {
             invalid(format!(
                 "effects: names must be strings, got {}",
-                type_name(&k)
+                describe(&k)
             ))
         })?;
         if !v.is_callable() {
             return Err(invalid(format!(
                 "effects: '{name}' must be a callable f(t, q, dq) returning the generalized forces, got {}",
-                type_name(&v)
+                describe(&v)
             )));
         }
         out.push(Arc::new(PyLoad {
@@ -1136,13 +1136,6 @@ fn raised(loads: &[Arc<PyLoad>]) -> Option<PyErr> {
     loads
         .iter()
         .find_map(|l| l.raised.lock().ok().and_then(|mut e| e.take()))
-}
-
-fn type_name(v: &Bound<'_, PyAny>) -> String {
-    v.get_type()
-        .name()
-        .map(|n| n.to_string())
-        .unwrap_or_else(|_| "?".into())
 }
 
 /// Forward dynamics. Every argument is required (`mbfg.simulate` gives the defaults).

@@ -24,7 +24,7 @@
 //! projector are unchanged) so that rank is judged relative to each row's size.
 
 use crate::error::{Error, Result};
-use crate::factors::key_and_noise_accessors;
+use crate::factors::{Euler, Trapezoidal};
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
 use crate::model::Model;
 use nalgebra::{DMatrix, DVector};
@@ -41,62 +41,6 @@ pub enum Rule {
     Trapezoidal,
     /// e = x_t − x_{t−1} − Δt ẋ_{t−1}.
     Euler,
-}
-
-/// P(q_t) e for the integration of `dx` into `x` (x is q or q̇).
-pub struct TangentIntegrator {
-    model: Arc<Model>,
-    name: String,
-    keys: Vec<Key>,
-    /// Index in `keys` of q_t (the positions P is taken at).
-    q_key: usize,
-    rule: Rule,
-    dt: f64,
-    noise: Noise,
-}
-
-impl TangentIntegrator {
-    pub fn new(
-        model: Arc<Model>,
-        x: VarKind,
-        dx: VarKind,
-        rule: Rule,
-        dt: f64,
-        noise: Noise,
-    ) -> Self {
-        let mut keys = vec![Key::before(x), Key::now(x), Key::before(dx), Key::now(dx)];
-        let q_key = if x == VarKind::Q {
-            1
-        } else {
-            keys.push(Key::now(VarKind::Q));
-            4
-        };
-        let name = match rule {
-            Rule::Trapezoidal => format!("P f_ti({})", x.symbol()),
-            Rule::Euler => format!("P f_ei({})", x.symbol()),
-        };
-        TangentIntegrator {
-            model,
-            name,
-            keys,
-            q_key,
-            rule,
-            dt,
-            noise,
-        }
-    }
-
-    /// e, the unprojected residual, and the coefficients of x_{t−1}, x_t, ẋ_{t−1}, ẋ_t.
-    fn residual(&self, x: &[&[f64]], e: &mut [f64]) -> [f64; 4] {
-        let c = match self.rule {
-            Rule::Trapezoidal => [-1.0, 1.0, -0.5 * self.dt, -0.5 * self.dt],
-            Rule::Euler => [-1.0, 1.0, -self.dt, 0.0],
-        };
-        for (i, ei) in e.iter_mut().enumerate() {
-            *ei = c[0] * x[0][i] + c[1] * x[1][i] + c[2] * x[2][i] + c[3] * x[3][i];
-        }
-        c
-    }
 }
 
 /// The row space of Φ_q at q, from the active rows (redundant constraints left out:
@@ -167,45 +111,6 @@ fn svd_pseudo_inverse(a: &DMatrix<f64>) -> DMatrix<f64> {
         .unwrap_or_else(|_| DMatrix::zeros(a.ncols(), a.nrows()))
 }
 
-impl Factor for TangentIntegrator {
-    fn name(&self) -> &str {
-        &self.name
-    }
-    key_and_noise_accessors!();
-    fn dim(&self) -> usize {
-        self.model.n()
-    }
-    fn evaluate(
-        &self,
-        _t: f64,
-        x: &[&[f64]],
-        r: &mut [f64],
-        jac: Option<&mut [Vec<f64>]>,
-        _ws: &mut Workspace,
-    ) -> Result<()> {
-        let n = self.model.n();
-        let q = x[self.q_key];
-        let mut e = DVector::zeros(n);
-        let c = self.residual(x, e.as_mut_slice());
-        let rows = row_space(&self.model, q)?;
-        let u = &rows.p * &e;
-        r.copy_from_slice(u.as_slice());
-        let Some(j) = jac else { return Ok(()) };
-        for (block, coefficient) in j.iter_mut().zip(c) {
-            for i in 0..n {
-                for k in 0..n {
-                    block[i * n + k] = coefficient * rows.p[(i, k)];
-                }
-            }
-        }
-        if self.q_key != 1 {
-            j[self.q_key].fill(0.0);
-        }
-        subtract_projector_derivative(&self.model, q, &rows, &e, &u, &mut j[self.q_key]);
-        Ok(())
-    }
-}
-
 /// Subtracts d(P e)/dq at fixed e, −P (Σₖ λₖ Φᵏ_qq) − Φ_q⁺ (Φ_qq u) with
 /// λ = (Φ_q⁺)ᵀe and u = P e, from the row-major n × n `block`.
 fn subtract_projector_derivative(
@@ -232,33 +137,57 @@ fn subtract_projector_derivative(
     }
 }
 
-/// Any integrator factor of dependent coordinates (n rows) projected onto the
-/// tangent space at the step's positions: P(q_t) e. Used for the Hermite–Simpson
-/// factors ([`crate::collocation`]), whose residual is not a fixed linear rule.
+/// An integrator factor of dependent coordinates (n rows) projected onto the tangent
+/// space at the step's positions: P(q_t) e, for the trapezoidal rule and Euler
+/// ([`Projected::integrator`]) and for the Hermite–Simpson factors
+/// ([`crate::collocation`]).
 pub struct Projected {
     model: Arc<Model>,
     inner: Box<dyn Factor>,
     name: String,
-    /// Index among the inner factor's keys of q_t.
+    /// The inner factor's keys, then q_t where the inner factor does not touch it.
+    keys: Vec<Key>,
+    /// Index in `keys` of q_t (the positions P is taken at).
     q_key: usize,
 }
 
 impl Projected {
-    /// Projects `inner`, whose residual has one row per coordinate of q and whose
-    /// keys hold q at its own step.
+    /// Projects `inner`, whose residual has one row per coordinate of q.
     pub fn new(model: Arc<Model>, inner: Box<dyn Factor>) -> Self {
-        let q_key = inner
-            .keys()
-            .iter()
-            .position(|k| *k == Key::now(VarKind::Q))
-            .expect("a projected factor touches the step's positions");
         assert_eq!(inner.dim(), model.n(), "a projected factor has n rows");
+        let mut keys = inner.keys().to_vec();
+        let q_key = match keys.iter().position(|k| *k == Key::now(VarKind::Q)) {
+            Some(k) => k,
+            None => {
+                keys.push(Key::now(VarKind::Q));
+                keys.len() - 1
+            }
+        };
         Projected {
             name: format!("P {}", inner.name()),
             model,
             inner,
+            keys,
             q_key,
         }
+    }
+
+    /// The integration of `dx` into `x` (q or q̇) by `rule`, projected: the
+    /// `--dc-integrators tangent` factors.
+    pub fn integrator(
+        model: Arc<Model>,
+        x: VarKind,
+        dx: VarKind,
+        rule: Rule,
+        dt: f64,
+        noise: Noise,
+    ) -> Self {
+        let n = model.n();
+        let inner: Box<dyn Factor> = match rule {
+            Rule::Trapezoidal => Box::new(Trapezoidal::new(x, dx, n, dt, noise)),
+            Rule::Euler => Box::new(Euler::new(x, dx, n, dt, noise)),
+        };
+        Projected::new(model, inner)
     }
 }
 
@@ -267,7 +196,7 @@ impl Factor for Projected {
         &self.name
     }
     fn keys(&self) -> &[Key] {
-        self.inner.keys()
+        &self.keys
     }
     fn noise(&self) -> &Noise {
         self.inner.noise()
@@ -288,18 +217,25 @@ impl Factor for Projected {
     ) -> Result<()> {
         let n = self.model.n();
         let q = x[self.q_key];
+        let inner_keys = self.inner.keys().len();
         let mut e = DVector::zeros(n);
         let rows = row_space(&self.model, q)?;
         let Some(j) = jac else {
-            self.inner.evaluate(t, x, e.as_mut_slice(), None, ws)?;
+            self.inner
+                .evaluate(t, &x[..inner_keys], e.as_mut_slice(), None, ws)?;
             r.copy_from_slice((&rows.p * &e).as_slice());
             return Ok(());
         };
-        self.inner
-            .evaluate(t, x, e.as_mut_slice(), Some(&mut *j), ws)?;
+        self.inner.evaluate(
+            t,
+            &x[..inner_keys],
+            e.as_mut_slice(),
+            Some(&mut j[..inner_keys]),
+            ws,
+        )?;
         let u = &rows.p * &e;
         r.copy_from_slice(u.as_slice());
-        for block in j.iter_mut() {
+        for block in j[..inner_keys].iter_mut() {
             let cols = block.len() / n;
             let inner = DMatrix::from_row_slice(n, cols, block);
             let projected = &rows.p * inner;
@@ -308,6 +244,9 @@ impl Factor for Projected {
                     block[i * cols + k] = projected[(i, k)];
                 }
             }
+        }
+        if self.q_key >= inner_keys {
+            j[self.q_key].fill(0.0);
         }
         subtract_projector_derivative(&self.model, q, &rows, &e, &u, &mut j[self.q_key]);
         Ok(())

@@ -13,7 +13,7 @@ use mbfg::factors::{
 };
 use mbfg::graph::{Factor, Key, Noise, VarKind, Workspace};
 use mbfg::kinematics;
-use mbfg::tangent::{Projected, Rule, TangentIntegrator};
+use mbfg::tangent::{Projected, Rule};
 use mbfg::{Model, Scene};
 use nalgebra::DVector;
 use std::collections::BTreeMap;
@@ -438,7 +438,7 @@ fn tangent_integrators_match_finite_differences() {
         let mut list: Vec<(String, Box<dyn Factor>)> = Vec::new();
         for (x, dx) in [(VarKind::Q, VarKind::Dq), (VarKind::Dq, VarKind::Ddq)] {
             for (rule, dt) in [(Rule::Trapezoidal, 0.05), (Rule::Euler, 0.001)] {
-                let f = TangentIntegrator::new(m.clone(), x, dx, rule, dt, Noise::Isotropic(0.01));
+                let f = Projected::integrator(m.clone(), x, dx, rule, dt, Noise::Isotropic(0.01));
                 list.push((format!("{} dt={dt}", f.name()), Box::new(f)));
             }
         }

@@ -195,25 +195,30 @@ fn a_parameter_named_like_a_coordinate_is_refused_in_a_load() {
     assert!(e.contains("both a parameter and a coordinate"), "{e}");
 }
 
-/// A load that goes non-finite is reported by the run, naming the effect, never
-/// written as NaN.
-#[test]
-fn a_load_that_goes_non_finite_names_itself() {
+/// The four-bar with a torque `name` = `value` on θ, run in DC for `t_end`: the
+/// error or the first failure's message (nothing written is ever NaN).
+fn failure_with_torque(name: &str, value: &str, t_end: f64) -> String {
     let text = scene_text("fourbar-theta.yaml");
     let text = format!(
-        "{}\n  - {{name: singular, type: torque, coordinate: theta, value: \"sqrt(0.5 - t)*rate(theta)\"}}\n",
+        "{}\n  - {{name: {name}, type: torque, coordinate: theta, value: \"{value}\"}}\n",
         text.trim_end()
     );
     let model = Arc::new(model_of(&text));
-    let opts = ForwardOptions::new(Coordinates::Dependent, 1e-3, 2.0, Mode::FixedLag(1));
-    let out = simulate(model, &opts, &mut |_, _| {});
-    let message = match out {
+    let opts = ForwardOptions::new(Coordinates::Dependent, 1e-3, t_end, Mode::FixedLag(1));
+    match simulate(model, &opts, &mut |_, _| {}) {
         Err(e) => e.to_string(),
         Ok((tr, s)) => {
             assert!(tr.q.iter().all(|v| v.is_finite()));
             s.failures.first().map(|f| f.message()).unwrap_or_default()
         }
-    };
+    }
+}
+
+/// A load that goes non-finite is reported by the run, naming the effect, never
+/// written as NaN.
+#[test]
+fn a_load_that_goes_non_finite_names_itself() {
+    let message = failure_with_torque("singular", "sqrt(0.5 - t)*rate(theta)", 2.0);
     assert!(
         message.contains("effect singular")
             && message.contains("non-finite")
@@ -226,17 +231,7 @@ fn a_load_that_goes_non_finite_names_itself() {
 /// starts at 0) stops the run naming the effect and why, not as a bare divergence.
 #[test]
 fn a_load_whose_derivative_is_not_finite_names_itself() {
-    let text = scene_text("fourbar-theta.yaml");
-    let text = format!(
-        "{}\n  - {{name: root, type: torque, coordinate: theta, value: \"rate(theta)^0.5\"}}\n",
-        text.trim_end()
-    );
-    let model = Arc::new(model_of(&text));
-    let opts = ForwardOptions::new(Coordinates::Dependent, 1e-3, 0.1, Mode::FixedLag(1));
-    let message = match simulate(model, &opts, &mut |_, _| {}) {
-        Err(e) => e.to_string(),
-        Ok((_, s)) => s.failures.first().map(|f| f.message()).unwrap_or_default(),
-    };
+    let message = failure_with_torque("root", "rate(theta)^0.5", 0.1);
     assert!(
         message.contains("effect root") && message.contains("derivative"),
         "{message}"

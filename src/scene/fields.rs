@@ -4,7 +4,7 @@
 use super::yaml::{Node, Value};
 use super::{LoadFunction, Scene};
 use crate::error::SceneError;
-use crate::expr::{excerpt, Expr, ExprError};
+use crate::expr::{abbreviated, excerpt, Expr, ExprError};
 
 /// Whether a document is an MBSE mechanism file (it has `planar_bodies`).
 pub fn is_mbse(root: &Node) -> bool {
@@ -133,13 +133,24 @@ impl<'a> Ctx<'a> {
             let quantity = scene.state_quantity(&name);
             if let Some((accessor, arg)) = name.strip_suffix(')').and_then(|n| n.split_once('(')) {
                 if quantity.is_none() {
-                    let (what, known) = match accessor {
+                    let (what, known): (_, Vec<&str>) = match accessor {
                         "rate" => (
                             "relative coordinate",
-                            names(scene.coordinates.iter().map(|c| &c.name)),
+                            scene.coordinates.iter().map(|c| c.name.as_str()).collect(),
                         ),
-                        "angle" | "omega" => ("body", names(scene.bodies.iter().map(|b| &b.name))),
-                        _ => ("point", names(scene.points.iter().map(|p| &p.name))),
+                        "angle" | "omega" => (
+                            "body",
+                            scene.bodies.iter().map(|b| b.name.as_str()).collect(),
+                        ),
+                        _ => (
+                            "point",
+                            scene.points.iter().map(|p| p.name.as_str()).collect(),
+                        ),
+                    };
+                    let known = if known.is_empty() {
+                        "the scene has none".to_string()
+                    } else {
+                        abbreviated(&known)
                     };
                     return Err(self.err(
                         node.line,
@@ -421,15 +432,5 @@ impl<'n> Fields<'n> {
             }
         }
         Ok(())
-    }
-}
-
-/// Up to eight names, for a message that says what exists.
-fn names<'a>(all: impl Iterator<Item = &'a String>) -> String {
-    let all: Vec<&str> = all.map(String::as_str).collect();
-    match all.len() {
-        0 => "the scene has none".to_string(),
-        n if n > 8 => format!("{}, … ({n} in all)", all[..8].join(", ")),
-        _ => all.join(", "),
     }
 }
