@@ -1,0 +1,706 @@
+//! Linearization of a window: each step's hard equations reduced to their null
+//! space, the soft factors whitened, reduced and accumulated into the
+//! block-tridiagonal normal equations.
+
+use super::*;
+
+/// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
+pub(super) struct FactorBuffers {
+    pub(super) r: Vec<f64>,
+    pub(super) jac: Vec<Vec<f64>>,
+    pub(super) weights: Vec<f64>,
+    /// Per key, the size of its variable.
+    pub(super) sizes: Vec<usize>,
+}
+
+impl FactorBuffers {
+    pub(super) fn new(graph: &ChainGraph, f: &dyn Factor) -> Self {
+        FactorBuffers {
+            weights: (0..f.dim()).map(|r| f.noise().weight(r)).collect(),
+            sizes: f
+                .keys()
+                .iter()
+                .map(|k| graph.layout.slot(k.kind).map_or(0, |(_, d)| d))
+                .collect(),
+            r: vec![0.0; f.dim()],
+            jac: f
+                .keys()
+                .iter()
+                .map(|k| {
+                    let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                    vec![0.0; f.dim() * d]
+                })
+                .collect(),
+        }
+    }
+
+    /// Divides the residual's rows, and with `jacobians` the Jacobians' rows, by their
+    /// σ (a diagonal Jacobian block only on its diagonal: the rest is 0).
+    pub(super) fn whiten(&mut self, factor: &dyn Factor, jacobians: bool) {
+        for (r, w) in self.r.iter_mut().zip(&self.weights) {
+            *r *= w;
+        }
+        if !jacobians {
+            return;
+        }
+        for (a, (jac, &d)) in self.jac.iter_mut().zip(&self.sizes).enumerate() {
+            if d == 0 {
+                continue;
+            }
+            if factor.diagonal_jacobian(a) {
+                for (r, w) in self.weights.iter().enumerate() {
+                    jac[r * d + r] *= w;
+                }
+                continue;
+            }
+            for (row, w) in jac.chunks_exact_mut(d).zip(&self.weights) {
+                for v in row {
+                    *v *= w;
+                }
+            }
+        }
+    }
+}
+
+/// The buffers of one factor instance.
+pub(super) fn buffers<'a>(
+    initial: &'a mut [FactorBuffers],
+    step: &'a mut [FactorBuffers],
+    inst: Instance,
+) -> &'a mut FactorBuffers {
+    if inst.initial {
+        &mut initial[inst.index]
+    } else {
+        &mut step[inst.index]
+    }
+}
+
+/// Names the factor, step and time in a factor's `Singular` error.
+pub(super) fn located(
+    factor: &dyn Factor,
+    step: usize,
+    t: f64,
+) -> impl FnOnce(Error) -> Error + '_ {
+    move |e| match e {
+        Error::Singular(m) => {
+            Error::Singular(format!("{} at step {step} (t = {t}): {m}", factor.name()))
+        }
+        other => other,
+    }
+}
+
+/// What a pass over the hard factors computes.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(super) enum HardPass {
+    Linearize,
+    Cost,
+    Residuals,
+}
+
+/// The reduction of one step's hard equations C δ = −c (C and c themselves live in
+/// the solver's scratch only while the step is reduced or corrected).
+pub(super) struct HardBlock {
+    pub(super) rows: usize,
+    pub(super) reduction: NullSpace,
+    /// Every residual of the last linearization within NOISE_MARGIN of its round-off:
+    /// the block's equations hold, and its particular solution is round-off divided
+    /// by its pivots, no correction to wait for.
+    pub(super) at_round_off: bool,
+}
+
+/// A whitened soft factor in reduced coordinates: per block it touches (lag 0 into
+/// `reduced[0]`, lag 1 into `reduced[1]`) the rows J N (dim × s, padded with zeros
+/// past the block's null-space dimension), and the residual r + J p linearized at the
+/// point the hard equations' particular step leads to.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn reduce_factor(
+    reduced: &mut [Vec<f64>; 2],
+    spans: &mut [Vec<(usize, usize)>; 2],
+    shifted: &mut [f64],
+    hard: &[HardBlock],
+    graph: &ChainGraph,
+    factor: &dyn Factor,
+    step: usize,
+    buf: &FactorBuffers,
+    s: usize,
+) {
+    let keys = factor.keys();
+    let dim = buf.r.len();
+    // Only the columns of the blocks' null spaces are filled and read.
+    for (lag, part) in reduced.iter_mut().enumerate() {
+        if lag <= step {
+            let width = hard[step - lag].reduction.dim;
+            for r in 0..dim {
+                part[r * s..r * s + width].fill(0.0);
+            }
+        }
+        spans[lag][..dim].fill((usize::MAX, 0));
+    }
+    shifted[..dim].copy_from_slice(&buf.r);
+    for (a, k) in keys.iter().enumerate() {
+        let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+        if k.lag > step {
+            continue; // a variable held fixed before the window
+        }
+        let red = &hard[step - k.lag].reduction;
+        let out = &mut reduced[k.lag];
+        let span = &mut spans[k.lag];
+        let jac = &buf.jac[a];
+        let diagonal = factor.diagonal_jacobian(a);
+        for r in 0..dim {
+            let row = &mut out[r * s..r * s + red.dim];
+            let columns = if diagonal { r..r + 1 } else { 0..d };
+            for j in columns {
+                let v = jac[r * d + j];
+                if v == 0.0 {
+                    continue;
+                }
+                shifted[r] += v * red.particular[off + j];
+                let (start, nrow) = red.row(off + j);
+                if !nrow.is_empty() {
+                    let (lo, hi) = &mut span[r];
+                    *lo = (*lo).min(start);
+                    *hi = (*hi).max(start + nrow.len());
+                }
+                for (o, nv) in row[start..].iter_mut().zip(nrow) {
+                    *o += v * nv;
+                }
+            }
+        }
+    }
+}
+
+/// Adds a reduced factor's JᵀJ and Jᵀr into the block-tridiagonal system: block
+/// `step` from `reduced[0]` and, when `lagged`, block `step − 1` from `reduced[1]`
+/// (only their active columns, H's block sizes). Reduced rows are often sparse (a
+/// scaled identity times a null-space basis with unit rows), so each row's products
+/// run over its nonzeros, gathered into `nonzero`; every entry still sums the rows
+/// in order.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn accumulate(
+    h: &mut BlockTridiagonal,
+    g: &mut [f64],
+    reduced: &[Vec<f64>; 2],
+    spans: &[Vec<(usize, usize)>; 2],
+    r: &[f64],
+    step: usize,
+    lagged: bool,
+    s: usize,
+    nonzero: &mut [Vec<(usize, f64)>; 2],
+) {
+    let parts: &[(usize, usize)] = if lagged {
+        &[(0, step), (1, step - 1)]
+    } else {
+        &[(0, step)]
+    };
+    for (row, &rr) in r.iter().enumerate() {
+        for &(part, block) in parts {
+            let d = h.dim(block);
+            let jr = &reduced[part][row * s..row * s + d];
+            // Past the row's span it is 0.
+            let (lo, hi) = spans[part][row];
+            let nz = &mut nonzero[part];
+            nz.clear();
+            if lo < hi {
+                nz.extend(
+                    jr[lo..hi]
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, v)| **v != 0.0)
+                        .map(|(a, &v)| (lo + a, v)),
+                );
+            }
+            let gb = &mut g[block * s..block * s + d];
+            for &(a, va) in nz.iter() {
+                gb[a] += va * rr;
+            }
+            let hb = h.diag_mut(block);
+            for &(a, va) in nz.iter() {
+                let out = &mut hb[a * d..(a + 1) * d];
+                for &(b, vb) in nz.iter() {
+                    out[b] += va * vb;
+                }
+            }
+        }
+        if lagged {
+            // H[step][step−1] += J₀ᵀ J₁.
+            let dp = h.dim(step - 1);
+            let hl = h.lower_mut(step);
+            for &(a, va) in &nonzero[0] {
+                let out = &mut hl[a * dp..(a + 1) * dp];
+                for &(b, vb) in &nonzero[1] {
+                    out[b] += va * vb;
+                }
+            }
+        }
+    }
+}
+
+impl WindowSolver {
+    /// Evaluates one factor instance into its buffers (residual not yet whitened).
+    pub(super) fn evaluate_instance(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        inst: Instance,
+        linearize: bool,
+    ) -> Result<()> {
+        let s = self.s;
+        let factor = factor_of(graph, inst);
+        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+        let keys = factor.keys();
+        let mut xs: [&[f64]; 8] = [&[]; 8];
+        for (slot, k) in xs.iter_mut().zip(keys) {
+            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+            let base = (inst.step - k.lag) * s + off;
+            *slot = &values[base..base + d];
+        }
+        let t = graph.time(inst.step);
+        factor
+            .evaluate(
+                t,
+                &xs[..keys.len()],
+                &mut buf.r,
+                linearize.then_some(buf.jac.as_mut_slice()),
+                &mut self.ws,
+            )
+            .map_err(located(factor, inst.step, t))
+    }
+
+    /// Evaluates the hard factors of block `b` (step k0 + b) of the listed instances,
+    /// records their costs in `hard_cost`, and with `Linearize` reduces the block's
+    /// equations C δ = −c; with `Residuals` leaves −c (in the same row order) in
+    /// `hard_rhs` for a correction with the current C.
+    pub(super) fn hard_block(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        b: usize,
+        mode: HardPass,
+    ) -> Result<()> {
+        let s = self.s;
+        let linearize = mode == HardPass::Linearize;
+        self.hard_cache = None;
+        let mut rows = 0;
+        let mut at_round_off = true;
+        for at in self.block_start[b]..self.block_start[b + 1] {
+            let i = self.by_step[at];
+            let inst = self.instances[i];
+            let factor = factor_of(graph, inst);
+            if !is_hard(factor) {
+                continue;
+            }
+            self.evaluate_instance(graph, values, inst, linearize)?;
+            let buf = &*buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+            let w = Noise::Hard.weight(0);
+            self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
+            if mode == HardPass::Cost {
+                continue;
+            }
+            let dim = factor.dim();
+            if linearize {
+                self.hard_jac[rows * s..(rows + dim) * s].fill(0.0);
+                for (a, k) in factor.keys().iter().enumerate() {
+                    let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                    for r in 0..dim {
+                        let row =
+                            &mut self.hard_jac[(rows + r) * s + off..(rows + r) * s + off + d];
+                        row.copy_from_slice(&buf.jac[a][r * d..(r + 1) * d]);
+                    }
+                }
+            }
+            for r in 0..dim {
+                self.hard_rhs[rows + r] = -buf.r[r];
+            }
+            if linearize {
+                // Round-off in each residual: ε times the size of its terms, Σ|C||x|.
+                let x = &values[inst.step * s..(inst.step + 1) * s];
+                for r in 0..dim {
+                    let row = &self.hard_jac[(rows + r) * s..(rows + r + 1) * s];
+                    let terms: f64 = row.iter().zip(x).map(|(c, v)| (c * v).abs()).sum();
+                    let noise = f64::EPSILON * (terms + buf.r[r].abs());
+                    self.hard_noise[rows + r] = noise;
+                    at_round_off &= buf.r[r].abs() <= NullSpace::NOISE_MARGIN * noise;
+                }
+            }
+            rows += dim;
+        }
+        let block = &mut self.hard[b];
+        block.rows = rows;
+        if linearize {
+            block.at_round_off = at_round_off;
+            block.reduction.set_noise(&self.hard_noise[..rows]);
+            block
+                .reduction
+                .reduce(&self.hard_jac, &self.hard_rhs[..rows], rows);
+        }
+        Ok(())
+    }
+
+    /// The hard factors' share of the cost, summed in `instances` order, and the part
+    /// of it at the first block.
+    pub(super) fn hard_cost_sum(&self, graph: &ChainGraph, k0: usize) -> (f64, f64) {
+        let (mut cost, mut first) = (0.0, 0.0);
+        for (inst, &c) in self.instances.iter().zip(&self.hard_cost) {
+            if !is_hard(factor_of(graph, *inst)) {
+                continue;
+            }
+            cost += c;
+            if inst.step == k0 {
+                first += c;
+            }
+        }
+        (cost, first)
+    }
+
+    /// Second-order correction after a step: moves each block of the window back onto
+    /// its hard equations with the least-norm step of the current C. Without it a step
+    /// along the linearized constraints leaves an O(|δ|²) violation that the cost's
+    /// 1/σ_hard² weight makes look like a failure (the Maratos effect).
+    pub(super) fn correct(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        k0: usize,
+        k1: usize,
+    ) -> Result<()> {
+        let s = self.s;
+        for b in 0..k1 - k0 {
+            // A block's hard factors read that block only.
+            self.hard_block(graph, values, b, HardPass::Residuals)?;
+            let block = &mut self.hard[b];
+            if block.rows == 0 {
+                continue;
+            }
+            block
+                .reduction
+                .solve(&self.hard_rhs[..block.rows], &mut self.correction);
+            let x = &mut values[(k0 + b) * s..(k0 + b + 1) * s];
+            for (xi, c) in x.iter_mut().zip(&self.correction) {
+                *xi += c;
+            }
+        }
+        Ok(())
+    }
+
+    /// Evaluates soft factor instance `i` at `values` and adds its cost (and to
+    /// `cost_first` when it touches block k0); with `linearize` also adds its
+    /// reduced JᵀJ and Jᵀr to H and g.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn soft_instance(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        i: usize,
+        linearize: bool,
+        cost: &mut f64,
+        cost_first: &mut f64,
+    ) -> Result<()> {
+        let s = self.s;
+        let inst = self.instances[i];
+        let factor = factor_of(graph, inst);
+        let along = linearize
+            && factor.evaluates_along()
+            && self.evaluate_along(graph, values, k0, inst)?;
+        if !along {
+            self.evaluate_instance(graph, values, inst, linearize)?;
+        }
+        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+        let keys = factor.keys();
+        let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
+        buf.whiten(factor, linearize && !along);
+        for r in &buf.r {
+            let c = 0.5 * r * r;
+            *cost += c;
+            if touches_first {
+                *cost_first += c;
+            }
+        }
+        if linearize {
+            let step = inst.step - k0;
+            let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
+            if along {
+                // The rows J [p N] came back unwhitened: [p | N(step) | N(step − 1)].
+                let d0 = self.hard[step].reduction.dim;
+                let d1 = if lagged {
+                    self.hard[step - 1].reduction.dim
+                } else {
+                    0
+                };
+                let c = 1 + d0 + d1;
+                self.reduced_spans[0][..buf.r.len()].fill((0, d0));
+                self.reduced_spans[1][..buf.r.len()].fill((0, d1));
+                for (row, (&w, &r)) in buf.weights.iter().zip(&buf.r).enumerate() {
+                    let out = &self.along_out[row * c..(row + 1) * c];
+                    self.shifted[row] = r + w * out[0];
+                    for (o, v) in self.reduced[0][row * s..row * s + d0]
+                        .iter_mut()
+                        .zip(&out[1..1 + d0])
+                    {
+                        *o = w * v;
+                    }
+                    for (o, v) in self.reduced[1][row * s..row * s + d1]
+                        .iter_mut()
+                        .zip(&out[1 + d0..])
+                    {
+                        *o = w * v;
+                    }
+                }
+            } else {
+                reduce_factor(
+                    &mut self.reduced,
+                    &mut self.reduced_spans,
+                    &mut self.shifted,
+                    &self.hard,
+                    graph,
+                    factor,
+                    step,
+                    buf,
+                    s,
+                );
+            }
+            if let Some(d) = self.rows_width.filter(|_| step == 0 && !lagged) {
+                for (row, &rr) in self.shifted[..factor.dim()].iter().enumerate() {
+                    let (lo, hi) = self.reduced_spans[0][row];
+                    let jr = &self.reduced[0][row * s..row * s + d];
+                    self.rows
+                        .extend((0..d).map(|a| if a >= lo && a < hi { jr[a] } else { 0.0 }));
+                    self.rows.push(rr);
+                }
+            }
+            accumulate(
+                &mut self.h,
+                &mut self.g,
+                &self.reduced,
+                &self.reduced_spans,
+                &self.shifted[..factor.dim()],
+                step,
+                lagged,
+                s,
+                &mut self.nonzeros,
+            );
+        }
+        Ok(())
+    }
+
+    /// Linearizes a soft factor instance along its blocks' reductions,
+    /// J [p N] per key ([`Factor::evaluate_along`]), into `along_out` (columns: p,
+    /// then block step's reduced coordinates, then those of the block before), its
+    /// residual into its buffer; returns false when the factor declines.
+    pub(super) fn evaluate_along(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        inst: Instance,
+    ) -> Result<bool> {
+        let s = self.s;
+        let factor = factor_of(graph, inst);
+        let keys = factor.keys();
+        let step = inst.step - k0;
+        let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
+        let d0 = self.hard[step].reduction.dim;
+        let d1 = if lagged {
+            self.hard[step - 1].reduction.dim
+        } else {
+            0
+        };
+        let c = 1 + d0 + d1;
+        let mut xs: [&[f64]; 8] = [&[]; 8];
+        let mut ranges = [(0, 0); 8];
+        let mut at = 0;
+        for (a, k) in keys.iter().enumerate() {
+            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+            let base = (inst.step - k.lag) * s + off;
+            xs[a] = &values[base..base + d];
+            let v = &mut self.along_dirs[at..at + d * c];
+            v.fill(0.0);
+            // A variable held fixed before the window (k.lag > step) moves not.
+            if k.lag <= step {
+                let red = &self.hard[step - k.lag].reduction;
+                let col0 = if k.lag == 0 { 1 } else { 1 + d0 };
+                for (i, row) in v.chunks_exact_mut(c).enumerate() {
+                    row[0] = red.particular[off + i];
+                    let (start, nrow) = red.row(off + i);
+                    row[col0 + start..col0 + start + nrow.len()].copy_from_slice(nrow);
+                }
+            }
+            ranges[a] = (at, at + d * c);
+            at += d * c;
+        }
+        let mut dirs: [&[f64]; 8] = [&[]; 8];
+        for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
+            *d = &self.along_dirs[a..b];
+        }
+        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+        let t = graph.time(inst.step);
+        factor
+            .evaluate_along(
+                t,
+                &xs[..keys.len()],
+                &mut buf.r,
+                &dirs[..keys.len()],
+                c,
+                &mut self.along_out[..factor.dim() * c],
+                &mut self.ws,
+            )
+            .map_err(located(factor, inst.step, t))
+    }
+
+    /// Evaluates the factors of a scope at `values` (the whole trajectory, step-major)
+    /// and returns the cost; with `linearize`, also reduces each block's hard
+    /// equations and fills H and g of the soft factors in reduced coordinates.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn evaluate(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        k1: usize,
+        prior: Option<&LinearPrior>,
+        scope: Scope,
+        linearize: bool,
+    ) -> Result<f64> {
+        let s = self.s;
+        let blocks = k1 - k0;
+        self.last = None;
+        self.collect_instances(graph, k0, k1, scope);
+        let mode = if linearize {
+            HardPass::Linearize
+        } else {
+            HardPass::Cost
+        };
+        let (mut soft, mut soft_first) = (0.0, 0.0);
+        self.rows.clear();
+        self.rows_width = None;
+        let record = linearize && blocks == 1 && prior.is_none();
+        if self.step_major && linearize {
+            // Step by step: each step's hard equations, then its factors into its
+            // blocks of H (and the lagged ones into the previous step's) while they
+            // are in cache.
+            self.h.set_blocks(blocks);
+            let cached = self.hard_cache.take() == Some(k0) && blocks == 1;
+            for b in 0..blocks {
+                if !cached {
+                    self.hard_block(graph, values, b, mode)?;
+                }
+                self.h.reset_block(b, self.hard[b].reduction.dim);
+                self.g[b * s..(b + 1) * s].fill(0.0);
+                if record {
+                    self.rows_width = Some(self.hard[0].reduction.dim);
+                }
+                for at in self.block_start[b]..self.block_start[b + 1] {
+                    let i = self.by_step[at];
+                    if !is_hard(factor_of(graph, self.instances[i])) {
+                        self.soft_instance(graph, values, k0, i, true, &mut soft, &mut soft_first)?;
+                    }
+                }
+            }
+        } else {
+            // Hard factors first: their linearization defines each block's reduction
+            // (unless `project_prior` has just made it for this one-step window).
+            let cached = self.hard_cache.take() == Some(k0) && blocks == 1 && linearize;
+            for b in 0..blocks {
+                if !cached {
+                    self.hard_block(graph, values, b, mode)?;
+                }
+            }
+            if linearize {
+                // Directions the hard equations fix carry no unknown.
+                let hard = &self.hard;
+                self.h.reset_active(blocks, |b| hard[b].reduction.dim);
+                self.g[..blocks * s].fill(0.0);
+                if record {
+                    self.rows_width = Some(self.hard[0].reduction.dim);
+                }
+            }
+        }
+        let (mut cost, mut cost_first) = self.hard_cost_sum(graph, k0);
+        if self.step_major && linearize {
+            cost += soft;
+            cost_first += soft_first;
+        } else {
+            for i in 0..self.instances.len() {
+                if !is_hard(factor_of(graph, self.instances[i])) {
+                    self.soft_instance(
+                        graph,
+                        values,
+                        k0,
+                        i,
+                        linearize,
+                        &mut cost,
+                        &mut cost_first,
+                    )?;
+                }
+            }
+        }
+        if let Some(p) = prior {
+            let x = &values[k0 * s..(k0 + 1) * s];
+            let (d, rest) = self.scratch.split_at_mut(s);
+            let (grad, rest) = rest.split_at_mut(s);
+            for i in 0..s {
+                d[i] = x[i] - p.xbar[i];
+            }
+            // grad = Λδ + η; cost = c + ηᵀδ + ½δᵀΛδ.
+            let mut quad = 0.0;
+            for i in 0..s {
+                let row = &p.information[i * s..(i + 1) * s];
+                let ld: f64 = row.iter().zip(d.iter()).map(|(a, b)| a * b).sum();
+                quad += d[i] * ld;
+                grad[i] = ld + p.eta[i];
+            }
+            let lin: f64 = p.eta.iter().zip(d.iter()).map(|(a, b)| a * b).sum();
+            cost += p.constant + lin + 0.5 * quad;
+            cost_first += p.constant + lin + 0.5 * quad;
+            if linearize {
+                // In reduced coordinates δ₀ = p₀ + N₀y: H += N₀ᵀΛN₀, g += N₀ᵀ(grad + Λp₀).
+                let red = &self.hard[0].reduction;
+                let dim = red.dim;
+                let ln = &mut rest[..s * dim];
+                // ΛN₀ over N₀'s nonzeros: its first q columns on the rows `free`, then
+                // one unit column per untouched unknown (each sum over rows in order).
+                let (free, untouched) = red.structure();
+                let q = dim - untouched.len();
+                for i in 0..s {
+                    let row = &p.information[i * s..(i + 1) * s];
+                    grad[i] += row
+                        .iter()
+                        .zip(&red.particular)
+                        .map(|(a, b)| a * b)
+                        .sum::<f64>();
+                    let out = &mut ln[i * dim..(i + 1) * dim];
+                    for (c, o) in out[..q].iter_mut().enumerate() {
+                        *o = free
+                            .iter()
+                            .fold(0.0, |acc, &k| acc + row[k] * red.free_row(k)[c]);
+                    }
+                    for (o, &k) in out[q..].iter_mut().zip(untouched) {
+                        *o = 0.0 + row[k];
+                    }
+                }
+                let h0 = self.h.diag_mut(0);
+                for k in 0..s {
+                    let (start, nrow) = red.row(k);
+                    let lrow = &ln[k * dim..(k + 1) * dim];
+                    for (a, &na) in nrow.iter().enumerate() {
+                        let a = start + a;
+                        if na == 0.0 {
+                            continue;
+                        }
+                        for (o, lv) in h0[a * dim..(a + 1) * dim].iter_mut().zip(lrow) {
+                            *o += na * lv;
+                        }
+                        self.g[a] += na * grad[k];
+                    }
+                }
+            }
+        }
+
+        if !cost.is_finite() {
+            return Err(Error::Singular("the cost is not finite".into()));
+        }
+        self.cost_first = cost_first;
+        Ok(cost)
+    }
+}

@@ -1,0 +1,431 @@
+//! What a step leaves as it leaves a fixed-lag window: the marginal (Schur) or
+//! conditional prior on the next step, and its projection on the tangent space.
+
+use super::*;
+
+/// A Gaussian prior on one step's block left by marginalization, in information
+/// form: c + ηᵀδ + ½ δᵀΛδ with δ = x − x̄. With the hard equations eliminated
+/// exactly, Λ holds only soft information (no 1/σ_hard² next to 1/σ_soft²), so the
+/// information form loses nothing that a square-root form would keep.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinearPrior {
+    /// Row-major s × s.
+    pub information: Vec<f64>,
+    pub eta: Vec<f64>,
+    /// The cost at δ = 0 (what the marginalized factors leave behind).
+    pub constant: f64,
+    pub xbar: Vec<f64>,
+}
+
+/// What a window solve that converged on a small step leaves for marginalizing its
+/// first block.
+#[derive(Clone, Copy)]
+pub(super) struct LastSolve {
+    pub(super) k0: usize,
+    pub(super) k1: usize,
+}
+
+/// Copies a rows × cols matrix stored with row stride cols into `dst` with row
+/// The prior on block k0 + 1 with block k0 held at its estimate: H₁₁ and g₁ of the
+/// 2-block system in the scratch (see [`WindowSolver::schur`]), and the factors' cost.
+pub(super) fn conditional_prior(
+    scratch: &[f64],
+    s: usize,
+    cost: f64,
+    values: &[f64],
+    k0: usize,
+) -> Result<LinearPrior> {
+    let ss = s * s;
+    let h11 = &scratch[2 * ss..3 * ss];
+    let g1 = &scratch[3 * ss + s..3 * ss + 2 * s];
+    let mut information = vec![0.0; ss];
+    for i in 0..s {
+        for j in 0..=i {
+            let v = 0.5 * (h11[i * s + j] + h11[j * s + i]);
+            information[i * s + j] = v;
+            information[j * s + i] = v;
+        }
+    }
+    if !information.iter().chain(g1).all(|v| v.is_finite()) {
+        return Err(Error::Singular(format!(
+            "conditioning on step {k0}: non-finite values"
+        )));
+    }
+    Ok(LinearPrior {
+        information,
+        eta: g1.to_vec(),
+        constant: cost,
+        xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),
+    })
+}
+
+/// stride `ld`.
+pub(super) fn restride(src: &[f64], rows: usize, cols: usize, dst: &mut [f64], ld: usize) {
+    for r in 0..rows {
+        dst[r * ld..r * ld + cols].copy_from_slice(&src[r * cols..(r + 1) * cols]);
+    }
+}
+
+impl WindowSolver {
+    /// Restricts a prior on step k to the tangent space of k's hard equations: with
+    /// x̃ = x_k + p̄ on their linearization and P = N̄N̄ᵀ the projector onto its null
+    /// space, the prior becomes Q(x̃) + (P∇Q(x̃))ᵀ(x − x̃) + ½(x − x̃)ᵀPΛP(x − x̃).
+    ///
+    /// On the constraint manifold the two agree to second order but for one term:
+    /// the prior's pull across the manifold (the conflict between the integrated
+    /// motion and the constraints) times the manifold's curvature. Where the prior
+    /// knows little along the motion (its information there decays over a run) that
+    /// term dominates and has the wrong sign on the concave side: the window's cost
+    /// gets two minima on either side of the motion, a phase jump between them, and
+    /// Gauss-Newton stalls between them (docs/dc-stall.md). A Gaussian on the
+    /// manifold is a Gaussian in its tangent coordinates; this is that Gaussian.
+    pub fn project_prior(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k: usize,
+        prior: &mut LinearPrior,
+    ) -> Result<()> {
+        let s = self.s;
+        self.collect_instances(graph, k, k + 1, Scope::Window);
+        self.hard_block(graph, values, 0, HardPass::Linearize)?;
+        // A one-step window solve of step k that follows finds it reduced.
+        self.hard_cache = Some(k);
+        let block = &mut self.hard[0];
+        if block.rows == 0 {
+            return Ok(());
+        }
+        let red = &block.reduction;
+        let d = red.dim;
+        let x = &values[k * s..(k + 1) * s];
+        let (delta, rest) = self.scratch.split_at_mut(s);
+        let (grad, rest) = rest.split_at_mut(s);
+        let (gt, rest) = rest.split_at_mut(s);
+        let (ln, rest) = rest.split_at_mut(s * s);
+        let (reduced, rest) = rest.split_at_mut(s * s);
+        let nr = &mut rest[..s * s];
+        // δ = x̃ − x̄, ∇Q(x̃) = η + Λδ and Q(x̃).
+        let (mut lin, mut quad) = (0.0, 0.0);
+        for i in 0..s {
+            delta[i] = x[i] + red.particular[i] - prior.xbar[i];
+        }
+        for i in 0..s {
+            let row = &prior.information[i * s..(i + 1) * s];
+            let ld: f64 = row.iter().zip(delta.iter()).map(|(a, b)| a * b).sum();
+            grad[i] = prior.eta[i] + ld;
+            quad += delta[i] * ld;
+            lin += prior.eta[i] * delta[i];
+        }
+        let constant = prior.constant + lin + 0.5 * quad;
+        // N̄'s structure: columns 0..q dense on the rows `free`, column q + u the unit
+        // vector of `untouched[u]`, rows of fixed unknowns 0.
+        let (free, untouched) = red.structure();
+        let q = d - untouched.len();
+        // ΛN̄ (s × d).
+        for i in 0..s {
+            let row = &prior.information[i * s..(i + 1) * s];
+            let out = &mut ln[i * d..(i + 1) * d];
+            out[..q].fill(0.0);
+            for &j in free {
+                let lij = row[j];
+                for (o, b) in out[..q].iter_mut().zip(red.free_row(j)) {
+                    *o += lij * b;
+                }
+            }
+            for (o, &j) in out[q..].iter_mut().zip(untouched) {
+                *o = row[j];
+            }
+        }
+        // N̄ᵀΛN̄ (d × d) and N̄ᵀ∇Q.
+        reduced[..q * d].fill(0.0);
+        gt[..q].fill(0.0);
+        for &i in free {
+            let li = &ln[i * d..(i + 1) * d];
+            for (a, &b) in red.free_row(i).iter().enumerate() {
+                gt[a] += b * grad[i];
+                for (o, l) in reduced[a * d..(a + 1) * d].iter_mut().zip(li) {
+                    *o += b * l;
+                }
+            }
+        }
+        for (u, &i) in untouched.iter().enumerate() {
+            let a = q + u;
+            gt[a] = grad[i];
+            reduced[a * d..(a + 1) * d].copy_from_slice(&ln[i * d..(i + 1) * d]);
+        }
+        // Back to full coordinates: R = N̄(N̄ᵀΛN̄) (s × d), PΛP = R N̄ᵀ, P∇Q = N̄(N̄ᵀ∇Q).
+        nr[..s * d].fill(0.0);
+        prior.eta.fill(0.0);
+        for &i in free {
+            let out = &mut nr[i * d..(i + 1) * d];
+            for (a, &b) in red.free_row(i).iter().enumerate() {
+                prior.eta[i] += b * gt[a];
+                for (o, r) in out.iter_mut().zip(&reduced[a * d..(a + 1) * d]) {
+                    *o += b * r;
+                }
+            }
+        }
+        for (u, &i) in untouched.iter().enumerate() {
+            let a = q + u;
+            prior.eta[i] = gt[a];
+            nr[i * d..(i + 1) * d].copy_from_slice(&reduced[a * d..(a + 1) * d]);
+        }
+        prior.information.fill(0.0);
+        for i in 0..s {
+            let row = &nr[i * d..(i + 1) * d];
+            let out = &mut prior.information[i * s..(i + 1) * s];
+            for &j in free {
+                out[j] = row[..q]
+                    .iter()
+                    .zip(red.free_row(j))
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>();
+            }
+            for (u, &j) in untouched.iter().enumerate() {
+                out[j] = row[q + u];
+            }
+        }
+        // Exactly symmetric (the two triangles summed in different orders).
+        for i in 0..s {
+            for j in 0..i {
+                let v = 0.5 * (prior.information[i * s + j] + prior.information[j * s + i]);
+                prior.information[i * s + j] = v;
+                prior.information[j * s + i] = v;
+            }
+            prior.xbar[i] = x[i] + red.particular[i];
+        }
+        prior.constant = constant;
+        Ok(())
+    }
+
+    /// Marginalizes step k0 (with `prior` on it, if any) into a prior on step k0+1:
+    /// the factors touching k0 are linearized at `values`, k0's hard equations fix
+    /// δ₀ = p₀ + N₀y₀, and y₀ is eliminated from the reduced normal equations by the
+    /// Schur complement Λ = H₁₁ − H₁₀H₀₀⁻¹H₀₁, η = g₁ − H₁₀H₀₀⁻¹g₀. Block k0+1 carries
+    /// no hard equation in this linearization, so its coordinates are the full ones.
+    pub fn marginalize(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        prior: Option<&LinearPrior>,
+    ) -> Result<LinearPrior> {
+        let s = self.s;
+        if let Some(last) = self.last.take() {
+            if last.k0 == k0 {
+                return self.marginalize_last(graph, values, k0, last.k1);
+            }
+        }
+        let cost = self.evaluate(graph, values, k0, k0 + 2, prior, Scope::Oldest, true)?;
+        let d0 = self.h.dim(0);
+        debug_assert_eq!(self.h.dim(1), s);
+        // H₀₀, H₁₀ (block 1 rows × block 0 columns), H₁₁, g₀, g₁ into the scratch.
+        let ss = s * s;
+        let (h00, rest) = self.scratch.split_at_mut(ss);
+        let (h10, rest) = rest.split_at_mut(ss);
+        let (h11, rest) = rest.split_at_mut(ss);
+        let (g01, _) = rest.split_at_mut(2 * s);
+        restride(self.h.diag(0), d0, d0, h00, s);
+        restride(self.h.lower(1), s, d0, h10, s);
+        restride(self.h.diag(1), s, s, h11, s);
+        g01[..s].copy_from_slice(&self.g[..s]);
+        g01[s..].copy_from_slice(&self.g[s..2 * s]);
+        self.schur(k0, d0, cost, values)
+    }
+
+    /// The Schur complement of block 0 in the 2-block system held in the scratch
+    /// (H₀₀ d0 × d0, H₁₀ s × d0, H₁₁ s × s, all with stride s; g₀, g₁): the prior on
+    /// block k0 + 1, whose values are x̄.
+    pub(super) fn schur(
+        &mut self,
+        k0: usize,
+        d0: usize,
+        cost: f64,
+        values: &[f64],
+    ) -> Result<LinearPrior> {
+        let s = self.s;
+        let ss = s * s;
+        if self.past_conditioned() {
+            return conditional_prior(&self.scratch, s, cost, values, k0);
+        }
+        let (h00, rest) = self.scratch.split_at_mut(ss);
+        let (h10, rest) = rest.split_at_mut(ss);
+        let (h11, rest) = rest.split_at_mut(ss);
+        let (g01, rest) = rest.split_at_mut(2 * s);
+        let (w, rest) = rest.split_at_mut(s);
+        let (y, rest) = rest.split_at_mut(ss);
+        let acc = &mut rest[..s];
+        // L₀ = chol(H₀₀) in place; Y = L₀⁻¹H₀₁ (d0 × s, row-major; row j of h10 is
+        // column j of H₀₁); w = L₀⁻¹g₀.
+        crate::linalg::dense::cholesky_strided(h00, d0, s).map_err(|_| {
+            Error::Singular(format!(
+                "marginalizing step {k0}: its soft factors leave a direction undetermined"
+            ))
+        })?;
+        // Forward substitution a whole row of Y at a time (the same sums, in the same
+        // order, as one column at a time, but along contiguous rows).
+        for a in 0..d0 {
+            acc.fill(0.0);
+            let (done, row) = y.split_at_mut(a * s);
+            for (l, yk) in h00[a * s..a * s + a].iter().zip(done.chunks_exact(s)) {
+                for (c, v) in acc.iter_mut().zip(yk) {
+                    *c += l * v;
+                }
+            }
+            let lii = h00[a * s + a];
+            for (j, out) in row[..s].iter_mut().enumerate() {
+                *out = (h10[j * s + a] - acc[j]) / lii;
+            }
+        }
+        w[..d0].copy_from_slice(&g01[..d0]);
+        crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut w[..d0]);
+        // Λ = H₁₁ − YᵀY, η = g₁ − Yᵀw. YᵀY is summed over the rows of Y in order, one
+        // triangle (Λ is symmetric, H₁₁ and YᵀY to the bit), then mirrored.
+        let mut information = vec![0.0; ss];
+        let mut eta = vec![0.0; s];
+        for a in 0..d0 {
+            let ya = &y[a * s..(a + 1) * s];
+            for (i, &yi) in ya.iter().enumerate() {
+                for (o, yj) in information[i * s..=i * s + i].iter_mut().zip(ya) {
+                    *o += yi * yj;
+                }
+                eta[i] += yi * w[a];
+            }
+        }
+        for i in 0..s {
+            for j in 0..=i {
+                let v = h11[i * s + j] - information[i * s + j];
+                information[i * s + j] = v;
+                information[j * s + i] = v;
+            }
+            eta[i] = g01[s + i] - eta[i];
+        }
+        // ≥ 0 in exact arithmetic (the least value of a sum of squares); round-off
+        // near singular configurations can push it below.
+        let constant = (cost - 0.5 * w[..d0].iter().map(|v| v * v).sum::<f64>()).max(0.0);
+        if !information.iter().chain(&eta).all(|v| v.is_finite()) {
+            return Err(Error::Singular(format!(
+                "marginalizing step {k0}: non-finite values"
+            )));
+        }
+        Ok(LinearPrior {
+            information,
+            eta,
+            constant,
+            xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),
+        })
+    }
+
+    /// Marginalization from the last window solve's linearization of its first block
+    /// (it converged on a step below the tolerance, so that linearization is the one
+    /// at the optimum up to O(tolerance)); only the factors joining k0 to k0 + 1 are
+    /// evaluated again, for their columns on k0 + 1 in full coordinates.
+    pub(super) fn marginalize_last(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        k1: usize,
+    ) -> Result<LinearPrior> {
+        let s = self.s;
+        let ss = s * s;
+        let d0 = self.h.dim(0);
+        let window_holds_next = k1 > k0 + 1;
+        // H₀₀ and g₀ at the optimum: the gradient moves by H δ with the last step.
+        {
+            let (h00, rest) = self.scratch.split_at_mut(ss);
+            let (h10, rest) = rest.split_at_mut(ss);
+            let (h11, rest) = rest.split_at_mut(ss);
+            let g01 = &mut rest[..2 * s];
+            restride(self.h.diag(0), d0, d0, h00, s);
+            h10.fill(0.0);
+            h11.fill(0.0);
+            g01.fill(0.0);
+            for a in 0..d0 {
+                g01[a] = self.g[a] + self.hd[a];
+            }
+        }
+        let mut cost = self.cost_first;
+        // The factors joining k0 and k0 + 1.
+        for index in 0..graph.step_factors.len() {
+            let factor = graph.step_factors[index].as_ref();
+            let keys = factor.keys();
+            if is_hard(factor) || !keys.iter().any(|k| k.lag == 1) {
+                continue;
+            }
+            let inst = Instance {
+                initial: false,
+                index,
+                step: k0 + 1,
+            };
+            self.evaluate_instance(graph, values, inst, true)?;
+            let buf = &mut self.step_buffers[index];
+            let dim = factor.dim();
+            buf.whiten(factor, true);
+            if !window_holds_next {
+                for r in &buf.r {
+                    cost += 0.5 * r * r;
+                }
+            }
+            // Rows: J₀N₀ (dim × d0) into reduced[1], J₁ full (dim × s) into reduced[0].
+            let red = &self.hard[0].reduction;
+            self.reduced[0][..dim * s].fill(0.0);
+            self.reduced[1][..dim * s].fill(0.0);
+            for (a, k) in keys.iter().enumerate() {
+                let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                let diagonal = factor.diagonal_jacobian(a);
+                for r in 0..dim {
+                    let columns = if diagonal { r..r + 1 } else { 0..d };
+                    for j in columns {
+                        let v = buf.jac[a][r * d + j];
+                        if v == 0.0 {
+                            continue;
+                        }
+                        if k.lag == 0 {
+                            self.reduced[0][r * s + off + j] += v;
+                        } else {
+                            let (start, nrow) = red.row(off + j);
+                            let out = &mut self.reduced[1][r * s + start..r * s + d0];
+                            for (o, nv) in out.iter_mut().zip(nrow) {
+                                *o += v * nv;
+                            }
+                        }
+                    }
+                }
+            }
+            let (h00, rest) = self.scratch.split_at_mut(ss);
+            let (h10, rest) = rest.split_at_mut(ss);
+            let (h11, rest) = rest.split_at_mut(ss);
+            let g01 = &mut rest[..2 * s];
+            for r in 0..dim {
+                let j1 = &self.reduced[0][r * s..(r + 1) * s];
+                let j0 = &self.reduced[1][r * s..r * s + d0];
+                let rr = buf.r[r];
+                // J₁'s rows are sparse (integrators: two entries): its products over
+                // the nonzeros only.
+                self.nonzero.clear();
+                self.nonzero
+                    .extend((0..s).filter(|&i| j1[i] != 0.0).map(|i| (i, j1[i])));
+                for &(i, vi) in &self.nonzero {
+                    for (o, v) in h10[i * s..i * s + d0].iter_mut().zip(j0) {
+                        *o += vi * v;
+                    }
+                    let out = &mut h11[i * s..(i + 1) * s];
+                    for &(j, vj) in &self.nonzero {
+                        out[j] += vi * vj;
+                    }
+                    g01[s + i] += vi * rr;
+                }
+                if !window_holds_next {
+                    for (a, &va) in j0.iter().enumerate() {
+                        for (o, vb) in h00[a * s..a * s + d0].iter_mut().zip(j0) {
+                            *o += va * vb;
+                        }
+                        g01[a] += va * rr;
+                    }
+                }
+            }
+        }
+        self.schur(k0, d0, cost, values)
+    }
+}

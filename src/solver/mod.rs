@@ -1,0 +1,281 @@
+//! Sparse nonlinear least squares over a window of time steps of a [`ChainGraph`]:
+//! Gauss-Newton or Levenberg-Marquardt on the block-tridiagonal normal equations, and
+//! the marginalization that turns the oldest step of a window into a Gaussian prior on
+//! the next one (the Schur complement of the linearized system).
+//!
+//! Hard factors ([`Noise::Hard`]) are not weighted: each iteration linearizes them per
+//! step, C_k δ_k = −c_k, and solves for δ_k = p_k + N_k y_k ([`NullSpace`]), so only
+//! the soft factors enter the normal equations in y. Weighting them by 1/σ² with a tiny
+//! σ instead squares a condition number that is already large: on a long four-bar
+//! run the soft information along the motion decays to ~1e-5 while 1/σ² = 1e12, and
+//! the window solves stall.
+
+use crate::error::{Error, Result};
+use crate::graph::{ChainGraph, Factor, Noise, Workspace};
+use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
+use crate::linalg::dense::Summation;
+use crate::linalg::nullspace::NullSpace;
+
+mod iterate;
+mod linearize;
+mod marginal;
+mod newton;
+mod settings;
+mod structure;
+#[cfg(test)]
+mod tests;
+
+pub use marginal::LinearPrior;
+pub use settings::{Method, Past, Settings, SolveReport, Termination};
+
+use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
+use marginal::LastSolve;
+use newton::NewtonBuffers;
+use settings::LEAST_SQUARES_CUTOFF;
+use structure::{factor_of, is_hard, Instance, Scope};
+/// A reusable solver for windows of up to `capacity` steps; it allocates once.
+pub struct WindowSolver {
+    settings: Settings,
+    s: usize,
+    h: BlockTridiagonal,
+    chol: BandedCholesky,
+    g: Vec<f64>,
+    delta: Vec<f64>,
+    damping: Vec<f64>,
+    saved: Vec<f64>,
+    hd: Vec<f64>,
+    step_buffers: Vec<FactorBuffers>,
+    initial_buffers: Vec<FactorBuffers>,
+    hard: Vec<HardBlock>,
+    /// A factor's Jacobian in reduced coordinates, per block it touches (lag 0, lag 1).
+    reduced: [Vec<f64>; 2],
+    /// A factor's residual linearized at x + p.
+    shifted: Vec<f64>,
+    /// Per row of `reduced`, the columns outside which it is 0.
+    reduced_spans: [Vec<(usize, usize)>; 2],
+    instances: Vec<Instance>,
+    /// The last full step δ = p + N y of the window (for `backtrack`).
+    direction: Vec<f64>,
+    /// The instances in step order (indices into `instances`), and where each block's
+    /// begin in it (one more entry than blocks).
+    by_step: Vec<usize>,
+    block_start: Vec<usize>,
+    next_slot: Vec<usize>,
+    /// Per instance, the cost of a hard one (summed in `instances` order).
+    hard_cost: Vec<f64>,
+    /// One step's hard equations: C row-major rows × s, and −c.
+    hard_jac: Vec<f64>,
+    hard_rhs: Vec<f64>,
+    /// Round-off in each hard residual (see [`NullSpace::set_noise`]).
+    hard_noise: Vec<f64>,
+    /// Evaluate step by step (see `optimize_for_batch`).
+    step_major: bool,
+    /// Directions and products of [`Factor::evaluate_along`]: per key size × c, and
+    /// dim × c (c ≤ 1 + 2s); empty when no factor evaluates along directions.
+    along_dirs: Vec<f64>,
+    along_out: Vec<f64>,
+    /// In a conditional solve the step before the window is held fixed.
+    conditional: bool,
+    /// The whitened, reduced rows [J N | r + J p] of a one-block window without a
+    /// prior, kept beside H for the least-squares step where H cannot be factored or
+    /// is conditioned past `Settings::normal_equations_limit` (see
+    /// `least_squares_step`); row-major, `d + 1` columns.
+    rows: Vec<f64>,
+    rows_width: Option<usize>,
+    /// Set when a window solve ended on a small step: its linearization of the
+    /// oldest block is still at hand (see `marginalize`).
+    last: Option<LastSolve>,
+    /// Cost of the factors touching the first block, from the last evaluation.
+    cost_first: f64,
+    correction: Vec<f64>,
+    /// The nonzeros of a Jacobian row (per block it touches, for `accumulate`).
+    nonzero: Vec<(usize, f64)>,
+    nonzeros: [Vec<(usize, f64)>; 2],
+    ws: Workspace,
+    scratch: Vec<f64>,
+    newton: NewtonBuffers,
+    /// Step whose hard equations `project_prior` linearized and reduced in block 0 at
+    /// the current values (their costs in `hard_cost`).
+    hard_cache: Option<usize>,
+}
+
+impl WindowSolver {
+    pub fn new(graph: &ChainGraph, capacity: usize, settings: Settings) -> Result<Self> {
+        settings.validate()?;
+        let mut max_dim = 0;
+        let (mut hard_step, mut hard_initial) = (0, 0);
+        for (initial, list) in [(false, &graph.step_factors), (true, &graph.initial_factors)] {
+            for f in list {
+                f.noise()
+                    .validate(f.dim())
+                    .map_err(|e| Error::InvalidArgument(format!("noise of {}: {e}", f.name())))?;
+                for k in f.keys() {
+                    if graph.layout.slot(k.kind).is_none() || k.lag > 1 {
+                        return Err(Error::InvalidArgument(format!(
+                            "factor {} touches {}(lag {}), which the graph does not hold",
+                            f.name(),
+                            k.kind.symbol(),
+                            k.lag
+                        )));
+                    }
+                }
+                max_dim = max_dim.max(f.dim());
+                if is_hard(f.as_ref()) {
+                    if f.keys().iter().any(|k| k.lag > 0) {
+                        return Err(Error::InvalidArgument(format!(
+                            "hard factor {} spans two steps; hard factors must stay within one",
+                            f.name()
+                        )));
+                    }
+                    if initial {
+                        hard_initial += f.dim();
+                    } else {
+                        hard_step += f.dim();
+                    }
+                }
+            }
+        }
+        let s = graph.layout.size();
+        let capacity = capacity.max(2);
+        let n = capacity * s;
+        let max_hard = hard_step + hard_initial;
+        // Room for the factors that linearize along directions.
+        let (mut along_keys, mut along_dim) = (0, 0);
+        for f in graph.step_factors.iter().chain(&graph.initial_factors) {
+            if f.evaluates_along() {
+                let sizes: usize = f
+                    .keys()
+                    .iter()
+                    .map(|k| graph.layout.slot(k.kind).map_or(0, |(_, d)| d))
+                    .sum();
+                along_keys = along_keys.max(sizes);
+                along_dim = along_dim.max(f.dim());
+            }
+        }
+        let mut solver = WindowSolver {
+            settings,
+            s,
+            h: BlockTridiagonal::new(capacity, s),
+            chol: BandedCholesky::new(capacity, s),
+            g: vec![0.0; n],
+            delta: vec![0.0; n],
+            damping: vec![0.0; n],
+            saved: vec![0.0; n],
+            direction: vec![0.0; n],
+            hd: vec![0.0; n],
+            step_buffers: graph
+                .step_factors
+                .iter()
+                .map(|f| FactorBuffers::new(graph, f.as_ref()))
+                .collect(),
+            initial_buffers: graph
+                .initial_factors
+                .iter()
+                .map(|f| FactorBuffers::new(graph, f.as_ref()))
+                .collect(),
+            hard: (0..capacity)
+                .map(|_| HardBlock {
+                    rows: 0,
+                    at_round_off: false,
+                    reduction: NullSpace::new(s, max_hard),
+                })
+                .collect(),
+            by_step: Vec::with_capacity(
+                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+            ),
+            block_start: Vec::with_capacity(capacity + 1),
+            next_slot: Vec::with_capacity(capacity),
+            hard_cost: Vec::with_capacity(
+                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+            ),
+            hard_jac: vec![0.0; max_hard * s],
+            hard_rhs: vec![0.0; max_hard],
+            hard_noise: vec![0.0; max_hard],
+            step_major: false,
+            along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
+            along_out: vec![0.0; along_dim * (1 + 2 * s)],
+            reduced: [vec![0.0; max_dim.max(s) * s], vec![0.0; max_dim.max(s) * s]],
+            shifted: vec![0.0; max_dim.max(s)],
+            reduced_spans: [vec![(0, 0); max_dim.max(s)], vec![(0, 0); max_dim.max(s)]],
+            instances: Vec::with_capacity(
+                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+            ),
+            conditional: false,
+            rows: Vec::new(),
+            rows_width: None,
+            last: None,
+            cost_first: 0.0,
+            correction: vec![0.0; s],
+            nonzero: Vec::with_capacity(s),
+            nonzeros: [Vec::with_capacity(s), Vec::with_capacity(s)],
+            ws: graph.workspace(),
+            scratch: vec![0.0; 4 * s * s + 4 * s],
+            hard_cache: None,
+            newton: NewtonBuffers {
+                lambda: vec![0.0; capacity * max_hard],
+                grad: vec![0.0; n],
+                plus: vec![0.0; n],
+                minus: vec![0.0; n],
+                scale: vec![0.0; n],
+                rows: vec![0; capacity],
+                column: vec![0.0; s],
+                max_hard,
+            },
+        };
+        solver.segment_by_order(graph);
+        Ok(solver)
+    }
+
+    /// Sets the solver up for long batch horizons (inverse dynamics):
+    /// - linearizations go step by step (a step's hard equations, then its factors
+    ///   into its blocks of H) instead of factor by factor over the whole horizon, so
+    ///   each block of H is filled while it is in cache;
+    /// - dot products in the reductions, the banded factorization and its solves are
+    ///   summed in four lanes ([`Summation::Lanes`]).
+    ///
+    /// The sums run in another order, so results agree with the default to the
+    /// solve's tolerance, not to the bit. Off by default, so that forward runs keep
+    /// theirs.
+    pub fn optimize_for_batch(&mut self) {
+        for block in &mut self.hard {
+            block.reduction.set_summation(Summation::Lanes);
+        }
+        self.h.set_summation(Summation::Lanes);
+        self.chol.set_summation(Summation::Lanes);
+        self.step_major = true;
+    }
+
+    /// Reduces each step's hard equations segment by segment, positions first, then
+    /// velocities, accelerations, forces ([`VarKind::order`],
+    /// [`NullSpace::set_segments`]): each equation's pivot is then measured against
+    /// the equation on its own unknowns (an acceleration row's coefficients on q and
+    /// q̇ grow like q̇², its pivot on q̈ does not), the basis is exactly 0 on what the
+    /// earlier segments fix, and block-triangular equations cost a fraction of one
+    /// QR of them all.
+    ///
+    /// [`VarKind::order`]: crate::graph::VarKind::order
+    fn segment_by_order(&mut self, graph: &ChainGraph) {
+        let mut segment = vec![0; self.s];
+        for (kind, d) in graph.layout.kinds() {
+            let (off, _) = graph.layout.slot(kind).expect("a kind of the layout");
+            segment[off..off + d].fill(kind.order());
+        }
+        for block in &mut self.hard {
+            block.reduction.set_segments(&segment);
+        }
+    }
+
+    /// Whether marginalization conditions on the leaving step (see [`Past`]).
+    fn past_conditioned(&self) -> bool {
+        self.settings.past == Past::Conditioned
+    }
+
+    /// From now on, marginalization conditions on the leaving step.
+    pub fn condition_on_past(&mut self) {
+        self.settings.past = Past::Conditioned;
+    }
+
+    pub fn settings(&self) -> &Settings {
+        &self.settings
+    }
+}

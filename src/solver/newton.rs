@@ -1,0 +1,270 @@
+//! The exact (Newton) model: the Lagrangian's gradient, its reduced Hessian by
+//! central differences, and the least-squares step of a one-block window.
+
+use super::*;
+
+/// Buffers of the exact (Newton) model: the Lagrangian's gradient in full
+/// coordinates at the point and at its perturbations, each block's multipliers, and
+/// the Gauss-Newton diagonal that scales LM's damping in its place.
+pub(super) struct NewtonBuffers {
+    pub(super) lambda: Vec<f64>,
+    pub(super) grad: Vec<f64>,
+    pub(super) plus: Vec<f64>,
+    pub(super) minus: Vec<f64>,
+    pub(super) scale: Vec<f64>,
+    /// Per block, the hard rows seen so far; one reduced column.
+    pub(super) rows: Vec<usize>,
+    pub(super) column: Vec<f64>,
+    pub(super) max_hard: usize,
+}
+
+impl WindowSolver {
+    /// The gradient of the Lagrangian of the window's problem in full coordinates,
+    /// Σ Jᵢᵀrᵢ over the soft factors (whitened), the prior's Λ(x − x̄) + η, and
+    /// Σ C_bᵀλ_b over each block's hard equations (rows in `hard_block` order) with the
+    /// multipliers in `self.newton.lambda`; into `out` (blocks × s).
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn lagrangian_gradient(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        k1: usize,
+        prior: Option<&LinearPrior>,
+        out: &mut [f64],
+    ) -> Result<()> {
+        let s = self.s;
+        let blocks = k1 - k0;
+        out[..blocks * s].fill(0.0);
+        self.newton.rows[..blocks].fill(0);
+        for i in 0..self.instances.len() {
+            let inst = self.instances[i];
+            let factor = factor_of(graph, inst);
+            self.evaluate_instance(graph, values, inst, true)?;
+            let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+            let hard = is_hard(factor);
+            let dim = factor.dim();
+            // What multiplies each row: its whitened residual, or its multiplier.
+            let weights: &[f64] = if hard {
+                let b = inst.step - k0;
+                let row0 = self.newton.rows[b];
+                self.newton.rows[b] += dim;
+                let base = b * self.newton.max_hard + row0;
+                &self.newton.lambda[base..base + dim]
+            } else {
+                buf.whiten(factor, true);
+                &buf.r
+            };
+            for (a, k) in factor.keys().iter().enumerate() {
+                if inst.step < k0 + k.lag {
+                    continue; // a variable held fixed before the window
+                }
+                let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                let base = (inst.step - k.lag - k0) * s + off;
+                let jac = &buf.jac[a];
+                let diagonal = factor.diagonal_jacobian(a);
+                for (r, &w) in weights.iter().enumerate() {
+                    let columns = if diagonal { r..r + 1 } else { 0..d };
+                    for j in columns {
+                        out[base + j] += jac[r * d + j] * w;
+                    }
+                }
+            }
+        }
+        if let Some(p) = prior {
+            let x = &values[k0 * s..(k0 + 1) * s];
+            for i in 0..s {
+                let row = &p.information[i * s..(i + 1) * s];
+                let ld: f64 = (0..s).map(|j| row[j] * (x[j] - p.xbar[j])).sum();
+                out[i] += ld + p.eta[i];
+            }
+        }
+        Ok(())
+    }
+
+    /// Replaces the Gauss-Newton matrix in H by the reduced Hessian of the Lagrangian,
+    /// Nᵀ(JᵀJ + Σ rᵢ∇²rᵢ + Σ λⱼ∇²cⱼ)N per block pair, by central differences of the
+    /// Lagrangian's exact gradient along the null-space columns. Blocks three apart
+    /// share no factor, so one perturbation serves every third block (3·d gradients
+    /// per difference side, whatever the window's length). The gradient g is kept.
+    ///
+    /// Gauss-Newton leaves the second-order terms out, which is right when they are
+    /// small against JᵀJ. Along the motion of a dependent-coordinate graph they are
+    /// not: that direction is informed only by the marginal prior, whose information
+    /// decays over a run, while the conflict between the integrated motion and the
+    /// constraints keeps the residuals finite; Gauss-Newton then converges linearly
+    /// with a rate near 1, or alternates (docs/dc-stall.md).
+    pub(super) fn exact_hessian(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        k0: usize,
+        k1: usize,
+        prior: Option<&LinearPrior>,
+    ) -> Result<()> {
+        let s = self.s;
+        let blocks = k1 - k0;
+        let n = blocks * s;
+        self.collect_instances(graph, k0, k1, Scope::Window);
+        // Multipliers from the soft gradient at the point.
+        let mut grad = std::mem::take(&mut self.newton.grad);
+        self.newton.lambda.fill(0.0);
+        let result = self.lagrangian_gradient(graph, values, k0, k1, prior, &mut grad);
+        if let Err(e) = result {
+            self.newton.grad = grad;
+            return Err(e);
+        }
+        let mh = self.newton.max_hard;
+        for b in 0..blocks {
+            let red = &mut self.hard[b].reduction;
+            red.multipliers(
+                &grad[b * s..(b + 1) * s],
+                &mut self.newton.lambda[b * mh..(b + 1) * mh],
+            );
+        }
+        self.newton.grad = grad;
+        for b in 0..blocks {
+            let (diag, d) = (self.h.diag(b), self.h.dim(b));
+            for r in 0..d {
+                self.newton.scale[b * s + r] = diag[r * d + r];
+            }
+        }
+        let colors = blocks.min(3);
+        let dmax = (0..blocks)
+            .map(|b| self.hard[b].reduction.dim)
+            .max()
+            .unwrap_or(0);
+        self.saved[..n].copy_from_slice(&values[k0 * s..k1 * s]);
+        let (mut plus, mut minus) = (
+            std::mem::take(&mut self.newton.plus),
+            std::mem::take(&mut self.newton.minus),
+        );
+        // ε per block, relative to its largest entry.
+        // ε per direction, relative to the size of the values it moves: a block holds
+        // q, q̇ and q̈ of very different sizes (a 7 mm crank at 6e5 rad/s²), and an ε
+        // taken from the block's largest entry moved the positions by 0.1 m.
+        let step = |red: &NullSpace, j: usize, x: &[f64]| {
+            let along: f64 = (0..x.len())
+                .map(|i| {
+                    let (start, row) = red.row(i);
+                    if j >= start && j < start + row.len() {
+                        row[j - start].abs() * x[i].abs()
+                    } else {
+                        0.0
+                    }
+                })
+                .sum();
+            1e-6 * (1.0 + along)
+        };
+        let mut column = std::mem::take(&mut self.newton.column);
+        let mut result: Result<()> = Ok(());
+        'columns: for color in 0..colors {
+            for j in 0..dmax {
+                for (out, sign) in [(&mut plus, 1.0), (&mut minus, -1.0)] {
+                    let window = &mut values[k0 * s..k1 * s];
+                    window.copy_from_slice(&self.saved[..n]);
+                    for b in (color..blocks).step_by(3) {
+                        let red = &self.hard[b].reduction;
+                        if j >= red.dim {
+                            continue;
+                        }
+                        let x = &mut window[b * s..(b + 1) * s];
+                        let eps = sign * step(red, j, x);
+                        for (i, xi) in x.iter_mut().enumerate() {
+                            let (start, row) = red.row(i);
+                            if j >= start && j < start + row.len() {
+                                *xi += eps * row[j - start];
+                            }
+                        }
+                    }
+                    result = self.lagrangian_gradient(graph, values, k0, k1, prior, out);
+                    if result.is_err() {
+                        break 'columns;
+                    }
+                }
+                // Column j of H_bb and H_{b+1,b} in reduced coordinates for every
+                // perturbed block b.
+                for b in (color..blocks).step_by(3) {
+                    if j >= self.hard[b].reduction.dim {
+                        continue;
+                    }
+                    let h = 2.0 * step(&self.hard[b].reduction, j, &self.saved[b * s..(b + 1) * s]);
+                    // H_bb and H_{b+1,b} both have d_b columns (packed, stride d_b).
+                    let db = self.hard[b].reduction.dim;
+                    for target in [b, b + 1] {
+                        if target >= blocks {
+                            continue;
+                        }
+                        let red = &self.hard[target].reduction;
+                        let col = &mut column[..red.dim];
+                        col.fill(0.0);
+                        for i in 0..s {
+                            let hv = (plus[target * s + i] - minus[target * s + i]) / h;
+                            let (start, row) = red.row(i);
+                            for (c, nv) in col[start..].iter_mut().zip(row) {
+                                *c += nv * hv;
+                            }
+                        }
+                        let block = if target == b {
+                            self.h.diag_mut(target)
+                        } else {
+                            self.h.lower_mut(target)
+                        };
+                        for (a, v) in col.iter().enumerate() {
+                            block[a * db + j] = *v;
+                        }
+                    }
+                }
+            }
+        }
+        self.newton.column = column;
+        values[k0 * s..k1 * s].copy_from_slice(&self.saved[..n]);
+        self.newton.plus = plus;
+        self.newton.minus = minus;
+        result?;
+        // The differences are symmetric only to their error: symmetrize.
+        for b in 0..blocks {
+            let d = self.hard[b].reduction.dim;
+            let diag = self.h.diag_mut(b);
+            for i in 0..d {
+                for j in 0..i {
+                    let v = 0.5 * (diag[i * d + j] + diag[j * d + i]);
+                    diag[i * d + j] = v;
+                    diag[j * d + i] = v;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The Gauss-Newton step of a one-block window from its rows (`rows`), by an SVD
+    /// of the reduced Jacobian itself, into `delta`; false when the rows are not at
+    /// hand or the step is not finite. H = JᵀJ squares J's condition number: a stiff
+    /// force's row next to the integrators' (a light crank against a stiff spring, in
+    /// independent coordinates) makes J's 1e8 into H's 1e16, where the Cholesky factor
+    /// fails although J still determines the step to 8 digits.
+    pub(super) fn least_squares_step(&mut self) -> bool {
+        let Some(d) = self.rows_width else {
+            return false;
+        };
+        let m = self.rows.len() / (d + 1);
+        if d == 0 || m < d {
+            return false;
+        }
+        let a = nalgebra::DMatrix::from_fn(m, d, |i, j| self.rows[i * (d + 1) + j]);
+        let b = nalgebra::DVector::from_fn(m, |i, _| -self.rows[i * (d + 1) + d]);
+        let svd = a.svd(true, true);
+        let Some(&largest) = svd.singular_values.iter().max_by(|x, y| x.total_cmp(y)) else {
+            return false;
+        };
+        let Ok(y) = svd.solve(&b, largest * LEAST_SQUARES_CUTOFF) else {
+            return false;
+        };
+        if !y.iter().all(|v| v.is_finite()) {
+            return false;
+        }
+        self.delta[..self.s].fill(0.0);
+        self.delta[..d].copy_from_slice(y.as_slice());
+        true
+    }
+}

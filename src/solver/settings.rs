@@ -1,0 +1,149 @@
+//! The solver's settings: method, stopping rules and their thresholds, what the
+//! past leaves to a fixed-lag window, and the report of one solve.
+
+use super::*;
+
+/// The nonlinear least-squares method.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Method {
+    GaussNewton,
+    LevenbergMarquardt,
+}
+
+/// Stopping rules. A solve stops when an undamped step satisfies
+/// |δᵢ| ≤ `step_tolerance`·(1 + |xᵢ|) for every component, or restores the hard
+/// factors within that tolerance and either is predicted to lower the cost by less
+/// than 1e-12 of itself or fails to lower it while below 1e-6 relative or predicting
+/// less than 1e-6 of it, or when a damped step below the tolerance fails to lower the
+/// cost (converged: the cost's round-off is reached), after `max_iterations` linear solves (iteration limit), or when the cost
+/// is not finite or LM's damping exceeds 1e16 without progress (diverged).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Settings {
+    pub method: Method,
+    pub max_iterations: usize,
+    pub step_tolerance: f64,
+    /// LM's damping when a step first fails, relative to the diagonal of the normal
+    /// equations (solves start undamped).
+    pub initial_damping: f64,
+    /// The fixed-lag smoother keeps each marginal prior on the tangent space of the
+    /// hard equations of the step it informs ([`WindowSolver::project_prior`]): for
+    /// graphs whose soft factors conflict with their hard ones (dependent coordinates).
+    pub tangent_priors: bool,
+    /// What the step leaving a fixed-lag window leaves to the steps after it.
+    pub past: Past,
+    /// Whether a solve whose Gauss-Newton steps converge linearly (or fail) goes on
+    /// with the exact reduced Hessian ([`WindowSolver::exact_hessian`]). That helps a
+    /// least-squares compromise with a residual (the paper's DC graph), whose
+    /// Gauss-Newton matrix misses second-order terms; a graph with one equation per
+    /// unknown has a zero residual, Gauss-Newton is Newton's method there, and the
+    /// finite-difference Hessian only adds its error (the six-bar press in IC at
+    /// 0.1 ms crawled from t = 0.021 s with it, and reaches 0.116 s without).
+    pub second_order: bool,
+    /// Smallest 1/cond(H) (as the Cholesky factor's pivots bound it) at which a
+    /// one-block window's Gauss-Newton step still comes from the normal equations;
+    /// below it the step is the least-squares solution of J itself, whose condition
+    /// is the square root of H's: a light crank against a stiff spring in
+    /// independent coordinates makes J's 1e8 into H's 1e16, where the Cholesky step
+    /// has no correct digit and the six-bar press's window solves wander for dozens
+    /// of iterations.
+    pub normal_equations_limit: f64,
+}
+
+/// Singular values of a one-block window's reduced Jacobian below this fraction of the
+/// largest are taken as 0 by `least_squares_step` (round-off in J itself).
+pub(super) const LEAST_SQUARES_CUTOFF: f64 = 1e-14;
+
+/// What marginalization leaves of the step that leaves a fixed-lag window.
+///
+/// The integrators are soft, so a marginal prior treats the phase of the motion as an
+/// integrated random walk: its information along the motion falls like k⁻³ over a
+/// run, while the second-order terms of f_dyn's residual grow with the speed (ω²).
+/// Once they exceed it, the one direction the solve must find is the one the cost
+/// barely sees: Gauss-Newton and even Newton converge linearly at rates near 1, and
+/// the window solves stall (a motor-driven slider-crank at 13 rad/s after 2.6 s).
+/// Conditioning on the leaving step, held at its estimate, keeps the integrators'
+/// full information on the next step at every step of a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Past {
+    /// The Schur complement: the exact Gaussian marginal of the linearized system
+    /// (the paper's fixed-lag smoother).
+    Marginalized,
+    /// The factors joining the leaving step to the next, with the leaving step held
+    /// at its estimate (a conditional density: H₁₁ and g₁ without the Schur term).
+    Conditioned,
+    /// Marginalized while the window solves converge; from the first that does not,
+    /// that window is solved again after a conditioned prior, and so is every later
+    /// one, as after a marginal that cannot be formed ([`crate::smoother::fixed_lag`]). Where the marginal prior works it keeps
+    /// its smoothing (dependent coordinates: 1.6× lower RMSE on the chaotic double
+    /// pendulum at 1 ms; identical in independent coordinates, whose graph
+    /// is square).
+    Adaptive,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Settings {
+            method: Method::LevenbergMarquardt,
+            max_iterations: 50,
+            step_tolerance: 1e-8,
+            initial_damping: 1e-4,
+            tangent_priors: false,
+            past: Past::Marginalized,
+            second_order: true,
+            normal_equations_limit: 1e-10,
+        }
+    }
+}
+
+impl Settings {
+    /// Refuses settings that make no sense.
+    pub fn validate(&self) -> Result<()> {
+        if self.max_iterations == 0 {
+            return Err(Error::InvalidArgument(
+                "max_iterations must be at least 1".into(),
+            ));
+        }
+        if !(self.step_tolerance > 0.0 && self.step_tolerance < 1.0) {
+            return Err(Error::InvalidArgument(format!(
+                "step_tolerance must be in (0, 1), got {}",
+                self.step_tolerance
+            )));
+        }
+        if !(self.initial_damping >= 0.0 && self.initial_damping.is_finite()) {
+            return Err(Error::InvalidArgument(format!(
+                "initial_damping must be ≥ 0, got {}",
+                self.initial_damping
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Why a solve stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Termination {
+    Converged,
+    IterationLimit,
+    Diverged,
+}
+
+impl std::fmt::Display for Termination {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Termination::Converged => "converged",
+            Termination::IterationLimit => "iteration limit",
+            Termination::Diverged => "diverged",
+        })
+    }
+}
+
+/// The outcome of one solve.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SolveReport {
+    /// Linear solves performed.
+    pub iterations: usize,
+    pub termination: Termination,
+    /// ½ Σ‖whitened residual‖² at the returned estimate (prior included; hard
+    /// factors weighted by 1/[`Noise::HARD_SIGMA`]).
+    pub cost: f64,
+}

@@ -1,0 +1,181 @@
+#[cfg(test)]
+mod unit {
+    use super::*;
+    use crate::forward::{simulate, Coordinates, ForwardGraph, ForwardOptions};
+    use crate::smoother::Mode;
+    use crate::{Model, Scene};
+    use std::sync::Arc;
+
+    /// The DC four-bar at dt = 10 ms (large residuals, so the second-order terms are
+    /// far from 0) after 0.5 s: its graph, values on the constraint manifold, and the
+    /// prior of a one-step window on step `k`.
+    fn window() -> (ForwardGraph, Vec<f64>, LinearPrior, WindowSolver, usize) {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/fourbar.yaml");
+        let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
+        let opts = ForwardOptions::new(Coordinates::Dependent, 1e-2, 0.5, Mode::FixedLag(1));
+        let (tr, summary) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
+        assert!(summary.failures.is_empty());
+        let fg = ForwardGraph::new(model.clone(), &opts).unwrap();
+        let s = fg.graph.layout.size();
+        let mut values = vec![0.0; tr.len() * s];
+        fg.fill_from_trajectory(&model, &tr, &mut values);
+        let mut solver = WindowSolver::new(&fg.graph, 2, Settings::default()).unwrap();
+        let k = tr.len() - 1;
+        let prior = solver.marginalize(&fg.graph, &values, k - 1, None).unwrap();
+        (fg, values, prior, solver, k)
+    }
+
+    fn cost_on_manifold(
+        solver: &mut WindowSolver,
+        fg: &ForwardGraph,
+        values: &mut [f64],
+        k: usize,
+        prior: &LinearPrior,
+    ) -> f64 {
+        // Projections along the fixed normal space of the linearization: a retraction.
+        for _ in 0..6 {
+            solver.correct(&fg.graph, values, k, k + 1).unwrap();
+        }
+        solver
+            .evaluate(
+                &fg.graph,
+                values,
+                k,
+                k + 1,
+                Some(prior),
+                Scope::Window,
+                false,
+            )
+            .unwrap()
+    }
+
+    #[test]
+    fn exact_hessian_is_the_second_derivative_of_the_cost_on_the_manifold() {
+        let (fg, mut values, prior, mut solver, k) = window();
+        let s = solver.s;
+        let linearize = |solver: &mut WindowSolver, values: &[f64]| {
+            solver
+                .evaluate(
+                    &fg.graph,
+                    values,
+                    k,
+                    k + 1,
+                    Some(&prior),
+                    Scope::Window,
+                    true,
+                )
+                .unwrap();
+        };
+        // Away from the optimum (large residuals): a step along the manifold.
+        linearize(&mut solver, &values);
+        for i in 0..s {
+            let (_, row) = solver.hard[0].reduction.row(i);
+            values[k * s + i] += 0.2 * row.iter().sum::<f64>();
+        }
+        cost_on_manifold(&mut solver, &fg, &mut values, k, &prior);
+        linearize(&mut solver, &values);
+        let gauss_newton = solver.h.diag(0).to_vec();
+        solver
+            .exact_hessian(&fg.graph, &mut values, k, k + 1, Some(&prior))
+            .unwrap();
+        let red = solver.hard[0].reduction.clone();
+        let d = red.dim;
+        let mut missed = 0.0f64;
+        let h: Vec<f64> = solver.h.diag(0)[..d * d].to_vec();
+        let x0 = values.clone();
+        let mut checked = 0;
+        for seed in 0..4 {
+            let v: Vec<f64> = (0..d)
+                .map(|i| ((i * 7 + seed * 3) % 5) as f64 - 2.0)
+                .collect();
+            let vhv: f64 = (0..d)
+                .map(|i| (0..d).map(|j| v[i] * h[i * d + j] * v[j]).sum::<f64>())
+                .sum();
+            let mut at = |t: f64| {
+                values.copy_from_slice(&x0);
+                for i in 0..s {
+                    let (start, row) = red.row(i);
+                    let step: f64 = row.iter().zip(&v[start..]).map(|(a, b)| a * b).sum();
+                    values[k * s + i] += t * step;
+                }
+                cost_on_manifold(&mut solver, &fg, &mut values, k, &prior)
+            };
+            let e = 1e-4;
+            let second = (at(e) - 2.0 * at(0.0) + at(-e)) / (e * e);
+            let gn: f64 = (0..d)
+                .map(|i| {
+                    (0..d)
+                        .map(|j| v[i] * gauss_newton[i * d + j] * v[j])
+                        .sum::<f64>()
+                })
+                .sum();
+            missed = missed.max((second - gn).abs() / vhv.abs().max(1.0));
+            assert!(
+                (second - vhv).abs() <= 1e-4 * vhv.abs().max(1.0),
+                "direction {seed}: second difference {second:e}, vᵀHv {vhv:e}"
+            );
+            checked += 1;
+        }
+        assert_eq!(checked, 4);
+        // What Gauss-Newton leaves out is far above the tolerance here.
+        assert!(missed > 1e-2, "Gauss-Newton off by only {missed:e}");
+    }
+
+    #[test]
+    fn tangent_prior_agrees_with_the_prior_in_value_and_reduced_gradient() {
+        let (fg, values, prior, mut solver, k) = window();
+        let s = solver.s;
+        let mut tangent = prior.clone();
+        solver
+            .project_prior(&fg.graph, &values, k, &mut tangent)
+            .unwrap();
+        let red = solver.hard[0].reduction.clone();
+        let value = |p: &LinearPrior, x: &[f64]| {
+            let dx: Vec<f64> = (0..s).map(|i| x[i] - p.xbar[i]).collect();
+            let quad: f64 = (0..s)
+                .map(|i| {
+                    dx[i]
+                        * (0..s)
+                            .map(|j| p.information[i * s + j] * dx[j])
+                            .sum::<f64>()
+                })
+                .sum();
+            p.constant + p.eta.iter().zip(&dx).map(|(a, b)| a * b).sum::<f64>() + 0.5 * quad
+        };
+        let grad = |p: &LinearPrior, x: &[f64]| -> Vec<f64> {
+            (0..s)
+                .map(|i| {
+                    p.eta[i]
+                        + (0..s)
+                            .map(|j| p.information[i * s + j] * (x[j] - p.xbar[j]))
+                            .sum::<f64>()
+                })
+                .collect()
+        };
+        let x = &tangent.xbar;
+        let (a, b) = (value(&prior, x), value(&tangent, x));
+        assert!((a - b).abs() <= 1e-12 * a.abs().max(1.0), "{a:e} vs {b:e}");
+        let (ga, gb) = (grad(&prior, x), grad(&tangent, x));
+        for c in 0..red.dim {
+            let (mut pa, mut pb) = (0.0, 0.0);
+            for i in 0..s {
+                let (start, row) = red.row(i);
+                if c >= start && c < start + row.len() {
+                    pa += row[c - start] * ga[i];
+                    pb += row[c - start] * gb[i];
+                }
+            }
+            assert!(
+                (pa - pb).abs() <= 1e-9 * pa.abs().max(1.0),
+                "Nᵀ∇Q[{c}]: {pa:e} vs {pb:e}"
+            );
+        }
+        // Across the manifold the tangent prior is flat.
+        let normal: Vec<f64> = (0..s).map(|i| ga[i] - gb[i]).collect();
+        assert!(tangent.information.iter().all(|v| v.is_finite()));
+        assert!(
+            normal.iter().any(|v| v.abs() > 0.0),
+            "the prior pulled across the manifold"
+        );
+    }
+}
