@@ -15,6 +15,7 @@ impl WindowSolver {
         k0: usize,
         k1: usize,
         prior: Option<&LinearPrior>,
+        scope: Scope,
         cost: f64,
     ) -> Result<Option<f64>> {
         let s = self.s;
@@ -30,12 +31,12 @@ impl WindowSolver {
                 *x = x0 + t * d;
             }
             let trial = match self.correct(graph, values, k0, k1) {
-                Ok(()) => self.evaluate(graph, values, k0, k1, prior, Scope::Window, false),
+                Ok(()) => self.evaluate(graph, values, k0, k1, prior, scope, false),
                 Err(e) => Err(e),
             };
             if let Ok(c) = trial {
                 if c < cost {
-                    return match self.evaluate(graph, values, k0, k1, prior, Scope::Window, true) {
+                    return match self.evaluate(graph, values, k0, k1, prior, scope, true) {
                         Ok(c) => Ok(Some(c)),
                         Err(_) => break,
                     };
@@ -62,10 +63,7 @@ impl WindowSolver {
                 "a conditional solve needs a step before the window".into(),
             ));
         }
-        self.conditional = true;
-        let report = self.solve(graph, values, k0, k1, None);
-        self.conditional = false;
-        report
+        self.solve_span(graph, values, k0, k1, None, true)
     }
 
     /// Optimizes steps k0..k1 of `values` (step-major, the whole trajectory) with an
@@ -78,6 +76,20 @@ impl WindowSolver {
         k1: usize,
         prior: Option<&LinearPrior>,
     ) -> Result<SolveReport> {
+        self.solve_span(graph, values, k0, k1, prior, false)
+    }
+
+    /// A window solve; with `held`, step k0 − 1 is held at its value.
+    fn solve_span(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        k0: usize,
+        k1: usize,
+        prior: Option<&LinearPrior>,
+        held: bool,
+    ) -> Result<SolveReport> {
+        let scope = Scope::Window { held };
         if k1 <= k0 || k1 - k0 > self.h.capacity() {
             return Err(Error::InvalidArgument(format!(
                 "window {k0}..{k1} is empty or larger than the solver's capacity {}",
@@ -96,7 +108,7 @@ impl WindowSolver {
             termination: Termination::Diverged,
             cost,
         };
-        let mut cost = match self.evaluate(graph, values, k0, k1, prior, Scope::Window, true) {
+        let mut cost = match self.evaluate(graph, values, k0, k1, prior, scope, true) {
             Ok(c) => c,
             Err(_) => return Ok(diverged(f64::INFINITY, 0)),
         };
@@ -114,7 +126,7 @@ impl WindowSolver {
         while iterations < self.settings.max_iterations {
             iterations += 1;
             if newton && gauss_newton {
-                if self.exact_hessian(graph, values, k0, k1, prior).is_err() {
+                if self.exact_hessian(graph, values, k0, k1, prior, scope).is_err() {
                     return Ok(diverged(cost, iterations));
                 }
                 gauss_newton = false;
@@ -195,7 +207,7 @@ impl WindowSolver {
                 // the model predicts is the cost there, to far below its round-off,
                 // and the hard equations, exact to first order along δ, are off by
                 // O(|δ|²) ≤ 1e-16: no correction needed.
-                if !self.conditional && !newton {
+                if !held && !newton {
                     self.last = Some(LastSolve { k0, k1 });
                 }
                 return Ok(SolveReport {
@@ -207,7 +219,7 @@ impl WindowSolver {
             // The trial is linearized at once: accepted (the usual case), it is the
             // next iteration's system; rejected, the old point is linearized again.
             let trial = match self.correct(graph, values, k0, k1) {
-                Ok(()) => self.evaluate(graph, values, k0, k1, prior, Scope::Window, true),
+                Ok(()) => self.evaluate(graph, values, k0, k1, prior, scope, true),
                 Err(e) => Err(e),
             };
             gauss_newton = true;
@@ -285,7 +297,7 @@ impl WindowSolver {
                         // The full step overshot: try fractions of it before damping,
                         // which would turn the step away from the directions with
                         // little information, where it is most needed.
-                        if let Some(c) = self.backtrack(graph, values, k0, k1, prior, cost)? {
+                        if let Some(c) = self.backtrack(graph, values, k0, k1, prior, scope, cost)? {
                             previous = f64::INFINITY;
                             slow = false;
                             settled = false;
@@ -298,7 +310,7 @@ impl WindowSolver {
                         return Ok(diverged(cost, iterations));
                     }
                     if self
-                        .evaluate(graph, values, k0, k1, prior, Scope::Window, true)
+                        .evaluate(graph, values, k0, k1, prior, scope, true)
                         .is_err()
                     {
                         return Ok(diverged(cost, iterations));

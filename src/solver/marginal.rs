@@ -87,7 +87,7 @@ impl WindowSolver {
         prior: &mut LinearPrior,
     ) -> Result<()> {
         let s = self.s;
-        self.collect_instances(graph, k, k + 1, Scope::Window);
+        self.collect_instances(graph, k, k + 1, Scope::Window { held: false });
         self.hard_block(graph, values, 0, HardPass::Linearize)?;
         // A one-step window solve of step k that follows finds it reduced.
         self.hard_cache = Some(k);

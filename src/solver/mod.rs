@@ -32,7 +32,7 @@ use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
 use marginal::LastSolve;
 use newton::NewtonBuffers;
 use settings::LEAST_SQUARES_CUTOFF;
-use structure::{factor_of, is_hard, Instance, Scope};
+use structure::{factor_of, is_hard, Instance, Resolved, Scope};
 /// A reusable solver for windows of up to `capacity` steps; it allocates once.
 pub struct WindowSolver {
     settings: Settings,
@@ -54,6 +54,9 @@ pub struct WindowSolver {
     /// Per row of `reduced`, the columns outside which it is 0.
     reduced_spans: [Vec<(usize, usize)>; 2],
     instances: Vec<Instance>,
+    /// What `instances` was built for, and the lists of other shapes.
+    resolved: Option<Resolved>,
+    parked: Vec<structure::Listing>,
     /// The last full step δ = p + N y of the window (for `backtrack`).
     direction: Vec<f64>,
     /// The instances in step order (indices into `instances`), and where each block's
@@ -74,8 +77,6 @@ pub struct WindowSolver {
     /// dim × c (c ≤ 1 + 2s); empty when no factor evaluates along directions.
     along_dirs: Vec<f64>,
     along_out: Vec<f64>,
-    /// In a conditional solve the step before the window is held fixed.
-    conditional: bool,
     /// The whitened, reduced rows [J N | r + J p] of a one-block window without a
     /// prior, kept beside H for the least-squares step where H cannot be factored or
     /// is conditioned past `Settings::normal_equations_limit` (see
@@ -200,7 +201,8 @@ impl WindowSolver {
             instances: Vec::with_capacity(
                 capacity * graph.step_factors.len() + graph.initial_factors.len(),
             ),
-            conditional: false,
+            resolved: None,
+            parked: Vec::new(),
             rows: Vec::new(),
             rows_width: None,
             last: None,

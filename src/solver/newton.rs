@@ -101,11 +101,12 @@ impl WindowSolver {
         k0: usize,
         k1: usize,
         prior: Option<&LinearPrior>,
+        scope: Scope,
     ) -> Result<()> {
         let s = self.s;
         let blocks = k1 - k0;
         let n = blocks * s;
-        self.collect_instances(graph, k0, k1, Scope::Window);
+        self.collect_instances(graph, k0, k1, scope);
         // Multipliers from the soft gradient at the point.
         let mut grad = std::mem::take(&mut self.newton.grad);
         self.newton.lambda.fill(0.0);

@@ -43,7 +43,7 @@ mod unit {
                 k,
                 k + 1,
                 Some(prior),
-                Scope::Window,
+                Scope::Window { held: false },
                 false,
             )
             .unwrap()
@@ -61,7 +61,7 @@ mod unit {
                     k,
                     k + 1,
                     Some(&prior),
-                    Scope::Window,
+                    Scope::Window { held: false },
                     true,
                 )
                 .unwrap();
