@@ -9,18 +9,18 @@ pub(super) struct FactorBuffers {
     pub(super) r: Vec<f64>,
     pub(super) jac: Vec<Vec<f64>>,
     pub(super) weights: Vec<f64>,
-    /// Per key, the size of its variable.
-    pub(super) sizes: Vec<usize>,
+    /// Per key, its variable's (offset in the step's block, size), resolved once.
+    pub(super) slots: Vec<(usize, usize)>,
 }
 
 impl FactorBuffers {
     pub(super) fn new(graph: &ChainGraph, f: &dyn Factor) -> Self {
         FactorBuffers {
             weights: (0..f.dim()).map(|r| f.noise().weight(r)).collect(),
-            sizes: f
+            slots: f
                 .keys()
                 .iter()
-                .map(|k| graph.layout.slot(k.kind).map_or(0, |(_, d)| d))
+                .map(|k| graph.layout.slot(k.kind).unwrap_or((0, 0)))
                 .collect(),
             r: vec![0.0; f.dim()],
             jac: f
@@ -43,7 +43,7 @@ impl FactorBuffers {
         if !jacobians {
             return;
         }
-        for (a, (jac, &d)) in self.jac.iter_mut().zip(&self.sizes).enumerate() {
+        for (a, (jac, &(_, d))) in self.jac.iter_mut().zip(&self.slots).enumerate() {
             if d == 0 {
                 continue;
             }
@@ -118,7 +118,6 @@ pub(super) fn reduce_factor(
     spans: &mut [Vec<(usize, usize)>; 2],
     shifted: &mut [f64],
     hard: &[HardBlock],
-    graph: &ChainGraph,
     factor: &dyn Factor,
     step: usize,
     buf: &FactorBuffers,
@@ -138,7 +137,7 @@ pub(super) fn reduce_factor(
     }
     shifted[..dim].copy_from_slice(&buf.r);
     for (a, k) in keys.iter().enumerate() {
-        let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+        let (off, d) = buf.slots[a];
         if k.lag > step {
             continue; // a variable held fixed before the window
         }
@@ -250,8 +249,7 @@ impl WindowSolver {
         let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
         let keys = factor.keys();
         let mut xs: [&[f64]; 8] = [&[]; 8];
-        for (slot, k) in xs.iter_mut().zip(keys) {
-            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+        for ((slot, k), &(off, d)) in xs.iter_mut().zip(keys).zip(&buf.slots) {
             let base = (inst.step - k.lag) * s + off;
             *slot = &values[base..base + d];
         }
@@ -300,8 +298,7 @@ impl WindowSolver {
             let dim = factor.dim();
             if linearize {
                 self.hard_jac[rows * s..(rows + dim) * s].fill(0.0);
-                for (a, k) in factor.keys().iter().enumerate() {
-                    let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                for (a, &(off, d)) in buf.slots.iter().enumerate() {
                     for r in 0..dim {
                         let row =
                             &mut self.hard_jac[(rows + r) * s + off..(rows + r) * s + off + d];
@@ -453,7 +450,6 @@ impl WindowSolver {
                     &mut self.reduced_spans,
                     &mut self.shifted,
                     &self.hard,
-                    graph,
                     factor,
                     step,
                     buf,
@@ -510,8 +506,11 @@ impl WindowSolver {
         let mut xs: [&[f64]; 8] = [&[]; 8];
         let mut ranges = [(0, 0); 8];
         let mut at = 0;
+        let mut slots = [(0, 0); 8];
+        slots[..keys.len()]
+            .copy_from_slice(&buffers(&mut self.initial_buffers, &mut self.step_buffers, inst).slots);
         for (a, k) in keys.iter().enumerate() {
-            let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+            let (off, d) = slots[a];
             let base = (inst.step - k.lag) * s + off;
             xs[a] = &values[base..base + d];
             let v = &mut self.along_dirs[at..at + d * c];

@@ -372,7 +372,7 @@ impl WindowSolver {
             self.reduced[0][..dim * s].fill(0.0);
             self.reduced[1][..dim * s].fill(0.0);
             for (a, k) in keys.iter().enumerate() {
-                let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                let (off, d) = buf.slots[a];
                 let diagonal = factor.diagonal_jacobian(a);
                 for r in 0..dim {
                     let columns = if diagonal { r..r + 1 } else { 0..d };

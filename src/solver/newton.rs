@@ -59,7 +59,7 @@ impl WindowSolver {
                 if inst.step < k0 + k.lag {
                     continue; // a variable held fixed before the window
                 }
-                let (off, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                let (off, d) = buf.slots[a];
                 let base = (inst.step - k.lag - k0) * s + off;
                 let jac = &buf.jac[a];
                 let diagonal = factor.diagonal_jacobian(a);
