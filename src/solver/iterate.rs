@@ -208,7 +208,12 @@ impl WindowSolver {
                 // and the hard equations, exact to first order along δ, are off by
                 // O(|δ|²) ≤ 1e-16: no correction needed.
                 if !held && !newton {
-                    self.last = Some(LastSolve { k0, k1 });
+                    self.last = Some(LastSolve {
+                        k0,
+                        k1,
+                        generation: self.generation,
+                    });
+                    self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
                 }
                 return Ok(SolveReport {
                     iterations,

@@ -278,7 +278,7 @@ impl WindowSolver {
     ) -> Result<()> {
         let s = self.s;
         let linearize = mode == HardPass::Linearize;
-        self.hard_cache = None;
+        self.generation += 1;
         let mut rows = 0;
         let mut at_round_off = true;
         for at in self.block_start[b]..self.block_start[b + 1] {
@@ -564,6 +564,16 @@ impl WindowSolver {
         let s = self.s;
         let blocks = k1 - k0;
         self.last = None;
+        // A prior projected on this one-step window's hard equations brings their
+        // reduction (see `LinearPrior::projection`).
+        let projected = blocks == 1
+            && prior.is_some_and(|p| {
+                let x = &values[k0 * s..(k0 + 1) * s];
+                let red = &self.hard[0].reduction;
+                p.projection.is_some_and(|pr| pr.step == k0 && pr.generation == self.generation)
+                    && (0..s).all(|i| (x[i] + red.particular[i]).to_bits() == p.xbar[i].to_bits())
+            });
+        self.generation += 1;
         self.collect_instances(graph, k0, k1, scope);
         let mode = if linearize {
             HardPass::Linearize
@@ -579,7 +589,7 @@ impl WindowSolver {
             // blocks of H (and the lagged ones into the previous step's) while they
             // are in cache.
             self.h.set_blocks(blocks);
-            let cached = self.hard_cache.take() == Some(k0) && blocks == 1;
+            let cached = projected;
             for b in 0..blocks {
                 if !cached {
                     self.hard_block(graph, values, b, mode)?;
@@ -599,7 +609,7 @@ impl WindowSolver {
         } else {
             // Hard factors first: their linearization defines each block's reduction
             // (unless `project_prior` has just made it for this one-step window).
-            let cached = self.hard_cache.take() == Some(k0) && blocks == 1 && linearize;
+            let cached = projected && linearize;
             for b in 0..blocks {
                 if !cached {
                     self.hard_block(graph, values, b, mode)?;

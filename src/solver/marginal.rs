@@ -15,14 +15,29 @@ pub struct LinearPrior {
     /// The cost at δ = 0 (what the marginalized factors leave behind).
     pub constant: f64,
     pub xbar: Vec<f64>,
+    /// Set by [`WindowSolver::project_prior`]: the reduction of step `step`'s hard
+    /// equations it made, which a one-step solve of that step reuses while the
+    /// solver has linearized nothing since and the step's values are the ones
+    /// reduced (x + p = x̄ to the bit).
+    pub projection: Option<Projection>,
+}
+
+/// Which linearization of a step's hard equations a projected prior was made on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Projection {
+    pub(super) step: usize,
+    pub(super) generation: u64,
 }
 
 /// What a window solve that converged on a small step leaves for marginalizing its
-/// first block.
+/// first block: valid while the solver has linearized nothing since
+/// (`generation`) and the first block's values are those it converged at (kept in
+/// the solver's `last_x`).
 #[derive(Clone, Copy)]
 pub(super) struct LastSolve {
     pub(super) k0: usize,
     pub(super) k1: usize,
+    pub(super) generation: u64,
 }
 
 /// Copies a rows × cols matrix stored with row stride cols into `dst` with row
@@ -56,6 +71,7 @@ pub(super) fn conditional_prior(
         eta: g1.to_vec(),
         constant: cost,
         xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),
+        projection: None,
     })
 }
 
@@ -90,7 +106,10 @@ impl WindowSolver {
         self.collect_instances(graph, k, k + 1, Scope::Window { held: false });
         self.hard_block(graph, values, 0, HardPass::Linearize)?;
         // A one-step window solve of step k that follows finds it reduced.
-        self.hard_cache = Some(k);
+        prior.projection = Some(Projection {
+            step: k,
+            generation: self.generation,
+        });
         let block = &mut self.hard[0];
         if block.rows == 0 {
             return Ok(());
@@ -212,7 +231,11 @@ impl WindowSolver {
     ) -> Result<LinearPrior> {
         let s = self.s;
         if let Some(last) = self.last.take() {
-            if last.k0 == k0 {
+            let x = &values[k0 * s..(k0 + 1) * s];
+            if last.k0 == k0
+                && last.generation == self.generation
+                && x.iter().zip(&self.last_x).all(|(a, b)| a.to_bits() == b.to_bits())
+            {
                 return self.marginalize_last(graph, values, k0, last.k1);
             }
         }
@@ -313,6 +336,7 @@ impl WindowSolver {
             eta,
             constant,
             xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),
+            projection: None,
         })
     }
 

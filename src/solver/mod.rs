@@ -25,7 +25,7 @@ mod structure;
 #[cfg(test)]
 mod tests;
 
-pub use marginal::LinearPrior;
+pub use marginal::{LinearPrior, Projection};
 pub use settings::{Method, Past, Settings, SolveReport, Termination};
 
 use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
@@ -97,7 +97,12 @@ pub struct WindowSolver {
     newton: NewtonBuffers,
     /// Step whose hard equations `project_prior` linearized and reduced in block 0 at
     /// the current values (their costs in `hard_cost`).
-    hard_cache: Option<usize>,
+    /// Counts linearizations, so that what one stage hands to the next (a solve's
+    /// linearization to marginalization, a projected prior's reduction to a solve)
+    /// is used only while it is current.
+    generation: u64,
+    /// The first block's values where the last solve converged (see `LastSolve`).
+    last_x: Vec<f64>,
 }
 
 impl WindowSolver {
@@ -212,7 +217,8 @@ impl WindowSolver {
             nonzeros: [Vec::with_capacity(s), Vec::with_capacity(s)],
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
-            hard_cache: None,
+            generation: 0,
+            last_x: vec![0.0; s],
             newton: NewtonBuffers {
                 lambda: vec![0.0; capacity * max_hard],
                 grad: vec![0.0; n],
