@@ -21,7 +21,7 @@ impl WindowSolver {
         let s = self.s;
         let n = (k1 - k0) * s;
         let mut t = 1.0;
-        for _ in 0..8 {
+        for _ in 0..self.settings.thresholds.backtrack_halvings {
             t *= 0.5;
             for ((x, x0), d) in values[k0 * s..k1 * s]
                 .iter_mut()
@@ -90,6 +90,7 @@ impl WindowSolver {
         held: bool,
     ) -> Result<SolveReport> {
         let scope = Scope::Window { held };
+        let th = self.settings.thresholds;
         if k1 <= k0 || k1 - k0 > self.h.capacity() {
             return Err(Error::InvalidArgument(format!(
                 "window {k0}..{k1} is empty or larger than the solver's capacity {}",
@@ -126,17 +127,21 @@ impl WindowSolver {
         while iterations < self.settings.max_iterations {
             iterations += 1;
             if newton && gauss_newton {
-                if self.exact_hessian(graph, values, k0, k1, prior, scope).is_err() {
+                if self
+                    .exact_hessian(graph, values, k0, k1, prior, scope)
+                    .is_err()
+                {
                     return Ok(diverged(cost, iterations));
                 }
                 gauss_newton = false;
             }
+            let floor = th.damping_floor;
             for (b, damping) in self.damping[..n].chunks_exact_mut(s).enumerate() {
                 let (diag, d) = (self.h.diag(b), self.h.dim(b));
                 let scale = &self.newton.scale[b * s..(b + 1) * s];
                 for (r, v) in damping[..d].iter_mut().enumerate() {
                     let x = if newton { scale[r] } else { diag[r * d + r] };
-                    *v = mu * x.max(1e-12);
+                    *v = mu * x.max(floor);
                 }
             }
             let factored = self
@@ -165,7 +170,7 @@ impl WindowSolver {
                         cost,
                     });
                 }
-                if !lm || mu > 1e16 {
+                if !lm || mu > th.max_damping {
                     return Ok(diverged(cost, iterations));
                 }
                 mu = (mu * 10.0).max(self.settings.initial_damping);
@@ -207,6 +212,21 @@ impl WindowSolver {
                 // the model predicts is the cost there, to far below its round-off,
                 // and the hard equations, exact to first order along δ, are off by
                 // O(|δ|²) ≤ 1e-16: no correction needed.
+                if let Some(observer) = self.observer.as_mut() {
+                    observer.iteration(&Iteration {
+                        k0,
+                        k1,
+                        iteration: iterations,
+                        newton,
+                        cost,
+                        trial: None,
+                        damping: mu,
+                        predicted,
+                        largest_step: largest,
+                        small,
+                        restored,
+                    });
+                }
                 if !held && !newton {
                     self.last = Some(LastSolve {
                         k0,
@@ -229,9 +249,10 @@ impl WindowSolver {
             };
             gauss_newton = true;
             // Converged when an undamped step is small; or when it restores the hard
-            // factors and either the model predicts a decrease below 1e-12 of the cost,
-            // or the step fails to lower the cost while it is below 1e-6 (relative) or
-            // predicts less than 1e-6 of it: then the cost comparison only sees the
+            // factors and either the model predicts a decrease below `flat_decrease`
+            // of the cost, or the step fails to lower the cost while it is below
+            // `stall` (relative) or predicts less than `stall` of it: then the cost
+            // comparison only sees the
             // residuals' round-off (their evaluation goes through a factorization),
             // and what is left is a slow Gauss-Newton tail along a direction with
             // little information. A small damped step proves nothing: damping alone
@@ -243,11 +264,24 @@ impl WindowSolver {
             // A negative prediction is no "little left to gain": the model itself is
             // off (H's round-off), and the step may be anything.
             let little = |fraction: f64| (0.0..=fraction * cost.abs()).contains(&predicted);
-            let flat =
-                restored && (little(1e-12) || (no_progress && (largest <= 1e-6 || little(1e-6))));
+            let flat = restored
+                && (little(th.flat_decrease)
+                    || (no_progress && (largest <= th.stall || little(th.stall))));
             let converged = (small || flat) && mu == 0.0;
-            if std::env::var("LMTRACE").is_ok() {
-                eprintln!("k0={k0} k1={k1} it={iterations} newton={newton} cost={cost:.6e} trial={:?} mu={mu:.1e} pred={predicted:.3e} |d|={largest:.2e} small={small} restored={restored}", trial.as_ref().ok());
+            if let Some(observer) = self.observer.as_mut() {
+                observer.iteration(&Iteration {
+                    k0,
+                    k1,
+                    iteration: iterations,
+                    newton,
+                    cost,
+                    trial: trial.as_ref().ok().copied(),
+                    damping: mu,
+                    predicted,
+                    largest_step: largest,
+                    small,
+                    restored,
+                });
             }
 
             match trial {
@@ -277,7 +311,7 @@ impl WindowSolver {
                     // Undamped steps shrinking by less than 4× twice in a row: the
                     // linear convergence of a model missing its second-order terms.
                     if mu == 0.0 {
-                        let slower = largest > 0.25 * previous;
+                        let slower = largest > th.slow_rate * previous;
                         newton |= slow && slower && self.settings.second_order;
                         slow = slower;
                         previous = largest;
@@ -286,7 +320,7 @@ impl WindowSolver {
                     let ratio = (cost - c) / predicted.max(f64::MIN_POSITIVE);
                     // A step below the tolerance leaves only round-off to compare, and
                     // says no more about the model than that the undamped step is due.
-                    mu = if ratio > 0.75 || mu < 1e-12 || settled {
+                    mu = if ratio > th.good_ratio || mu < th.negligible_damping || settled {
                         0.0
                     } else {
                         mu / 3.0
@@ -302,7 +336,9 @@ impl WindowSolver {
                         // The full step overshot: try fractions of it before damping,
                         // which would turn the step away from the directions with
                         // little information, where it is most needed.
-                        if let Some(c) = self.backtrack(graph, values, k0, k1, prior, scope, cost)? {
+                        if let Some(c) =
+                            self.backtrack(graph, values, k0, k1, prior, scope, cost)?
+                        {
                             previous = f64::INFINITY;
                             slow = false;
                             settled = false;
@@ -339,7 +375,7 @@ impl WindowSolver {
                     }
                     mu = (mu * nu).max(self.settings.initial_damping);
                     nu *= 2.0;
-                    if mu > 1e16 {
+                    if mu > th.max_damping {
                         return Ok(diverged(cost, iterations));
                     }
                 }

@@ -507,8 +507,9 @@ impl WindowSolver {
         let mut ranges = [(0, 0); 8];
         let mut at = 0;
         let mut slots = [(0, 0); 8];
-        slots[..keys.len()]
-            .copy_from_slice(&buffers(&mut self.initial_buffers, &mut self.step_buffers, inst).slots);
+        slots[..keys.len()].copy_from_slice(
+            &buffers(&mut self.initial_buffers, &mut self.step_buffers, inst).slots,
+        );
         for (a, k) in keys.iter().enumerate() {
             let (off, d) = slots[a];
             let base = (inst.step - k.lag) * s + off;
@@ -570,7 +571,8 @@ impl WindowSolver {
             && prior.is_some_and(|p| {
                 let x = &values[k0 * s..(k0 + 1) * s];
                 let red = &self.hard[0].reduction;
-                p.projection.is_some_and(|pr| pr.step == k0 && pr.generation == self.generation)
+                p.projection
+                    .is_some_and(|pr| pr.step == k0 && pr.generation == self.generation)
                     && (0..s).all(|i| (x[i] + red.particular[i]).to_bits() == p.xbar[i].to_bits())
             });
         self.generation += 1;

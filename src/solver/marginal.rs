@@ -234,7 +234,9 @@ impl WindowSolver {
             let x = &values[k0 * s..(k0 + 1) * s];
             if last.k0 == k0
                 && last.generation == self.generation
-                && x.iter().zip(&self.last_x).all(|(a, b)| a.to_bits() == b.to_bits())
+                && x.iter()
+                    .zip(&self.last_x)
+                    .all(|(a, b)| a.to_bits() == b.to_bits())
             {
                 return self.marginalize_last(graph, values, k0, last.k1);
             }

@@ -20,18 +20,19 @@ mod iterate;
 mod linearize;
 mod marginal;
 mod newton;
+mod observer;
 mod settings;
 mod structure;
 #[cfg(test)]
 mod tests;
 
 pub use marginal::{LinearPrior, Projection};
-pub use settings::{Method, Past, Settings, SolveReport, Termination};
+pub use observer::{Iteration, Observer, Trace};
+pub use settings::{Method, Past, Settings, SolveReport, Termination, Thresholds};
 
 use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
 use marginal::LastSolve;
 use newton::NewtonBuffers;
-use settings::LEAST_SQUARES_CUTOFF;
 use structure::{factor_of, is_hard, Instance, Resolved, Scope};
 /// A reusable solver for windows of up to `capacity` steps; it allocates once.
 pub struct WindowSolver {
@@ -103,6 +104,7 @@ pub struct WindowSolver {
     generation: u64,
     /// The first block's values where the last solve converged (see `LastSolve`).
     last_x: Vec<f64>,
+    observer: Option<Box<dyn Observer>>,
 }
 
 impl WindowSolver {
@@ -219,6 +221,7 @@ impl WindowSolver {
             scratch: vec![0.0; 4 * s * s + 4 * s],
             generation: 0,
             last_x: vec![0.0; s],
+            observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
             newton: NewtonBuffers {
                 lambda: vec![0.0; capacity * max_hard],
                 grad: vec![0.0; n],
@@ -281,6 +284,11 @@ impl WindowSolver {
     /// From now on, marginalization conditions on the leaving step.
     pub fn condition_on_past(&mut self) {
         self.settings.past = Past::Conditioned;
+    }
+
+    /// Installs an observer of every iteration (replacing any before it).
+    pub fn observe(&mut self, observer: Box<dyn Observer>) {
+        self.observer = Some(observer);
     }
 
     pub fn settings(&self) -> &Settings {

@@ -144,6 +144,7 @@ impl WindowSolver {
         // ε per direction, relative to the size of the values it moves: a block holds
         // q, q̇ and q̈ of very different sizes (a 7 mm crank at 6e5 rad/s²), and an ε
         // taken from the block's largest entry moved the positions by 0.1 m.
+        let eps = self.settings.thresholds.difference_step;
         let step = |red: &NullSpace, j: usize, x: &[f64]| {
             let along: f64 = (0..x.len())
                 .map(|i| {
@@ -155,7 +156,7 @@ impl WindowSolver {
                     }
                 })
                 .sum();
-            1e-6 * (1.0 + along)
+            eps * (1.0 + along)
         };
         let mut column = std::mem::take(&mut self.newton.column);
         let mut result: Result<()> = Ok(());
@@ -258,7 +259,7 @@ impl WindowSolver {
         let Some(&largest) = svd.singular_values.iter().max_by(|x, y| x.total_cmp(y)) else {
             return false;
         };
-        let Ok(y) = svd.solve(&b, largest * LEAST_SQUARES_CUTOFF) else {
+        let Ok(y) = svd.solve(&b, largest * self.settings.thresholds.least_squares_cutoff) else {
             return false;
         };
         if !y.iter().all(|v| v.is_finite()) {

@@ -13,10 +13,12 @@ pub enum Method {
 /// Stopping rules. A solve stops when an undamped step satisfies
 /// |δᵢ| ≤ `step_tolerance`·(1 + |xᵢ|) for every component, or restores the hard
 /// factors within that tolerance and either is predicted to lower the cost by less
-/// than 1e-12 of itself or fails to lower it while below 1e-6 relative or predicting
-/// less than 1e-6 of it, or when a damped step below the tolerance fails to lower the
-/// cost (converged: the cost's round-off is reached), after `max_iterations` linear solves (iteration limit), or when the cost
-/// is not finite or LM's damping exceeds 1e16 without progress (diverged).
+/// than [`Thresholds::flat_decrease`] of itself or fails to lower it while below
+/// [`Thresholds::stall`] relative or predicting less than that fraction of it, or
+/// when a damped step below the tolerance fails to lower the cost (converged: the
+/// cost's round-off is reached), after `max_iterations` linear solves (iteration
+/// limit), or when the cost is not finite or LM's damping exceeds
+/// [`Thresholds::max_damping`] without progress (diverged).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Settings {
     pub method: Method,
@@ -47,11 +49,60 @@ pub struct Settings {
     /// has no correct digit and the six-bar press's window solves wander for dozens
     /// of iterations.
     pub normal_equations_limit: f64,
+    /// The iteration's finer thresholds.
+    pub thresholds: Thresholds,
+    /// Prints every iteration to standard error ([`Trace`]).
+    pub trace: bool,
 }
 
-/// Singular values of a one-block window's reduced Jacobian below this fraction of the
-/// largest are taken as 0 by `least_squares_step` (round-off in J itself).
-pub(super) const LEAST_SQUARES_CUTOFF: f64 = 1e-14;
+/// The thresholds inside the iteration, each named for what it decides. The
+/// defaults are the values every test and report of the project runs with.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Thresholds {
+    /// LM's damping of a direction is at least this times its damping scale (so a
+    /// direction with no curvature is still damped).
+    pub damping_floor: f64,
+    /// Damping at which LM gives up (diverged).
+    pub max_damping: f64,
+    /// Damping below this is switched off after an accepted step.
+    pub negligible_damping: f64,
+    /// Ratio of actual to predicted decrease above which the next step is undamped.
+    pub good_ratio: f64,
+    /// An undamped step longer than this fraction of the one before, twice in a row,
+    /// is linear convergence: the solve turns to the exact Hessian.
+    pub slow_rate: f64,
+    /// A predicted decrease below this fraction of the cost (with the hard equations
+    /// restored) is convergence.
+    pub flat_decrease: f64,
+    /// A step that fails to lower the cost while it is below this (relative), or
+    /// predicts less than this fraction of the cost, is convergence: the comparison
+    /// only sees the residuals' round-off.
+    pub stall: f64,
+    /// Relative step of the exact Hessian's central differences.
+    pub difference_step: f64,
+    /// Halvings tried after an undamped step overshoots (1/2 … 1/2ⁿ).
+    pub backtrack_halvings: usize,
+    /// Singular values of a one-block window's reduced Jacobian below this fraction
+    /// of the largest are taken as 0 by the least-squares step (round-off in J).
+    pub least_squares_cutoff: f64,
+}
+
+impl Default for Thresholds {
+    fn default() -> Self {
+        Thresholds {
+            damping_floor: 1e-12,
+            max_damping: 1e16,
+            negligible_damping: 1e-12,
+            good_ratio: 0.75,
+            slow_rate: 0.25,
+            flat_decrease: 1e-12,
+            stall: 1e-6,
+            difference_step: 1e-6,
+            backtrack_halvings: 8,
+            least_squares_cutoff: 1e-14,
+        }
+    }
+}
 
 /// What marginalization leaves of the step that leaves a fixed-lag window.
 ///
@@ -91,6 +142,8 @@ impl Default for Settings {
             past: Past::Marginalized,
             second_order: true,
             normal_equations_limit: 1e-10,
+            thresholds: Thresholds::default(),
+            trace: false,
         }
     }
 }

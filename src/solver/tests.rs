@@ -1,6 +1,6 @@
 #[cfg(test)]
 mod unit {
-    use super::*;
+    use super::super::*;
     use crate::forward::{simulate, Coordinates, ForwardGraph, ForwardOptions};
     use crate::smoother::Mode;
     use crate::{Model, Scene};
@@ -76,7 +76,14 @@ mod unit {
         linearize(&mut solver, &values);
         let gauss_newton = solver.h.diag(0).to_vec();
         solver
-            .exact_hessian(&fg.graph, &mut values, k, k + 1, Some(&prior))
+            .exact_hessian(
+                &fg.graph,
+                &mut values,
+                k,
+                k + 1,
+                Some(&prior),
+                Scope::Window { held: false },
+            )
             .unwrap();
         let red = solver.hard[0].reduction.clone();
         let d = red.dim;
@@ -177,5 +184,40 @@ mod unit {
             normal.iter().any(|v| v.abs() > 0.0),
             "the prior pulled across the manifold"
         );
+    }
+
+    /// An observer sees every iteration of a solve, numbered from 1, and nothing
+    /// else; the report's count agrees.
+    #[test]
+    fn an_observer_sees_every_iteration() {
+        use std::sync::Mutex;
+        struct Count(Arc<Mutex<Vec<Iteration>>>);
+        impl Observer for Count {
+            fn iteration(&mut self, it: &Iteration) {
+                self.0.lock().unwrap().push(*it);
+            }
+        }
+        let (fg, mut values, _, mut solver, k) = window();
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        solver.observe(Box::new(Count(seen.clone())));
+        // The newest step after the one before it, as the fixed-lag run starts it.
+        let s = fg.graph.layout.size();
+        let (done, newest) = values.split_at_mut(k * s);
+        newest[..s].copy_from_slice(&done[(k - 1) * s..]);
+        let report = solver
+            .solve_conditional(&fg.graph, &mut values, k, k + 1)
+            .unwrap();
+        assert_eq!(report.termination, Termination::Converged);
+        let seen = seen.lock().unwrap();
+        assert!(!seen.is_empty());
+        assert!(seen.len() <= report.iterations);
+        assert_eq!(seen.last().unwrap().iteration, report.iterations);
+        for (a, b) in seen.iter().zip(seen.iter().skip(1)) {
+            assert!(a.iteration < b.iteration);
+        }
+        for it in seen.iter() {
+            assert_eq!((it.k0, it.k1), (k, k + 1));
+            assert!(it.cost.is_finite());
+        }
     }
 }
