@@ -76,9 +76,9 @@ pub fn write_trajectory_with<W: Write>(
             &all
         }
     };
-    let mut record: Vec<String> = Vec::with_capacity(1 + 4 * n + width);
+    // Each field is formatted into one reused buffer and written as it comes.
+    let mut text = String::with_capacity(32);
     for &k in rows {
-        record.clear();
         let mut push = |v: f64, what: &str| -> Result<()> {
             if !v.is_finite() {
                 return Err(Error::Singular(format!(
@@ -86,8 +86,9 @@ pub fn write_trajectory_with<W: Write>(
                     trajectory.t[k]
                 )));
             }
-            record.push(number(v));
-            Ok(())
+            text.clear();
+            write_number(&mut text, v);
+            w.write_field(&text).map_err(io)
         };
         push(trajectory.t[k], "time")?;
         for (what, v) in [
@@ -107,7 +108,7 @@ pub fn write_trajectory_with<W: Write>(
         for (j, &x) in extra[k * width..(k + 1) * width].iter().enumerate() {
             push(x, &extra_names[j])?;
         }
-        w.write_record(&record).map_err(io)?;
+        w.write_record(None::<&[u8]>).map_err(io)?;
     }
     w.flush().map_err(|e| Error::Data(e.to_string()))?;
     Ok(())
@@ -144,12 +145,21 @@ pub fn sampled_rows(len: usize, stride: usize) -> Vec<usize> {
 /// Shortest round-trip text of a number: plain for moderate magnitudes, scientific
 /// otherwise (Rust's plain form would spell 1e-30 with thirty zeros).
 pub(crate) fn number(v: f64) -> String {
+    let mut text = String::new();
+    write_number(&mut text, v);
+    text
+}
+
+/// [`number`] appended to `out`.
+fn write_number(out: &mut String, v: f64) {
+    use std::fmt::Write as _;
     let a = v.abs();
-    if a == 0.0 || (1e-4..1e7).contains(&a) {
-        format!("{v}")
+    // Writing into a String cannot fail.
+    let _ = if a == 0.0 || (1e-4..1e7).contains(&a) {
+        write!(out, "{v}")
     } else {
-        format!("{v:e}")
-    }
+        write!(out, "{v:e}")
+    };
 }
 
 /// A numeric table read from a CSV file with a header row.
