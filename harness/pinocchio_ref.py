@@ -304,7 +304,7 @@ class PinocchioModel:
     def _effect_coordinate(self, e) -> str:
         """The relative coordinate an effect acts on.
 
-        Works around an mbfg module bug (src/python.rs `effects`): it names the k-th
+        Works around an mbfg module bug (src/python/model.rs `effects`): it names the k-th
         relative coordinate by `names[k]` (a point coordinate) instead of
         `names[relative_offset + k]`. The accelerations test against mbfg's KKT checks
         this mapping.

@@ -1,6 +1,37 @@
-//! Pieces of the `mbfg` command line that are not argument parsing: where outputs
-//! go, and what Ctrl-C and panics turn into.
+//! The `mbfg` subcommands, one file each with its arguments and its body, and the
+//! pieces they share: what a command's failure turns into, where outputs go, the
+//! optional columns and rows, the progress bar, and what Ctrl-C and panics turn into.
 
+pub mod animate;
+pub mod check;
+pub mod failure;
 pub mod interrupt;
+pub mod inverse;
 pub mod output;
 pub mod panic;
+pub mod progress;
+pub mod simulate;
+pub mod written;
+
+use mbfg::{Error, Model, Scene};
+use std::path::Path;
+
+/// Reads and assembles a scene; errors name the file.
+pub fn load(path: &Path) -> Result<(Scene, Model), String> {
+    let scene = Scene::load(path).map_err(|e| e.to_string())?;
+    let model = Model::new(&scene).map_err(|e| match e {
+        Error::Scene(s) => s.to_string(),
+        other => format!("{}: {other}", path.display()),
+    })?;
+    Ok((scene, model))
+}
+
+/// The summary line goes to standard output beside a CSV file, to standard error
+/// beside CSV on standard output.
+pub fn print_summary(to_file: bool, line: &str) {
+    if to_file {
+        println!("{line}");
+    } else {
+        eprintln!("{line}");
+    }
+}

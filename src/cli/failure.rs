@@ -1,0 +1,56 @@
+//! Why a command failed, and the one line that says so on stderr.
+
+use mbfg::Error;
+
+/// Why a command failed: bad input (exit 2), a run that failed or ended early
+/// (exit 1), or a run the user interrupted (exit 130).
+pub enum Failure {
+    Input(String),
+    Run(String),
+    Interrupted(String),
+}
+
+impl From<String> for Failure {
+    fn from(m: String) -> Self {
+        Failure::Input(m)
+    }
+}
+
+/// The longest error message: with `error: `, a line of 300 characters at most;
+/// longer messages are cut with an ellipsis.
+const MAX_MESSAGE_CHARS: usize = 300 - "error: ".len();
+
+/// One line of at most [`MAX_MESSAGE_CHARS`] characters.
+pub fn shorten(message: &str) -> String {
+    let line = message.replace(['\n', '\r'], " ");
+    if line.chars().count() <= MAX_MESSAGE_CHARS {
+        return line;
+    }
+    let mut cut: String = line.chars().take(MAX_MESSAGE_CHARS - 1).collect();
+    cut.push('…');
+    cut
+}
+
+/// clap's error as one line: its first line without the `error: ` prefix, and where
+/// to read more.
+pub fn clap_line(e: &clap::Error) -> String {
+    let text = e.render().to_string();
+    // The first paragraph (a list of missing arguments runs over several lines).
+    let first: Vec<&str> = text
+        .lines()
+        .map(str::trim)
+        .skip_while(|l| l.is_empty())
+        .take_while(|l| !l.is_empty())
+        .collect();
+    let first = first.join(" ");
+    let first = first.strip_prefix("error: ").unwrap_or(&first);
+    shorten(&format!("{first} (mbfg --help lists the arguments)"))
+}
+
+/// The message of a library error without the variant's prefix for bad arguments.
+pub fn plain(e: Error) -> String {
+    match e {
+        Error::InvalidArgument(m) => m,
+        other => other.to_string(),
+    }
+}

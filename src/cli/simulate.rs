@@ -1,0 +1,353 @@
+//! `mbfg simulate`: its arguments, the forward options they make, the run with its
+//! progress bar, the CSV and the summary line.
+
+use super::failure::{plain, shorten, Failure};
+use super::output::Output;
+use super::progress::Progress;
+use super::written::{Written, WrittenArgs};
+use super::{load, print_summary};
+use clap::ValueEnum;
+use mbfg::forward::{
+    self, Coordinates, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary,
+};
+use mbfg::smoother::Mode;
+use mbfg::solver::Past;
+use mbfg::Model;
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// The arguments of `mbfg simulate`.
+#[derive(clap::Args)]
+pub struct SimulateArgs {
+    /// Scene or MBSE mechanism file (YAML).
+    scene: PathBuf,
+    /// Dependent (natural) or independent coordinates.
+    #[arg(long, value_enum, default_value_t = CoordsArg::Dc)]
+    coords: CoordsArg,
+    /// Time step, in seconds.
+    #[arg(long)]
+    dt: f64,
+    /// End time, in seconds (the run starts at 0).
+    #[arg(long = "t-end")]
+    t_end: f64,
+    /// Fixed-lag smoother over the N newest steps [default: 1].
+    #[arg(long, value_name = "N", conflicts_with = "batch")]
+    window: Option<usize>,
+    /// Solve the whole horizon at once.
+    #[arg(long)]
+    batch: bool,
+    /// Linear solves allowed per window solve.
+    #[arg(long = "max-iterations", value_name = "K", default_value_t = 50)]
+    max_iterations: usize,
+    /// Trajectory CSV to write (gzip-compressed when it ends in `.gz`); the
+    /// summary then goes to standard output.
+    #[arg(long, value_name = "FILE.csv")]
+    out: Option<PathBuf>,
+    #[command(flatten)]
+    written: WrittenArgs,
+    /// Integrator factor between steps.
+    #[arg(long, value_enum, default_value_t = IntegratorArg::Trapezoidal)]
+    integrator: IntegratorArg,
+    /// In dependent coordinates, what the integrator factors ask: on all n
+    /// coordinates as in the paper (`full`: a least-squares compromise), only along
+    /// the directions the constraints leave free (`tangent`: one equation per
+    /// unknown, all satisfied, every window and the batch give N_w = 1's
+    /// solution), or `full` with the run made again with `tangent` where a solve
+    /// fails (`auto`)
+    #[arg(long = "dc-integrators", value_enum, default_value_t = DcIntegratorsArg::Auto)]
+    dc_integrators: DcIntegratorsArg,
+    /// Noise models: mbfg's defaults, or the paper's Table 2.
+    #[arg(long, value_enum, default_value_t = NoiseArg::Default)]
+    noise: NoiseArg,
+    /// What a step leaving the window leaves behind: the paper's Gaussian marginal
+    /// until a window solve fails, then the factors to the next step with it held
+    /// at its estimate (adaptive); always one or always the other.
+    #[arg(long, value_enum, default_value_t = PastArg::Adaptive)]
+    past: PastArg,
+    /// Keep going after a step whose solve did not converge (it is reported).
+    #[arg(long = "continue-on-failure")]
+    continue_on_failure: bool,
+    /// Fail where the step is too coarse for the motion, instead of integrating
+    /// the run again at a finer step (dt/K, K up to 1024) and writing every K-th
+    /// state, on the grid of --dt.
+    #[arg(long = "no-refine")]
+    no_refine: bool,
+    /// Make the plausibility warnings errors: a time step too coarse for the
+    /// stiffest spring or damper (refused before the run), and the energy drift
+    /// of a conservative scene beyond 1 % of its largest kinetic energy (the
+    /// trajectory is then not written).
+    #[arg(long)]
+    strict: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum CoordsArg {
+    Dc,
+    Ic,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum IntegratorArg {
+    /// The paper's trapezoidal rule, second order.
+    Trapezoidal,
+    /// Explicit Euler, first order.
+    Euler,
+    /// Hermite–Simpson collocation, fourth order (the dynamics also at each step's middle).
+    HermiteSimpson,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum DcIntegratorsArg {
+    Auto,
+    Tangent,
+    Full,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum PastArg {
+    Adaptive,
+    Conditioned,
+    Marginalized,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum NoiseArg {
+    Default,
+    Paper,
+}
+
+/// `mbfg simulate`: the options from the arguments, checked against the scene.
+pub fn run(args: SimulateArgs) -> Result<(), Failure> {
+    let SimulateArgs {
+        scene,
+        coords,
+        dt,
+        t_end,
+        window,
+        batch,
+        max_iterations,
+        out,
+        written,
+        integrator,
+        dc_integrators,
+        noise,
+        past,
+        continue_on_failure,
+        no_refine,
+        strict,
+    } = args;
+    let (_, model) = load(&scene)?;
+    let mode = if batch {
+        Mode::Batch
+    } else {
+        Mode::FixedLag(window.unwrap_or(1))
+    };
+    let coordinates = match coords {
+        CoordsArg::Dc => Coordinates::Dependent,
+        CoordsArg::Ic => Coordinates::Independent,
+    };
+    let mut options = ForwardOptions::new(coordinates, dt, t_end, mode);
+    options.integrator = match integrator {
+        IntegratorArg::Trapezoidal => Integrator::Trapezoidal,
+        IntegratorArg::Euler => Integrator::Euler,
+        IntegratorArg::HermiteSimpson => Integrator::HermiteSimpson,
+    };
+    options.dc_integrators = match dc_integrators {
+        DcIntegratorsArg::Auto => DcIntegrators::Auto,
+        DcIntegratorsArg::Tangent => DcIntegrators::Tangent,
+        DcIntegratorsArg::Full => DcIntegrators::Full,
+    };
+    options.noise = match noise {
+        NoiseArg::Default => NoiseModels::default(),
+        NoiseArg::Paper => NoiseModels::paper(),
+    };
+    options.settings.max_iterations = max_iterations;
+    options.settings.past = match past {
+        PastArg::Adaptive => Past::Adaptive,
+        PastArg::Conditioned => Past::Conditioned,
+        PastArg::Marginalized => Past::Marginalized,
+    };
+    options.continue_on_failure = continue_on_failure;
+    options.refine = !no_refine;
+    options.validate(&model).map_err(plain)?;
+    if let Mode::FixedLag(w) = options.mode {
+        // A window longer than the run is the whole run.
+        options.mode = Mode::FixedLag(w.min(options.steps()));
+    }
+    let written = Written::new(&written, dt)?;
+    simulate(model, &options, out.as_deref(), &scene, strict, &written)
+}
+
+/// `mbfg simulate`: runs, writes the CSV, prints the summary.
+fn simulate(
+    model: Model,
+    options: &ForwardOptions,
+    out: Option<&Path>,
+    scene: &Path,
+    strict: bool,
+    written: &Written,
+) -> Result<(), Failure> {
+    // Open the output first: an unwritable path is bad input, found before the run.
+    let output = Output::open(out, &[scene])?;
+    if let Some(w) = mbfg::plausibility::idle_warning(&model) {
+        eprintln!("warning: {w}");
+    }
+    if let Some(w) = mbfg::plausibility::step_warning(&model, options.dt) {
+        if strict {
+            return Err(Failure::Input(format!("{w} (--strict)")));
+        }
+        eprintln!("warning: {w}");
+    }
+    super::interrupt::install();
+    let mut bar = Progress::new();
+    let model = Arc::new(model);
+    let result = forward::simulate_interruptible(model.clone(), options, &mut |done, total| {
+        bar.update(done, total);
+        if super::interrupt::requested() {
+            ControlFlow::Break(())
+        } else {
+            ControlFlow::Continue(())
+        }
+    });
+    bar.finish();
+    let (trajectory, summary) = result.map_err(|e| Failure::Run(plain(e)))?;
+    let to_file = output.to_file();
+    let line = summary_line(options, &summary);
+    // Computed only for what is written.
+    let prepare = || written.prepare(&model, &trajectory, None);
+    if let Some(k) = summary.interrupted {
+        let why = format!("interrupted after step {k}");
+        let what = if trajectory.is_empty() {
+            output.discard();
+            "nothing was written".to_string()
+        } else {
+            output
+                .keep_partial(&trajectory, &prepare()?.csv(None), &why)
+                .map_err(Failure::Run)?
+        };
+        print_summary(to_file, &line);
+        return Err(Failure::Interrupted(format!("{why}; {what}")));
+    }
+    let first_failure = summary.failures.first().cloned();
+    let stopped = match options.mode {
+        // A batch that did not converge has no trustworthy step.
+        Mode::Batch => first_failure.is_some(),
+        Mode::FixedLag(_) => trajectory.len() < options.steps(),
+    };
+    for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
+        eprintln!("warning: {}", shorten(&f.message()));
+    }
+    if stopped {
+        let Some(f) = first_failure else {
+            return Err(Failure::Run(format!(
+                "the run ended after {} of {} steps",
+                trajectory.len(),
+                options.steps()
+            )));
+        };
+        let what = if options.mode == Mode::Batch || trajectory.is_empty() {
+            output.discard();
+            "nothing was written".to_string()
+        } else {
+            output
+                .keep_partial(&trajectory, &prepare()?.csv(None), &f.message())
+                .map_err(Failure::Run)?
+        };
+        print_summary(to_file, &line);
+        // More iterations do not help the solves that stall (they crawl along a
+        // direction the cost barely sees), so --max-iterations is not suggested.
+        let hint = if f.cause.is_some() {
+            "an effect must be finite over the whole run"
+        } else if options.mode == Mode::Batch && !f.warm_start {
+            "the fixed-lag smoother (--window N) or a smaller dt may converge"
+        } else if f.singular.is_some() {
+            "--coords dc does not stop there"
+        } else if f.warm_start {
+            "--window 1 writes the run up to there"
+        } else if f.report.termination == mbfg::solver::Termination::Diverged {
+            "a diverged solve ends the run, --continue-on-failure too"
+        } else {
+            "--continue-on-failure goes on past it"
+        };
+        return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
+    }
+    let euler =
+        mbfg::plausibility::euler_warning(&model, &trajectory, &summary, options.integrator);
+    if let Some(w) = mbfg::plausibility::energy_warning(&summary).or(euler) {
+        if strict {
+            output.discard();
+            print_summary(to_file, &line);
+            return Err(Failure::Run(format!("{w}; nothing was written (--strict)")));
+        }
+        eprintln!("warning: {w}");
+    }
+    output
+        .commit(&trajectory, &prepare()?.csv(None))
+        .map_err(Failure::Run)?;
+    print_summary(to_file, &line);
+    Ok(())
+}
+
+fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
+    let mode = match options.mode {
+        Mode::Batch => "batch".to_string(),
+        Mode::FixedLag(n) => format!("window {n}"),
+    };
+    let mut line = format!(
+        "{} steps (dt = {} s, {mode}) in {:.3} s; LM iterations per solve: mean {:.2}, max {}; \
+         worst |Φ| {:.2e}, worst |Φq q̇| {:.2e}",
+        s.steps,
+        options.dt,
+        s.wall_time.as_secs_f64(),
+        s.mean_iterations,
+        s.max_iterations,
+        s.worst_phi,
+        s.worst_velocity_constraint
+    );
+    if let Some(d) = s.energy_drift {
+        line += &format!("; energy drift {d:.2e} J");
+    }
+    for r in &s.reselections {
+        line += &format!(
+            "; independent coordinates [{}] replaced by [{}] at step {} (t = {} s)",
+            r.from.join(", "),
+            r.to.join(", "),
+            r.step,
+            r.t
+        );
+    }
+    if let Some(f) = &s.tangent_after {
+        line += &format!(
+            "; tangent integrators (the paper's did not converge at step {}, t = {} s)",
+            f.step,
+            forward::round_time(f.t)
+        );
+    }
+    if let Some(r) = &s.refinement {
+        let (body, turn) = r.after.fast_body.clone().unwrap_or_default();
+        line += &format!(
+            "; integrated at dt = {:.3e} s ({} steps per step written): at dt = {:.3e} s body \
+             {body} turns about {turn:.2} rad a step at t = {} s, too coarse for the motion \
+             (steps and failures named here are the finer ones)",
+            r.dt,
+            r.factor,
+            r.after.dt(),
+            forward::round_time(r.after.t)
+        );
+    }
+    if let Some((k, t)) = s.conditioned_from {
+        line += &format!(
+            "; past conditioned from step {k} (t = {} s)",
+            forward::round_time(t)
+        );
+    }
+    let unconverged = s.failures.iter().filter(|f| f.singular.is_none()).count();
+    if unconverged > 0 {
+        line += &format!("; {unconverged} step(s) did not converge");
+    }
+    if s.failures.iter().any(|f| f.singular.is_some()) {
+        line += "; stopped ahead of a singular configuration";
+    }
+    line
+}

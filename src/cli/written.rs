@@ -1,0 +1,97 @@
+//! The options for what a CSV holds beyond the standard columns and which rows, and
+//! those columns and rows computed for a trajectory.
+
+use super::failure::{plain, Failure};
+use mbfg::forward;
+use mbfg::Model;
+
+/// What the CSV holds beyond the standard columns, and which rows.
+#[derive(clap::Args)]
+pub struct WrittenArgs {
+    /// Write the rows at t = 0, S, 2S, … only (and the last); S must be a whole
+    /// number of time steps. The solve is unchanged.
+    #[arg(long = "sample-dt", value_name = "S")]
+    sample_dt: Option<f64>,
+    /// Optional columns after the standard ones, comma-separated: `bodies` (angle,
+    /// centre of mass position and velocity of every body), `energy` (kinetic,
+    /// potential, work of every non-conservative effect, energy_balance).
+    #[arg(long, value_name = "LIST")]
+    columns: Option<String>,
+}
+
+/// [`WrittenArgs`] checked: the sample stride in steps and the column groups.
+pub struct Written {
+    stride: usize,
+    groups: Vec<mbfg::derived::Group>,
+}
+
+impl Written {
+    /// Checks the options against the time step; errors are bad input.
+    pub fn new(args: &WrittenArgs, dt: f64) -> Result<Self, String> {
+        let stride = match args.sample_dt {
+            Some(s) => mbfg::io::sample_stride(dt, s)?,
+            None => 1,
+        };
+        let groups = match &args.columns {
+            Some(list) => mbfg::derived::Group::parse_list(list)?,
+            None => Vec::new(),
+        };
+        Ok(Written { stride, groups })
+    }
+
+    /// The optional columns over every step (the work integrals need them all), and
+    /// the rows to write.
+    pub fn prepare(
+        &self,
+        model: &Model,
+        trajectory: &forward::Trajectory,
+        actuators: Option<&[f64]>,
+    ) -> Result<Prepared, Failure> {
+        let extra = if self.groups.is_empty() {
+            None
+        } else {
+            let c = mbfg::derived::columns(model, trajectory, &self.groups, actuators)
+                .map_err(|e| Failure::Run(plain(e)))?;
+            Some(c)
+        };
+        let rows = (self.stride > 1).then(|| mbfg::io::sampled_rows(trajectory.len(), self.stride));
+        Ok(Prepared { extra, rows })
+    }
+}
+
+/// The optional columns and rows of one trajectory, ready to write.
+pub struct Prepared {
+    extra: Option<mbfg::derived::Columns>,
+    rows: Option<Vec<usize>>,
+}
+
+impl Prepared {
+    pub fn csv<'a>(&'a self, forces: Option<&'a [f64]>) -> mbfg::io::CsvOptions<'a> {
+        mbfg::io::CsvOptions {
+            forces,
+            extra: self
+                .extra
+                .as_ref()
+                .map(|c| (c.names.as_slice(), c.values.as_slice())),
+            rows: self.rows.as_deref(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sample_and_column_options_are_checked() {
+        let args = |sample_dt, columns: Option<&str>| WrittenArgs {
+            sample_dt,
+            columns: columns.map(str::to_string),
+        };
+        let w = Written::new(&args(Some(0.01), Some("energy")), 0.001).unwrap();
+        assert_eq!(w.stride, 10);
+        assert_eq!(w.groups, [mbfg::derived::Group::Energy]);
+        assert!(Written::new(&args(Some(0.0015), None), 0.001).is_err());
+        assert!(Written::new(&args(None, Some("nope")), 0.001).is_err());
+    }
+}

@@ -1,0 +1,242 @@
+//! `mbfg.simulate`: forward dynamics, its arguments checked, and its result (the
+//! table, the summary, the failures and the warnings) as a dict.
+
+use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_values};
+use super::effects::{arg_effects, raised, with_loads};
+use super::errors::{arg_error, guard, invalid, SolveError};
+use super::run::{coordinates, interruptible, run_table, study_model, with_result};
+use crate::forward::{
+    self, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary, Trajectory,
+};
+use crate::smoother::Mode;
+use crate::solver::Past;
+use crate::Error;
+use pyo3::exceptions::PyRuntimeError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+
+/// A forward run's result, complete or not: `requested` is the number of steps asked
+/// for, so that a partial one says so in its summary.
+fn forward_result<'py>(
+    py: Python<'py>,
+    tr: &Trajectory,
+    s: &RunSummary,
+    requested: usize,
+) -> PyResult<Bound<'py, PyDict>> {
+    let out = run_table(py, tr, None)?;
+    let summary = PyDict::new(py);
+    summary.set_item("steps", s.steps)?;
+    summary.set_item("requested_steps", requested)?;
+    summary.set_item("wall_time", s.wall_time.as_secs_f64())?;
+    summary.set_item("mean_iterations", s.mean_iterations)?;
+    summary.set_item("max_iterations", s.max_iterations)?;
+    summary.set_item("worst_phi", s.worst_phi)?;
+    summary.set_item("worst_velocity_constraint", s.worst_velocity_constraint)?;
+    summary.set_item("energy_drift", s.energy_drift)?;
+    summary.set_item("conditioned_from", s.conditioned_from)?;
+    summary.set_item(
+        "tangent_after",
+        s.tangent_after.as_ref().map(|f| (f.step, f.t)),
+    )?;
+    let refinement = match &s.refinement {
+        Some(r) => {
+            let d = PyDict::new(py);
+            d.set_item("factor", r.factor)?;
+            d.set_item("dt", r.dt)?;
+            d.set_item("after", (r.after.step, r.after.t))?;
+            d.set_item("message", r.after.message())?;
+            Some(d)
+        }
+        None => None,
+    };
+    summary.set_item("refinement", refinement)?;
+    let reselections = PyList::empty(py);
+    for r in &s.reselections {
+        let d = PyDict::new(py);
+        d.set_item("step", r.step)?;
+        d.set_item("t", r.t)?;
+        d.set_item("from", &r.from)?;
+        d.set_item("to", &r.to)?;
+        reselections.append(d)?;
+    }
+    summary.set_item("reselections", reselections)?;
+    let converged = s.failures.is_empty();
+    summary.set_item("converged", converged)?;
+    summary.set_item("interrupted", s.interrupted)?;
+    summary.set_item(
+        "complete",
+        converged && s.interrupted.is_none() && tr.len() == requested,
+    )?;
+    out.set_item("summary", summary)?;
+    let failures = PyList::empty(py);
+    for f in &s.failures {
+        let d = PyDict::new(py);
+        d.set_item("step", f.step)?;
+        d.set_item("t", f.t)?;
+        let reason = match f.singular {
+            Some(_) => "singular configuration".to_string(),
+            None => f.report.termination.to_string(),
+        };
+        d.set_item("reason", reason)?;
+        d.set_item("cost", f.report.cost)?;
+        failures.append(d)?;
+    }
+    out.set_item("failures", failures)?;
+    Ok(out)
+}
+
+/// Forward dynamics. Every argument is required (`mbfg.simulate` gives the defaults).
+#[pyfunction]
+#[pyo3(name = "simulate")]
+#[allow(clippy::too_many_arguments)] // the CLI's options, one keyword each
+pub(super) fn simulate_run<'py>(
+    py: Python<'py>,
+    scene: &Bound<'py, PyAny>,
+    coords: &Bound<'py, PyAny>,
+    dt: &Bound<'py, PyAny>,
+    t_end: &Bound<'py, PyAny>,
+    window: &Bound<'py, PyAny>,
+    batch: &Bound<'py, PyAny>,
+    max_iterations: &Bound<'py, PyAny>,
+    integrator: &Bound<'py, PyAny>,
+    noise: &Bound<'py, PyAny>,
+    continue_on_failure: &Bound<'py, PyAny>,
+    past: &Bound<'py, PyAny>,
+    dc_integrators: &Bound<'py, PyAny>,
+    refine: &Bound<'py, PyAny>,
+    params: &Bound<'py, PyAny>,
+    q0: &Bound<'py, PyAny>,
+    dq0: &Bound<'py, PyAny>,
+    effects: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    guard(|| {
+        let loads = arg_effects(effects)?;
+        let params = arg_values(Some(params), "params")?;
+        let q0 = arg_values(Some(q0), "q0")?;
+        let dq0 = arg_values(Some(dq0), "dq0")?;
+        let coordinates = coordinates(coords)?;
+        let dt = arg_real(dt, "dt")?;
+        if dt <= 0.0 {
+            return Err(invalid(format!(
+                "dt: the time step must be positive, got {dt}"
+            )));
+        }
+        let t_end = arg_real(t_end, "t_end")?;
+        if t_end < dt {
+            return Err(invalid(format!(
+                "t_end must be at least one time step (dt = {dt}), got {t_end}"
+            )));
+        }
+        let window = arg_count(window, "window", 1)?;
+        let batch = arg_bool(batch, "batch")?;
+        let max_iterations = arg_count(max_iterations, "max_iterations", 1)?;
+        let integrator = arg_choice(
+            integrator,
+            "integrator",
+            &["trapezoidal", "euler", "hermite-simpson"],
+        )?;
+        let noise = arg_choice(noise, "noise", &["default", "paper"])?;
+        let continue_on_failure = arg_bool(continue_on_failure, "continue_on_failure")?;
+        let refine = arg_bool(refine, "refine")?;
+        let past = arg_choice(past, "past", &["adaptive", "conditioned", "marginalized"])?;
+        let dc_integrators = arg_choice(
+            dc_integrators,
+            "dc_integrators",
+            &["auto", "tangent", "full"],
+        )?;
+
+        let mode = if batch {
+            Mode::Batch
+        } else {
+            Mode::FixedLag(window)
+        };
+        let mut options = ForwardOptions::new(coordinates, dt, t_end, mode);
+        options.integrator = match integrator {
+            "trapezoidal" => Integrator::Trapezoidal,
+            "hermite-simpson" => Integrator::HermiteSimpson,
+            _ => Integrator::Euler,
+        };
+        options.dc_integrators = match dc_integrators {
+            "auto" => DcIntegrators::Auto,
+            "tangent" => DcIntegrators::Tangent,
+            _ => DcIntegrators::Full,
+        };
+        options.noise = match noise {
+            "default" => NoiseModels::default(),
+            _ => NoiseModels::paper(),
+        };
+        options.settings.max_iterations = max_iterations;
+        options.settings.past = match past {
+            "adaptive" => Past::Adaptive,
+            "conditioned" => Past::Conditioned,
+            _ => Past::Marginalized,
+        };
+        options.continue_on_failure = continue_on_failure;
+        options.refine = refine;
+        let model = with_loads(study_model(scene, &params, &q0, &dq0)?, &loads)?;
+        // What is left to refuse depends on the scene (its independent coordinates)
+        // or on dt and t_end together (the number of steps).
+        options.validate(&model).map_err(arg_error)?;
+        let requested = options.steps();
+        let step_warning: Vec<String> = crate::plausibility::idle_warning(&model)
+            .into_iter()
+            .chain(crate::plausibility::step_warning(&model, options.dt))
+            .collect();
+        let model_for_checks = model.clone();
+        let (run, signal) = interruptible(py, |progress| {
+            forward::simulate_interruptible(model, &options, progress)
+        });
+        let (tr, s) = match run {
+            Ok(run) => run,
+            // No trajectory comes back from a library error; an interrupt came first.
+            Err(e) => {
+                let err = match (signal, raised(&loads), e) {
+                    (Some(signal), _, _) => signal,
+                    (None, Some(python), _) => python,
+                    (None, None, e @ Error::InvalidArgument(_)) => return Err(arg_error(e)),
+                    (None, None, e) => SolveError::new_err(e.to_string()),
+                };
+                return Err(with_result(py, err, None));
+            }
+        };
+        let out = forward_result(py, &tr, &s, requested)?;
+        // What converged but may not be right (mbfg simulate prints these as warnings).
+        let euler =
+            crate::plausibility::euler_warning(&model_for_checks, &tr, &s, options.integrator);
+        let warnings: Vec<String> = step_warning
+            .iter()
+            .cloned()
+            .chain(crate::plausibility::energy_warning(&s))
+            .chain(euler)
+            .collect();
+        out.get_item("summary")?
+            .ok_or_else(|| PyRuntimeError::new_err("a result without a summary"))?
+            .set_item("warnings", warnings)?;
+        if let Some(signal) = signal {
+            return Err(with_result(py, signal, Some(&out)));
+        }
+        // A singular configuration stops the run whatever continue_on_failure says; so
+        // does a diverged solve, and then the trajectory ends short.
+        let stopped = s.failures.iter().find(|f| f.singular.is_some());
+        let short = (tr.len() < requested).then(|| s.failures.last()).flatten();
+        let fatal = stopped
+            .or(s.failures.first().filter(|_| !continue_on_failure))
+            .or(short);
+        if let Some(f) = fatal {
+            let err = raised(&loads).unwrap_or_else(|| SolveError::new_err(f.message()));
+            return Err(with_result(py, err, Some(&out)));
+        }
+        if tr.len() < requested {
+            let m = format!(
+                "the run ended after {} of {requested} steps without naming a failure",
+                tr.len()
+            );
+            return Err(with_result(py, SolveError::new_err(m), Some(&out)));
+        }
+        // A Ctrl-C after the last look: raise it here, with the run, rather than lose
+        // the run to it on the next Python instruction.
+        py.check_signals()
+            .map_err(|e| with_result(py, e, Some(&out)))?;
+        Ok(out)
+    })
+}
