@@ -79,6 +79,11 @@ pub struct SimulateArgs {
     /// trajectory is then not written).
     #[arg(long)]
     strict: bool,
+    /// Print every iteration of every window solve to standard error: the window,
+    /// the cost before and after the step, LM's damping, the predicted decrease and
+    /// the step's size (for diagnosing a run that does not converge).
+    #[arg(long = "trace-solver")]
+    trace_solver: bool,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -136,6 +141,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         continue_on_failure,
         no_refine,
         strict,
+        trace_solver,
     } = args;
     let (_, model) = load(&scene)?;
     let mode = if batch {
@@ -163,6 +169,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         NoiseArg::Paper => NoiseModels::paper(),
     };
     options.settings.max_iterations = max_iterations;
+    options.settings.trace = trace_solver;
     options.settings.past = match past {
         PastArg::Adaptive => Past::Adaptive,
         PastArg::Conditioned => Past::Conditioned,

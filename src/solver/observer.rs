@@ -39,13 +39,13 @@ pub struct Trace;
 impl Observer for Trace {
     fn iteration(&mut self, it: &Iteration) {
         eprintln!(
-            "k0={} k1={} it={} newton={} cost={:.6e} trial={:?} mu={:.1e} pred={:.3e} |d|={:.2e} small={} restored={}",
+            "k0={} k1={} it={} newton={} cost={:.6e} trial={} mu={:.1e} pred={:.3e} |d|={:.2e} small={} restored={}",
             it.k0,
             it.k1,
             it.iteration,
             it.newton,
             it.cost,
-            it.trial,
+            it.trial.map_or("-".into(), |c| format!("{c:.6e}")),
             it.damping,
             it.predicted,
             it.largest_step,
