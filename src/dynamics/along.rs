@@ -2,8 +2,7 @@
 //! directions at once, from the factors a preceding evaluation left, at a pair of
 //! triangular solves per direction instead of one per coordinate.
 
-use super::kernel::KernelLayout;
-use super::DynamicsKernel;
+use super::kernel::{DynamicsKernel, KernelLayout};
 use crate::error::Result;
 use crate::linalg::dense;
 use crate::model::Model;

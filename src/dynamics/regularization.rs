@@ -3,7 +3,7 @@
 //! augmented system regular near a singular configuration, ∂s/∂q, and the terms the
 //! regularization adds to the Jacobians (see [`DynamicsKernel`]).
 
-use super::DynamicsKernel;
+use super::kernel::DynamicsKernel;
 use crate::kinematics::inverse_trace;
 use crate::model::Model;
 

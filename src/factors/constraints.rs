@@ -1,7 +1,7 @@
 //! The constraint factors of dependent coordinates: f^d_pc ([`PositionConstraints`])
 //! and f^d_vc ([`VelocityConstraints`]).
 
-use super::{key_and_noise_accessors, mat_vec};
+use super::shared::{key_and_noise_accessors, mat_vec};
 use crate::error::Result;
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
 use crate::model::Model;

@@ -2,7 +2,7 @@
 //! form f^d_idyn with the actuator forces a variable ([`Dynamics`]), on the
 //! [`DynamicsKernel`].
 
-use super::{identity, key_and_noise_accessors};
+use super::shared::{identity, key_and_noise_accessors};
 use crate::dynamics::DynamicsKernel;
 use crate::error::Result;
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};

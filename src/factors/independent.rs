@@ -2,7 +2,7 @@
 //! ([`IndependentVelocity`]), f^i_ac ([`IndependentAcceleration`]) and f^i_dyn
 //! ([`IndependentDynamics`], with its inverse-dynamics form f^i_idyn).
 
-use super::{identity, key_and_noise_accessors, mat_vec};
+use super::shared::{identity, key_and_noise_accessors, mat_vec};
 use crate::dynamics::DynamicsKernel;
 use crate::error::Result;
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};

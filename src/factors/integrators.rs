@@ -1,7 +1,7 @@
 //! The factors between consecutive steps: the soft link f_eq ([`Equality`]) and the
 //! integrators f_ei ([`Euler`]) and f_ti ([`Trapezoidal`]).
 
-use super::{identity, key_and_noise_accessors};
+use super::shared::{identity, key_and_noise_accessors};
 use crate::error::Result;
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
 

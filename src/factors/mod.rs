@@ -11,10 +11,10 @@
 //! its LU factors already at hand for q̈, each Jacobian column costs one more pair of
 //! triangular solves, against a full re-factorization per column (two per column for
 //! central differences) for a numerical Jacobian — exact and several times cheaper.
-
 //!
 //! One file per family: `priors`, `integrators`, `constraints`, `dynamics` (on the
-//! [`DynamicsKernel`] of [`crate::dynamics`]), `independent` and `prescribed`.
+//! [`DynamicsKernel`] of [`crate::dynamics`]), `independent` and `prescribed`;
+//! what they share (the key and noise accessors, the identity block) in `shared`.
 
 mod constraints;
 mod dynamics;
@@ -22,6 +22,7 @@ mod independent;
 mod integrators;
 mod prescribed;
 mod priors;
+mod shared;
 
 pub use crate::dynamics::DynamicsKernel;
 pub use constraints::{PositionConstraints, VelocityConstraints};
@@ -32,31 +33,4 @@ pub use independent::{
 pub use integrators::{Equality, Euler, Trapezoidal};
 pub use prescribed::PrescribedMotion;
 pub use priors::{ComponentPrior, Prior};
-
-/// The `keys` and `noise` methods every factor here answers from its own fields.
-macro_rules! key_and_noise_accessors {
-    () => {
-        fn keys(&self) -> &[Key] {
-            &self.keys
-        }
-        fn noise(&self) -> &Noise {
-            &self.noise
-        }
-    };
-}
-pub(crate) use key_and_noise_accessors;
-
-/// Writes `scale`·I into a row-major d × d block.
-pub(crate) fn identity(block: &mut [f64], d: usize, scale: f64) {
-    block.fill(0.0);
-    for i in 0..d {
-        block[i * d + i] = scale;
-    }
-}
-
-/// y = A x for a row-major rows × cols A.
-fn mat_vec(a: &[f64], rows: usize, cols: usize, x: &[f64], y: &mut [f64]) {
-    for i in 0..rows {
-        y[i] = (0..cols).map(|j| a[i * cols + j] * x[j]).sum();
-    }
-}
+pub(crate) use shared::{identity, key_and_noise_accessors};

@@ -1,7 +1,7 @@
 //! A prescribed motion: f_prior on some coordinates following a table of values, one
 //! row per time step ([`PrescribedMotion`]).
 
-use super::key_and_noise_accessors;
+use super::shared::key_and_noise_accessors;
 use crate::error::{Error, Result};
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
 use std::sync::Arc;

@@ -1,7 +1,7 @@
 //! Priors: f_prior on a whole variable ([`Prior`]) and on some of its components
 //! ([`ComponentPrior`]).
 
-use super::{identity, key_and_noise_accessors};
+use super::shared::{identity, key_and_noise_accessors};
 use crate::error::Result;
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
 

@@ -2,7 +2,7 @@
 //! in dependent or independent coordinates, the initial guess and the prediction of
 //! each step, and the conversions between its variables and a [`Trajectory`].
 
-use super::{DcIntegrators, ForwardOptions, Integrator};
+use super::options::{DcIntegrators, ForwardOptions, Integrator};
 use crate::collocation;
 use crate::coordinates::Coordinates;
 use crate::dynamics;

@@ -21,7 +21,7 @@ pub enum Integrator {
 pub enum DcIntegrators {
     /// The paper's ([`DcIntegrators::Full`]); a run in which a solve fails with them
     /// (not at an ill-posed configuration, not interrupted; a batch solve: within
-    /// [`AUTO_BATCH_ITERATIONS`](super::AUTO_BATCH_ITERATIONS)) is run again with [`DcIntegrators::Tangent`], and
+    /// [`AUTO_BATCH_ITERATIONS`](super::segment::AUTO_BATCH_ITERATIONS)) is run again with [`DcIntegrators::Tangent`], and
     /// [`RunSummary::tangent_after`] says so.
     Auto,
     /// Only along the directions the constraints leave free (see [`crate::tangent`]):

@@ -3,9 +3,11 @@
 //! a step is too coarse for the motion.
 
 use super::failure::first_non_finite;
+use super::failure::StepFailure;
+use super::options::{DcIntegrators, ForwardOptions};
 use super::segment::{segment, Run};
 use super::summary::summarize;
-use super::{DcIntegrators, ForwardOptions, Refinement, Reselection, RunSummary, StepFailure};
+use super::summary::{Refinement, Reselection, RunSummary};
 use crate::error::Result;
 use crate::model::Model;
 use crate::solver::{SolveReport, Termination};

@@ -2,8 +2,10 @@
 //! batch with one set of coordinates, watching, in independent coordinates, how well
 //! they determine the others; and the substep guess that rescues a failed step.
 
-use super::graph::extract;
-use super::{ForwardGraph, ForwardOptions, Reselection, StepFailure};
+use super::failure::StepFailure;
+use super::graph::{extract, ForwardGraph};
+use super::options::ForwardOptions;
+use super::summary::Reselection;
 use crate::coordinates::Coordinates;
 use crate::error::Result;
 use crate::kinematics::{constraint_conditioning, Determinacy};

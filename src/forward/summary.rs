@@ -2,7 +2,7 @@
 //! constraint violations, the energy drift, the failures, and where the run was
 //! refined ([`Refinement`]) or switched coordinates ([`Reselection`]).
 
-use super::StepFailure;
+use super::failure::StepFailure;
 use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::trajectory::Trajectory;
