@@ -2,7 +2,8 @@
 //! directions at once, from the factors a preceding evaluation left, at a pair of
 //! triangular solves per direction instead of one per coordinate.
 
-use super::kernel::{DynamicsKernel, KernelLayout};
+use super::augmented::KernelLayout;
+use super::kernel::DynamicsKernel;
 use crate::error::Result;
 use crate::linalg::dense;
 use crate::model::Model;
