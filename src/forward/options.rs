@@ -22,7 +22,7 @@ pub enum DcIntegrators {
     /// The paper's ([`DcIntegrators::Full`]); a run in which a solve fails with them
     /// (not at an ill-posed configuration, not interrupted; a batch solve: within
     /// [`AUTO_BATCH_ITERATIONS`](super::segment::AUTO_BATCH_ITERATIONS)) is run again with [`DcIntegrators::Tangent`], and
-    /// [`RunSummary::tangent_after`] says so.
+    /// [`RunSummary::tangent_after`](super::summary::RunSummary::tangent_after) says so.
     Auto,
     /// Only along the directions the constraints leave free (see [`crate::tangent`]):
     /// one soft equation per unknown, all of them satisfied, so that every window
@@ -114,9 +114,9 @@ pub struct ForwardOptions {
     /// Go on after a step whose solve did not converge (it is still reported).
     pub continue_on_failure: bool,
     /// Where a step fails because it is too coarse for the motion (a body turns more
-    /// than [`StepFailure::LARGE_TURN`] a step), integrate the run again at a step
+    /// than [`StepFailure::LARGE_TURN`](super::failure::StepFailure::LARGE_TURN) a step), integrate the run again at a step
     /// `dt / factor` and keep every `factor`-th state, so that the output stays on the
-    /// grid asked for ([`RunSummary::refinement`] says so).
+    /// grid asked for ([`RunSummary::refinement`](super::summary::RunSummary::refinement) says so).
     pub refine: bool,
 }
 

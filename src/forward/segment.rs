@@ -301,7 +301,7 @@ pub(super) fn segment(
 }
 
 /// The iterations a batch solve with the paper's integrator factors gets under
-/// [`DcIntegrators::Auto`] before the run is made again with tangent ones.
+/// [`DcIntegrators::Auto`](super::options::DcIntegrators::Auto) before the run is made again with tangent ones.
 pub const AUTO_BATCH_ITERATIONS: usize = 10;
 
 /// The substep counts tried, in turn, for a step whose solve failed from its guess:

@@ -24,17 +24,17 @@ pub struct RunSummary {
     /// The largest kinetic energy along the trajectory: the scale of the drift.
     pub peak_kinetic_energy: f64,
     pub failures: Vec<StepFailure>,
-    /// With [`Past::Adaptive`], the step from which the smoother conditioned on its
+    /// With [`Past::Adaptive`](crate::solver::Past::Adaptive), the step from which the smoother conditioned on its
     /// past: its window solve had not converged after a marginal prior.
     pub conditioned_from: Option<(usize, f64)>,
     /// In independent coordinates, where the run switched to another set.
     pub reselections: Vec<Reselection>,
     /// Set (to the last step kept) when the caller interrupted the run.
     pub interrupted: Option<usize>,
-    /// With [`DcIntegrators::Auto`]: the failure with the paper's integrator factors
+    /// With [`DcIntegrators::Auto`](super::options::DcIntegrators::Auto): the failure with the paper's integrator factors
     /// after which this run was made again with tangent ones.
     pub tangent_after: Option<StepFailure>,
-    /// With [`ForwardOptions::refine`]: the finer step this run was integrated at.
+    /// With [`ForwardOptions::refine`](super::options::ForwardOptions::refine): the finer step this run was integrated at.
     pub refinement: Option<Refinement>,
 }
 

@@ -2,7 +2,7 @@
 //! distance to rank loss of Φ_q restricted to the dependent coordinates
 //! ([`Determinacy`], which a run in independent coordinates watches to switch sets or
 //! stop ahead of a singular configuration), and the scale-free σ_r/σ₁ of Φ_q itself
-//! ([`constraint_conditioning`]) that a failure message quotes.
+//! (`constraint_conditioning`) that a failure message quotes.
 
 use crate::linalg::dense;
 use crate::model::{Model, PointSlot};
