@@ -13,7 +13,7 @@ import pathlib
 import sys
 
 import mbfg
-from harness import report
+from harness import pages, report
 from harness import trajectory as tj
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -24,10 +24,10 @@ WINDOWS = [1, 2, 5, 10, "batch"]
 
 def rows():
     for _, dc_scene, ic_scene, ref in report.FORWARD:
-        truth, _ = report.load_reference(ref)
+        truth, _ = pages.load_reference(ref)
         t_end = float(truth.t[-1])
         for c, scene in [("dc", dc_scene), ("ic", ic_scene)]:
-            if c == "ic" and not mbfg.load(report.scene_path(scene)).independent:
+            if c == "ic" and not mbfg.load(pages.scene_path(scene)).independent:
                 continue
             # IC on the robot leaves its assembly branch for N_w ≥ 2 (RMSE 3e-4 to
             # 7e-2 m, reports/forward.md): a bound there would lock in a wrong answer.
@@ -54,15 +54,15 @@ def main(argv=None) -> int:
     out = ap.parse_args(argv).out
     lines = ["scene,reference,coords,window,dt,t_end,rmse_bound_m"]
     for scene, ref, c, w, dt, t_end in rows():
-        truth, _ = report.load_reference(ref)
-        model = mbfg.load(report.scene_path(ref))
+        truth, _ = pages.load_reference(ref)
+        model = mbfg.load(pages.scene_path(ref))
         try:
-            r = mbfg.simulate(report.scene_path(scene), coords=c, dt=dt, t_end=t_end,
-                              **report.window_kw(w))
+            r = mbfg.simulate(pages.scene_path(scene), coords=c, dt=dt, t_end=t_end,
+                              **pages.window_kw(w))
         except mbfg.SolveError as e:
             print(f"skipped {scene} {c} N_w={w} dt={dt}: {e}", file=sys.stderr)
             continue
-        rmse, _ = report.errors(model, r.t, r.q, truth)
+        rmse, _ = pages.errors(model, r.t, r.q, truth)
         bound = round_up(rmse * MARGIN)
         print(f"{scene:<16} {c} N_w={w!s:<5} dt={dt:g}: {rmse:.4e} → bound {bound:.3e}", file=sys.stderr)
         lines.append(f"{scene},{ref},{c},{w},{dt:g},{t_end:g},{bound:.3e}")

@@ -12,12 +12,6 @@
 from __future__ import annotations
 
 import argparse
-import csv
-import datetime
-import json
-import os
-import pathlib
-import platform
 import sys
 import time
 
@@ -25,11 +19,9 @@ import numpy as np
 
 import mbfg
 from harness import generators, hard_cases
-from harness import reference as refs
-from harness import trajectory as tj
+from harness.pages import (REPORTS, ROOT, errors, load_reference, machine, progress,
+                           scene_path, window_kw, write_csv)
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-REPORTS = ROOT / "reports"
 WINDOWS = list(range(1, 11)) + ["batch"]
 
 # The paper's Table 3 (RMSE in m, g = 9.8, ADAMS as truth) for N_w = 2…10: DC, IC.
@@ -48,27 +40,6 @@ FORWARD = [
     ("slotted lever", "slotted-lever", "slotted-lever", "slotted-lever"),
     ("pick-and-place robot (1 s)", "pick-and-place", "pick-and-place", "pick-and-place"),
 ]
-
-
-def progress(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
-def scene_path(name: str) -> pathlib.Path:
-    return ROOT / "scenes" / f"{name}.yaml"
-
-
-def load_reference(name: str) -> tuple[tj.Trajectory, dict]:
-    folder = ROOT / "references" / name
-    return (tj.read(folder / "reference.csv.gz"),
-            json.loads((folder / "provenance.json").read_text()))
-
-
-errors = refs.point_errors
-
-
-def window_kw(w) -> dict:
-    return {"batch": True} if w == "batch" else {"window": w}
 
 
 # ---------------------------------------------------------------- forward tables
@@ -163,14 +134,6 @@ def ms(r) -> str:
     return f"{r['wall_time_s'] * 1e3:.0f} ms"
 
 
-def write_csv(path: pathlib.Path, rows: list[dict]) -> None:
-    keys = list(dict.fromkeys(k for r in rows for k in r))  # every key, in first-seen order
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-
-
 # ---------------------------------------------------------------- hard cases
 
 def hard_page(fast: bool) -> tuple[str, list]:
@@ -209,18 +172,6 @@ def rnea_section() -> str:
 
 
 # ---------------------------------------------------------------- page
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {datetime.date.today()}"
-
 
 def section(page: str, heading: str) -> str:
     """The section of a generated page that starts with `heading`, if present."""
@@ -312,7 +263,7 @@ def main(argv=None) -> int:
         write_csv(REPORTS / "hard-cases.csv", [o.__dict__ for o in outcomes])
         progress("wrote reports/hard-cases.md, reports/hard-cases.csv")
     if "robustness" in parts:
-        from harness import robustness  # it imports this module
+        from harness import robustness
         progress("robustness matrix")
         began = time.perf_counter()
         outcomes = robustness.run(robustness.scenes(), fast=False)

@@ -19,7 +19,7 @@ import sys
 import time
 
 import mbfg
-from harness import generators, report
+from harness import generators, pages
 from harness import trajectory as tj
 
 REPEATS = 3
@@ -49,8 +49,8 @@ def timed(fn):
 
 def configurations(dc_scene, ic_scene, t_end):
     """(tool, variant, setting, callable returning (t, q)) for every point of the plot."""
-    dc = report.scene_path(dc_scene)
-    variants = [("DC", dc)] + ([("IC", report.scene_path(ic_scene))] if ic_scene else [])
+    dc = pages.scene_path(dc_scene)
+    variants = [("DC", dc)] + ([("IC", pages.scene_path(ic_scene))] if ic_scene else [])
     for coords, scene in variants:
         sweeps = [("trapezoidal", w, MBFG_DTS) for w in (1, 5)] + [("hermite-simpson", 1, HS_DTS)]
         for integrator, w, dts in sweeps:
@@ -75,20 +75,20 @@ def configurations(dc_scene, ic_scene, t_end):
 
 
 def measure(title, dc_scene, ic_scene, ref, t_end) -> list[dict]:
-    truth, _ = report.load_reference(ref)
-    model = mbfg.load(report.scene_path(ref))
+    truth, _ = pages.load_reference(ref)
+    model = mbfg.load(pages.scene_path(ref))
     rows = []
     for tool, variant, setting, run in configurations(dc_scene, ic_scene, t_end):
         row = {"scene": title, "tool": tool, "variant": variant, "setting": setting}
         try:
             (t, q), wall = timed(run)
-            rmse, mx = report.errors(model, t, q[:, :model.n], truth)
+            rmse, mx = pages.errors(model, t, q[:, :model.n], truth)
             row.update(rmse_m=rmse, max_m=mx, wall_time_s=wall, status="ok")
         except tj.Unsupported as e:
             row.update(status=f"refused: {e}")
         except (mbfg.SolveError, RuntimeError, ValueError) as e:
             row.update(status=f"failed: {str(e).splitlines()[0][:160]}")
-        report.progress(f"  {title}: {tool} {variant} {setting}: "
+        pages.progress(f"  {title}: {tool} {variant} {setting}: "
                         + (f"RMSE {row['rmse_m']:.2e} m in {row['wall_time_s'] * 1e3:.0f} ms"
                            if row["status"] == "ok" else row["status"]))
         rows.append(row)
@@ -146,7 +146,7 @@ def write(reports: pathlib.Path, machine: str, scenes=None) -> list[dict]:
     for title, (dc, ic, ref, t_end) in SCENES.items():
         if scenes is not None and title not in scenes:
             continue
-        report.progress(f"accuracy against time: {title}")
+        pages.progress(f"accuracy against time: {title}")
         rows = measure(title, dc, ic, ref, t_end)
         all_rows += rows
         png = f"accuracy-vs-time-{ref}.png"
@@ -166,8 +166,8 @@ def write(reports: pathlib.Path, machine: str, scenes=None) -> list[dict]:
             "IDA: BDF with the module's closed-form Jacobians. "
             "Raw numbers: [accuracy-vs-time.csv](accuracy-vs-time.csv).\n\n" + "\n".join(parts))
     (reports / "accuracy-vs-time.md").write_text(page)
-    report.write_csv(reports / "accuracy-vs-time.csv", all_rows)
-    report.progress(f"wrote {tj.display_path(reports)}/accuracy-vs-time.md, .csv, .png")
+    pages.write_csv(reports / "accuracy-vs-time.csv", all_rows)
+    pages.progress(f"wrote {tj.display_path(reports)}/accuracy-vs-time.md, .csv, .png")
     return all_rows
 
 
@@ -175,7 +175,7 @@ def main(argv=None) -> int:
     global REPEATS
     ap = argparse.ArgumentParser(prog="python -m harness.timing",
                                  description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=pathlib.Path, default=report.REPORTS,
+    ap.add_argument("--out", type=pathlib.Path, default=pages.REPORTS,
                     help="folder for accuracy-vs-time.md, .csv, .png (default: reports/)")
     ap.add_argument("--scenes", default=",".join(SCENES),
                     help="comma-separated scene titles (default: %(default)s)")
@@ -189,7 +189,7 @@ def main(argv=None) -> int:
     if args.repeats < 1:
         ap.error("--repeats must be at least 1")
     REPEATS = args.repeats
-    write(args.out, report.machine(), chosen)
+    write(args.out, pages.machine(), chosen)
     return 0
 
 

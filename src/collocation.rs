@@ -27,8 +27,9 @@
 //! offset enters q̈_m smoothly and the step's error stays O(h⁵). The constraints hold
 //! exactly at the nodes, where the hard factors are.
 
+use crate::dynamics::DynamicsKernel;
 use crate::error::Result;
-use crate::factors::{identity, key_and_noise_accessors, DynamicsKernel};
+use crate::factors::{identity, key_and_noise_accessors};
 use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;

@@ -9,10 +9,10 @@
 //!   points ([`crate::reactions`]).
 
 use crate::error::{Error, Result};
-use crate::forward::Trajectory;
 use crate::model::forces::Force;
 use crate::model::{mass, Model};
 use crate::scene::Effect;
+use crate::trajectory::Trajectory;
 use std::f64::consts::PI;
 
 /// A group of optional columns.

@@ -16,16 +16,17 @@
 //! problems along the samples, then the augmented system for Q), so a single batch
 //! solve converges in a few iterations.
 
+use crate::coordinates::Coordinates;
 use crate::dynamics;
 use crate::error::{Error, Result};
 use crate::factors::*;
-use crate::forward::{Coordinates, NoiseModels, Trajectory};
 use crate::graph::{ChainGraph, Layout, Noise, VarKind};
 use crate::io::Table;
 use crate::kinematics;
 use crate::model::Model;
 use crate::smoother;
 use crate::solver::{Settings, SolveReport, WindowSolver};
+use crate::trajectory::Trajectory;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -193,26 +194,48 @@ pub struct InverseOptions {
     /// DC, or IC with z the prescribed coordinates (they must be the scene's
     /// `independent` set).
     pub coordinates: Coordinates,
-    pub noise: NoiseModels,
+    pub noise: InverseNoise,
     pub settings: Settings,
+}
+
+/// Standard deviations of the soft factors of an inverse solve. The constraint
+/// factors, the prescribed motion and the priors are hard (see [`crate::solver`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InverseNoise {
+    /// σ of f^d_idyn (f^i_idyn in independent coordinates).
+    pub dynamics: f64,
+    /// σ of the integrator of velocities into positions (the staged start's).
+    pub integrator_position: f64,
+    /// σ of the integrator of accelerations into velocities (the staged start's).
+    pub integrator_velocity: f64,
+    /// σ of the weak f_eq between consecutive q (IC, and the staged start's first
+    /// stage).
+    pub equality: f64,
+}
+
+impl Default for InverseNoise {
+    /// Integrators 100× stiffer than f^d_idyn. In inverse dynamics the unknown
+    /// forces make the dynamics factor consistent at every step, so only the
+    /// integrators carry information along the horizon; weighted 10× below f_dyn
+    /// (the forward defaults) that information sinks under the dynamics' round-off
+    /// on the robot, and the banded factorization loses definiteness. f_eq as weak
+    /// as in a forward run by default.
+    fn default() -> Self {
+        InverseNoise {
+            dynamics: 1.0,
+            integrator_position: 0.01,
+            integrator_velocity: 0.01,
+            equality: 1e6,
+        }
+    }
 }
 
 impl Default for InverseOptions {
     fn default() -> Self {
-        // Integrators 100× stiffer than f^d_idyn. In inverse dynamics the unknown
-        // forces make the dynamics factor consistent at every step, so only the
-        // integrators carry information along the horizon; weighted 10× below
-        // f_dyn (the forward defaults) that information sinks under the dynamics'
-        // round-off on the robot, and the banded factorization loses definiteness.
         InverseOptions {
             start: Start::Kinematic,
             coordinates: Coordinates::Dependent,
-            noise: NoiseModels {
-                dynamics: 1.0,
-                integrator_position: 0.01,
-                integrator_velocity: 0.01,
-                ..NoiseModels::default()
-            },
+            noise: InverseNoise::default(),
             settings: Settings {
                 max_iterations: 50,
                 ..Settings::default()

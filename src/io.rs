@@ -7,7 +7,7 @@
 
 use crate::error::{Error, Result};
 use crate::expr::excerpt;
-use crate::forward::Trajectory;
+use crate::trajectory::Trajectory;
 use std::io::Write;
 use std::path::Path;
 

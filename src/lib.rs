@@ -13,6 +13,7 @@
 
 pub mod check;
 pub mod collocation;
+pub mod coordinates;
 pub mod derived;
 pub mod dynamics;
 pub mod error;
@@ -36,6 +37,7 @@ pub mod scene;
 pub mod smoother;
 pub mod solver;
 pub mod tangent;
+pub mod trajectory;
 
 pub use error::{Error, Result, SceneError};
 pub use model::forces::ExternalLoad;

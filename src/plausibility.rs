@@ -3,8 +3,9 @@
 //! but did not, and an explicit Euler run off its energy balance. Each is reported
 //! with its numbers; `mbfg simulate --strict` makes them errors.
 
-use crate::forward::{Integrator, RunSummary, Trajectory};
+use crate::forward::{Integrator, RunSummary};
 use crate::model::Model;
+use crate::trajectory::Trajectory;
 use nalgebra::{DMatrix, DVector};
 
 /// The largest ω·Δt (ω the fastest natural frequency one effect gives the mechanism,

@@ -6,9 +6,9 @@
 
 use crate::dynamics;
 use crate::error::{Error, Result};
-use crate::forward::Trajectory;
 use crate::kinematics;
 use crate::model::Model;
+use crate::trajectory::Trajectory;
 use nalgebra::DVector;
 
 /// Integrates from the model's initial state with internal step `h`, sampling every

@@ -210,7 +210,7 @@ fn leave(
             crate::Error::Singular(m) => crate::Error::Singular(format!(
                 "{m} (t = {} s); --past conditioned holds the past at its estimate instead of \
                  marginalizing it",
-                crate::forward::round_time(graph.time(k0))
+                crate::trajectory::round_time(graph.time(k0))
             )),
             other => other,
         })?;

@@ -6,16 +6,16 @@ import pathlib
 import pytest
 
 import mbfg
-from harness import report
+from harness import pages
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 def error(integrator, dt, coords="dc", scene="fourbar"):
-    truth, _ = report.load_reference(scene)
-    r = mbfg.simulate(report.scene_path(scene), coords=coords, dt=dt, t_end=1.0,
+    truth, _ = pages.load_reference(scene)
+    r = mbfg.simulate(pages.scene_path(scene), coords=coords, dt=dt, t_end=1.0,
                       integrator=integrator)
-    return report.errors(mbfg.load(report.scene_path(scene)), r.t, r.q, truth)[0]
+    return pages.errors(mbfg.load(pages.scene_path(scene)), r.t, r.q, truth)[0]
 
 
 @pytest.mark.parametrize("coords, scene", [("dc", "fourbar"), ("ic", "fourbar-theta")])

@@ -6,8 +6,8 @@
 //! - to standard output: the rows, and after those of a run that ended early a last
 //!   line `# incomplete: …` that no CSV reader takes for a row of numbers.
 
-use mbfg::forward::Trajectory;
 use mbfg::io::CsvOptions;
+use mbfg::trajectory::Trajectory;
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};

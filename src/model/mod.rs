@@ -143,8 +143,11 @@ pub struct State {
 }
 
 impl Model {
-    /// Assembles a validated scene.
-    pub fn new(scene: &Scene) -> Result<Model> {
+    /// A validated scene's coordinates, constraints, mass matrix, forces and
+    /// independent coordinates, before its initial state is assembled: no
+    /// constraint is marked active or redundant yet and the state is zero until
+    /// [`Model::new`] solves for them.
+    pub(crate) fn unassembled(scene: &Scene) -> Result<Model> {
         check_extent(scene)?;
         let mut points = Vec::with_capacity(scene.points.len());
         let mut n = 0;
@@ -191,21 +194,13 @@ impl Model {
             .map(|name| model.index_of(name))
             .collect::<Option<Vec<_>>>()
             .ok_or_else(|| Error::InvalidArgument("independent coordinate not in q".into()))?;
-        model.assemble_initial_state()?;
-        let init = &model.initial;
-        if let Some(i) = (0..n).find(|&i| !(init.q[i].is_finite() && init.dq[i].is_finite())) {
-            return Err(Error::Singular(format!(
-                "{}: the initial state is not finite at coordinate `{}` (q = {}, q̇ = {})",
-                scene.file, model.names[i], init.q[i], init.dq[i]
-            )));
-        }
         Ok(model)
     }
 
-    /// The scene's approximate positions made consistent (keeping the independent
-    /// coordinates), the redundant constraints found there, and the velocities from
-    /// the independent ones (at rest when the scene gives none).
-    fn assemble_initial_state(&mut self) -> Result<()> {
+    /// The scene's approximate positions as q: the points where the scene places
+    /// them, the relative coordinates at their given or measured values, and the
+    /// scene's `initial_positions`. Not consistent with the constraints in general.
+    pub(crate) fn approximate_positions(&self) -> DVector<f64> {
         let scene = &self.scene;
         let mut q = DVector::zeros(self.n());
         for (p, point) in scene.points.iter().enumerate() {
@@ -224,31 +219,7 @@ impl Model {
                 q[i] = *value;
             }
         }
-        crate::kinematics::solve_position(self, &mut q, &self.independent.clone())?;
-        let rank = crate::kinematics::constraint_rank(self, &q);
-        self.redundant = rank.redundant;
-        self.active = (0..self.m())
-            .filter(|k| !self.redundant.contains(k))
-            .collect();
-        let dq = if self.independent.is_empty() {
-            DVector::zeros(self.n())
-        } else {
-            let dz: Vec<f64> = self
-                .scene
-                .independent
-                .iter()
-                .map(|name| {
-                    self.scene
-                        .initial_velocities
-                        .iter()
-                        .find(|(n, _)| n == name)
-                        .map_or(0.0, |(_, v)| *v)
-                })
-                .collect();
-            crate::kinematics::solve_velocity(self, &q, &self.independent, &dz)?
-        };
-        self.initial = State { q, dq };
-        Ok(())
+        q
     }
 
     /// Degrees of freedom: n minus the rank of Φ_q.

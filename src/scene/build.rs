@@ -1,4 +1,5 @@
-//! Semantic checks shared by both formats: bodies, relative coordinates and names.
+//! Semantic checks shared by both formats: bodies, relative coordinates and names;
+//! and the empty scene both readers start from.
 
 use super::fields::Ctx;
 use super::{Body, Point, RelativeKind, Scene};
@@ -20,6 +21,22 @@ pub fn distance(points: &[Point], a: usize, b: usize) -> f64 {
 
 pub fn coincide(points: &[Point], a: usize, b: usize) -> bool {
     distance(points, a, b) <= COINCIDENT * scale(points)
+}
+
+/// The scene both formats start from and fill.
+pub fn empty(file: &str) -> Scene {
+    Scene {
+        file: file.to_string(),
+        points: Vec::new(),
+        bodies: Vec::new(),
+        coordinates: Vec::new(),
+        constraints: Vec::new(),
+        effects: Vec::new(),
+        independent: Vec::new(),
+        initial_positions: Vec::new(),
+        initial_velocities: Vec::new(),
+        notes: Vec::new(),
+    }
 }
 
 /// Inertial data of a body, before validation.

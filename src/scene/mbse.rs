@@ -5,9 +5,9 @@
 //! `RelativeAngleAbsoluteDOF`, and `parameters`. Points are named `p<index>`,
 //! relative coordinates `r<index>`, bodies `body<index>`.
 
+use super::bodies::{body_spec, BodyStyle};
 use super::build;
 use super::fields::{boolean, seq, Ctx, Fields, QUOTE};
-use super::native::{body_spec, empty, BodyStyle};
 use super::yaml::Node;
 use super::{Point, RelativeCoordinate, RelativeKind, Scene};
 use crate::error::SceneError;
@@ -20,7 +20,7 @@ pub fn read(root: &Node, file: &str, overrides: &[(String, f64)]) -> Result<Scen
         ctx.read_parameters(p)?;
     }
     ctx.check_overrides(top.get("parameters").map_or(0, |p| p.line))?;
-    let mut scene = empty(file);
+    let mut scene = build::empty(file);
     let points = top.req(&ctx, "points")?;
     read_points(&mut ctx, &mut scene, points)?;
     read_bodies(&ctx, &mut scene, top.req(&ctx, "planar_bodies")?)?;

@@ -7,6 +7,7 @@
 //! `mechanism: file.yaml`. Both end in the same validated [`Scene`], with every
 //! expression evaluated.
 
+mod bodies;
 mod build;
 mod fields;
 mod mbse;

@@ -1,6 +1,16 @@
 //! Classical forward dynamics, used by the factors and as a check on them:
 //! q̈ from the augmented (KKT) system with Lagrange multipliers, and z̈ by the
-//! R-matrix method (paper, section 2).
+//! R-matrix method (paper, section 2); and the allocation-free [`DynamicsKernel`]
+//! with exact Jacobians on which the dynamics factors build (`kernel`, evaluated
+//! in `augmented`, its singularity measure in `regularization`, its directional
+//! products in `along`).
+
+mod along;
+mod augmented;
+mod kernel;
+mod regularization;
+
+pub use kernel::DynamicsKernel;
 
 use crate::error::{Error, Result};
 use crate::kinematics::{s_and_r, well_conditioned};

@@ -1,5 +1,13 @@
 //! Kinematics: the position, velocity and acceleration problems, the rank of Φ_q and
-//! the choice of independent coordinates.
+//! the choice of independent coordinates; the assembly of a model's initial state
+//! ([`Model::new`], in `assembly`), and how well the coordinates are determined near
+//! a configuration ([`determinacy`]).
+
+mod assembly;
+pub mod determinacy;
+
+pub(crate) use determinacy::{constraint_conditioning, inverse_trace};
+pub use determinacy::{Determinacy, SingularConfiguration};
 
 use crate::error::{Error, Result};
 use crate::linalg::nullspace::NullSpace;

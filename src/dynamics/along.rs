@@ -1,0 +1,193 @@
+//! Directional derivatives of the dynamics kernel: Σ_a ∂q̈/∂x_a V_a for a few
+//! directions at once, from the factors a preceding evaluation left, at a pair of
+//! triangular solves per direction instead of one per coordinate.
+
+use super::augmented::KernelLayout;
+use super::kernel::DynamicsKernel;
+use crate::error::Result;
+use crate::linalg::dense;
+use crate::model::Model;
+
+/// Where [`DynamicsKernel::along`]'s scratch lives: after the kernel's in
+/// `ws.reals` (the part passed as `extra`), and after the kernel's permutation in
+/// `ws.indices`.
+pub(super) struct AlongLayout {
+    pub(super) kv: usize,
+    pub(super) mat: usize,
+    pub(super) bq: usize,
+    pub(super) bv: usize,
+    pub(super) b: usize,
+    pub(super) tmp: usize,
+    pub(super) end: usize,
+}
+
+impl AlongLayout {
+    /// For up to `max_cols` directions solved for.
+    pub(super) fn new(model: &Model, max_cols: usize) -> Self {
+        let (n, m, ma) = (model.n(), model.m(), model.active.len());
+        let big = n + ma;
+        let kv = n * n;
+        let mat = kv + n * n;
+        let bq = mat + m * n;
+        let bv = bq + ma * n;
+        let b = bv + ma * n;
+        let tmp = b + big * max_cols.max(1);
+        let end = tmp + big * max_cols.max(1);
+        AlongLayout {
+            kv,
+            mat,
+            bq,
+            bv,
+            b,
+            tmp,
+            end,
+        }
+    }
+}
+
+impl DynamicsKernel {
+    /// Scratch [`DynamicsKernel::along`] needs beyond the kernel's, for up to
+    /// `max_cols` directions: (reals, indices).
+    pub fn along_scratch(model: &Model, max_cols: usize) -> (usize, usize) {
+        (AlongLayout::new(model, max_cols).end, max_cols)
+    }
+
+    /// Rows `rows` (all n without) of Σ_a ∂q̈/∂x_a V_a over x = q, q̇ and the forces, for directions
+    /// V_q, V_v (row-major n × c) and V_f (row-major columns.len() × c, the forces on
+    /// the coordinates `columns`), into the row-major rows.len() × c `out`, at the
+    /// point of a preceding [`DynamicsKernel::evaluate`] without Jacobians (its LU
+    /// factors and [q̈; λ] are in `reals`): the first n rows of
+    /// K⁻¹ (R_q V_q + R_v V_v + [E V_f; 0]), R_q and R_v the right-hand sides from
+    /// which `evaluate` solves for ∂q̈/∂q and ∂q̈/∂q̇. Only the columns where some
+    /// direction is nonzero are solved for (one pair of triangular solves each, where
+    /// the Jacobians take one per coordinate and force); returns false when more
+    /// than `max_cols` are (`out` then holds nothing of use).
+    #[allow(clippy::too_many_arguments)]
+    pub fn along(
+        model: &Model,
+        (q, dq, t): (&[f64], &[f64], f64),
+        directions: [&[f64]; 3],
+        columns: &[usize],
+        rows: Option<&[usize]>,
+        c: usize,
+        out: &mut [f64],
+        reals: &mut [f64],
+        extra: &mut [f64],
+        indices: &mut [usize],
+        max_cols: usize,
+    ) -> Result<bool> {
+        let [vq, vv, vf] = directions;
+        let l = KernelLayout::new(model);
+        let (n, ma) = (l.n, l.ma);
+        let big = n + ma;
+        let a = AlongLayout::new(model, max_cols);
+        let (perm, act) = indices.split_at_mut(big);
+        // The columns where a direction is nonzero (flags in `out`'s first row).
+        let flags = &mut out[..c];
+        flags.fill(0.0);
+        for v in [vq, vv, vf] {
+            for row in v.chunks_exact(c) {
+                for (f, x) in flags.iter_mut().zip(row) {
+                    if *x != 0.0 {
+                        *f = 1.0;
+                    }
+                }
+            }
+        }
+        let mut na = 0;
+        for (j, f) in flags.iter().enumerate() {
+            if *f != 0.0 {
+                if na == max_cols {
+                    return Ok(false);
+                }
+                act[na] = j;
+                na += 1;
+            }
+        }
+        let act = &act[..na];
+        let (kkt, rest) = reals[..l.end].split_at_mut(l.sol);
+        let sol = &rest[..big];
+        let (kq, rest) = extra[..a.end].split_at_mut(a.kv);
+        let (kv, rest) = rest.split_at_mut(a.mat - a.kv);
+        let (mat, rest) = rest.split_at_mut(a.bq - a.mat);
+        let (bq, rest) = rest.split_at_mut(a.bv - a.bq);
+        let (bv, rest) = rest.split_at_mut(a.b - a.bv);
+        let (b, tmp) = rest.split_at_mut(a.tmp - a.b);
+        // The right-hand sides of `evaluate`'s Jacobians (the same terms in the same
+        // order): top rows ∂Q/∂q − ∂(Φ_qᵀλ)/∂q and ∂Q/∂q̇; bottom rows
+        // −∂(Φ̇_q q̇)/∂q − Φ_qq q̈ and −2 Φ̇_q.
+        kq.fill(0.0);
+        kv.fill(0.0);
+        for f in &model.forces {
+            f.add_jacobians(model, (q, dq, t), kq, kv)?;
+        }
+        for (t, lam) in tmp.iter_mut().zip(&sol[n..big]) {
+            *t = -lam;
+        }
+        model.add_weighted_hessians(q, &tmp[..ma], kq);
+        model.third_order_into(q, dq, mat);
+        for (r, &k) in model.active.iter().enumerate() {
+            for (o, v) in bq[r * n..(r + 1) * n]
+                .iter_mut()
+                .zip(&mat[k * n..(k + 1) * n])
+            {
+                *o = -v;
+            }
+        }
+        model.jacobian_derivative_into(q, &sol[..n], mat);
+        for (r, &k) in model.active.iter().enumerate() {
+            for (o, v) in bq[r * n..(r + 1) * n]
+                .iter_mut()
+                .zip(&mat[k * n..(k + 1) * n])
+            {
+                *o -= v;
+            }
+        }
+        model.jacobian_derivative_into(q, dq, mat);
+        for (r, &k) in model.active.iter().enumerate() {
+            for (o, v) in bv[r * n..(r + 1) * n]
+                .iter_mut()
+                .zip(&mat[k * n..(k + 1) * n])
+            {
+                *o = -2.0 * v;
+            }
+        }
+        // B = R_q V_q + R_v V_v + [E V_f; 0] on the active columns, big × na.
+        let b = &mut b[..big * na];
+        b.fill(0.0);
+        let add = |out: &mut [f64], coef: &[f64], v: &[f64]| {
+            for (i, row) in out.chunks_exact_mut(na).enumerate() {
+                for (k, &cf) in coef[i * n..(i + 1) * n].iter().enumerate() {
+                    if cf == 0.0 {
+                        continue;
+                    }
+                    let vrow = &v[k * c..(k + 1) * c];
+                    for (o, &j) in row.iter_mut().zip(act) {
+                        *o += cf * vrow[j];
+                    }
+                }
+            }
+        };
+        let (top, bottom) = b.split_at_mut(n * na);
+        add(top, kq, vq);
+        add(top, kv, vv);
+        add(bottom, bq, vq);
+        add(bottom, bv, vv);
+        for (k, &i) in columns.iter().enumerate() {
+            let vrow = &vf[k * c..(k + 1) * c];
+            for (o, &j) in top[i * na..(i + 1) * na].iter_mut().zip(act) {
+                *o += vrow[j];
+            }
+        }
+        dense::lu_solve_many(kkt, big, perm, b, na, tmp);
+        let count = rows.map_or(n, <[usize]>::len);
+        out[..count * c].fill(0.0);
+        for r in 0..count {
+            let i = rows.map_or(r, |rows| rows[r]);
+            for (t, &j) in act.iter().enumerate() {
+                out[r * c + j] = b[i * na + t];
+            }
+        }
+        Ok(true)
+    }
+}

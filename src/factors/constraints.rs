@@ -1,0 +1,97 @@
+//! The constraint factors of dependent coordinates: f^d_pc ([`PositionConstraints`])
+//! and f^d_vc ([`VelocityConstraints`]).
+
+use super::shared::{key_and_noise_accessors, mat_vec};
+use crate::error::Result;
+use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::model::Model;
+use std::sync::Arc;
+
+/// f^d_pc: e = Φ(q).
+pub struct PositionConstraints {
+    model: Arc<Model>,
+    keys: [Key; 1],
+    noise: Noise,
+}
+
+impl PositionConstraints {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        PositionConstraints {
+            model,
+            keys: [Key::now(VarKind::Q)],
+            noise,
+        }
+    }
+}
+
+impl Factor for PositionConstraints {
+    fn name(&self) -> &str {
+        "f^d_pc"
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.model.m()
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        self.model.phi_into(x[0], r);
+        if let Some(j) = jac {
+            self.model.jacobian_into(x[0], &mut j[0]);
+        }
+        Ok(())
+    }
+}
+
+/// f^d_vc: e = Φ_q(q) q̇, with ∂e/∂q = Φ_qq q̇ = Φ̇_q and ∂e/∂q̇ = Φ_q.
+pub struct VelocityConstraints {
+    model: Arc<Model>,
+    keys: [Key; 2],
+    noise: Noise,
+}
+
+impl VelocityConstraints {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        VelocityConstraints {
+            model,
+            keys: [Key::now(VarKind::Q), Key::now(VarKind::Dq)],
+            noise,
+        }
+    }
+}
+
+impl Factor for VelocityConstraints {
+    fn name(&self) -> &str {
+        "f^d_vc"
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.model.m()
+    }
+    fn scratch(&self) -> (usize, usize) {
+        (self.model.m() * self.model.n(), 0)
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        let a = &mut ws.reals[..m * n];
+        self.model.jacobian_into(x[0], a);
+        mat_vec(a, m, n, x[1], r);
+        if let Some(j) = jac {
+            self.model.jacobian_derivative_into(x[0], x[1], &mut j[0]);
+            j[1].copy_from_slice(a);
+        }
+        Ok(())
+    }
+}

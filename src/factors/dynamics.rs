@@ -1,0 +1,245 @@
+//! The dynamics factor of dependent coordinates, f^d_dyn, and its inverse-dynamics
+//! form f^d_idyn with the actuator forces a variable ([`Dynamics`]), on the
+//! [`DynamicsKernel`].
+
+use super::shared::{identity, key_and_noise_accessors};
+use crate::dynamics::DynamicsKernel;
+use crate::error::Result;
+use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::model::Model;
+use std::sync::Arc;
+
+/// f^d_dyn: e = q̈(q, q̇, t) − q̈_t; with [`Dynamics::inverse`], f^d_idyn:
+/// e = q̈(q, q̇, t; Q_scene + Q) − q̈_t with the actuator forces Q a variable (fourth
+/// key), ∂e/∂Q the first n rows of the augmented system's inverse applied to [I; 0].
+pub struct Dynamics {
+    model: Arc<Model>,
+    keys: Vec<Key>,
+    noise: Noise,
+    /// Inverse dynamics: the coordinates the forces Q act on (see [`Actuated`]).
+    actuated: Option<Actuated>,
+}
+
+/// The coordinates an inverse-dynamics factor's forces act on: all of them (Q has n
+/// entries), or the listed ones (Q has one entry per listed coordinate, in that
+/// order), which spares a pair of triangular solves per other column of ∂e/∂Q and
+/// the solver the unknowns that would only be held at 0.
+#[derive(Debug, Clone)]
+struct Actuated {
+    all: bool,
+    indices: Vec<usize>,
+}
+
+impl Actuated {
+    fn all(n: usize) -> Self {
+        Actuated {
+            all: true,
+            indices: (0..n).collect(),
+        }
+    }
+
+    fn only(n: usize, indices: Vec<usize>) -> Self {
+        assert!(
+            indices.iter().all(|&i| i < n),
+            "an actuated coordinate past q"
+        );
+        let mut sorted = indices.clone();
+        sorted.sort_unstable();
+        sorted.dedup();
+        assert_eq!(sorted.len(), indices.len(), "an actuated coordinate twice");
+        Actuated {
+            all: indices.iter().copied().eq(0..n),
+            indices,
+        }
+    }
+
+    /// The generalized forces on all n coordinates: Q itself, or Q spread into `own`.
+    fn forces<'a>(&self, q: &'a [f64], own: &'a mut [f64]) -> &'a [f64] {
+        if self.all {
+            return q;
+        }
+        own.fill(0.0);
+        for (&i, &v) in self.indices.iter().zip(q) {
+            own[i] = v;
+        }
+        own
+    }
+}
+
+impl Dynamics {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        Dynamics {
+            model,
+            keys: vec![
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Ddq),
+            ],
+            noise,
+            actuated: None,
+        }
+    }
+
+    /// f^d_idyn, with forces on every coordinate.
+    pub fn inverse(model: Arc<Model>, noise: Noise) -> Self {
+        let n = model.n();
+        let mut f = Dynamics::new(model, noise);
+        f.keys.push(Key::now(VarKind::Force));
+        f.actuated = Some(Actuated::all(n));
+        f
+    }
+
+    /// f^d_idyn with forces on the coordinates `actuated` only: its Q variable has
+    /// one entry per actuated coordinate, in that order.
+    pub fn inverse_on(model: Arc<Model>, noise: Noise, actuated: Vec<usize>) -> Self {
+        let n = model.n();
+        let mut f = Dynamics::inverse(model, noise);
+        f.actuated = Some(Actuated::only(n, actuated));
+        f
+    }
+}
+
+impl Factor for Dynamics {
+    fn name(&self) -> &str {
+        if self.actuated.is_some() {
+            "f^d_idyn"
+        } else {
+            "f^d_dyn"
+        }
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.model.n()
+    }
+    fn scratch(&self) -> (usize, usize) {
+        let (r, i) = DynamicsKernel::scratch(&self.model);
+        let n = self.model.n();
+        match &self.actuated {
+            Some(a) => {
+                let (ra, ia) = DynamicsKernel::along_scratch(&self.model, 2 * n + a.indices.len());
+                (r + n + ra, i + ia)
+            }
+            None => (r + n, i),
+        }
+    }
+    fn diagonal_jacobian(&self, key: usize) -> bool {
+        key == 2
+    }
+    fn evaluates_along(&self) -> bool {
+        self.actuated.is_some()
+    }
+    /// f^d_idyn only: e = q̈(q, q̇, t; Q) − q̈_t along V: K⁻¹ applied to the
+    /// Jacobians' right-hand sides times V (see [`DynamicsKernel::along`]), minus V on
+    /// q̈_t.
+    fn evaluate_along(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        dirs: &[&[f64]],
+        c: usize,
+        out: &mut [f64],
+        ws: &mut Workspace,
+    ) -> Result<bool> {
+        let Some(a) = &self.actuated else {
+            return Ok(false);
+        };
+        let n = self.model.n();
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, rest) = ws.reals.split_at_mut(kernel_len);
+        let (own, extra) = rest.split_at_mut(n);
+        let force = a.forces(x[3], own);
+        DynamicsKernel::evaluate(
+            &self.model,
+            x[0],
+            x[1],
+            t,
+            Some(force),
+            r,
+            None,
+            kernel,
+            &mut ws.indices,
+        )?;
+        if !DynamicsKernel::along(
+            &self.model,
+            (x[0], x[1], t),
+            [dirs[0], dirs[1], dirs[3]],
+            &a.indices,
+            None,
+            c,
+            out,
+            kernel,
+            extra,
+            &mut ws.indices,
+            2 * n + a.indices.len(),
+        )? {
+            return Ok(false);
+        }
+        for (o, v) in out[..n * c].iter_mut().zip(&dirs[2][..n * c]) {
+            *o -= v;
+        }
+        for i in 0..n {
+            r[i] -= x[2][i];
+        }
+        Ok(true)
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let n = self.model.n();
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let force = self
+            .actuated
+            .as_ref()
+            .map(|a| a.forces(x[3], &mut own[..n]));
+        match jac {
+            Some(j) => {
+                let (jq, rest) = j.split_at_mut(1);
+                let (jv, rest) = rest.split_at_mut(1);
+                let (ja, jf) = rest.split_at_mut(1);
+                DynamicsKernel::evaluate(
+                    &self.model,
+                    x[0],
+                    x[1],
+                    t,
+                    force,
+                    r,
+                    Some((&mut jq[0], &mut jv[0])),
+                    kernel,
+                    &mut ws.indices,
+                )?;
+                identity(&mut ja[0], n, -1.0);
+                if let Some(a) = &self.actuated {
+                    DynamicsKernel::force_jacobian(
+                        &self.model,
+                        &a.indices,
+                        &mut jf[0],
+                        kernel,
+                        &ws.indices,
+                    );
+                }
+            }
+            None => DynamicsKernel::evaluate(
+                &self.model,
+                x[0],
+                x[1],
+                t,
+                force,
+                r,
+                None,
+                kernel,
+                &mut ws.indices,
+            )?,
+        }
+        for i in 0..n {
+            r[i] -= x[2][i];
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,375 @@
+//! The factors of independent coordinates: f^i_pc ([`IndependentPosition`]), f^i_vc
+//! ([`IndependentVelocity`]), f^i_ac ([`IndependentAcceleration`]) and f^i_dyn
+//! ([`IndependentDynamics`], with its inverse-dynamics form f^i_idyn).
+
+use super::shared::{identity, key_and_noise_accessors, mat_vec};
+use crate::dynamics::DynamicsKernel;
+use crate::error::Result;
+use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::model::Model;
+use std::sync::Arc;
+
+/// f^i_pc: e = [Φ(q); q[idx] − z].
+pub struct IndependentPosition {
+    model: Arc<Model>,
+    keys: [Key; 2],
+    noise: Noise,
+}
+
+impl IndependentPosition {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        IndependentPosition {
+            model,
+            keys: [Key::now(VarKind::Q), Key::now(VarKind::Z)],
+            noise,
+        }
+    }
+}
+
+/// Writes the selection rows q[idx] − z: I_idx into `jq` rows m.., −I into `jz`.
+fn selection_rows(model: &Model, m: usize, jq: &mut [f64], jz: Option<&mut [f64]>) {
+    let (n, f) = (model.n(), model.independent.len());
+    jq[m * n..(m + f) * n].fill(0.0);
+    for (k, &i) in model.independent.iter().enumerate() {
+        jq[(m + k) * n + i] = 1.0;
+    }
+    if let Some(jz) = jz {
+        jz.fill(0.0);
+        for k in 0..f {
+            jz[(m + k) * f + k] = -1.0;
+        }
+    }
+}
+
+impl Factor for IndependentPosition {
+    fn name(&self) -> &str {
+        "f^i_pc"
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.model.m() + self.model.independent.len()
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        self.model.phi_into(x[0], &mut r[..m]);
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[m + k] = x[0][i] - x[1][k];
+        }
+        if let Some(j) = jac {
+            let (jq, jz) = j.split_at_mut(1);
+            self.model.jacobian_into(x[0], &mut jq[0][..m * n]);
+            selection_rows(&self.model, m, &mut jq[0], Some(&mut jz[0]));
+        }
+        Ok(())
+    }
+}
+
+/// f^i_vc: e = [Φ_q q̇; q̇[idx] − ż].
+pub struct IndependentVelocity {
+    model: Arc<Model>,
+    keys: [Key; 3],
+    noise: Noise,
+}
+
+impl IndependentVelocity {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        IndependentVelocity {
+            model,
+            keys: [
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Dz),
+            ],
+            noise,
+        }
+    }
+}
+
+impl Factor for IndependentVelocity {
+    fn name(&self) -> &str {
+        "f^i_vc"
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.model.m() + self.model.independent.len()
+    }
+    fn scratch(&self) -> (usize, usize) {
+        (self.model.m() * self.model.n(), 0)
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        let a = &mut ws.reals[..m * n];
+        self.model.jacobian_into(x[0], a);
+        mat_vec(a, m, n, x[1], &mut r[..m]);
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[m + k] = x[1][i] - x[2][k];
+        }
+        if let Some(j) = jac {
+            let (jq, rest) = j.split_at_mut(1);
+            let (jv, jz) = rest.split_at_mut(1);
+            self.model
+                .jacobian_derivative_into(x[0], x[1], &mut jq[0][..m * n]);
+            jq[0][m * n..].fill(0.0);
+            jv[0][..m * n].copy_from_slice(a);
+            selection_rows(&self.model, m, &mut jv[0], Some(&mut jz[0]));
+        }
+        Ok(())
+    }
+}
+
+/// f^i_ac: e = [Φ̇_q q̇ + Φ_q q̈; q̈[idx] − z̈].
+pub struct IndependentAcceleration {
+    model: Arc<Model>,
+    keys: [Key; 4],
+    noise: Noise,
+}
+
+impl IndependentAcceleration {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        IndependentAcceleration {
+            model,
+            keys: [
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Ddq),
+                Key::now(VarKind::Ddz),
+            ],
+            noise,
+        }
+    }
+}
+
+impl Factor for IndependentAcceleration {
+    fn name(&self) -> &str {
+        "f^i_ac"
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.model.m() + self.model.independent.len()
+    }
+    fn scratch(&self) -> (usize, usize) {
+        (self.model.m() * self.model.n() + self.model.m(), 0)
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let (m, n) = (self.model.m(), self.model.n());
+        let (q, dq, ddq, ddz) = (x[0], x[1], x[2], x[3]);
+        let (a, rest) = ws.reals.split_at_mut(m * n);
+        let c = &mut rest[..m];
+        self.model.jacobian_into(q, a);
+        self.model.acceleration_rhs_into(q, dq, c);
+        mat_vec(a, m, n, ddq, &mut r[..m]);
+        for k in 0..m {
+            r[k] -= c[k]; // Φ_q q̈ + Φ̇_q q̇ with Φ̇_q q̇ = −c
+        }
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[m + k] = ddq[i] - ddz[k];
+        }
+        if let Some(j) = jac {
+            let (jq, rest) = j.split_at_mut(1);
+            let (jv, rest) = rest.split_at_mut(1);
+            let (ja, jz) = rest.split_at_mut(1);
+            // ∂/∂q = ∂(Φ̇_q q̇)/∂q + Φ_qq q̈; ∂/∂q̇ = 2 Φ̇_q; ∂/∂q̈ = [Φ_q; I_idx].
+            ja[0][..m * n].copy_from_slice(a);
+            selection_rows(&self.model, m, &mut ja[0], Some(&mut jz[0]));
+            self.model.third_order_into(q, dq, &mut jq[0][..m * n]);
+            self.model.jacobian_derivative_into(q, ddq, a);
+            for (v, w) in jq[0][..m * n].iter_mut().zip(a.iter()) {
+                *v += w;
+            }
+            jq[0][m * n..].fill(0.0);
+            self.model
+                .jacobian_derivative_into(q, dq, &mut jv[0][..m * n]);
+            for v in &mut jv[0][..m * n] {
+                *v *= 2.0;
+            }
+            jv[0][m * n..].fill(0.0);
+        }
+        Ok(())
+    }
+}
+
+/// f^i_dyn: e = z̈(q, q̇, t) − z̈_t, with z̈ = q̈[idx] — the R-matrix result, computed
+/// through the augmented system (the two agree to round-off; tested in `tests/model.rs`).
+pub struct IndependentDynamics {
+    model: Arc<Model>,
+    keys: Vec<Key>,
+    noise: Noise,
+    inverse: bool,
+    /// Every coordinate, the columns of ∂q̈/∂Q (forces act on all of them).
+    all: Vec<usize>,
+}
+
+impl IndependentDynamics {
+    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+        IndependentDynamics {
+            all: (0..model.n()).collect(),
+            model,
+            keys: vec![
+                Key::now(VarKind::Q),
+                Key::now(VarKind::Dq),
+                Key::now(VarKind::Ddz),
+            ],
+            noise,
+            inverse: false,
+        }
+    }
+
+    /// f^i_idyn: e = z̈(q, q̇, t; Q_scene + Q) − z̈_t with the actuator forces Q a
+    /// variable (fourth key); ∂e/∂Q is the independent rows of ∂q̈/∂Q.
+    pub fn inverse(model: Arc<Model>, noise: Noise) -> Self {
+        let mut f = IndependentDynamics::new(model, noise);
+        f.keys.push(Key::now(VarKind::Force));
+        f.inverse = true;
+        f
+    }
+}
+
+impl Factor for IndependentDynamics {
+    fn name(&self) -> &str {
+        if self.inverse {
+            "f^i_idyn"
+        } else {
+            "f^i_dyn"
+        }
+    }
+    key_and_noise_accessors!();
+    fn dim(&self) -> usize {
+        self.model.independent.len()
+    }
+    fn scratch(&self) -> (usize, usize) {
+        let (r, i) = DynamicsKernel::scratch(&self.model);
+        let n = self.model.n();
+        if self.inverse {
+            let (ra, ia) = DynamicsKernel::along_scratch(&self.model, 3 * n);
+            (r + n + (3 * n * n).max(ra), i + ia)
+        } else {
+            (r + 3 * n * n + n, i)
+        }
+    }
+    fn evaluates_along(&self) -> bool {
+        self.inverse
+    }
+    /// f^i_idyn only: the independent rows of q̈(q, q̇, t; Q) along V (see
+    /// [`DynamicsKernel::along`]), minus V on z̈_t.
+    fn evaluate_along(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        dirs: &[&[f64]],
+        c: usize,
+        out: &mut [f64],
+        ws: &mut Workspace,
+    ) -> Result<bool> {
+        if !self.inverse {
+            return Ok(false);
+        }
+        let n = self.model.n();
+        let ind = &self.model.independent;
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let (ddq, extra) = own.split_at_mut(n);
+        DynamicsKernel::evaluate(
+            &self.model,
+            x[0],
+            x[1],
+            t,
+            Some(x[3]),
+            ddq,
+            None,
+            kernel,
+            &mut ws.indices,
+        )?;
+        if !DynamicsKernel::along(
+            &self.model,
+            (x[0], x[1], t),
+            [dirs[0], dirs[1], dirs[3]],
+            &self.all,
+            Some(ind),
+            c,
+            out,
+            kernel,
+            extra,
+            &mut ws.indices,
+            3 * n,
+        )? {
+            return Ok(false);
+        }
+        let f = ind.len();
+        for (o, v) in out[..f * c].iter_mut().zip(&dirs[2][..f * c]) {
+            *o -= v;
+        }
+        for (k, &i) in ind.iter().enumerate() {
+            r[k] = ddq[i] - x[2][k];
+        }
+        Ok(true)
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let n = self.model.n();
+        let f = self.model.independent.len();
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let (ddq, own) = own.split_at_mut(n);
+        let (jq, own) = own.split_at_mut(n * n);
+        let (jv, own) = own.split_at_mut(n * n);
+        let jf = &mut own[..n * n];
+        let want = jac.is_some();
+        let force = if self.inverse { Some(x[3]) } else { None };
+        DynamicsKernel::evaluate(
+            &self.model,
+            x[0],
+            x[1],
+            t,
+            force,
+            ddq,
+            want.then_some((&mut *jq, &mut *jv)),
+            kernel,
+            &mut ws.indices,
+        )?;
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[k] = ddq[i] - x[2][k];
+        }
+        if let Some(j) = jac {
+            for (k, &i) in self.model.independent.iter().enumerate() {
+                j[0][k * n..(k + 1) * n].copy_from_slice(&jq[i * n..(i + 1) * n]);
+                j[1][k * n..(k + 1) * n].copy_from_slice(&jv[i * n..(i + 1) * n]);
+            }
+            identity(&mut j[2], f, -1.0);
+            if self.inverse {
+                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, kernel, &ws.indices);
+                for (k, &i) in self.model.independent.iter().enumerate() {
+                    j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
+                }
+            }
+        }
+        Ok(())
+    }
+}

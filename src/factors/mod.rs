@@ -1,0 +1,36 @@
+//! The factors of the paper's section 6, each with closed-form Jacobians.
+//!
+//! Generic: [`Prior`] (f_prior), [`Equality`] (f_eq), [`Euler`] (f_ei),
+//! [`Trapezoidal`] (f_ti). Dependent coordinates: [`PositionConstraints`] (f^d_pc),
+//! [`VelocityConstraints`] (f^d_vc), [`Dynamics`] (f^d_dyn). Independent coordinates:
+//! [`IndependentPosition`] (f^i_pc), [`IndependentVelocity`] (f^i_vc),
+//! [`IndependentAcceleration`] (f^i_ac), [`IndependentDynamics`] (f^i_dyn).
+//!
+//! The dynamics factors need ∂q̈/∂q and ∂q̈/∂q̇, which the paper took numerically. We
+//! differentiate the augmented system [M Φ_qᵀ; Φ_q 0][q̈; λ] = [Q; c] instead: with
+//! its LU factors already at hand for q̈, each Jacobian column costs one more pair of
+//! triangular solves, against a full re-factorization per column (two per column for
+//! central differences) for a numerical Jacobian — exact and several times cheaper.
+//!
+//! One file per family: `priors`, `integrators`, `constraints`, `dynamics` (on the
+//! [`DynamicsKernel`] of [`crate::dynamics`]), `independent` and `prescribed`;
+//! what they share (the key and noise accessors, the identity block) in `shared`.
+
+mod constraints;
+mod dynamics;
+mod independent;
+mod integrators;
+mod prescribed;
+mod priors;
+mod shared;
+
+pub use crate::dynamics::DynamicsKernel;
+pub use constraints::{PositionConstraints, VelocityConstraints};
+pub use dynamics::Dynamics;
+pub use independent::{
+    IndependentAcceleration, IndependentDynamics, IndependentPosition, IndependentVelocity,
+};
+pub use integrators::{Equality, Euler, Trapezoidal};
+pub use prescribed::PrescribedMotion;
+pub use priors::{ComponentPrior, Prior};
+pub(crate) use shared::{identity, key_and_noise_accessors};

@@ -1,0 +1,30 @@
+//! What the factor families share: the `keys` and `noise` accessors, the identity
+//! block of a Jacobian and y = A x.
+
+/// The `keys` and `noise` methods every factor here answers from its own fields.
+macro_rules! key_and_noise_accessors {
+    () => {
+        fn keys(&self) -> &[Key] {
+            &self.keys
+        }
+        fn noise(&self) -> &Noise {
+            &self.noise
+        }
+    };
+}
+pub(crate) use key_and_noise_accessors;
+
+/// Writes `scale`·I into a row-major d × d block.
+pub(crate) fn identity(block: &mut [f64], d: usize, scale: f64) {
+    block.fill(0.0);
+    for i in 0..d {
+        block[i * d + i] = scale;
+    }
+}
+
+/// y = A x for a row-major rows × cols A.
+pub(super) fn mat_vec(a: &[f64], rows: usize, cols: usize, x: &[f64], y: &mut [f64]) {
+    for i in 0..rows {
+        y[i] = (0..cols).map(|j| a[i * cols + j] * x[j]).sum();
+    }
+}

@@ -1,0 +1,201 @@
+//! Why a run failed at a step ([`StepFailure`]): its solve did not converge, its
+//! cost went non-finite, or a singular configuration lies ahead; and the message
+//! that says so.
+
+use crate::error::{Error, Result};
+use crate::kinematics::SingularConfiguration;
+use crate::model::Model;
+use crate::solver::{SolveReport, Termination};
+use crate::trajectory::{round_time, Trajectory};
+
+/// A step at which the run failed: its solve did not converge, or (independent
+/// coordinates) the motion approached a configuration where they stop determining
+/// the other coordinates.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepFailure {
+    pub step: usize,
+    pub t: f64,
+    pub report: SolveReport,
+    /// σ_r/σ₁ of Φ_q at the step's configuration, scaled by the coordinates' scales and
+    /// row-normalized, r the constraints' rank at the start: near 0 where the
+    /// mechanism approaches a singular configuration.
+    pub constraint_conditioning: f64,
+    /// Set when the run stopped because the independent coordinates approach a
+    /// configuration where they do not determine the others (the step's own solve
+    /// converged; `report` is its report).
+    pub singular: Option<SingularConfiguration>,
+    /// Set when the step failed in the one-step run that starts a batch solve.
+    pub warm_start: bool,
+    /// Set when the batch solve of the whole horizon failed (`step` is its last).
+    pub batch: bool,
+    /// Where the cost went non-finite: the effect that cannot be evaluated there.
+    pub cause: Option<String>,
+    /// The body that turns fastest over this step, from the velocities and
+    /// accelerations of the step before: its name and its turn per step (rad). The
+    /// message names it when the turn is more than [`StepFailure::LARGE_TURN`].
+    pub fast_body: Option<(String, f64)>,
+}
+
+impl StepFailure {
+    /// A turn per step (rad) beyond which a failure names the fastest body: the
+    /// integrators relate positions by straight chords, and past about one radian a
+    /// step the implicit equations of a coarse step stop having a nearby solution.
+    pub const LARGE_TURN: f64 = 0.5;
+
+    /// The run's time step: t_k = k·Δt for every step of a run.
+    pub fn dt(&self) -> f64 {
+        self.t / self.step.max(1) as f64
+    }
+
+    /// The reason for the failure, naming the step and the time (not what was
+    /// written).
+    pub fn message(&self) -> String {
+        let t = round_time(self.t);
+        match &self.singular {
+            Some(c) => format!(
+                "singular configuration at t ≈ {:.6} s (extrapolated): independent coordinates \
+                 [{}] stop determining [{}] (rank {} < {}); stopped at step {} (t = {t} s), \
+                 distance to rank loss {:.1e}",
+                c.t_singular,
+                c.independent.join(", "),
+                crate::expr::abbreviated(&c.dependent),
+                c.rank,
+                c.full_rank,
+                self.step,
+                c.distance
+            ),
+            None => {
+                let singular = if self.constraint_conditioning < 1e-2 {
+                    format!(
+                        "; Φ_q is close to losing rank there (σ_r/σ₁ = {:.1e}): a singular \
+                         configuration",
+                        self.constraint_conditioning
+                    )
+                } else {
+                    String::new()
+                };
+                let stage = if self.warm_start {
+                    "in the one-step run that starts the batch solve, "
+                } else {
+                    ""
+                };
+                if self.batch && self.cause.is_none() {
+                    return format!(
+                        "the batch solve of {} steps (t = 0 to {t} s) did not converge: {}, cost \
+                         {:.3e} after {} iterations{singular}",
+                        self.step + 1,
+                        self.report.termination,
+                        self.report.cost,
+                        self.report.iterations
+                    );
+                }
+                if let Some(cause) = &self.cause {
+                    return format!(
+                        "{stage}step {} (t = {t} s) cannot be solved: {cause}",
+                        self.step
+                    );
+                }
+                let turn = match &self.fast_body {
+                    Some((body, per_step)) if *per_step > Self::LARGE_TURN => format!(
+                        "; body {body} turns about {per_step:.2} rad over the step: the step is \
+                         too coarse for the motion (dt below {:.2e} s keeps it under {} rad)",
+                        self.dt() * Self::LARGE_TURN / per_step,
+                        Self::LARGE_TURN
+                    ),
+                    _ => String::new(),
+                };
+                format!(
+                    "{stage}step {} (t = {t} s) did not converge: {}, cost {:.3e} after {} \
+                     iterations{singular}{turn}",
+                    self.step, self.report.termination, self.report.cost, self.report.iterations
+                )
+            }
+        }
+    }
+}
+
+/// The first step whose state is not finite (a solve that "converged" on an
+/// overflowing force), as a failure naming the cause; an error when it is the
+/// initial state.
+pub(super) fn first_non_finite(model: &Model, tr: &Trajectory) -> Result<Option<StepFailure>> {
+    let n = tr.n();
+    let finite = |k: usize| {
+        tr.q_at(k)
+            .iter()
+            .chain(tr.dq_at(k))
+            .chain(&tr.ddq[k * n..(k + 1) * n])
+            .all(|v| v.is_finite())
+    };
+    let Some(k) = (0..tr.len()).find(|&k| !finite(k)) else {
+        return Ok(None);
+    };
+    let (q, dq) = if k > 0 {
+        (tr.q_at(k - 1), tr.dq_at(k - 1))
+    } else {
+        (tr.q_at(0), tr.dq_at(0))
+    };
+    let cause = model.effect_fault(q, dq, tr.t[k]).unwrap_or_else(|| {
+        "the state is not finite: the forces or the accelerations overflow".into()
+    });
+    if k == 0 {
+        return Err(Error::Singular(format!(
+            "{}: the initial state cannot be used: {cause}",
+            model.scene.file
+        )));
+    }
+    Ok(Some(StepFailure {
+        step: k,
+        t: tr.t[k],
+        report: SolveReport {
+            iterations: 0,
+            termination: Termination::Diverged,
+            cost: f64::INFINITY,
+        },
+        constraint_conditioning: 1.0,
+        singular: None,
+        warm_start: false,
+        batch: false,
+        cause: Some(cause),
+        fast_body: None,
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn failure(batch: bool, cause: Option<&str>) -> StepFailure {
+        StepFailure {
+            step: 100,
+            t: 1.0000000000000002,
+            report: SolveReport {
+                iterations: 50,
+                termination: Termination::IterationLimit,
+                cost: 3.3,
+            },
+            constraint_conditioning: 0.5,
+            singular: None,
+            warm_start: false,
+            batch,
+            cause: cause.map(str::to_string),
+            fast_body: None,
+        }
+    }
+
+    #[test]
+    fn failures_say_what_failed() {
+        assert_eq!(
+            failure(false, None).message(),
+            "step 100 (t = 1 s) did not converge: iteration limit, cost 3.300e0 after 50 iterations"
+        );
+        assert_eq!(
+            failure(true, None).message(),
+            "the batch solve of 101 steps (t = 0 to 1 s) did not converge: iteration limit, \
+             cost 3.300e0 after 50 iterations"
+        );
+        assert_eq!(
+            failure(false, Some("effect e is not finite")).message(),
+            "step 100 (t = 1 s) cannot be solved: effect e is not finite"
+        );
+    }
+}

@@ -1,0 +1,254 @@
+//! The factor graph of a forward run ([`ForwardGraph`]): its variables and factors
+//! in dependent or independent coordinates, the initial guess and the prediction of
+//! each step, and the conversions between its variables and a [`Trajectory`].
+
+use super::options::{DcIntegrators, ForwardOptions, Integrator};
+use crate::collocation;
+use crate::coordinates::Coordinates;
+use crate::dynamics;
+use crate::error::Result;
+use crate::factors::*;
+use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
+use crate::model::Model;
+use crate::tangent::{Projected, Rule};
+use crate::trajectory::Trajectory;
+use std::sync::Arc;
+
+/// The graph of a forward problem, with its layout.
+pub struct ForwardGraph {
+    pub graph: ChainGraph,
+    pub coordinates: Coordinates,
+    pub(super) n: usize,
+    pub(super) f: usize,
+}
+
+impl ForwardGraph {
+    /// Builds the DC or IC graph for `model` (initial priors from its initial state).
+    pub fn new(model: Arc<Model>, options: &ForwardOptions) -> Result<Self> {
+        options.validate(&model)?;
+        let (n, f) = (model.n(), model.independent.len());
+        let nm = options.noise;
+        let dt = options.dt;
+        let init = &model.initial;
+        let hard = Noise::Hard;
+        let integrate = |x: VarKind, dx: VarKind, dim: usize, sigma: f64| -> Box<dyn Factor> {
+            match options.integrator {
+                Integrator::Trapezoidal | Integrator::HermiteSimpson => {
+                    Box::new(Trapezoidal::new(x, dx, dim, dt, Noise::Isotropic(sigma)))
+                }
+                Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt, Noise::Isotropic(sigma))),
+            }
+        };
+        let dc_integrate = |x: VarKind, dx: VarKind, sigma: f64| -> Box<dyn Factor> {
+            let rule = match options.integrator {
+                Integrator::Trapezoidal | Integrator::HermiteSimpson => Rule::Trapezoidal,
+                Integrator::Euler => Rule::Euler,
+            };
+            match options.dc_integrators {
+                DcIntegrators::Tangent => Box::new(Projected::integrator(
+                    model.clone(),
+                    x,
+                    dx,
+                    rule,
+                    dt,
+                    Noise::Isotropic(sigma),
+                )),
+                DcIntegrators::Full | DcIntegrators::Auto => integrate(x, dx, n, sigma),
+            }
+        };
+        // The position and velocity integrators of each coordinate set.
+        let hermite = (options.integrator == Integrator::HermiteSimpson).then_some(|independent| {
+            let sigma = [nm.integrator_position, nm.integrator_velocity];
+            collocation::factors(&model, independent, dt, sigma)
+        });
+        let dc_integrators = || -> [Box<dyn Factor>; 2] {
+            match &hermite {
+                Some(factors) if options.tangent_dc() => factors(false)
+                    .map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>),
+                Some(factors) => factors(false),
+                None => [
+                    dc_integrate(VarKind::Q, VarKind::Dq, nm.integrator_position),
+                    dc_integrate(VarKind::Dq, VarKind::Ddq, nm.integrator_velocity),
+                ],
+            }
+        };
+        let ic_integrators = || -> [Box<dyn Factor>; 2] {
+            match &hermite {
+                Some(factors) => factors(true),
+                None => [
+                    integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
+                    integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
+                ],
+            }
+        };
+        let graph = match options.coordinates {
+            Coordinates::Dependent => ChainGraph {
+                layout: Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]),
+                dt,
+                t0: 0.0,
+                step_factors: [
+                    Box::new(PositionConstraints::new(model.clone(), hard.clone()))
+                        as Box<dyn Factor>,
+                    Box::new(VelocityConstraints::new(model.clone(), hard.clone())),
+                    Box::new(Dynamics::new(model.clone(), Noise::Isotropic(nm.dynamics))),
+                ]
+                .into_iter()
+                .chain(dc_integrators())
+                .collect(),
+                initial_factors: vec![
+                    Box::new(Prior::new(
+                        VarKind::Q,
+                        init.q.as_slice().to_vec(),
+                        hard.clone(),
+                    )),
+                    Box::new(Prior::new(
+                        VarKind::Dq,
+                        init.dq.as_slice().to_vec(),
+                        hard.clone(),
+                    )),
+                ],
+            },
+            Coordinates::Independent => {
+                let z0: Vec<f64> = model.independent.iter().map(|&i| init.q[i]).collect();
+                let dz0: Vec<f64> = model.independent.iter().map(|&i| init.dq[i]).collect();
+                // Table 2: covariance 1 on the dependent entries, 10⁻³ on those in z.
+                let mut sig = vec![nm.initial_q; n];
+                for &i in &model.independent {
+                    sig[i] = 1e-3f64.sqrt() * nm.initial_q;
+                }
+                ChainGraph {
+                    layout: Layout::new(&[
+                        (VarKind::Q, n),
+                        (VarKind::Dq, n),
+                        (VarKind::Ddq, n),
+                        (VarKind::Z, f),
+                        (VarKind::Dz, f),
+                        (VarKind::Ddz, f),
+                    ]),
+                    dt,
+                    t0: 0.0,
+                    step_factors: [
+                        Box::new(IndependentPosition::new(model.clone(), hard.clone()))
+                            as Box<dyn Factor>,
+                        Box::new(IndependentVelocity::new(model.clone(), hard.clone())),
+                        Box::new(IndependentAcceleration::new(model.clone(), hard.clone())),
+                        Box::new(IndependentDynamics::new(
+                            model.clone(),
+                            Noise::Isotropic(nm.dynamics),
+                        )),
+                    ]
+                    .into_iter()
+                    .chain(ic_integrators())
+                    .chain([
+                        Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality)))
+                            as Box<dyn Factor>,
+                    ])
+                    .collect(),
+                    initial_factors: vec![
+                        Box::new(Prior::new(VarKind::Z, z0, hard.clone())),
+                        Box::new(Prior::new(VarKind::Dz, dz0, hard.clone())),
+                        Box::new(Prior::new(
+                            VarKind::Q,
+                            init.q.as_slice().to_vec(),
+                            Noise::Diagonal(sig),
+                        )),
+                    ],
+                }
+            }
+        };
+        Ok(ForwardGraph {
+            graph,
+            coordinates: options.coordinates,
+            n,
+            f,
+        })
+    }
+
+    /// The initial guess of step 0: the model's initial state and its accelerations.
+    pub(super) fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
+        let init = &model.initial;
+        let ddq = dynamics::lagrange(model, &init.q, &init.dq, self.graph.t0)?.ddq;
+        let mut block = Vec::with_capacity(self.graph.layout.size());
+        block.extend_from_slice(init.q.as_slice());
+        block.extend_from_slice(init.dq.as_slice());
+        block.extend_from_slice(ddq.as_slice());
+        if self.coordinates == Coordinates::Independent {
+            for v in [&init.q, &init.dq, &ddq] {
+                block.extend(model.independent.iter().map(|&i| v[i]));
+            }
+        }
+        Ok(block)
+    }
+
+    /// Guess of step k from the steps before by a Taylor step,
+    /// x + Δt ẋ + Δt²/2 ẍ + Δt³/6 j, ẋ + Δt ẍ + Δt²/2 j, ẍ + Δt j, with the jerk j
+    /// from the last two accelerations (0 at step 1). A cubic guess lands the first
+    /// Newton step within the tolerance more often than a quadratic one.
+    pub(super) fn predict(&self, values: &mut [f64], k: usize) {
+        let s = self.graph.layout.size();
+        let dt = self.graph.dt;
+        let (prev, next) = values.split_at_mut(k * s);
+        let older = (k >= 2).then(|| &prev[(k - 2) * s..(k - 1) * s]);
+        let prev = &prev[(k - 1) * s..];
+        let next = &mut next[..s];
+        let triples: &[(usize, usize)] = if self.coordinates == Coordinates::Independent {
+            &[(0, self.n), (3 * self.n, self.f)]
+        } else {
+            &[(0, self.n)]
+        };
+        for &(off, d) in triples {
+            for i in 0..d {
+                let (x, v, a) = (prev[off + i], prev[off + d + i], prev[off + 2 * d + i]);
+                let j = older.map_or(0.0, |o| (a - o[off + 2 * d + i]) / dt);
+                next[off + i] = x + dt * v + 0.5 * dt * dt * a + dt * dt * dt / 6.0 * j;
+                next[off + d + i] = v + dt * a + 0.5 * dt * dt * j;
+                next[off + 2 * d + i] = a + dt * j;
+            }
+        }
+    }
+}
+
+impl ForwardGraph {
+    /// The graph's variables (step-major) filled from a trajectory of the same model:
+    /// a starting point for a solve, or the state a benchmark linearizes at.
+    pub fn fill_from_trajectory(&self, model: &Model, tr: &Trajectory, values: &mut [f64]) {
+        let fg = self;
+        let (n, s) = (fg.n, fg.graph.layout.size());
+        for k in 0..tr.len() {
+            let block = &mut values[k * s..(k + 1) * s];
+            block[..n].copy_from_slice(&tr.q[k * n..(k + 1) * n]);
+            block[n..2 * n].copy_from_slice(&tr.dq[k * n..(k + 1) * n]);
+            block[2 * n..3 * n].copy_from_slice(&tr.ddq[k * n..(k + 1) * n]);
+            if fg.coordinates == Coordinates::Independent {
+                for (j, src) in [&tr.q, &tr.dq, &tr.ddq].iter().enumerate() {
+                    for (i, &c) in model.independent.iter().enumerate() {
+                        block[3 * n + j * fg.f + i] = src[k * n + c];
+                    }
+                }
+            }
+        }
+    }
+}
+
+pub(super) fn extract(
+    fg: &ForwardGraph,
+    model: &Model,
+    values: &[f64],
+    steps: usize,
+) -> Trajectory {
+    let (n, s) = (fg.n, fg.graph.layout.size());
+    let mut tr = Trajectory {
+        names: model.names.clone(),
+        t: (0..steps).map(|k| fg.graph.time(k)).collect(),
+        q: Vec::with_capacity(steps * n),
+        dq: Vec::with_capacity(steps * n),
+        ddq: Vec::with_capacity(steps * n),
+    };
+    for k in 0..steps {
+        let b = &values[k * s..(k + 1) * s];
+        tr.q.extend_from_slice(&b[..n]);
+        tr.dq.extend_from_slice(&b[n..2 * n]);
+        tr.ddq.extend_from_slice(&b[2 * n..3 * n]);
+    }
+    tr
+}

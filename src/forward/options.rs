@@ -1,0 +1,232 @@
+//! What a forward run is asked: the coordinates, the step and horizon, the solve's
+//! mode, the integrator and its factors, the noise models ([`ForwardOptions`]).
+
+use crate::coordinates::Coordinates;
+use crate::error::{Error, Result};
+use crate::model::Model;
+use crate::smoother::Mode;
+use crate::solver::{Past, Settings};
+
+/// The integrator factor between consecutive steps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Integrator {
+    Trapezoidal,
+    Euler,
+    /// Hermite–Simpson collocation, fourth order ([`crate::collocation`]).
+    HermiteSimpson,
+}
+
+/// What the integrator factors ask of a step in dependent coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DcIntegrators {
+    /// The paper's ([`DcIntegrators::Full`]); a run in which a solve fails with them
+    /// (not at an ill-posed configuration, not interrupted; a batch solve: within
+    /// [`AUTO_BATCH_ITERATIONS`](super::segment::AUTO_BATCH_ITERATIONS)) is run again with [`DcIntegrators::Tangent`], and
+    /// [`RunSummary::tangent_after`](super::summary::RunSummary::tangent_after) says so.
+    Auto,
+    /// Only along the directions the constraints leave free (see [`crate::tangent`]):
+    /// one soft equation per unknown, all of them satisfied, so that every window
+    /// length and the batch have the solution of N_w = 1.
+    Tangent,
+    /// On all n coordinates, as in the paper: 2m more equations than unknowns per
+    /// step, solved as a least-squares compromise weighted by the σ's.
+    Full,
+}
+
+/// Standard deviations of the soft factors. Constraint factors (f_pc, f_vc, f^i_ac)
+/// and the priors on the initial state are hard: the solver satisfies them exactly
+/// (see [`crate::solver`]), so they have no σ.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NoiseModels {
+    /// σ of the integrator of velocities into positions.
+    pub integrator_position: f64,
+    /// σ of the integrator of accelerations into velocities.
+    pub integrator_velocity: f64,
+    /// σ of f_dyn.
+    pub dynamics: f64,
+    /// σ of the weak f_eq between consecutive q (IC only).
+    pub equality: f64,
+    /// σ of the approximate prior on q₀ (IC), on its dependent entries.
+    pub initial_q: f64,
+}
+
+impl NoiseModels {
+    /// The paper's Table 2, which lists covariances: σ = √(10⁻²) for the integrators,
+    /// √(10⁻⁴) for f_dyn, √(10²) for f_eq, √1 for the dependent entries of q₀.
+    pub fn paper() -> Self {
+        NoiseModels {
+            integrator_position: 0.1,
+            integrator_velocity: 0.1,
+            dynamics: 0.01,
+            equality: 10.0,
+            initial_q: 1.0,
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        for (name, v) in [
+            ("integrator_position", self.integrator_position),
+            ("integrator_velocity", self.integrator_velocity),
+            ("dynamics", self.dynamics),
+            ("equality", self.equality),
+            ("initial_q", self.initial_q),
+        ] {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(Error::InvalidArgument(format!(
+                    "noise σ {name} must be positive, got {v}"
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Default for NoiseModels {
+    /// The defaults that give the best accuracy (see `docs/accuracy.md`): the paper's
+    /// values but for f_eq, which pulls every q_k towards q_{k−1} and so brakes the
+    /// motion; at σ = 10 it costs the IC four-bar four orders of magnitude of
+    /// accuracy (RMSE 3.7e-2 m, the paper's 1.7e-2 m, against 2.6e-6 m). The branch
+    /// is kept by the Newton iteration on the hard constraints, which starts every
+    /// step from the previous one.
+    fn default() -> Self {
+        NoiseModels {
+            integrator_position: 0.01,
+            integrator_velocity: 0.01,
+            dynamics: 0.1,
+            equality: 1e6,
+            ..NoiseModels::paper()
+        }
+    }
+}
+
+/// Everything a forward run needs besides the model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ForwardOptions {
+    pub coordinates: Coordinates,
+    pub dt: f64,
+    pub t_end: f64,
+    pub mode: Mode,
+    pub integrator: Integrator,
+    /// The integrator factors of dependent coordinates (IC is unaffected).
+    pub dc_integrators: DcIntegrators,
+    pub noise: NoiseModels,
+    pub settings: Settings,
+    /// Go on after a step whose solve did not converge (it is still reported).
+    pub continue_on_failure: bool,
+    /// Where a step fails because it is too coarse for the motion (a body turns more
+    /// than [`StepFailure::LARGE_TURN`](super::failure::StepFailure::LARGE_TURN) a step), integrate the run again at a step
+    /// `dt / factor` and keep every `factor`-th state, so that the output stays on the
+    /// grid asked for ([`RunSummary::refinement`](super::summary::RunSummary::refinement) says so).
+    pub refine: bool,
+}
+
+impl ForwardOptions {
+    pub fn new(coordinates: Coordinates, dt: f64, t_end: f64, mode: Mode) -> Self {
+        ForwardOptions {
+            coordinates,
+            dt,
+            t_end,
+            mode,
+            integrator: Integrator::Trapezoidal,
+            dc_integrators: DcIntegrators::Auto,
+            noise: NoiseModels::default(),
+            // Marginal priors while they carry the solves, then conditioned (see [`Past`]).
+            settings: Settings {
+                past: Past::Adaptive,
+                ..Settings::default()
+            },
+            continue_on_failure: false,
+            refine: true,
+        }
+    }
+
+    /// Whether the graph has one soft equation per unknown (IC, and DC with tangent
+    /// integrators): its residual is zero at the solution, where Gauss-Newton is
+    /// Newton's method ([`Settings::second_order`] is then of no use).
+    pub fn is_square(&self) -> bool {
+        self.coordinates == Coordinates::Independent || self.tangent_dc()
+    }
+
+    /// Whether the integrator factors of dependent coordinates are projected on the
+    /// tangent space: asked for, or Hermite–Simpson under `auto` (its full factors'
+    /// least-squares compromise costs windows two orders of accuracy, and a retry
+    /// would gain nothing).
+    pub fn tangent_dc(&self) -> bool {
+        self.dc_integrators == DcIntegrators::Tangent
+            || (self.dc_integrators == DcIntegrators::Auto
+                && self.integrator == Integrator::HermiteSimpson)
+    }
+
+    /// Whether a DC run whose full integrator factors fail is made again with
+    /// tangent ones ([`DcIntegrators::Auto`] with the trapezoidal rule or Euler).
+    pub(super) fn retries_tangent(&self) -> bool {
+        self.coordinates == Coordinates::Dependent
+            && self.dc_integrators == DcIntegrators::Auto
+            && !self.tangent_dc()
+    }
+
+    /// Number of steps including t = 0: t_k = k·dt for k = 0..=round(t_end/dt)
+    /// (for options that [`validate`](Self::validate) accepts).
+    pub fn steps(&self) -> usize {
+        crate::limits::step_count(self.dt, self.t_end).unwrap_or(0)
+    }
+
+    /// Bytes a run of `model` with these options holds at its peak, roughly: the
+    /// variables of every step and the trajectory built from them, the window's
+    /// linear system, and for a batch solve the system of the whole horizon.
+    pub fn memory_estimate(&self, model: &Model) -> f64 {
+        let n = model.n() as f64;
+        let s = 3.0 * (n + model.independent.len() as f64);
+        let steps = self.steps() as f64;
+        let per_step_system = 8.0 * s * (3.0 * s + 2.0 * model.m() as f64) * 4.0;
+        let solved = match self.mode {
+            Mode::FixedLag(w) => (w as f64).min(steps) + 1.0,
+            Mode::Batch => steps,
+        };
+        8.0 * steps * (s + 3.0 * n) * 2.0 + per_step_system * solved
+    }
+
+    /// Refuses options that make no sense, with the reason.
+    pub fn validate(&self, model: &Model) -> Result<()> {
+        let bad = |m: String| Err(Error::InvalidArgument(m));
+        if !(self.dt > 0.0 && self.dt.is_finite()) {
+            return bad(format!("the time step must be positive, got {}", self.dt));
+        }
+        if !(self.t_end.is_finite() && self.t_end >= self.dt) {
+            return bad(format!(
+                "the end time must be at least one step (dt = {}), got {}",
+                self.dt, self.t_end
+            ));
+        }
+        crate::limits::step_count(self.dt, self.t_end)?;
+        if let Mode::FixedLag(0) = self.mode {
+            return bad("the window must hold at least 1 step".into());
+        }
+        if self.coordinates == Coordinates::Independent {
+            if model.independent.is_empty() {
+                return bad(format!(
+                    "{}: independent coordinates (--coords ic) need `independent: [...]` in the scene",
+                    model.scene.file
+                ));
+            }
+            if model.independent.len() != model.dof() {
+                return bad(format!(
+                    "{}: {} independent coordinate(s) declared for {} degrees of freedom",
+                    model.scene.file,
+                    model.independent.len(),
+                    model.dof()
+                ));
+            }
+        }
+        self.noise.validate()?;
+        self.settings.validate()?;
+        crate::limits::ensure_fits(
+            &format!(
+                "a run of {} steps of {} coordinates",
+                self.steps(),
+                model.n()
+            ),
+            self.memory_estimate(model),
+        )
+    }
+}

@@ -1,0 +1,381 @@
+//! One segment of a forward run: the steps solved by the fixed-lag smoother or in
+//! batch with one set of coordinates, watching, in independent coordinates, how well
+//! they determine the others; and the substep guess that rescues a failed step.
+
+use super::failure::StepFailure;
+use super::graph::{extract, ForwardGraph};
+use super::options::ForwardOptions;
+use super::summary::Reselection;
+use crate::coordinates::Coordinates;
+use crate::error::Result;
+use crate::kinematics::{constraint_conditioning, Determinacy};
+use crate::model::{Model, State};
+use crate::smoother::{self, Mode, Next};
+use crate::solver::{Past, Settings, SolveReport, Termination};
+use crate::trajectory::{round_time, Trajectory};
+use nalgebra::DVector;
+use std::ops::ControlFlow;
+use std::sync::Arc;
+
+/// What the segments of a run add up.
+#[derive(Default)]
+pub(super) struct Run {
+    pub(super) iterations: Vec<usize>,
+    pub(super) failures: Vec<StepFailure>,
+    pub(super) conditioned_from: Option<(usize, f64)>,
+    pub(super) reselections: Vec<Reselection>,
+    pub(super) interrupted: Option<usize>,
+}
+
+/// A segment's motion, and where (global step) and to which independent coordinates
+/// the next segment switches.
+pub(super) struct Segment {
+    pub(super) trajectory: Trajectory,
+    pub(super) reselect: Option<(usize, Vec<usize>)>,
+}
+
+/// Steps first..total of a run with `model` (its initial state is step `first`'s).
+pub(super) fn segment(
+    model: Arc<Model>,
+    options: &ForwardOptions,
+    first: usize,
+    total: usize,
+    progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+    run: &mut Run,
+) -> Result<Segment> {
+    let mut fg = ForwardGraph::new(model.clone(), options)?;
+    fg.graph.t0 = first as f64 * options.dt;
+    let steps = total - first;
+    let s = fg.graph.layout.size();
+    let mut values = vec![0.0; steps * s];
+    values[..s].copy_from_slice(&fg.initial_block(&model)?);
+    let mut completed = steps;
+    let mut reselect = None;
+    let n = model.n();
+    // The body turning fastest over step k: its turn estimated from the step
+    // before's velocities and accelerations (the rate at mid-step), so that a run
+    // from rest is measured too.
+    let fast_body = |k: usize, v: &[f64]| {
+        let before = &v[k.checked_sub(1)? * s..k * s];
+        let mid: Vec<f64> = (0..n)
+            .map(|i| before[n + i] + 0.5 * options.dt * before[2 * n + i])
+            .collect();
+        let (body, omega) = model.fastest_body(&before[..n], &mid)?;
+        Some((body, omega * options.dt))
+    };
+    let failure = |k: usize, report: &SolveReport, v: &[f64]| {
+        let q = &v[k * s..k * s + n];
+        // A non-finite cost: look for the effect that cannot be evaluated, at the
+        // step's state or, where that is not finite, at the step before's.
+        let cause = (!report.cost.is_finite()).then(|| {
+            let at = |j: usize| (&v[j * s..j * s + n], &v[j * s + n..j * s + 2 * n]);
+            let (mut qk, mut dqk) = at(k);
+            if !qk.iter().chain(dqk).all(|x| x.is_finite()) {
+                (qk, dqk) = at(k.saturating_sub(1));
+            }
+            model.effect_fault(qk, dqk, fg.graph.time(k))
+        });
+        StepFailure {
+            step: first + k,
+            t: fg.graph.time(k),
+            report: *report,
+            constraint_conditioning: constraint_conditioning(&model, q),
+            singular: None,
+            warm_start: false,
+            batch: false,
+            cause: cause.flatten(),
+            fast_body: fast_body(k, v),
+        }
+    };
+    match options.mode {
+        Mode::FixedLag(window) => {
+            // In independent coordinates, how well z determines the rest, step by step.
+            let mut determinacy = (options.coordinates == Coordinates::Independent).then(|| {
+                let far = (0.0, f64::INFINITY);
+                (Determinacy::new(&model), far, far)
+            });
+            let mut failures = Vec::new();
+            let mut iterations = Vec::new();
+            let mut conditioned_from = None;
+            let mut interrupted = None;
+            let settings = Settings {
+                // The DC graph's integrators conflict with its constraints.
+                tangent_priors: options.coordinates == Coordinates::Dependent,
+                // Independent coordinates and tangent integrators leave every step with
+                // as many equations as unknowns: a marginal prior adds nothing to the
+                // next step's solution (each window has N_w = 1's) but its
+                // linearization about the step's prediction; the exact conditional is
+                // the step's own solution, and the batch's. In a stiff transient that
+                // linearization's error is no longer small: Andrews' squeezer in IC
+                // ended 0.1 rad off at dt = 50 µs with marginal priors, 7.8e-4 rad
+                // with conditioned ones (and a batch of the mm slider-crank at 1 ms
+                // had a cost of 6.3 to remove from the marginal run's start).
+                past: if options.is_square() && options.settings.past == Past::Adaptive {
+                    Past::Conditioned
+                } else {
+                    options.settings.past
+                },
+                second_order: options.settings.second_order && !options.is_square(),
+                ..options.settings
+            };
+            smoother::fixed_lag_with_rescue(
+                &fg.graph,
+                &mut values,
+                steps,
+                window,
+                settings,
+                |v, k| fg.predict(v, k),
+                |v, k| fg.substep_guess(&model, options, settings, first + k, v, k),
+                |k, report, v| {
+                    iterations.push(report.iterations);
+                    // Asked to stop: after this step's own outcome is recorded.
+                    let stop = progress(first + k + 1, total).is_break();
+                    // The positions of step j of the window's values.
+                    let q_at = |j: usize| &v[j * s..j * s + model.n()];
+                    let q = q_at(k);
+                    if report.termination != Termination::Converged {
+                        let mut f = failure(k, report, v);
+                        if let Some((det, before, older)) = determinacy.as_mut() {
+                            // A solve that fails while z and every other set of
+                            // coordinates approach a rank loss fails because of it:
+                            // name the singular configuration, located from the last
+                            // two converged steps.
+                            let (prev, older_q) = (q_at(k.max(1) - 1), q_at(k.max(2) - 2));
+                            let rate = (older.1 - before.1) / (before.0 - older.0);
+                            let steps_to_rank_loss = before.1 / (rate * fg.graph.dt);
+                            // A step too coarse for the motion fails for that reason: in
+                            // a violent transient s moves fast too (Andrews' squeezer at
+                            // 1.7 ms, a body turning 1.8 rad a step, s = 0.026 falling),
+                            // and the extrapolation alone would name a singular point.
+                            let too_coarse = f
+                                .fast_body
+                                .as_ref()
+                                .is_some_and(|(_, turn)| *turn > StepFailure::LARGE_TURN);
+                            if k >= 2
+                                && rate > 0.0
+                                && ((steps_to_rank_loss <= Determinacy::ATTRIBUTE_WITHIN
+                                    && before.1 < Determinacy::ATTRIBUTE_BELOW
+                                    && !too_coarse)
+                                    || before.1 < Determinacy::SEARCH_BELOW)
+                            {
+                                let (best, _) = det.best(&model, prev);
+                                if best < Determinacy::SWITCH_GAIN * before.1 {
+                                    f.singular = Some(det.singular_configuration(
+                                        &model, older_q, prev, *older, *before,
+                                    ));
+                                    failures.push(f);
+                                    completed = k;
+                                    return Next::Stop;
+                                }
+                            }
+                        }
+                        failures.push(f);
+                        if !options.continue_on_failure
+                            || report.termination == Termination::Diverged
+                        {
+                            // The failed step is left out of the trajectory.
+                            completed = k;
+                            return Next::Stop;
+                        }
+                    }
+                    if let Some((det, before, older)) = determinacy.as_mut() {
+                        // Approaching a configuration where z stops determining the
+                        // other coordinates: switch to coordinates that do, or, where
+                        // Φ_q itself loses rank (the problem is ill-posed), stop while
+                        // the solves are still sound, and say where.
+                        let now = (fg.graph.time(k), det.distance(&model, q));
+                        // At coarse steps s can fall from well above the thresholds
+                        // to beyond the singular point in one step: judge by the
+                        // lower of s and its linear extrapolation to the next step.
+                        let ahead = if before.1.is_finite() {
+                            now.1.min(2.0 * now.1 - before.1).max(0.0)
+                        } else {
+                            now.1
+                        };
+                        let falling = now.1 < before.1;
+                        if falling && ahead < Determinacy::SEARCH_BELOW {
+                            let (best, set) = det.best(&model, q);
+                            if k > 0 && best >= Determinacy::SWITCH_GAIN * now.1 {
+                                reselect = Some((first + k, set));
+                                completed = k + 1;
+                                return Next::Stop;
+                            }
+                        }
+                        // The stop on the extrapolation only where it crosses 0 within
+                        // the step: a regular dip (the robot's s bottoms out at 3e-3)
+                        // seen at coarse steps must not stop the run.
+                        let crossing = before.1.is_finite() && 2.0 * now.1 <= before.1;
+                        if falling && (now.1 < Determinacy::STOP_BELOW || crossing) {
+                            let mut f = failure(k, report, v);
+                            f.singular = Some(det.singular_configuration(
+                                &model,
+                                q_at(k - 1),
+                                q,
+                                *before,
+                                now,
+                            ));
+                            failures.push(f);
+                            completed = k;
+                            return Next::Stop;
+                        }
+                        *older = *before;
+                        *before = now;
+                    }
+                    if stop {
+                        // Interrupted: this step is kept as the last one.
+                        interrupted = Some(first + k);
+                        completed = k + 1;
+                        return Next::Stop;
+                    }
+                    Next::Continue
+                },
+                |k| conditioned_from = Some((first + k, round_time(fg.graph.time(k)))),
+            )?;
+            run.iterations.extend(iterations);
+            run.failures.extend(failures);
+            run.interrupted = run.interrupted.or(interrupted);
+            if run.conditioned_from.is_none() {
+                run.conditioned_from = conditioned_from;
+            }
+        }
+        Mode::Batch => {
+            // Start from the one-step smoother's solution over this segment (which
+            // may end it where the independent coordinates are re-selected), then
+            // solve all of it at once.
+            let mut warm_options = options.clone();
+            warm_options.mode = Mode::FixedLag(1);
+            let mut warm = Run::default();
+            let guess = segment(
+                model.clone(),
+                &warm_options,
+                first,
+                total,
+                progress,
+                &mut warm,
+            )?;
+            if warm.interrupted.is_some() {
+                // The one-step start is not the batch solution: nothing to return.
+                run.interrupted = warm.interrupted;
+                completed = 0;
+            } else if let Some(f) = warm.failures.iter().find(|f| f.singular.is_some()) {
+                // Ill-posed ahead: no batch solve of the whole horizon exists.
+                run.failures.push(f.clone());
+                completed = 0;
+            } else if let Some(f) = warm.failures.first() {
+                // No batch solve without its start: the step that failed there ends
+                // the run, named as such.
+                run.failures.push(StepFailure {
+                    warm_start: true,
+                    ..f.clone()
+                });
+                completed = 0;
+            } else {
+                reselect = guess.reselect;
+                completed = guess.trajectory.len();
+                fg.fill_from_trajectory(&model, &guess.trajectory, &mut values);
+                let mut settings = options.settings;
+                // One equation per unknown: Gauss-Newton is Newton's method.
+                settings.second_order &= !options.is_square();
+                if options.retries_tangent() {
+                    // The paper's factors get the iterations a window needs; past them
+                    // their compromise crawls (the double pendulum at 1 ms: 30
+                    // iterations, 35 s) where tangent ones converge in one.
+                    settings.max_iterations = settings.max_iterations.min(AUTO_BATCH_ITERATIONS);
+                }
+                let report = smoother::batch(&fg.graph, &mut values, completed, settings)?;
+                run.iterations.push(report.iterations);
+                if report.termination != Termination::Converged {
+                    let k = completed - 1;
+                    run.failures.push(StepFailure {
+                        batch: true,
+                        ..failure(k, &report, &values)
+                    });
+                }
+            }
+        }
+    }
+    Ok(Segment {
+        trajectory: extract(&fg, &model, &values[..completed * s], completed),
+        reselect,
+    })
+}
+
+/// The iterations a batch solve with the paper's integrator factors gets under
+/// [`DcIntegrators::Auto`](super::options::DcIntegrators::Auto) before the run is made again with tangent ones.
+pub const AUTO_BATCH_ITERATIONS: usize = 10;
+
+/// The substep counts tried, in turn, for a step whose solve failed from its guess:
+/// a few, then finer (at most 74 substep solves per failed step).
+const SUBSTEPS: [usize; 3] = [2, 8, 64];
+/// Iterations a substep's solve gets: a step 8–64 times finer than one that failed
+/// converges in a few, or that count of substeps is given up.
+const SUBSTEP_ITERATIONS: usize = 10;
+
+impl ForwardGraph {
+    /// A guess for step k (run step `step`) from the state of step k − 1 in `values`,
+    /// integrated over the step in [`SUBSTEPS`] substeps by the same graph at the
+    /// finer step (N_w = 1), until all of them converge. Where the
+    /// step's own solve fails from the Taylor guess (a coarse step through a fast or
+    /// stiff stretch, whose implicit equations Newton's method does not reach from
+    /// so far), this guess lies within the step's error of its solution. Writes the
+    /// guess and returns true, or false when no substep count converged.
+    fn substep_guess(
+        &self,
+        model: &Arc<Model>,
+        options: &ForwardOptions,
+        settings: Settings,
+        step: usize,
+        values: &mut [f64],
+        k: usize,
+    ) -> bool {
+        let (n, s) = (self.n, self.graph.layout.size());
+        let before = &values[(k - 1) * s..k * s];
+        let mut start = (**model).clone();
+        start.initial = State {
+            q: DVector::from_column_slice(&before[..n]),
+            dq: DVector::from_column_slice(&before[n..2 * n]),
+        };
+        let start = Arc::new(start);
+        let settings = Settings {
+            max_iterations: settings.max_iterations.min(SUBSTEP_ITERATIONS),
+            ..settings
+        };
+        for substeps in SUBSTEPS {
+            let mut fine = options.clone();
+            fine.dt = options.dt / substeps as f64;
+            fine.mode = Mode::FixedLag(1);
+            let Ok(mut graph) = ForwardGraph::new(start.clone(), &fine) else {
+                return false;
+            };
+            graph.graph.t0 = (step - 1) as f64 * options.dt;
+            let Ok(first) = graph.initial_block(&start) else {
+                return false;
+            };
+            let mut fine_values = vec![0.0; (substeps + 1) * s];
+            fine_values[..s].copy_from_slice(&first);
+            let mut converged = true;
+            let solved = smoother::fixed_lag(
+                &graph.graph,
+                &mut fine_values,
+                substeps + 1,
+                1,
+                settings,
+                |v, j| graph.predict(v, j),
+                |_, report, _| {
+                    converged &= report.termination == Termination::Converged;
+                    if converged {
+                        Next::Continue
+                    } else {
+                        Next::Stop
+                    }
+                },
+                |_| {},
+            );
+            if solved.is_ok() && converged {
+                values[k * s..(k + 1) * s].copy_from_slice(&fine_values[substeps * s..]);
+                return true;
+            }
+        }
+        false
+    }
+}

@@ -1,0 +1,377 @@
+//! How well the constraints determine the coordinates near a configuration: the
+//! distance to rank loss of Φ_q restricted to the dependent coordinates
+//! ([`Determinacy`], which a run in independent coordinates watches to switch sets or
+//! stop ahead of a singular configuration), and the scale-free σ_r/σ₁ of Φ_q itself
+//! (`constraint_conditioning`) that a failure message quotes.
+
+use crate::linalg::dense;
+use crate::model::{Model, PointSlot};
+
+/// A configuration ahead where the independent coordinates z stop determining the
+/// other coordinates' velocities: Φ_q restricted to the dependent coordinates
+/// (square, m_active × (n − f)) loses a rank, so the matrix R of q̇ = R ż does not
+/// exist there and the graph in independent coordinates is ill-posed. Found from its
+/// distance to rank loss s ([`Determinacy`]) falling below
+/// [`Determinacy::STOP_BELOW`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct SingularConfiguration {
+    /// Where s extrapolates to 0, linearly from this step and the one before (this
+    /// step's time where s was not falling).
+    pub t_singular: f64,
+    /// s at the step where the run stopped.
+    pub distance: f64,
+    /// The rank the dependent block keeps there (singular values of its normalized
+    /// rows above 10 s) and its full rank (the number of dependent coordinates).
+    pub rank: usize,
+    pub full_rank: usize,
+    pub independent: Vec<String>,
+    pub dependent: Vec<String>,
+}
+
+/// How well the independent coordinates determine the others at q, without
+/// allocating: the distance to rank loss s = (tr G⁻¹)^(−1/2) of Φ_q restricted to
+/// the dependent coordinates, G = D̂D̂ᵀ with D̂ its active rows normalized.
+/// √(λ_min(G)/m) ≤ s ≤ √λ_min(G): s is the smallest singular value of D̂ to within a
+/// factor √m, and 0 where a rank is lost.
+pub struct Determinacy {
+    dependent: Vec<usize>,
+    jac: Vec<f64>,
+    column_norms: Vec<f64>,
+    rows: Vec<f64>,
+    chol: Vec<f64>,
+    /// One column of L⁻¹ at a time (see [`inverse_trace`]).
+    column: Vec<f64>,
+}
+
+impl Determinacy {
+    /// Where the coordinates in use determine the others less well than this and
+    /// worse from step to step (or will at the next step, extrapolated), a run in
+    /// independent coordinates looks for a better set. The pick-and-place robot's
+    /// motor angles start just above it and head for s = 0 at t ≈ 0.33 s, while
+    /// Φ_q's smallest row-normalized singular value only dips from 2.5e-2 to 4.6e-3
+    /// at 0.4 s and recovers: the run switches three times and passes.
+    pub const SEARCH_BELOW: f64 = 5e-3;
+
+    /// A run switches to the best set where it determines the others this many times
+    /// better than the set in use (so that it does not switch back at once).
+    pub const SWITCH_GAIN: f64 = 1.5;
+
+    /// A solve in independent coordinates that fails while s, falling, extrapolates
+    /// to 0 within this many steps, and no set of coordinates does materially better
+    /// ([`Determinacy::SWITCH_GAIN`]), is reported as the singular configuration
+    /// ahead: the N four-bar under gravity fails 13 steps (1 ms) before its flat
+    /// point, at s = 0.034, above [`Determinacy::STOP_BELOW`]. A failure where s is
+    /// already below [`Determinacy::SEARCH_BELOW`] is attributed whatever the number
+    /// of steps: at fine steps (the parallelogram at 0.01 ms fails 140 steps, 1.4 ms,
+    /// before its flat point, at s = 4.2e-3) steps are no measure of the distance.
+    pub const ATTRIBUTE_WITHIN: f64 = 20.0;
+
+    /// ... and only where s is below this: a violent transient at a coarse step
+    /// (a six-bar press whose crank reaches 350 rad/s within 20 ms, at 1 ms) makes s
+    /// fall fast from 0.08 in a mechanism that has no singular configuration, and the
+    /// extrapolation alone would name one.
+    pub const ATTRIBUTE_BELOW: f64 = 0.05;
+
+    /// A run in independent coordinates stops where even the best set's s falls
+    /// below this: Φ_q itself is about to lose a rank, and no choice of coordinates
+    /// helps. Approaching the parallelogram's flat configuration the solves in
+    /// independent coordinates fail a step or two before the flat point; the run
+    /// stops 0.6 ms (at 3 rad/s, Δt = 1 ms) ahead of it with its steps sound, and
+    /// at coarse steps (5–20 ms), where s falls past the threshold in one step, where
+    /// its linear extrapolation crosses 0 within the next step.
+    pub const STOP_BELOW: f64 = 2.5e-3;
+
+    pub fn new(model: &Model) -> Self {
+        let dependent: Vec<usize> = (0..model.n())
+            .filter(|i| !model.independent.contains(i))
+            .collect();
+        let ma = model.active.len();
+        let mut det = Determinacy {
+            jac: vec![0.0; model.m() * model.n()],
+            column_norms: vec![1.0; model.n()],
+            rows: vec![0.0; ma * dependent.len()],
+            chol: vec![0.0; ma * ma],
+            column: vec![0.0; ma],
+            dependent,
+        };
+        det.set_column_scales(model, model.initial.q.as_slice());
+        det
+    }
+
+    /// s at q: 0 where the dependent block has lost a rank (or is not square).
+    pub fn distance(&mut self, model: &Model, q: &[f64]) -> f64 {
+        self.jacobian(model, q);
+        let dependent = std::mem::take(&mut self.dependent);
+        let s = self.distance_over(model, &dependent);
+        self.dependent = dependent;
+        s
+    }
+
+    /// The set of independent coordinates that determines the others best at q, and
+    /// its distance to rank loss s: over every set where there are at most 2000,
+    /// else by swaps of one coordinate from the current set while s improves. Where
+    /// even the best s is small, Φ_q itself is close to losing a rank.
+    pub fn best(&mut self, model: &Model, q: &[f64]) -> (f64, Vec<usize>) {
+        let (n, f) = (model.n(), model.independent.len());
+        self.jacobian(model, q);
+        let mut best = (
+            self.distance_over(model, &complement(n, &model.independent)),
+            model.independent.clone(),
+        );
+        let consider = |det: &mut Determinacy, set: &[usize], best: &mut (f64, Vec<usize>)| {
+            let s = det.distance_over(model, &complement(n, set));
+            if s > best.0 {
+                *best = (s, set.to_vec());
+            }
+        };
+        if binomial(n, f) <= 2000 {
+            let mut set: Vec<usize> = (0..f).collect();
+            loop {
+                consider(self, &set, &mut best);
+                // The next f-subset of 0..n in lexicographic order.
+                let Some(i) = (0..f).rev().find(|&i| set[i] < n - f + i) else {
+                    break;
+                };
+                set[i] += 1;
+                for j in i + 1..f {
+                    set[j] = set[j - 1] + 1;
+                }
+            }
+        } else {
+            loop {
+                let before = best.0;
+                let current = best.1.clone();
+                for i in 0..f {
+                    for c in (0..n).filter(|c| !current.contains(c)) {
+                        let mut set = current.clone();
+                        set[i] = c;
+                        set.sort_unstable();
+                        consider(self, &set, &mut best);
+                    }
+                }
+                if best.0 <= before {
+                    break;
+                }
+            }
+        }
+        best
+    }
+
+    fn jacobian(&mut self, model: &Model, q: &[f64]) {
+        model.jacobian_into(q, &mut self.jac);
+    }
+
+    /// The norms of Φ_q's columns over the active rows at q (1 for a column without
+    /// entries): the coordinates' scales, taken once at the initial configuration so
+    /// that a column that shrinks towards a singular configuration is not rescaled.
+    ///
+    /// A point's x and y columns are scaled by no less than the root mean square of
+    /// the two: a point placed level with its neighbour has an x column as small as
+    /// that link (2·length from its distance equation alone) and a y column of 1 (its
+    /// angle equation's), and scaling them apart made a 1 cm link that turned by
+    /// 0.2 rad read as a rank loss three times closer than it was.
+    fn set_column_scales(&mut self, model: &Model, q: &[f64]) {
+        self.jacobian(model, q);
+        let n = model.n();
+        let squares: Vec<f64> = (0..n)
+            .map(|c| {
+                model
+                    .active
+                    .iter()
+                    .map(|&k| self.jac[k * n + c].powi(2))
+                    .sum()
+            })
+            .collect();
+        let mut scale = squares.clone();
+        for slot in &model.points {
+            if let PointSlot::Free(x) = *slot {
+                let both = 0.5 * (squares[x] + squares[x + 1]);
+                scale[x] = squares[x].max(both);
+                scale[x + 1] = squares[x + 1].max(both);
+            }
+        }
+        for (norm, sq) in self.column_norms.iter_mut().zip(scale) {
+            *norm = if sq > 0.0 { sq.sqrt() } else { 1.0 };
+        }
+    }
+
+    /// s of Φ_q (in `self.jac`) restricted to the columns `dependent`.
+    fn distance_over(&mut self, model: &Model, dependent: &[usize]) -> f64 {
+        let (n, ma, d) = (model.n(), model.active.len(), dependent.len());
+        if ma != d {
+            return 0.0;
+        }
+        if ma == 0 {
+            return f64::INFINITY;
+        }
+        for (r, &k) in model.active.iter().enumerate() {
+            let row = &mut self.rows[r * d..(r + 1) * d];
+            for (o, &c) in row.iter_mut().zip(dependent) {
+                *o = self.jac[k * n + c];
+            }
+            // Columns scaled by the coordinates' scales (mixed units and sizes: a
+            // 7 mm crank's angle column is 100× smaller than its points'), rows by
+            // their whole scaled row: an equation whose dependent part vanishes (a
+            // point on a crank at the top of its circle, with its y independent) no
+            // longer determines them, whatever the size of that part.
+            for (o, &c) in row.iter_mut().zip(dependent) {
+                *o /= self.column_norms[c];
+            }
+            let norm = (0..n)
+                .map(|c| (self.jac[k * n + c] / self.column_norms[c]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            if !(norm > 0.0) {
+                return 0.0;
+            }
+            row.iter_mut().for_each(|v| *v /= norm);
+        }
+        let (rows, g) = (&self.rows, &mut self.chol);
+        for i in 0..ma {
+            for j in 0..=i {
+                g[i * ma + j] = (0..d).map(|c| rows[i * d + c] * rows[j * d + c]).sum();
+            }
+        }
+        if dense::cholesky(g, ma).is_err() {
+            return 0.0;
+        }
+        inverse_trace(g, ma, &mut self.column, None).recip().sqrt()
+    }
+
+    /// The report of a run stopped at q (time t, distance s) with the step before
+    /// at q0 (t0, s0): where s extrapolates to 0, and the rank kept there.
+    ///
+    /// The rank is what is left where the scaled dependent block's singular values,
+    /// each extrapolated linearly from q0 and q to that time, have not fallen to a
+    /// tenth of their value at q: a chain of N loops loses N ranks together at its
+    /// flat configuration, whose singular values fall at different rates, and a
+    /// count of those already small at the stop saw 5 of 40. Where s is not falling
+    /// (no time to extrapolate to), those below 10 s at q are counted as lost.
+    pub(crate) fn singular_configuration(
+        &mut self,
+        model: &Model,
+        q0: &[f64],
+        q: &[f64],
+        (t0, s0): (f64, f64),
+        (t, s): (f64, f64),
+    ) -> SingularConfiguration {
+        let t_singular = if s0 > s {
+            t + s * (t - t0) / (s0 - s)
+        } else {
+            t
+        };
+        let d = self.dependent.len();
+        let singular_values = |det: &mut Self, at: &[f64]| -> Option<Vec<f64>> {
+            det.distance(model, at);
+            let rows = nalgebra::DMatrix::from_row_slice(model.active.len(), d, &det.rows);
+            // nalgebra's SVD does not return on a non-finite matrix.
+            rows.iter().all(|v| v.is_finite()).then(|| {
+                let mut sv: Vec<f64> = rows.singular_values().iter().copied().collect();
+                sv.sort_by(|a, b| b.total_cmp(a));
+                sv
+            })
+        };
+        let before = singular_values(self, q0);
+        let now = singular_values(self, q);
+        let rank = match (before, now) {
+            (Some(before), Some(now)) if t_singular > t && t > t0 => {
+                let ahead = (t_singular - t) / (t - t0);
+                let lost = now
+                    .iter()
+                    .zip(&before)
+                    .filter(|(&v, &v0)| v + (v - v0) * ahead <= 0.1 * v)
+                    .count();
+                d - lost.max(1)
+            }
+            (_, Some(now)) => now.iter().filter(|&&v| v > 10.0 * s).count(),
+            _ => 0,
+        };
+        let names = |idx: &mut dyn Iterator<Item = usize>| -> Vec<String> {
+            idx.map(|i| model.names[i].clone()).collect()
+        };
+        SingularConfiguration {
+            t_singular,
+            distance: s,
+            rank,
+            full_rank: d,
+            independent: names(&mut model.independent.iter().copied()),
+            dependent: names(&mut self.dependent.iter().copied()),
+        }
+    }
+}
+
+/// The coordinates of 0..n not in `set`.
+fn complement(n: usize, set: &[usize]) -> Vec<usize> {
+    (0..n).filter(|i| !set.contains(i)).collect()
+}
+
+/// n choose k, saturating.
+fn binomial(n: usize, k: usize) -> usize {
+    (0..k.min(n)).fold(1usize, |acc, i| acc.saturating_mul(n - i) / (i + 1))
+}
+
+/// σ_r/σ₁ of Φ_q(q), r = the number of independent constraints at the start, scale-free:
+/// its active rows, columns scaled by their norms at the initial configuration (the
+/// coordinates' scales: mm-size links and angles in radians weigh alike), each row
+/// then normalized. Raw, a well-conditioned mechanism with a 7 mm crank reads 1e-4.
+pub(crate) fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
+    let r = model.active.len();
+    if r == 0 {
+        return 1.0;
+    }
+    let active = |q: &[f64]| {
+        let jac = model.jacobian(&nalgebra::DVector::from_column_slice(q));
+        nalgebra::DMatrix::from_fn(r, model.n(), |i, c| jac[(model.active[i], c)])
+    };
+    let initial = active(model.initial.q.as_slice());
+    let mut a = active(q);
+    for (c, scale) in initial.column_iter().map(|col| col.norm()).enumerate() {
+        if scale > 0.0 {
+            a.column_mut(c).unscale_mut(scale);
+        }
+    }
+    for mut row in a.row_iter_mut() {
+        let norm = row.norm();
+        if norm > 0.0 {
+            row.unscale_mut(norm);
+        }
+    }
+    if !a.iter().all(|v| v.is_finite()) {
+        // Not a configuration (nalgebra's SVD would not return on it).
+        return 0.0;
+    }
+    let mut sv: Vec<f64> = a.singular_values().iter().copied().collect();
+    sv.sort_by(|a, b| b.total_cmp(a));
+    if sv[0] > 0.0 {
+        sv.get(r - 1).copied().unwrap_or(0.0) / sv[0]
+    } else {
+        0.0
+    }
+}
+
+/// tr G⁻¹ = ‖L⁻¹‖_F² from the lower Cholesky factor L of G (row-major ma × ma): L⁻¹
+/// column by column, each by forward substitution of a column of I
+/// ([`dense::solve_lower`]) in `column` (length ma), and kept in the lower triangle
+/// of `linv` where one is given.
+pub(crate) fn inverse_trace(
+    l: &[f64],
+    ma: usize,
+    column: &mut [f64],
+    mut linv: Option<&mut [f64]>,
+) -> f64 {
+    let column = &mut column[..ma];
+    let mut trace = 0.0;
+    for j in 0..ma {
+        column.fill(0.0);
+        column[j] = 1.0;
+        dense::solve_lower(l, ma, column);
+        for i in j..ma {
+            let v = column[i];
+            if let Some(linv) = linv.as_deref_mut() {
+                linv[i * ma + j] = v;
+            }
+            trace += v * v;
+        }
+    }
+    trace
+}

@@ -1,0 +1,81 @@
+//! A motion sampled on a time grid: q, q̇ and q̈ at each time, in model order, as a
+//! forward run returns it, the trajectory files hold it and an inverse run reads it.
+
+/// A simulated motion: for each time, q, q̇ and q̈ in model order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectory {
+    pub names: Vec<String>,
+    pub t: Vec<f64>,
+    /// Row-major samples × n.
+    pub q: Vec<f64>,
+    pub dq: Vec<f64>,
+    pub ddq: Vec<f64>,
+}
+
+impl Trajectory {
+    pub fn len(&self) -> usize {
+        self.t.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.t.is_empty()
+    }
+
+    pub fn n(&self) -> usize {
+        self.names.len()
+    }
+
+    /// Every `stride`-th sample (0, stride, 2·stride, …), on the grid t_j = j·dt.
+    pub fn every(&self, stride: usize, dt: f64) -> Trajectory {
+        let n = self.n();
+        let rows: Vec<usize> = (0..self.len()).step_by(stride.max(1)).collect();
+        let pick = |v: &[f64]| {
+            rows.iter()
+                .flat_map(|&r| &v[r * n..(r + 1) * n])
+                .copied()
+                .collect()
+        };
+        Trajectory {
+            names: self.names.clone(),
+            t: (0..rows.len()).map(|j| j as f64 * dt).collect(),
+            q: pick(&self.q),
+            dq: pick(&self.dq),
+            ddq: pick(&self.ddq),
+        }
+    }
+
+    /// Keeps the first `len` samples.
+    pub fn truncate(&mut self, len: usize) {
+        let n = self.n();
+        self.t.truncate(len);
+        for v in [&mut self.q, &mut self.dq, &mut self.ddq] {
+            v.truncate(len * n);
+        }
+    }
+
+    /// Appends `other` but its first sample (the state this one ends with).
+    pub(crate) fn append_after_first(&mut self, other: &Trajectory) {
+        let n = self.n();
+        self.t.extend_from_slice(other.t.get(1..).unwrap_or(&[]));
+        for (v, o) in [
+            (&mut self.q, &other.q),
+            (&mut self.dq, &other.dq),
+            (&mut self.ddq, &other.ddq),
+        ] {
+            v.extend_from_slice(o.get(n..).unwrap_or(&[]));
+        }
+    }
+
+    pub fn q_at(&self, k: usize) -> &[f64] {
+        &self.q[k * self.n()..(k + 1) * self.n()]
+    }
+
+    pub fn dq_at(&self, k: usize) -> &[f64] {
+        &self.dq[k * self.n()..(k + 1) * self.n()]
+    }
+}
+
+/// A time for messages: t₀ + k·Δt carries round-off (1.2690000000000001).
+pub fn round_time(t: f64) -> f64 {
+    (t * 1e9).round() / 1e9
+}
