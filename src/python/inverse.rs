@@ -4,7 +4,8 @@
 use super::args::{arg_choice, arg_count, arg_numbers, arg_path, describe};
 use super::effects::{arg_effects, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, one_line, SolveError};
-use super::run::{coordinates, run_table, study_model, with_result};
+use super::model::study_model;
+use super::run::{coordinates, run_table, with_result};
 use crate::inverse::{self, InverseOptions, InverseSolution, Prescription, Start};
 use crate::io::{read_table, Table};
 use crate::solver::Termination;

@@ -1,17 +1,17 @@
 //! The `Model` class: an assembled model, its structure (points, bodies,
 //! coordinates, constraints, effects) and its quantities at a given state, and
-//! `mbfg.load`.
+//! `mbfg.load`, and the model of a run (a loaded `Model` or a scene path).
 
-use super::args::{arg_count, arg_numbers, arg_real, arg_str, arg_values};
-use super::errors::{arg_error, guard, invalid, one_line};
-use super::run::study_model;
+use super::args::{arg_count, arg_numbers, arg_path, arg_real, arg_str, arg_values};
+use super::errors::{arg_error, guard, invalid, one_line, SceneError};
 use crate::model::PointSlot;
 use crate::scene::{ConstraintKind, Effect, RelativeKind};
-use crate::Model;
+use crate::{Model, Scene};
 use nalgebra::{DMatrix, DVector};
 use numpy::{PyArray1, PyArray2, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
+use std::path::PathBuf;
 use std::sync::Arc;
 
 /// An assembled model, immutable.
@@ -518,4 +518,52 @@ pub(super) fn load(
             model: study_model(path, &params, &[], &[])?,
         })
     })
+}
+
+/// The model of a run: a path, or a `Model` already loaded; re-read from its file
+/// when parameters are overridden, and re-assembled when the initial state is
+/// (positions of coordinates of q, velocities of independent coordinates).
+pub(super) fn study_model(
+    scene: &Bound<'_, PyAny>,
+    params: &[(String, f64)],
+    q0: &[(String, f64)],
+    dq0: &[(String, f64)],
+) -> PyResult<Arc<Model>> {
+    let loaded = scene.cast::<PyModel>().ok().map(|m| m.get().model.clone());
+    if let Some(model) = &loaded {
+        if params.is_empty() && q0.is_empty() && dq0.is_empty() {
+            return Ok(model.clone());
+        }
+    }
+    let path = match &loaded {
+        Some(m) => PathBuf::from(&m.scene.file),
+        None => arg_path(scene, "scene")?,
+    };
+    let mut sc = match (&loaded, params.is_empty()) {
+        (Some(m), true) => m.scene.clone(),
+        _ => Scene::load_with(&path, params).map_err(|e| SceneError::new_err(e.to_string()))?,
+    };
+    let names = crate::scene::coordinate_names(&sc);
+    for (name, v) in q0 {
+        if !names.contains(name) {
+            return Err(invalid(format!(
+                "q0: no coordinate '{name}' in the scene (Model.names lists them)"
+            )));
+        }
+        sc.initial_positions.retain(|(n, _)| n != name);
+        sc.initial_positions.push((name.clone(), *v));
+    }
+    for (name, v) in dq0 {
+        if !sc.independent.contains(name) {
+            return Err(invalid(format!(
+                "dq0: '{name}' is not an independent coordinate; initial velocities are given for those ({})",
+                sc.independent.join(", ")
+            )));
+        }
+        sc.initial_velocities.retain(|(n, _)| n != name);
+        sc.initial_velocities.push((name.clone(), *v));
+    }
+    Model::new(&sc)
+        .map(Arc::new)
+        .map_err(|e| SceneError::new_err(e.to_string()))
 }

@@ -1,69 +1,16 @@
-//! What the forward and inverse runs share: the model of a run, the coordinates
+//! What the forward and inverse runs share: the coordinates
 //! argument, the result table, a result attached to the exception of a run that
 //! failed, and a run with the GIL released that Ctrl-C can stop.
 
-use super::args::{arg_choice, arg_path};
-use super::errors::{invalid, SceneError};
-use super::model::PyModel;
+use super::args::arg_choice;
 use crate::forward::{Coordinates, Trajectory};
-use crate::{Model, Scene};
 use pyo3::prelude::*;
 use pyo3::types::{PyByteArray, PyDict};
 use std::ops::ControlFlow;
-use std::path::PathBuf;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// How often a run looks for a pending signal (Ctrl-C): each look takes the GIL.
 const SIGNAL_CHECK: Duration = Duration::from_millis(25);
-
-/// The model of a run: a path, or a `Model` already loaded; re-read from its file
-/// when parameters are overridden, and re-assembled when the initial state is
-/// (positions of coordinates of q, velocities of independent coordinates).
-pub(super) fn study_model(
-    scene: &Bound<'_, PyAny>,
-    params: &[(String, f64)],
-    q0: &[(String, f64)],
-    dq0: &[(String, f64)],
-) -> PyResult<Arc<Model>> {
-    let loaded = scene.cast::<PyModel>().ok().map(|m| m.get().model.clone());
-    if let Some(model) = &loaded {
-        if params.is_empty() && q0.is_empty() && dq0.is_empty() {
-            return Ok(model.clone());
-        }
-    }
-    let path = match &loaded {
-        Some(m) => PathBuf::from(&m.scene.file),
-        None => arg_path(scene, "scene")?,
-    };
-    let mut sc = match (&loaded, params.is_empty()) {
-        (Some(m), true) => m.scene.clone(),
-        _ => Scene::load_with(&path, params).map_err(|e| SceneError::new_err(e.to_string()))?,
-    };
-    let names = crate::scene::coordinate_names(&sc);
-    for (name, v) in q0 {
-        if !names.contains(name) {
-            return Err(invalid(format!(
-                "q0: no coordinate '{name}' in the scene (Model.names lists them)"
-            )));
-        }
-        sc.initial_positions.retain(|(n, _)| n != name);
-        sc.initial_positions.push((name.clone(), *v));
-    }
-    for (name, v) in dq0 {
-        if !sc.independent.contains(name) {
-            return Err(invalid(format!(
-                "dq0: '{name}' is not an independent coordinate; initial velocities are given for those ({})",
-                sc.independent.join(", ")
-            )));
-        }
-        sc.initial_velocities.retain(|(n, _)| n != name);
-        sc.initial_velocities.push((name.clone(), *v));
-    }
-    Model::new(&sc)
-        .map(Arc::new)
-        .map_err(|e| SceneError::new_err(e.to_string()))
-}
 
 pub(super) fn coordinates(obj: &Bound<'_, PyAny>) -> PyResult<Coordinates> {
     Ok(match arg_choice(obj, "coords", &["dc", "ic"])? {

@@ -4,7 +4,8 @@
 use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_values};
 use super::effects::{arg_effects, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, SolveError};
-use super::run::{coordinates, interruptible, run_table, study_model, with_result};
+use super::model::study_model;
+use super::run::{coordinates, interruptible, run_table, with_result};
 use crate::forward::{
     self, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary, Trajectory,
 };
