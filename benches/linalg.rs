@@ -4,21 +4,21 @@
 //! dynamics kernel's Jacobians solve them) and `nullspace` (the reduction of a dense
 //! m × s constraint block: pivoted QR, null-space basis and least-norm solution).
 //!
-//! The faer side is timed as a drop-in replacement would run: on the same row-major
-//! buffers (faer views them with strides, nothing is transposed), with its scratch
-//! (`MemStack`) and permutation buffers allocated once outside the loop, plus what
-//! the hand-written kernels' contracts add (the zeroed upper triangle of L, the
-//! singular-pivot test of LU, the per-equation normalization and rank cut of the
-//! reduction). Run with `cargo bench --bench linalg`.
+//! Both sides of `cholesky` and `lu` are the library's own functions
+//! (`dense::*_by_hand` and `dense::*_faer`; `dense::cholesky` and `dense::lu` pick
+//! one by size from these numbers): faer runs on the same row-major buffers (viewed
+//! with strides, nothing transposed) with its `MemStack` scratch, plus what the
+//! hand-written kernels' contracts add (the zeroed upper triangle of L, the
+//! singular-pivot test of LU). The faer side of `nullspace` is written here: the
+//! reduction of one segment with faer's column-pivoted QR, blocked reflectors and
+//! the same per-equation normalization and rank cut. Run with
+//! `cargo bench --bench linalg`; one group with e.g. `cargo bench --bench linalg -- lu/`.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
-use faer::linalg::cholesky::llt;
 use faer::linalg::householder;
-use faer::linalg::lu::partial_pivoting as plu;
 use faer::linalg::qr::{col_pivoting as cpqr, no_pivoting};
 use faer::linalg::triangular_solve;
-use faer::perm::PermRef;
 use faer::prelude::*;
 use faer::{Conj, Par};
 use mbfg::linalg::dense;
@@ -26,7 +26,7 @@ use mbfg::linalg::nullspace::NullSpace;
 use std::hint::black_box;
 use std::time::Duration;
 
-const SIZES: [usize; 6] = [4, 8, 16, 32, 70, 120];
+const SIZES: [usize; 8] = [4, 8, 16, 32, 48, 70, 96, 120];
 
 /// Deterministic entries in [−0.5, 0.5) from a linear congruential generator.
 fn entries(len: usize, seed: u64) -> Vec<f64> {
@@ -63,14 +63,10 @@ fn general(n: usize) -> Vec<f64> {
     a
 }
 
-/// The two sides solved the same system.
-fn agree(x: &[f64], y: &[f64], what: &str, n: usize) {
-    for (a, b) in x.iter().zip(y) {
-        assert!((a - b).abs() < 1e-9 * (1.0 + b.abs()), "{what} at {n}: {a} vs {b}");
-    }
-}
-
-fn configure<'a>(c: &'a mut Criterion, name: &str) -> criterion::BenchmarkGroup<'a, criterion::measurement::WallTime> {
+fn configure<'a>(
+    c: &'a mut Criterion,
+    name: &str,
+) -> criterion::BenchmarkGroup<'a, criterion::measurement::WallTime> {
     let mut group = c.benchmark_group(name);
     group
         .sample_size(20)
@@ -79,17 +75,8 @@ fn configure<'a>(c: &'a mut Criterion, name: &str) -> criterion::BenchmarkGroup<
     group
 }
 
-/// faer's LLᵀ on the row-major buffer as `dense::cholesky` leaves it (upper zeroed).
-fn faer_cholesky(a: &mut [f64], n: usize, stack: &mut MemStack) -> Result<(), usize> {
-    let m = MatMut::from_row_major_slice_mut(&mut a[..n * n], n, n);
-    llt::factor::cholesky_in_place(m, default(), Par::Seq, stack, default())
-        .map_err(|llt::factor::LltError::NonPositivePivot { index }| index)?;
-    for i in 0..n {
-        a[i * n + i + 1..(i + 1) * n].fill(0.0);
-    }
-    Ok(())
-}
-
+/// Factor + one solve (the substitutions are the same hand-written ones on both
+/// sides; only the factorization differs).
 fn cholesky(c: &mut Criterion) {
     let mut group = configure(c, "cholesky");
     for n in SIZES {
@@ -101,58 +88,29 @@ fn cholesky(c: &mut Criterion) {
             bench.iter(|| {
                 work.copy_from_slice(&a);
                 x.copy_from_slice(&b);
-                dense::cholesky(&mut work, n).unwrap();
+                dense::cholesky_by_hand(&mut work, n, n, dense::Summation::Sequential).unwrap();
                 dense::cholesky_solve(&work, n, &mut x);
                 black_box(&x);
             })
         });
-        let req = llt::factor::cholesky_in_place_scratch::<f64>(n, Par::Seq, default())
-            .or(llt::solve::solve_in_place_scratch::<f64>(n, 1, Par::Seq));
-        let mut mem = MemBuffer::new(req);
         group.bench_with_input(BenchmarkId::new("faer", n), &n, |bench, &n| {
             bench.iter(|| {
                 work.copy_from_slice(&a);
                 x.copy_from_slice(&b);
-                let stack = MemStack::new(&mut mem);
-                faer_cholesky(&mut work, n, stack).unwrap();
-                let l = MatRef::from_row_major_slice(&work, n, n);
-                let rhs = MatMut::from_column_major_slice_mut(&mut x, n, 1);
-                llt::solve::solve_in_place(l, rhs, Par::Seq, stack);
+                dense::cholesky_faer(&mut work, n, n).unwrap();
+                dense::cholesky_solve(&work, n, &mut x);
                 black_box(&x);
             })
         });
-        let mut check = a.clone();
-        let mut y = b.clone();
-        dense::cholesky(&mut check, n).unwrap();
-        dense::cholesky_solve(&check, n, &mut y);
-        agree(&x, &y, "cholesky", n);
     }
     group.finish();
 }
 
-/// faer's partial-pivoting LU on the row-major buffer, with `dense::lu`'s test for a
-/// pivot below 1e-14 × the largest entry.
-fn faer_lu(
-    a: &mut [f64],
-    n: usize,
-    perm: &mut [usize],
-    perm_inv: &mut [usize],
-    stack: &mut MemStack,
-) -> Result<(), usize> {
-    let tol = 1e-14 * a[..n * n].iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let m = MatMut::from_row_major_slice_mut(&mut a[..n * n], n, n);
-    plu::factor::lu_in_place(m, perm, perm_inv, Par::Seq, stack, default());
-    match (0..n).find(|&k| !(a[k * n + k].abs() > tol)) {
-        Some(k) => Err(k),
-        None => Ok(()),
-    }
-}
-
+/// Factor + as many right-hand sides as unknowns (the dynamics Jacobians solve 2n
+/// columns for n + m unknowns).
 fn lu(c: &mut Criterion) {
     let mut group = configure(c, "lu");
     for n in SIZES {
-        // As many right-hand sides as unknowns (the dynamics Jacobians solve 2n
-        // columns for n + m unknowns).
         let k = n;
         let a = general(n);
         let b = entries(n * k, 77 + n as u64);
@@ -164,33 +122,20 @@ fn lu(c: &mut Criterion) {
             bench.iter(|| {
                 work.copy_from_slice(&a);
                 x.copy_from_slice(&b);
-                dense::lu(&mut work, n, &mut perm).unwrap();
-                dense::lu_solve_many(&work, n, &perm, &mut x, k, &mut tmp);
+                dense::lu_by_hand(&mut work, n, &mut perm).unwrap();
+                dense::lu_solve_many_by_hand(&work, n, &perm, &mut x, k, &mut tmp);
                 black_box(&x);
             })
         });
-        let mut perm_inv = vec![0usize; n];
-        let req = plu::factor::lu_in_place_scratch::<usize, f64>(n, n, Par::Seq, default())
-            .or(plu::solve::solve_in_place_scratch::<usize, f64>(n, k, Par::Seq));
-        let mut mem = MemBuffer::new(req);
         group.bench_with_input(BenchmarkId::new("faer", n), &n, |bench, &n| {
             bench.iter(|| {
                 work.copy_from_slice(&a);
                 x.copy_from_slice(&b);
-                let stack = MemStack::new(&mut mem);
-                faer_lu(&mut work, n, &mut perm, &mut perm_inv, stack).unwrap();
-                let f = MatRef::from_row_major_slice(&work, n, n);
-                let p = PermRef::new_checked(&perm, &perm_inv, n);
-                let rhs = MatMut::from_row_major_slice_mut(&mut x, n, k);
-                plu::solve::solve_in_place(f, f, p, rhs, Par::Seq, stack);
+                dense::lu_faer(&mut work, n, &mut perm).unwrap();
+                dense::lu_solve_faer(&work, n, &perm, &mut x, k, &mut tmp);
                 black_box(&x);
             })
         });
-        let mut check = a.clone();
-        let mut y = b.clone();
-        dense::lu(&mut check, n, &mut perm).unwrap();
-        dense::lu_solve_many(&check, n, &perm, &mut y, k, &mut tmp);
-        agree(&x, &y, "lu", n);
     }
     group.finish();
 }
@@ -328,7 +273,10 @@ fn nullspace(c: &mut Criterion) {
             let rank = fr.reduce(&cm, &b);
             assert_eq!(rank, ns.rank, "rank at {label}");
             for (x, y) in ns.particular.iter().zip(&fr.particular) {
-                assert!((x - y).abs() < 1e-9 * (1.0 + x.abs()), "particular at {label}");
+                assert!(
+                    (x - y).abs() < 1e-9 * (1.0 + x.abs()),
+                    "particular at {label}"
+                );
             }
         }
     }
