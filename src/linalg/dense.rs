@@ -16,9 +16,9 @@ use faer::{MatMut, MatRef, Par};
 use std::mem::MaybeUninit;
 
 /// Order from which [`cholesky`] and its strided variants call faer: the hand-written
-/// loop wins at 4 and 8 unknowns, faer from 16 on (`benches/linalg.rs`, group
-/// `cholesky`: faer/hand 1.6 and 1.2 at 4 and 8, 0.76 at 16, 0.5 at 32–70).
-pub const FAER_CHOLESKY_FROM: usize = 16;
+/// loop is as fast or faster up to 70 unknowns, faer from 96 on (`benches/linalg.rs`,
+/// group `cholesky`: faer/hand 1.05–1.45 at 4–70, 0.63 at 96, 0.59 at 120).
+pub const FAER_CHOLESKY_FROM: usize = 96;
 
 /// Order from which [`lu`], [`lu_solve`] and [`lu_solve_many`] call faer: the
 /// hand-written loops win up to 16 unknowns, faer from 32 on (`benches/linalg.rs`,
@@ -117,7 +117,10 @@ pub fn cholesky_faer(a: &mut [f64], n: usize, ld: usize) -> Result<(), DenseErro
     let len = (n - 1) * ld + n;
     let req = llt::factor::cholesky_in_place_scratch::<f64>(n, Par::Seq, faer::Spec::default());
     let factored = with_scratch(req, |stack| {
-        let m = MatMut::from_row_major_slice_with_stride_mut(&mut a[..len], n, n, ld);
+        // The row-major view, as the transpose of the column-major one (faer 0.24's
+        // `from_row_major_slice_with_stride_mut` lays the strides out column-major).
+        let m = MatMut::from_column_major_slice_with_stride_mut(&mut a[..len], n, n, ld)
+            .transpose_mut();
         llt::factor::cholesky_in_place(
             m,
             Default::default(),
