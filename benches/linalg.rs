@@ -229,9 +229,8 @@ impl FaerReduction {
         );
         let x = &mut self.particular;
         x.fill(0.0);
-        for i in 0..rank {
-            let j = self.perm[i];
-            x[i] = b[j] * self.scale[j];
+        for (xi, &j) in x[..rank].iter_mut().zip(&self.perm) {
+            *xi = b[j] * self.scale[j];
         }
         triangular_solve::solve_lower_triangular_in_place(
             qr.get(..rank, ..rank).transpose(),
