@@ -1,6 +1,41 @@
 //! Small dense kernels that work in place on row-major slices, for the hot loops of
 //! the solver and the dynamics factors, where nalgebra's owning decompositions would
 //! allocate on every call.
+//!
+//! The Cholesky and LU factorizations are hand-written below [`FAER_CHOLESKY_FROM`]
+//! and [`FAER_LU_FROM`] unknowns and faer's blocked in-place kernels from there on,
+//! on the same row-major buffers: `benches/linalg.rs` (groups `cholesky` and `lu`)
+//! times both at the sizes a step has, and the hand-written ones are kept only where
+//! they are faster.
+
+use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
+use faer::linalg::cholesky::llt;
+use faer::linalg::lu::partial_pivoting as plu;
+use faer::linalg::triangular_solve;
+use faer::{MatMut, MatRef, Par};
+use std::mem::MaybeUninit;
+
+/// Order from which [`cholesky`] and its strided variants call faer: the hand-written
+/// loop is as fast or faster up to 70 unknowns, faer from 96 on (`benches/linalg.rs`,
+/// group `cholesky`: faer/hand 1.05–1.45 at 4–70, 0.63 at 96, 0.59 at 120).
+pub const FAER_CHOLESKY_FROM: usize = 96;
+
+/// Order from which [`lu`], [`lu_solve`] and [`lu_solve_many`] call faer: the
+/// hand-written loops win up to 16 unknowns, faer from 32 on (`benches/linalg.rs`,
+/// group `lu`: faer/hand 2.1, 1.8, 1.35 at 4, 8, 16, 0.78 at 32, 0.6 at 48–70).
+pub const FAER_LU_FROM: usize = 32;
+
+/// Runs `f` with a scratch stack of at least `req`: on the call stack when it is
+/// small (every size a step has), on the heap otherwise.
+fn with_scratch<R>(req: StackReq, f: impl FnOnce(&mut MemStack) -> R) -> R {
+    let mut local = [MaybeUninit::<u8>::uninit(); 4096];
+    if req.unaligned_bytes_required() <= local.len() {
+        f(MemStack::new(&mut local))
+    } else {
+        let mut heap = MemBuffer::new(req);
+        f(MemStack::new(&mut heap))
+    }
+}
 
 /// A dense factorization failed.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -58,8 +93,58 @@ pub fn cholesky_strided(a: &mut [f64], n: usize, ld: usize) -> Result<(), DenseE
     cholesky_strided_with(a, n, ld, Summation::Sequential)
 }
 
-/// [`cholesky_strided`] with its sums taken as `how` says.
+/// [`cholesky_strided`] with its sums taken as `how` says (from
+/// [`FAER_CHOLESKY_FROM`] on, faer's blocked kernel takes them its own way).
 pub fn cholesky_strided_with(
+    a: &mut [f64],
+    n: usize,
+    ld: usize,
+    how: Summation,
+) -> Result<(), DenseError> {
+    if n >= FAER_CHOLESKY_FROM {
+        cholesky_faer(a, n, ld)
+    } else {
+        cholesky_by_hand(a, n, ld, how)
+    }
+}
+
+/// faer's LLᵀ of the leading n×n part (row stride `ld`), read and written where
+/// [`cholesky_by_hand`] reads and writes.
+pub fn cholesky_faer(a: &mut [f64], n: usize, ld: usize) -> Result<(), DenseError> {
+    if n == 0 {
+        return Ok(());
+    }
+    let len = (n - 1) * ld + n;
+    let req = llt::factor::cholesky_in_place_scratch::<f64>(n, Par::Seq, faer::Spec::default());
+    let factored = with_scratch(req, |stack| {
+        // The row-major view, as the transpose of the column-major one (faer 0.24's
+        // `from_row_major_slice_with_stride_mut` lays the strides out column-major).
+        let m = MatMut::from_column_major_slice_with_stride_mut(&mut a[..len], n, n, ld)
+            .transpose_mut();
+        llt::factor::cholesky_in_place(
+            m,
+            Default::default(),
+            Par::Seq,
+            stack,
+            faer::Spec::default(),
+        )
+    });
+    if let Err(llt::factor::LltError::NonPositivePivot { index }) = factored {
+        return Err(DenseError::NotPositiveDefinite(index));
+    }
+    // faer accepts what the hand-written loop refuses: a non-finite pivot.
+    if let Some(j) = (0..n).find(|&j| !a[j * ld + j].is_finite()) {
+        return Err(DenseError::NotPositiveDefinite(j));
+    }
+    for j in 0..n {
+        a[j * ld + j + 1..j * ld + n].fill(0.0);
+    }
+    Ok(())
+}
+
+/// The hand-written Cholesky (left-looking, one dot product per entry), as
+/// [`cholesky_strided_with`] describes it.
+pub fn cholesky_by_hand(
     a: &mut [f64],
     n: usize,
     ld: usize,
@@ -129,8 +214,40 @@ pub fn cholesky_solve(l: &[f64], n: usize, b: &mut [f64]) {
 
 /// In-place LU with partial pivoting of the n×n matrix `a` (row-major): P a = L U
 /// with unit-diagonal L below and U on and above the diagonal; `perm[i]` is the
-/// original row now at row i. A pivot below `tol` × the largest entry is singular.
+/// original row now at row i. A pivot below 1e-14 × the largest entry is singular.
 pub fn lu(a: &mut [f64], n: usize, perm: &mut [usize]) -> Result<(), DenseError> {
+    if n >= FAER_LU_FROM {
+        lu_faer(a, n, perm)
+    } else {
+        lu_by_hand(a, n, perm)
+    }
+}
+
+/// faer's LU with partial pivoting, with [`lu`]'s storage, permutation and pivot test.
+pub fn lu_faer(a: &mut [f64], n: usize, perm: &mut [usize]) -> Result<(), DenseError> {
+    let tol = 1e-14 * a[..n * n].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let req = plu::factor::lu_in_place_scratch::<usize, f64>(n, n, Par::Seq, faer::Spec::default())
+        .and(StackReq::new::<usize>(n));
+    with_scratch(req, |stack| {
+        let (mut inverse, stack) = stack.make_with(n, |_| 0usize);
+        let m = MatMut::from_row_major_slice_mut(&mut a[..n * n], n, n);
+        plu::factor::lu_in_place(
+            m,
+            &mut perm[..n],
+            &mut inverse,
+            Par::Seq,
+            stack,
+            faer::Spec::default(),
+        );
+    });
+    match (0..n).find(|&k| !(a[k * n + k].abs() > tol)) {
+        Some(k) => Err(DenseError::Singular(k)),
+        None => Ok(()),
+    }
+}
+
+/// The hand-written LU (right-looking, row by row), as [`lu`] describes it.
+pub fn lu_by_hand(a: &mut [f64], n: usize, perm: &mut [usize]) -> Result<(), DenseError> {
     let scale = a[..n * n].iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let tol = 1e-14 * scale;
     for (i, p) in perm.iter_mut().enumerate().take(n) {
@@ -171,6 +288,9 @@ pub fn lu(a: &mut [f64], n: usize, perm: &mut [usize]) -> Result<(), DenseError>
 
 /// Solves A x = b with the factors of [`lu`]; `tmp` has length n.
 pub fn lu_solve(lu: &[f64], n: usize, perm: &[usize], b: &mut [f64], tmp: &mut [f64]) {
+    if n >= FAER_LU_FROM {
+        return lu_solve_faer(lu, n, perm, b, 1, tmp);
+    }
     for i in 0..n {
         tmp[i] = b[perm[i]];
     }
@@ -195,6 +315,42 @@ pub fn lu_solve(lu: &[f64], n: usize, perm: &[usize], b: &mut [f64], tmp: &mut [
 /// (`tmp` holds n × k): the same substitutions as [`lu_solve`], a whole row of
 /// right-hand sides at a time, so the inner loops run along contiguous rows.
 pub fn lu_solve_many(
+    lu: &[f64],
+    n: usize,
+    perm: &[usize],
+    b: &mut [f64],
+    k: usize,
+    tmp: &mut [f64],
+) {
+    if n >= FAER_LU_FROM {
+        lu_solve_faer(lu, n, perm, b, k, tmp)
+    } else {
+        lu_solve_many_by_hand(lu, n, perm, b, k, tmp)
+    }
+}
+
+/// [`lu_solve_many`] with faer's triangular solves on the permuted right-hand sides.
+pub fn lu_solve_faer(
+    lu: &[f64],
+    n: usize,
+    perm: &[usize],
+    b: &mut [f64],
+    k: usize,
+    tmp: &mut [f64],
+) {
+    let (b, x) = (&mut b[..n * k], &mut tmp[..n * k]);
+    for i in 0..n {
+        x[i * k..(i + 1) * k].copy_from_slice(&b[perm[i] * k..(perm[i] + 1) * k]);
+    }
+    let f = MatRef::from_row_major_slice(&lu[..n * n], n, n);
+    let mut rhs = MatMut::from_row_major_slice_mut(x, n, k);
+    triangular_solve::solve_unit_lower_triangular_in_place(f, rhs.as_mut(), Par::Seq);
+    triangular_solve::solve_upper_triangular_in_place(f, rhs.as_mut(), Par::Seq);
+    b.copy_from_slice(x);
+}
+
+/// The hand-written substitutions of [`lu_solve_many`].
+pub fn lu_solve_many_by_hand(
     lu: &[f64],
     n: usize,
     perm: &[usize],
@@ -242,6 +398,51 @@ pub fn lu_solve_many(
 mod tests {
     use super::*;
     use nalgebra::DMatrix;
+
+    #[test]
+    fn faer_kernels_match_the_hand_written_ones() {
+        for n in [1, 5, 33, 80] {
+            let r = random(n, 40 + n as u64);
+            let spd = row_major(&(&r * r.transpose() + DMatrix::identity(n, n)));
+            // Strided: the leading n × n of an (n + 3)-wide buffer.
+            let ld = n + 3;
+            let mut wide = vec![7.0; n * ld];
+            for i in 0..n {
+                wide[i * ld..i * ld + n].copy_from_slice(&spd[i * n..(i + 1) * n]);
+            }
+            let mut by_faer = wide.clone();
+            cholesky_by_hand(&mut wide, n, ld, Summation::Sequential).unwrap();
+            cholesky_faer(&mut by_faer, n, ld).unwrap();
+            for (x, y) in wide.iter().zip(&by_faer) {
+                assert!((x - y).abs() < 1e-10 * (1.0 + x.abs()), "cholesky at {n}");
+            }
+            let a = row_major(&(r + DMatrix::identity(n, n)));
+            let k = 3;
+            let b: Vec<f64> = (0..n * k).map(|i| (i as f64 * 0.21).sin()).collect();
+            let (mut f1, mut f2) = (a.clone(), a.clone());
+            let (mut p1, mut p2) = (vec![0; n], vec![0; n]);
+            lu_by_hand(&mut f1, n, &mut p1).unwrap();
+            lu_faer(&mut f2, n, &mut p2).unwrap();
+            let (mut x1, mut x2) = (b.clone(), b.clone());
+            let mut tmp = vec![0.0; n * k];
+            lu_solve_many_by_hand(&f1, n, &p1, &mut x1, k, &mut tmp);
+            lu_solve_faer(&f2, n, &p2, &mut x2, k, &mut tmp);
+            for (x, y) in x1.iter().zip(&x2) {
+                assert!((x - y).abs() < 1e-9 * (1.0 + x.abs()), "lu at {n}");
+            }
+        }
+        let mut bad = vec![1.0, 2.0, 2.0, 1.0];
+        assert_eq!(
+            cholesky_faer(&mut bad, 2, 2),
+            Err(DenseError::NotPositiveDefinite(1))
+        );
+        let mut singular = vec![1.0, 2.0, 2.0, 4.0];
+        let mut perm = vec![0; 2];
+        assert!(matches!(
+            lu_faer(&mut singular, 2, &mut perm),
+            Err(DenseError::Singular(_))
+        ));
+    }
 
     fn random(n: usize, seed: u64) -> DMatrix<f64> {
         let mut s = seed;

@@ -666,6 +666,11 @@ struct GroupReflectors {
     apart: bool,
 }
 
+// Kept hand-written although faer's column-pivoted QR is faster on one dense segment
+// from s ≈ 16 on (`benches/linalg.rs`, group `nullspace`: faer/hand 1.3–1.8 at s ≤ 8,
+// 0.9 at 16–32, 0.3 at 70–120): faer pivots over all columns and blocks its
+// reflectors, so it cannot pivot segment by segment, stop a reflector at its
+// segment's rows or leave a group apart, which the solver's reductions rely on.
 /// Householder QR with column pivoting of the column-major `s` × `m` matrix `a`,
 /// group by group: the pivot is the column of largest remaining norm in the current
 /// group, whose columns are 0 past their segment's rows, so its reflectors and their
