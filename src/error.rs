@@ -1,5 +1,6 @@
 //! The library's one error type.
 
+use crate::convergence::SolveReport;
 use std::fmt;
 
 /// An error in a scene or mechanism file, located as precisely as the parser knows.
@@ -53,18 +54,98 @@ pub enum Error {
     },
 
     /// A linear system that should be regular is singular (a singular configuration,
-    /// or independent coordinates that do not determine the motion).
-    #[error("singular system: {0}")]
-    Singular(String),
+    /// or independent coordinates that do not determine the motion): `what` says
+    /// which, `step` and `t` locate it in a run where known.
+    #[error("singular system: {}", located(.what, *.step, *.t))]
+    Singular {
+        what: String,
+        step: Option<usize>,
+        t: Option<f64>,
+    },
+
+    /// A solve that did not converge: `what` names it, `report` says how it ended.
+    #[error("{what} did not converge: {report}")]
+    NotConverged { what: String, report: SolveReport },
 
     /// A data file (CSV) that cannot be read or written, or whose content is
-    /// malformed; the message names the file and, where possible, the line.
-    #[error("{0}")]
-    Data(String),
+    /// malformed: the file and, where known, the line.
+    #[error("{}", in_file(.file, *.line, .message))]
+    Data {
+        file: Option<String>,
+        line: Option<u64>,
+        message: String,
+    },
 
     /// An argument given to a library call is out of its domain.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),
+}
+
+impl Error {
+    /// A singular system not (yet) located in a run.
+    pub fn singular(what: impl Into<String>) -> Error {
+        Error::Singular {
+            what: what.into(),
+            step: None,
+            t: None,
+        }
+    }
+
+    /// A singular system at a step of a run; one already located keeps its place.
+    pub fn at_step(self, step: usize, t: f64) -> Error {
+        match self {
+            Error::Singular {
+                what,
+                step: None,
+                t: None,
+            } => Error::Singular {
+                what,
+                step: Some(step),
+                t: Some(t),
+            },
+            other => other,
+        }
+    }
+
+    /// Bad data not tied to a file (a stream, a writer).
+    pub fn data(message: impl Into<String>) -> Error {
+        Error::Data {
+            file: None,
+            line: None,
+            message: message.into(),
+        }
+    }
+
+    /// Bad data in `file`, at `line` where known.
+    pub fn data_in(
+        file: impl Into<String>,
+        line: Option<u64>,
+        message: impl Into<String>,
+    ) -> Error {
+        Error::Data {
+            file: Some(file.into()),
+            line,
+            message: message.into(),
+        }
+    }
+}
+
+/// "what", or "what at step k (t = … s)".
+fn located(what: &str, step: Option<usize>, t: Option<f64>) -> String {
+    match (step, t) {
+        (Some(k), Some(t)) => format!("{what} at step {k} (t = {t} s)"),
+        (Some(k), None) => format!("{what} at step {k}"),
+        _ => what.to_string(),
+    }
+}
+
+/// "file:line: message", as far as the place is known.
+fn in_file(file: &Option<String>, line: Option<u64>, message: &str) -> String {
+    match (file, line) {
+        (Some(f), Some(l)) => format!("{f}:{l}: {message}"),
+        (Some(f), None) => format!("{f}: {message}"),
+        _ => message.to_string(),
+    }
 }
 
 /// The worst few violated constraints, for a one-line message.

@@ -48,7 +48,7 @@ impl Prescription {
     /// The prescribed coordinates' indices from a header `t,<coordinate>,...`, or
     /// why it is not one; checked before a file's rows are read.
     pub fn check_header(model: &Model, columns: &[String], file: &str) -> Result<Vec<usize>> {
-        let bad = |m: String| Err(Error::Data(format!("{file}: {m}")));
+        let bad = |m: String| Err(Error::data_in(file, None, m));
         if columns.first().map(String::as_str) != Some("t") {
             return bad("the first column must be `t` (time, in seconds)".into());
         }
@@ -78,7 +78,7 @@ impl Prescription {
 
     /// Reads a table with header `t,<coordinate>,...`; `file` names it in errors.
     pub fn from_table(model: &Model, table: &Table, file: &str) -> Result<Self> {
-        let bad = |m: String| Err(Error::Data(format!("{file}: {m}")));
+        let bad = |m: String| Err(Error::data_in(file, None, m));
         let indices = Self::check_header(model, &table.columns, file)?;
         if table.rows < MIN_SAMPLES {
             return bad(format!(
@@ -483,8 +483,8 @@ pub fn solve(
         worst_phi = phi.iter().fold(worst_phi, |w, v| w.max(v.abs()));
     }
     if !values.iter().all(|v| v.is_finite()) {
-        return Err(Error::Singular(
-            "the inverse solve produced non-finite values".into(),
+        return Err(Error::singular(
+            "the inverse solve produced non-finite values",
         ));
     }
     Ok(InverseSolution {
@@ -531,7 +531,7 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
             q.copy_from_slice(&guess);
         }
         let reach = |e: Error| {
-            Error::Singular(format!(
+            Error::singular(format!(
                 "the prescribed motion is out of the mechanism's reach at t = {t} (sample {k}): {e}"
             ))
         };
@@ -580,11 +580,9 @@ fn staged_start(
             Noise::Hard,
         ))
     };
-    let stage_failed = |stage: usize, r: SolveReport| {
-        Error::Singular(format!(
-            "the staged start did not converge in stage {stage}: {}, cost {:.3e} after {} iterations",
-            r.termination, r.cost, r.iterations
-        ))
+    let stage_failed = |stage: usize, report: SolveReport| Error::NotConverged {
+        what: format!("the staged start (stage {stage})"),
+        report,
     };
     // Stage 1: positions only, the constraints soft (σ = 1e-6) so that
     // Levenberg-Marquardt can damp the long way from the scene's configuration (a

@@ -62,7 +62,7 @@ pub fn write_trajectory_with<W: Write>(
 ) -> Result<()> {
     let n = trajectory.n();
     let mut w = csv::Writer::from_writer(out);
-    let io = |e: csv::Error| Error::Data(e.to_string());
+    let io = |e: csv::Error| Error::data(e.to_string());
     let mut names = header(&trajectory.names, options.forces.is_some());
     let (extra_names, extra): (&[String], &[f64]) = options.extra.unwrap_or((&[], &[]));
     names.extend(extra_names.iter().cloned());
@@ -81,7 +81,7 @@ pub fn write_trajectory_with<W: Write>(
     for &k in rows {
         let mut push = |v: f64, what: &str| -> Result<()> {
             if !v.is_finite() {
-                return Err(Error::Singular(format!(
+                return Err(Error::singular(format!(
                     "non-finite {what} at t = {} (sample {k}); nothing written past it",
                     trajectory.t[k]
                 )));
@@ -110,7 +110,7 @@ pub fn write_trajectory_with<W: Write>(
         }
         w.write_record(None::<&[u8]>).map_err(io)?;
     }
-    w.flush().map_err(|e| Error::Data(e.to_string()))?;
+    w.flush().map_err(|e| Error::data(e.to_string()))?;
     Ok(())
 }
 
@@ -223,7 +223,7 @@ pub fn read_table_with(
     check_header: &mut dyn FnMut(&[String]) -> Result<()>,
 ) -> Result<Table> {
     let file = path.display().to_string();
-    let raw = std::fs::File::open(path).map_err(|e| Error::Data(format!("{file}: {e}")))?;
+    let raw = std::fs::File::open(path).map_err(|e| Error::data_in(&file, None, e.to_string()))?;
     let input: Box<dyn std::io::Read> = if path.extension().is_some_and(|e| e == "gz") {
         Box::new(flate2::read::GzDecoder::new(raw))
     } else {
@@ -247,10 +247,14 @@ pub fn read_table_from<R: std::io::Read>(
             exceeded: false,
         });
     let too_big = |file: &str| {
-        Error::Data(format!(
-            "{file}: larger than {} bytes, the limit for a table; refused",
-            limits.max_bytes
-        ))
+        Error::data_in(
+            file,
+            None,
+            format!(
+                "larger than {} bytes, the limit for a table; refused",
+                limits.max_bytes
+            ),
+        )
     };
     let headers = r
         .headers()
@@ -258,24 +262,32 @@ pub fn read_table_from<R: std::io::Read>(
     let columns = match headers {
         Ok(columns) => columns,
         Err(_) if r.get_ref().exceeded => return Err(too_big(file)),
-        Err(e) => return Err(Error::Data(format!("{file}: {}", csv_error(&e)))),
+        Err(e) => return Err(Error::data_in(file, None, csv_error(&e))),
     };
     if columns.is_empty() || columns.iter().all(|c| c.is_empty()) {
-        return Err(Error::Data(format!("{file}: no header row")));
+        return Err(Error::data_in(file, None, "no header row"));
     }
     if columns.len() > limits.max_cells {
-        return Err(Error::Data(format!(
-            "{file}: {} columns, more than the limit of {} values for a table",
-            columns.len(),
-            limits.max_cells
-        )));
+        return Err(Error::data_in(
+            file,
+            None,
+            format!(
+                "{} columns, more than the limit of {} values for a table",
+                columns.len(),
+                limits.max_cells
+            ),
+        ));
     }
     for c in &columns {
         if c.chars().count() > MAX_COLUMN_NAME || c.chars().any(char::is_control) {
-            return Err(Error::Data(format!(
-                "{file}:1: column name `{}` is not one line of at most {MAX_COLUMN_NAME} characters",
-                excerpt(c, QUOTE)
-            )));
+            return Err(Error::data_in(
+                file,
+                Some(1),
+                format!(
+                    "column name `{}` is not one line of at most {MAX_COLUMN_NAME} characters",
+                    excerpt(c, QUOTE)
+                ),
+            ));
         }
     }
     check_header(&columns)?;
@@ -290,7 +302,7 @@ pub fn read_table_from<R: std::io::Read>(
             Err(_) if r.get_ref().exceeded => return Err(too_big(file)),
             Err(e) => {
                 let line = e.position().map_or(rows as u64 + 2, |p| p.line());
-                return Err(Error::Data(format!("{file}:{line}: {}", csv_error(&e))));
+                return Err(Error::data_in(file, Some(line), csv_error(&e)));
             }
         };
         if !more {
@@ -298,8 +310,7 @@ pub fn read_table_from<R: std::io::Read>(
         }
         let line = record.position().map_or(rows as u64 + 2, |p| p.line());
         if rows == max_rows {
-            return Err(Error::Data(format!(
-                "{file}:{line}: more than {max_rows} rows of {width} columns, beyond the limit of {} values for a table; refused",
+            return Err(Error::data_in(file, Some(line), format!("more than {max_rows} rows of {width} columns, beyond the limit of {} values for a table; refused",
                 limits.max_cells
             )));
         }

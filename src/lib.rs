@@ -13,6 +13,7 @@
 
 pub mod check;
 pub mod collocation;
+pub mod convergence;
 pub mod coordinates;
 pub mod derived;
 pub mod dynamics;

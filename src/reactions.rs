@@ -75,7 +75,7 @@ pub fn joint_forces(
         }
     }
     if out.iter().flatten().flatten().any(|v| !v.is_finite()) {
-        return Err(Error::Singular(format!(
+        return Err(Error::singular(format!(
             "joint forces at t = {t} s are not finite"
         )));
     }
@@ -106,7 +106,7 @@ fn multipliers(
     let active = &model.active;
     let a = DMatrix::from_fn(n, active.len(), |i, r| jac[(active[r], i)]);
     if !(a.iter().chain(rhs.iter()).all(|v| v.is_finite())) {
-        return Err(Error::Singular(format!(
+        return Err(Error::singular(format!(
             "joint forces at t = {t} s: the state is not finite"
         )));
     }
@@ -116,7 +116,7 @@ fn multipliers(
     let svd = a.svd(true, true);
     let eps = 1e-12 * svd.singular_values.max();
     svd.solve(&rhs, eps)
-        .map_err(|e| Error::Singular(format!("joint forces at t = {t} s: {e}")))
+        .map_err(|e| Error::singular(format!("joint forces at t = {t} s: {e}")))
 }
 
 /// For each constraint and each of its points, the body the constraint's force there

@@ -115,7 +115,7 @@ pub fn fixed_lag_with_rescue(
             prior = Some(match left {
                 // The marginal leaves a direction without information (its Schur
                 // complement cannot be formed): condition from here on instead.
-                Err(Error::Singular(_)) if adaptive => {
+                Err(Error::Singular { .. }) if adaptive => {
                     adaptive = false;
                     solver.condition_on_past();
                     on_switch(k);
@@ -207,11 +207,14 @@ fn leave(
     let mut p = solver
         .marginalize(graph, values, k0, prior)
         .map_err(|e| match e {
-            crate::Error::Singular(m) => crate::Error::Singular(format!(
-                "{m} (t = {} s); --past conditioned holds the past at its estimate instead of \
-                 marginalizing it",
-                crate::trajectory::round_time(graph.time(k0))
-            )),
+            crate::Error::Singular { what, .. } => crate::Error::Singular {
+                what: format!(
+                    "{what}; --past conditioned holds the past at its estimate instead of \
+                     marginalizing it"
+                ),
+                step: Some(k0),
+                t: Some(crate::trajectory::round_time(graph.time(k0))),
+            },
             other => other,
         })?;
     if settings.tangent_priors {

@@ -57,9 +57,7 @@ fn row_space(model: &Model, q: &[f64]) -> Result<RowSpace> {
     let mut all = vec![0.0; m * n];
     model.jacobian_into(q, &mut all);
     if all.iter().any(|v| !v.is_finite()) {
-        return Err(Error::Singular(
-            "Φ_q is not finite at the step's positions".into(),
-        ));
+        return Err(Error::singular("Φ_q is not finite at the step's positions"));
     }
     let rows = &model.active;
     let mut a = DMatrix::zeros(rows.len(), n);

@@ -266,8 +266,10 @@ fn a_header_check_runs_before_the_rows() {
     let mut seen = Vec::new();
     let e = read_table_from(input, "x.csv", &TableLimits::default(), &mut |cols| {
         seen = cols.to_vec();
-        Err(mbfg::Error::Data(
-            "x.csv: unknown coordinate `theta`".into(),
+        Err(mbfg::Error::data_in(
+            "x.csv",
+            None,
+            "unknown coordinate `theta`",
         ))
     })
     .unwrap_err();

@@ -30,7 +30,10 @@ fn converges_in(coordinates: Coordinates, dt: f64, t_end: f64, window: usize) {
         Coordinates::Independent => scene("scenes/fourbar-theta.yaml"),
     };
     let (tr, summary) = simulate(model, &opts, &mut |_, _| {}).unwrap();
-    let first = summary.failures.first().map(|f| (f.step, f.t, f.report));
+    let first = summary
+        .failures
+        .first()
+        .map(|f| (f.step, f.t, f.report.clone()));
     assert!(
         summary.failures.is_empty(),
         "dt = {dt}, N_w = {window}: first stalled solve {first:?}"

@@ -134,10 +134,11 @@ fn inverse(
     let prepare = || written.prepare(&model, &sol.trajectory, Some(&sol.forces));
     let forces = Some(sol.forces.as_slice());
     if s.report.termination != mbfg::solver::Termination::Converged {
-        let why = format!(
-            "the inverse solve did not converge: {}, cost {:.3e} after {} iterations",
-            s.report.termination, s.report.cost, s.report.iterations
-        );
+        let why = mbfg::Error::NotConverged {
+            what: "the inverse solve".into(),
+            report: s.report.clone(),
+        }
+        .to_string();
         let what = if keep_unconverged {
             output
                 .keep_partial(&sol.trajectory, &prepare()?.csv(forces), &why)

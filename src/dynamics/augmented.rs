@@ -131,7 +131,7 @@ impl DynamicsKernel {
             sol[n + r] = c[k];
         }
         dense::lu(kkt, big, perm).map_err(|_| {
-            Error::Singular("the augmented (KKT) system is singular: a singular configuration or dependent constraints".into())
+            Error::singular("the augmented (KKT) system is singular: a singular configuration or dependent constraints")
         })?;
         dense::lu_solve(kkt, big, perm, sol, tmp);
         ddq.copy_from_slice(&sol[..n]);

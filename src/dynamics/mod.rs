@@ -47,8 +47,8 @@ pub fn lagrange(
         .flat_map(|&k| jac.row(k).iter().map(|v| v.abs()).collect::<Vec<_>>())
         .fold(0.0f64, f64::max);
     if !(mu_m > 0.0 && mu_m.is_finite()) || (m > 0 && !(mu_j > 0.0 && mu_j.is_finite())) {
-        return Err(Error::Singular(
-            "the mass matrix or the constraint Jacobian is zero or not finite at this configuration".into(),
+        return Err(Error::singular(
+            "the mass matrix or the constraint Jacobian is zero or not finite at this configuration",
         ));
     }
     let mu_j = if m > 0 { mu_j } else { 1.0 };
@@ -65,19 +65,19 @@ pub fn lagrange(
         rhs[n + r] = c[k] / mu_j;
     }
     if !rhs.iter().all(|v| v.is_finite()) {
-        return Err(Error::Singular(
-            "the generalized forces or the constraints' acceleration terms are not finite at this state".into(),
+        return Err(Error::singular(
+            "the generalized forces or the constraints' acceleration terms are not finite at this state",
         ));
     }
     let lu = kkt.full_piv_lu();
     if !well_conditioned(lu.u().diagonal().as_slice()) {
-        return Err(Error::Singular(
-            "the augmented (KKT) system is singular at this configuration: the constraints are dependent here or the mass matrix does not cover the free motion".into(),
+        return Err(Error::singular(
+            "the augmented (KKT) system is singular at this configuration: the constraints are dependent here or the mass matrix does not cover the free motion",
         ));
     }
     let x = lu
         .solve(&rhs)
-        .ok_or_else(|| Error::Singular("augmented (KKT) system".into()))?;
+        .ok_or_else(|| Error::singular("augmented (KKT) system"))?;
     Ok(LagrangeSolution {
         ddq: x.rows(0, n).into_owned(),
         lambda: x.rows(n, m) * (mu_m / mu_j),
@@ -108,9 +108,9 @@ pub fn r_matrix(
     let sc = &s * &c;
     let m_bar = r.transpose() * &model.mass * &r;
     let q_bar = r.transpose() * (force - &model.mass * &sc);
-    let chol = m_bar.cholesky().ok_or_else(|| {
-        Error::Singular("the reduced mass matrix RᵀMR is not positive definite".into())
-    })?;
+    let chol = m_bar
+        .cholesky()
+        .ok_or_else(|| Error::singular("the reduced mass matrix RᵀMR is not positive definite"))?;
     let ddz = chol.solve(&q_bar);
     let ddq = sc + &r * &ddz;
     Ok(RMatrixSolution { ddz, ddq })
@@ -139,14 +139,14 @@ pub fn actuator_forces(
         a[(i, m + c)] = -1.0;
     }
     if !(a.iter().chain(rhs.iter()).all(|v| v.is_finite())) {
-        return Err(Error::Singular(format!(
+        return Err(Error::singular(format!(
             "inverse dynamics at t = {t}: the state gives non-finite constraint forces"
         )));
     }
     let svd = a.svd(true, true);
     let x = svd
         .solve(&rhs, 1e-12 * svd.singular_values.max())
-        .map_err(|e| Error::Singular(format!("inverse dynamics: {e}")))?;
+        .map_err(|e| Error::singular(format!("inverse dynamics: {e}")))?;
     let mut out = DVector::zeros(n);
     for (c, &i) in actuated.iter().enumerate() {
         out[i] = x[m + c];

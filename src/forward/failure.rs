@@ -138,7 +138,7 @@ pub(super) fn first_non_finite(model: &Model, tr: &Trajectory) -> Result<Option<
         "the state is not finite: the forces or the accelerations overflow".into()
     });
     if k == 0 {
-        return Err(Error::Singular(format!(
+        return Err(Error::singular(format!(
             "{}: the initial state cannot be used: {cause}",
             model.scene.file
         )));
@@ -146,11 +146,7 @@ pub(super) fn first_non_finite(model: &Model, tr: &Trajectory) -> Result<Option<
     Ok(Some(StepFailure {
         step: k,
         t: tr.t[k],
-        report: SolveReport {
-            iterations: 0,
-            termination: Termination::Diverged,
-            cost: f64::INFINITY,
-        },
+        report: SolveReport::new(Termination::Diverged, 0, f64::INFINITY),
         constraint_conditioning: 1.0,
         singular: None,
         warm_start: false,
@@ -168,11 +164,7 @@ mod tests {
         StepFailure {
             step: 100,
             t: 1.0000000000000002,
-            report: SolveReport {
-                iterations: 50,
-                termination: Termination::IterationLimit,
-                cost: 3.3,
-            },
+            report: SolveReport::new(Termination::IterationLimit, 50, 3.3),
             constraint_conditioning: 0.5,
             singular: None,
             warm_start: false,

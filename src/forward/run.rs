@@ -112,11 +112,7 @@ fn coarse_turn(model: &Model, trajectory: &Trajectory, dt: f64) -> Option<StepFa
         (turn > StepFailure::LARGE_TURN).then(|| StepFailure {
             step: k + 1,
             t: trajectory.t[k] + dt,
-            report: SolveReport {
-                iterations: 0,
-                termination: Termination::Converged,
-                cost: 0.0,
-            },
+            report: SolveReport::new(Termination::Converged, 0, 0.0),
             constraint_conditioning: 1.0,
             singular: None,
             warm_start: false,

@@ -78,12 +78,13 @@ pub(super) fn segment(
         StepFailure {
             step: first + k,
             t: fg.graph.time(k),
-            report: *report,
+            report: report.clone(),
             constraint_conditioning: constraint_conditioning(&model, q),
             singular: None,
             warm_start: false,
             batch: false,
-            cause: cause.flatten(),
+            // The effect at fault where one is; else why the solve's evaluation failed.
+            cause: cause.flatten().or_else(|| report.cause.clone()),
             fast_body: fast_body(k, v),
         }
     };

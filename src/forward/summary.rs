@@ -93,7 +93,7 @@ pub(super) fn summarize(
     for k in 0..tr.len() {
         let (q, dq) = (tr.q_at(k), tr.dq_at(k));
         if !q.iter().chain(dq).all(|v| v.is_finite()) {
-            return Err(Error::Singular(format!("non-finite state at step {k}")));
+            return Err(Error::singular(format!("non-finite state at step {k}")));
         }
         model.phi_into(q, &mut phi);
         model.jacobian_into(q, &mut jac);

@@ -16,7 +16,7 @@ impl Model {
         model.assemble_initial_state()?;
         let (n, init) = (model.n(), &model.initial);
         if let Some(i) = (0..n).find(|&i| !(init.q[i].is_finite() && init.dq[i].is_finite())) {
-            return Err(Error::Singular(format!(
+            return Err(Error::singular(format!(
                 "{}: the initial state is not finite at coordinate `{}` (q = {}, q̇ = {})",
                 scene.file, model.names[i], init.q[i], init.dq[i]
             )));

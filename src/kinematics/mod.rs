@@ -233,13 +233,13 @@ fn solve_augmented(
         .copy_from_slice(values);
     let lu = a.full_piv_lu();
     if !well_conditioned(lu.u().diagonal().as_slice()) {
-        return Err(Error::Singular(format!(
+        return Err(Error::singular(format!(
             "the independent coordinates [{}] do not determine the {what} at this configuration",
             names(model, independent)
         )));
     }
     lu.solve(&b)
-        .ok_or_else(|| Error::Singular(format!("{what} problem")))
+        .ok_or_else(|| Error::singular(format!("{what} problem")))
 }
 
 /// Whether the pivots of an LU factorization show a regular matrix.
@@ -291,14 +291,14 @@ pub fn s_and_r(
     let a = augmented(model, q, independent);
     let lu = a.full_piv_lu();
     if !well_conditioned(lu.u().diagonal().as_slice()) {
-        return Err(Error::Singular(format!(
+        return Err(Error::singular(format!(
             "the independent coordinates [{}] do not determine the motion at this configuration",
             names(model, independent)
         )));
     }
     let inv = lu
         .try_inverse()
-        .ok_or_else(|| Error::Singular("[Φ_q; B]".into()))?;
+        .ok_or_else(|| Error::singular("[Φ_q; B]"))?;
     Ok((
         inv.columns(0, m).into_owned(),
         inv.columns(m, n - m).into_owned(),
@@ -439,7 +439,7 @@ impl PrescribedKinematics {
         self.b.fill(0.0);
         self.reduce_at(model, q);
         if self.ns.dim != 0 || self.ns.rank != self.n {
-            return Err(Error::Singular(format!(
+            return Err(Error::singular(format!(
                 "the independent coordinates [{}] do not determine the velocity at this configuration",
                 names(model, &self.keep)
             )));

@@ -468,7 +468,7 @@ impl Force {
     fn check_length(name: &str, s: &SpringState, rest_length: f64, damping: f64) -> Result<()> {
         let needs_direction = rest_length != 0.0 || damping != 0.0;
         if needs_direction && !(s.len > 1e-12) {
-            return Err(Error::Singular(format!(
+            return Err(Error::singular(format!(
                 "spring-damper '{name}' has zero length: its direction is undefined"
             )));
         }

@@ -81,7 +81,8 @@ pub(super) fn invalid(m: impl AsRef<str>) -> PyErr {
 /// A library error about the caller's input, as `InvalidArgument`.
 pub(super) fn arg_error(e: Error) -> PyErr {
     match e {
-        Error::InvalidArgument(m) | Error::Data(m) => invalid(m),
+        Error::InvalidArgument(m) => invalid(m),
+        e @ Error::Data { .. } => invalid(e.to_string()),
         other => invalid(other.to_string()),
     }
 }

@@ -4,6 +4,7 @@
 use super::args::{arg_choice, arg_count, arg_numbers, arg_path, describe};
 use super::effects::{arg_effects, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, one_line, SolveError};
+use super::failure::{error_failure, with_failure};
 use super::model::study_model;
 use super::run::{coordinates, run_table, with_result};
 use crate::inverse::{self, InverseOptions, InverseSolution, Prescription, Start};
@@ -134,7 +135,14 @@ pub(super) fn inverse_run<'py>(
             .map_err(|e| match (raised(&loads), e) {
                 (Some(python), _) => with_result(py, python, None),
                 (None, e @ Error::InvalidArgument(_)) => arg_error(e),
-                (None, other) => with_result(py, SolveError::new_err(other.to_string()), None),
+                (None, other) => {
+                    let err = SolveError::new_err(other.to_string());
+                    let err = match error_failure(py, &other) {
+                        Ok(failure) => with_failure(py, err, failure),
+                        Err(e) => e,
+                    };
+                    with_result(py, err, None)
+                }
             })?;
         let out = inverse_result(py, &sol)?;
         // The solve cannot stop midway: a Ctrl-C during it is raised now, with it.
@@ -142,11 +150,16 @@ pub(super) fn inverse_run<'py>(
             .map_err(|e| with_result(py, e, Some(&out)))?;
         let s = &sol.summary;
         if s.report.termination != Termination::Converged {
-            let m = format!(
-                "the inverse solve did not converge: {}, cost {:.3e} after {} iterations",
-                s.report.termination, s.report.cost, s.report.iterations
+            let e = crate::Error::NotConverged {
+                what: "the inverse solve".into(),
+                report: s.report.clone(),
+            };
+            let err = with_failure(
+                py,
+                SolveError::new_err(e.to_string()),
+                error_failure(py, &e)?,
             );
-            return Err(with_result(py, SolveError::new_err(m), Some(&out)));
+            return Err(with_result(py, err, Some(&out)));
         }
         Ok(out)
     })

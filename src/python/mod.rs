@@ -18,6 +18,7 @@
 mod args;
 mod effects;
 mod errors;
+mod failure;
 mod inverse;
 mod model;
 mod run;
@@ -36,6 +37,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("SceneError", py.get_type::<SceneError>())?;
     // Every SolveError has `.result`: None where nothing was solved.
     py.get_type::<SolveError>().setattr("result", py.None())?;
+    // ... and `.failure`: why, as a dict (see failure.rs), or None.
+    py.get_type::<SolveError>().setattr("failure", py.None())?;
     m.add("SolveError", py.get_type::<SolveError>())?;
     m.add("InvalidArgument", py.get_type::<InvalidArgument>())?;
     m.add("InternalError", py.get_type::<InternalError>())?;

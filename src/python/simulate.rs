@@ -4,6 +4,7 @@
 use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_values};
 use super::effects::{arg_effects, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, SolveError};
+use super::failure::{error_failure, step_failure, with_failure};
 use super::model::study_model;
 use super::run::{coordinates, interruptible, run_table, with_result};
 use crate::forward::{
@@ -195,7 +196,11 @@ pub(super) fn simulate_run<'py>(
                     (Some(signal), _, _) => signal,
                     (None, Some(python), _) => python,
                     (None, None, e @ Error::InvalidArgument(_)) => return Err(arg_error(e)),
-                    (None, None, e) => SolveError::new_err(e.to_string()),
+                    (None, None, e) => with_failure(
+                        py,
+                        SolveError::new_err(e.to_string()),
+                        error_failure(py, &e)?,
+                    ),
                 };
                 return Err(with_result(py, err, None));
             }
@@ -224,7 +229,10 @@ pub(super) fn simulate_run<'py>(
             .or(s.failures.first().filter(|_| !continue_on_failure))
             .or(short);
         if let Some(f) = fatal {
-            let err = raised(&loads).unwrap_or_else(|| SolveError::new_err(f.message()));
+            let err = match raised(&loads) {
+                Some(python) => python,
+                None => with_failure(py, SolveError::new_err(f.message()), step_failure(py, f)?),
+            };
             return Err(with_result(py, err, Some(&out)));
         }
         if tr.len() < requested {

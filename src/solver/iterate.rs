@@ -104,14 +104,16 @@ impl WindowSolver {
         // (relative to diag H) is switched on only when a step fails to lower the cost.
         let mut mu: f64 = 0.0;
         let mut nu = 2.0;
-        let diverged = |cost: f64, iterations| SolveReport {
-            iterations,
-            termination: Termination::Diverged,
-            cost,
+        let diverged =
+            |cost: f64, iterations| SolveReport::new(Termination::Diverged, iterations, cost);
+        // An evaluation that fails ends the solve as diverged, its reason kept.
+        let failed = |e: Error, cost: f64, iterations| SolveReport {
+            cause: Some(e.to_string()),
+            ..diverged(cost, iterations)
         };
         let mut cost = match self.evaluate(graph, values, k0, k1, prior, scope, true) {
             Ok(c) => c,
-            Err(_) => return Ok(diverged(f64::INFINITY, 0)),
+            Err(e) => return Ok(failed(e, f64::INFINITY, 0)),
         };
         let mut iterations = 0;
         // Gauss-Newton until it shows the slow linear convergence or the failed step
@@ -127,11 +129,8 @@ impl WindowSolver {
         while iterations < self.settings.max_iterations {
             iterations += 1;
             if newton && gauss_newton {
-                if self
-                    .exact_hessian(graph, values, k0, k1, prior, scope)
-                    .is_err()
-                {
-                    return Ok(diverged(cost, iterations));
+                if let Err(e) = self.exact_hessian(graph, values, k0, k1, prior, scope) {
+                    return Ok(failed(e, cost, iterations));
                 }
                 gauss_newton = false;
             }
@@ -164,11 +163,7 @@ impl WindowSolver {
                     // H is singular to working precision where the damped steps have
                     // already come to rest: no undamped step can say more (the six-bar
                     // press's windows in IC, cycling from 1e-4 down to 1e-12 and back).
-                    return Ok(SolveReport {
-                        iterations,
-                        termination: Termination::Converged,
-                        cost,
-                    });
+                    return Ok(SolveReport::new(Termination::Converged, iterations, cost));
                 }
                 if !lm || mu > th.max_damping {
                     return Ok(diverged(cost, iterations));
@@ -235,11 +230,11 @@ impl WindowSolver {
                     });
                     self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
                 }
-                return Ok(SolveReport {
+                return Ok(SolveReport::new(
+                    Termination::Converged,
                     iterations,
-                    termination: Termination::Converged,
-                    cost: cost - predicted,
-                });
+                    cost - predicted,
+                ));
             }
             // The trial is linearized at once: accepted (the usual case), it is the
             // next iteration's system; rejected, the old point is linearized again.
@@ -291,18 +286,10 @@ impl WindowSolver {
                         // before the step is the answer (within round-off of the trial
                         // where the comparison is round-off, far better where not).
                         values[k0 * s..k1 * s].copy_from_slice(&self.saved[..n]);
-                        return Ok(SolveReport {
-                            iterations,
-                            termination: Termination::Converged,
-                            cost,
-                        });
+                        return Ok(SolveReport::new(Termination::Converged, iterations, cost));
                     }
                     if converged {
-                        return Ok(SolveReport {
-                            iterations,
-                            termination: Termination::Converged,
-                            cost: c,
-                        });
+                        return Ok(SolveReport::new(Termination::Converged, iterations, c));
                     }
                     // Where the model predicted the decrease well (ratio > 3/4), go back
                     // to Gauss-Newton at once: damping relative to diag H all but
@@ -350,22 +337,15 @@ impl WindowSolver {
                     if !lm {
                         return Ok(diverged(cost, iterations));
                     }
-                    if self
-                        .evaluate(graph, values, k0, k1, prior, scope, true)
-                        .is_err()
-                    {
-                        return Ok(diverged(cost, iterations));
+                    if let Err(e) = self.evaluate(graph, values, k0, k1, prior, scope, true) {
+                        return Ok(failed(e, cost, iterations));
                     }
                     if small && restored {
                         // A damped step below the tolerance, along a descent direction,
                         // failed to lower the cost: the cost's changes are below its
                         // round-off (the residuals go through factorizations), so no
                         // step can be judged any more. This is the optimum.
-                        return Ok(SolveReport {
-                            iterations,
-                            termination: Termination::Converged,
-                            cost,
-                        });
+                        return Ok(SolveReport::new(Termination::Converged, iterations, cost));
                     }
                     if small {
                         // The damped step vanished without lowering the cost: try the
@@ -381,10 +361,10 @@ impl WindowSolver {
                 }
             }
         }
-        Ok(SolveReport {
+        Ok(SolveReport::new(
+            Termination::IterationLimit,
             iterations,
-            termination: Termination::IterationLimit,
             cost,
-        })
+        ))
     }
 }

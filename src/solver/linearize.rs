@@ -82,9 +82,15 @@ pub(super) fn located(
     t: f64,
 ) -> impl FnOnce(Error) -> Error + '_ {
     move |e| match e {
-        Error::Singular(m) => {
-            Error::Singular(format!("{} at step {step} (t = {t}): {m}", factor.name()))
-        }
+        Error::Singular {
+            what,
+            step: None,
+            t: None,
+        } => Error::Singular {
+            what: format!("{}: {what}", factor.name()),
+            step: Some(step),
+            t: Some(t),
+        },
         other => other,
     }
 }
@@ -709,7 +715,7 @@ impl WindowSolver {
         }
 
         if !cost.is_finite() {
-            return Err(Error::Singular("the cost is not finite".into()));
+            return Err(Error::singular("the cost is not finite"));
         }
         self.cost_first = cost_first;
         Ok(cost)

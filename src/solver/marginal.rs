@@ -62,7 +62,7 @@ pub(super) fn conditional_prior(
         }
     }
     if !information.iter().chain(g1).all(|v| v.is_finite()) {
-        return Err(Error::Singular(format!(
+        return Err(Error::singular(format!(
             "conditioning on step {k0}: non-finite values"
         )));
     }
@@ -283,7 +283,7 @@ impl WindowSolver {
         // L₀ = chol(H₀₀) in place; Y = L₀⁻¹H₀₁ (d0 × s, row-major; row j of h10 is
         // column j of H₀₁); w = L₀⁻¹g₀.
         crate::linalg::dense::cholesky_strided(h00, d0, s).map_err(|_| {
-            Error::Singular(format!(
+            Error::singular(format!(
                 "marginalizing step {k0}: its soft factors leave a direction undetermined"
             ))
         })?;
@@ -329,7 +329,7 @@ impl WindowSolver {
         // near singular configurations can push it below.
         let constant = (cost - 0.5 * w[..d0].iter().map(|v| v * v).sum::<f64>()).max(0.0);
         if !information.iter().chain(&eta).all(|v| v.is_finite()) {
-            return Err(Error::Singular(format!(
+            return Err(Error::singular(format!(
                 "marginalizing step {k0}: non-finite values"
             )));
         }

@@ -26,9 +26,10 @@ mod structure;
 #[cfg(test)]
 mod tests;
 
+pub use crate::convergence::{SolveReport, Termination};
 pub use marginal::{LinearPrior, Projection};
 pub use observer::{Iteration, Observer, Trace};
-pub use settings::{Method, Past, Settings, SolveReport, Termination, Thresholds};
+pub use settings::{Method, Past, Settings, Thresholds};
 
 use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
 use marginal::LastSolve;

@@ -171,32 +171,3 @@ impl Settings {
         Ok(())
     }
 }
-
-/// Why a solve stopped.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Termination {
-    Converged,
-    IterationLimit,
-    Diverged,
-}
-
-impl std::fmt::Display for Termination {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Termination::Converged => "converged",
-            Termination::IterationLimit => "iteration limit",
-            Termination::Diverged => "diverged",
-        })
-    }
-}
-
-/// The outcome of one solve.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SolveReport {
-    /// Linear solves performed.
-    pub iterations: usize,
-    pub termination: Termination,
-    /// ½ Σ‖whitened residual‖² at the returned estimate (prior included; hard
-    /// factors weighted by 1/[`Noise::HARD_SIGMA`]).
-    pub cost: f64,
-}
