@@ -315,25 +315,34 @@ pub fn read_table_from<R: std::io::Read>(
             )));
         }
         if record.len() != width {
-            return Err(Error::InvalidArgument(format!(
-                "{file}:{line}: {} fields where the header has {width}",
-                record.len(),
-            )));
+            return Err(Error::data_in(
+                file,
+                Some(line),
+                format!("{} fields where the header has {width}", record.len(),),
+            ));
         }
         for (j, field) in record.iter().enumerate() {
             let v: f64 = field.parse().map_err(|_| {
-                Error::InvalidArgument(format!(
-                    "{file}:{line}: column `{}`: `{}` is not a number",
-                    excerpt(&columns[j], QUOTE),
-                    excerpt(field, QUOTE)
-                ))
+                Error::data_in(
+                    file,
+                    Some(line),
+                    format!(
+                        "column `{}`: `{}` is not a number",
+                        excerpt(&columns[j], QUOTE),
+                        excerpt(field, QUOTE)
+                    ),
+                )
             })?;
             if !v.is_finite() {
-                return Err(Error::InvalidArgument(format!(
-                    "{file}:{line}: column `{}`: {} is not finite",
-                    excerpt(&columns[j], QUOTE),
-                    excerpt(field, QUOTE)
-                )));
+                return Err(Error::data_in(
+                    file,
+                    Some(line),
+                    format!(
+                        "column `{}`: {} is not finite",
+                        excerpt(&columns[j], QUOTE),
+                        excerpt(field, QUOTE)
+                    ),
+                ));
             }
             values.push(v);
         }

@@ -344,7 +344,10 @@ fn a_failed_inverse_solve_writes_nothing() {
         csv.to_str().unwrap(),
     ];
     let line = error_line(&mbfg(&base), 1);
-    assert!(line.contains("staged start did not converge"), "{line}");
+    assert!(
+        line.contains("staged start (stage 1) did not converge"),
+        "{line}"
+    );
     let mut keep = base.to_vec();
     keep.push("--keep-unconverged");
     error_line(&mbfg(&keep), 1);

@@ -391,3 +391,23 @@ fn replay(target: &str, data: &[u8]) -> Result<(), String> {
         }
     }
 }
+
+/// A malformed table is a typed error that names its file and line.
+#[test]
+fn a_malformed_row_is_a_data_error_at_its_line() {
+    let e = read_table_from(
+        &b"t,x\n0,1\n1,oops\n"[..],
+        "bad.csv",
+        &TableLimits::default(),
+        &mut |_| Ok(()),
+    )
+    .unwrap_err();
+    match &e {
+        mbfg::Error::Data { file, line, .. } => {
+            assert_eq!(file.as_deref(), Some("bad.csv"));
+            assert_eq!(*line, Some(3), "{e}");
+        }
+        other => panic!("not a data error: {other}"),
+    }
+    assert!(e.to_string().starts_with("bad.csv:3: "), "{e}");
+}

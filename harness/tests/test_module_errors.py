@@ -32,6 +32,7 @@ def test_exception_classes():
         assert e.__module__ == "mbfg" and getattr(mbfg, e.__name__) is e
     # Every SolveError has `.result`, None unless a run attached one.
     assert mbfg.SolveError("x").result is None
+    assert mbfg.SolveError("x").failure is None
 
 
 def _short(t=0.01, **kw):
@@ -167,6 +168,13 @@ def test_a_failed_run_carries_its_steps():
     assert r.failures[-1]["reason"] == "singular configuration"
     np.testing.assert_allclose(np.diff(r.t), 1e-2)
     assert s["worst_phi"] < 1e-8
+    # Why, as data: the stop's step and time and the configuration ahead.
+    f = info.value.failure
+    assert f["kind"] == "singular-configuration"
+    assert f["step"] == len(r.t) and f["t"] == pytest.approx(len(r.t) * 1e-2)
+    assert f["located_t"] >= f["t"] and f["rank"] < f["full_rank"]
+    assert f["independent"] and f["dependent"] and 0 < f["distance"] < 1
+    assert f["message"] == str(info.value)
 
 
 def test_a_step_that_does_not_converge_ends_the_result_before_it():
@@ -175,6 +183,10 @@ def test_a_step_that_does_not_converge_ends_the_result_before_it():
     r = info.value.result
     step = r.failures[0]["step"]
     assert len(r.t) == step and not r.summary["complete"]
+    f = info.value.failure
+    assert f["kind"] == "not-converged" and f["step"] == step
+    assert f["termination"] == "iteration limit" and f["iterations"] == 1
+    assert f["cause"] is None and f["batch"] is False
 
 
 def test_continuing_past_failures_is_marked_incomplete():
@@ -198,9 +210,12 @@ def test_a_diverged_run_raises_even_when_continuing():
 
 def test_a_failed_inverse_solve_raises_and_one_iteration_solves_a_full_prescription():
     # The staged start fails in its first stage: nothing was solved, so no result.
-    with pytest.raises(mbfg.SolveError, match="staged start did not converge") as info:
+    with pytest.raises(mbfg.SolveError, match=r"staged start \(stage 1\) did not converge") as info:
         mbfg.inverse(THETA, THETA_CSV, start="staged")
     assert info.value.result is None
+    f = info.value.failure
+    assert f["kind"] == "not-converged" and f["termination"] in ("diverged", "iteration limit")
+    assert f["iterations"] >= 1
     # The default start is the solution of a fully prescribed problem: the batch
     # confirms it in its first iteration.
     good = mbfg.inverse(THETA, THETA_CSV, max_iterations=1)
