@@ -1,0 +1,219 @@
+//! The grouped Householder QR under the null-space reduction: reflectors that stay
+//! within their segment's rows, columns pivoted within their group.
+
+use super::*;
+
+/// Marks a column of the QR found dependent.
+pub(super) const DROPPED: usize = usize::MAX;
+
+/// How the columns of a grouped QR are grouped: per column its group (a segment),
+/// per segment the end of its rows; filled in, per reflector the end of its rows,
+/// and per group the reflectors it made and whether it stands apart (see
+/// [`householder_grouped`]).
+pub(super) struct Grouping<'a> {
+    pub(super) group: &'a mut [usize],
+    pub(super) seg_end: &'a [usize],
+    pub(super) rend: &'a mut [usize],
+    pub(super) made: &'a mut Vec<GroupReflectors>,
+}
+
+/// The reflectors ks..ke of one group; `apart` when they span exactly its segment's
+/// rows (nothing left of earlier segments, the segment fully determined): they were
+/// not applied to the later groups' columns, whose rows there keep C's coefficients.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct GroupReflectors {
+    pub(super) ks: usize,
+    pub(super) ke: usize,
+    pub(super) apart: bool,
+}
+
+// Kept hand-written although faer's column-pivoted QR is faster on one dense segment
+// from s ≈ 16 on (`benches/linalg.rs`, group `nullspace`: faer/hand 1.3–1.8 at s ≤ 8,
+// 0.9 at 16–32, 0.3 at 70–120): faer pivots over all columns and blocks its
+// reflectors, so it cannot pivot segment by segment, stop a reflector at its
+// segment's rows or leave a group apart, which the solver's reductions rely on.
+/// Householder QR with column pivoting of the column-major `s` × `m` matrix `a`,
+/// group by group: the pivot is the column of largest remaining norm in the current
+/// group, whose columns are 0 past their segment's rows, so its reflectors and their
+/// updates stop there. A group ends at its first pivot below
+/// [`NullSpace::RANK_TOLERANCE`] relative to the largest column (its other columns
+/// are dependent). A group's reflectors reach the later groups' columns only when
+/// they must: when the group leaves rows of its segment (or found rows of earlier
+/// ones) for the later groups; when it determines exactly its segment's rows, the
+/// later columns keep C's coefficients there, and [`NullSpace::solve`] substitutes
+/// the segment's solution into them instead. Returns the rank. With one group this
+/// is the plain pivoted QR, operation for operation. Reflectors stay below the
+/// diagonal, R above it with its diagonal in `rdiag`; `perm[k]` is the original
+/// column now at k. Column norms are downdated, and recomputed when cancellation has
+/// eaten most of them.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn householder_grouped(
+    a: &mut [f64],
+    s: usize,
+    m: usize,
+    grouping: Grouping,
+    how: Summation,
+    rdiag: &mut [f64],
+    beta: &mut [f64],
+    perm: &mut [usize],
+    norms: &mut [f64],
+) -> usize {
+    let Grouping {
+        group,
+        seg_end,
+        rend,
+        made,
+    } = grouping;
+    made.clear();
+    if m == 0 || s == 0 {
+        return 0;
+    }
+    let (partial, reference) = norms.split_at_mut(m);
+    let mut largest = 0.0f64;
+    for j in 0..m {
+        perm[j] = j;
+        let col = &a[j * s..(j + 1) * s];
+        let n2 = dot(col, col, how);
+        partial[j] = n2;
+        reference[j] = n2;
+        largest = largest.max(n2);
+    }
+    let tol2 = (NullSpace::RANK_TOLERANCE * largest.sqrt()).powi(2);
+    let groups = seg_end.len();
+    let mut k = 0;
+    for g in 0..groups {
+        let end = seg_end[g];
+        let start = if g > 0 { seg_end[g - 1] } else { 0 };
+        let ks = k;
+        if groups > 1 {
+            // Norms over the live rows (earlier groups' reflectors may not have
+            // reached these columns).
+            for j in k..m {
+                if group[j] == g {
+                    let live = &a[j * s + k..j * s + end];
+                    partial[j] = dot(live, live, how);
+                    reference[j] = partial[j];
+                }
+            }
+        }
+        while k < s.min(m) {
+            let mut best = None;
+            for j in k..m {
+                if group[j] == g && best.is_none_or(|b| partial[j] > partial[b]) {
+                    best = Some(j);
+                }
+            }
+            let exhausted = match best {
+                None => true,
+                Some(b) if partial[b] <= tol2 => {
+                    // Confirm with exact norms before declaring the rest dependent.
+                    let live = &a[b * s + k..b * s + end];
+                    let exact = dot(live, live, how);
+                    if exact <= tol2 {
+                        true
+                    } else {
+                        partial[b] = exact;
+                        false
+                    }
+                }
+                Some(_) => false,
+            };
+            if exhausted {
+                for gj in group[k..m].iter_mut().filter(|gj| **gj == g) {
+                    *gj = DROPPED;
+                }
+                break;
+            }
+            let best = best.expect("a column of the group");
+            if best != k {
+                for i in 0..s {
+                    a.swap(k * s + i, best * s + i);
+                }
+                perm.swap(k, best);
+                partial.swap(k, best);
+                reference.swap(k, best);
+                group.swap(k, best);
+            }
+            let col = &mut a[k * s + k..k * s + end];
+            let norm = dot(col, col, how).sqrt();
+            let alpha = if col[0] > 0.0 { -norm } else { norm };
+            col[0] -= alpha;
+            let vnorm2 = dot(col, col, how);
+            let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
+            rdiag[k] = alpha;
+            beta[k] = b;
+            rend[k] = end;
+            let (left, right) = a.split_at_mut((k + 1) * s);
+            let v = &left[k * s + k..k * s + end];
+            for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
+                let j = k + 1 + jj;
+                // This group's columns now; the later ones below, if at all.
+                if group[j] != g {
+                    continue;
+                }
+                let live = &mut y[k..end];
+                let f = b * dot(v, live, how);
+                for (yi, vi) in live.iter_mut().zip(v) {
+                    *yi -= f * vi;
+                }
+                // Downdate the partial norm of rows k+1.. of this column.
+                partial[j] -= live[0] * live[0];
+                if partial[j] < 1e-4 * reference[j] {
+                    partial[j] = dot(&y[k + 1..], &y[k + 1..], how);
+                    reference[j] = partial[j];
+                }
+            }
+            k += 1;
+        }
+        let apart = ks == start && k == end;
+        if !apart && g + 1 < groups {
+            // The later groups' columns see this group's reflectors, in order.
+            for r in ks..k {
+                let (left, right) = a.split_at_mut((r + 1) * s);
+                let v = &left[r * s + r..r * s + end];
+                for (jj, y) in right.chunks_exact_mut(s).take(m - r - 1).enumerate() {
+                    let j = r + 1 + jj;
+                    if group[j] == DROPPED || group[j] <= g {
+                        continue;
+                    }
+                    let live = &mut y[r..end];
+                    let f = beta[r] * dot(v, live, how);
+                    for (yi, vi) in live.iter_mut().zip(v) {
+                        *yi -= f * vi;
+                    }
+                }
+            }
+        }
+        made.push(GroupReflectors { ks, ke: k, apart });
+        if k == s.min(m) {
+            break;
+        }
+    }
+    k
+}
+
+/// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`
+/// (reflector k nonzero on rows k..rend[k]), leaving out the groups apart (their
+/// rows are 0 in the null-space vectors, and `solve` applies them itself).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn apply_q(
+    a: &[f64],
+    beta: &[f64],
+    rend: &[usize],
+    made: &[GroupReflectors],
+    s: usize,
+    x: &mut [f64],
+    how: Summation,
+) {
+    for g in made.iter().rev().filter(|g| !g.apart) {
+        for k in (g.ks..g.ke).rev() {
+            let end = rend[k];
+            let v = &a[k * s + k..k * s + end];
+            let y = &mut x[k..end];
+            let f = beta[k] * dot(v, y, how);
+            for (yi, vi) in y.iter_mut().zip(v) {
+                *yi -= f * vi;
+            }
+        }
+    }
+}
