@@ -4,7 +4,7 @@
 //! regularization adds to the Jacobians (see [`DynamicsKernel`]).
 
 use super::kernel::DynamicsKernel;
-use crate::kinematics::inverse_trace;
+use crate::linalg::dense::inverse_trace;
 use crate::model::Model;
 
 /// The singularity measure's scratch, relative to its start: Â (ma × n), G and its

@@ -39,7 +39,7 @@ pub struct Determinacy {
     column_norms: Vec<f64>,
     rows: Vec<f64>,
     chol: Vec<f64>,
-    /// One column of L⁻¹ at a time (see [`inverse_trace`]).
+    /// One column of L⁻¹ at a time (see [`dense::inverse_trace`]).
     column: Vec<f64>,
 }
 
@@ -235,7 +235,9 @@ impl Determinacy {
         if dense::cholesky(g, ma).is_err() {
             return 0.0;
         }
-        inverse_trace(g, ma, &mut self.column, None).recip().sqrt()
+        dense::inverse_trace(g, ma, &mut self.column, None)
+            .recip()
+            .sqrt()
     }
 
     /// The report of a run stopped at q (time t, distance s) with the step before
@@ -347,31 +349,4 @@ pub(crate) fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
     } else {
         0.0
     }
-}
-
-/// tr G⁻¹ = ‖L⁻¹‖_F² from the lower Cholesky factor L of G (row-major ma × ma): L⁻¹
-/// column by column, each by forward substitution of a column of I
-/// ([`dense::solve_lower`]) in `column` (length ma), and kept in the lower triangle
-/// of `linv` where one is given.
-pub(crate) fn inverse_trace(
-    l: &[f64],
-    ma: usize,
-    column: &mut [f64],
-    mut linv: Option<&mut [f64]>,
-) -> f64 {
-    let column = &mut column[..ma];
-    let mut trace = 0.0;
-    for j in 0..ma {
-        column.fill(0.0);
-        column[j] = 1.0;
-        dense::solve_lower(l, ma, column);
-        for i in j..ma {
-            let v = column[i];
-            if let Some(linv) = linv.as_deref_mut() {
-                linv[i * ma + j] = v;
-            }
-            trace += v * v;
-        }
-    }
-    trace
 }

@@ -6,7 +6,7 @@
 mod assembly;
 pub mod determinacy;
 
-pub(crate) use determinacy::{constraint_conditioning, inverse_trace};
+pub(crate) use determinacy::constraint_conditioning;
 pub use determinacy::{Determinacy, SingularConfiguration};
 
 use crate::error::{Error, Result};

@@ -394,6 +394,33 @@ pub fn lu_solve_many_by_hand(
     b.copy_from_slice(x);
 }
 
+/// tr G⁻¹ = ‖L⁻¹‖_F² from the lower Cholesky factor L of G (row-major ma × ma): L⁻¹
+/// column by column, each by forward substitution of a column of I
+/// ([`solve_lower`]) in `column` (length ma), and kept in the lower triangle
+/// of `linv` where one is given.
+pub fn inverse_trace(
+    l: &[f64],
+    ma: usize,
+    column: &mut [f64],
+    mut linv: Option<&mut [f64]>,
+) -> f64 {
+    let column = &mut column[..ma];
+    let mut trace = 0.0;
+    for j in 0..ma {
+        column.fill(0.0);
+        column[j] = 1.0;
+        solve_lower(l, ma, column);
+        for i in j..ma {
+            let v = column[i];
+            if let Some(linv) = linv.as_deref_mut() {
+                linv[i * ma + j] = v;
+            }
+            trace += v * v;
+        }
+    }
+    trace
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
