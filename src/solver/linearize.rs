@@ -687,10 +687,14 @@ impl WindowSolver {
                         .map(|(a, b)| a * b)
                         .sum::<f64>();
                     let out = &mut ln[i * dim..(i + 1) * dim];
-                    for (c, o) in out[..q].iter_mut().enumerate() {
-                        *o = free
-                            .iter()
-                            .fold(0.0, |acc, &k| acc + row[k] * red.free_row(k)[c]);
+                    // Row by row of N₀ (contiguous), each entry still summed over
+                    // `free` in order from 0.
+                    out[..q].fill(0.0);
+                    for &k in free {
+                        let rk = row[k];
+                        for (o, nk) in out[..q].iter_mut().zip(red.free_row(k)) {
+                            *o += rk * nk;
+                        }
                     }
                     for (o, &k) in out[q..].iter_mut().zip(untouched) {
                         *o = 0.0 + row[k];
