@@ -71,7 +71,7 @@ fn one_iteration(c: &mut Criterion) {
     let opts = ForwardOptions::new(Coordinates::Dependent, 1e-3, 1.0, Mode::FixedLag(1));
     let (tr, _) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
     let fg = ForwardGraph::new(model.clone(), &opts).unwrap();
-    let s = fg.graph.layout.size();
+    let s = fg.graph.layout().size();
     let mut values = vec![0.0; tr.len() * s];
     fg.fill_from_trajectory(&model, &tr, &mut values);
     let settings = Settings {

@@ -141,7 +141,7 @@ fn settings() -> Settings {
 #[test]
 fn newest_smoother_estimate_equals_the_batch_solution() {
     let graph = chain();
-    let s = graph.layout.size();
+    let s = graph.layout().size();
     let steps = 25;
     for window in [1, 2, 3, 5, 10, 30] {
         let mut values = vec![0.0; steps * s];
@@ -185,7 +185,7 @@ fn newest_smoother_estimate_equals_the_batch_solution() {
 #[test]
 fn smoother_with_whole_horizon_window_reproduces_the_batch_everywhere() {
     let graph = chain();
-    let s = graph.layout.size();
+    let s = graph.layout().size();
     let steps = 12;
     let mut values = vec![0.0; steps * s];
     smoother::fixed_lag(

@@ -3,31 +3,40 @@
 //! block-tridiagonal normal equations.
 
 use super::*;
+#[cfg(doc)]
+use crate::graph::AlongDirections;
 
 /// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
 pub(super) struct FactorBuffers {
     pub(super) r: Vec<f64>,
     pub(super) jac: Vec<Vec<f64>>,
+    /// 1/σ per row of a soft factor; empty for a constraint (never whitened).
     pub(super) weights: Vec<f64>,
+    /// Whether the factor linearizes along directions ([`Factor::along`]).
+    pub(super) along: bool,
     /// Per key, its variable's (offset in the step's block, size), resolved once.
     pub(super) slots: Vec<(usize, usize)>,
 }
 
 impl FactorBuffers {
-    pub(super) fn new(graph: &ChainGraph, f: &dyn Factor) -> Self {
+    pub(super) fn new(graph: &ChainGraph, term: &Term) -> Self {
+        let f = term.factor();
         FactorBuffers {
-            weights: (0..f.dim()).map(|r| f.noise().weight(r)).collect(),
+            weights: term
+                .noise()
+                .map_or(Vec::new(), |n| (0..f.dim()).map(|r| n.weight(r)).collect()),
+            along: f.along().is_some(),
             slots: f
                 .keys()
                 .iter()
-                .map(|k| graph.layout.slot(k.kind).unwrap_or((0, 0)))
+                .map(|k| graph.layout().slot(k.kind).unwrap_or((0, 0)))
                 .collect(),
             r: vec![0.0; f.dim()],
             jac: f
                 .keys()
                 .iter()
                 .map(|k| {
-                    let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                    let (_, d) = graph.layout().slot(k.kind).unwrap_or((0, 0));
                     vec![0.0; f.dim() * d]
                 })
                 .collect(),
@@ -284,13 +293,13 @@ impl WindowSolver {
         for at in self.block_start[b]..self.block_start[b + 1] {
             let i = self.by_step[at];
             let inst = self.instances[i];
-            let factor = factor_of(graph, inst);
-            if !is_hard(factor) {
+            if !is_hard(graph, inst) {
                 continue;
             }
+            let factor = factor_of(graph, inst);
             self.evaluate_instance(graph, values, inst, linearize)?;
             let buf = &*buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
-            let w = Noise::Hard.weight(0);
+            let w = 1.0 / HARD_SIGMA;
             self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
             if mode == HardPass::Cost {
                 continue;
@@ -339,7 +348,7 @@ impl WindowSolver {
     pub(super) fn hard_cost_sum(&self, graph: &ChainGraph, k0: usize) -> (f64, f64) {
         let (mut cost, mut first) = (0.0, 0.0);
         for (inst, &c) in self.instances.iter().zip(&self.hard_cost) {
-            if !is_hard(factor_of(graph, *inst)) {
+            if !is_hard(graph, *inst) {
                 continue;
             }
             cost += c;
@@ -398,7 +407,7 @@ impl WindowSolver {
         let inst = self.instances[i];
         let factor = factor_of(graph, inst);
         let along = linearize
-            && factor.evaluates_along()
+            && buffers(&mut self.initial_buffers, &mut self.step_buffers, inst).along
             && self.evaluate_along(graph, values, k0, inst)?;
         if !along {
             self.evaluate_instance(graph, values, inst, linearize)?;
@@ -480,10 +489,10 @@ impl WindowSolver {
         Ok(())
     }
 
-    /// Linearizes a soft factor instance along its blocks' reductions,
-    /// J [p N] per key ([`Factor::evaluate_along`]), into `along_out` (columns: p,
-    /// then block step's reduced coordinates, then those of the block before), its
-    /// residual into its buffer; returns false when the factor declines.
+    /// Linearizes a soft factor instance along its blocks' reductions, J [p N] per key
+    /// ([`AlongDirections::evaluate_along`]), into `along_out` (columns: p, then block
+    /// step's reduced coordinates, then those of the block before), its residual into
+    /// its buffer; returns false when the factor declines.
     pub(super) fn evaluate_along(
         &mut self,
         graph: &ChainGraph,
@@ -533,9 +542,12 @@ impl WindowSolver {
         for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
             *d = &self.along_dirs[a..b];
         }
+        let Some(along) = factor.along() else {
+            return Ok(false);
+        };
         let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
         let t = graph.time(inst.step);
-        factor
+        along
             .evaluate_along(
                 t,
                 &xs[..keys.len()],
@@ -603,7 +615,7 @@ impl WindowSolver {
                 }
                 for at in self.block_start[b]..self.block_start[b + 1] {
                     let i = self.by_step[at];
-                    if !is_hard(factor_of(graph, self.instances[i])) {
+                    if !is_hard(graph, self.instances[i]) {
                         self.soft_instance(graph, values, k0, i, true, &mut soft, &mut soft_first)?;
                     }
                 }
@@ -633,7 +645,7 @@ impl WindowSolver {
             cost_first += soft_first;
         } else {
             for i in 0..self.instances.len() {
-                if !is_hard(factor_of(graph, self.instances[i])) {
+                if !is_hard(graph, self.instances[i]) {
                     self.soft_instance(
                         graph,
                         values,

@@ -197,6 +197,6 @@ pub struct SolveReport {
     pub iterations: usize,
     pub termination: Termination,
     /// ½ Σ‖whitened residual‖² at the returned estimate (prior included; hard
-    /// factors weighted by 1/[`Noise::HARD_SIGMA`]).
+    /// factors weighted by 1/[`HARD_SIGMA`](super::HARD_SIGMA)).
     pub cost: f64,
 }
