@@ -174,13 +174,7 @@ impl Projected {
 
     /// The integration of `dx` into `x` (q or q̇) by `rule`, projected: the
     /// `--dc-integrators tangent` factors.
-    pub fn integrator(
-        model: Arc<Model>,
-        x: VarKind,
-        dx: VarKind,
-        rule: Rule,
-        dt: f64,
-    ) -> Self {
+    pub fn integrator(model: Arc<Model>, x: VarKind, dx: VarKind, rule: Rule, dt: f64) -> Self {
         let n = model.n();
         let inner: Box<dyn Factor> = match rule {
             Rule::Trapezoidal => Box::new(Trapezoidal::new(x, dx, n, dt)),

@@ -12,9 +12,9 @@
 //! the window solves stall.
 
 use crate::error::{Error, Result};
-use crate::graph::{ChainGraph, Factor, Term, Workspace};
 #[cfg(doc)]
 use crate::graph::AlongDirections;
+use crate::graph::{ChainGraph, Factor, Term, Workspace};
 use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
 use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
