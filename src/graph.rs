@@ -426,3 +426,75 @@ impl ChainGraphBuilder {
         Ok(self.graph)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::{Equality, Prior, Trapezoidal};
+
+    fn builder() -> ChainGraphBuilder {
+        ChainGraph::builder(Layout::new(&[(VarKind::Q, 2), (VarKind::Dq, 2)]), 0.1, 0.0)
+    }
+
+    fn message(b: ChainGraphBuilder) -> String {
+        match b.build() {
+            Err(Error::InvalidArgument(m)) => m,
+            Err(e) => panic!("another error: {e}"),
+            Ok(_) => panic!("built"),
+        }
+    }
+
+    #[test]
+    fn keeps_each_factor_with_its_role_in_order() {
+        let g = builder()
+            .step_constraint(Box::new(Prior::new(VarKind::Q, vec![0.0; 2])))
+            .step_soft(
+                Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, 2, 0.1)),
+                Noise::Isotropic(0.5),
+            )
+            .initial_soft(
+                Box::new(Prior::new(VarKind::Dq, vec![0.0; 2])),
+                Noise::Diagonal(vec![1.0, 2.0]),
+            )
+            .build()
+            .unwrap();
+        let step: Vec<_> = g.step_terms().iter().map(|t| t.factor().name()).collect();
+        assert_eq!(step, ["f_prior(q)", "f_ti(q)"]);
+        assert!(g.step_terms()[0].is_constraint());
+        assert_eq!(g.step_terms()[1].noise(), Some(&Noise::Isotropic(0.5)));
+        assert_eq!(g.initial_terms().len(), 1);
+        assert_eq!(g.time(3), 0.1 * 3.0);
+    }
+
+    #[test]
+    fn rejects_what_the_layout_does_not_hold() {
+        let m = message(builder().step_soft(
+            Box::new(Prior::new(VarKind::Z, vec![0.0; 2])),
+            Noise::Isotropic(1.0),
+        ));
+        assert!(m.contains("f_prior(z) touches z(lag 0)"), "{m}");
+        let m = message(builder().step_constraint(Box::new(Prior::new(VarKind::Q, vec![0.0; 3]))));
+        assert!(m.contains("f_prior(q) takes q(lag 0) of size 3"), "{m}");
+        assert!(m.contains("size 2"), "{m}");
+    }
+
+    #[test]
+    fn rejects_constraints_across_steps_and_initial_factors_before_step_0() {
+        let m = message(builder().step_constraint(Box::new(Equality::new(VarKind::Q, 2))));
+        assert!(m.contains("constraint f_eq(q) spans two steps"), "{m}");
+        let m = message(builder().initial_soft(
+            Box::new(Equality::new(VarKind::Q, 2)),
+            Noise::Isotropic(1.0),
+        ));
+        assert!(m.contains("initial factor f_eq(q)"), "{m}");
+    }
+
+    #[test]
+    fn rejects_a_noise_that_does_not_fit() {
+        let prior = || Box::new(Prior::new(VarKind::Q, vec![0.0; 2]));
+        let m = message(builder().step_soft(prior(), Noise::Isotropic(0.0)));
+        assert!(m.contains("noise of f_prior(q)"), "{m}");
+        let m = message(builder().initial_soft(prior(), Noise::Diagonal(vec![1.0; 3])));
+        assert!(m.contains("3 sigmas for a residual of dimension 2"), "{m}");
+    }
+}
