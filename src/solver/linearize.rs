@@ -502,6 +502,9 @@ impl WindowSolver {
     ) -> Result<bool> {
         let s = self.s;
         let factor = factor_of(graph, inst);
+        let Some(along) = factor.along() else {
+            return Ok(false);
+        };
         let keys = factor.keys();
         let step = inst.step - k0;
         let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
@@ -542,9 +545,6 @@ impl WindowSolver {
         for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
             *d = &self.along_dirs[a..b];
         }
-        let Some(along) = factor.along() else {
-            return Ok(false);
-        };
         let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
         let t = graph.time(inst.step);
         along

@@ -3,13 +3,12 @@
 //! the marginalization that turns the oldest step of a window into a Gaussian prior on
 //! the next one (the Schur complement of the linearized system).
 //!
-//! Hard factors (the graph's constraints, [`Term::Constraint`]) are not weighted: each
-//! iteration linearizes them per
-//! step, C_k δ_k = −c_k, and solves for δ_k = p_k + N_k y_k ([`NullSpace`]), so only
-//! the soft factors enter the normal equations in y. Weighting them by 1/σ² with a tiny
-//! σ instead squares a condition number that is already large: on a long four-bar
-//! run the soft information along the motion decays to ~1e-5 while 1/σ² = 1e12, and
-//! the window solves stall.
+//! Hard factors (the graph's constraints, [`Term::Constraint`]) are not weighted:
+//! each iteration linearizes them per step, C_k δ_k = −c_k, and solves for
+//! δ_k = p_k + N_k y_k ([`NullSpace`]), so only the soft factors enter the normal
+//! equations in y. Weighting them by 1/σ² with a tiny σ instead squares a condition
+//! number that is already large: on a long four-bar run the soft information along
+//! the motion decays to ~1e-5 while 1/σ² = 1e12, and the window solves stall.
 
 use crate::error::{Error, Result};
 #[cfg(doc)]
@@ -38,10 +37,9 @@ use marginal::LastSolve;
 use newton::NewtonBuffers;
 use structure::{factor_of, is_hard, Instance, Resolved, Scope};
 
-/// σ by which the solver weights a hard factor's residual where it reports a cost
-/// ([`SolveReport::cost`]): small enough to stand out against soft factors of
-/// σ ≥ 1e-6. Hard factors are eliminated, not weighted; this only scales their share
-/// of the reported cost.
+/// σ by which a hard factor's residual is weighted in the reported cost
+/// ([`SolveReport::cost`]). Hard factors are eliminated, not weighted: this only
+/// scales their share of that cost.
 pub const HARD_SIGMA: f64 = 1e-6;
 
 /// A reusable solver for windows of up to `capacity` steps; it allocates once.
