@@ -5,7 +5,7 @@
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use mbfg::factors::Dynamics;
 use mbfg::forward::{simulate, Coordinates, ForwardGraph, ForwardOptions};
-use mbfg::graph::{Factor, Noise};
+use mbfg::graph::Factor;
 use mbfg::smoother::Mode;
 use mbfg::solver::{Settings, WindowSolver};
 use mbfg::{Model, Scene};
@@ -71,7 +71,7 @@ fn one_iteration(c: &mut Criterion) {
     let opts = ForwardOptions::new(Coordinates::Dependent, 1e-3, 1.0, Mode::FixedLag(1));
     let (tr, _) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
     let fg = ForwardGraph::new(model.clone(), &opts).unwrap();
-    let s = fg.graph.layout.size();
+    let s = fg.graph.layout().size();
     let mut values = vec![0.0; tr.len() * s];
     fg.fill_from_trajectory(&model, &tr, &mut values);
     let settings = Settings {
@@ -102,7 +102,7 @@ fn dynamics_factor(c: &mut Criterion) {
     let n = model.n();
     let (q, dq) = (tr.q_at(k).to_vec(), tr.dq_at(k).to_vec());
     let ddq = tr.ddq[k * n..(k + 1) * n].to_vec();
-    let factor = Dynamics::new(model.clone(), Noise::Isotropic(0.01));
+    let factor = Dynamics::new(model.clone());
     let (reals, indices) = factor.scratch();
     let mut ws = mbfg::graph::Workspace::with_capacity(reals, indices);
     let mut r = vec![0.0; factor.dim()];

@@ -29,20 +29,15 @@
 
 use crate::dynamics::DynamicsKernel;
 use crate::error::Result;
-use crate::factors::{identity, key_and_noise_accessors};
-use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::factors::{identity, key_accessor};
+use crate::graph::{Factor, Key, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
-/// The position and velocity factors of one coordinate set, σ = `sigma` (position,
-/// velocity): q, q̇, q̈ for dependent coordinates, or z, ż, z̈ with the velocity rule on
-/// the independent rows.
-pub fn factors(
-    model: &Arc<Model>,
-    independent: bool,
-    dt: f64,
-    sigma: [f64; 2],
-) -> [Box<dyn Factor>; 2] {
+/// The position and velocity factors of one coordinate set, in that order: q, q̇, q̈
+/// for dependent coordinates, or z, ż, z̈ with the velocity rule on the independent
+/// rows.
+pub fn factors(model: &Arc<Model>, independent: bool, dt: f64) -> [Box<dyn Factor>; 2] {
     let (x, dx, ddx, dim) = if independent {
         (
             VarKind::Z,
@@ -54,19 +49,12 @@ pub fn factors(
         (VarKind::Q, VarKind::Dq, VarKind::Ddq, model.n())
     };
     let velocity = if independent {
-        SimpsonVelocity::independent(model.clone(), dt, Noise::Isotropic(sigma[1]))
+        SimpsonVelocity::independent(model.clone(), dt)
     } else {
-        SimpsonVelocity::dependent(model.clone(), dt, Noise::Isotropic(sigma[1]))
+        SimpsonVelocity::dependent(model.clone(), dt)
     };
     [
-        Box::new(HermitePosition::new(
-            x,
-            dx,
-            ddx,
-            dim,
-            dt,
-            Noise::Isotropic(sigma[0]),
-        )),
+        Box::new(HermitePosition::new(x, dx, ddx, dim, dt)),
         Box::new(velocity),
     ]
 }
@@ -77,12 +65,11 @@ pub struct HermitePosition {
     keys: [Key; 6],
     dim: usize,
     dt: f64,
-    noise: Noise,
 }
 
 impl HermitePosition {
     /// The factor on `x` with rates `dx` and accelerations `ddx` (q, q̇, q̈ or z, ż, z̈).
-    pub fn new(x: VarKind, dx: VarKind, ddx: VarKind, dim: usize, dt: f64, noise: Noise) -> Self {
+    pub fn new(x: VarKind, dx: VarKind, ddx: VarKind, dim: usize, dt: f64) -> Self {
         HermitePosition {
             name: format!("f_hs({})", x.symbol()),
             keys: [
@@ -95,7 +82,6 @@ impl HermitePosition {
             ],
             dim,
             dt,
-            noise,
         }
     }
 
@@ -110,7 +96,10 @@ impl Factor for HermitePosition {
     fn name(&self) -> &str {
         &self.name
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.dim
+    }
     fn dim(&self) -> usize {
         self.dim
     }
@@ -149,32 +138,29 @@ pub struct SimpsonVelocity {
     /// The coordinates whose rows the residual has: all n (DC) or the independent ones.
     rows: Vec<usize>,
     dt: f64,
-    noise: Noise,
 }
 
 impl SimpsonVelocity {
     /// Dependent coordinates: keys q₀, q₁, q̇₀, q̇₁, q̈₀, q̈₁.
-    pub fn dependent(model: Arc<Model>, dt: f64, noise: Noise) -> Self {
+    pub fn dependent(model: Arc<Model>, dt: f64) -> Self {
         SimpsonVelocity {
             rows: (0..model.n()).collect(),
             model,
             name: "f_hs(dq)".into(),
             keys: Self::state_keys(),
             dt,
-            noise,
         }
     }
 
     /// Independent coordinates: the keys of [`SimpsonVelocity::dependent`], the rows
     /// of the independent coordinates.
-    pub fn independent(model: Arc<Model>, dt: f64, noise: Noise) -> Self {
+    pub fn independent(model: Arc<Model>, dt: f64) -> Self {
         SimpsonVelocity {
             rows: model.independent.clone(),
             model,
             name: "f_hs(dz)".into(),
             keys: Self::state_keys(),
             dt,
-            noise,
         }
     }
 
@@ -195,7 +181,10 @@ impl Factor for SimpsonVelocity {
     fn name(&self) -> &str {
         &self.name
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.model.n()
+    }
     fn dim(&self) -> usize {
         self.rows.len()
     }

@@ -26,7 +26,7 @@ pub struct SolveReport {
     pub iterations: usize,
     pub termination: Termination,
     /// ½ Σ‖whitened residual‖² at the returned estimate (prior included; hard
-    /// factors weighted by 1/σ_hard).
+    /// factors weighted by 1/[`HARD_SIGMA`](crate::solver::HARD_SIGMA)).
     pub cost: f64,
     /// Why the factors could not be evaluated where the solve ended, when that is
     /// what stopped it (the message of the evaluation's error).

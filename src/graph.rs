@@ -1,11 +1,11 @@
 //! Factor graphs over time steps: variables keyed by kind and step, one [`Factor`]
-//! trait, noise models.
+//! trait, constraints and soft factors with their noise models ([`Term`]).
 //!
 //! Every step holds the same variables (laid out by a [`Layout`]); a factor belongs to
 //! one step and touches variables of that step or of the step before (`lag` 1), so
 //! the normal equations are block tridiagonal when unknowns are ordered by step.
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 
 /// The kind of a variable; its size comes from the model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -110,30 +110,23 @@ impl Layout {
     }
 }
 
-/// How strongly a factor's residual is enforced: the residual is divided by a
-/// standard deviation σ per row before squaring.
+/// How strongly a soft factor's residual is enforced: the residual is divided by a
+/// standard deviation σ per row before squaring. Constraints have no noise: the
+/// solver holds them exactly ([`Term::Constraint`]).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Noise {
     /// The same σ on every row.
     Isotropic(f64),
     /// One σ per row.
     Diagonal(Vec<f64>),
-    /// An equation to satisfy exactly: σ = [`Noise::HARD_SIGMA`].
-    Hard,
 }
 
 impl Noise {
-    /// σ of hard factors: small enough that the solution satisfies them to round-off
-    /// against soft factors of σ ≥ 1e-6, large enough to keep the normal equations
-    /// well conditioned in double precision.
-    pub const HARD_SIGMA: f64 = 1e-6;
-
     /// 1/σ for row `i`.
     pub fn weight(&self, i: usize) -> f64 {
         match self {
             Noise::Isotropic(s) => 1.0 / s,
             Noise::Diagonal(s) => 1.0 / s[i],
-            Noise::Hard => 1.0 / Self::HARD_SIGMA,
         }
     }
 
@@ -173,7 +166,9 @@ impl Workspace {
     }
 }
 
-/// One factor: a residual over a few variables, its Jacobian blocks, and its noise.
+/// One factor: a residual over a few variables and its Jacobian blocks. Whether it
+/// is held exactly or weighted, and by which noise, is up to the graph it is put in
+/// ([`ChainGraphBuilder`]).
 pub trait Factor: Send + Sync {
     /// A short name for messages (`f_ti(q)`, `f^d_dyn`, …).
     fn name(&self) -> &str;
@@ -181,10 +176,12 @@ pub trait Factor: Send + Sync {
     /// The variables, in the order of `evaluate`'s inputs.
     fn keys(&self) -> &[Key];
 
+    /// The size of the variable of key `key` (the length `evaluate` expects of
+    /// `x[key]`); [`ChainGraphBuilder::build`] checks it against the layout.
+    fn size(&self, key: usize) -> usize;
+
     /// Residual dimension.
     fn dim(&self) -> usize;
-
-    fn noise(&self) -> &Noise;
 
     /// Scratch this factor needs in a [`Workspace`]: (reals, indices).
     fn scratch(&self) -> (usize, usize) {
@@ -198,31 +195,10 @@ pub trait Factor: Send + Sync {
         false
     }
 
-    /// Whether [`Factor::evaluate_along`] is implemented.
-    fn evaluates_along(&self) -> bool {
-        false
-    }
-
-    /// Evaluates the residual into `r` and, instead of the Jacobians, their products
-    /// with directions: Σ_a J_a V_a into the row-major dim × c `out`, V_a = `dirs[a]`
-    /// (row-major size(x_a) × c, the same c columns for every key). A factor whose
-    /// Jacobian comes out of a factorization (the dynamics factors: one pair of
-    /// triangular solves per column) then solves for the few directions that are
-    /// nonzero instead of for every column. Returns `Ok(false)`, having written
-    /// nothing, when it does not do this (the default) or it would not be cheaper
-    /// than the Jacobians.
-    #[allow(clippy::too_many_arguments)]
-    fn evaluate_along(
-        &self,
-        _t: f64,
-        _x: &[&[f64]],
-        _r: &mut [f64],
-        _dirs: &[&[f64]],
-        _c: usize,
-        _out: &mut [f64],
-        _ws: &mut Workspace,
-    ) -> Result<bool> {
-        Ok(false)
+    /// The factor's linearization along directions, when it has one (see
+    /// [`AlongDirections`]); `None` by default.
+    fn along(&self) -> Option<&dyn AlongDirections> {
+        None
     }
 
     /// Evaluates the residual at time `t` from the variables `x` (one slice per key)
@@ -238,18 +214,113 @@ pub trait Factor: Send + Sync {
     ) -> Result<()>;
 }
 
-/// A factor graph over a uniform time grid t_k = t₀ + k·dt.
+/// The optional capability of a [`Factor`] to linearize along given directions
+/// instead of forming its Jacobians ([`Factor::along`]).
+pub trait AlongDirections {
+    /// Evaluates the residual into `r` and, instead of the Jacobians, their products
+    /// with directions: Σ_a J_a V_a into the row-major dim × c `out`, V_a = `dirs[a]`
+    /// (row-major size(x_a) × c, the same c columns for every key). A factor whose
+    /// Jacobian comes out of a factorization (the dynamics factors: one pair of
+    /// triangular solves per column) then solves for the few directions that are
+    /// nonzero instead of for every column. Returns `Ok(false)`, having written
+    /// nothing, when it would not be cheaper than the Jacobians.
+    #[allow(clippy::too_many_arguments)]
+    fn evaluate_along(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        dirs: &[&[f64]],
+        c: usize,
+        out: &mut [f64],
+        ws: &mut Workspace,
+    ) -> Result<bool>;
+}
+
+/// A factor of a [`ChainGraph`] and how the solver treats it.
+pub enum Term {
+    /// An equation held exactly: the solver eliminates it step by step.
+    Constraint(Box<dyn Factor>),
+    /// A residual weighted row by row by 1/σ of its noise.
+    Soft(Box<dyn Factor>, Noise),
+}
+
+impl Term {
+    pub fn factor(&self) -> &dyn Factor {
+        match self {
+            Term::Constraint(f) | Term::Soft(f, _) => f.as_ref(),
+        }
+    }
+
+    /// The noise of a soft factor; `None` for a constraint.
+    pub fn noise(&self) -> Option<&Noise> {
+        match self {
+            Term::Constraint(_) => None,
+            Term::Soft(_, noise) => Some(noise),
+        }
+    }
+
+    pub fn is_constraint(&self) -> bool {
+        matches!(self, Term::Constraint(_))
+    }
+}
+
+/// A factor graph over a uniform time grid t_k = t₀ + k·dt, built and checked by a
+/// [`ChainGraphBuilder`] ([`ChainGraph::builder`]).
 pub struct ChainGraph {
-    pub layout: Layout,
-    pub dt: f64,
-    pub t0: f64,
+    layout: Layout,
+    dt: f64,
+    t0: f64,
     /// Factors present at every step (those with lag-1 keys from step 1 on).
-    pub step_factors: Vec<Box<dyn Factor>>,
+    step: Vec<Term>,
     /// Factors of step 0 only (priors on the initial state).
-    pub initial_factors: Vec<Box<dyn Factor>>,
+    initial: Vec<Term>,
 }
 
 impl ChainGraph {
+    /// A builder of a graph over the variables `layout`, at times t₀ + k·dt.
+    pub fn builder(layout: Layout, dt: f64, t0: f64) -> ChainGraphBuilder {
+        ChainGraphBuilder {
+            graph: ChainGraph {
+                layout,
+                dt,
+                t0,
+                step: Vec::new(),
+                initial: Vec::new(),
+            },
+        }
+    }
+
+    /// The variables of each step.
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// The time step.
+    pub fn dt(&self) -> f64 {
+        self.dt
+    }
+
+    /// The time of step 0.
+    pub fn t0(&self) -> f64 {
+        self.t0
+    }
+
+    /// Moves the grid to start at `t0` (a run resumed from a later time).
+    pub fn set_t0(&mut self, t0: f64) {
+        self.t0 = t0;
+    }
+
+    /// The factors present at every step, in the order they were added.
+    pub fn step_terms(&self) -> &[Term] {
+        &self.step
+    }
+
+    /// The factors of step 0 only, in the order they were added.
+    pub fn initial_terms(&self) -> &[Term] {
+        &self.initial
+    }
+
     pub fn time(&self, step: usize) -> f64 {
         self.t0 + step as f64 * self.dt
     }
@@ -262,11 +333,168 @@ impl ChainGraph {
     /// Workspace large enough for every factor.
     pub fn workspace(&self) -> Workspace {
         let (mut r, mut i) = (0, 0);
-        for f in self.step_factors.iter().chain(&self.initial_factors) {
-            let (a, b) = f.scratch();
+        for t in self.step.iter().chain(&self.initial) {
+            let (a, b) = t.factor().scratch();
             r = r.max(a);
             i = i.max(b);
         }
         Workspace::with_capacity(r, i)
+    }
+}
+
+/// Collects the factors of a [`ChainGraph`], constraints and soft factors apart, and
+/// checks them against the layout in [`ChainGraphBuilder::build`].
+pub struct ChainGraphBuilder {
+    graph: ChainGraph,
+}
+
+impl ChainGraphBuilder {
+    /// A constraint at every step: held exactly, so it must stay within one step.
+    pub fn step_constraint(mut self, factor: Box<dyn Factor>) -> Self {
+        self.graph.step.push(Term::Constraint(factor));
+        self
+    }
+
+    /// A soft factor at every step, weighted by 1/σ of `noise`.
+    pub fn step_soft(mut self, factor: Box<dyn Factor>, noise: Noise) -> Self {
+        self.graph.step.push(Term::Soft(factor, noise));
+        self
+    }
+
+    /// A constraint on step 0 only.
+    pub fn initial_constraint(mut self, factor: Box<dyn Factor>) -> Self {
+        self.graph.initial.push(Term::Constraint(factor));
+        self
+    }
+
+    /// A soft factor on step 0 only, weighted by 1/σ of `noise`.
+    pub fn initial_soft(mut self, factor: Box<dyn Factor>, noise: Noise) -> Self {
+        self.graph.initial.push(Term::Soft(factor, noise));
+        self
+    }
+
+    /// The graph, once every factor touches variables the layout holds, at the
+    /// factor's step or the one before (step 0 only for initial factors), with the
+    /// sizes the layout gives them; every constraint stays within one step; every
+    /// noise fits its factor's dimension.
+    pub fn build(self) -> Result<ChainGraph> {
+        let g = &self.graph;
+        for (initial, list) in [(false, &g.step), (true, &g.initial)] {
+            for term in list {
+                let f = term.factor();
+                let invalid = |what: String| Err(Error::InvalidArgument(what));
+                if let Some(noise) = term.noise() {
+                    if let Err(e) = noise.validate(f.dim()) {
+                        return invalid(format!("noise of {}: {e}", f.name()));
+                    }
+                }
+                for (a, k) in f.keys().iter().enumerate() {
+                    let Some((_, d)) = g.layout.slot(k.kind).filter(|_| k.lag <= 1) else {
+                        return invalid(format!(
+                            "factor {} touches {}(lag {}), which the graph does not hold",
+                            f.name(),
+                            k.kind.symbol(),
+                            k.lag
+                        ));
+                    };
+                    if f.size(a) != d {
+                        return invalid(format!(
+                            "factor {} takes {}(lag {}) of size {}, the graph holds it with size {d}",
+                            f.name(),
+                            k.kind.symbol(),
+                            k.lag,
+                            f.size(a)
+                        ));
+                    }
+                    if initial && k.lag > 0 {
+                        return invalid(format!(
+                            "initial factor {} touches {}(lag {}), before step 0",
+                            f.name(),
+                            k.kind.symbol(),
+                            k.lag
+                        ));
+                    }
+                }
+                if term.is_constraint() && f.keys().iter().any(|k| k.lag > 0) {
+                    return invalid(format!(
+                        "constraint {} spans two steps; constraints must stay within one",
+                        f.name()
+                    ));
+                }
+            }
+        }
+        Ok(self.graph)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::{Equality, Prior, Trapezoidal};
+
+    fn builder() -> ChainGraphBuilder {
+        ChainGraph::builder(Layout::new(&[(VarKind::Q, 2), (VarKind::Dq, 2)]), 0.1, 0.0)
+    }
+
+    fn message(b: ChainGraphBuilder) -> String {
+        match b.build() {
+            Err(Error::InvalidArgument(m)) => m,
+            Err(e) => panic!("another error: {e}"),
+            Ok(_) => panic!("built"),
+        }
+    }
+
+    #[test]
+    fn keeps_each_factor_with_its_role_in_order() {
+        let g = builder()
+            .step_constraint(Box::new(Prior::new(VarKind::Q, vec![0.0; 2])))
+            .step_soft(
+                Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, 2, 0.1)),
+                Noise::Isotropic(0.5),
+            )
+            .initial_soft(
+                Box::new(Prior::new(VarKind::Dq, vec![0.0; 2])),
+                Noise::Diagonal(vec![1.0, 2.0]),
+            )
+            .build()
+            .unwrap();
+        let step: Vec<_> = g.step_terms().iter().map(|t| t.factor().name()).collect();
+        assert_eq!(step, ["f_prior(q)", "f_ti(q)"]);
+        assert!(g.step_terms()[0].is_constraint());
+        assert_eq!(g.step_terms()[1].noise(), Some(&Noise::Isotropic(0.5)));
+        assert_eq!(g.initial_terms().len(), 1);
+        assert_eq!(g.time(3), 0.1 * 3.0);
+    }
+
+    #[test]
+    fn rejects_what_the_layout_does_not_hold() {
+        let m = message(builder().step_soft(
+            Box::new(Prior::new(VarKind::Z, vec![0.0; 2])),
+            Noise::Isotropic(1.0),
+        ));
+        assert!(m.contains("f_prior(z) touches z(lag 0)"), "{m}");
+        let m = message(builder().step_constraint(Box::new(Prior::new(VarKind::Q, vec![0.0; 3]))));
+        assert!(m.contains("f_prior(q) takes q(lag 0) of size 3"), "{m}");
+        assert!(m.contains("size 2"), "{m}");
+    }
+
+    #[test]
+    fn rejects_constraints_across_steps_and_initial_factors_before_step_0() {
+        let m = message(builder().step_constraint(Box::new(Equality::new(VarKind::Q, 2))));
+        assert!(m.contains("constraint f_eq(q) spans two steps"), "{m}");
+        let m = message(builder().initial_soft(
+            Box::new(Equality::new(VarKind::Q, 2)),
+            Noise::Isotropic(1.0),
+        ));
+        assert!(m.contains("initial factor f_eq(q)"), "{m}");
+    }
+
+    #[test]
+    fn rejects_a_noise_that_does_not_fit() {
+        let prior = || Box::new(Prior::new(VarKind::Q, vec![0.0; 2]));
+        let m = message(builder().step_soft(prior(), Noise::Isotropic(0.0)));
+        assert!(m.contains("noise of f_prior(q)"), "{m}");
+        let m = message(builder().initial_soft(prior(), Noise::Diagonal(vec![1.0; 3])));
+        assert!(m.contains("3 sigmas for a residual of dimension 2"), "{m}");
     }
 }

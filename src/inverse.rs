@@ -311,55 +311,56 @@ pub fn solve(
         accelerations[..idx.len()].to_vec(),
     );
     let table = Arc::new(prescription.values.clone());
-    let prescribe = |kind: VarKind, indices: Vec<usize>, table: Vec<f64>| {
+    let prescribe = |kind: VarKind, size: usize, indices: Vec<usize>, table: Vec<f64>| {
         Box::new(PrescribedMotion::on(
             kind,
+            size,
             indices,
             Arc::new(table),
             prescription.t0,
             dt,
-            Noise::Hard,
         )) as Box<dyn crate::graph::Factor>
     };
     let force_zero = || -> Box<dyn crate::graph::Factor> {
         Box::new(ComponentPrior::new(
             VarKind::Force,
+            n,
             unactuated.clone(),
             vec![0.0; unactuated.len()],
-            Noise::Hard,
         ))
     };
     let graph = match options.coordinates {
         // Q has one entry per prescribed coordinate: the forces that act.
-        Coordinates::Dependent => ChainGraph {
-            layout: Layout::new(&[
+        Coordinates::Dependent => {
+            let layout = Layout::new(&[
                 (VarKind::Q, n),
                 (VarKind::Dq, n),
                 (VarKind::Ddq, n),
                 (VarKind::Force, idx.len()),
-            ]),
-            dt,
-            t0: prescription.t0,
-            step_factors: vec![
-                Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
-                Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)),
-                Box::new(PrescribedMotion::new(
+            ]);
+            ChainGraph::builder(layout, dt, prescription.t0)
+                .step_constraint(Box::new(PositionConstraints::new(model.clone())))
+                .step_constraint(Box::new(VelocityConstraints::new(model.clone())))
+                .step_constraint(Box::new(PrescribedMotion::new(
+                    n,
                     idx.clone(),
                     table,
                     prescription.t0,
                     dt,
-                    Noise::Hard,
-                )),
-                prescribe(VarKind::Dq, idx.clone(), rates.clone()),
-                prescribe(VarKind::Ddq, idx.clone(), accelerations.clone()),
-                Box::new(Dynamics::inverse_on(
-                    model.clone(),
-                    Noise::Isotropic(nm.dynamics),
+                )))
+                .step_constraint(prescribe(VarKind::Dq, n, idx.clone(), rates.clone()))
+                .step_constraint(prescribe(
+                    VarKind::Ddq,
+                    n,
                     idx.clone(),
-                )),
-            ],
-            initial_factors: vec![],
-        },
+                    accelerations.clone(),
+                ))
+                .step_soft(
+                    Box::new(Dynamics::inverse_on(model.clone(), idx.clone())),
+                    Noise::Isotropic(nm.dynamics),
+                )
+                .build()?
+        }
         Coordinates::Independent => {
             // z is the scene's independent set, in its order; the prescription
             // must name exactly those coordinates.
@@ -389,44 +390,47 @@ pub fn solve(
                     .collect()
             };
             let all: Vec<usize> = (0..f).collect();
-            ChainGraph {
-                layout: Layout::new(&[
-                    (VarKind::Q, n),
-                    (VarKind::Dq, n),
-                    (VarKind::Ddq, n),
-                    (VarKind::Z, f),
-                    (VarKind::Dz, f),
-                    (VarKind::Ddz, f),
-                    (VarKind::Force, n),
-                ]),
-                dt,
-                t0: prescription.t0,
-                step_factors: vec![
-                    Box::new(IndependentPosition::new(model.clone(), Noise::Hard)),
-                    Box::new(IndependentVelocity::new(model.clone(), Noise::Hard)),
-                    Box::new(IndependentAcceleration::new(model.clone(), Noise::Hard)),
-                    Box::new(PrescribedMotion::on(
-                        VarKind::Z,
-                        all.clone(),
-                        Arc::new(ztable),
-                        prescription.t0,
-                        dt,
-                        Noise::Hard,
-                    )),
-                    prescribe(VarKind::Dz, all.clone(), reorder(&rates)),
-                    prescribe(VarKind::Ddz, all.clone(), reorder(&accelerations)),
-                    force_zero(),
-                    Box::new(IndependentDynamics::inverse(
-                        model.clone(),
-                        Noise::Isotropic(nm.dynamics),
-                    )),
-                    Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
-                ],
-                initial_factors: vec![],
-            }
+            let layout = Layout::new(&[
+                (VarKind::Q, n),
+                (VarKind::Dq, n),
+                (VarKind::Ddq, n),
+                (VarKind::Z, f),
+                (VarKind::Dz, f),
+                (VarKind::Ddz, f),
+                (VarKind::Force, n),
+            ]);
+            ChainGraph::builder(layout, dt, prescription.t0)
+                .step_constraint(Box::new(IndependentPosition::new(model.clone())))
+                .step_constraint(Box::new(IndependentVelocity::new(model.clone())))
+                .step_constraint(Box::new(IndependentAcceleration::new(model.clone())))
+                .step_constraint(Box::new(PrescribedMotion::on(
+                    VarKind::Z,
+                    f,
+                    all.clone(),
+                    Arc::new(ztable),
+                    prescription.t0,
+                    dt,
+                )))
+                .step_constraint(prescribe(VarKind::Dz, f, all.clone(), reorder(&rates)))
+                .step_constraint(prescribe(
+                    VarKind::Ddz,
+                    f,
+                    all.clone(),
+                    reorder(&accelerations),
+                ))
+                .step_constraint(force_zero())
+                .step_soft(
+                    Box::new(IndependentDynamics::inverse(model.clone())),
+                    Noise::Isotropic(nm.dynamics),
+                )
+                .step_soft(
+                    Box::new(Equality::new(VarKind::Q, n)),
+                    Noise::Isotropic(nm.equality),
+                )
+                .build()?
         }
     };
-    let s = graph.layout.size();
+    let s = graph.layout().size();
     let start_blocks = match options.start {
         Start::Kinematic => kinematic_start(&model, prescription, &rates, &accelerations)?,
         Start::Staged => staged_start(&model, prescription, &d1, &d2, options)?,
@@ -573,11 +577,11 @@ fn staged_start(
     let table = Arc::new(p.values.clone());
     let prescribed = || -> Box<dyn crate::graph::Factor> {
         Box::new(PrescribedMotion::new(
+            n,
             idx.clone(),
             table.clone(),
             p.t0,
             dt,
-            Noise::Hard,
         ))
     };
     let stage_failed = |stage: usize, report: SolveReport| Error::NotConverged {
@@ -587,20 +591,17 @@ fn staged_start(
     // Stage 1: positions only, the constraints soft (σ = 1e-6) so that
     // Levenberg-Marquardt can damp the long way from the scene's configuration (a
     // hard constraint is solved by an undamped Newton step, which diverges here).
-    let g1 = ChainGraph {
-        layout: Layout::new(&[(VarKind::Q, n)]),
-        dt,
-        t0: p.t0,
-        step_factors: vec![
-            Box::new(PositionConstraints::new(
-                model.clone(),
-                Noise::Isotropic(1e-6),
-            )),
-            prescribed(),
-            Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality))),
-        ],
-        initial_factors: vec![],
-    };
+    let g1 = ChainGraph::builder(Layout::new(&[(VarKind::Q, n)]), dt, p.t0)
+        .step_soft(
+            Box::new(PositionConstraints::new(model.clone())),
+            Noise::Isotropic(1e-6),
+        )
+        .step_constraint(prescribed())
+        .step_soft(
+            Box::new(Equality::new(VarKind::Q, n)),
+            Noise::Isotropic(nm.equality),
+        )
+        .build()?;
     let mut q: Vec<f64> = (0..steps)
         .flat_map(|_| model.initial.q.iter().copied())
         .collect();
@@ -614,51 +615,39 @@ fn staged_start(
         x[k * 3 * n..k * 3 * n + n].copy_from_slice(&q[k * n..(k + 1) * n]);
     }
     for stage in [2, 3] {
-        let mut factors: Vec<Box<dyn crate::graph::Factor>> = vec![
-            Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
-            prescribed(),
-            Box::new(Trapezoidal::new(
-                VarKind::Q,
+        let layout = Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]);
+        let mut builder = ChainGraph::builder(layout, dt, p.t0)
+            .step_constraint(Box::new(PositionConstraints::new(model.clone())))
+            .step_constraint(prescribed())
+            .step_soft(
+                Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, n, dt)),
+                Noise::Isotropic(nm.integrator_position),
+            )
+            .step_soft(
+                Box::new(Trapezoidal::new(VarKind::Dq, VarKind::Ddq, n, dt)),
+                Noise::Isotropic(nm.integrator_velocity),
+            )
+            .step_soft(
+                Box::new(Equality::new(VarKind::Ddq, n)),
+                Noise::Isotropic(SMOOTHING),
+            );
+        if stage == 3 {
+            builder = builder.step_constraint(Box::new(VelocityConstraints::new(model.clone())));
+        }
+        let g = builder
+            .initial_constraint(Box::new(ComponentPrior::new(
                 VarKind::Dq,
                 n,
-                dt,
-                Noise::Isotropic(nm.integrator_position),
-            )),
-            Box::new(Trapezoidal::new(
-                VarKind::Dq,
+                idx.clone(),
+                d1.to_vec(),
+            )))
+            .initial_constraint(Box::new(ComponentPrior::new(
                 VarKind::Ddq,
                 n,
-                dt,
-                Noise::Isotropic(nm.integrator_velocity),
-            )),
-            Box::new(Equality::new(VarKind::Ddq, n, Noise::Isotropic(SMOOTHING))),
-        ];
-        if stage == 3 {
-            factors.push(Box::new(VelocityConstraints::new(
-                model.clone(),
-                Noise::Hard,
-            )));
-        }
-        let g = ChainGraph {
-            layout: Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]),
-            dt,
-            t0: p.t0,
-            step_factors: factors,
-            initial_factors: vec![
-                Box::new(ComponentPrior::new(
-                    VarKind::Dq,
-                    idx.clone(),
-                    d1.to_vec(),
-                    Noise::Hard,
-                )),
-                Box::new(ComponentPrior::new(
-                    VarKind::Ddq,
-                    idx.clone(),
-                    d2.to_vec(),
-                    Noise::Hard,
-                )),
-            ],
-        };
+                idx.clone(),
+                d2.to_vec(),
+            )))
+            .build()?;
         let r = smoother::batch(&g, &mut x, steps, options.settings)?;
         if r.termination != crate::solver::Termination::Converged {
             return Err(stage_failed(stage, r));

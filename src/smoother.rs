@@ -72,7 +72,7 @@ pub fn fixed_lag_with_rescue(
 ) -> Result<()> {
     // A window longer than the run is the whole run.
     let window = window.max(1).min(steps.max(1));
-    let s = graph.layout.size();
+    let s = graph.layout().size();
     let mut solver = WindowSolver::new(graph, window + 1, settings)?;
     let mut adaptive = settings.past == Past::Adaptive;
     let mut prior: Option<LinearPrior> = None;

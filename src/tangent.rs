@@ -25,7 +25,7 @@
 
 use crate::error::{Error, Result};
 use crate::factors::{Euler, Trapezoidal};
-use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::graph::{Factor, Key, VarKind, Workspace};
 use crate::model::Model;
 use nalgebra::{DMatrix, DVector};
 use std::sync::Arc;
@@ -172,18 +172,11 @@ impl Projected {
 
     /// The integration of `dx` into `x` (q or q̇) by `rule`, projected: the
     /// `--dc-integrators tangent` factors.
-    pub fn integrator(
-        model: Arc<Model>,
-        x: VarKind,
-        dx: VarKind,
-        rule: Rule,
-        dt: f64,
-        noise: Noise,
-    ) -> Self {
+    pub fn integrator(model: Arc<Model>, x: VarKind, dx: VarKind, rule: Rule, dt: f64) -> Self {
         let n = model.n();
         let inner: Box<dyn Factor> = match rule {
-            Rule::Trapezoidal => Box::new(Trapezoidal::new(x, dx, n, dt, noise)),
-            Rule::Euler => Box::new(Euler::new(x, dx, n, dt, noise)),
+            Rule::Trapezoidal => Box::new(Trapezoidal::new(x, dx, n, dt)),
+            Rule::Euler => Box::new(Euler::new(x, dx, n, dt)),
         };
         Projected::new(model, inner)
     }
@@ -196,8 +189,13 @@ impl Factor for Projected {
     fn keys(&self) -> &[Key] {
         &self.keys
     }
-    fn noise(&self) -> &Noise {
-        self.inner.noise()
+    /// The inner factor's sizes, then n for a q_t the inner factor does not touch.
+    fn size(&self, key: usize) -> usize {
+        if key < self.inner.keys().len() {
+            self.inner.size(key)
+        } else {
+            self.model.n()
+        }
     }
     fn dim(&self) -> usize {
         self.inner.dim()

@@ -11,7 +11,7 @@ use mbfg::factors::{
     IndependentDynamics, IndependentPosition, IndependentVelocity, PositionConstraints,
     PrescribedMotion, Prior, Trapezoidal, VelocityConstraints,
 };
-use mbfg::graph::{Factor, Key, Noise, VarKind, Workspace};
+use mbfg::graph::{Factor, Key, VarKind, Workspace};
 use mbfg::kinematics;
 use mbfg::tangent::{Projected, Rule};
 use mbfg::{Model, Scene};
@@ -184,10 +184,13 @@ fn check_factor_with(step: f64, name: &str, factor: &dyn Factor, xs: &[Vec<f64>]
         xs.len(),
         "{name}: one input per key expected"
     );
-    assert!(
-        factor.noise().validate(dim).is_ok(),
-        "{name}: noise does not fit dimension {dim}"
-    );
+    for (k, x) in xs.iter().enumerate() {
+        assert_eq!(
+            factor.size(k),
+            x.len(),
+            "{name}: declared size of key {k} differs from its input"
+        );
+    }
     let mut ws = workspace_for(factor);
     let full = evaluate(factor, t, xs, true, &mut ws);
     let jac = full.jac.expect("jacobians requested");
@@ -310,18 +313,17 @@ fn generic_factors(model: &Model, rng: &mut Rng) -> Vec<(String, Box<dyn Factor>
     let mut out: Vec<(String, Box<dyn Factor>)> = Vec::new();
     for &kind in &kinds {
         let d = size(model, kind);
-        let prior = Prior::new(kind, rng.values(d, 1.0), Noise::Isotropic(0.1));
+        let prior = Prior::new(kind, rng.values(d, 1.0));
         out.push((prior.name().to_string(), Box::new(prior)));
-        let sigmas = (0..d).map(|i| 0.5 + 0.1 * i as f64).collect();
-        let eq = Equality::new(kind, d, Noise::Diagonal(sigmas));
+        let eq = Equality::new(kind, d);
         out.push((eq.name().to_string(), Box::new(eq)));
     }
     for &(x, dx) in &rates {
         let d = size(model, x);
         for dt in [1e-3, 0.05] {
-            let ei = Euler::new(x, dx, d, dt, Noise::Hard);
+            let ei = Euler::new(x, dx, d, dt);
             out.push((format!("{} dt={dt}", ei.name()), Box::new(ei)));
-            let ti = Trapezoidal::new(x, dx, d, dt, Noise::Hard);
+            let ti = Trapezoidal::new(x, dx, d, dt);
             out.push((format!("{} dt={dt}", ti.name()), Box::new(ti)));
         }
     }
@@ -331,9 +333,9 @@ fn generic_factors(model: &Model, rng: &mut Rng) -> Vec<(String, Box<dyn Factor>
 /// The model factors in dependent coordinates.
 fn dependent_factors(model: &Arc<Model>) -> Vec<Box<dyn Factor>> {
     vec![
-        Box::new(PositionConstraints::new(model.clone(), Noise::Hard)),
-        Box::new(VelocityConstraints::new(model.clone(), Noise::Hard)),
-        Box::new(Dynamics::new(model.clone(), Noise::Isotropic(1e-3))),
+        Box::new(PositionConstraints::new(model.clone())),
+        Box::new(VelocityConstraints::new(model.clone())),
+        Box::new(Dynamics::new(model.clone())),
     ]
 }
 
@@ -343,9 +345,9 @@ fn independent_kinematic_factors(model: &Arc<Model>) -> Vec<Box<dyn Factor>> {
         return Vec::new();
     }
     vec![
-        Box::new(IndependentPosition::new(model.clone(), Noise::Hard)),
-        Box::new(IndependentVelocity::new(model.clone(), Noise::Hard)),
-        Box::new(IndependentAcceleration::new(model.clone(), Noise::Hard)),
+        Box::new(IndependentPosition::new(model.clone())),
+        Box::new(IndependentVelocity::new(model.clone())),
+        Box::new(IndependentAcceleration::new(model.clone())),
     ]
 }
 
@@ -355,10 +357,7 @@ fn all_factors(model: &Arc<Model>, rng: &mut Rng) -> Vec<(String, Box<dyn Factor
     let mut own = dependent_factors(model);
     own.extend(independent_kinematic_factors(model));
     if !model.independent.is_empty() {
-        own.push(Box::new(IndependentDynamics::new(
-            model.clone(),
-            Noise::Isotropic(1e-3),
-        )));
+        own.push(Box::new(IndependentDynamics::new(model.clone())));
     }
     out.extend(own.into_iter().map(|f| (f.name().to_string(), f)));
     out
@@ -438,7 +437,7 @@ fn tangent_integrators_match_finite_differences() {
         let mut list: Vec<(String, Box<dyn Factor>)> = Vec::new();
         for (x, dx) in [(VarKind::Q, VarKind::Dq), (VarKind::Dq, VarKind::Ddq)] {
             for (rule, dt) in [(Rule::Trapezoidal, 0.05), (Rule::Euler, 0.001)] {
-                let f = Projected::integrator(m.clone(), x, dx, rule, dt, Noise::Isotropic(0.01));
+                let f = Projected::integrator(m.clone(), x, dx, rule, dt);
                 list.push((format!("{} dt={dt}", f.name()), Box::new(f)));
             }
         }
@@ -462,12 +461,9 @@ fn hermite_simpson_factors_match_finite_differences() {
     let errors = check_family_with(1e-5, "Hermite–Simpson", 11, |m, _| {
         let mut list: Vec<(String, Box<dyn Factor>)> = Vec::new();
         for dt in [0.05, 0.001] {
-            let sigma = Noise::Isotropic(0.01);
             let n = m.n();
-            let hq = || {
-                HermitePosition::new(VarKind::Q, VarKind::Dq, VarKind::Ddq, n, dt, sigma.clone())
-            };
-            let hv = || SimpsonVelocity::dependent(m.clone(), dt, sigma.clone());
+            let hq = || HermitePosition::new(VarKind::Q, VarKind::Dq, VarKind::Ddq, n, dt);
+            let hv = || SimpsonVelocity::dependent(m.clone(), dt);
             list.push((format!("f_hs(q) dt={dt}"), Box::new(hq())));
             list.push((format!("f_hs(dq) dt={dt}"), Box::new(hv())));
             list.push((
@@ -488,12 +484,11 @@ fn hermite_simpson_factors_match_finite_differences() {
                         VarKind::Ddz,
                         f,
                         dt,
-                        sigma.clone(),
                     )),
                 ));
                 list.push((
                     format!("f_hs(dz) dt={dt}"),
-                    Box::new(SimpsonVelocity::independent(m.clone(), dt, sigma.clone())),
+                    Box::new(SimpsonVelocity::independent(m.clone(), dt)),
                 ));
             }
         }
@@ -521,10 +516,7 @@ fn constraint_factors_match_finite_differences() {
 #[test]
 fn dynamics_factor_matches_finite_differences() {
     check_family("f^d_dyn", 3, |m, _| {
-        labelled(vec![Box::new(Dynamics::new(
-            m.clone(),
-            Noise::Isotropic(1e-3),
-        ))])
+        labelled(vec![Box::new(Dynamics::new(m.clone()))])
     });
 }
 
@@ -536,36 +528,31 @@ fn inverse_dynamics_factors_match_finite_differences() {
         let idx: Vec<usize> = (0..n).step_by(2).collect();
         let steps = 3;
         let table: Vec<f64> = rng.values(steps * idx.len(), 1.0);
-        let mut list: Vec<(String, Box<dyn Factor>)> = vec![(
-            "f^d_idyn".into(),
-            Box::new(Dynamics::inverse(m.clone(), Noise::Isotropic(1e-3))),
-        )];
+        let mut list: Vec<(String, Box<dyn Factor>)> =
+            vec![("f^d_idyn".into(), Box::new(Dynamics::inverse(m.clone())))];
         if !m.independent.is_empty() {
             list.push((
                 "f^i_idyn".into(),
-                Box::new(IndependentDynamics::inverse(
-                    m.clone(),
-                    Noise::Isotropic(1e-3),
-                )),
+                Box::new(IndependentDynamics::inverse(m.clone())),
             ));
         }
         list.push((
             "f_prior(Q[…])".into(),
             Box::new(ComponentPrior::new(
                 VarKind::Force,
+                n,
                 idx.clone(),
                 vec![0.0; idx.len()],
-                Noise::Hard,
             )),
         ));
         list.push((
             "f_prior(q prescribed)".into(),
             Box::new(PrescribedMotion::new(
+                n,
                 idx,
                 std::sync::Arc::new(table),
                 0.0,
                 1.0,
-                Noise::Hard,
             )),
         ));
         list
@@ -579,8 +566,8 @@ fn inverse_dynamics_with_zero_force_is_forward_dynamics() {
     for name in SCENES {
         let model = load(name);
         let step = Step::random(&model, &mut rng);
-        let forward = Dynamics::new(model.clone(), Noise::Hard);
-        let inverse = Dynamics::inverse(model.clone(), Noise::Hard);
+        let forward = Dynamics::new(model.clone());
+        let inverse = Dynamics::inverse(model.clone());
         let zero = vec![0.0; model.n()];
         let mut ws = workspace_for(&forward);
         let (mut a, mut b) = (vec![0.0; model.n()], vec![0.0; model.n()]);
@@ -620,8 +607,8 @@ fn inverse_dynamics_on_some_coordinates_is_the_full_factor_with_the_other_forces
         for &i in &on {
             spread[i] = step.force[i];
         }
-        let full = Dynamics::inverse(model.clone(), Noise::Hard);
-        let some = Dynamics::inverse_on(model.clone(), Noise::Hard, on.clone());
+        let full = Dynamics::inverse(model.clone());
+        let some = Dynamics::inverse_on(model.clone(), on.clone());
         let mut ws = workspace_for(&some);
         let run = |f: &Dynamics, force: &[f64], ws: &mut Workspace| {
             let mut r = vec![0.0; n];
@@ -666,23 +653,17 @@ fn inverse_dynamics_along_directions_is_the_jacobian_times_them() {
         let model = load(name);
         let n = model.n();
         let on: Vec<usize> = (0..n).step_by(2).collect();
-        let mut factors: Vec<Box<dyn Factor>> = vec![Box::new(Dynamics::inverse_on(
-            model.clone(),
-            Noise::Isotropic(1e-3),
-            on.clone(),
-        ))];
+        let mut factors: Vec<Box<dyn Factor>> =
+            vec![Box::new(Dynamics::inverse_on(model.clone(), on.clone()))];
         if !model.independent.is_empty() {
-            factors.push(Box::new(IndependentDynamics::inverse(
-                model.clone(),
-                Noise::Isotropic(1e-3),
-            )));
+            factors.push(Box::new(IndependentDynamics::inverse(model.clone())));
         }
         for factor in &factors {
-            assert!(factor.evaluates_along());
+            assert!(factor.along().is_some());
             let step = Step::random(&model, &mut rng);
             let mut xs = inputs(factor.as_ref(), &step, &step);
             if let Some(f) = xs.get_mut(3) {
-                f.truncate(size_of_key(factor.as_ref(), 3, &model, on.len()));
+                f.truncate(factor.size(3));
             }
             let dim = factor.dim();
             let c = 7;
@@ -721,7 +702,8 @@ fn inverse_dynamics_along_directions_is_the_jacobian_times_them() {
             }
             let dir_slices: Vec<&[f64]> = dirs.iter().map(Vec::as_slice).collect();
             let (mut r2, mut out) = (vec![f64::NAN; dim], vec![f64::NAN; dim * c]);
-            let done = factor
+            let along = factor.along().expect("linearizes along directions");
+            let done = along
                 .evaluate_along(T, &slices, &mut r2, &dir_slices, c, &mut out, &mut ws)
                 .unwrap();
             assert!(done, "{name}: {}", factor.name());
@@ -743,24 +725,15 @@ fn inverse_dynamics_along_directions_is_the_jacobian_times_them() {
             let dense: Vec<Vec<f64>> = xs.iter().map(|x| rng.values(x.len() * wide, 1.0)).collect();
             let dense_slices: Vec<&[f64]> = dense.iter().map(Vec::as_slice).collect();
             let mut out = vec![0.0; dim * wide];
-            assert!(!factor
+            assert!(!along
                 .evaluate_along(T, &slices, &mut r2, &dense_slices, wide, &mut out, &mut ws)
                 .unwrap());
         }
     }
     // Factors without it decline.
     let model = load("fourbar.yaml");
-    let forward = Dynamics::new(model.clone(), Noise::Isotropic(1.0));
-    assert!(!forward.evaluates_along());
-}
-
-/// Size of key `a`'s variable for the inverse factors here (the force of
-/// f^d_idyn on `p` coordinates).
-fn size_of_key(factor: &dyn Factor, a: usize, model: &Model, p: usize) -> usize {
-    match factor.keys()[a].kind {
-        VarKind::Force if factor.name() == "f^d_idyn" => p,
-        kind => size(model, kind),
-    }
+    let forward = Dynamics::new(model.clone());
+    assert!(forward.along().is_none());
 }
 
 #[test]
@@ -777,10 +750,7 @@ fn independent_dynamics_factor_matches_finite_differences() {
         if m.independent.is_empty() {
             return Vec::new();
         }
-        labelled(vec![Box::new(IndependentDynamics::new(
-            m.clone(),
-            Noise::Isotropic(1e-3),
-        ))])
+        labelled(vec![Box::new(IndependentDynamics::new(m.clone()))])
     });
     assert_eq!(errors.0.len(), 1);
 }
@@ -1031,8 +1001,8 @@ fn dynamics_factors_give_the_classical_accelerations_at_consistent_states() {
             model.independent.clone()
         };
         assert_eq!(independent.len(), model.dof(), "{name}");
-        let dynamics_factor = Dynamics::new(model.clone(), Noise::Hard);
-        let independent_dynamics = IndependentDynamics::new(model.clone(), Noise::Hard);
+        let dynamics_factor = Dynamics::new(model.clone());
+        let independent_dynamics = IndependentDynamics::new(model.clone());
         for _ in 0..TRIALS {
             let (q, dq) = consistent_state(&model, &independent, &mut rng);
             let (qv, dqv) = (
@@ -1061,8 +1031,8 @@ fn dynamics_factors_give_the_classical_accelerations_at_consistent_states() {
                 "{name}: f^d_dyn at q̈_lagrange"
             );
             for factor in [
-                &PositionConstraints::new(model.clone(), Noise::Hard) as &dyn Factor,
-                &VelocityConstraints::new(model.clone(), Noise::Hard),
+                &PositionConstraints::new(model.clone()) as &dyn Factor,
+                &VelocityConstraints::new(model.clone()),
             ] {
                 let xs = inputs_from(factor, &q, &dq, kkt.ddq.as_slice(), &independent);
                 let mut ws = workspace_for(factor);
@@ -1215,8 +1185,8 @@ impl Factor for Defective {
     fn dim(&self) -> usize {
         self.inner.dim()
     }
-    fn noise(&self) -> &Noise {
-        self.inner.noise()
+    fn size(&self, key: usize) -> usize {
+        self.inner.size(key)
     }
     fn scratch(&self) -> (usize, usize) {
         self.inner.scratch()
@@ -1267,15 +1237,9 @@ fn checker_detects_defective_factors() {
     let before = Step::random(&model, &mut rng);
     type Build = fn(&Arc<Model>) -> Box<dyn Factor>;
     let make: [(&str, Build); 3] = [
-        ("f^d_dyn", |m| {
-            Box::new(Dynamics::new(m.clone(), Noise::Hard))
-        }),
-        ("f^d_vc", |m| {
-            Box::new(VelocityConstraints::new(m.clone(), Noise::Hard))
-        }),
-        ("f^i_dyn", |m| {
-            Box::new(IndependentDynamics::new(m.clone(), Noise::Hard))
-        }),
+        ("f^d_dyn", |m| Box::new(Dynamics::new(m.clone()))),
+        ("f^d_vc", |m| Box::new(VelocityConstraints::new(m.clone()))),
+        ("f^i_dyn", |m| Box::new(IndependentDynamics::new(m.clone()))),
     ];
     for (label, build) in make {
         let keys = build(&model).keys().len();

@@ -13,7 +13,6 @@ struct Linear {
     keys: [Key; 2],
     a: [[f64; 2]; 2],
     b: [[f64; 2]; 2],
-    noise: Noise,
 }
 
 impl Factor for Linear {
@@ -23,11 +22,11 @@ impl Factor for Linear {
     fn keys(&self) -> &[Key] {
         &self.keys
     }
-    fn dim(&self) -> usize {
+    fn size(&self, _key: usize) -> usize {
         2
     }
-    fn noise(&self) -> &Noise {
-        &self.noise
+    fn dim(&self) -> usize {
+        2
     }
     fn evaluate(
         &self,
@@ -60,7 +59,6 @@ impl Factor for Linear {
 /// A unary linear factor on the velocity: e = C v_t − w(t).
 struct Observe {
     keys: [Key; 1],
-    noise: Noise,
 }
 
 impl Factor for Observe {
@@ -70,11 +68,11 @@ impl Factor for Observe {
     fn keys(&self) -> &[Key] {
         &self.keys
     }
+    fn size(&self, _key: usize) -> usize {
+        2
+    }
     fn dim(&self) -> usize {
         1
-    }
-    fn noise(&self) -> &Noise {
-        &self.noise
     }
     fn evaluate(
         &self,
@@ -93,42 +91,36 @@ impl Factor for Observe {
 }
 
 fn chain() -> ChainGraph {
-    ChainGraph {
-        layout: Layout::new(&[(VarKind::Q, 2), (VarKind::Dq, 2)]),
-        dt: 0.1,
-        t0: 0.0,
-        step_factors: vec![
-            Box::new(Trapezoidal::new(
-                VarKind::Q,
-                VarKind::Dq,
-                2,
-                0.1,
-                Noise::Isotropic(0.05),
-            )),
+    let layout = Layout::new(&[(VarKind::Q, 2), (VarKind::Dq, 2)]);
+    ChainGraph::builder(layout, 0.1, 0.0)
+        .step_soft(
+            Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, 2, 0.1)),
+            Noise::Isotropic(0.05),
+        )
+        .step_soft(
             Box::new(Linear {
                 keys: [Key::now(VarKind::Q), Key::before(VarKind::Dq)],
                 a: [[1.0, 0.5], [-0.3, 2.0]],
                 b: [[0.2, -1.0], [0.7, 0.1]],
-                noise: Noise::Diagonal(vec![0.3, 0.7]),
             }),
+            Noise::Diagonal(vec![0.3, 0.7]),
+        )
+        .step_soft(
             Box::new(Observe {
                 keys: [Key::now(VarKind::Dq)],
-                noise: Noise::Isotropic(0.2),
             }),
-        ],
-        initial_factors: vec![
-            Box::new(Prior::new(
-                VarKind::Q,
-                vec![1.0, -0.5],
-                Noise::Isotropic(0.1),
-            )),
-            Box::new(Prior::new(
-                VarKind::Dq,
-                vec![0.0, 0.3],
-                Noise::Diagonal(vec![0.5, 0.25]),
-            )),
-        ],
-    }
+            Noise::Isotropic(0.2),
+        )
+        .initial_soft(
+            Box::new(Prior::new(VarKind::Q, vec![1.0, -0.5])),
+            Noise::Isotropic(0.1),
+        )
+        .initial_soft(
+            Box::new(Prior::new(VarKind::Dq, vec![0.0, 0.3])),
+            Noise::Diagonal(vec![0.5, 0.25]),
+        )
+        .build()
+        .unwrap()
 }
 
 fn settings() -> Settings {
@@ -141,7 +133,7 @@ fn settings() -> Settings {
 #[test]
 fn newest_smoother_estimate_equals_the_batch_solution() {
     let graph = chain();
-    let s = graph.layout.size();
+    let s = graph.layout().size();
     let steps = 25;
     for window in [1, 2, 3, 5, 10, 30] {
         let mut values = vec![0.0; steps * s];
@@ -185,7 +177,7 @@ fn newest_smoother_estimate_equals_the_batch_solution() {
 #[test]
 fn smoother_with_whole_horizon_window_reproduces_the_batch_everywhere() {
     let graph = chain();
-    let s = graph.layout.size();
+    let s = graph.layout().size();
     let steps = 12;
     let mut values = vec![0.0; steps * s];
     smoother::fixed_lag(

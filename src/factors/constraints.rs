@@ -1,9 +1,9 @@
 //! The constraint factors of dependent coordinates: f^d_pc ([`PositionConstraints`])
 //! and f^d_vc ([`VelocityConstraints`]).
 
-use super::shared::{key_and_noise_accessors, mat_vec};
+use super::shared::{key_accessor, mat_vec};
 use crate::error::Result;
-use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::graph::{Factor, Key, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -11,15 +11,13 @@ use std::sync::Arc;
 pub struct PositionConstraints {
     model: Arc<Model>,
     keys: [Key; 1],
-    noise: Noise,
 }
 
 impl PositionConstraints {
-    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+    pub fn new(model: Arc<Model>) -> Self {
         PositionConstraints {
             model,
             keys: [Key::now(VarKind::Q)],
-            noise,
         }
     }
 }
@@ -28,7 +26,10 @@ impl Factor for PositionConstraints {
     fn name(&self) -> &str {
         "f^d_pc"
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.model.n()
+    }
     fn dim(&self) -> usize {
         self.model.m()
     }
@@ -52,15 +53,13 @@ impl Factor for PositionConstraints {
 pub struct VelocityConstraints {
     model: Arc<Model>,
     keys: [Key; 2],
-    noise: Noise,
 }
 
 impl VelocityConstraints {
-    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+    pub fn new(model: Arc<Model>) -> Self {
         VelocityConstraints {
             model,
             keys: [Key::now(VarKind::Q), Key::now(VarKind::Dq)],
-            noise,
         }
     }
 }
@@ -69,7 +68,10 @@ impl Factor for VelocityConstraints {
     fn name(&self) -> &str {
         "f^d_vc"
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.model.n()
+    }
     fn dim(&self) -> usize {
         self.model.m()
     }

@@ -2,10 +2,10 @@
 //! form f^d_idyn with the actuator forces a variable ([`Dynamics`]), on the
 //! [`DynamicsKernel`].
 
-use super::shared::{identity, key_and_noise_accessors};
+use super::shared::{identity, key_accessor};
 use crate::dynamics::DynamicsKernel;
 use crate::error::Result;
-use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::graph::{AlongDirections, Factor, Key, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -15,7 +15,6 @@ use std::sync::Arc;
 pub struct Dynamics {
     model: Arc<Model>,
     keys: Vec<Key>,
-    noise: Noise,
     /// Inverse dynamics: the coordinates the forces Q act on (see [`Actuated`]).
     actuated: Option<Actuated>,
 }
@@ -67,7 +66,7 @@ impl Actuated {
 }
 
 impl Dynamics {
-    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+    pub fn new(model: Arc<Model>) -> Self {
         Dynamics {
             model,
             keys: vec![
@@ -75,15 +74,14 @@ impl Dynamics {
                 Key::now(VarKind::Dq),
                 Key::now(VarKind::Ddq),
             ],
-            noise,
             actuated: None,
         }
     }
 
     /// f^d_idyn, with forces on every coordinate.
-    pub fn inverse(model: Arc<Model>, noise: Noise) -> Self {
+    pub fn inverse(model: Arc<Model>) -> Self {
         let n = model.n();
-        let mut f = Dynamics::new(model, noise);
+        let mut f = Dynamics::new(model);
         f.keys.push(Key::now(VarKind::Force));
         f.actuated = Some(Actuated::all(n));
         f
@@ -91,9 +89,9 @@ impl Dynamics {
 
     /// f^d_idyn with forces on the coordinates `actuated` only: its Q variable has
     /// one entry per actuated coordinate, in that order.
-    pub fn inverse_on(model: Arc<Model>, noise: Noise, actuated: Vec<usize>) -> Self {
+    pub fn inverse_on(model: Arc<Model>, actuated: Vec<usize>) -> Self {
         let n = model.n();
-        let mut f = Dynamics::inverse(model, noise);
+        let mut f = Dynamics::inverse(model);
         f.actuated = Some(Actuated::only(n, actuated));
         f
     }
@@ -107,7 +105,13 @@ impl Factor for Dynamics {
             "f^d_dyn"
         }
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, key: usize) -> usize {
+        match (&self.actuated, key) {
+            (Some(a), 3) => a.indices.len(),
+            _ => self.model.n(),
+        }
+    }
     fn dim(&self) -> usize {
         self.model.n()
     }
@@ -125,63 +129,9 @@ impl Factor for Dynamics {
     fn diagonal_jacobian(&self, key: usize) -> bool {
         key == 2
     }
-    fn evaluates_along(&self) -> bool {
-        self.actuated.is_some()
-    }
-    /// f^d_idyn only: e = q̈(q, q̇, t; Q) − q̈_t along V: K⁻¹ applied to the
-    /// Jacobians' right-hand sides times V (see [`DynamicsKernel::along`]), minus V on
-    /// q̈_t.
-    fn evaluate_along(
-        &self,
-        t: f64,
-        x: &[&[f64]],
-        r: &mut [f64],
-        dirs: &[&[f64]],
-        c: usize,
-        out: &mut [f64],
-        ws: &mut Workspace,
-    ) -> Result<bool> {
-        let Some(a) = &self.actuated else {
-            return Ok(false);
-        };
-        let n = self.model.n();
-        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
-        let (kernel, rest) = ws.reals.split_at_mut(kernel_len);
-        let (own, extra) = rest.split_at_mut(n);
-        let force = a.forces(x[3], own);
-        DynamicsKernel::evaluate(
-            &self.model,
-            x[0],
-            x[1],
-            t,
-            Some(force),
-            r,
-            None,
-            kernel,
-            &mut ws.indices,
-        )?;
-        if !DynamicsKernel::along(
-            &self.model,
-            (x[0], x[1], t),
-            [dirs[0], dirs[1], dirs[3]],
-            &a.indices,
-            None,
-            c,
-            out,
-            kernel,
-            extra,
-            &mut ws.indices,
-            2 * n + a.indices.len(),
-        )? {
-            return Ok(false);
-        }
-        for (o, v) in out[..n * c].iter_mut().zip(&dirs[2][..n * c]) {
-            *o -= v;
-        }
-        for i in 0..n {
-            r[i] -= x[2][i];
-        }
-        Ok(true)
+    /// f^d_idyn only.
+    fn along(&self) -> Option<&dyn AlongDirections> {
+        self.actuated.as_ref().map(|_| self as &dyn AlongDirections)
     }
     fn evaluate(
         &self,
@@ -241,5 +191,63 @@ impl Factor for Dynamics {
             r[i] -= x[2][i];
         }
         Ok(())
+    }
+}
+
+impl AlongDirections for Dynamics {
+    /// f^d_idyn only: e = q̈(q, q̇, t; Q) − q̈_t along V: K⁻¹ applied to the
+    /// Jacobians' right-hand sides times V (see [`DynamicsKernel::along`]), minus V on
+    /// q̈_t.
+    fn evaluate_along(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        dirs: &[&[f64]],
+        c: usize,
+        out: &mut [f64],
+        ws: &mut Workspace,
+    ) -> Result<bool> {
+        let Some(a) = &self.actuated else {
+            return Ok(false);
+        };
+        let n = self.model.n();
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, rest) = ws.reals.split_at_mut(kernel_len);
+        let (own, extra) = rest.split_at_mut(n);
+        let force = a.forces(x[3], own);
+        DynamicsKernel::evaluate(
+            &self.model,
+            x[0],
+            x[1],
+            t,
+            Some(force),
+            r,
+            None,
+            kernel,
+            &mut ws.indices,
+        )?;
+        if !DynamicsKernel::along(
+            &self.model,
+            (x[0], x[1], t),
+            [dirs[0], dirs[1], dirs[3]],
+            &a.indices,
+            None,
+            c,
+            out,
+            kernel,
+            extra,
+            &mut ws.indices,
+            2 * n + a.indices.len(),
+        )? {
+            return Ok(false);
+        }
+        for (o, v) in out[..n * c].iter_mut().zip(&dirs[2][..n * c]) {
+            *o -= v;
+        }
+        for i in 0..n {
+            r[i] -= x[2][i];
+        }
+        Ok(true)
     }
 }

@@ -2,10 +2,10 @@
 //! ([`IndependentVelocity`]), f^i_ac ([`IndependentAcceleration`]) and f^i_dyn
 //! ([`IndependentDynamics`], with its inverse-dynamics form f^i_idyn).
 
-use super::shared::{identity, key_and_noise_accessors, mat_vec};
+use super::shared::{identity, key_accessor, mat_vec};
 use crate::dynamics::DynamicsKernel;
 use crate::error::Result;
-use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::graph::{AlongDirections, Factor, Key, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -13,15 +13,13 @@ use std::sync::Arc;
 pub struct IndependentPosition {
     model: Arc<Model>,
     keys: [Key; 2],
-    noise: Noise,
 }
 
 impl IndependentPosition {
-    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+    pub fn new(model: Arc<Model>) -> Self {
         IndependentPosition {
             model,
             keys: [Key::now(VarKind::Q), Key::now(VarKind::Z)],
-            noise,
         }
     }
 }
@@ -45,7 +43,15 @@ impl Factor for IndependentPosition {
     fn name(&self) -> &str {
         "f^i_pc"
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, key: usize) -> usize {
+        // The last key is z's.
+        if key + 1 == self.keys.len() {
+            self.model.independent.len()
+        } else {
+            self.model.n()
+        }
+    }
     fn dim(&self) -> usize {
         self.model.m() + self.model.independent.len()
     }
@@ -75,11 +81,10 @@ impl Factor for IndependentPosition {
 pub struct IndependentVelocity {
     model: Arc<Model>,
     keys: [Key; 3],
-    noise: Noise,
 }
 
 impl IndependentVelocity {
-    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+    pub fn new(model: Arc<Model>) -> Self {
         IndependentVelocity {
             model,
             keys: [
@@ -87,7 +92,6 @@ impl IndependentVelocity {
                 Key::now(VarKind::Dq),
                 Key::now(VarKind::Dz),
             ],
-            noise,
         }
     }
 }
@@ -96,7 +100,15 @@ impl Factor for IndependentVelocity {
     fn name(&self) -> &str {
         "f^i_vc"
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, key: usize) -> usize {
+        // The last key is z's.
+        if key + 1 == self.keys.len() {
+            self.model.independent.len()
+        } else {
+            self.model.n()
+        }
+    }
     fn dim(&self) -> usize {
         self.model.m() + self.model.independent.len()
     }
@@ -135,11 +147,10 @@ impl Factor for IndependentVelocity {
 pub struct IndependentAcceleration {
     model: Arc<Model>,
     keys: [Key; 4],
-    noise: Noise,
 }
 
 impl IndependentAcceleration {
-    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+    pub fn new(model: Arc<Model>) -> Self {
         IndependentAcceleration {
             model,
             keys: [
@@ -148,7 +159,6 @@ impl IndependentAcceleration {
                 Key::now(VarKind::Ddq),
                 Key::now(VarKind::Ddz),
             ],
-            noise,
         }
     }
 }
@@ -157,7 +167,15 @@ impl Factor for IndependentAcceleration {
     fn name(&self) -> &str {
         "f^i_ac"
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, key: usize) -> usize {
+        // The last key is z's.
+        if key + 1 == self.keys.len() {
+            self.model.independent.len()
+        } else {
+            self.model.n()
+        }
+    }
     fn dim(&self) -> usize {
         self.model.m() + self.model.independent.len()
     }
@@ -214,14 +232,13 @@ impl Factor for IndependentAcceleration {
 pub struct IndependentDynamics {
     model: Arc<Model>,
     keys: Vec<Key>,
-    noise: Noise,
     inverse: bool,
     /// Every coordinate, the columns of ∂q̈/∂Q (forces act on all of them).
     all: Vec<usize>,
 }
 
 impl IndependentDynamics {
-    pub fn new(model: Arc<Model>, noise: Noise) -> Self {
+    pub fn new(model: Arc<Model>) -> Self {
         IndependentDynamics {
             all: (0..model.n()).collect(),
             model,
@@ -230,15 +247,14 @@ impl IndependentDynamics {
                 Key::now(VarKind::Dq),
                 Key::now(VarKind::Ddz),
             ],
-            noise,
             inverse: false,
         }
     }
 
     /// f^i_idyn: e = z̈(q, q̇, t; Q_scene + Q) − z̈_t with the actuator forces Q a
     /// variable (fourth key); ∂e/∂Q is the independent rows of ∂q̈/∂Q.
-    pub fn inverse(model: Arc<Model>, noise: Noise) -> Self {
-        let mut f = IndependentDynamics::new(model, noise);
+    pub fn inverse(model: Arc<Model>) -> Self {
+        let mut f = IndependentDynamics::new(model);
         f.keys.push(Key::now(VarKind::Force));
         f.inverse = true;
         f
@@ -253,7 +269,15 @@ impl Factor for IndependentDynamics {
             "f^i_dyn"
         }
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, key: usize) -> usize {
+        // q, q̇, z̈ and (f^i_idyn) Q on every coordinate.
+        if key == 2 {
+            self.model.independent.len()
+        } else {
+            self.model.n()
+        }
+    }
     fn dim(&self) -> usize {
         self.model.independent.len()
     }
@@ -267,9 +291,60 @@ impl Factor for IndependentDynamics {
             (r + 3 * n * n + n, i)
         }
     }
-    fn evaluates_along(&self) -> bool {
-        self.inverse
+    /// f^i_idyn only.
+    fn along(&self) -> Option<&dyn AlongDirections> {
+        self.inverse.then_some(self as &dyn AlongDirections)
     }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let n = self.model.n();
+        let f = self.model.independent.len();
+        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
+        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
+        let (ddq, own) = own.split_at_mut(n);
+        let (jq, own) = own.split_at_mut(n * n);
+        let (jv, own) = own.split_at_mut(n * n);
+        let jf = &mut own[..n * n];
+        let want = jac.is_some();
+        let force = if self.inverse { Some(x[3]) } else { None };
+        DynamicsKernel::evaluate(
+            &self.model,
+            x[0],
+            x[1],
+            t,
+            force,
+            ddq,
+            want.then_some((&mut *jq, &mut *jv)),
+            kernel,
+            &mut ws.indices,
+        )?;
+        for (k, &i) in self.model.independent.iter().enumerate() {
+            r[k] = ddq[i] - x[2][k];
+        }
+        if let Some(j) = jac {
+            for (k, &i) in self.model.independent.iter().enumerate() {
+                j[0][k * n..(k + 1) * n].copy_from_slice(&jq[i * n..(i + 1) * n]);
+                j[1][k * n..(k + 1) * n].copy_from_slice(&jv[i * n..(i + 1) * n]);
+            }
+            identity(&mut j[2], f, -1.0);
+            if self.inverse {
+                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, kernel, &ws.indices);
+                for (k, &i) in self.model.independent.iter().enumerate() {
+                    j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+impl AlongDirections for IndependentDynamics {
     /// f^i_idyn only: the independent rows of q̈(q, q̇, t; Q) along V (see
     /// [`DynamicsKernel::along`]), minus V on z̈_t.
     fn evaluate_along(
@@ -324,52 +399,5 @@ impl Factor for IndependentDynamics {
             r[k] = ddq[i] - x[2][k];
         }
         Ok(true)
-    }
-    fn evaluate(
-        &self,
-        t: f64,
-        x: &[&[f64]],
-        r: &mut [f64],
-        jac: Option<&mut [Vec<f64>]>,
-        ws: &mut Workspace,
-    ) -> Result<()> {
-        let n = self.model.n();
-        let f = self.model.independent.len();
-        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
-        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
-        let (ddq, own) = own.split_at_mut(n);
-        let (jq, own) = own.split_at_mut(n * n);
-        let (jv, own) = own.split_at_mut(n * n);
-        let jf = &mut own[..n * n];
-        let want = jac.is_some();
-        let force = if self.inverse { Some(x[3]) } else { None };
-        DynamicsKernel::evaluate(
-            &self.model,
-            x[0],
-            x[1],
-            t,
-            force,
-            ddq,
-            want.then_some((&mut *jq, &mut *jv)),
-            kernel,
-            &mut ws.indices,
-        )?;
-        for (k, &i) in self.model.independent.iter().enumerate() {
-            r[k] = ddq[i] - x[2][k];
-        }
-        if let Some(j) = jac {
-            for (k, &i) in self.model.independent.iter().enumerate() {
-                j[0][k * n..(k + 1) * n].copy_from_slice(&jq[i * n..(i + 1) * n]);
-                j[1][k * n..(k + 1) * n].copy_from_slice(&jv[i * n..(i + 1) * n]);
-            }
-            identity(&mut j[2], f, -1.0);
-            if self.inverse {
-                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, kernel, &ws.indices);
-                for (k, &i) in self.model.independent.iter().enumerate() {
-                    j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
-                }
-            }
-        }
-        Ok(())
     }
 }

@@ -1,25 +1,23 @@
 //! The factors between consecutive steps: the soft link f_eq ([`Equality`]) and the
 //! integrators f_ei ([`Euler`]) and f_ti ([`Trapezoidal`]).
 
-use super::shared::{identity, key_and_noise_accessors};
+use super::shared::{identity, key_accessor};
 use crate::error::Result;
-use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::graph::{Factor, Key, VarKind, Workspace};
 
 /// f_eq: e = x_t − x_{t−1}, a soft link between consecutive steps.
 pub struct Equality {
     name: String,
     keys: [Key; 2],
     dim: usize,
-    noise: Noise,
 }
 
 impl Equality {
-    pub fn new(kind: VarKind, dim: usize, noise: Noise) -> Self {
+    pub fn new(kind: VarKind, dim: usize) -> Self {
         Equality {
             name: format!("f_eq({})", kind.symbol()),
             keys: [Key::before(kind), Key::now(kind)],
             dim,
-            noise,
         }
     }
 }
@@ -28,7 +26,10 @@ impl Factor for Equality {
     fn name(&self) -> &str {
         &self.name
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.dim
+    }
     fn dim(&self) -> usize {
         self.dim
     }
@@ -60,17 +61,15 @@ pub struct Euler {
     keys: [Key; 3],
     dim: usize,
     dt: f64,
-    noise: Noise,
 }
 
 impl Euler {
-    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64, noise: Noise) -> Self {
+    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64) -> Self {
         Euler {
             name: format!("f_ei({})", x.symbol()),
             keys: [Key::before(x), Key::now(x), Key::before(dx)],
             dim,
             dt,
-            noise,
         }
     }
 }
@@ -79,7 +78,10 @@ impl Factor for Euler {
     fn name(&self) -> &str {
         &self.name
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.dim
+    }
     fn dim(&self) -> usize {
         self.dim
     }
@@ -112,17 +114,15 @@ pub struct Trapezoidal {
     keys: [Key; 4],
     dim: usize,
     dt: f64,
-    noise: Noise,
 }
 
 impl Trapezoidal {
-    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64, noise: Noise) -> Self {
+    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64) -> Self {
         Trapezoidal {
             name: format!("f_ti({})", x.symbol()),
             keys: [Key::before(x), Key::now(x), Key::before(dx), Key::now(dx)],
             dim,
             dt,
-            noise,
         }
     }
 }
@@ -131,7 +131,10 @@ impl Factor for Trapezoidal {
     fn name(&self) -> &str {
         &self.name
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.dim
+    }
     fn dim(&self) -> usize {
         self.dim
     }

@@ -14,7 +14,7 @@
 //!
 //! One file per family: `priors`, `integrators`, `constraints`, `dynamics` (on the
 //! [`DynamicsKernel`] of [`crate::dynamics`]), `independent` and `prescribed`;
-//! what they share (the key and noise accessors, the identity block) in `shared`.
+//! what they share (the key accessor, the identity block) in `shared`.
 
 mod constraints;
 mod dynamics;
@@ -33,4 +33,4 @@ pub use independent::{
 pub use integrators::{Equality, Euler, Trapezoidal};
 pub use prescribed::PrescribedMotion;
 pub use priors::{ComponentPrior, Prior};
-pub(crate) use shared::{identity, key_and_noise_accessors};
+pub(crate) use shared::{identity, key_accessor};

@@ -1,44 +1,46 @@
 //! A prescribed motion: f_prior on some coordinates following a table of values, one
 //! row per time step ([`PrescribedMotion`]).
 
-use super::shared::key_and_noise_accessors;
+use super::shared::key_accessor;
 use crate::error::{Error, Result};
-use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::graph::{Factor, Key, VarKind, Workspace};
 use std::sync::Arc;
 
 /// f_prior on a prescribed motion: e = q[idx] − q_p(t_k), the values read from a
 /// table with one row per time step t_k = t₀ + k·Δt.
 pub struct PrescribedMotion {
     keys: [Key; 1],
+    /// The size of the variable the prescribed components are of.
+    size: usize,
     indices: Vec<usize>,
     /// Row-major steps × indices.len().
     table: Arc<Vec<f64>>,
     t0: f64,
     dt: f64,
-    noise: Noise,
 }
 
 impl PrescribedMotion {
-    /// On components `indices` of q (or of z, with `kind`).
-    pub fn new(indices: Vec<usize>, table: Arc<Vec<f64>>, t0: f64, dt: f64, noise: Noise) -> Self {
-        Self::on(VarKind::Q, indices, table, t0, dt, noise)
+    /// On components `indices` of q, of `size` entries (or of z, with `on`).
+    pub fn new(size: usize, indices: Vec<usize>, table: Arc<Vec<f64>>, t0: f64, dt: f64) -> Self {
+        Self::on(VarKind::Q, size, indices, table, t0, dt)
     }
 
+    /// On components `indices` of the variable `kind`, of `size` entries.
     pub fn on(
         kind: VarKind,
+        size: usize,
         indices: Vec<usize>,
         table: Arc<Vec<f64>>,
         t0: f64,
         dt: f64,
-        noise: Noise,
     ) -> Self {
         PrescribedMotion {
             keys: [Key::now(kind)],
+            size,
             indices,
             table,
             t0,
             dt,
-            noise,
         }
     }
 }
@@ -47,7 +49,10 @@ impl Factor for PrescribedMotion {
     fn name(&self) -> &str {
         "f_prior(q prescribed)"
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.size
+    }
     fn dim(&self) -> usize {
         self.indices.len()
     }

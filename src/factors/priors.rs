@@ -1,25 +1,23 @@
 //! Priors: f_prior on a whole variable ([`Prior`]) and on some of its components
 //! ([`ComponentPrior`]).
 
-use super::shared::{identity, key_and_noise_accessors};
+use super::shared::{identity, key_accessor};
 use crate::error::Result;
-use crate::graph::{Factor, Key, Noise, VarKind, Workspace};
+use crate::graph::{Factor, Key, VarKind, Workspace};
 
 /// f_prior: e = x − x₀ on one variable.
 pub struct Prior {
     name: String,
     keys: [Key; 1],
     target: Vec<f64>,
-    noise: Noise,
 }
 
 impl Prior {
-    pub fn new(kind: VarKind, target: Vec<f64>, noise: Noise) -> Self {
+    pub fn new(kind: VarKind, target: Vec<f64>) -> Self {
         Prior {
             name: format!("f_prior({})", kind.symbol()),
             keys: [Key::now(kind)],
             target,
-            noise,
         }
     }
 }
@@ -28,7 +26,10 @@ impl Factor for Prior {
     fn name(&self) -> &str {
         &self.name
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.target.len()
+    }
     fn dim(&self) -> usize {
         self.target.len()
     }
@@ -59,20 +60,22 @@ impl Factor for Prior {
 pub struct ComponentPrior {
     name: String,
     keys: [Key; 1],
+    /// The size of the variable the components are of.
+    size: usize,
     indices: Vec<usize>,
     target: Vec<f64>,
-    noise: Noise,
 }
 
 impl ComponentPrior {
-    pub fn new(kind: VarKind, indices: Vec<usize>, target: Vec<f64>, noise: Noise) -> Self {
+    /// On components `indices` of the variable `kind`, of `size` entries.
+    pub fn new(kind: VarKind, size: usize, indices: Vec<usize>, target: Vec<f64>) -> Self {
         assert_eq!(indices.len(), target.len(), "one target per component");
         ComponentPrior {
             name: format!("f_prior({}[…])", kind.symbol()),
             keys: [Key::now(kind)],
+            size,
             indices,
             target,
-            noise,
         }
     }
 }
@@ -81,7 +84,10 @@ impl Factor for ComponentPrior {
     fn name(&self) -> &str {
         &self.name
     }
-    key_and_noise_accessors!();
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.size
+    }
     fn dim(&self) -> usize {
         self.indices.len()
     }

@@ -1,18 +1,15 @@
-//! What the factor families share: the `keys` and `noise` accessors, the identity
-//! block of a Jacobian and y = A x.
+//! What the factor families share: the `keys` accessor, the identity block of a
+//! Jacobian and y = A x.
 
-/// The `keys` and `noise` methods every factor here answers from its own fields.
-macro_rules! key_and_noise_accessors {
+/// The `keys` method every factor here answers from its own field.
+macro_rules! key_accessor {
     () => {
         fn keys(&self) -> &[Key] {
             &self.keys
         }
-        fn noise(&self) -> &Noise {
-            &self.noise
-        }
     };
 }
-pub(crate) use key_and_noise_accessors;
+pub(crate) use key_accessor;
 
 /// Writes `scale`·I into a row-major d × d block.
 pub(crate) fn identity(block: &mut [f64], d: usize, scale: f64) {

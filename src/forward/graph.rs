@@ -30,45 +30,39 @@ impl ForwardGraph {
         let nm = options.noise;
         let dt = options.dt;
         let init = &model.initial;
-        let hard = Noise::Hard;
-        let integrate = |x: VarKind, dx: VarKind, dim: usize, sigma: f64| -> Box<dyn Factor> {
+        let integrate = |x: VarKind, dx: VarKind, dim: usize| -> Box<dyn Factor> {
             match options.integrator {
                 Integrator::Trapezoidal | Integrator::HermiteSimpson => {
-                    Box::new(Trapezoidal::new(x, dx, dim, dt, Noise::Isotropic(sigma)))
+                    Box::new(Trapezoidal::new(x, dx, dim, dt))
                 }
-                Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt, Noise::Isotropic(sigma))),
+                Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt)),
             }
         };
-        let dc_integrate = |x: VarKind, dx: VarKind, sigma: f64| -> Box<dyn Factor> {
+        let dc_integrate = |x: VarKind, dx: VarKind| -> Box<dyn Factor> {
             let rule = match options.integrator {
                 Integrator::Trapezoidal | Integrator::HermiteSimpson => Rule::Trapezoidal,
                 Integrator::Euler => Rule::Euler,
             };
             match options.dc_integrators {
-                DcIntegrators::Tangent => Box::new(Projected::integrator(
-                    model.clone(),
-                    x,
-                    dx,
-                    rule,
-                    dt,
-                    Noise::Isotropic(sigma),
-                )),
-                DcIntegrators::Full | DcIntegrators::Auto => integrate(x, dx, n, sigma),
+                DcIntegrators::Tangent => {
+                    Box::new(Projected::integrator(model.clone(), x, dx, rule, dt))
+                }
+                DcIntegrators::Full | DcIntegrators::Auto => integrate(x, dx, n),
             }
         };
-        // The position and velocity integrators of each coordinate set.
-        let hermite = (options.integrator == Integrator::HermiteSimpson).then_some(|independent| {
-            let sigma = [nm.integrator_position, nm.integrator_velocity];
-            collocation::factors(&model, independent, dt, sigma)
-        });
+        // The position and velocity integrators of each coordinate set, soft with
+        // these σ.
+        let sigma = [nm.integrator_position, nm.integrator_velocity];
+        let hermite = (options.integrator == Integrator::HermiteSimpson)
+            .then_some(|independent| collocation::factors(&model, independent, dt));
         let dc_integrators = || -> [Box<dyn Factor>; 2] {
             match &hermite {
                 Some(factors) if options.tangent_dc() => factors(false)
                     .map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>),
                 Some(factors) => factors(false),
                 None => [
-                    dc_integrate(VarKind::Q, VarKind::Dq, nm.integrator_position),
-                    dc_integrate(VarKind::Dq, VarKind::Ddq, nm.integrator_velocity),
+                    dc_integrate(VarKind::Q, VarKind::Dq),
+                    dc_integrate(VarKind::Dq, VarKind::Ddq),
                 ],
             }
         };
@@ -76,38 +70,35 @@ impl ForwardGraph {
             match &hermite {
                 Some(factors) => factors(true),
                 None => [
-                    integrate(VarKind::Z, VarKind::Dz, f, nm.integrator_position),
-                    integrate(VarKind::Dz, VarKind::Ddz, f, nm.integrator_velocity),
+                    integrate(VarKind::Z, VarKind::Dz, f),
+                    integrate(VarKind::Dz, VarKind::Ddz, f),
                 ],
             }
         };
         let graph = match options.coordinates {
-            Coordinates::Dependent => ChainGraph {
-                layout: Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]),
-                dt,
-                t0: 0.0,
-                step_factors: [
-                    Box::new(PositionConstraints::new(model.clone(), hard.clone()))
-                        as Box<dyn Factor>,
-                    Box::new(VelocityConstraints::new(model.clone(), hard.clone())),
-                    Box::new(Dynamics::new(model.clone(), Noise::Isotropic(nm.dynamics))),
-                ]
-                .into_iter()
-                .chain(dc_integrators())
-                .collect(),
-                initial_factors: vec![
-                    Box::new(Prior::new(
+            Coordinates::Dependent => {
+                let layout = Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]);
+                let mut builder = ChainGraph::builder(layout, dt, 0.0)
+                    .step_constraint(Box::new(PositionConstraints::new(model.clone())))
+                    .step_constraint(Box::new(VelocityConstraints::new(model.clone())))
+                    .step_soft(
+                        Box::new(Dynamics::new(model.clone())),
+                        Noise::Isotropic(nm.dynamics),
+                    );
+                for (factor, sigma) in dc_integrators().into_iter().zip(sigma) {
+                    builder = builder.step_soft(factor, Noise::Isotropic(sigma));
+                }
+                builder
+                    .initial_constraint(Box::new(Prior::new(
                         VarKind::Q,
                         init.q.as_slice().to_vec(),
-                        hard.clone(),
-                    )),
-                    Box::new(Prior::new(
+                    )))
+                    .initial_constraint(Box::new(Prior::new(
                         VarKind::Dq,
                         init.dq.as_slice().to_vec(),
-                        hard.clone(),
-                    )),
-                ],
-            },
+                    )))
+                    .build()?
+            }
             Coordinates::Independent => {
                 let z0: Vec<f64> = model.independent.iter().map(|&i| init.q[i]).collect();
                 let dz0: Vec<f64> = model.independent.iter().map(|&i| init.dq[i]).collect();
@@ -116,44 +107,37 @@ impl ForwardGraph {
                 for &i in &model.independent {
                     sig[i] = 1e-3f64.sqrt() * nm.initial_q;
                 }
-                ChainGraph {
-                    layout: Layout::new(&[
-                        (VarKind::Q, n),
-                        (VarKind::Dq, n),
-                        (VarKind::Ddq, n),
-                        (VarKind::Z, f),
-                        (VarKind::Dz, f),
-                        (VarKind::Ddz, f),
-                    ]),
-                    dt,
-                    t0: 0.0,
-                    step_factors: [
-                        Box::new(IndependentPosition::new(model.clone(), hard.clone()))
-                            as Box<dyn Factor>,
-                        Box::new(IndependentVelocity::new(model.clone(), hard.clone())),
-                        Box::new(IndependentAcceleration::new(model.clone(), hard.clone())),
-                        Box::new(IndependentDynamics::new(
-                            model.clone(),
-                            Noise::Isotropic(nm.dynamics),
-                        )),
-                    ]
-                    .into_iter()
-                    .chain(ic_integrators())
-                    .chain([
-                        Box::new(Equality::new(VarKind::Q, n, Noise::Isotropic(nm.equality)))
-                            as Box<dyn Factor>,
-                    ])
-                    .collect(),
-                    initial_factors: vec![
-                        Box::new(Prior::new(VarKind::Z, z0, hard.clone())),
-                        Box::new(Prior::new(VarKind::Dz, dz0, hard.clone())),
-                        Box::new(Prior::new(
-                            VarKind::Q,
-                            init.q.as_slice().to_vec(),
-                            Noise::Diagonal(sig),
-                        )),
-                    ],
+                let layout = Layout::new(&[
+                    (VarKind::Q, n),
+                    (VarKind::Dq, n),
+                    (VarKind::Ddq, n),
+                    (VarKind::Z, f),
+                    (VarKind::Dz, f),
+                    (VarKind::Ddz, f),
+                ]);
+                let mut builder = ChainGraph::builder(layout, dt, 0.0)
+                    .step_constraint(Box::new(IndependentPosition::new(model.clone())))
+                    .step_constraint(Box::new(IndependentVelocity::new(model.clone())))
+                    .step_constraint(Box::new(IndependentAcceleration::new(model.clone())))
+                    .step_soft(
+                        Box::new(IndependentDynamics::new(model.clone())),
+                        Noise::Isotropic(nm.dynamics),
+                    );
+                for (factor, sigma) in ic_integrators().into_iter().zip(sigma) {
+                    builder = builder.step_soft(factor, Noise::Isotropic(sigma));
                 }
+                builder
+                    .step_soft(
+                        Box::new(Equality::new(VarKind::Q, n)),
+                        Noise::Isotropic(nm.equality),
+                    )
+                    .initial_constraint(Box::new(Prior::new(VarKind::Z, z0)))
+                    .initial_constraint(Box::new(Prior::new(VarKind::Dz, dz0)))
+                    .initial_soft(
+                        Box::new(Prior::new(VarKind::Q, init.q.as_slice().to_vec())),
+                        Noise::Diagonal(sig),
+                    )
+                    .build()?
             }
         };
         Ok(ForwardGraph {
@@ -167,8 +151,8 @@ impl ForwardGraph {
     /// The initial guess of step 0: the model's initial state and its accelerations.
     pub(super) fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
         let init = &model.initial;
-        let ddq = dynamics::lagrange(model, &init.q, &init.dq, self.graph.t0)?.ddq;
-        let mut block = Vec::with_capacity(self.graph.layout.size());
+        let ddq = dynamics::lagrange(model, &init.q, &init.dq, self.graph.t0())?.ddq;
+        let mut block = Vec::with_capacity(self.graph.layout().size());
         block.extend_from_slice(init.q.as_slice());
         block.extend_from_slice(init.dq.as_slice());
         block.extend_from_slice(ddq.as_slice());
@@ -185,8 +169,8 @@ impl ForwardGraph {
     /// from the last two accelerations (0 at step 1). A cubic guess lands the first
     /// Newton step within the tolerance more often than a quadratic one.
     pub(super) fn predict(&self, values: &mut [f64], k: usize) {
-        let s = self.graph.layout.size();
-        let dt = self.graph.dt;
+        let s = self.graph.layout().size();
+        let dt = self.graph.dt();
         let (prev, next) = values.split_at_mut(k * s);
         let older = (k >= 2).then(|| &prev[(k - 2) * s..(k - 1) * s]);
         let prev = &prev[(k - 1) * s..];
@@ -213,7 +197,7 @@ impl ForwardGraph {
     /// a starting point for a solve, or the state a benchmark linearizes at.
     pub fn fill_from_trajectory(&self, model: &Model, tr: &Trajectory, values: &mut [f64]) {
         let fg = self;
-        let (n, s) = (fg.n, fg.graph.layout.size());
+        let (n, s) = (fg.n, fg.graph.layout().size());
         for k in 0..tr.len() {
             let block = &mut values[k * s..(k + 1) * s];
             block[..n].copy_from_slice(&tr.q[k * n..(k + 1) * n]);
@@ -236,7 +220,7 @@ pub(super) fn extract(
     values: &[f64],
     steps: usize,
 ) -> Trajectory {
-    let (n, s) = (fg.n, fg.graph.layout.size());
+    let (n, s) = (fg.n, fg.graph.layout().size());
     let mut tr = Trajectory {
         names: model.names.clone(),
         t: (0..steps).map(|k| fg.graph.time(k)).collect(),

@@ -44,9 +44,9 @@ pub(super) fn segment(
     run: &mut Run,
 ) -> Result<Segment> {
     let mut fg = ForwardGraph::new(model.clone(), options)?;
-    fg.graph.t0 = first as f64 * options.dt;
+    fg.graph.set_t0(first as f64 * options.dt);
     let steps = total - first;
-    let s = fg.graph.layout.size();
+    let s = fg.graph.layout().size();
     let mut values = vec![0.0; steps * s];
     values[..s].copy_from_slice(&fg.initial_block(&model)?);
     let mut completed = steps;
@@ -143,7 +143,7 @@ pub(super) fn segment(
                             // two converged steps.
                             let (prev, older_q) = (q_at(k.max(1) - 1), q_at(k.max(2) - 2));
                             let rate = (older.1 - before.1) / (before.0 - older.0);
-                            let steps_to_rank_loss = before.1 / (rate * fg.graph.dt);
+                            let steps_to_rank_loss = before.1 / (rate * fg.graph.dt());
                             // A step too coarse for the motion fails for that reason: in
                             // a violent transient s moves fast too (Andrews' squeezer at
                             // 1.7 ms, a body turning 1.8 rad a step, s = 0.026 falling),
@@ -329,7 +329,7 @@ impl ForwardGraph {
         values: &mut [f64],
         k: usize,
     ) -> bool {
-        let (n, s) = (self.n, self.graph.layout.size());
+        let (n, s) = (self.n, self.graph.layout().size());
         let before = &values[(k - 1) * s..k * s];
         let mut start = (**model).clone();
         start.initial = State {
@@ -348,7 +348,7 @@ impl ForwardGraph {
             let Ok(mut graph) = ForwardGraph::new(start.clone(), &fine) else {
                 return false;
             };
-            graph.graph.t0 = (step - 1) as f64 * options.dt;
+            graph.graph.set_t0((step - 1) as f64 * options.dt);
             let Ok(first) = graph.initial_block(&start) else {
                 return false;
             };

@@ -3,31 +3,40 @@
 //! block-tridiagonal normal equations.
 
 use super::*;
+#[cfg(doc)]
+use crate::graph::AlongDirections;
 
 /// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
 pub(super) struct FactorBuffers {
     pub(super) r: Vec<f64>,
     pub(super) jac: Vec<Vec<f64>>,
+    /// 1/σ per row of a soft factor; empty for a constraint (never whitened).
     pub(super) weights: Vec<f64>,
+    /// Whether the factor linearizes along directions ([`Factor::along`]).
+    pub(super) along: bool,
     /// Per key, its variable's (offset in the step's block, size), resolved once.
     pub(super) slots: Vec<(usize, usize)>,
 }
 
 impl FactorBuffers {
-    pub(super) fn new(graph: &ChainGraph, f: &dyn Factor) -> Self {
+    pub(super) fn new(graph: &ChainGraph, term: &Term) -> Self {
+        let f = term.factor();
         FactorBuffers {
-            weights: (0..f.dim()).map(|r| f.noise().weight(r)).collect(),
+            weights: term
+                .noise()
+                .map_or(Vec::new(), |n| (0..f.dim()).map(|r| n.weight(r)).collect()),
+            along: f.along().is_some(),
             slots: f
                 .keys()
                 .iter()
-                .map(|k| graph.layout.slot(k.kind).unwrap_or((0, 0)))
+                .map(|k| graph.layout().slot(k.kind).unwrap_or((0, 0)))
                 .collect(),
             r: vec![0.0; f.dim()],
             jac: f
                 .keys()
                 .iter()
                 .map(|k| {
-                    let (_, d) = graph.layout.slot(k.kind).unwrap_or((0, 0));
+                    let (_, d) = graph.layout().slot(k.kind).unwrap_or((0, 0));
                     vec![0.0; f.dim() * d]
                 })
                 .collect(),
@@ -290,13 +299,13 @@ impl WindowSolver {
         for at in self.block_start[b]..self.block_start[b + 1] {
             let i = self.by_step[at];
             let inst = self.instances[i];
-            let factor = factor_of(graph, inst);
-            if !is_hard(factor) {
+            if !is_hard(graph, inst) {
                 continue;
             }
+            let factor = factor_of(graph, inst);
             self.evaluate_instance(graph, values, inst, linearize)?;
             let buf = &*buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
-            let w = Noise::Hard.weight(0);
+            let w = 1.0 / HARD_SIGMA;
             self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
             if mode == HardPass::Cost {
                 continue;
@@ -345,7 +354,7 @@ impl WindowSolver {
     pub(super) fn hard_cost_sum(&self, graph: &ChainGraph, k0: usize) -> (f64, f64) {
         let (mut cost, mut first) = (0.0, 0.0);
         for (inst, &c) in self.instances.iter().zip(&self.hard_cost) {
-            if !is_hard(factor_of(graph, *inst)) {
+            if !is_hard(graph, *inst) {
                 continue;
             }
             cost += c;
@@ -404,7 +413,7 @@ impl WindowSolver {
         let inst = self.instances[i];
         let factor = factor_of(graph, inst);
         let along = linearize
-            && factor.evaluates_along()
+            && buffers(&mut self.initial_buffers, &mut self.step_buffers, inst).along
             && self.evaluate_along(graph, values, k0, inst)?;
         if !along {
             self.evaluate_instance(graph, values, inst, linearize)?;
@@ -486,10 +495,10 @@ impl WindowSolver {
         Ok(())
     }
 
-    /// Linearizes a soft factor instance along its blocks' reductions,
-    /// J [p N] per key ([`Factor::evaluate_along`]), into `along_out` (columns: p,
-    /// then block step's reduced coordinates, then those of the block before), its
-    /// residual into its buffer; returns false when the factor declines.
+    /// Linearizes a soft factor instance along its blocks' reductions, J [p N] per key
+    /// ([`AlongDirections::evaluate_along`]), into `along_out` (columns: p, then block
+    /// step's reduced coordinates, then those of the block before), its residual into
+    /// its buffer; returns false when the factor declines.
     pub(super) fn evaluate_along(
         &mut self,
         graph: &ChainGraph,
@@ -499,6 +508,9 @@ impl WindowSolver {
     ) -> Result<bool> {
         let s = self.s;
         let factor = factor_of(graph, inst);
+        let Some(along) = factor.along() else {
+            return Ok(false);
+        };
         let keys = factor.keys();
         let step = inst.step - k0;
         let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
@@ -541,7 +553,7 @@ impl WindowSolver {
         }
         let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
         let t = graph.time(inst.step);
-        factor
+        along
             .evaluate_along(
                 t,
                 &xs[..keys.len()],
@@ -609,7 +621,7 @@ impl WindowSolver {
                 }
                 for at in self.block_start[b]..self.block_start[b + 1] {
                     let i = self.by_step[at];
-                    if !is_hard(factor_of(graph, self.instances[i])) {
+                    if !is_hard(graph, self.instances[i]) {
                         self.soft_instance(graph, values, k0, i, true, &mut soft, &mut soft_first)?;
                     }
                 }
@@ -639,7 +651,7 @@ impl WindowSolver {
             cost_first += soft_first;
         } else {
             for i in 0..self.instances.len() {
-                if !is_hard(factor_of(graph, self.instances[i])) {
+                if !is_hard(graph, self.instances[i]) {
                     self.soft_instance(
                         graph,
                         values,

@@ -373,10 +373,11 @@ impl WindowSolver {
         }
         let mut cost = self.cost_first;
         // The factors joining k0 and k0 + 1.
-        for index in 0..graph.step_factors.len() {
-            let factor = graph.step_factors[index].as_ref();
+        for index in 0..graph.step_terms().len() {
+            let term = &graph.step_terms()[index];
+            let factor = term.factor();
             let keys = factor.keys();
-            if is_hard(factor) || !keys.iter().any(|k| k.lag == 1) {
+            if term.is_constraint() || !keys.iter().any(|k| k.lag == 1) {
                 continue;
             }
             let inst = Instance {

@@ -3,15 +3,17 @@
 //! the marginalization that turns the oldest step of a window into a Gaussian prior on
 //! the next one (the Schur complement of the linearized system).
 //!
-//! Hard factors ([`Noise::Hard`]) are not weighted: each iteration linearizes them per
-//! step, C_k δ_k = −c_k, and solves for δ_k = p_k + N_k y_k ([`NullSpace`]), so only
-//! the soft factors enter the normal equations in y. Weighting them by 1/σ² with a tiny
-//! σ instead squares a condition number that is already large: on a long four-bar
-//! run the soft information along the motion decays to ~1e-5 while 1/σ² = 1e12, and
-//! the window solves stall.
+//! Hard factors (the graph's constraints, [`Term::Constraint`]) are not weighted:
+//! each iteration linearizes them per step, C_k δ_k = −c_k, and solves for
+//! δ_k = p_k + N_k y_k ([`NullSpace`]), so only the soft factors enter the normal
+//! equations in y. Weighting them by 1/σ² with a tiny σ instead squares a condition
+//! number that is already large: on a long four-bar run the soft information along
+//! the motion decays to ~1e-5 while 1/σ² = 1e12, and the window solves stall.
 
 use crate::error::{Error, Result};
-use crate::graph::{ChainGraph, Factor, Noise, Workspace};
+#[cfg(doc)]
+use crate::graph::AlongDirections;
+use crate::graph::{ChainGraph, Factor, Term, Workspace};
 use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
 use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
@@ -35,6 +37,12 @@ use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
 use marginal::LastSolve;
 use newton::NewtonBuffers;
 use structure::{factor_of, is_hard, Instance, Resolved, Scope};
+
+/// σ by which a hard factor's residual is weighted in the reported cost
+/// ([`SolveReport::cost`]). Hard factors are eliminated, not weighted: this only
+/// scales their share of that cost.
+pub const HARD_SIGMA: f64 = 1e-6;
+
 /// A reusable solver for windows of up to `capacity` steps; it allocates once.
 pub struct WindowSolver {
     settings: Settings,
@@ -75,8 +83,9 @@ pub struct WindowSolver {
     hard_noise: Vec<f64>,
     /// Evaluate step by step (see `optimize_for_batch`).
     step_major: bool,
-    /// Directions and products of [`Factor::evaluate_along`]: per key size × c, and
-    /// dim × c (c ≤ 1 + 2s); empty when no factor evaluates along directions.
+    /// Directions and products of [`AlongDirections::evaluate_along`]: per key
+    /// size × c, and dim × c (c ≤ 1 + 2s); empty when no factor evaluates along
+    /// directions.
     along_dirs: Vec<f64>,
     along_out: Vec<f64>,
     /// The whitened, reduced rows [J N | r + J p] of a one-block window without a
@@ -113,29 +122,12 @@ impl WindowSolver {
         settings.validate()?;
         let mut max_dim = 0;
         let (mut hard_step, mut hard_initial) = (0, 0);
-        for (initial, list) in [(false, &graph.step_factors), (true, &graph.initial_factors)] {
-            for f in list {
-                f.noise()
-                    .validate(f.dim())
-                    .map_err(|e| Error::InvalidArgument(format!("noise of {}: {e}", f.name())))?;
-                for k in f.keys() {
-                    if graph.layout.slot(k.kind).is_none() || k.lag > 1 {
-                        return Err(Error::InvalidArgument(format!(
-                            "factor {} touches {}(lag {}), which the graph does not hold",
-                            f.name(),
-                            k.kind.symbol(),
-                            k.lag
-                        )));
-                    }
-                }
+        // The graph was checked when it was built (`ChainGraphBuilder::build`).
+        for (initial, list) in [(false, graph.step_terms()), (true, graph.initial_terms())] {
+            for term in list {
+                let f = term.factor();
                 max_dim = max_dim.max(f.dim());
-                if is_hard(f.as_ref()) {
-                    if f.keys().iter().any(|k| k.lag > 0) {
-                        return Err(Error::InvalidArgument(format!(
-                            "hard factor {} spans two steps; hard factors must stay within one",
-                            f.name()
-                        )));
-                    }
+                if term.is_constraint() {
                     if initial {
                         hard_initial += f.dim();
                     } else {
@@ -144,19 +136,20 @@ impl WindowSolver {
                 }
             }
         }
-        let s = graph.layout.size();
+        let s = graph.layout().size();
         let capacity = capacity.max(2);
         let n = capacity * s;
         let max_hard = hard_step + hard_initial;
         // Room for the factors that linearize along directions.
         let (mut along_keys, mut along_dim) = (0, 0);
-        for f in graph.step_factors.iter().chain(&graph.initial_factors) {
-            if f.evaluates_along() {
-                let sizes: usize = f
-                    .keys()
-                    .iter()
-                    .map(|k| graph.layout.slot(k.kind).map_or(0, |(_, d)| d))
-                    .sum();
+        for f in graph
+            .step_terms()
+            .iter()
+            .chain(graph.initial_terms())
+            .map(Term::factor)
+        {
+            if f.along().is_some() {
+                let sizes: usize = (0..f.keys().len()).map(|a| f.size(a)).sum();
                 along_keys = along_keys.max(sizes);
                 along_dim = along_dim.max(f.dim());
             }
@@ -173,14 +166,14 @@ impl WindowSolver {
             direction: vec![0.0; n],
             hd: vec![0.0; n],
             step_buffers: graph
-                .step_factors
+                .step_terms()
                 .iter()
-                .map(|f| FactorBuffers::new(graph, f.as_ref()))
+                .map(|t| FactorBuffers::new(graph, t))
                 .collect(),
             initial_buffers: graph
-                .initial_factors
+                .initial_terms()
                 .iter()
-                .map(|f| FactorBuffers::new(graph, f.as_ref()))
+                .map(|t| FactorBuffers::new(graph, t))
                 .collect(),
             hard: (0..capacity)
                 .map(|_| HardBlock {
@@ -190,12 +183,12 @@ impl WindowSolver {
                 })
                 .collect(),
             by_step: Vec::with_capacity(
-                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+                capacity * graph.step_terms().len() + graph.initial_terms().len(),
             ),
             block_start: Vec::with_capacity(capacity + 1),
             next_slot: Vec::with_capacity(capacity),
             hard_cost: Vec::with_capacity(
-                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+                capacity * graph.step_terms().len() + graph.initial_terms().len(),
             ),
             hard_jac: vec![0.0; max_hard * s],
             hard_rhs: vec![0.0; max_hard],
@@ -207,7 +200,7 @@ impl WindowSolver {
             shifted: vec![0.0; max_dim.max(s)],
             reduced_spans: [vec![(0, 0); max_dim.max(s)], vec![(0, 0); max_dim.max(s)]],
             instances: Vec::with_capacity(
-                capacity * graph.step_factors.len() + graph.initial_factors.len(),
+                capacity * graph.step_terms().len() + graph.initial_terms().len(),
             ),
             resolved: None,
             parked: Vec::new(),
@@ -268,8 +261,8 @@ impl WindowSolver {
     /// [`VarKind::order`]: crate::graph::VarKind::order
     fn segment_by_order(&mut self, graph: &ChainGraph) {
         let mut segment = vec![0; self.s];
-        for (kind, d) in graph.layout.kinds() {
-            let (off, _) = graph.layout.slot(kind).expect("a kind of the layout");
+        for (kind, d) in graph.layout().kinds() {
+            let (off, _) = graph.layout().slot(kind).expect("a kind of the layout");
             segment[off..off + d].fill(kind.order());
         }
         for block in &mut self.hard {

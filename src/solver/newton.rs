@@ -42,7 +42,7 @@ impl WindowSolver {
             let factor = factor_of(graph, inst);
             self.evaluate_instance(graph, values, inst, true)?;
             let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
-            let hard = is_hard(factor);
+            let hard = is_hard(graph, inst);
             let dim = factor.dim();
             // What multiplies each row: its whitened residual, or its multiplier.
             let weights: &[f64] = if hard {

@@ -15,7 +15,7 @@ pub(super) enum Scope {
     Oldest,
 }
 
-/// One factor at one step: `initial` factors come from `graph.initial_factors`.
+/// One factor at one step: `initial` factors come from `graph.initial_terms()`.
 #[derive(Clone, Copy)]
 pub(super) struct Instance {
     pub(super) initial: bool,
@@ -52,16 +52,21 @@ pub(super) struct Listing {
 /// Shapes kept parked at most.
 const PARKED: usize = 4;
 
-pub(super) fn factor_of(graph: &ChainGraph, inst: Instance) -> &dyn Factor {
+pub(super) fn term_of(graph: &ChainGraph, inst: Instance) -> &Term {
     if inst.initial {
-        graph.initial_factors[inst.index].as_ref()
+        &graph.initial_terms()[inst.index]
     } else {
-        graph.step_factors[inst.index].as_ref()
+        &graph.step_terms()[inst.index]
     }
 }
 
-pub(super) fn is_hard(f: &dyn Factor) -> bool {
-    matches!(f.noise(), Noise::Hard)
+pub(super) fn factor_of(graph: &ChainGraph, inst: Instance) -> &dyn Factor {
+    term_of(graph, inst).factor()
+}
+
+/// Whether an instance is of a constraint (a hard factor, eliminated per step).
+pub(super) fn is_hard(graph: &ChainGraph, inst: Instance) -> bool {
+    term_of(graph, inst).is_constraint()
 }
 
 impl WindowSolver {
@@ -124,7 +129,7 @@ impl WindowSolver {
     fn build_instances(&mut self, graph: &ChainGraph, k0: usize, k1: usize, scope: Scope) {
         self.instances.clear();
         if k0 == 0 {
-            for index in 0..graph.initial_factors.len() {
+            for index in 0..graph.initial_terms().len() {
                 self.instances.push(Instance {
                     initial: true,
                     index,
@@ -132,8 +137,8 @@ impl WindowSolver {
                 });
             }
         }
-        for (index, factor) in graph.step_factors.iter().enumerate() {
-            let keys = factor.keys();
+        for (index, term) in graph.step_terms().iter().enumerate() {
+            let keys = term.factor().keys();
             let max_lag = keys.iter().map(|k| k.lag).max().unwrap_or(0);
             // Conditional solves hold the step before the window fixed and keep the
             // factors that reach back to it.

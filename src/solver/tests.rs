@@ -16,7 +16,7 @@ mod unit {
         let (tr, summary) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
         assert!(summary.failures.is_empty());
         let fg = ForwardGraph::new(model.clone(), &opts).unwrap();
-        let s = fg.graph.layout.size();
+        let s = fg.graph.layout().size();
         let mut values = vec![0.0; tr.len() * s];
         fg.fill_from_trajectory(&model, &tr, &mut values);
         let mut solver = WindowSolver::new(&fg.graph, 2, Settings::default()).unwrap();
@@ -201,7 +201,7 @@ mod unit {
         let seen = Arc::new(Mutex::new(Vec::new()));
         solver.observe(Box::new(Count(seen.clone())));
         // The newest step after the one before it, as the fixed-lag run starts it.
-        let s = fg.graph.layout.size();
+        let s = fg.graph.layout().size();
         let (done, newest) = values.split_at_mut(k * s);
         newest[..s].copy_from_slice(&done[(k - 1) * s..]);
         let report = solver
