@@ -339,14 +339,19 @@ pub fn lu_solve_faer(
     tmp: &mut [f64],
 ) {
     let (b, x) = (&mut b[..n * k], &mut tmp[..n * k]);
-    for i in 0..n {
-        x[i * k..(i + 1) * k].copy_from_slice(&b[perm[i] * k..(perm[i] + 1) * k]);
-    }
+    permute_rows(b, &perm[..n], k, x);
     let f = MatRef::from_row_major_slice(&lu[..n * n], n, n);
     let mut rhs = MatMut::from_row_major_slice_mut(x, n, k);
     triangular_solve::solve_unit_lower_triangular_in_place(f, rhs.as_mut(), Par::Seq);
     triangular_solve::solve_upper_triangular_in_place(f, rhs.as_mut(), Par::Seq);
     b.copy_from_slice(x);
+}
+
+/// Row i of `x` (n × k, row-major) = row perm[i] of `b`.
+fn permute_rows(b: &[f64], perm: &[usize], k: usize, x: &mut [f64]) {
+    for (i, &p) in perm.iter().enumerate() {
+        x[i * k..(i + 1) * k].copy_from_slice(&b[p * k..(p + 1) * k]);
+    }
 }
 
 /// The hand-written substitutions of [`lu_solve_many`].
@@ -359,9 +364,7 @@ pub fn lu_solve_many_by_hand(
     tmp: &mut [f64],
 ) {
     let (b, x) = (&mut b[..n * k], &mut tmp[..n * k]);
-    for i in 0..n {
-        x[i * k..(i + 1) * k].copy_from_slice(&b[perm[i] * k..(perm[i] + 1) * k]);
-    }
+    permute_rows(b, &perm[..n], k, x);
     for i in 0..n {
         let (done, rest) = x.split_at_mut(i * k);
         let row = &mut rest[..k];
