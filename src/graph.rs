@@ -354,13 +354,12 @@ impl ChainGraph {
 
     /// Workspace large enough for every factor (one evaluates at a time).
     pub fn workspace(&self) -> Workspace {
-        let reqs: Vec<StackReq> = self
+        let req = self
             .step
             .iter()
             .chain(&self.initial)
-            .map(|t| t.factor().scratch())
-            .collect();
-        Workspace::new(StackReq::any_of(&reqs))
+            .fold(StackReq::EMPTY, |req, t| req.or(t.factor().scratch()));
+        Workspace::new(req)
     }
 }
 

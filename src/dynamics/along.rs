@@ -33,7 +33,8 @@ impl DynamicsKernel {
     /// V_q, V_v (row-major n × c) and V_f (row-major columns.len() × c, the forces on
     /// the coordinates `columns`), into the row-major rows.len() × c `out`, at the
     /// point of a preceding [`DynamicsKernel::evaluate`] without Jacobians (its LU
-    /// factors and [q̈; λ] are in `reals`): the first n rows of
+    /// factors and [q̈; λ] are in `kernel`), with the scratch of
+    /// [`DynamicsKernel::along_scratch`] carved from `stack`: the first n rows of
     /// K⁻¹ (R_q V_q + R_v V_v + [E V_f; 0]), R_q and R_v the right-hand sides from
     /// which `evaluate` solves for ∂q̈/∂q and ∂q̈/∂q̇. Only the columns where some
     /// direction is nonzero are solved for (one pair of triangular solves each, where
