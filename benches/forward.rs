@@ -103,8 +103,7 @@ fn dynamics_factor(c: &mut Criterion) {
     let (q, dq) = (tr.q_at(k).to_vec(), tr.dq_at(k).to_vec());
     let ddq = tr.ddq[k * n..(k + 1) * n].to_vec();
     let factor = Dynamics::new(model.clone());
-    let (reals, indices) = factor.scratch();
-    let mut ws = mbfg::graph::Workspace::with_capacity(reals, indices);
+    let mut ws = mbfg::graph::Workspace::new(factor.scratch());
     let mut r = vec![0.0; factor.dim()];
     let mut jac: Vec<Vec<f64>> = vec![vec![0.0; n * n]; 3];
     let t = tr.t[k];

@@ -27,10 +27,10 @@
 //! offset enters q̈_m smoothly and the step's error stays O(h⁵). The constraints hold
 //! exactly at the nodes, where the hard factors are.
 
-use crate::dynamics::DynamicsKernel;
+use crate::dynamics::{DynamicsKernel, KernelScratch};
 use crate::error::Result;
 use crate::factors::{identity, key_accessor};
-use crate::graph::{Factor, Key, VarKind, Workspace};
+use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -172,8 +172,8 @@ impl SimpsonVelocity {
     }
 
     /// Scratch beyond the kernel's: q_m, q̇_m, q̈_m and ∂q̈_m/∂q_m, ∂q̈_m/∂q̇_m.
-    fn own_scratch(n: usize) -> usize {
-        3 * n + 2 * n * n
+    fn own_scratch(n: usize) -> [usize; 5] {
+        [n, n, n, n * n, n * n]
     }
 }
 
@@ -188,9 +188,9 @@ impl Factor for SimpsonVelocity {
     fn dim(&self) -> usize {
         self.rows.len()
     }
-    fn scratch(&self) -> (usize, usize) {
-        let (r, i) = DynamicsKernel::scratch(&self.model);
-        (r + Self::own_scratch(self.model.n()), i)
+    fn scratch(&self) -> StackReq {
+        let own = Self::own_scratch(self.model.n()).map(StackReq::new::<f64>);
+        DynamicsKernel::scratch(&self.model).and(StackReq::all_of(&own))
     }
     fn evaluate(
         &self,
@@ -202,12 +202,15 @@ impl Factor for SimpsonVelocity {
     ) -> Result<()> {
         let n = self.model.n();
         let h = self.dt;
-        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
-        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
-        let (qm, own) = own.split_at_mut(n);
-        let (vm, own) = own.split_at_mut(n);
-        let (am, own) = own.split_at_mut(n);
-        let (jq, jv) = own[..2 * n * n].split_at_mut(n * n);
+        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let [qm, vm, am, jq, jv] = Self::own_scratch(n);
+        let (mut qm, stack) = zeros(stack, qm);
+        let (mut vm, stack) = zeros(stack, vm);
+        let (mut am, stack) = zeros(stack, am);
+        let (mut jq, stack) = zeros(stack, jq);
+        let (mut jv, _) = zeros(stack, jv);
+        let (qm, vm, am) = (&mut qm[..], &mut vm[..], &mut am[..]);
+        let (jq, jv) = (&mut jq[..], &mut jv[..]);
         let (q0, q1, v0, v1, a0, a1) = (x[0], x[1], x[2], x[3], x[4], x[5]);
         for i in 0..n {
             qm[i] = 0.5 * (q0[i] + q1[i]) + 0.125 * h * (v0[i] - v1[i]);
@@ -222,8 +225,7 @@ impl Factor for SimpsonVelocity {
             None,
             am,
             want.then_some((&mut *jq, &mut *jv)),
-            kernel,
-            &mut ws.indices,
+            &mut kernel,
         )?;
         let h6 = h / 6.0;
         for (k, &i) in self.rows.iter().enumerate() {

@@ -6,6 +6,10 @@
 //! the normal equations are block tridiagonal when unknowns are ordered by step.
 
 use crate::error::{Error, Result};
+use faer::dyn_stack::{DynArray, MemBuffer};
+/// faer's scratch mechanism (the `dyn-stack` crate), in which factors state and carve
+/// their scratch.
+pub use faer::dyn_stack::{MemStack, StackReq};
 
 /// The kind of a variable; its size comes from the model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -149,20 +153,38 @@ impl Noise {
     }
 }
 
-/// Scratch memory that evaluation may use, sized once from the factors' needs so
-/// that no evaluation allocates.
-#[derive(Debug, Default)]
+/// Scratch memory that evaluation may use: one buffer, allocated once from the
+/// factors' combined [`StackReq`] ([`ChainGraph::workspace`]), from which each
+/// evaluation carves its arrays ([`MemStack::make_with`]), so that no evaluation
+/// allocates.
 pub struct Workspace {
-    pub reals: Vec<f64>,
-    pub indices: Vec<usize>,
+    buffer: MemBuffer,
 }
 
 impl Workspace {
-    pub fn with_capacity(reals: usize, indices: usize) -> Self {
+    /// A workspace large enough for the request `req`.
+    pub fn new(req: StackReq) -> Self {
         Workspace {
-            reals: vec![0.0; reals],
-            indices: vec![0; indices],
+            buffer: MemBuffer::new(req),
         }
+    }
+
+    /// The whole buffer as a stack to carve from.
+    pub fn stack(&mut self) -> &mut MemStack {
+        MemStack::new(&mut self.buffer)
+    }
+}
+
+/// `len` zeros carved from `stack`, and the rest of `stack`.
+pub fn zeros(stack: &mut MemStack, len: usize) -> (DynArray<'_, f64>, &mut MemStack) {
+    stack.make_with(len, |_| 0.0)
+}
+
+impl std::fmt::Debug for Workspace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Workspace")
+            .field("bytes", &self.buffer.len())
+            .finish()
     }
 }
 
@@ -183,9 +205,9 @@ pub trait Factor: Send + Sync {
     /// Residual dimension.
     fn dim(&self) -> usize;
 
-    /// Scratch this factor needs in a [`Workspace`]: (reals, indices).
-    fn scratch(&self) -> (usize, usize) {
-        (0, 0)
+    /// Scratch this factor's evaluations carve from a [`Workspace`].
+    fn scratch(&self) -> StackReq {
+        StackReq::EMPTY
     }
 
     /// Whether the Jacobian block of key `key` is square and nonzero on its diagonal
@@ -330,15 +352,14 @@ impl ChainGraph {
         factor.keys().iter().all(|k| k.lag <= step)
     }
 
-    /// Workspace large enough for every factor.
+    /// Workspace large enough for every factor (one evaluates at a time).
     pub fn workspace(&self) -> Workspace {
-        let (mut r, mut i) = (0, 0);
-        for t in self.step.iter().chain(&self.initial) {
-            let (a, b) = t.factor().scratch();
-            r = r.max(a);
-            i = i.max(b);
-        }
-        Workspace::with_capacity(r, i)
+        let req = self
+            .step
+            .iter()
+            .chain(&self.initial)
+            .fold(StackReq::EMPTY, |req, t| req.or(t.factor().scratch()));
+        Workspace::new(req)
     }
 }
 

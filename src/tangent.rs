@@ -25,7 +25,7 @@
 
 use crate::error::{Error, Result};
 use crate::factors::{Euler, Trapezoidal};
-use crate::graph::{Factor, Key, VarKind, Workspace};
+use crate::graph::{Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
 use nalgebra::{DMatrix, DVector};
 use std::sync::Arc;
@@ -200,7 +200,7 @@ impl Factor for Projected {
     fn dim(&self) -> usize {
         self.inner.dim()
     }
-    fn scratch(&self) -> (usize, usize) {
+    fn scratch(&self) -> StackReq {
         self.inner.scratch()
     }
     fn evaluate(

@@ -8,10 +8,10 @@ use mbfg::collocation::{HermitePosition, SimpsonVelocity};
 use mbfg::dynamics;
 use mbfg::factors::{
     ComponentPrior, Dynamics, DynamicsKernel, Equality, Euler, IndependentAcceleration,
-    IndependentDynamics, IndependentPosition, IndependentVelocity, PositionConstraints,
-    PrescribedMotion, Prior, Trapezoidal, VelocityConstraints,
+    IndependentDynamics, IndependentPosition, IndependentVelocity, KernelScratch,
+    PositionConstraints, PrescribedMotion, Prior, Trapezoidal, VelocityConstraints,
 };
-use mbfg::graph::{Factor, Key, VarKind, Workspace};
+use mbfg::graph::{Factor, Key, StackReq, VarKind, Workspace};
 use mbfg::kinematics;
 use mbfg::tangent::{Projected, Rule};
 use mbfg::{Model, Scene};
@@ -161,8 +161,7 @@ fn evaluate(
 }
 
 fn workspace_for(factor: &dyn Factor) -> Workspace {
-    let (reals, indices) = factor.scratch();
-    Workspace::with_capacity(reals, indices)
+    Workspace::new(factor.scratch())
 }
 
 fn same_bits(a: &[f64], b: &[f64]) -> bool {
@@ -820,8 +819,8 @@ fn kernel(
     jacobians: bool,
 ) -> KernelOutput {
     let n = model.n();
-    let (reals, indices) = DynamicsKernel::scratch(model);
-    let mut ws = Workspace::with_capacity(reals, indices);
+    let mut ws = Workspace::new(DynamicsKernel::scratch(model));
+    let (mut scratch, _) = KernelScratch::new(model, ws.stack());
     let mut ddq = vec![f64::NAN; n];
     let mut jq = vec![f64::NAN; n * n];
     let mut jv = vec![f64::NAN; n * n];
@@ -833,8 +832,7 @@ fn kernel(
         force,
         &mut ddq,
         jacobians.then_some((&mut jq[..], &mut jv[..])),
-        &mut ws.reals,
-        &mut ws.indices,
+        &mut scratch,
     )
     .unwrap_or_else(|e| panic!("dynamics kernel: {e}"));
     (ddq, jacobians.then_some((jq, jv)))
@@ -1140,8 +1138,13 @@ fn evaluation_leaves_no_state_in_the_workspace() {
             evaluate(factor, T + 0.1, &xb, false, &mut ws);
             let after = evaluate(factor, T, &xa, true, &mut ws);
             same(&after, "after evaluations at another point");
-            ws.reals.fill(f64::NAN);
-            ws.indices.fill(usize::MAX / 2);
+            {
+                let stack = ws.stack();
+                let len = stack.len_bytes() / std::mem::size_of::<f64>();
+                if len > 0 {
+                    let _garbage = stack.make_with(len, |_| f64::NAN);
+                }
+            }
             let dirty = evaluate(factor, T, &xa, true, &mut ws);
             same(&dirty, "with a workspace full of garbage");
             let plain = evaluate(factor, T, &xa, false, &mut ws);
@@ -1188,7 +1191,7 @@ impl Factor for Defective {
     fn size(&self, key: usize) -> usize {
         self.inner.size(key)
     }
-    fn scratch(&self) -> (usize, usize) {
+    fn scratch(&self) -> StackReq {
         self.inner.scratch()
     }
     fn evaluate(

@@ -2,61 +2,39 @@
 //! directions at once, from the factors a preceding evaluation left, at a pair of
 //! triangular solves per direction instead of one per coordinate.
 
-use super::augmented::KernelLayout;
+use super::augmented::KernelScratch;
 use super::kernel::DynamicsKernel;
 use crate::error::Result;
+use crate::graph::{zeros, MemStack, StackReq};
 use crate::linalg::dense;
 use crate::model::Model;
 
-/// Where [`DynamicsKernel::along`]'s scratch lives: after the kernel's in
-/// `ws.reals` (the part passed as `extra`), and after the kernel's permutation in
-/// `ws.indices`.
-pub(super) struct AlongLayout {
-    pub(super) kv: usize,
-    pub(super) mat: usize,
-    pub(super) bq: usize,
-    pub(super) bv: usize,
-    pub(super) b: usize,
-    pub(super) tmp: usize,
-    pub(super) end: usize,
-}
-
-impl AlongLayout {
-    /// For up to `max_cols` directions solved for.
-    pub(super) fn new(model: &Model, max_cols: usize) -> Self {
-        let (n, m, ma) = (model.n(), model.m(), model.active.len());
-        let big = n + ma;
-        let kv = n * n;
-        let mat = kv + n * n;
-        let bq = mat + m * n;
-        let bv = bq + ma * n;
-        let b = bv + ma * n;
-        let tmp = b + big * max_cols.max(1);
-        let end = tmp + big * max_cols.max(1);
-        AlongLayout {
-            kv,
-            mat,
-            bq,
-            bv,
-            b,
-            tmp,
-            end,
-        }
-    }
+/// [`DynamicsKernel::along`]'s scratch beyond the kernel's, for up to `max_cols`
+/// directions: ∂Q/∂q and ∂Q/∂q̇ (n × n), Φ_q and its like (m × n), the bottom rows
+/// of the right-hand sides (ma × n twice), B and room for its solves
+/// (big × max_cols each), and the columns solved for (max_cols).
+fn lens(model: &Model, max_cols: usize) -> [usize; 6] {
+    let (n, m, ma) = (model.n(), model.m(), model.active.len());
+    let big = n + ma;
+    let cols = big * max_cols.max(1);
+    [n * n, n * n, m * n, ma * n, ma * n, cols]
 }
 
 impl DynamicsKernel {
     /// Scratch [`DynamicsKernel::along`] needs beyond the kernel's, for up to
-    /// `max_cols` directions: (reals, indices).
-    pub fn along_scratch(model: &Model, max_cols: usize) -> (usize, usize) {
-        (AlongLayout::new(model, max_cols).end, max_cols)
+    /// `max_cols` directions.
+    pub fn along_scratch(model: &Model, max_cols: usize) -> StackReq {
+        let [kq, kv, mat, bq, bv, b] = lens(model, max_cols);
+        StackReq::all_of(&[kq, kv, mat, bq, bv, b, b].map(StackReq::new::<f64>))
+            .and(StackReq::new::<usize>(max_cols))
     }
 
     /// Rows `rows` (all n without) of Σ_a ∂q̈/∂x_a V_a over x = q, q̇ and the forces, for directions
     /// V_q, V_v (row-major n × c) and V_f (row-major columns.len() × c, the forces on
     /// the coordinates `columns`), into the row-major rows.len() × c `out`, at the
     /// point of a preceding [`DynamicsKernel::evaluate`] without Jacobians (its LU
-    /// factors and [q̈; λ] are in `reals`): the first n rows of
+    /// factors and [q̈; λ] are in `kernel`), with the scratch of
+    /// [`DynamicsKernel::along_scratch`] carved from `stack`: the first n rows of
     /// K⁻¹ (R_q V_q + R_v V_v + [E V_f; 0]), R_q and R_v the right-hand sides from
     /// which `evaluate` solves for ∂q̈/∂q and ∂q̈/∂q̇. Only the columns where some
     /// direction is nonzero are solved for (one pair of triangular solves each, where
@@ -71,17 +49,22 @@ impl DynamicsKernel {
         rows: Option<&[usize]>,
         c: usize,
         out: &mut [f64],
-        reals: &mut [f64],
-        extra: &mut [f64],
-        indices: &mut [usize],
+        kernel: &KernelScratch,
+        stack: &mut MemStack,
         max_cols: usize,
     ) -> Result<bool> {
         let [vq, vv, vf] = directions;
-        let l = KernelLayout::new(model);
-        let (n, ma) = (l.n, l.ma);
+        let (n, ma) = (model.n(), model.active.len());
         let big = n + ma;
-        let a = AlongLayout::new(model, max_cols);
-        let (perm, act) = indices.split_at_mut(big);
+        let [kq, kv, mat, bq, bv, b] = lens(model, max_cols);
+        let (mut kq, stack) = zeros(stack, kq);
+        let (mut kv, stack) = zeros(stack, kv);
+        let (mut mat, stack) = zeros(stack, mat);
+        let (mut bq, stack) = zeros(stack, bq);
+        let (mut bv, stack) = zeros(stack, bv);
+        let (mut b, stack) = zeros(stack, b);
+        let (mut tmp, stack) = zeros(stack, b.len());
+        let (mut act, _) = stack.make_with(max_cols, |_| 0usize);
         // The columns where a direction is nonzero (flags in `out`'s first row).
         let flags = &mut out[..c];
         flags.fill(0.0);
@@ -105,14 +88,9 @@ impl DynamicsKernel {
             }
         }
         let act = &act[..na];
-        let (kkt, rest) = reals[..l.end].split_at_mut(l.sol);
-        let sol = &rest[..big];
-        let (kq, rest) = extra[..a.end].split_at_mut(a.kv);
-        let (kv, rest) = rest.split_at_mut(a.mat - a.kv);
-        let (mat, rest) = rest.split_at_mut(a.bq - a.mat);
-        let (bq, rest) = rest.split_at_mut(a.bv - a.bq);
-        let (bv, rest) = rest.split_at_mut(a.b - a.bv);
-        let (b, tmp) = rest.split_at_mut(a.tmp - a.b);
+        let (kkt, perm, sol) = (&kernel.kkt[..], &kernel.perm[..], &kernel.sol[..]);
+        let (kq, kv, mat) = (&mut kq[..], &mut kv[..], &mut mat[..]);
+        let (bq, bv, tmp) = (&mut bq[..], &mut bv[..], &mut tmp[..]);
         // The right-hand sides of `evaluate`'s Jacobians (the same terms in the same
         // order): top rows ∂Q/∂q − ∂(Φ_qᵀλ)/∂q and ∂Q/∂q̇; bottom rows
         // −∂(Φ̇_q q̇)/∂q − Φ_qq q̈ and −2 Φ̇_q.

@@ -3,43 +3,66 @@
 //! scratch they share.
 
 use super::kernel::DynamicsKernel;
-use super::regularization::{mass_scale, MeasureLayout};
+use super::regularization::{mass_scale, MeasureScratch};
 use crate::error::{Error, Result};
+use crate::graph::{zeros, MemStack, StackReq};
 use crate::linalg::dense;
 use crate::model::Model;
+use faer::dyn_stack::DynArray;
 
-/// Where the kernel's scratch lives inside `ws.reals`: the augmented system and its
-/// right-hand sides, then the singularity measure's scratch ([`MeasureLayout`]).
-pub(super) struct KernelLayout {
-    pub(super) n: usize,
-    pub(super) ma: usize,
-    pub(super) sol: usize,
-    pub(super) tmp: usize,
-    pub(super) mat: usize,
-    pub(super) kq: usize,
-    pub(super) kv: usize,
-    pub(super) cols: usize,
-    pub(super) c: usize,
-    pub(super) measure: usize,
-    pub(super) end: usize,
+/// The kernel's scratch, carved from a [`MemStack`]: the augmented system (its LU
+/// factors after an evaluation) and their pivots, [q̈; λ], room for the solves,
+/// Φ_q and its like (m × n), ∂Q/∂q and ∂Q/∂q̇ (n × n), the Jacobians' right-hand
+/// sides (big × 2n), c (m) and the singularity measure's ([`MeasureScratch`]).
+/// [`DynamicsKernel::evaluate`] leaves the factors and [q̈; λ] in it for
+/// [`DynamicsKernel::force_jacobian`] and [`DynamicsKernel::along`].
+pub struct KernelScratch<'a> {
+    pub(super) kkt: DynArray<'a, f64>,
+    pub(super) perm: DynArray<'a, usize>,
+    pub(super) sol: DynArray<'a, f64>,
+    tmp: DynArray<'a, f64>,
+    mat: DynArray<'a, f64>,
+    kq: DynArray<'a, f64>,
+    kv: DynArray<'a, f64>,
+    cols: DynArray<'a, f64>,
+    c: DynArray<'a, f64>,
+    measure: MeasureScratch<'a>,
 }
 
-impl KernelLayout {
-    pub(super) fn new(model: &Model) -> Self {
-        let (n, m, ma) = (model.n(), model.m(), model.active.len());
-        let big = n + ma;
-        let sol = big * big;
-        let tmp = sol + big;
-        let mat = tmp + 2 * n * big;
-        let kq = mat + m * n;
-        let kv = kq + n * n;
-        let cols = kv + n * n;
-        let c = cols + 2 * n * big;
-        let measure = c + m;
-        let end = measure + MeasureLayout::new(model).end;
-        KernelLayout {
-            n,
-            ma,
+impl<'a> KernelScratch<'a> {
+    fn lens(model: &Model) -> [usize; 8] {
+        let (n, m) = (model.n(), model.m());
+        let big = n + model.active.len();
+        [
+            big * big,
+            big,
+            2 * n * big,
+            m * n,
+            n * n,
+            n * n,
+            2 * n * big,
+            m,
+        ]
+    }
+
+    /// The scratch carved (zeroed) from `stack`, which must hold
+    /// [`DynamicsKernel::scratch`], and the rest of `stack`.
+    pub fn new(model: &Model, stack: &'a mut MemStack) -> (Self, &'a mut MemStack) {
+        let big = model.n() + model.active.len();
+        let [kkt, sol, tmp, mat, kq, kv, cols, c] = Self::lens(model);
+        let (kkt, stack) = zeros(stack, kkt);
+        let (perm, stack) = stack.make_with(big, |_| 0usize);
+        let (sol, stack) = zeros(stack, sol);
+        let (tmp, stack) = zeros(stack, tmp);
+        let (mat, stack) = zeros(stack, mat);
+        let (kq, stack) = zeros(stack, kq);
+        let (kv, stack) = zeros(stack, kv);
+        let (cols, stack) = zeros(stack, cols);
+        let (c, stack) = zeros(stack, c);
+        let (measure, stack) = MeasureScratch::new(model, stack);
+        let scratch = KernelScratch {
+            kkt,
+            perm,
             sol,
             tmp,
             mat,
@@ -48,16 +71,19 @@ impl KernelLayout {
             cols,
             c,
             measure,
-            end,
-        }
+        };
+        (scratch, stack)
     }
 }
 
 impl DynamicsKernel {
-    /// Scratch needed: (reals, indices).
-    pub fn scratch(model: &Model) -> (usize, usize) {
-        let l = KernelLayout::new(model);
-        (l.end, l.n + l.ma)
+    /// The scratch of a [`KernelScratch`].
+    pub fn scratch(model: &Model) -> StackReq {
+        let big = model.n() + model.active.len();
+        let reals = KernelScratch::lens(model).map(StackReq::new::<f64>);
+        StackReq::all_of(&reals)
+            .and(StackReq::new::<usize>(big))
+            .and(MeasureScratch::req(model))
     }
 
     /// Computes q̈ into `ddq`; with `jac`, ∂q̈/∂q and ∂q̈/∂q̇ into the row-major n × n
@@ -73,23 +99,22 @@ impl DynamicsKernel {
         force: Option<&[f64]>,
         ddq: &mut [f64],
         jac: Option<(&mut [f64], &mut [f64])>,
-        reals: &mut [f64],
-        indices: &mut [usize],
+        scratch: &mut KernelScratch,
     ) -> Result<()> {
-        let l = KernelLayout::new(model);
-        let (n, ma) = (l.n, l.ma);
+        let (n, ma) = (model.n(), model.active.len());
         let big = n + ma;
-        let m = model.m();
-        let perm = &mut indices[..big];
-        let (main, scratch) = reals[..l.end].split_at_mut(l.measure);
-        let (kkt, rest) = main.split_at_mut(l.sol);
-        let (sol, rest) = rest.split_at_mut(l.tmp - l.sol);
-        let (tmp, rest) = rest.split_at_mut(l.mat - l.tmp);
-        let (mat, rest) = rest.split_at_mut(l.kq - l.mat);
-        let (kq, rest) = rest.split_at_mut(l.kv - l.kq);
-        let (kv, rest) = rest.split_at_mut(l.cols - l.kv);
-        let (cols, rest) = rest.split_at_mut(l.c - l.cols);
-        let c = &mut rest[..m];
+        let KernelScratch {
+            kkt,
+            perm,
+            sol,
+            tmp,
+            mat,
+            kq,
+            kv,
+            cols,
+            c,
+            measure: scratch,
+        } = scratch;
 
         // K = [M Aᵀ; A −E] and the right-hand side [Q; c].
         model.jacobian_into(q, mat);
@@ -108,12 +133,11 @@ impl DynamicsKernel {
             }
         }
         if reg.w > 0.0 {
-            let ml = MeasureLayout::new(model);
             let scale = Self::REGULARIZATION * reg.w / mass_scale(model);
             for r in 0..ma {
-                let norm = scratch[ml.norms + r];
+                let norm = scratch.norms[r];
                 let e = scale * norm * norm;
-                scratch[ml.eps + r] = e;
+                scratch.eps[r] = e;
                 kkt[(n + r) * big + n + r] = -e;
             }
         }
@@ -198,18 +222,17 @@ impl DynamicsKernel {
         model: &Model,
         columns: &[usize],
         jf: &mut [f64],
-        reals: &mut [f64],
-        indices: &[usize],
+        scratch: &mut KernelScratch,
     ) {
-        let l = KernelLayout::new(model);
-        let (n, ma) = (l.n, l.ma);
+        let (n, ma) = (model.n(), model.active.len());
         let big = n + ma;
-        let perm = &indices[..big];
-        let (kkt, rest) = reals[..l.end].split_at_mut(l.sol);
-        let (_, rest) = rest.split_at_mut(l.tmp - l.sol);
-        let (tmp, rest) = rest.split_at_mut(l.mat - l.tmp);
-        let (_, rest) = rest.split_at_mut(l.cols - l.mat);
-        let (cols, _) = rest.split_at_mut(l.c - l.cols);
+        let KernelScratch {
+            kkt,
+            perm,
+            tmp,
+            cols,
+            ..
+        } = scratch;
         let p = columns.len();
         let rhs = &mut cols[..big * p];
         rhs.fill(0.0);

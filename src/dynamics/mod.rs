@@ -10,6 +10,7 @@ mod augmented;
 mod kernel;
 mod regularization;
 
+pub use augmented::KernelScratch;
 pub use kernel::DynamicsKernel;
 
 use crate::error::{Error, Result};

@@ -4,38 +4,51 @@
 //! regularization adds to the Jacobians (see [`DynamicsKernel`]).
 
 use super::kernel::DynamicsKernel;
+use crate::graph::{zeros, MemStack, StackReq};
 use crate::linalg::dense::inverse_trace;
 use crate::model::Model;
+use faer::dyn_stack::{DynArray, MemBuffer};
 
-/// The singularity measure's scratch, relative to its start: Â (ma × n), G and its
-/// Cholesky factor, L⁻¹, G⁻¹ (ma × ma each), per-row vectors and their Hessian
-/// products (m × n each), εₖ and ‖aₖ‖ (ma each), ∂s/∂q (n).
-pub(super) struct MeasureLayout {
-    pub(super) gram: usize,
-    pub(super) linv: usize,
-    pub(super) ginv: usize,
-    pub(super) vrows: usize,
-    pub(super) hrows: usize,
-    pub(super) eps: usize,
-    pub(super) norms: usize,
-    pub(super) ds: usize,
-    pub(super) end: usize,
+/// The singularity measure's scratch: Â (ma × n), G and its Cholesky factor, L⁻¹
+/// (G⁻² in [`DynamicsKernel::measure_gradient`]), G⁻¹ (ma × ma each), per-row vectors
+/// and their Hessian products (m × n each), εₖ and ‖aₖ‖ (ma each), ∂s/∂q (n).
+pub(super) struct MeasureScratch<'a> {
+    pub(super) abar: DynArray<'a, f64>,
+    pub(super) chol: DynArray<'a, f64>,
+    pub(super) linv: DynArray<'a, f64>,
+    pub(super) ginv: DynArray<'a, f64>,
+    pub(super) vrows: DynArray<'a, f64>,
+    pub(super) hrows: DynArray<'a, f64>,
+    pub(super) eps: DynArray<'a, f64>,
+    pub(super) norms: DynArray<'a, f64>,
+    pub(super) ds: DynArray<'a, f64>,
 }
 
-impl MeasureLayout {
-    pub(super) fn new(model: &Model) -> Self {
+impl<'a> MeasureScratch<'a> {
+    fn lens(model: &Model) -> [usize; 9] {
         let (n, m, ma) = (model.n(), model.m(), model.active.len());
-        let gram = ma * n;
-        let linv = gram + ma * ma;
-        let ginv = linv + ma * ma;
-        let vrows = ginv + ma * ma;
-        let hrows = vrows + m * n;
-        let eps = hrows + m * n;
-        let norms = eps + ma;
-        let ds = norms + ma;
-        let end = ds + n;
-        MeasureLayout {
-            gram,
+        [ma * n, ma * ma, ma * ma, ma * ma, m * n, m * n, ma, ma, n]
+    }
+
+    pub(super) fn req(model: &Model) -> StackReq {
+        StackReq::all_of(&Self::lens(model).map(StackReq::new::<f64>))
+    }
+
+    /// The scratch carved (zeroed) from `stack`, and the rest of `stack`.
+    pub(super) fn new(model: &Model, stack: &'a mut MemStack) -> (Self, &'a mut MemStack) {
+        let [abar, chol, linv, ginv, vrows, hrows, eps, norms, ds] = Self::lens(model);
+        let (abar, stack) = zeros(stack, abar);
+        let (chol, stack) = zeros(stack, chol);
+        let (linv, stack) = zeros(stack, linv);
+        let (ginv, stack) = zeros(stack, ginv);
+        let (vrows, stack) = zeros(stack, vrows);
+        let (hrows, stack) = zeros(stack, hrows);
+        let (eps, stack) = zeros(stack, eps);
+        let (norms, stack) = zeros(stack, norms);
+        let (ds, stack) = zeros(stack, ds);
+        let scratch = MeasureScratch {
+            abar,
+            chol,
             linv,
             ginv,
             vrows,
@@ -43,8 +56,8 @@ impl MeasureLayout {
             eps,
             norms,
             ds,
-            end,
-        }
+        };
+        (scratch, stack)
     }
 }
 
@@ -75,12 +88,12 @@ impl DynamicsKernel {
         let (n, m) = (model.n(), model.m());
         let mut mat = vec![0.0; m * n];
         model.jacobian_into(q, &mut mat);
-        let ml = MeasureLayout::new(model);
-        let mut scratch = vec![0.0; ml.end];
+        let mut buffer = MemBuffer::new(MeasureScratch::req(model));
+        let (mut scratch, _) = MeasureScratch::new(model, MemStack::new(&mut buffer));
         let reg = Self::measure(model, &mat, &mut scratch, true);
         let gradient = (reg.dw != 0.0).then(|| {
             Self::measure_gradient(model, q, reg.s, &mut scratch);
-            scratch[ml.ds..ml.ds + n].to_vec()
+            scratch.ds[..n].to_vec()
         });
         (reg.s, reg.w, gradient)
     }
@@ -94,11 +107,10 @@ impl DynamicsKernel {
     pub(super) fn measure(
         model: &Model,
         mat: &[f64],
-        scratch: &mut [f64],
+        scratch: &mut MeasureScratch,
         exact: bool,
     ) -> Regularization {
         let (n, ma) = (model.n(), model.active.len());
-        let ml = MeasureLayout::new(model);
         let singular = Regularization {
             w: 1.0,
             dw: 0.0,
@@ -111,11 +123,13 @@ impl DynamicsKernel {
                 s: f64::INFINITY,
             };
         }
-        let (_, rest) = scratch[..ml.end].split_at_mut(ml.gram);
-        let (chol, rest) = rest.split_at_mut(ml.linv - ml.gram);
-        let (linv, rest) = rest.split_at_mut(ml.ginv - ml.linv);
-        let (ginv, rest) = rest.split_at_mut(ml.vrows - ml.ginv);
-        let norms = &mut rest[ml.norms - ml.vrows..ml.ds - ml.vrows];
+        let MeasureScratch {
+            chol,
+            linv,
+            ginv,
+            norms,
+            ..
+        } = scratch;
         // AAᵀ (lower triangle) and the row norms from its diagonal.
         for (i, &ki) in model.active.iter().enumerate() {
             let ri = &mat[ki * n..(ki + 1) * n];
@@ -165,7 +179,7 @@ impl DynamicsKernel {
         }
         // L⁻¹ (lower triangular) column by column, each column passing through G⁻¹'s
         // place (filled below); tr G⁻¹ = ‖L⁻¹‖_F².
-        let trace = inverse_trace(chol, ma, ginv, Some(linv));
+        let trace = inverse_trace(chol, ma, ginv, Some(&mut linv[..]));
         let s = trace.recip().sqrt();
         if !(s > 0.0) {
             return singular;
@@ -199,16 +213,18 @@ impl DynamicsKernel {
     /// ∂s/∂q = s³ Σₖ Φᵏ_qq yₖ with zₖ = Σₗ (G⁻²)ₖₗ âₗ and
     /// yₖ = (zₖ − (âₖ·zₖ) âₖ)/‖aₖ‖ (âₖ = aₖ/‖aₖ‖ moves by (I − âₖâₖᵀ) ∂aₖ/‖aₖ‖,
     /// ∂aₖ/∂q = Φᵏ_qq).
-    fn measure_gradient(model: &Model, q: &[f64], s: f64, scratch: &mut [f64]) {
-        let (n, ma, m) = (model.n(), model.active.len(), model.m());
-        let ml = MeasureLayout::new(model);
-        let (abar, rest) = scratch[..ml.end].split_at_mut(ml.gram);
-        let (_, rest) = rest.split_at_mut(ml.linv - ml.gram);
-        let (g2, rest) = rest.split_at_mut(ml.ginv - ml.linv);
-        let (ginv, rest) = rest.split_at_mut(ml.vrows - ml.ginv);
-        let (vrows, rest) = rest.split_at_mut(m * n);
-        let (hrows, rest) = rest.split_at_mut(m * n);
-        let (norms, ds) = rest[ma..].split_at_mut(ma);
+    fn measure_gradient(model: &Model, q: &[f64], s: f64, scratch: &mut MeasureScratch) {
+        let (n, ma) = (model.n(), model.active.len());
+        let MeasureScratch {
+            abar,
+            linv: g2,
+            ginv,
+            vrows,
+            hrows,
+            norms,
+            ds,
+            ..
+        } = scratch;
         // Â from the active rows of Φ_q.
         model.jacobian_into(q, hrows);
         for (r, &k) in model.active.iter().enumerate() {
@@ -255,18 +271,19 @@ impl DynamicsKernel {
         lambda: &[f64],
         cols: &mut [f64],
         width: usize,
-        scratch: &mut [f64],
+        scratch: &mut MeasureScratch,
     ) {
-        let (n, m) = (model.n(), model.m());
-        let ml = MeasureLayout::new(model);
+        let n = model.n();
         if reg.dw != 0.0 {
             Self::measure_gradient(model, q, reg.s, scratch);
         }
-        let (head, rest) = scratch[..ml.end].split_at_mut(ml.hrows);
-        let vrows = &mut head[ml.vrows..];
-        let (hrows, rest) = rest.split_at_mut(m * n);
-        let norms = &rest[ml.norms - ml.eps..ml.ds - ml.eps];
-        let ds = &rest[ml.ds - ml.eps..ml.end - ml.eps];
+        let MeasureScratch {
+            vrows,
+            hrows,
+            norms,
+            ds,
+            ..
+        } = scratch;
         model.jacobian_into(q, vrows);
         model.hessian_rows_into(q, vrows, hrows);
         let scale = Self::REGULARIZATION / mass_scale(model);

@@ -3,7 +3,7 @@
 
 use super::shared::{key_accessor, mat_vec};
 use crate::error::Result;
-use crate::graph::{Factor, Key, VarKind, Workspace};
+use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -75,8 +75,8 @@ impl Factor for VelocityConstraints {
     fn dim(&self) -> usize {
         self.model.m()
     }
-    fn scratch(&self) -> (usize, usize) {
-        (self.model.m() * self.model.n(), 0)
+    fn scratch(&self) -> StackReq {
+        StackReq::new::<f64>(self.model.m() * self.model.n())
     }
     fn evaluate(
         &self,
@@ -87,7 +87,8 @@ impl Factor for VelocityConstraints {
         ws: &mut Workspace,
     ) -> Result<()> {
         let (m, n) = (self.model.m(), self.model.n());
-        let a = &mut ws.reals[..m * n];
+        let (mut a, _) = zeros(ws.stack(), m * n);
+        let a = &mut a[..];
         self.model.jacobian_into(x[0], a);
         mat_vec(a, m, n, x[1], r);
         if let Some(j) = jac {

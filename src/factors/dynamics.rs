@@ -3,9 +3,9 @@
 //! [`DynamicsKernel`].
 
 use super::shared::{identity, key_accessor};
-use crate::dynamics::DynamicsKernel;
+use crate::dynamics::{DynamicsKernel, KernelScratch};
 use crate::error::Result;
-use crate::graph::{AlongDirections, Factor, Key, VarKind, Workspace};
+use crate::graph::{zeros, AlongDirections, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -115,15 +115,17 @@ impl Factor for Dynamics {
     fn dim(&self) -> usize {
         self.model.n()
     }
-    fn scratch(&self) -> (usize, usize) {
-        let (r, i) = DynamicsKernel::scratch(&self.model);
+    /// The kernel's, the forces on all n coordinates, and (f^d_idyn)
+    /// [`DynamicsKernel::along`]'s.
+    fn scratch(&self) -> StackReq {
         let n = self.model.n();
+        let kernel = DynamicsKernel::scratch(&self.model).and(StackReq::new::<f64>(n));
         match &self.actuated {
-            Some(a) => {
-                let (ra, ia) = DynamicsKernel::along_scratch(&self.model, 2 * n + a.indices.len());
-                (r + n + ra, i + ia)
-            }
-            None => (r + n, i),
+            Some(a) => kernel.and(DynamicsKernel::along_scratch(
+                &self.model,
+                2 * n + a.indices.len(),
+            )),
+            None => kernel,
         }
     }
     fn diagonal_jacobian(&self, key: usize) -> bool {
@@ -142,12 +144,9 @@ impl Factor for Dynamics {
         ws: &mut Workspace,
     ) -> Result<()> {
         let n = self.model.n();
-        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
-        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
-        let force = self
-            .actuated
-            .as_ref()
-            .map(|a| a.forces(x[3], &mut own[..n]));
+        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut own, _) = zeros(stack, n);
+        let force = self.actuated.as_ref().map(|a| a.forces(x[3], &mut own));
         match jac {
             Some(j) => {
                 let (jq, rest) = j.split_at_mut(1);
@@ -161,8 +160,7 @@ impl Factor for Dynamics {
                     force,
                     r,
                     Some((&mut jq[0], &mut jv[0])),
-                    kernel,
-                    &mut ws.indices,
+                    &mut kernel,
                 )?;
                 identity(&mut ja[0], n, -1.0);
                 if let Some(a) = &self.actuated {
@@ -170,22 +168,13 @@ impl Factor for Dynamics {
                         &self.model,
                         &a.indices,
                         &mut jf[0],
-                        kernel,
-                        &ws.indices,
+                        &mut kernel,
                     );
                 }
             }
-            None => DynamicsKernel::evaluate(
-                &self.model,
-                x[0],
-                x[1],
-                t,
-                force,
-                r,
-                None,
-                kernel,
-                &mut ws.indices,
-            )?,
+            None => {
+                DynamicsKernel::evaluate(&self.model, x[0], x[1], t, force, r, None, &mut kernel)?
+            }
         }
         for i in 0..n {
             r[i] -= x[2][i];
@@ -212,10 +201,9 @@ impl AlongDirections for Dynamics {
             return Ok(false);
         };
         let n = self.model.n();
-        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
-        let (kernel, rest) = ws.reals.split_at_mut(kernel_len);
-        let (own, extra) = rest.split_at_mut(n);
-        let force = a.forces(x[3], own);
+        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut own, extra) = zeros(stack, n);
+        let force = a.forces(x[3], &mut own);
         DynamicsKernel::evaluate(
             &self.model,
             x[0],
@@ -224,8 +212,7 @@ impl AlongDirections for Dynamics {
             Some(force),
             r,
             None,
-            kernel,
-            &mut ws.indices,
+            &mut kernel,
         )?;
         if !DynamicsKernel::along(
             &self.model,
@@ -235,9 +222,8 @@ impl AlongDirections for Dynamics {
             None,
             c,
             out,
-            kernel,
+            &kernel,
             extra,
-            &mut ws.indices,
             2 * n + a.indices.len(),
         )? {
             return Ok(false);

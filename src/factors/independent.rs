@@ -4,8 +4,9 @@
 
 use super::shared::{identity, key_accessor, mat_vec};
 use crate::dynamics::DynamicsKernel;
+use crate::dynamics::KernelScratch;
 use crate::error::Result;
-use crate::graph::{AlongDirections, Factor, Key, VarKind, Workspace};
+use crate::graph::{zeros, AlongDirections, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -112,8 +113,8 @@ impl Factor for IndependentVelocity {
     fn dim(&self) -> usize {
         self.model.m() + self.model.independent.len()
     }
-    fn scratch(&self) -> (usize, usize) {
-        (self.model.m() * self.model.n(), 0)
+    fn scratch(&self) -> StackReq {
+        StackReq::new::<f64>(self.model.m() * self.model.n())
     }
     fn evaluate(
         &self,
@@ -124,7 +125,8 @@ impl Factor for IndependentVelocity {
         ws: &mut Workspace,
     ) -> Result<()> {
         let (m, n) = (self.model.m(), self.model.n());
-        let a = &mut ws.reals[..m * n];
+        let (mut a, _) = zeros(ws.stack(), m * n);
+        let a = &mut a[..];
         self.model.jacobian_into(x[0], a);
         mat_vec(a, m, n, x[1], &mut r[..m]);
         for (k, &i) in self.model.independent.iter().enumerate() {
@@ -179,8 +181,9 @@ impl Factor for IndependentAcceleration {
     fn dim(&self) -> usize {
         self.model.m() + self.model.independent.len()
     }
-    fn scratch(&self) -> (usize, usize) {
-        (self.model.m() * self.model.n() + self.model.m(), 0)
+    fn scratch(&self) -> StackReq {
+        let (m, n) = (self.model.m(), self.model.n());
+        StackReq::all_of(&[StackReq::new::<f64>(m * n), StackReq::new::<f64>(m)])
     }
     fn evaluate(
         &self,
@@ -192,8 +195,9 @@ impl Factor for IndependentAcceleration {
     ) -> Result<()> {
         let (m, n) = (self.model.m(), self.model.n());
         let (q, dq, ddq, ddz) = (x[0], x[1], x[2], x[3]);
-        let (a, rest) = ws.reals.split_at_mut(m * n);
-        let c = &mut rest[..m];
+        let (mut a, stack) = zeros(ws.stack(), m * n);
+        let (mut c, _) = zeros(stack, m);
+        let (a, c) = (&mut a[..], &mut c[..]);
         self.model.jacobian_into(q, a);
         self.model.acceleration_rhs_into(q, dq, c);
         mat_vec(a, m, n, ddq, &mut r[..m]);
@@ -281,14 +285,16 @@ impl Factor for IndependentDynamics {
     fn dim(&self) -> usize {
         self.model.independent.len()
     }
-    fn scratch(&self) -> (usize, usize) {
-        let (r, i) = DynamicsKernel::scratch(&self.model);
+    /// The kernel's, q̈, then ∂q̈/∂q, ∂q̈/∂q̇ and ∂q̈/∂Q or (f^i_idyn along
+    /// directions) [`DynamicsKernel::along`]'s.
+    fn scratch(&self) -> StackReq {
         let n = self.model.n();
+        let kernel = DynamicsKernel::scratch(&self.model).and(StackReq::new::<f64>(n));
+        let jacobians = StackReq::new::<f64>(3 * n * n);
         if self.inverse {
-            let (ra, ia) = DynamicsKernel::along_scratch(&self.model, 3 * n);
-            (r + n + (3 * n * n).max(ra), i + ia)
+            kernel.and(jacobians.or(DynamicsKernel::along_scratch(&self.model, 3 * n)))
         } else {
-            (r + 3 * n * n + n, i)
+            kernel.and(jacobians)
         }
     }
     /// f^i_idyn only.
@@ -305,12 +311,12 @@ impl Factor for IndependentDynamics {
     ) -> Result<()> {
         let n = self.model.n();
         let f = self.model.independent.len();
-        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
-        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
-        let (ddq, own) = own.split_at_mut(n);
-        let (jq, own) = own.split_at_mut(n * n);
-        let (jv, own) = own.split_at_mut(n * n);
-        let jf = &mut own[..n * n];
+        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut ddq, stack) = zeros(stack, n);
+        let (mut jq, stack) = zeros(stack, n * n);
+        let (mut jv, stack) = zeros(stack, n * n);
+        let (mut jf, _) = zeros(stack, n * n);
+        let (ddq, jq, jv, jf) = (&mut ddq[..], &mut jq[..], &mut jv[..], &mut jf[..]);
         let want = jac.is_some();
         let force = if self.inverse { Some(x[3]) } else { None };
         DynamicsKernel::evaluate(
@@ -321,8 +327,7 @@ impl Factor for IndependentDynamics {
             force,
             ddq,
             want.then_some((&mut *jq, &mut *jv)),
-            kernel,
-            &mut ws.indices,
+            &mut kernel,
         )?;
         for (k, &i) in self.model.independent.iter().enumerate() {
             r[k] = ddq[i] - x[2][k];
@@ -334,7 +339,7 @@ impl Factor for IndependentDynamics {
             }
             identity(&mut j[2], f, -1.0);
             if self.inverse {
-                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, kernel, &ws.indices);
+                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, &mut kernel);
                 for (k, &i) in self.model.independent.iter().enumerate() {
                     j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
                 }
@@ -362,19 +367,17 @@ impl AlongDirections for IndependentDynamics {
         }
         let n = self.model.n();
         let ind = &self.model.independent;
-        let (kernel_len, _) = DynamicsKernel::scratch(&self.model);
-        let (kernel, own) = ws.reals.split_at_mut(kernel_len);
-        let (ddq, extra) = own.split_at_mut(n);
+        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut ddq, extra) = zeros(stack, n);
         DynamicsKernel::evaluate(
             &self.model,
             x[0],
             x[1],
             t,
             Some(x[3]),
-            ddq,
+            &mut ddq,
             None,
-            kernel,
-            &mut ws.indices,
+            &mut kernel,
         )?;
         if !DynamicsKernel::along(
             &self.model,
@@ -384,9 +387,8 @@ impl AlongDirections for IndependentDynamics {
             Some(ind),
             c,
             out,
-            kernel,
+            &kernel,
             extra,
-            &mut ws.indices,
             3 * n,
         )? {
             return Ok(false);

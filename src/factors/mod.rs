@@ -24,7 +24,7 @@ mod prescribed;
 mod priors;
 mod shared;
 
-pub use crate::dynamics::DynamicsKernel;
+pub use crate::dynamics::{DynamicsKernel, KernelScratch};
 pub use constraints::{PositionConstraints, VelocityConstraints};
 pub use dynamics::Dynamics;
 pub use independent::{
