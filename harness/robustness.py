@@ -62,7 +62,6 @@ INTEGRATOR = "trapezoidal"
 
 # What a failure message names: "step 521 (t = 0.521 s)" (also the batch warm start's
 # "step 12 (t = 0.24)").
-STEP = re.compile(r"step (?P<step>\d+) \(t = (?P<t>[0-9.e+-]+)")
 COUNTED = ("converged", "ill-posed", "failed", "error", "skipped")
 
 
@@ -130,22 +129,23 @@ class Verdict:
     t: float | None = None
 
 
-def classify(message: str) -> Verdict:
-    """A SolveError's message: the singular-configuration stop of a run in independent
-    coordinates (hard_cases.ILL_POSED) is ill-posed, with its cause; anything else is a
-    failed solve, with the step and time it names where it names them."""
-    m = hard_cases.ILL_POSED.search(message)
-    if m:
-        cause = (f"singular configuration at t ≈ {float(m['located']):g} s: [{m['independent']}] "
-                 f"do not determine the others (rank {m['rank']} < {m['full']})")
-        return Verdict("ill-posed", cause, int(m["step"]), float(m["t"]))
-    s = STEP.search(message)
-    return Verdict("failed", message, int(s["step"]) if s else None, float(s["t"]) if s else None)
+def classify(failure: dict | None, message: str) -> Verdict:
+    """A SolveError, from its structured failure (SolveError.failure): the
+    singular-configuration stop of a run in independent coordinates is ill-posed, with
+    its cause; anything else is a failed solve, at the step and time it names where it
+    names them."""
+    if failure and failure.get("kind") == "singular-configuration":
+        cause = (f"singular configuration at t ≈ {failure['located_t']:g} s: "
+                 f"[{', '.join(failure['independent'])}] do not determine the others "
+                 f"(rank {failure['rank']} < {failure['full_rank']})")
+        return Verdict("ill-posed", cause, failure["step"], failure["t"])
+    failure = failure or {}
+    return Verdict("failed", message, failure.get("step"), failure.get("t"))
 
 
 def verdict_of(exc: BaseException) -> Verdict:
     if isinstance(exc, mbfg.SolveError):
-        return classify(str(exc))
+        return classify(exc.failure, str(exc))
     return Verdict("error", f"{type(exc).__name__}: {exc}")
 
 

@@ -89,36 +89,41 @@ ILL_POSED_MESSAGE = (
     "singular configuration at t ≈ 0.523599 s (extrapolated): independent coordinates "
     "[theta] stop determining [P1.x, P1.y, P2.x, P2.y] (rank 3 < 4); stopped at step 521 "
     "(t = 0.521 s), distance to rank loss 5.0e-3")
+ILL_POSED_FAILURE = {"kind": "singular-configuration", "message": ILL_POSED_MESSAGE, "step": 521,
+             "t": 0.521, "located_t": 0.5235988750573793, "independent": ["theta"],
+             "dependent": ["P1.x", "P1.y", "P2.x", "P2.y"], "rank": 3, "full_rank": 4,
+             "distance": 5.0e-3}
 
 
 def test_ill_posed_stop_is_classified_with_its_cause():
-    v = rb.classify(ILL_POSED_MESSAGE)
+    v = rb.classify(ILL_POSED_FAILURE, ILL_POSED_MESSAGE)
     assert (v.status, v.step, v.t) == ("ill-posed", 521, 0.521)
     assert v.cause == ("singular configuration at t ≈ 0.523599 s: [theta] do not determine "
                        "the others (rank 3 < 4)")
 
 
-@pytest.mark.parametrize("message, step, t", [
-    # A solve that did not converge, with the hint of a nearby singular configuration:
-    # failed, whatever the hint says.
-    ("step 708 (t = 0.708 s) did not converge: iteration limit, cost 6.807e-9 after 50 "
-     "iterations; Φ_q is close to losing rank there (σ_r/σ₁ = 9.1e-4): a singular configuration",
-     708, 0.708),
-    ("step 1 (t = 0.02 s) did not converge: diverged, cost 6.938e6 after 14 iterations", 1, 0.02),
-    # The batch solve's warm start (its time without a unit).
-    ("invalid argument: the warm start for the batch solve failed at step 696 "
-     "(t = 0.6960000000000001): iteration limit", 696, 0.6960000000000001),
+@pytest.mark.parametrize("failure, step, t", [
+    # A solve that did not converge, near a singular configuration: failed, whatever
+    # the hint says.
+    ({"kind": "not-converged", "step": 708, "t": 0.708, "termination": "iteration limit",
+      "constraint_conditioning": 9.1e-4}, 708, 0.708),
+    ({"kind": "not-converged", "step": 1, "t": 0.02, "termination": "diverged"}, 1, 0.02),
     # No step named.
-    ("the position problem did not converge after 50 iterations; constraints left violated: "
-     "K1 (|Φ| = 1.000e-3)", None, None),
+    ({"kind": "position-problem", "step": None, "t": None}, None, None),
+    # No structured failure at all (a SolveError made by hand).
+    (None, None, None),
 ])
-def test_other_solve_errors_fail_with_step_and_time(message, step, t):
-    v = rb.classify(message)
-    assert (v.status, v.cause, v.step, v.t) == ("failed", message, step, t)
+def test_other_solve_errors_fail_with_step_and_time(failure, step, t):
+    v = rb.classify(failure, "the message")
+    assert (v.status, v.cause, v.step, v.t) == ("failed", "the message", step, t)
 
 
 def test_exceptions_other_than_solve_errors_are_errors():
-    assert rb.verdict_of(mbfg.SolveError(ILL_POSED_MESSAGE)).status == "ill-posed"
+    # A SolveError as the module raises it: classified by its failure, not its text.
+    with pytest.raises(mbfg.SolveError) as info:
+        mbfg.simulate(rb.scene_path("hard/parallelogram"), coords="ic", dt=1e-2, t_end=1.0)
+    v = rb.verdict_of(info.value)
+    assert v.status == "ill-posed" and v.step == info.value.failure["step"]
     assert rb.verdict_of(mbfg.SolveError("step 3 (t = 0.003 s) did not converge")).status == "failed"
     v = rb.verdict_of(BaseException("called `Option::unwrap()` on a `None` value"))
     assert v == rb.Verdict("error", "BaseException: called `Option::unwrap()` on a `None` value")
