@@ -543,3 +543,46 @@ fn a_trajectory_header_is_checked_before_its_rows() {
     assert!(line.contains("unknown coordinate"), "{line}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `--trace-solver` prints one line per solver iteration to standard error and
+/// leaves the trajectory as it is.
+#[test]
+fn the_solver_trace_goes_to_stderr_and_changes_nothing() {
+    let dir = scratch("trace");
+    let (plain, traced) = (dir.join("plain.csv"), dir.join("traced.csv"));
+    let run = |out: &Path, trace: bool| {
+        let mut args = vec![
+            "simulate",
+            "scenes/fourbar.yaml",
+            "--dt",
+            "0.01",
+            "--t-end",
+            "0.05",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        if trace {
+            args.push("--trace-solver");
+        }
+        mbfg(&args)
+    };
+    let quiet = run(&plain, false);
+    let loud = run(&traced, true);
+    assert!(quiet.status.success() && loud.status.success());
+    let lines: Vec<String> = String::from_utf8_lossy(&loud.stderr)
+        .lines()
+        .filter(|l| l.starts_with("k0="))
+        .map(String::from)
+        .collect();
+    // Every step after the first takes at least one iteration.
+    assert!(lines.len() >= 5, "{lines:?}");
+    assert!(
+        lines.iter().any(|l| l.starts_with("k0=1 k1=2 it=1 ")),
+        "{lines:?}"
+    );
+    assert!(!String::from_utf8_lossy(&quiet.stderr).contains("k0="));
+    assert_eq!(
+        std::fs::read(&plain).unwrap(),
+        std::fs::read(&traced).unwrap()
+    );
+}
