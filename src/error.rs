@@ -91,22 +91,6 @@ impl Error {
         }
     }
 
-    /// A singular system at a step of a run; one already located keeps its place.
-    pub fn at_step(self, step: usize, t: f64) -> Error {
-        match self {
-            Error::Singular {
-                what,
-                step: None,
-                t: None,
-            } => Error::Singular {
-                what,
-                step: Some(step),
-                t: Some(t),
-            },
-            other => other,
-        }
-    }
-
     /// Bad data not tied to a file (a stream, a writer).
     pub fn data(message: impl Into<String>) -> Error {
         Error::Data {

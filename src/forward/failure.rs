@@ -81,12 +81,9 @@ impl StepFailure {
                 };
                 if self.batch && self.cause.is_none() {
                     return format!(
-                        "the batch solve of {} steps (t = 0 to {t} s) did not converge: {}, cost \
-                         {:.3e} after {} iterations{singular}",
+                        "the batch solve of {} steps (t = 0 to {t} s) did not converge: {}{singular}",
                         self.step + 1,
-                        self.report.termination,
-                        self.report.cost,
-                        self.report.iterations
+                        self.report
                     );
                 }
                 if let Some(cause) = &self.cause {
@@ -105,9 +102,8 @@ impl StepFailure {
                     _ => String::new(),
                 };
                 format!(
-                    "{stage}step {} (t = {t} s) did not converge: {}, cost {:.3e} after {} \
-                     iterations{singular}{turn}",
-                    self.step, self.report.termination, self.report.cost, self.report.iterations
+                    "{stage}step {} (t = {t} s) did not converge: {}{singular}{turn}",
+                    self.step, self.report
                 )
             }
         }
