@@ -11,7 +11,8 @@ use faer::dyn_stack::{DynArray, MemBuffer};
 
 /// The singularity measure's scratch: Â (ma × n), G and its Cholesky factor, L⁻¹
 /// (G⁻² in [`DynamicsKernel::measure_gradient`]), G⁻¹ (ma × ma each), per-row vectors
-/// and their Hessian products (m × n each), εₖ and ‖aₖ‖ (ma each), ∂s/∂q (n).
+/// and their Hessian products (m × n each), εₖ and ‖aₖ‖ (ma each), ∂s/∂q (n), and per
+/// active row the columns [start, end) outside which it is 0 and G's row starts.
 pub(super) struct MeasureScratch<'a> {
     pub(super) abar: DynArray<'a, f64>,
     pub(super) chol: DynArray<'a, f64>,
@@ -22,6 +23,8 @@ pub(super) struct MeasureScratch<'a> {
     pub(super) eps: DynArray<'a, f64>,
     pub(super) norms: DynArray<'a, f64>,
     pub(super) ds: DynArray<'a, f64>,
+    span: DynArray<'a, (usize, usize)>,
+    first: DynArray<'a, usize>,
 }
 
 impl<'a> MeasureScratch<'a> {
@@ -31,7 +34,12 @@ impl<'a> MeasureScratch<'a> {
     }
 
     pub(super) fn req(model: &Model) -> StackReq {
-        StackReq::all_of(&Self::lens(model).map(StackReq::new::<f64>))
+        let ma = model.active.len();
+        StackReq::all_of(&[
+            StackReq::all_of(&Self::lens(model).map(StackReq::new::<f64>)),
+            StackReq::new::<(usize, usize)>(ma),
+            StackReq::new::<usize>(ma),
+        ])
     }
 
     /// The scratch carved (zeroed) from `stack`, and the rest of `stack`.
@@ -46,6 +54,9 @@ impl<'a> MeasureScratch<'a> {
         let (eps, stack) = zeros(stack, eps);
         let (norms, stack) = zeros(stack, norms);
         let (ds, stack) = zeros(stack, ds);
+        let ma = model.active.len();
+        let (span, stack) = stack.make_with(ma, |_| (0, 0));
+        let (first, stack) = stack.make_with(ma, |_| 0);
         let scratch = MeasureScratch {
             abar,
             chol,
@@ -56,6 +67,8 @@ impl<'a> MeasureScratch<'a> {
             eps,
             norms,
             ds,
+            span,
+            first,
         };
         (scratch, stack)
     }
@@ -128,14 +141,36 @@ impl DynamicsKernel {
             linv,
             ginv,
             norms,
+            span,
+            first,
             ..
         } = scratch;
-        // AAᵀ (lower triangle) and the row norms from its diagonal.
+        // The rows of a large mechanism's Φ_q touch a few coordinates each: every
+        // sum below runs over the terms that can be nonzero only, in the order of
+        // the full sum (leaving out exact zeros, so the same value to the bit).
+        for (i, &k) in model.active.iter().enumerate() {
+            let row = &mat[k * n..(k + 1) * n];
+            let start = row.iter().position(|v| *v != 0.0).unwrap_or(n);
+            let end = row.iter().rposition(|v| *v != 0.0).map_or(start, |e| e + 1);
+            span[i] = (start, end);
+        }
+        // AAᵀ (lower triangle) and the row norms from its diagonal; per row of G the
+        // first nonzero column (its Cholesky factor's rows start there too).
         for (i, &ki) in model.active.iter().enumerate() {
             let ri = &mat[ki * n..(ki + 1) * n];
+            first[i] = i;
             for (j, &kj) in model.active[..=i].iter().enumerate() {
                 let rj = &mat[kj * n..(kj + 1) * n];
-                chol[i * ma + j] = ri.iter().zip(rj).map(|(a, b)| a * b).sum();
+                let (a, b) = (span[i].0.max(span[j].0), span[i].1.min(span[j].1));
+                let v: f64 = if a < b {
+                    ri[a..b].iter().zip(&rj[a..b]).map(|(x, y)| x * y).sum()
+                } else {
+                    0.0
+                };
+                if v != 0.0 && first[i] == i {
+                    first[i] = j;
+                }
+                chol[i * ma + j] = v;
             }
             let n2 = chol[i * ma + i];
             if !(n2 > 0.0) {
@@ -147,9 +182,10 @@ impl DynamicsKernel {
         // normalized as it goes. Its products are subtracted one at a time, where
         // `dense::cholesky` subtracts their sum: another rounding, so not that kernel.
         for i in 0..ma {
-            for j in 0..=i {
+            chol[i * ma..i * ma + first[i]].fill(0.0);
+            for j in first[i]..=i {
                 let mut g = chol[i * ma + j] / (norms[i] * norms[j]);
-                for k in 0..j {
+                for k in first[i].max(first[j])..j {
                     g -= chol[i * ma + k] * chol[j * ma + k];
                 }
                 if i == j {

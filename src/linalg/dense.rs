@@ -410,9 +410,18 @@ pub fn inverse_trace(
     let column = &mut column[..ma];
     let mut trace = 0.0;
     for j in 0..ma {
+        // L⁻¹eⱼ is 0 above row j: its solve starts there (its sums lose only
+        // leading zeros, so the same to the bit).
         column.fill(0.0);
         column[j] = 1.0;
-        solve_lower(l, ma, column);
+        for i in j..ma {
+            let sum = dot(
+                &l[i * ma + j..i * ma + i],
+                &column[j..i],
+                Summation::Sequential,
+            );
+            column[i] = (column[i] - sum) / l[i * ma + i];
+        }
         for i in j..ma {
             let v = column[i];
             if let Some(linv) = linv.as_deref_mut() {
