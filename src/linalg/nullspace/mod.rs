@@ -41,7 +41,7 @@
 //! is real, and is corrected exactly however small the pivot.
 
 use super::dense::{dot, Summation};
-use householder::{apply_q, householder_grouped, GroupReflectors, Grouping};
+use householder::{apply_q, householder_grouped, GroupReflectors, Grouping, TRACK_SUPPORT_FROM};
 
 mod householder;
 #[cfg(test)]
@@ -90,6 +90,8 @@ pub struct NullSpace {
     beta: Vec<f64>,
     perm: Vec<usize>,
     norms: Vec<f64>,
+    /// Per QR column, a superset of its nonzero rows (bits), and one reflector's.
+    support: Vec<u64>,
     w: Vec<f64>,
     rhs: Vec<f64>,
     /// Per QR column (an equation of `others`), 1/its norm on the free unknowns: the
@@ -170,6 +172,7 @@ impl NullSpace {
             beta: vec![0.0; s.min(max_rows)],
             perm: vec![0; max_rows],
             norms: vec![0.0; 2 * max_rows],
+            support: Vec::new(),
             w: vec![0.0; s],
             rhs: vec![0.0; max_rows],
             row_scale: vec![1.0; max_rows],
@@ -349,6 +352,9 @@ impl NullSpace {
             self.seg_end[g] += self.seg_end[g - 1];
         }
         Self::ensure(&mut self.a, sf * m);
+        if self.support.len() < (m + 1) * sf.div_ceil(64) {
+            self.support.resize((m + 1) * sf.div_ceil(64), 0);
+        }
         // A = Cᵀ[free, others]: column k is equation others[k] on the free unknowns;
         // its group is the segment of the last of them it touches.
         for (k, &j) in self.others.iter().enumerate() {
@@ -392,6 +398,11 @@ impl NullSpace {
             &mut self.beta,
             &mut self.perm,
             &mut self.norms,
+            if sf >= TRACK_SUPPORT_FROM {
+                &mut self.support
+            } else {
+                &mut []
+            },
         );
         let fixed_count = s - sf - self.untouched.len();
         self.rank = fixed_count + rank;

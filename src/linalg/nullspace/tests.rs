@@ -374,3 +374,83 @@ mod unit {
         );
     }
 }
+
+mod sparse {
+    use super::super::householder::*;
+    use super::super::*;
+
+    fn pseudo_random(seed: &mut u64) -> f64 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    }
+
+    /// Cᵀ (column-major s × m) of a chain: equation j touches unknowns 2j..2j+4 of its
+    /// segment, the later segment's equations also the earlier segment's same
+    /// unknowns (like [Φ_q 0; Φ̇_q Φ_q]); one equation repeats another (dependent).
+    fn chain(s_half: usize, seed: &mut u64) -> (Vec<f64>, usize, Vec<usize>) {
+        let s = 2 * s_half;
+        let per = (s_half - 4) / 2;
+        let m = 2 * per + 1;
+        let mut a = vec![0.0; s * m];
+        let mut group = vec![0; m];
+        for seg in 0..2 {
+            for j in 0..per {
+                let col = seg * per + j;
+                group[col] = seg;
+                for i in 2 * j..2 * j + 4 {
+                    a[col * s + seg * s_half + i] = pseudo_random(seed);
+                    if seg == 1 {
+                        a[col * s + i] = pseudo_random(seed);
+                    }
+                }
+            }
+        }
+        // A copy of the third position equation.
+        let copy: Vec<f64> = a[2 * s..3 * s].to_vec();
+        a[(m - 1) * s..m * s].copy_from_slice(&copy);
+        group[m - 1] = 0;
+        (a, m, group)
+    }
+
+    #[test]
+    fn tracking_the_supports_changes_no_bit() {
+        let mut seed = 11;
+        for s_half in [TRACK_SUPPORT_FROM / 2 + 4, 70, 131] {
+            let (a0, m, group0) = chain(s_half, &mut seed);
+            let s = 2 * s_half;
+            let seg_end = [s_half, s];
+            let run = |track: bool| {
+                let mut a = a0.clone();
+                let mut group = group0.clone();
+                let (mut rend, mut made) = (vec![0; s.min(m)], Vec::new());
+                let (mut rdiag, mut beta) = (vec![0.0; s.min(m)], vec![0.0; s.min(m)]);
+                let (mut perm, mut norms) = (vec![0; m], vec![0.0; 2 * m]);
+                let mut support = vec![0u64; if track { (m + 1) * s.div_ceil(64) } else { 0 }];
+                let rank = householder_grouped(
+                    &mut a,
+                    s,
+                    m,
+                    Grouping {
+                        group: &mut group,
+                        seg_end: &seg_end,
+                        rend: &mut rend,
+                        made: &mut made,
+                    },
+                    Summation::Sequential,
+                    &mut rdiag,
+                    &mut beta,
+                    &mut perm,
+                    &mut norms,
+                    &mut support,
+                );
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                (rank, bits(&a), bits(&rdiag), bits(&beta), perm, group)
+            };
+            let (tracked, plain) = (run(true), run(false));
+            assert_eq!(tracked.0, m - 1, "the repeated equation is dependent");
+            assert!(tracked == plain, "s = {s}: the tracked QR differs");
+        }
+    }
+}
