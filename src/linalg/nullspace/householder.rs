@@ -169,7 +169,7 @@ pub(super) fn householder_grouped(
             rdiag[k] = alpha;
             beta[k] = b;
             rend[k] = end;
-            reflector_rows(support, k, end, words, mask);
+            let v_end = reflector_rows(support, k, end, words, mask);
             let (left, right) = a.split_at_mut((k + 1) * s);
             let v = &left[k * s + k..k * s + end];
             for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
@@ -179,9 +179,15 @@ pub(super) fn householder_grouped(
                     continue;
                 }
                 let live = &mut y[k..end];
-                if meets(&mut support[j * words..(j + 1) * words], mask) {
-                    let f = b * dot(v, live, how);
-                    for (yi, vi) in live.iter_mut().zip(v) {
+                if let Some((lo, hi)) = overlap(
+                    &mut support[j * words..(j + 1) * words],
+                    mask,
+                    (k, end),
+                    how,
+                ) {
+                    let f = b * dot(&v[lo - k..hi - k], &live[lo - k..hi - k], how);
+                    let reach = v_end - k;
+                    for (yi, vi) in live[..reach].iter_mut().zip(&v[..reach]) {
                         *yi -= f * vi;
                     }
                 }
@@ -198,20 +204,26 @@ pub(super) fn householder_grouped(
         if !apart && g + 1 < groups {
             // The later groups' columns see this group's reflectors, in order.
             for r in ks..k {
-                reflector_rows(support, r, end, words, mask);
+                let v_end = reflector_rows(support, r, end, words, mask);
                 let (left, right) = a.split_at_mut((r + 1) * s);
                 let v = &left[r * s + r..r * s + end];
                 for (jj, y) in right.chunks_exact_mut(s).take(m - r - 1).enumerate() {
                     let j = r + 1 + jj;
-                    if group[j] == DROPPED
-                        || group[j] <= g
-                        || !meets(&mut support[j * words..(j + 1) * words], mask)
-                    {
+                    if group[j] == DROPPED || group[j] <= g {
                         continue;
                     }
+                    let Some((lo, hi)) = overlap(
+                        &mut support[j * words..(j + 1) * words],
+                        mask,
+                        (r, end),
+                        how,
+                    ) else {
+                        continue;
+                    };
                     let live = &mut y[r..end];
-                    let f = beta[r] * dot(v, live, how);
-                    for (yi, vi) in live.iter_mut().zip(v) {
+                    let f = beta[r] * dot(&v[lo - r..hi - r], &live[lo - r..hi - r], how);
+                    let reach = v_end - r;
+                    for (yi, vi) in live[..reach].iter_mut().zip(&v[..reach]) {
                         *yi -= f * vi;
                     }
                 }
@@ -231,10 +243,11 @@ pub(super) fn householder_grouped(
 pub(super) const TRACK_SUPPORT_FROM: usize = 48;
 
 /// The rows reflector k (made from column k, on rows k..end) can be nonzero on:
-/// column k's support within them, and row k.
-fn reflector_rows(support: &[u64], k: usize, end: usize, words: usize, mask: &mut [u64]) {
+/// column k's support within them, and row k, into `mask`; returns the end of the
+/// last of them (`end` untracked).
+fn reflector_rows(support: &[u64], k: usize, end: usize, words: usize, mask: &mut [u64]) -> usize {
     if words == 0 {
-        return;
+        return end;
     }
     mask.copy_from_slice(&support[k * words..(k + 1) * words]);
     for (w, bits) in mask.iter_mut().enumerate() {
@@ -251,21 +264,40 @@ fn reflector_rows(support: &[u64], k: usize, end: usize, words: usize, mask: &mu
         }
     }
     mask[k / 64] |= 1 << (k % 64);
+    last_row(mask).map_or(end, |r| r + 1)
 }
 
-/// Whether a column with support `column` meets a reflector's rows `mask`; if so
-/// the reflector may fill the column there, and its support grows by them.
-fn meets(column: &mut [u64], mask: &[u64]) -> bool {
+/// The last row set in `bits`.
+fn last_row(bits: &[u64]) -> Option<usize> {
+    let w = bits.iter().rposition(|b| *b != 0)?;
+    Some(w * 64 + 63 - bits[w].leading_zeros() as usize)
+}
+
+/// The rows [lo, hi) outside which a column with support `column` and a reflector
+/// with rows `mask` have no nonzero in common, or None where they have none (the
+/// whole reflector's rows `rows` untracked, or with sums taken in lanes, whose
+/// grouping depends on where a sum starts). Where they meet, the reflector may fill
+/// the column on its rows: its support grows by them.
+fn overlap(
+    column: &mut [u64],
+    mask: &[u64],
+    rows: (usize, usize),
+    how: Summation,
+) -> Option<(usize, usize)> {
     if mask.is_empty() {
-        return true; // not tracked
+        return Some(rows);
     }
-    if column.iter().zip(mask).all(|(c, m)| c & m == 0) {
-        return false;
-    }
+    let first = column.iter().zip(mask).position(|(c, m)| c & m != 0)?;
+    let lo = first * 64 + (column[first] & mask[first]).trailing_zeros() as usize;
+    let last = column.iter().zip(mask).rposition(|(c, m)| c & m != 0)?;
+    let hi = last * 64 + 64 - (column[last] & mask[last]).leading_zeros() as usize;
     for (c, m) in column.iter_mut().zip(mask) {
         *c |= m;
     }
-    true
+    match how {
+        Summation::Sequential => Some((lo, hi)),
+        Summation::Lanes => Some(rows),
+    }
 }
 
 /// x ← H₀ H₁ … H_{r−1} x with the reflectors stored below the diagonal of `a`
