@@ -215,7 +215,7 @@ impl DynamicsKernel {
         }
         // L⁻¹ (lower triangular) column by column, each column passing through G⁻¹'s
         // place (filled below); tr G⁻¹ = ‖L⁻¹‖_F².
-        let trace = inverse_trace(chol, ma, ginv, Some(&mut linv[..]));
+        let trace = inverse_trace(chol, ma, ginv, first, Some(&mut linv[..]));
         let s = trace.recip().sqrt();
         if !(s > 0.0) {
             return singular;

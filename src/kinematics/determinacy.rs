@@ -41,6 +41,10 @@ pub struct Determinacy {
     chol: Vec<f64>,
     /// One column of L⁻¹ at a time (see [`dense::inverse_trace`]).
     column: Vec<f64>,
+    /// Per row of `rows`, the columns [start, end) outside which it is 0; per row
+    /// of L, its first nonzero column.
+    spans: Vec<(usize, usize)>,
+    first: Vec<usize>,
 }
 
 impl Determinacy {
@@ -92,6 +96,8 @@ impl Determinacy {
             rows: vec![0.0; ma * dependent.len()],
             chol: vec![0.0; ma * ma],
             column: vec![0.0; ma],
+            spans: vec![(0, 0); ma],
+            first: vec![0; ma],
             dependent,
         };
         det.set_column_scales(model, model.initial.q.as_slice());
@@ -225,17 +231,27 @@ impl Determinacy {
                 return 0.0;
             }
             row.iter_mut().for_each(|v| *v /= norm);
+            let start = row.iter().position(|v| *v != 0.0).unwrap_or(d);
+            let end = row.iter().rposition(|v| *v != 0.0).map_or(start, |e| e + 1);
+            self.spans[r] = (start, end);
         }
-        let (rows, g) = (&self.rows, &mut self.chol);
+        // The Gram matrix over each pair's common columns only (a large mechanism's
+        // rows touch a few coordinates; the sums lose only exact zeros at their ends).
+        let (rows, g, spans) = (&self.rows, &mut self.chol, &self.spans);
         for i in 0..ma {
             for j in 0..=i {
-                g[i * ma + j] = (0..d).map(|c| rows[i * d + c] * rows[j * d + c]).sum();
+                let (a, b) = (spans[i].0.max(spans[j].0), spans[i].1.min(spans[j].1));
+                g[i * ma + j] = if a < b {
+                    (a..b).map(|c| rows[i * d + c] * rows[j * d + c]).sum()
+                } else {
+                    0.0
+                };
             }
         }
         if dense::cholesky(g, ma).is_err() {
             return 0.0;
         }
-        dense::inverse_trace(g, ma, &mut self.column, None)
+        dense::inverse_trace(g, ma, &mut self.column, &mut self.first, None)
             .recip()
             .sqrt()
     }

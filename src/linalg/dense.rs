@@ -400,24 +400,34 @@ pub fn lu_solve_many_by_hand(
 /// tr G⁻¹ = ‖L⁻¹‖_F² from the lower Cholesky factor L of G (row-major ma × ma): L⁻¹
 /// column by column, each by forward substitution of a column of I
 /// ([`solve_lower`]) in `column` (length ma), and kept in the lower triangle
-/// of `linv` where one is given.
+/// of `linv` where one is given. `first` (length ma) receives each row's first
+/// nonzero column.
 pub fn inverse_trace(
     l: &[f64],
     ma: usize,
     column: &mut [f64],
+    first: &mut [usize],
     mut linv: Option<&mut [f64]>,
 ) -> f64 {
     let column = &mut column[..ma];
+    for (i, f) in first[..ma].iter_mut().enumerate() {
+        *f = l[i * ma..i * ma + i]
+            .iter()
+            .position(|v| *v != 0.0)
+            .unwrap_or(i);
+    }
     let mut trace = 0.0;
     for j in 0..ma {
-        // L⁻¹eⱼ is 0 above row j: its solve starts there (its sums lose only
-        // leading zeros, so the same to the bit).
+        // L⁻¹eⱼ is 0 above row j and row i of L before first[i]: each sum starts
+        // where both can be nonzero (it loses only leading zeros, so the same value
+        // to the bit as the whole row's).
         column.fill(0.0);
         column[j] = 1.0;
         for i in j..ma {
+            let start = j.max(first[i]).min(i);
             let sum = dot(
-                &l[i * ma + j..i * ma + i],
-                &column[j..i],
+                &l[i * ma + start..i * ma + i],
+                &column[start..i],
                 Summation::Sequential,
             );
             column[i] = (column[i] - sum) / l[i * ma + i];
