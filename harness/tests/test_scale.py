@@ -201,3 +201,47 @@ def test_pendulum_constraints_hold(n_links, coords):
     e = [m.kinetic_energy(v) + m.potential_energy(x) for x, v in zip(q, np.asarray(r.dq))]
     assert m.kinetic_energy(np.asarray(r.dq)[-1]) > 0
     assert abs(e[-1] - e[0]) <= 1e-3 * abs(e[0])
+
+
+# --- the report page (harness/scaling.py) ----------------------------------------------
+
+def test_scaling_slope_fits_a_power_law():
+    from harness import scaling
+    rows = [{"n": n, "us_per_step": 3.0 * n ** 1.5, "status": "ok"} for n in (4, 8, 16, 32)]
+    rows.append({"n": 64, "status": "skipped: over the budget"})
+    assert scaling.slope(rows, upper_half=False) == pytest.approx(1.5, rel=1e-12)
+    rows[3]["us_per_step"] = 3.0 * 32 ** 1.5 * 2       # only the upper half sees the kink
+    assert scaling.slope(rows, upper_half=True) == pytest.approx(2.5, rel=1e-12)
+    assert scaling.slope(rows[:1], upper_half=False) is None
+
+
+def test_scaling_page_on_small_sizes(tmp_path, monkeypatch):
+    """The page, its CSV and its plot for the smallest pendulums, with a baseline; then
+    with a budget no run meets: every size skipped, and the page names each."""
+    import csv as csvmod
+    from harness import scaling
+    monkeypatch.setattr(scaling, "TARGET", 0.05)              # short runs
+    baseline = tmp_path / "old.csv"
+    baseline.write_text("family,size,series,us_per_step,status\n"
+                        "n-pendulum,2,DC N_w=1,1e9,ok\n")
+    rows = scaling.write(tmp_path, "test machine", families=["n-pendulum"], repeats=1,
+                         baseline_path=baseline, max_size=8)
+    page = (tmp_path / "scaling.md").read_text()
+    assert (tmp_path / "scaling.png").stat().st_size > 1000
+    with open(tmp_path / "scaling.csv", newline="") as f:
+        table = list(csvmod.DictReader(f))
+    assert len(table) == len(rows) == 3 * 3                    # 3 sizes × 3 series
+    assert {r["n"] for r in rows} == {6, 12, 24}
+    assert all(r["status"] == "ok" for r in rows), [r["status"] for r in rows]
+    assert all(r["max_phi"] <= 1e-9 and r["steps"] >= scaling.MIN_STEPS for r in rows)
+    assert page.startswith("# Per-step cost") and "| n-link pendulum | DC N_w=1 | 2 … 8 (3) |" in page
+    assert "× baseline" in page
+    assert "## Not measured" not in page
+
+    rows = scaling.write(tmp_path, "test machine", families=["n-pendulum"], repeats=1,
+                         budget=1e-6, max_size=4)
+    page = (tmp_path / "scaling.md").read_text()
+    assert len(rows) == 2 * 3 and all(r["status"].startswith("skipped") for r in rows)
+    for r in rows:
+        assert f"- n-pendulum-{r['size']} {r['series']}: skipped" in page
+    assert "× baseline" not in page
