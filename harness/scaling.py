@@ -102,15 +102,19 @@ def run_once(path, coords, kw, steps):
 
 PROBE = """
 import sys, time, mbfg
-start = time.perf_counter()
-mbfg.simulate(sys.argv[1], coords=sys.argv[2], dt=float(sys.argv[3]), t_end=float(sys.argv[3]),
-              **({"batch": True} if sys.argv[4] == "batch" else {"window": int(sys.argv[4])}))
-print(time.perf_counter() - start)
+def one():
+    start = time.perf_counter()
+    mbfg.simulate(sys.argv[1], coords=sys.argv[2], dt=float(sys.argv[3]), t_end=float(sys.argv[3]),
+                  **({"batch": True} if sys.argv[4] == "batch" else {"window": int(sys.argv[4])}))
+    return time.perf_counter() - start
+first = one()
+print(first if first > 0.1 else min(first, one()))
 """
 
 
 def probe(path, coords, kw, timeout):
-    """Seconds of a one-step run (with the set-up a run pays once), in a child process
+    """Seconds of a one-step run (with the set-up a run pays once; the better of two when
+    short, as a process's first run pays for more than its step), in a child process
     that is stopped after `timeout` seconds (then None): a step can take minutes."""
     mode = "batch" if kw.get("batch") else str(kw["window"])
     try:
