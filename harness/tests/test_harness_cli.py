@@ -18,9 +18,9 @@ from harness import trajectory as tj
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 ENTRY_POINTS = ["reference", "report", "timing", "robustness", "hard_cases", "compare", "ida",
                 "exudyn_ref", "pinocchio_ref", "prescribed_motions", "regression", "trajectory",
-                "generators"]
+                "generators", "scaling", "scale_scenes"]
 # What a runaway entry point would write into the repository.
-WATCHED = ["reports", "references", "tests/data", "scenes/trajectories"]
+WATCHED = ["reports", "references", "tests/data", "scenes/trajectories", "scenes/scale"]
 
 
 def snapshot() -> dict:

@@ -1,0 +1,402 @@
+"""Per-step cost against the size of the mechanism: reports/scaling.md, .csv, .png.
+
+The N four-bar (IFToMM A02, N = 1 … 100 loops: 2N + 3 coordinates) and the n-link
+pendulum (n = 2 … 256 links: 3n coordinates) of scenes/scale/ (N = 40 from
+scenes/benchmarks/), each in three series: DC with N_w = 1, IC with N_w = 1, DC batch;
+dt = 1 ms from the scene's start. µs/step is the wall time of the whole
+`mbfg.simulate` call (model building included) divided by its steps, the median of
+REPEATS runs made one at a time. The horizon of a size is cut to about TARGET seconds
+of wall time a run (at least MIN_STEPS, at most MAX_STEPS steps, i.e. 0.7 s: before
+the N four-bar's first flat configuration), from a one-step run in a child process; a
+size whose MIN_STEPS-step run would exceed BUDGET seconds (extrapolated from the smaller
+sizes, or from that one step, which is stopped after BUDGET seconds) is skipped, with
+every larger size of the series, and the page says so. The log-log slope of µs/step against the number of coordinates is fitted per
+series over all sizes measured and over their upper half.
+
+Beside the cost, every run is checked: max |Φ| over its steps; for the N four-bar the
+distance from the parallelogram branch (every B_i at A_i + (cos θ, sin θ)) and θ
+against the exact one-degree-of-freedom motion; for the pendulum the energy drift.
+With a baseline CSV (an earlier reports/scaling.csv; by default
+reports/scaling-baseline.csv when present) the page gives each time's speed-up
+against it.
+
+    python -m harness.scaling [--out DIR] [--repeats N] [--budget S] [--baseline CSV]
+                              [--families n-fourbar,n-pendulum] [--max-size N]
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import pathlib
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+import mbfg
+from harness import pages
+
+DT = 1e-3
+REPEATS = 3
+TARGET = 1.5          # s of wall time a measured run aims at
+MIN_STEPS = 10
+MAX_STEPS = 700       # 0.7 s: the N four-bar's first flat configuration is at ≥ 0.708 s
+BUDGET = 30.0         # s: the most a MIN_STEPS-step run may take
+PROBE_START = 10.0    # s the one-step probe's child process is given to start
+G = 9.81
+
+FAMILIES = {
+    "n-fourbar": ("N four-bar (IFToMM A02)", "N", [1, 2, 5, 10, 20, 40, 50, 100]),
+    "n-pendulum": ("n-link pendulum", "n", [2, 4, 8, 16, 32, 64, 128, 256]),
+}
+# label, coords, keyword arguments of mbfg.simulate
+SERIES = [
+    ("DC N_w=1", "dc", {"window": 1}),
+    ("IC N_w=1", "ic", {"window": 1}),
+    ("DC batch", "dc", {"batch": True}),
+]
+
+
+def scene(family: str, size: int) -> pathlib.Path:
+    folder = "benchmarks" if (family, size) == ("n-fourbar", 40) else "scale"
+    return pages.ROOT / "scenes" / folder / f"{family}-{size}.yaml"
+
+
+def exact_theta(n_loops: int, times) -> np.ndarray:
+    """θ(t) of the N four-bar on its parallelogram branch (docs/benchmarks.md):
+    I θ̈ = −c g cos θ, I = (N+1)/3 + N, c = (N+1)/2 + N, θ(0) = π/2, θ̇(0) = −1 rad/s."""
+    inertia, c = (n_loops + 1) / 3 + n_loops, (n_loops + 1) / 2 + n_loops
+    sol = solve_ivp(lambda t, s: [s[1], -c * G / inertia * math.cos(s[0])], (0, times[-1]),
+                    [math.pi / 2, -1.0], method="DOP853", t_eval=times, rtol=1e-12, atol=1e-12)
+    return sol.y[0]
+
+
+def checks(family: str, size: int, model, r) -> dict:
+    """What the run's last repetition says about its accuracy (independent of mbfg's
+    own summary)."""
+    q = np.asarray(r.q)
+    out = {"max_phi": max(float(np.max(np.abs(model.phi(qk)))) for qk in q)}
+    if family == "n-fourbar":
+        names = model.names
+        th = q[:, names.index("theta")]
+        dev = 0.0
+        for i in range(size + 1):
+            dev = max(dev, float(np.max(np.abs(q[:, names.index(f"B{i}.x")] - i - np.cos(th)))),
+                      float(np.max(np.abs(q[:, names.index(f"B{i}.y")] - np.sin(th)))))
+        out["branch_dev_m"] = dev
+        out["theta_err_rad"] = float(np.max(np.abs(th - exact_theta(size, np.asarray(r.t)))))
+    else:
+        out["energy_drift_j"] = r.summary["energy_drift"]
+    return out
+
+
+def run_once(path, coords, kw, steps):
+    start = time.perf_counter()
+    r = mbfg.simulate(str(path), coords=coords, dt=DT, t_end=steps * DT, **kw)
+    return r, time.perf_counter() - start
+
+
+PROBE = """
+import sys, time, mbfg
+def one():
+    start = time.perf_counter()
+    mbfg.simulate(sys.argv[1], coords=sys.argv[2], dt=float(sys.argv[3]), t_end=float(sys.argv[3]),
+                  **({"batch": True} if sys.argv[4] == "batch" else {"window": int(sys.argv[4])}))
+    return time.perf_counter() - start
+first = one()
+print(first if first > 0.1 else min(first, one()))
+"""
+
+
+def probe(path, coords, kw, timeout):
+    """Seconds of a one-step run (with the set-up a run pays once; the better of two when
+    short, as a process's first run pays for more than its step), in a child process
+    that is stopped after `timeout` seconds (then None): a step can take minutes."""
+    mode = "batch" if kw.get("batch") else str(kw["window"])
+    try:
+        out = subprocess.run([sys.executable, "-c", PROBE, str(path), coords, repr(DT), mode],
+                             capture_output=True, text=True, timeout=timeout, cwd=pages.ROOT)
+    except subprocess.TimeoutExpired:
+        return None
+    if out.returncode != 0:
+        lines = out.stderr.strip().splitlines()
+        raise RuntimeError(lines[-1] if lines else f"probe exited with {out.returncode}")
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def measure_series(family, sizes, label, coords, kw, repeats, budget, models) -> list[dict]:
+    rows, measured = [], []        # measured: (coordinates, seconds per step), ascending
+    skipped_from = None
+    for size in sizes:
+        model = models[size]
+        row = {"family": family, "size": size, "n": model.n, "m": model.m, "dof": model.dof,
+               "series": label}
+        if skipped_from is not None:
+            row["status"] = f"skipped: {family}-{skipped_from} already over the budget"
+            rows.append(row)
+            continue
+        if measured:
+            # Extrapolated from the sizes measured with the series' last local slope (at
+            # least 1, the cost being at least linear in n): over the budget, the size is
+            # skipped without running (one step of it alone could take many minutes).
+            (n0, t0), (n1, t1) = (measured[-2] if len(measured) > 1 else measured[-1]), measured[-1]
+            k = max(1.0, math.log(t1 / t0) / math.log(n1 / n0)) if n1 > n0 else 1.0
+            guess = t1 * (model.n / n1) ** k * MIN_STEPS
+            if guess > budget:
+                skipped_from = size
+                row["status"] = (f"skipped: {MIN_STEPS} steps ≈ {guess:.0f} s (extrapolated "
+                                 f"with slope {k:.1f}) > budget {budget:g} s")
+                pages.progress(f"  {family}-{size} {label}: {row['status']}")
+                rows.append(row)
+                continue
+        try:
+            one = probe(scene(family, size), coords, kw, timeout=budget + PROBE_START)
+            if one is None or one * MIN_STEPS > budget:
+                skipped_from = size
+                row["status"] = (f"skipped: one step did not finish within {budget:g} s" if one is None
+                                 else f"skipped: {MIN_STEPS} steps ≈ {one * MIN_STEPS:.0f} s "
+                                      f"(one step {one:.1f} s) > budget {budget:g} s")
+                pages.progress(f"  {family}-{size} {label}: {row['status']}")
+                rows.append(row)
+                continue
+            steps = int(min(MAX_STEPS, max(MIN_STEPS, round(TARGET / one))))
+            walls, r = [], None
+            for _ in range(repeats):
+                r, wall = run_once(scene(family, size), coords, kw, steps)
+                walls.append(wall)
+            assert r.summary["complete"] and len(r.t) == steps + 1
+            us = statistics.median(walls) / steps * 1e6
+            row.update(steps=steps, us_per_step=us, wall_s=statistics.median(walls),
+                       mean_iterations=r.summary["mean_iterations"], status="ok",
+                       **checks(family, size, model, r))
+            measured.append((model.n, us * 1e-6))
+            pages.progress(f"  {family}-{size} {label}: {us:.0f} µs/step ({steps} steps, "
+                           f"max |Φ| {row['max_phi']:.1e})")
+        except (mbfg.SolveError, RuntimeError, ValueError) as e:
+            row["status"] = f"failed: {str(e).splitlines()[0][:200]}"
+            pages.progress(f"  {family}-{size} {label}: {row['status']}")
+        rows.append(row)
+    return rows
+
+
+def slope(rows: list[dict], upper_half: bool) -> float | None:
+    """Least-squares slope of log µs/step against log n over the rows measured (the
+    upper half of them by size when asked); None with fewer than two."""
+    ok = sorted((r for r in rows if r.get("status") == "ok"), key=lambda r: r["n"])
+    if upper_half:
+        ok = ok[len(ok) // 2:]
+    if len(ok) < 2:
+        return None
+    x = np.log([r["n"] for r in ok])
+    y = np.log([r["us_per_step"] for r in ok])
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def read_baseline(path: pathlib.Path | None) -> dict:
+    """(family, size, series) → µs/step of an earlier scaling.csv."""
+    if path is None or not path.exists():
+        return {}
+    out = {}
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            if r.get("status") == "ok" and r.get("us_per_step"):
+                out[(r["family"], int(r["size"]), r["series"])] = float(r["us_per_step"])
+    return out
+
+
+def plot(rows: list[dict], fits: dict, path: pathlib.Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(9, 6))
+    styles = {"n-fourbar": "o-", "n-pendulum": "s--"}
+    for family, (title, _, _) in FAMILIES.items():
+        for label, _, _ in SERIES:
+            ok = sorted((r for r in rows if r["family"] == family and r["series"] == label
+                         and r.get("status") == "ok"), key=lambda r: r["n"])
+            if not ok:
+                continue
+            s_all, s_up = fits[(family, label)]
+            ax.loglog([r["n"] for r in ok], [r["us_per_step"] for r in ok], styles[family],
+                      markersize=4,
+                      label=f"{title}, {label}: slope {fmt(s_up, '.2f')} (upper half), "
+                            f"{fmt(s_all, '.2f')} (all)")
+    ns = sorted({r["n"] for r in rows if r.get("status") == "ok"})
+    if ns:
+        ref = min(r["us_per_step"] for r in rows if r.get("status") == "ok")
+        ax.loglog(ns, [ref * n / ns[0] for n in ns], ":", color="grey", label="slope 1 (linear)")
+    ax.set_xlabel("n, number of coordinates")
+    ax.set_ylabel("µs per step (whole-run wall time / steps, median)")
+    ax.set_title("Per-step cost against the size of the mechanism (dt = 1 ms)")
+    ax.grid(True, which="both", alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def fmt(v, spec=".2e") -> str:
+    return "—" if v is None else format(v, spec)
+
+
+def family_table(family: str, rows: list[dict], baseline: dict) -> str:
+    title, letter, sizes = FAMILIES[family]
+    head = f"| {letter} | coordinates | equations | dof |"
+    for label, _, _ in SERIES:
+        head += f" {label} µs/step (steps) |" + (f" {label} × baseline |" if baseline else "")
+    head += " max \\|Φ\\| |"
+    head += " branch deviation (m) | θ − exact (rad) |" if family == "n-fourbar" else " energy drift (J) |"
+    lines = [head, "|" + "---|" * (head.replace("\\|", "").count("|") - 1)]
+    for size in sizes:
+        by = {r["series"]: r for r in rows if r["family"] == family and r["size"] == size}
+        if not by:
+            continue
+        any_row = next(iter(by.values()))
+        line = f"| {size} | {any_row['n']} | {any_row['m']} | {any_row['dof']} |"
+        oks = [r for r in by.values() if r.get("status") == "ok"]
+        for label, _, _ in SERIES:
+            r = by.get(label, {})
+            if r.get("status") == "ok":
+                line += f" {r['us_per_step']:.0f} ({r['steps']}) |"
+                b = baseline.get((family, size, label))
+                if baseline:
+                    line += f" {b / r['us_per_step']:.2f} |" if b else " — |"
+            else:
+                line += " skipped |" if str(r.get("status", "")).startswith("skipped") else " failed |"
+                if baseline:
+                    line += " — |"
+        line += f" {fmt(max((r['max_phi'] for r in oks), default=None), '.0e')} |"
+        if family == "n-fourbar":
+            line += (f" {fmt(max((r['branch_dev_m'] for r in oks), default=None), '.0e')} |"
+                     f" {fmt(max((r['theta_err_rad'] for r in oks), default=None), '.1e')} |")
+        else:
+            drifts = [r["energy_drift_j"] for r in oks if r.get("energy_drift_j") is not None]
+            line += f" {fmt(max(drifts, default=None), '.1e')} |"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
+          budget=BUDGET, baseline_path=None, max_size=None) -> list[dict]:
+    reports.mkdir(parents=True, exist_ok=True)
+    if baseline_path is None:
+        baseline_path = reports / "scaling-baseline.csv"
+    baseline = read_baseline(baseline_path)
+    began = time.perf_counter()
+    rows = []
+    for family, (title, _, sizes) in FAMILIES.items():
+        if families is not None and family not in families:
+            continue
+        sizes = [s for s in sizes if max_size is None or s <= max_size]
+        models = {s: mbfg.load(str(scene(family, s))) for s in sizes}
+        for label, coords, kw in SERIES:
+            pages.progress(f"scaling: {title}, {label}")
+            rows += measure_series(family, sizes, label, coords, kw, repeats, budget, models)
+    fits = {(f, label): (slope([r for r in rows if r["family"] == f and r["series"] == label], False),
+                         slope([r for r in rows if r["family"] == f and r["series"] == label], True))
+            for f in FAMILIES for label, _, _ in SERIES}
+    plot(rows, fits, reports / "scaling.png")
+    pages.write_csv(reports / "scaling.csv", rows)
+
+    slope_lines = ["| mechanism | series | sizes measured | slope, all sizes | slope, upper half | target ≤ 1.2 |",
+                   "|---|---|---|---|---|---|"]
+    for family, (title, _, _) in FAMILIES.items():
+        for label, _, _ in SERIES:
+            ok = sorted(r["size"] for r in rows if r["family"] == family and r["series"] == label
+                        and r.get("status") == "ok")
+            if not ok and not any(r["family"] == family for r in rows):
+                continue
+            s_all, s_up = fits[(family, label)]
+            verdict = "—" if s_up is None else ("met" if s_up <= 1.2 else "not met")
+            span = f"{ok[0]} … {ok[-1]} ({len(ok)})" if ok else "none"
+            slope_lines.append(f"| {title} | {label} | {span} | {fmt(s_all, '.2f')} | "
+                               f"{fmt(s_up, '.2f')} | {verdict} |")
+    not_run = [r for r in rows if r.get("status") != "ok"]
+    measured = [r for r in rows if r.get("status") == "ok"]
+    worst_phi = max((r["max_phi"] for r in measured), default=None)
+    summary = (f"scaling: {len(measured)} of {len(rows)} runs measured, "
+               f"{sum(str(r.get('status')).startswith('skipped') for r in rows)} skipped over the "
+               f"budget, {sum(str(r.get('status')).startswith('failed') for r in rows)} failed; "
+               f"max |Φ| {fmt(worst_phi, '.0e')}")
+    parts = [
+        "# Per-step cost against the size of the mechanism\n",
+        summary + "\n",
+        f"Machine: {machine}. Generated by `python -m harness.scaling` "
+        f"(`python -m harness.report --only scaling`) in {time.perf_counter() - began:.0f} s.\n",
+        "Scenes: `scenes/scale/` (written by `python -m harness.scale_scenes`; N = 40 is "
+        "`scenes/benchmarks/n-fourbar-40.yaml`), described in "
+        "[docs/benchmarks.md](../docs/benchmarks.md). The N four-bar has N + 1 cranks and N "
+        "couplers (2N + 3 coordinates, one degree of freedom), the n-link pendulum n links "
+        "(3n coordinates: the points' x, y and the link angles, n degrees of freedom). "
+        f"dt = {DT * 1e3:g} ms from the scene's start; µs/step is the wall time of the whole "
+        "`mbfg.simulate` call (model building included) divided by its steps, the median of "
+        f"{repeats} runs made one at a time (steps per run in parentheses: about {TARGET:g} s "
+        f"of wall time, at least {MIN_STEPS}, at most {MAX_STEPS}). A size whose "
+        f"{MIN_STEPS}-step run would take more than {budget:g} s (extrapolated from the smaller "
+        "sizes with the series' last local slope, at least 1, or estimated from one step) is "
+        "skipped, with the larger sizes of its series. The horizons differ between sizes, so "
+        "a batch's per-step time is over batches of different lengths. The slopes are least-squares fits of "
+        "log µs/step against log n (n = number of coordinates); the upper half is the larger "
+        "half of the sizes measured. Raw numbers: [scaling.csv](scaling.csv).\n",
+        "![µs per step against the number of coordinates](scaling.png)\n",
+        "## Slopes\n",
+        "\n".join(slope_lines) + "\n",
+    ]
+    if baseline:
+        parts.append(f"`× baseline` is the baseline's µs/step divided by this run's "
+                     f"(`{baseline_path.name}`: an earlier run of this page; > 1 is faster "
+                     f"now).\n")
+    for family, (title, _, _) in FAMILIES.items():
+        if not any(r["family"] == family for r in rows):
+            continue
+        check = ("max |Φ| over every step of the runs; branch deviation: the largest "
+                 "|B_i − A_i − (cos θ, sin θ)| (0 on the parallelogram branch); θ − exact: "
+                 "against the one-degree-of-freedom motion I θ̈ = −c g cos θ (scipy, "
+                 "rtol 1e-12), over the horizon run" if family == "n-fourbar" else
+                 "max |Φ| over every step of the runs; energy drift: mbfg's max |E(t) − E(0)| "
+                 "(the pendulum is conservative)")
+        parts.append(f"## {title}\n\n{check}; each the worst of the series measured.\n\n"
+                     + family_table(family, rows, baseline) + "\n")
+    if not_run:
+        parts.append("## Not measured\n\n" + "\n".join(
+            f"- {r['family']}-{r['size']} {r['series']}: {r['status']}" for r in not_run) + "\n")
+    (reports / "scaling.md").write_text("\n".join(parts))
+    pages.progress(f"wrote {reports}/scaling.md, scaling.csv, scaling.png")
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m harness.scaling",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=pathlib.Path, default=pages.REPORTS,
+                    help="folder for scaling.md, .csv, .png (default: reports/)")
+    ap.add_argument("--repeats", type=int, default=REPEATS,
+                    help="runs per size and series, the median is kept (default: %(default)s)")
+    ap.add_argument("--budget", type=float, default=BUDGET,
+                    help=f"seconds a {MIN_STEPS}-step run may take before its size is skipped "
+                         "(default: %(default)s)")
+    ap.add_argument("--baseline", type=pathlib.Path, default=None,
+                    help="an earlier scaling.csv to compare with (default: "
+                         "OUT/scaling-baseline.csv when present)")
+    ap.add_argument("--families", default=",".join(FAMILIES),
+                    help="comma-separated (default: %(default)s)")
+    ap.add_argument("--max-size", type=int, default=None, help="largest N or n measured")
+    args = ap.parse_args(argv)
+    chosen = [f.strip() for f in args.families.split(",") if f.strip()]
+    unknown = [f for f in chosen if f not in FAMILIES]
+    if unknown or not chosen:
+        ap.error(f"unknown famil(ies) {', '.join(unknown)}; one of {', '.join(FAMILIES)}")
+    if args.repeats < 1 or args.budget <= 0:
+        ap.error("--repeats must be at least 1 and --budget positive")
+    write(args.out, pages.machine(), chosen, args.repeats, args.budget, args.baseline,
+          args.max_size)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
