@@ -13,7 +13,13 @@ use std::time::{Duration, Instant};
 /// starts a new attempt: the bar's length becomes the new count and the pace is
 /// measured afresh, so that the first attempt's time does not count against the
 /// second's steps.
+///
+/// A batch run reports the steps of its one-step start (the fixed-lag smoother
+/// with N_w = 1 over the horizon); the solve of all steps at once follows, for as
+/// many iterations as it takes, which no count of steps foretells: once the start
+/// is done the bar says so, its clock keeps running and its ETA is `?`.
 pub struct Progress {
+    batch: bool,
     start: Instant,
     bar: Option<indicatif::ProgressBar>,
     enabled: bool,
@@ -32,9 +38,11 @@ struct Attempt {
 }
 
 impl Progress {
-    pub fn new() -> Self {
+    /// A bar for a run solved step by step, or in one `batch`.
+    pub fn new(batch: bool) -> Self {
         let now = Instant::now();
         Progress {
+            batch,
             start: now,
             bar: None,
             enabled: std::io::stderr().is_terminal(),
@@ -63,15 +71,20 @@ impl Progress {
             let bar = indicatif::ProgressBar::new(total as u64).with_elapsed(elapsed);
             let attempt = std::sync::Arc::new(std::sync::Mutex::new(self.attempt));
             let shared = attempt.clone();
+            let batch = self.batch;
             bar.set_style(
                 indicatif::ProgressStyle::with_template(
-                    "{elapsed_precise} [{bar:40}] {pos}/{len} steps, eta {left}",
+                    "{elapsed_precise} [{bar:40}] {pos}/{len} steps, eta {left}{msg}",
                 )
                 .expect("a valid template")
                 .with_key(
                     "left",
                     move |state: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
                         let a = *shared.lock().expect("not poisoned");
+                        if batch && state.pos() >= state.len().unwrap_or(0) {
+                            let _ = write!(w, "?");
+                            return;
+                        }
                         let left = eta(
                             a.start.elapsed(),
                             state.pos().saturating_sub(a.done as u64),
@@ -93,6 +106,14 @@ impl Progress {
         }
         if let Some(bar) = &self.bar {
             bar.set_position(done as u64);
+            if self.batch {
+                if done >= total {
+                    bar.set_message(" (one-step start done; solving all steps at once)");
+                    bar.enable_steady_tick(Duration::from_millis(500));
+                } else {
+                    bar.set_message(" (one-step start; the batch solve follows)");
+                }
+            }
         }
     }
 

@@ -207,7 +207,7 @@ fn simulate(
         eprintln!("warning: {w}");
     }
     super::interrupt::install();
-    let mut bar = Progress::new();
+    let mut bar = Progress::new(options.mode == Mode::Batch);
     let model = Arc::new(model);
     // The rows go to the file as the steps become final where nothing needs the
     // whole run first: the optional columns (work integrals over every step) and
