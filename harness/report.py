@@ -7,7 +7,7 @@
     python -m harness.report --ci       # the four-bar table, the fast hard cases and the
                                         # fast robustness matrix's summary line, printed
                                         # (the end of every CI log)
-    python -m harness.report --only forward|timing|hard|inverse|robustness
+    python -m harness.report --only forward|timing|hard|inverse|robustness|horizons
 """
 from __future__ import annotations
 
@@ -225,7 +225,8 @@ def main(argv=None) -> int:
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--ci", action="store_true",
                     help="print the four-bar table, the fast hard cases and the fast robustness summary")
-    ap.add_argument("--only", choices=["forward", "timing", "hard", "inverse", "robustness"],
+    ap.add_argument("--only", choices=["forward", "timing", "hard", "inverse", "robustness",
+                                       "horizons"],
                     help="one part")
     args = ap.parse_args(argv)
     start = time.perf_counter()
@@ -262,6 +263,9 @@ def main(argv=None) -> int:
         (REPORTS / "hard-cases.md").write_text(text)
         write_csv(REPORTS / "hard-cases.csv", [o.__dict__ for o in outcomes])
         progress("wrote reports/hard-cases.md, reports/hard-cases.csv")
+    if "horizons" in parts:  # not in the default parts: 1e6-step runs take minutes
+        from harness import horizons
+        horizons.main([])
     if "robustness" in parts:
         from harness import robustness
         progress("robustness matrix")
