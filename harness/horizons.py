@@ -199,13 +199,15 @@ def page(rows: list[dict], fitted: dict[str, dict], seconds: float) -> str:
         "is beside it. "
         f"Made by `python -m harness.horizons` in {seconds:.0f} s. Machine: {machine()}.",
         "",
-        "| solve | steps | wall time (s) | CPU time (s) | solve (s) | LM iterations per solve | peak memory (MiB) | reported (MiB) | rows written | exit |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| solve | steps | wall time (s) | CPU time (s) | CPU µs a step | solve (s) | LM iterations per solve | CPU µs per step and iteration | peak memory (MiB) | reported (MiB) | rows written | exit |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
             f"| {r['config']} | {r['steps']:,} | {num(r['wall_s'], '.2f')} | {num(r['cpu_s'], '.2f')} "
+            f"| {num(1e6 * r['cpu_s'] / r['steps'], '.1f')} "
             f"| {num(r['solve_s'], '.2f')} | {num(r['mean_iterations'], '.2f')} "
+            f"| {num(per_iteration(r), '.2f')} "
             f"| {num(r['peak_rss_mib'], '.1f')} | {num(r['reported_mib'], '.1f')} | {r['rows']:,} | {r['exit']} |")
     lines += [
         "",
@@ -226,6 +228,15 @@ def page(rows: list[dict], fitted: dict[str, dict], seconds: float) -> str:
     return "\n".join(lines)
 
 
+def per_iteration(r: dict) -> float:
+    """CPU µs per step and LM iteration of a smoother run (its work per step grows
+    with the iterations the motion asks, not with the horizon); NaN for a batch,
+    whose iterations are of the solve of all steps, after its one-step start."""
+    if not r["config"].startswith("smoother") or not r["mean_iterations"] > 0:
+        return math.nan
+    return 1e6 * r["cpu_s"] / (r["steps"] * r["mean_iterations"])
+
+
 def verdicts(rows: list[dict], fitted: dict[str, dict]) -> list[str]:
     out = []
     failed = [r for r in rows if r["exit"] != 0]
@@ -238,8 +249,20 @@ def verdicts(rows: list[dict], fitted: dict[str, dict]) -> list[str]:
         t, c = f["time_slope"], f.get("cpu_slope", math.nan)
         judged = c if not math.isnan(c) else t
         word = "linear" if judged <= 1.05 else "**super-linear**"
-        out.append(f"- {name}: time {word} (CPU time slope {c:.3f}, wall time {t:.3f}; "
-                   "target ≤ 1.05).")
+        ok = [r for r in rows if r["config"] == name and r["exit"] == 0]
+        trend = ""
+        per = [per_iteration(r) for r in ok]
+        if per and not any(math.isnan(p) for p in per):
+            trend = ("; CPU µs per step and LM iteration "
+                     + " → ".join(f"{p:.1f}" for p in per)
+                     + ", LM iterations per step "
+                     + " → ".join(f"{r['mean_iterations']:.2f}" for r in ok))
+        elif ok:
+            trend = ("; LM iterations of the solve of all steps "
+                     + " → ".join(f"{r['mean_iterations']:.0f}" for r in ok))
+        out.append(f"- {name}: time {word} (CPU time slope {c:.3f}, between the last two "
+                   f"{f.get('cpu_slope_last', math.nan):.3f}; wall time {t:.3f}; "
+                   f"target ≤ 1.05{trend}).")
         if name.startswith("smoother"):
             flat = f["memory_spread_mib"] <= FLAT_MIB
             out.append(f"- {name}: memory {'constant' if flat else '**growing**'} "
@@ -257,8 +280,27 @@ def verdicts(rows: list[dict], fitted: dict[str, dict]) -> list[str]:
     return out
 
 
+def read_rows(path: pathlib.Path) -> list[dict]:
+    """The rows of a horizons.csv, with their numbers as numbers."""
+    import csv
+    rows = []
+    for r in csv.DictReader(open(path)):
+        row = {}
+        for k, v in r.items():
+            if k in ("config", "measured_by"):
+                row[k] = v
+            elif k in ("steps", "exit", "rows"):
+                row[k] = int(v)
+            else:
+                row[k] = float(v) if v else math.nan
+        rows.append(row)
+    return rows
+
+
 def write(rows: list[dict], out_dir: pathlib.Path, seconds: float) -> dict[str, dict]:
     out_dir.mkdir(parents=True, exist_ok=True)
+    for r in rows:
+        r["seconds"] = seconds
     fitted = fits(rows)
     (out_dir / "horizons.md").write_text(page(rows, fitted, seconds))
     write_csv(out_dir / "horizons.csv",
@@ -279,7 +321,13 @@ def main(argv=None) -> int:
                     help="the mbfg binary (default %(default)s; `cargo build --release`)")
     ap.add_argument("--out-dir", type=pathlib.Path, default=REPORTS,
                     help="where the page goes (default %(default)s)")
+    ap.add_argument("--from-csv", type=pathlib.Path,
+                    help="write the page again from a horizons.csv of an earlier run")
     args = ap.parse_args(argv)
+    if args.from_csv:
+        rows = read_rows(args.from_csv)
+        write(rows, args.out_dir, float(rows[0].get("seconds", math.nan)) if rows else 0.0)
+        return 0
     steps = [int(float(s)) for s in args.steps.split(",") if s.strip()]
     names = [c.strip() for c in args.configs.split(",") if c.strip()]
     unknown = [c for c in names if c not in CONFIGS]
