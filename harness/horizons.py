@@ -232,9 +232,10 @@ def per_iteration(r: dict) -> float:
     """CPU µs per step and LM iteration of a smoother run (its work per step grows
     with the iterations the motion asks, not with the horizon); NaN for a batch,
     whose iterations are of the solve of all steps, after its one-step start."""
-    if not r["config"].startswith("smoother") or not r["mean_iterations"] > 0:
+    its = r.get("mean_iterations", math.nan)
+    if not r["config"].startswith("smoother") or not its > 0:
         return math.nan
-    return 1e6 * r["cpu_s"] / (r["steps"] * r["mean_iterations"])
+    return 1e6 * r["cpu_s"] / (r["steps"] * its)
 
 
 def verdicts(rows: list[dict], fitted: dict[str, dict]) -> list[str]:
@@ -257,7 +258,7 @@ def verdicts(rows: list[dict], fitted: dict[str, dict]) -> list[str]:
                      + " → ".join(f"{p:.1f}" for p in per)
                      + ", LM iterations per step "
                      + " → ".join(f"{r['mean_iterations']:.2f}" for r in ok))
-        elif ok:
+        elif ok and all("mean_iterations" in r for r in ok):
             trend = ("; LM iterations of the solve of all steps "
                      + " → ".join(f"{r['mean_iterations']:.0f}" for r in ok))
         out.append(f"- {name}: time {word} (CPU time slope {c:.3f}, between the last two "
