@@ -291,7 +291,10 @@ impl Streamed {
     fn finish(mut self) -> Result<usize, String> {
         let rows = self.rows.take().expect("an open stream");
         let count = rows.rows();
-        let w = rows.finish().map_err(|e| e.to_string())?;
+        let mut w = rows.finish().map_err(|e| e.to_string())?;
+        // Flushed once more, as the held writer's CSV writer flushes when dropped:
+        // a gzip stream then ends with the same bytes.
+        w.flush().map_err(|e| e.to_string())?;
         let mut w = match w {
             Encoded::Plain(w) => w,
             Encoded::Gzip(z) => z.finish().map_err(|e| e.to_string())?,

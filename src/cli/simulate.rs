@@ -238,7 +238,7 @@ fn simulate(
     let (trajectory, summary) = result.map_err(|e| Failure::Run(plain(e)))?;
     let run = match (trajectory, streamed) {
         (Some(trajectory), _) => Run::Held(trajectory),
-        (None, Some(streamed)) => Run::Streamed(streamed),
+        (None, Some(streamed)) => Run::Streamed(Box::new(streamed)),
         (None, None) => unreachable!("a run without a trajectory was streamed"),
     };
     let steps = summary.steps;
@@ -254,7 +254,9 @@ fn simulate(
                     why,
                 )
                 .map_err(Failure::Run),
-            Run::Streamed(streamed) => output.keep_partial_streamed(streamed).map_err(Failure::Run),
+            Run::Streamed(streamed) => output
+                .keep_partial_streamed(*streamed)
+                .map_err(Failure::Run),
         }
     };
     if let Some(k) = summary.interrupted {
@@ -331,7 +333,7 @@ fn simulate(
                 &written.prepare(&model, &trajectory, None)?.csv(None),
             )
             .map_err(Failure::Run)?,
-        Run::Streamed(streamed) => output.commit_streamed(streamed).map_err(Failure::Run)?,
+        Run::Streamed(streamed) => output.commit_streamed(*streamed).map_err(Failure::Run)?,
     }
     print_summary(to_file, &line);
     Ok(())
@@ -340,7 +342,7 @@ fn simulate(
 /// A run's rows: held until it ends, or already in the output's temporary file.
 enum Run {
     Held(forward::Trajectory),
-    Streamed(super::output::Streamed),
+    Streamed(Box<super::output::Streamed>),
 }
 
 /// The summary line; `peak_memory`, the process's peak resident memory in bytes,
