@@ -65,8 +65,6 @@ pub fn simulate(
 /// a well-conditioned set chosen from q ([`Determinacy::reselect`]), conditioned on
 /// that step's state (its graph's initial priors), as generalized coordinate
 /// partitioning does. Where Φ_q itself loses rank no set helps: the run stops.
-///
-/// [`Determinacy::reselect`]: crate::kinematics::Determinacy::reselect
 pub fn simulate_interruptible(
     model: Arc<Model>,
     options: &ForwardOptions,
