@@ -159,3 +159,27 @@ fn the_smoothers_memory_does_not_grow_with_the_horizon_the_batchs_does() {
         (batch_long - batch_short) / 1048576.0
     );
 }
+
+#[test]
+fn a_run_streamed_to_a_file_needs_no_memory_for_its_rows() {
+    // 20 001 steps of the four-bar: the smoother keeps a few thousand steps' variables
+    // (under 1 MB) whatever the horizon; the rows held for standard output add about
+    // 4 MB. Under a 2 MB limit the streamed run goes, the held one is refused.
+    let out = scratch("limit").join("run.csv");
+    let args = [
+        "simulate",
+        "scenes/fourbar.yaml",
+        "--dt",
+        "0.001",
+        "--t-end",
+        "20",
+    ];
+    let limit = [("MBFG_MEMORY_LIMIT", "2e6")];
+    let mut streamed = args.to_vec();
+    streamed.extend(["--out", out.to_str().unwrap()]);
+    let run = common::mbfg_env(&streamed, &limit);
+    assert!(run.status.success(), "{}", stderr(&run));
+    let held = common::mbfg_env(&args, &limit);
+    assert_eq!(held.status.code(), Some(2), "{}", stderr(&held));
+    assert!(stderr(&held).contains("needs about"), "{}", stderr(&held));
+}

@@ -220,6 +220,13 @@ fn simulate(
             .map_err(Failure::Run)?,
         false => None,
     };
+    if streamed.is_none() {
+        // The rows are held until the run ends: refused before it starts if they
+        // cannot be (bad input, as the other limits).
+        options
+            .check_memory(&model, true)
+            .map_err(|e| Failure::Input(plain(e)))?;
+    }
     let mut progress = |done, total| {
         bar.update(done, total);
         if super::interrupt::requested() {

@@ -70,6 +70,9 @@ pub fn simulate_interruptible(
     options: &ForwardOptions,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
 ) -> Result<(Trajectory, RunSummary)> {
+    options.validate(&model)?;
+    // The trajectory of every step is held too.
+    options.check_memory(&model, true)?;
     let mut trajectory = Trajectory {
         names: model.names.clone(),
         t: Vec::new(),
