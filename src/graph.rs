@@ -297,6 +297,11 @@ pub struct ChainGraph {
     step: Vec<Term>,
     /// Factors of step 0 only (priors on the initial state).
     initial: Vec<Term>,
+    /// The step of the run that step 0 of the values stands for, while a fixed-lag
+    /// run keeps only its newest steps in a compacted buffer
+    /// ([`crate::smoother::fixed_lag_streaming`]); 0 otherwise. [`ChainGraph::time`]
+    /// adds it, so that a step's time is the same bits wherever its values sit.
+    offset: std::sync::atomic::AtomicUsize,
 }
 
 impl ChainGraph {
@@ -309,6 +314,7 @@ impl ChainGraph {
                 t0,
                 step: Vec::new(),
                 initial: Vec::new(),
+                offset: std::sync::atomic::AtomicUsize::new(0),
             },
         }
     }
@@ -343,8 +349,26 @@ impl ChainGraph {
         &self.initial
     }
 
+    /// The time of step `step` of the values (the run's step `step` + the offset of
+    /// a compacted buffer, see [`ChainGraph::step_offset`]).
     pub fn time(&self, step: usize) -> f64 {
+        self.run_time(step + self.step_offset())
+    }
+
+    /// The time of the run's step `step`, t₀ + step·dt, whatever the offset.
+    pub fn run_time(&self, step: usize) -> f64 {
         self.t0 + step as f64 * self.dt
+    }
+
+    /// The run step that step 0 of the values stands for (0 but during a
+    /// [`crate::smoother::fixed_lag_streaming`] run, which compacts its buffer).
+    pub fn step_offset(&self) -> usize {
+        self.offset.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    pub(crate) fn set_step_offset(&self, offset: usize) {
+        self.offset
+            .store(offset, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Whether a step factor exists at `step` (its lagged variables must exist).

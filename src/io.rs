@@ -114,6 +114,108 @@ pub fn write_trajectory_with<W: Write>(
     Ok(())
 }
 
+/// A trajectory CSV written row by row, as a run's steps become final: the same
+/// bytes [`write_trajectory_with`] writes for the standard columns (no forces, no
+/// extra columns), every `stride`-th sample and the last ([`sampled_rows`]).
+pub struct CsvRows<W: Write> {
+    w: csv::Writer<W>,
+    stride: usize,
+    text: String,
+    /// Samples offered so far.
+    samples: usize,
+    /// The last sample offered when it was not written (its stride skipped it): it
+    /// is written by [`CsvRows::finish`], being the last.
+    pending: Option<Vec<f64>>,
+    /// Rows written.
+    rows: usize,
+}
+
+impl<W: Write> CsvRows<W> {
+    /// Writes the header of a trajectory with coordinates `names`.
+    pub fn new(out: W, names: &[String], stride: usize) -> Result<Self> {
+        let mut w = csv::Writer::from_writer(out);
+        w.write_record(header(names, false))
+            .map_err(|e| Error::data(e.to_string()))?;
+        Ok(CsvRows {
+            w,
+            stride: stride.max(1),
+            text: String::with_capacity(32),
+            samples: 0,
+            pending: None,
+            rows: 0,
+        })
+    }
+
+    /// The next sample: written now when it is on the stride, else kept in case it
+    /// is the last. Non-finite values are refused, as [`write_trajectory_with`]
+    /// refuses them.
+    pub fn sample(&mut self, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> Result<()> {
+        let k = self.samples;
+        self.samples += 1;
+        if k % self.stride == 0 {
+            self.pending = None;
+            self.write_row(k, t, q, dq, ddq)
+        } else {
+            let row = self.pending.get_or_insert_with(Vec::new);
+            row.clear();
+            row.push(t);
+            row.extend_from_slice(q);
+            row.extend_from_slice(dq);
+            row.extend_from_slice(ddq);
+            Ok(())
+        }
+    }
+
+    fn write_row(&mut self, k: usize, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> Result<()> {
+        let io = |e: csv::Error| Error::data(e.to_string());
+        let fields = [
+            ("time", std::slice::from_ref(&t)),
+            ("position", q),
+            ("velocity", dq),
+            ("acceleration", ddq),
+        ];
+        for (what, values) in fields {
+            for &v in values {
+                if !v.is_finite() {
+                    return Err(Error::singular(format!(
+                        "non-finite {what} at t = {t} (sample {k}); nothing written past it"
+                    )));
+                }
+                self.text.clear();
+                write_number(&mut self.text, v);
+                self.w.write_field(&self.text).map_err(io)?;
+            }
+        }
+        self.w.write_record(None::<&[u8]>).map_err(io)?;
+        self.rows += 1;
+        Ok(())
+    }
+
+    /// Rows written so far (the last sample kept back not counted).
+    pub fn rows(&self) -> usize {
+        self.rows + usize::from(self.pending.is_some())
+    }
+
+    /// Writes the last sample if the stride skipped it, flushes, and gives the
+    /// writer back.
+    pub fn finish(mut self) -> Result<W> {
+        if let Some(row) = self.pending.take() {
+            let n = (row.len() - 1) / 3;
+            let (t, rest) = (row[0], &row[1..]);
+            self.write_row(
+                self.samples - 1,
+                t,
+                &rest[..n],
+                &rest[n..2 * n],
+                &rest[2 * n..],
+            )?;
+        }
+        self.w
+            .into_inner()
+            .map_err(|e| Error::data(e.error().to_string()))
+    }
+}
+
 /// The sample stride of `--sample-dt`: `sample_dt / dt`, which must be a positive
 /// integer to within 1e-9 relative. The error is the message (bad input).
 pub fn sample_stride(dt: f64, sample_dt: f64) -> std::result::Result<usize, String> {

@@ -65,11 +65,96 @@ pub fn fixed_lag_with_rescue(
     steps: usize,
     window: usize,
     settings: Settings,
+    predict: impl FnMut(&mut [f64], usize),
+    rescue: impl FnMut(&mut [f64], usize) -> bool,
+    on_step: impl FnMut(usize, &SolveReport, &[f64]) -> Next,
+    on_switch: impl FnMut(usize),
+) -> Result<()> {
+    run_fixed_lag(
+        graph, values, None, steps, window, settings, predict, rescue, on_step, on_switch,
+    )
+    .map(drop)
+}
+
+/// Where a [`fixed_lag_streaming`] run hands its final steps, and how many steps its
+/// buffer holds.
+pub struct Stream<'a> {
+    /// Steps the values buffer holds (at least the window + 4): when the next step
+    /// would not fit, the steps still needed (the window and the two steps before
+    /// it) move to the start of the buffer and the others are handed out first.
+    pub capacity: usize,
+    /// `on_final(j, block)`: run step j's values (one step, `layout().size()`),
+    /// final: no later solve changes them. Called in step order, each step once,
+    /// for every step that left the window; an error ends the run with it.
+    pub on_final: &'a mut dyn FnMut(usize, &[f64]) -> Result<()>,
+}
+
+/// The steps a [`Stream`] buffer holds for a window of `window` steps by default:
+/// a copy of the window every few thousand steps costs nothing next to the solves.
+pub fn stream_capacity(window: usize) -> usize {
+    (window + 4).max(4096.min(2 * window + 4096))
+}
+
+/// [`fixed_lag_with_rescue`] in a buffer of `stream.capacity` steps whatever the
+/// run's length: step 0 of `values` stands for run step `graph.step_offset()`
+/// while it runs (so [`ChainGraph::time`] of a step of `values` is its run time), and
+/// the callbacks get and index steps of `values`. Steps leave through
+/// `stream.on_final` as they become final; the ones still in the buffer when the run
+/// ends do not: the run step of `values`' step 0 is returned (the graph's offset is
+/// back to 0 then), and the steps from the last one handed out on are in `values`.
+/// The results are those of [`fixed_lag_with_rescue`] to the bit.
+#[allow(clippy::too_many_arguments)] // the run's callbacks, one per event
+pub fn fixed_lag_streaming(
+    graph: &ChainGraph,
+    values: &mut [f64],
+    stream: Stream<'_>,
+    steps: usize,
+    window: usize,
+    settings: Settings,
+    predict: impl FnMut(&mut [f64], usize),
+    rescue: impl FnMut(&mut [f64], usize) -> bool,
+    on_step: impl FnMut(usize, &SolveReport, &[f64]) -> Next,
+    on_switch: impl FnMut(usize),
+) -> Result<(usize, usize)> {
+    run_fixed_lag(
+        graph,
+        values,
+        Some(stream),
+        steps,
+        window,
+        settings,
+        predict,
+        rescue,
+        on_step,
+        on_switch,
+    )
+}
+
+/// Puts the graph's step offset back to 0 however the run ends.
+struct OffsetGuard<'a>(&'a ChainGraph);
+
+impl Drop for OffsetGuard<'_> {
+    fn drop(&mut self) {
+        self.0.set_step_offset(0);
+    }
+}
+
+/// The fixed-lag run, in place (`stream` None: `values` holds every step) or in a
+/// compacted buffer. Returns the run step of `values`' step 0 and the first step not
+/// handed to `on_final`.
+#[allow(clippy::too_many_arguments)] // the run's callbacks, one per event
+fn run_fixed_lag(
+    graph: &ChainGraph,
+    values: &mut [f64],
+    mut stream: Option<Stream<'_>>,
+    steps: usize,
+    window: usize,
+    settings: Settings,
     mut predict: impl FnMut(&mut [f64], usize),
     mut rescue: impl FnMut(&mut [f64], usize) -> bool,
     mut on_step: impl FnMut(usize, &SolveReport, &[f64]) -> Next,
     mut on_switch: impl FnMut(usize),
-) -> Result<()> {
+) -> Result<(usize, usize)> {
     // A window longer than the run is the whole run.
     let window = window.max(1).min(steps.max(1));
     let s = graph.layout().size();
@@ -83,7 +168,43 @@ pub fn fixed_lag_with_rescue(
     // solved again (after a conditioned prior, or from substeps) starts from.
     let mut start = Vec::with_capacity((window + 1) * s);
     let mut k0 = 0;
-    for k in 0..steps {
+    // The run step of `values`' step 0, and the first run step not handed out.
+    let mut base = 0;
+    let mut handed = 0;
+    let _guard = OffsetGuard(graph);
+    if let Some(st) = &stream {
+        let capacity = st.capacity.max(window + 4);
+        if values.len() < capacity.min(steps) * s {
+            return Err(Error::InvalidArgument(format!(
+                "a streaming buffer of {} values holds fewer than {} steps",
+                values.len(),
+                capacity.min(steps)
+            )));
+        }
+    }
+    for run_k in 0..steps {
+        let mut k = run_k - base;
+        if let Some(st) = stream.as_mut() {
+            let capacity = st.capacity.max(window + 4);
+            if k >= capacity {
+                // Keep the window and the two steps before it (the predictions and
+                // the conditioned solves read them); the steps before are final.
+                let lo = k0.min(k).saturating_sub(2);
+                for j in handed..base + lo {
+                    (st.on_final)(j, &values[(j - base) * s..(j - base + 1) * s])?;
+                }
+                handed = handed.max(base + lo);
+                values.copy_within(lo * s..k * s, 0);
+                base += lo;
+                k0 -= lo;
+                k -= lo;
+                graph.set_step_offset(base);
+                solver.shift_steps(lo);
+                for p in [prior.as_mut(), earlier.as_mut()].into_iter().flatten() {
+                    p.shift_steps(lo);
+                }
+            }
+        }
         if k > 0 {
             predict(values, k);
         }
@@ -163,7 +284,7 @@ pub fn fixed_lag_with_rescue(
             break;
         }
     }
-    Ok(())
+    Ok((base, handed))
 }
 
 /// After the window k0..=k failed to converge (`failed`): the window back at its guess

@@ -53,19 +53,6 @@ impl Trajectory {
         }
     }
 
-    /// Appends `other` but its first sample (the state this one ends with).
-    pub(crate) fn append_after_first(&mut self, other: &Trajectory) {
-        let n = self.n();
-        self.t.extend_from_slice(other.t.get(1..).unwrap_or(&[]));
-        for (v, o) in [
-            (&mut self.q, &other.q),
-            (&mut self.dq, &other.dq),
-            (&mut self.ddq, &other.ddq),
-        ] {
-            v.extend_from_slice(o.get(n..).unwrap_or(&[]));
-        }
-    }
-
     pub fn q_at(&self, k: usize) -> &[f64] {
         &self.q[k * self.n()..(k + 1) * self.n()]
     }

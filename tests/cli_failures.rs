@@ -61,8 +61,9 @@ fn step_counts_that_overflow_are_bad_input() {
 #[test]
 fn runs_beyond_the_memory_are_refused_before_they_start() {
     let started = Instant::now();
-    // 1e8 steps fit the step limit but not the memory: refused at once, with the estimate.
-    let line = bad_input(&["simulate", FOURBAR, "--dt", "1e-3", "--t-end", "1e5"]);
+    // 9e8 steps fit the step limit but not the memory (their rows held for standard
+    // output): refused at once, with the estimate.
+    let line = bad_input(&["simulate", FOURBAR, "--dt", "1e-4", "--t-end", "9e4"]);
     assert!(
         line.contains("needs about") && line.contains("GB of memory"),
         "{line}"

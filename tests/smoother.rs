@@ -197,3 +197,83 @@ fn smoother_with_whole_horizon_window_reproduces_the_batch_everywhere() {
         assert!((a - b).abs() < 1e-10 * b.abs().max(1.0));
     }
 }
+
+#[test]
+fn a_streaming_run_in_a_small_buffer_equals_the_run_in_place_to_the_bit() {
+    // A buffer of 7 steps over 60: the window moves to the buffer's start every few
+    // steps, and each step leaves through `on_final` with the bits it has in place.
+    let graph = chain();
+    let s = graph.layout().size();
+    let steps = 60;
+    let predict = |v: &mut [f64], k: usize| {
+        let (prev, next) = v.split_at_mut(k * s);
+        next[..s].copy_from_slice(&prev[(k - 1) * s..]);
+    };
+    for window in [1, 3] {
+        let mut in_place = vec![0.0; steps * s];
+        let mut newest_in_place = Vec::new();
+        smoother::fixed_lag(
+            &graph,
+            &mut in_place,
+            steps,
+            window,
+            settings(),
+            predict,
+            |k, _, v| {
+                newest_in_place.push(v[k * s..(k + 1) * s].to_vec());
+                Next::Continue
+            },
+            |_| {},
+        )
+        .unwrap();
+        let capacity = window + 4;
+        let mut buffer = vec![0.0; capacity * s];
+        let mut finals: Vec<(usize, Vec<f64>)> = Vec::new();
+        let mut newest = Vec::new();
+        let mut on_final = |j: usize, block: &[f64]| {
+            finals.push((j, block.to_vec()));
+            Ok(())
+        };
+        let (base, handed) = smoother::fixed_lag_streaming(
+            &graph,
+            &mut buffer,
+            smoother::Stream {
+                capacity,
+                on_final: &mut on_final,
+            },
+            steps,
+            window,
+            settings(),
+            predict,
+            |_, _| false,
+            |k, _, v| {
+                newest.push(v[k * s..(k + 1) * s].to_vec());
+                Next::Continue
+            },
+            |_| {},
+        )
+        .unwrap();
+        assert!(base > 0, "window {window}: the buffer was never compacted");
+        assert_eq!(graph.step_offset(), 0, "the graph's offset is put back");
+        assert_eq!(
+            newest, newest_in_place,
+            "window {window}: the newest estimates"
+        );
+        // Handed out in order, then the rest from the buffer.
+        let handed_steps: Vec<usize> = finals.iter().map(|(j, _)| *j).collect();
+        assert_eq!(handed_steps, (0..handed).collect::<Vec<_>>());
+        for j in handed..steps {
+            finals.push((j, buffer[(j - base) * s..(j - base + 1) * s].to_vec()));
+        }
+        for (j, block) in &finals {
+            let expect = &in_place[j * s..(j + 1) * s];
+            assert!(
+                block
+                    .iter()
+                    .zip(expect)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "window {window}, step {j}: {block:?} vs {expect:?}"
+            );
+        }
+    }
+}

@@ -6,7 +6,11 @@
 //! - to standard output: the rows, and after those of a run that ended early a last
 //!   line `# incomplete: …` that no CSV reader takes for a row of numbers.
 
-use mbfg::io::CsvOptions;
+//! - streamed ([`Output::stream`]): the rows go to the temporary file as the run's
+//!   steps become final, so that a long run holds none of them; a run made again
+//!   (tangent integrators, a finer step) starts the file over.
+
+use mbfg::io::{CsvOptions, CsvRows};
 use mbfg::trajectory::Trajectory;
 use std::fs::File;
 use std::io::Write;
@@ -147,6 +151,65 @@ impl Output {
         }
     }
 
+    /// A writer of the rows into the temporary file as they come (the standard
+    /// columns, every `stride`-th row and the last), or None where the output is
+    /// not a file written under a temporary name (standard output, a device).
+    pub fn stream(&self, names: &[String], stride: usize) -> Result<Option<Streamed>, String> {
+        let (Some(target), Some(temp)) = (&self.target, &self.temp) else {
+            return Ok(None);
+        };
+        let mut streamed = Streamed {
+            target: target.clone(),
+            temp: temp.clone(),
+            gzip: is_gzip(target),
+            names: names.to_vec(),
+            stride,
+            rows: None,
+        };
+        streamed.open().map_err(|e| e.to_string())?;
+        Ok(Some(streamed))
+    }
+
+    /// [`Output::commit`] of a streamed CSV: finished, then renamed over the target.
+    pub fn commit_streamed(mut self, streamed: Streamed) -> Result<(), String> {
+        let target = streamed.target.clone();
+        let temp = self
+            .temp
+            .take()
+            .expect("a streamed output has a temporary file");
+        let written = streamed
+            .finish()
+            .and_then(|_| std::fs::rename(&temp, &target).map_err(|e| e.to_string()));
+        if let Err(e) = written {
+            std::fs::remove_file(&temp).ok();
+            return Err(format!("cannot write {}: {e}", target.display()));
+        }
+        std::fs::remove_file(partial_path(&target)).ok();
+        Ok(())
+    }
+
+    /// [`Output::keep_partial`] of a streamed CSV: the rows written so far, finished
+    /// and renamed to the partial file. Returns where they went.
+    pub fn keep_partial_streamed(mut self, streamed: Streamed) -> Result<String, String> {
+        let partial = partial_path(&streamed.target);
+        let temp = self
+            .temp
+            .take()
+            .expect("a streamed output has a temporary file");
+        let written = streamed.finish().and_then(|rows| {
+            std::fs::rename(&temp, &partial)
+                .map(|()| rows)
+                .map_err(|e| e.to_string())
+        });
+        match written {
+            Ok(rows) => Ok(format!("{rows} steps kept in {}", partial.display())),
+            Err(e) => {
+                std::fs::remove_file(&temp).ok();
+                Err(format!("cannot write {}: {e}", partial.display()))
+            }
+        }
+    }
+
     /// Leaves nothing behind (the target keeps its old contents).
     pub fn discard(mut self) {
         if let Some(temp) = self.temp.take() {
@@ -160,6 +223,102 @@ impl Drop for Output {
         if let Some(temp) = self.temp.take() {
             std::fs::remove_file(temp).ok();
         }
+    }
+}
+
+/// A CSV being written to an output's temporary file as the run's steps become
+/// final ([`Output::stream`]).
+pub struct Streamed {
+    target: PathBuf,
+    temp: PathBuf,
+    gzip: bool,
+    names: Vec<String>,
+    stride: usize,
+    rows: Option<CsvRows<Encoded>>,
+}
+
+/// The temporary file, through a gzip encoder where the target's name asks.
+enum Encoded {
+    Plain(std::io::BufWriter<File>),
+    Gzip(flate2::write::GzEncoder<std::io::BufWriter<File>>),
+}
+
+impl Write for Encoded {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match self {
+            Encoded::Plain(w) => w.write(buf),
+            Encoded::Gzip(w) => w.write(buf),
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        match self {
+            Encoded::Plain(w) => w.flush(),
+            Encoded::Gzip(w) => w.flush(),
+        }
+    }
+}
+
+impl Streamed {
+    /// (Re)starts the file: emptied, then the header.
+    fn open(&mut self) -> mbfg::Result<()> {
+        self.rows = None;
+        let file = File::options()
+            .write(true)
+            .truncate(true)
+            .open(&self.temp)
+            .map_err(|e| self.error(e))?;
+        let w = std::io::BufWriter::new(file);
+        let w = if self.gzip {
+            Encoded::Gzip(flate2::write::GzEncoder::new(
+                w,
+                flate2::Compression::default(),
+            ))
+        } else {
+            Encoded::Plain(w)
+        };
+        self.rows = Some(CsvRows::new(w, &self.names, self.stride).map_err(|e| self.error(e))?);
+        Ok(())
+    }
+
+    fn error(&self, e: impl std::fmt::Display) -> mbfg::Error {
+        mbfg::Error::data(format!("cannot write {}: {e}", self.target.display()))
+    }
+
+    /// Writes the last row if the stride skipped it, finishes the gzip stream and
+    /// puts the file on disk (before a rename, so that a crash cannot leave a renamed
+    /// empty file). Returns the rows written.
+    fn finish(mut self) -> Result<usize, String> {
+        let rows = self.rows.take().expect("an open stream");
+        let count = rows.rows();
+        let mut w = rows.finish().map_err(|e| e.to_string())?;
+        // Flushed once more, as the held writer's CSV writer flushes when dropped:
+        // a gzip stream then ends with the same bytes.
+        w.flush().map_err(|e| e.to_string())?;
+        let mut w = match w {
+            Encoded::Plain(w) => w,
+            Encoded::Gzip(z) => z.finish().map_err(|e| e.to_string())?,
+        };
+        w.flush().map_err(|e| e.to_string())?;
+        let file = w.into_inner().map_err(|e| e.error().to_string())?;
+        file.sync_all().map_err(|e| e.to_string())?;
+        Ok(count)
+    }
+}
+
+impl mbfg::forward::StepSink for Streamed {
+    fn step(&mut self, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> mbfg::Result<()> {
+        let rows = self.rows.as_mut().expect("an open stream");
+        match rows.sample(t, q, dq, ddq) {
+            Ok(()) => Ok(()),
+            // A non-finite value is the run's to report; a write error is the file's.
+            Err(e @ mbfg::Error::Singular { .. }) => Err(e),
+            Err(e) => Err(self.error(e)),
+        }
+    }
+
+    fn restart(&mut self) -> mbfg::Result<()> {
+        self.open()
     }
 }
 

@@ -207,31 +207,72 @@ fn simulate(
         eprintln!("warning: {w}");
     }
     super::interrupt::install();
-    let mut bar = Progress::new();
+    let mut bar = Progress::new(options.mode == Mode::Batch);
     let model = Arc::new(model);
-    let result = forward::simulate_interruptible(model.clone(), options, &mut |done, total| {
+    // The rows go to the file as the steps become final where nothing needs the
+    // whole run first: the optional columns (work integrals over every step) and
+    // the explicit Euler rule's energy check do, and standard output cannot take
+    // back the rows of a run made again.
+    let stream = written.streams() && options.integrator != forward::Integrator::Euler;
+    let mut streamed = match stream {
+        true => output
+            .stream(&model.names, written.stride())
+            .map_err(Failure::Run)?,
+        false => None,
+    };
+    if streamed.is_none() {
+        // The rows are held until the run ends: refused before it starts if they
+        // cannot be (bad input, as the other limits).
+        options
+            .check_memory(&model, true)
+            .map_err(|e| Failure::Input(plain(e)))?;
+    }
+    let mut progress = |done, total| {
         bar.update(done, total);
         if super::interrupt::requested() {
             ControlFlow::Break(())
         } else {
             ControlFlow::Continue(())
         }
-    });
+    };
+    let result = match streamed.as_mut() {
+        Some(sink) => forward::simulate_streaming(model.clone(), options, &mut progress, sink)
+            .map(|summary| (None, summary)),
+        None => forward::simulate_interruptible(model.clone(), options, &mut progress)
+            .map(|(trajectory, summary)| (Some(trajectory), summary)),
+    };
     bar.finish();
     let (trajectory, summary) = result.map_err(|e| Failure::Run(plain(e)))?;
+    let run = match (trajectory, streamed) {
+        (Some(trajectory), _) => Run::Held(trajectory),
+        (None, Some(streamed)) => Run::Streamed(Box::new(streamed)),
+        (None, None) => unreachable!("a run without a trajectory was streamed"),
+    };
+    let steps = summary.steps;
     let to_file = output.to_file();
-    let line = summary_line(options, &summary);
-    // Computed only for what is written.
-    let prepare = || written.prepare(&model, &trajectory, None);
+    let line = summary_line(options, &summary, super::memory::peak());
+    // What was kept of a run that ended early (its rows written, held or streamed).
+    let keep_partial = |output: Output, run: Run, why: &str| -> Result<String, Failure> {
+        match run {
+            Run::Held(trajectory) => output
+                .keep_partial(
+                    &trajectory,
+                    &written.prepare(&model, &trajectory, None)?.csv(None),
+                    why,
+                )
+                .map_err(Failure::Run),
+            Run::Streamed(streamed) => output
+                .keep_partial_streamed(*streamed)
+                .map_err(Failure::Run),
+        }
+    };
     if let Some(k) = summary.interrupted {
         let why = format!("interrupted after step {k}");
-        let what = if trajectory.is_empty() {
+        let what = if steps == 0 {
             output.discard();
             "nothing was written".to_string()
         } else {
-            output
-                .keep_partial(&trajectory, &prepare()?.csv(None), &why)
-                .map_err(Failure::Run)?
+            keep_partial(output, run, &why)?
         };
         print_summary(to_file, &line);
         return Err(Failure::Interrupted(format!("{why}; {what}")));
@@ -240,7 +281,7 @@ fn simulate(
     let stopped = match options.mode {
         // A batch that did not converge has no trustworthy step.
         Mode::Batch => first_failure.is_some(),
-        Mode::FixedLag(_) => trajectory.len() < options.steps(),
+        Mode::FixedLag(_) => steps < options.steps(),
     };
     for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
         eprintln!("warning: {}", shorten(&f.message()));
@@ -249,17 +290,15 @@ fn simulate(
         let Some(f) = first_failure else {
             return Err(Failure::Run(format!(
                 "the run ended after {} of {} steps",
-                trajectory.len(),
+                steps,
                 options.steps()
             )));
         };
-        let what = if options.mode == Mode::Batch || trajectory.is_empty() {
+        let what = if options.mode == Mode::Batch || steps == 0 {
             output.discard();
             "nothing was written".to_string()
         } else {
-            output
-                .keep_partial(&trajectory, &prepare()?.csv(None), &f.message())
-                .map_err(Failure::Run)?
+            keep_partial(output, run, &f.message())?
         };
         print_summary(to_file, &line);
         // More iterations do not help the solves that stall (they crawl along a
@@ -279,8 +318,13 @@ fn simulate(
         };
         return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
     }
-    let euler =
-        mbfg::plausibility::euler_warning(&model, &trajectory, &summary, options.integrator);
+    let euler = match &run {
+        Run::Held(trajectory) => {
+            mbfg::plausibility::euler_warning(&model, trajectory, &summary, options.integrator)
+        }
+        // Streamed runs are not explicit Euler ones (see `stream` above).
+        Run::Streamed(_) => None,
+    };
     if let Some(w) = mbfg::plausibility::energy_warning(&summary).or(euler) {
         if strict {
             output.discard();
@@ -289,14 +333,28 @@ fn simulate(
         }
         eprintln!("warning: {w}");
     }
-    output
-        .commit(&trajectory, &prepare()?.csv(None))
-        .map_err(Failure::Run)?;
+    match run {
+        Run::Held(trajectory) => output
+            .commit(
+                &trajectory,
+                &written.prepare(&model, &trajectory, None)?.csv(None),
+            )
+            .map_err(Failure::Run)?,
+        Run::Streamed(streamed) => output.commit_streamed(*streamed).map_err(Failure::Run)?,
+    }
     print_summary(to_file, &line);
     Ok(())
 }
 
-fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
+/// A run's rows: held until it ends, or already in the output's temporary file.
+enum Run {
+    Held(forward::Trajectory),
+    Streamed(Box<super::output::Streamed>),
+}
+
+/// The summary line; `peak_memory`, the process's peak resident memory in bytes,
+/// where the system reports it.
+fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u64>) -> String {
     let mode = match options.mode {
         Mode::Batch => "batch".to_string(),
         Mode::FixedLag(n) => format!("window {n}"),
@@ -355,6 +413,9 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary) -> String {
     }
     if s.failures.iter().any(|f| f.singular.is_some()) {
         line += "; stopped ahead of a singular configuration";
+    }
+    if let Some(bytes) = peak_memory {
+        line += &format!("; peak memory {:.1} MiB", bytes as f64 / (1024.0 * 1024.0));
     }
     line
 }

@@ -39,6 +39,17 @@ impl Written {
         Ok(Written { stride, groups })
     }
 
+    /// Whether the rows can be written as the run's steps become final: the
+    /// optional columns need every step first.
+    pub fn streams(&self) -> bool {
+        self.groups.is_empty()
+    }
+
+    /// Rows written: every `stride()`-th (and the last).
+    pub fn stride(&self) -> usize {
+        self.stride
+    }
+
     /// The optional columns over every step (the work integrals need them all), and
     /// the rows to write.
     pub fn prepare(

@@ -6,7 +6,7 @@ use crate::error::{Error, Result};
 use crate::kinematics::SingularConfiguration;
 use crate::model::Model;
 use crate::solver::{SolveReport, Termination};
-use crate::trajectory::{round_time, Trajectory};
+use crate::trajectory::round_time;
 
 /// A step at which the run failed: its solve did not converge, or (independent
 /// coordinates) the motion approached a configuration where they stop determining
@@ -110,27 +110,22 @@ impl StepFailure {
     }
 }
 
-/// The first step whose state is not finite (a solve that "converged" on an
-/// overflowing force), as a failure naming the cause; an error when it is the
-/// initial state.
-pub(super) fn first_non_finite(model: &Model, tr: &Trajectory) -> Result<Option<StepFailure>> {
-    let n = tr.n();
-    let finite = |k: usize| {
-        tr.q_at(k)
-            .iter()
-            .chain(tr.dq_at(k))
-            .chain(&tr.ddq[k * n..(k + 1) * n])
-            .all(|v| v.is_finite())
-    };
-    let Some(k) = (0..tr.len()).find(|&k| !finite(k)) else {
+/// Whether step k's state (`row`, at time t) is not finite (a solve that "converged"
+/// on an overflowing force): a failure naming the cause, found with the state of the
+/// step before (`before`); an error when it is the initial state.
+pub(super) fn non_finite_at(
+    model: &Model,
+    k: usize,
+    t: f64,
+    row: (&[f64], &[f64], &[f64]),
+    before: (&[f64], &[f64]),
+) -> Result<Option<StepFailure>> {
+    let (q, dq, ddq) = row;
+    if q.iter().chain(dq).chain(ddq).all(|v| v.is_finite()) {
         return Ok(None);
-    };
-    let (q, dq) = if k > 0 {
-        (tr.q_at(k - 1), tr.dq_at(k - 1))
-    } else {
-        (tr.q_at(0), tr.dq_at(0))
-    };
-    let cause = model.effect_fault(q, dq, tr.t[k]).unwrap_or_else(|| {
+    }
+    let (q, dq) = if k > 0 { before } else { (q, dq) };
+    let cause = model.effect_fault(q, dq, t).unwrap_or_else(|| {
         "the state is not finite: the forces or the accelerations overflow".into()
     });
     if k == 0 {
@@ -141,7 +136,7 @@ pub(super) fn first_non_finite(model: &Model, tr: &Trajectory) -> Result<Option<
     }
     Ok(Some(StepFailure {
         step: k,
-        t: tr.t[k],
+        t,
         report: SolveReport::new(Termination::Diverged, 0, f64::INFINITY),
         constraint_conditioning: 1.0,
         singular: None,

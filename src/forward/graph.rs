@@ -196,43 +196,36 @@ impl ForwardGraph {
     /// The graph's variables (step-major) filled from a trajectory of the same model:
     /// a starting point for a solve, or the state a benchmark linearizes at.
     pub fn fill_from_trajectory(&self, model: &Model, tr: &Trajectory, values: &mut [f64]) {
-        let fg = self;
-        let (n, s) = (fg.n, fg.graph.layout().size());
+        let n = self.n;
         for k in 0..tr.len() {
-            let block = &mut values[k * s..(k + 1) * s];
-            block[..n].copy_from_slice(&tr.q[k * n..(k + 1) * n]);
-            block[n..2 * n].copy_from_slice(&tr.dq[k * n..(k + 1) * n]);
-            block[2 * n..3 * n].copy_from_slice(&tr.ddq[k * n..(k + 1) * n]);
-            if fg.coordinates == Coordinates::Independent {
-                for (j, src) in [&tr.q, &tr.dq, &tr.ddq].iter().enumerate() {
-                    for (i, &c) in model.independent.iter().enumerate() {
-                        block[3 * n + j * fg.f + i] = src[k * n + c];
-                    }
+            let row = k * n..(k + 1) * n;
+            let (q, dq, ddq) = (&tr.q[row.clone()], &tr.dq[row.clone()], &tr.ddq[row]);
+            self.fill_step(model, q, dq, ddq, k, values);
+        }
+    }
+
+    /// Step k of the graph's variables (step-major) filled from a state q, q̇, q̈ of
+    /// the same model, as [`ForwardGraph::fill_from_trajectory`] fills each step.
+    pub(super) fn fill_step(
+        &self,
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        ddq: &[f64],
+        k: usize,
+        values: &mut [f64],
+    ) {
+        let (n, s) = (self.n, self.graph.layout().size());
+        let block = &mut values[k * s..(k + 1) * s];
+        block[..n].copy_from_slice(q);
+        block[n..2 * n].copy_from_slice(dq);
+        block[2 * n..3 * n].copy_from_slice(ddq);
+        if self.coordinates == Coordinates::Independent {
+            for (j, src) in [q, dq, ddq].iter().enumerate() {
+                for (i, &c) in model.independent.iter().enumerate() {
+                    block[3 * n + j * self.f + i] = src[c];
                 }
             }
         }
     }
-}
-
-pub(super) fn extract(
-    fg: &ForwardGraph,
-    model: &Model,
-    values: &[f64],
-    steps: usize,
-) -> Trajectory {
-    let (n, s) = (fg.n, fg.graph.layout().size());
-    let mut tr = Trajectory {
-        names: model.names.clone(),
-        t: (0..steps).map(|k| fg.graph.time(k)).collect(),
-        q: Vec::with_capacity(steps * n),
-        dq: Vec::with_capacity(steps * n),
-        ddq: Vec::with_capacity(steps * n),
-    };
-    for k in 0..steps {
-        let b = &values[k * s..(k + 1) * s];
-        tr.q.extend_from_slice(&b[..n]);
-        tr.dq.extend_from_slice(&b[n..2 * n]);
-        tr.ddq.extend_from_slice(&b[2 * n..3 * n]);
-    }
-    tr
 }

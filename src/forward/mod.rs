@@ -18,6 +18,6 @@ pub use crate::trajectory::{round_time, Trajectory};
 pub use failure::StepFailure;
 pub use graph::ForwardGraph;
 pub use options::{DcIntegrators, ForwardOptions, Integrator, NoiseModels};
-pub use run::{simulate, simulate_interruptible};
+pub use run::{simulate, simulate_interruptible, simulate_streaming, StepSink};
 pub use segment::AUTO_BATCH_ITERATIONS;
 pub use summary::{Refinement, Reselection, RunSummary};

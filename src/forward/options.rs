@@ -171,19 +171,58 @@ impl ForwardOptions {
         crate::limits::step_count(self.dt, self.t_end).unwrap_or(0)
     }
 
-    /// Bytes a run of `model` with these options holds at its peak, roughly: the
-    /// variables of every step and the trajectory built from them, the window's
-    /// linear system, and for a batch solve the system of the whole horizon.
+    /// Bytes a run of `model` with these options holds at its peak, roughly, when it
+    /// returns its trajectory ([`simulate`](super::simulate)): what it holds streamed
+    /// ([`ForwardOptions::streamed_memory_estimate`]) and the trajectory of every step.
     pub fn memory_estimate(&self, model: &Model) -> f64 {
+        let n = model.n() as f64;
+        let steps = self.steps() as f64;
+        self.streamed_memory_estimate(model) + 8.0 * steps * 3.0 * n * 2.0
+    }
+
+    /// Bytes a run holds at its peak, roughly, when it hands its steps out as they
+    /// become final ([`simulate_streaming`](super::simulate_streaming)): the variables
+    /// the solve keeps (the fixed-lag smoother's buffer of a few thousand steps, every
+    /// step for a batch), the window's linear system, and for a batch solve the system
+    /// of the whole horizon.
+    pub fn streamed_memory_estimate(&self, model: &Model) -> f64 {
         let n = model.n() as f64;
         let s = 3.0 * (n + model.independent.len() as f64);
         let steps = self.steps() as f64;
         let per_step_system = 8.0 * s * (3.0 * s + 2.0 * model.m() as f64) * 4.0;
-        let solved = match self.mode {
-            Mode::FixedLag(w) => (w as f64).min(steps) + 1.0,
-            Mode::Batch => steps,
+        let (held, solved) = match self.mode {
+            Mode::FixedLag(w) => (
+                (crate::smoother::stream_capacity(w) as f64).min(steps),
+                (w as f64).min(steps) + 1.0,
+            ),
+            Mode::Batch => (steps, steps),
         };
-        8.0 * steps * (s + 3.0 * n) * 2.0 + per_step_system * solved
+        8.0 * held * s * 2.0 + per_step_system * solved
+    }
+
+    /// Refuses a run whose estimate does not fit the memory available: with its
+    /// trajectory `held` ([`ForwardOptions::memory_estimate`]) or streamed
+    /// ([`ForwardOptions::streamed_memory_estimate`], which [`validate`](Self::validate)
+    /// checks).
+    pub fn check_memory(&self, model: &Model, held: bool) -> Result<()> {
+        let bytes = if held {
+            self.memory_estimate(model)
+        } else {
+            self.streamed_memory_estimate(model)
+        };
+        self.ensure_fits(model, bytes)
+    }
+
+    /// [`crate::limits::ensure_fits`] for a run that needs `bytes`.
+    fn ensure_fits(&self, model: &Model, bytes: f64) -> Result<()> {
+        crate::limits::ensure_fits(
+            &format!(
+                "a run of {} steps of {} coordinates",
+                self.steps(),
+                model.n()
+            ),
+            bytes,
+        )
     }
 
     /// Refuses options that make no sense, with the reason.
@@ -220,13 +259,8 @@ impl ForwardOptions {
         }
         self.noise.validate()?;
         self.settings.validate()?;
-        crate::limits::ensure_fits(
-            &format!(
-                "a run of {} steps of {} coordinates",
-                self.steps(),
-                model.n()
-            ),
-            self.memory_estimate(model),
-        )
+        // What any run needs; one that returns its trajectory is checked for it too
+        // (`simulate_interruptible`).
+        self.check_memory(model, false)
     }
 }

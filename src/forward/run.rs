@@ -2,12 +2,11 @@
 //! with tangent integrator factors where the paper's fail, and at a finer step where
 //! a step is too coarse for the motion.
 
-use super::failure::first_non_finite;
+use super::failure::non_finite_at;
 use super::failure::StepFailure;
 use super::options::{DcIntegrators, ForwardOptions};
 use super::segment::{segment, Run};
-use super::summary::summarize;
-use super::summary::{Refinement, Reselection, RunSummary};
+use super::summary::{Refinement, Reselection, RunSummary, Stats};
 use crate::error::Result;
 use crate::model::Model;
 use crate::solver::{SolveReport, Termination};
@@ -15,6 +14,33 @@ use crate::trajectory::{round_time, Trajectory};
 use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::Instant;
+
+/// Receives a forward run's states, in order, as they become final (a step that left
+/// the fixed-lag smoother's window, or every step once a batch solve ended), so
+/// that a caller can write them out instead of holding the run
+/// ([`simulate_streaming`]). A [`Trajectory`] holds them all.
+pub trait StepSink {
+    /// The state of the next step at time `t` (the first call: the initial state).
+    fn step(&mut self, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> Result<()>;
+    /// The run starts again from its initial state (made again with tangent
+    /// integrator factors, or at a finer step): the steps received so far are void.
+    fn restart(&mut self) -> Result<()>;
+}
+
+impl StepSink for Trajectory {
+    fn step(&mut self, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> Result<()> {
+        self.t.push(t);
+        self.q.extend_from_slice(q);
+        self.dq.extend_from_slice(dq);
+        self.ddq.extend_from_slice(ddq);
+        Ok(())
+    }
+
+    fn restart(&mut self) -> Result<()> {
+        self.truncate(0);
+        Ok(())
+    }
+}
 
 /// Simulates the model's motion. `progress(done, total)` is called after each step.
 pub fn simulate(
@@ -44,17 +70,46 @@ pub fn simulate_interruptible(
     options: &ForwardOptions,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
 ) -> Result<(Trajectory, RunSummary)> {
-    let (mut trajectory, mut summary) = simulate_integrators(model.clone(), options, progress)?;
+    options.validate(&model)?;
+    // The trajectory of every step is held too.
+    options.check_memory(&model, true)?;
+    let mut trajectory = Trajectory {
+        names: model.names.clone(),
+        t: Vec::new(),
+        q: Vec::new(),
+        dq: Vec::new(),
+        ddq: Vec::new(),
+    };
+    let summary = simulate_streaming(model, options, progress, &mut trajectory)?;
+    Ok((trajectory, summary))
+}
+
+/// [`simulate_interruptible`], handing the steps to `sink` as they become final
+/// instead of returning them: what `sink` receives, up to its last
+/// [`StepSink::restart`], is the trajectory [`simulate_interruptible`] returns, to
+/// the bit. With the fixed-lag smoother the run holds a few thousand steps whatever
+/// its length; a batch solve holds every step (its linear system spans them all),
+/// and hands them out when it ends.
+///
+/// A run made again (with tangent integrator factors where the paper's failed, or at
+/// a finer step, [`ForwardOptions::refine`]) restarts the sink: a writer that
+/// cannot take back what it wrote should hold its output until the run ends.
+pub fn simulate_streaming(
+    model: Arc<Model>,
+    options: &ForwardOptions,
+    progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+    sink: &mut dyn StepSink,
+) -> Result<RunSummary> {
+    let (mut summary, mut coarse) =
+        simulate_integrators(model.clone(), options, progress, sink, None)?;
     if !options.refine {
-        return Ok((trajectory, summary));
+        return Ok(summary);
     }
     // A step too coarse for the motion: the implicit equations of a step over which a
     // body turns a radian or more have no nearby solution, at any window. The run is
     // made again at a step that keeps the turn near TARGET_TURN, as many times as the
     // finer run still fails that way, and the output stays on the grid asked for.
     let mut factor: usize = 1;
-    // The unsampled motion of the last refined run, for the check of its turns.
-    let mut fine: Option<(Trajectory, f64)> = None;
     while summary.interrupted.is_none() {
         let failure = match summary.failures.first() {
             Some(f) if f.singular.is_none() => f.clone(),
@@ -64,15 +119,10 @@ pub fn simulate_interruptible(
             // step, ended 7e-4 m off where its failed 5 ms run, refined, ended 5e-5
             // m off); so does a finer run whose motion sped up after the step the
             // first failure measured: both are refined from that step.
-            None => {
-                let (tr, dt) = fine
-                    .as_ref()
-                    .map_or((&trajectory, options.dt), |(tr, dt)| (tr, *dt));
-                match coarse_turn(&model, tr, dt) {
-                    Some(f) => f,
-                    None => break,
-                }
-            }
+            None => match coarse.take() {
+                Some(f) => f,
+                None => break,
+            },
         };
         let turn = match &failure.fast_body {
             Some((_, turn)) if *turn >= Refinement::MIN_TURN => *turn,
@@ -87,55 +137,156 @@ pub fn simulate_interruptible(
         let mut finer = options.clone();
         finer.dt = options.dt / factor as f64;
         finer.t_end = (options.steps().saturating_sub(1) * factor) as f64 * finer.dt;
-        let (fine_trajectory, mut fine_summary) =
-            simulate_integrators(model.clone(), &finer, progress)?;
+        sink.restart()?;
+        let (mut fine_summary, fine_coarse) = simulate_integrators(
+            model.clone(),
+            &finer,
+            progress,
+            sink,
+            Some((factor, options.dt)),
+        )?;
         fine_summary.wall_time += summary.wall_time;
         fine_summary.refinement = Some(Refinement {
             factor,
             dt: finer.dt,
             after: failure,
         });
-        trajectory = fine_trajectory.every(factor, options.dt);
-        fine_summary.steps = trajectory.len();
         summary = fine_summary;
-        fine = Some((fine_trajectory, finer.dt));
+        coarse = fine_coarse;
     }
-    Ok((trajectory, summary))
+    Ok(summary)
 }
 
-/// The first step of a converged run over which a body turned more than
-/// [`StepFailure::LARGE_TURN`], as a failure to refine from (its solve converged).
-fn coarse_turn(model: &Model, trajectory: &Trajectory, dt: f64) -> Option<StepFailure> {
-    (0..trajectory.len()).find_map(|k| {
-        let (body, omega) = model.fastest_body(trajectory.q_at(k), trajectory.dq_at(k))?;
-        let turn = omega * dt;
-        (turn > StepFailure::LARGE_TURN).then(|| StepFailure {
-            step: k + 1,
-            t: trajectory.t[k] + dt,
-            report: SolveReport::new(Termination::Converged, 0, 0.0),
-            constraint_conditioning: 1.0,
-            singular: None,
-            warm_start: false,
-            batch: false,
-            cause: None,
-            fast_body: Some((body, turn)),
-        })
+/// What one attempt of a run does with each step as it becomes final: the checks
+/// the whole trajectory was checked for (a non-finite state ends it there, the first
+/// step too coarse for the motion is noted), the summary's measures, and the rows
+/// passed on to the sink (every `factor`-th of a refined run, on the grid asked for).
+struct Rows<'a> {
+    model: &'a Model,
+    sink: &'a mut dyn StepSink,
+    /// The attempt's time step, and whether its steps too coarse are looked for.
+    dt: f64,
+    refine: bool,
+    /// A refined attempt: internal steps per row, and the row spacing asked for.
+    every: Option<(usize, f64)>,
+    /// Steps taken (the attempt's trajectory so far), rows passed on.
+    len: usize,
+    written: usize,
+    stats: Stats,
+    /// The last step taken: its time and state (q, q̇, q̈).
+    last_t: f64,
+    last: Vec<f64>,
+    /// The first step whose state is not finite: it and the steps after are dropped.
+    non_finite: Option<StepFailure>,
+    /// The first step over which a body turned more than [`StepFailure::LARGE_TURN`].
+    coarse: Option<StepFailure>,
+}
+
+impl<'a> Rows<'a> {
+    fn new(
+        model: &'a Model,
+        options: &ForwardOptions,
+        sink: &'a mut dyn StepSink,
+        every: Option<(usize, f64)>,
+    ) -> Self {
+        Rows {
+            model,
+            sink,
+            dt: options.dt,
+            refine: options.refine,
+            every,
+            len: 0,
+            written: 0,
+            stats: Stats::new(model),
+            last_t: 0.0,
+            last: Vec::with_capacity(3 * model.n()),
+            non_finite: None,
+            coarse: None,
+        }
+    }
+
+    /// Takes the next step (its state q, q̇, q̈ at `block`'s start, at time t).
+    fn take(&mut self, t: f64, block: &[f64]) -> Result<()> {
+        if self.non_finite.is_some() {
+            return Ok(());
+        }
+        let n = self.model.n();
+        let (q, dq, ddq) = (&block[..n], &block[n..2 * n], &block[2 * n..3 * n]);
+        let k = self.len;
+        let before = if k > 0 {
+            (&self.last[..n], &self.last[n..2 * n])
+        } else {
+            (q, dq)
+        };
+        if let Some(f) = non_finite_at(self.model, k, t, (q, dq, ddq), before)? {
+            self.non_finite = Some(f);
+            return Ok(());
+        }
+        self.stats.add(self.model, q, dq)?;
+        if self.refine && self.coarse.is_none() {
+            self.coarse = coarse_turn(self.model, q, dq, t, self.dt, k);
+        }
+        match self.every {
+            None => {
+                self.sink.step(t, q, dq, ddq)?;
+                self.written += 1;
+            }
+            Some((factor, dt)) if k % factor == 0 => {
+                self.sink.step(self.written as f64 * dt, q, dq, ddq)?;
+                self.written += 1;
+            }
+            Some(_) => {}
+        }
+        self.len += 1;
+        self.last_t = t;
+        self.last.clear();
+        self.last.extend_from_slice(&block[..3 * n]);
+        Ok(())
+    }
+}
+
+/// Whether a body turned more than [`StepFailure::LARGE_TURN`] over the step after
+/// step k (state q, q̇ at time t) of a converged run: a failure to refine from (its
+/// solve converged).
+fn coarse_turn(
+    model: &Model,
+    q: &[f64],
+    dq: &[f64],
+    t: f64,
+    dt: f64,
+    k: usize,
+) -> Option<StepFailure> {
+    let (body, omega) = model.fastest_body(q, dq)?;
+    let turn = omega * dt;
+    (turn > StepFailure::LARGE_TURN).then(|| StepFailure {
+        step: k + 1,
+        t: t + dt,
+        report: SolveReport::new(Termination::Converged, 0, 0.0),
+        constraint_conditioning: 1.0,
+        singular: None,
+        warm_start: false,
+        batch: false,
+        cause: None,
+        fast_body: Some((body, turn)),
     })
 }
 
 /// One run at `options.dt`; with [`DcIntegrators::Auto`], made again with tangent
-/// integrators where the paper's do not converge.
+/// integrators where the paper's do not converge. Returns its summary and its first
+/// step too coarse for the motion (see [`coarse_turn`]).
 fn simulate_integrators(
     model: Arc<Model>,
     options: &ForwardOptions,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
-) -> Result<(Trajectory, RunSummary)> {
-    let (trajectory, summary) = simulate_with(model.clone(), options, progress)?;
+    sink: &mut dyn StepSink,
+    every: Option<(usize, f64)>,
+) -> Result<(RunSummary, Option<StepFailure>)> {
+    let (summary, coarse) = simulate_with(model.clone(), options, progress, sink, every)?;
     let retry = options.retries_tangent()
         && summary.interrupted.is_none()
         && summary.failures.iter().all(|f| f.singular.is_none());
     let Some(failure) = summary.failures.first().filter(|_| retry) else {
-        return Ok((trajectory, summary));
+        return Ok((summary, coarse));
     };
     // The paper's factors ask more equations than a step has unknowns; where their
     // least-squares compromise does not converge, the tangent ones (one equation per
@@ -144,75 +295,78 @@ fn simulate_integrators(
     let mut tangent = options.clone();
     tangent.dc_integrators = DcIntegrators::Tangent;
     let first_attempt = summary.wall_time;
-    let (trajectory, mut summary) = simulate_with(model, &tangent, progress)?;
+    sink.restart()?;
+    let (mut summary, coarse) = simulate_with(model, &tangent, progress, sink, every)?;
     summary.tangent_after = Some(failure);
     summary.wall_time += first_attempt;
-    Ok((trajectory, summary))
+    Ok((summary, coarse))
 }
 
 fn simulate_with(
     model: Arc<Model>,
     options: &ForwardOptions,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
-) -> Result<(Trajectory, RunSummary)> {
+    sink: &mut dyn StepSink,
+    every: Option<(usize, f64)>,
+) -> Result<(RunSummary, Option<StepFailure>)> {
     options.validate(&model)?;
     let total = options.steps();
     let start = Instant::now();
     let mut run = Run::default();
-    let mut trajectory: Option<Trajectory> = None;
+    let mut rows = Rows::new(&model, options, sink, every);
     let mut segment_model = model.clone();
     let mut first = 0;
     loop {
-        let seg = segment(
+        // A later segment's first step is the state the one before ended with.
+        let next = segment(
             segment_model.clone(),
             options,
             first,
             total,
             progress,
             &mut run,
-        )?;
-        let next = seg.reselect.filter(|_| run.interrupted.is_none());
-        match trajectory.as_mut() {
-            None => trajectory = Some(seg.trajectory),
-            Some(tr) => tr.append_after_first(&seg.trajectory),
-        }
+            &mut |j, t, block| {
+                if j == first && first > 0 {
+                    return Ok(());
+                }
+                rows.take(t, block)
+            },
+        )?
+        .filter(|_| run.interrupted.is_none());
         let Some((k, independent)) = next else { break };
-        let tr = trajectory.as_ref().expect("a segment was run");
+        let n = model.n();
         run.reselections.push(Reselection {
             step: k,
-            t: round_time(tr.t[k]),
+            t: round_time(rows.last_t),
             from: names_of(&model, &segment_model.independent),
             to: names_of(&model, &independent),
         });
+        debug_assert_eq!(
+            rows.len,
+            k + 1,
+            "a segment ends at the step it re-selects at"
+        );
         let mut next_model = (*segment_model).clone();
         next_model.independent = independent;
-        next_model.initial.q = nalgebra::DVector::from_column_slice(tr.q_at(k));
-        next_model.initial.dq = nalgebra::DVector::from_column_slice(tr.dq_at(k));
+        next_model.initial.q = nalgebra::DVector::from_column_slice(&rows.last[..n]);
+        next_model.initial.dq = nalgebra::DVector::from_column_slice(&rows.last[n..2 * n]);
         // The rest of the run continues from step k (its row is kept from this
         // segment; the next segment's first row is the same state).
-        trajectory.as_mut().unwrap().truncate(k + 1);
         segment_model = Arc::new(next_model);
         first = k;
     }
-    let mut trajectory = trajectory.expect("a segment was run");
-    if let Some(f) = first_non_finite(&model, &trajectory)? {
-        // Keep the steps before it; the step itself is a failure, named.
-        trajectory.truncate(f.step);
+    if let Some(f) = rows.non_finite.take() {
+        // The steps before it were kept; the step itself is a failure, named.
         run.failures.retain(|g| g.step < f.step);
         run.failures.push(f);
     }
     let wall_time = start.elapsed();
-    let mut summary = summarize(
-        &model,
-        &trajectory,
-        wall_time,
-        &run.iterations,
-        run.failures,
-    )?;
+    let mut summary = rows.stats.finish(wall_time, run.iterations, run.failures);
+    summary.steps = rows.written;
     summary.conditioned_from = run.conditioned_from;
     summary.reselections = run.reselections;
     summary.interrupted = run.interrupted;
-    Ok((trajectory, summary))
+    Ok((summary, rows.coarse))
 }
 
 fn names_of(model: &Model, idx: &[usize]) -> Vec<String> {

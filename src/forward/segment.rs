@@ -3,16 +3,16 @@
 //! they determine the others; and the substep guess that rescues a failed step.
 
 use super::failure::StepFailure;
-use super::graph::{extract, ForwardGraph};
+use super::graph::ForwardGraph;
 use super::options::ForwardOptions;
-use super::summary::Reselection;
+use super::summary::{Iterations, Reselection};
 use crate::coordinates::Coordinates;
 use crate::error::Result;
 use crate::kinematics::{constraint_conditioning, Determinacy};
 use crate::model::{Model, State};
 use crate::smoother::{self, Mode, Next};
 use crate::solver::{Past, Settings, SolveReport, Termination};
-use crate::trajectory::{round_time, Trajectory};
+use crate::trajectory::round_time;
 use nalgebra::DVector;
 use std::ops::ControlFlow;
 use std::sync::Arc;
@@ -20,21 +20,24 @@ use std::sync::Arc;
 /// What the segments of a run add up.
 #[derive(Default)]
 pub(super) struct Run {
-    pub(super) iterations: Vec<usize>,
+    pub(super) iterations: Iterations,
     pub(super) failures: Vec<StepFailure>,
     pub(super) conditioned_from: Option<(usize, f64)>,
     pub(super) reselections: Vec<Reselection>,
     pub(super) interrupted: Option<usize>,
 }
 
-/// A segment's motion, and where (global step) and to which independent coordinates
-/// the next segment switches.
-pub(super) struct Segment {
-    pub(super) trajectory: Trajectory,
-    pub(super) reselect: Option<(usize, Vec<usize>)>,
-}
+/// Where a segment hands its steps as they become final: `emit(step, t, block)` with
+/// the run's step, its time and the step's variables (q, q̇, q̈ first, in model
+/// order).
+pub(super) type Emit<'a> = dyn FnMut(usize, f64, &[f64]) -> Result<()> + 'a;
 
-/// Steps first..total of a run with `model` (its initial state is step `first`'s).
+/// Steps first..total of a run with `model` (its initial state is step `first`'s),
+/// handed to `emit` in order as they become final. Returns where (global step) and
+/// to which independent coordinates the next segment switches.
+///
+/// The fixed-lag smoother keeps a buffer of a few thousand steps whatever the
+/// segment's length ([`smoother::fixed_lag_streaming`]); a batch holds every step.
 pub(super) fn segment(
     model: Arc<Model>,
     options: &ForwardOptions,
@@ -42,12 +45,17 @@ pub(super) fn segment(
     total: usize,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
     run: &mut Run,
-) -> Result<Segment> {
+    emit: &mut Emit<'_>,
+) -> Result<Option<(usize, Vec<usize>)>> {
     let mut fg = ForwardGraph::new(model.clone(), options)?;
     fg.graph.set_t0(first as f64 * options.dt);
     let steps = total - first;
     let s = fg.graph.layout().size();
-    let mut values = vec![0.0; steps * s];
+    let held = match options.mode {
+        Mode::FixedLag(window) => smoother::stream_capacity(window).min(steps),
+        Mode::Batch => steps,
+    };
+    let mut values = vec![0.0; held * s];
     values[..s].copy_from_slice(&fg.initial_block(&model)?);
     let mut completed = steps;
     let mut reselect = None;
@@ -76,7 +84,8 @@ pub(super) fn segment(
             model.effect_fault(qk, dqk, fg.graph.time(k))
         });
         StepFailure {
-            step: first + k,
+            // k is a step of `v`, which starts at the graph's step offset.
+            step: first + fg.graph.step_offset() + k,
             t: fg.graph.time(k),
             report: report.clone(),
             constraint_conditioning: constraint_conditioning(&model, q),
@@ -96,7 +105,7 @@ pub(super) fn segment(
                 (Determinacy::new(&model), far, far)
             });
             let mut failures = Vec::new();
-            let mut iterations = Vec::new();
+            let mut iterations = Iterations::default();
             let mut conditioned_from = None;
             let mut interrupted = None;
             let settings = Settings {
@@ -119,18 +128,27 @@ pub(super) fn segment(
                 second_order: options.settings.second_order && !options.is_square(),
                 ..options.settings
             };
-            smoother::fixed_lag_with_rescue(
+            // The steps of `values` are from the graph's step offset on (the segment's
+            // step of values' step k is `at(k)`).
+            let at = |k: usize| fg.graph.step_offset() + k;
+            let graph = &fg.graph;
+            let mut on_final = |j: usize, block: &[f64]| emit(first + j, graph.run_time(j), block);
+            let (base, handed) = smoother::fixed_lag_streaming(
                 &fg.graph,
                 &mut values,
+                smoother::Stream {
+                    capacity: held,
+                    on_final: &mut on_final,
+                },
                 steps,
                 window,
                 settings,
                 |v, k| fg.predict(v, k),
-                |v, k| fg.substep_guess(&model, options, settings, first + k, v, k),
+                |v, k| fg.substep_guess(&model, options, settings, first + at(k), v, k),
                 |k, report, v| {
                     iterations.push(report.iterations);
                     // Asked to stop: after this step's own outcome is recorded.
-                    let stop = progress(first + k + 1, total).is_break();
+                    let stop = progress(first + at(k) + 1, total).is_break();
                     // The positions of step j of the window's values.
                     let q_at = |j: usize| &v[j * s..j * s + model.n()];
                     let q = q_at(k);
@@ -165,7 +183,7 @@ pub(super) fn segment(
                                         &model, older_q, prev, *older, *before,
                                     ));
                                     failures.push(f);
-                                    completed = k;
+                                    completed = at(k);
                                     return Next::Stop;
                                 }
                             }
@@ -175,7 +193,7 @@ pub(super) fn segment(
                             || report.termination == Termination::Diverged
                         {
                             // The failed step is left out of the trajectory.
-                            completed = k;
+                            completed = at(k);
                             return Next::Stop;
                         }
                     }
@@ -197,8 +215,8 @@ pub(super) fn segment(
                         if falling && ahead < Determinacy::SEARCH_BELOW {
                             let (best, set) = det.best(&model, q);
                             if k > 0 && best >= Determinacy::SWITCH_GAIN * now.1 {
-                                reselect = Some((first + k, set));
-                                completed = k + 1;
+                                reselect = Some((first + at(k), set));
+                                completed = at(k) + 1;
                                 return Next::Stop;
                             }
                         }
@@ -216,7 +234,7 @@ pub(super) fn segment(
                                 now,
                             ));
                             failures.push(f);
-                            completed = k;
+                            completed = at(k);
                             return Next::Stop;
                         }
                         *older = *before;
@@ -224,14 +242,19 @@ pub(super) fn segment(
                     }
                     if stop {
                         // Interrupted: this step is kept as the last one.
-                        interrupted = Some(first + k);
-                        completed = k + 1;
+                        interrupted = Some(first + at(k));
+                        completed = at(k) + 1;
                         return Next::Stop;
                     }
                     Next::Continue
                 },
-                |k| conditioned_from = Some((first + k, round_time(fg.graph.time(k)))),
+                |k| conditioned_from = Some((first + at(k), round_time(fg.graph.time(k)))),
             )?;
+            // The steps still in the buffer: final now.
+            for j in handed..completed {
+                let b = (j - base) * s;
+                emit(first + j, fg.graph.run_time(j), &values[b..b + s])?;
+            }
             run.iterations.extend(iterations);
             run.failures.extend(failures);
             run.interrupted = run.interrupted.or(interrupted);
@@ -246,13 +269,23 @@ pub(super) fn segment(
             let mut warm_options = options.clone();
             warm_options.mode = Mode::FixedLag(1);
             let mut warm = Run::default();
-            let guess = segment(
+            // Its steps go straight into the batch's variables.
+            let mut rows = 0;
+            let warm_reselect = segment(
                 model.clone(),
                 &warm_options,
                 first,
                 total,
                 progress,
                 &mut warm,
+                &mut |j, _, block| {
+                    let n = model.n();
+                    let (q, rest) = block.split_at(n);
+                    let (dq, rest) = rest.split_at(n);
+                    fg.fill_step(&model, q, dq, &rest[..n], j - first, &mut values);
+                    rows = j - first + 1;
+                    Ok(())
+                },
             )?;
             if warm.interrupted.is_some() {
                 // The one-step start is not the batch solution: nothing to return.
@@ -271,9 +304,8 @@ pub(super) fn segment(
                 });
                 completed = 0;
             } else {
-                reselect = guess.reselect;
-                completed = guess.trajectory.len();
-                fg.fill_from_trajectory(&model, &guess.trajectory, &mut values);
+                reselect = warm_reselect;
+                completed = rows;
                 let mut settings = options.settings;
                 // One equation per unknown: Gauss-Newton is Newton's method.
                 settings.second_order &= !options.is_square();
@@ -293,12 +325,12 @@ pub(super) fn segment(
                     });
                 }
             }
+            for k in 0..completed {
+                emit(first + k, fg.graph.run_time(k), &values[k * s..(k + 1) * s])?;
+            }
         }
     }
-    Ok(Segment {
-        trajectory: extract(&fg, &model, &values[..completed * s], completed),
-        reselect,
-    })
+    Ok(reselect)
 }
 
 /// The iterations a batch solve with the paper's integrator factors gets under

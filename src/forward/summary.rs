@@ -5,7 +5,6 @@
 use super::failure::StepFailure;
 use crate::error::{Error, Result};
 use crate::model::Model;
-use crate::trajectory::Trajectory;
 use std::time::Duration;
 
 /// What a run reports beside its trajectory.
@@ -75,58 +74,109 @@ pub struct Reselection {
     pub to: Vec<String>,
 }
 
-pub(super) fn summarize(
-    model: &Model,
-    tr: &Trajectory,
-    wall_time: Duration,
-    iterations: &[usize],
-    failures: Vec<StepFailure>,
-) -> Result<RunSummary> {
-    let (n, m) = (model.n(), model.m());
-    let mut phi = vec![0.0; m];
-    let mut jac = vec![0.0; m * n];
-    let (mut worst_phi, mut worst_vel) = (0.0f64, 0.0f64);
-    let conservative = model.scene.is_conservative();
-    let mut e0 = None;
-    let mut drift = 0.0f64;
-    let mut peak_kinetic = 0.0f64;
-    for k in 0..tr.len() {
-        let (q, dq) = (tr.q_at(k), tr.dq_at(k));
-        if !q.iter().chain(dq).all(|v| v.is_finite()) {
-            return Err(Error::singular(format!("non-finite state at step {k}")));
+/// Linear solves per window solve, as running totals (a long run keeps no list).
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Iterations {
+    total: usize,
+    count: usize,
+    max: usize,
+}
+
+impl Iterations {
+    pub(super) fn push(&mut self, iterations: usize) {
+        self.total += iterations;
+        self.count += 1;
+        self.max = self.max.max(iterations);
+    }
+
+    pub(super) fn extend(&mut self, other: Iterations) {
+        self.total += other.total;
+        self.count += other.count;
+        self.max = self.max.max(other.max);
+    }
+}
+
+/// The summary's measures of a trajectory, accumulated step by step as the steps
+/// become final (so that a long run holds none of them).
+pub(super) struct Stats {
+    phi: Vec<f64>,
+    jac: Vec<f64>,
+    worst_phi: f64,
+    worst_vel: f64,
+    conservative: bool,
+    e0: Option<f64>,
+    drift: f64,
+    peak_kinetic: f64,
+    steps: usize,
+}
+
+impl Stats {
+    pub(super) fn new(model: &Model) -> Self {
+        let (n, m) = (model.n(), model.m());
+        Stats {
+            phi: vec![0.0; m],
+            jac: vec![0.0; m * n],
+            worst_phi: 0.0,
+            worst_vel: 0.0,
+            conservative: model.scene.is_conservative(),
+            e0: None,
+            drift: 0.0,
+            peak_kinetic: 0.0,
+            steps: 0,
         }
-        model.phi_into(q, &mut phi);
-        model.jacobian_into(q, &mut jac);
-        worst_phi = phi.iter().fold(worst_phi, |w, v| w.max(v.abs()));
+    }
+
+    /// Adds step `steps()`'s state, which must be finite.
+    pub(super) fn add(&mut self, model: &Model, q: &[f64], dq: &[f64]) -> Result<()> {
+        let (n, m) = (model.n(), model.m());
+        if !q.iter().chain(dq).all(|v| v.is_finite()) {
+            return Err(Error::singular(format!(
+                "non-finite state at step {}",
+                self.steps
+            )));
+        }
+        model.phi_into(q, &mut self.phi);
+        model.jacobian_into(q, &mut self.jac);
+        self.worst_phi = self.phi.iter().fold(self.worst_phi, |w, v| w.max(v.abs()));
         for r in 0..m {
-            let v: f64 = (0..n).map(|j| jac[r * n + j] * dq[j]).sum();
-            worst_vel = worst_vel.max(v.abs());
+            let v: f64 = (0..n).map(|j| self.jac[r * n + j] * dq[j]).sum();
+            self.worst_vel = self.worst_vel.max(v.abs());
         }
         let dv = nalgebra::DVector::from_column_slice(dq);
         let kinetic = model.kinetic_energy(&dv);
-        peak_kinetic = peak_kinetic.max(kinetic);
-        if conservative {
+        self.peak_kinetic = self.peak_kinetic.max(kinetic);
+        if self.conservative {
             let qv = nalgebra::DVector::from_column_slice(q);
             let e = kinetic + model.potential_energy(&qv);
-            let e0 = *e0.get_or_insert(e);
-            drift = drift.max((e - e0).abs());
+            let e0 = *self.e0.get_or_insert(e);
+            self.drift = self.drift.max((e - e0).abs());
+        }
+        self.steps += 1;
+        Ok(())
+    }
+
+    /// The summary of the steps added.
+    pub(super) fn finish(
+        self,
+        wall_time: Duration,
+        iterations: Iterations,
+        failures: Vec<StepFailure>,
+    ) -> RunSummary {
+        RunSummary {
+            steps: self.steps,
+            wall_time,
+            mean_iterations: iterations.total as f64 / iterations.count.max(1) as f64,
+            max_iterations: iterations.max,
+            worst_phi: self.worst_phi,
+            worst_velocity_constraint: self.worst_vel,
+            energy_drift: self.conservative.then_some(self.drift),
+            peak_kinetic_energy: self.peak_kinetic,
+            failures,
+            conditioned_from: None,
+            reselections: Vec::new(),
+            interrupted: None,
+            tangent_after: None,
+            refinement: None,
         }
     }
-    let total: usize = iterations.iter().sum();
-    Ok(RunSummary {
-        steps: tr.len(),
-        wall_time,
-        mean_iterations: total as f64 / iterations.len().max(1) as f64,
-        max_iterations: iterations.iter().copied().max().unwrap_or(0),
-        worst_phi,
-        worst_velocity_constraint: worst_vel,
-        energy_drift: conservative.then_some(drift),
-        peak_kinetic_energy: peak_kinetic,
-        failures,
-        conditioned_from: None,
-        reselections: Vec::new(),
-        interrupted: None,
-        tangent_after: None,
-        refinement: None,
-    })
 }

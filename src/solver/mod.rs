@@ -289,3 +289,26 @@ impl WindowSolver {
         &self.settings
     }
 }
+
+impl WindowSolver {
+    /// The values moved `by` steps toward the start of their buffer (a fixed-lag run
+    /// that keeps only its newest steps, [`crate::smoother::fixed_lag_streaming`]):
+    /// what the solver keeps by step follows them, so that the next solve and
+    /// marginalization reuse it as they would have in place.
+    pub fn shift_steps(&mut self, by: usize) {
+        if let Some(last) = self.last.as_mut() {
+            last.k0 -= by;
+            last.k1 -= by;
+        }
+    }
+}
+
+impl LinearPrior {
+    /// The values moved `by` steps toward the start of their buffer (see
+    /// [`WindowSolver::shift_steps`]): a projection names its step there.
+    pub fn shift_steps(&mut self, by: usize) {
+        if let Some(p) = self.projection.as_mut() {
+            p.step -= by;
+        }
+    }
+}
