@@ -102,7 +102,8 @@ pub(super) fn segment(
             // In independent coordinates, how well z determines the rest, step by step.
             let mut determinacy = (options.coordinates == Coordinates::Independent).then(|| {
                 let far = (0.0, f64::INFINITY);
-                (Determinacy::new(&model), far, far)
+                // The last two steps' (t, s), and s at the segment's first step.
+                (Determinacy::new(&model), far, far, f64::INFINITY)
             });
             let mut failures = Vec::new();
             let mut iterations = Iterations::default();
@@ -154,7 +155,7 @@ pub(super) fn segment(
                     let q = q_at(k);
                     if report.termination != Termination::Converged {
                         let mut f = failure(k, report, v);
-                        if let Some((det, before, older)) = determinacy.as_mut() {
+                        if let Some((det, before, older, _)) = determinacy.as_mut() {
                             // A solve that fails while z and every other set of
                             // coordinates approach a rank loss fails because of it:
                             // name the singular configuration, located from the last
@@ -197,7 +198,7 @@ pub(super) fn segment(
                             return Next::Stop;
                         }
                     }
-                    if let Some((det, before, older)) = determinacy.as_mut() {
+                    if let Some((det, before, older, origin)) = determinacy.as_mut() {
                         // Approaching a configuration where z stops determining the
                         // other coordinates: switch to coordinates that do, or, where
                         // Φ_q itself loses rank (the problem is ill-posed), stop while
@@ -224,11 +225,21 @@ pub(super) fn segment(
                         // the step: a regular dip (the robot's s bottoms out at 3e-3)
                         // seen at coarse steps must not stop the run.
                         let crossing = before.1.is_finite() && 2.0 * now.1 <= before.1;
-                        if falling && (now.1 < Determinacy::STOP_BELOW || crossing) {
+                        // s shrinks with a mechanism's size (a chain of k links reads
+                        // about 0.6/k: a 256-link pendulum starts at 2.4e-3): below
+                        // the threshold from the start, the run stops only where s has
+                        // fallen to half its value there.
+                        if !before.1.is_finite() {
+                            *origin = now.1;
+                        }
+                        // (Where it started at 2 STOP_BELOW or above, that is every
+                        // s below the threshold, as before.)
+                        let low = now.1 < Determinacy::STOP_BELOW && now.1 <= 0.5 * *origin;
+                        if falling && (low || crossing) {
                             let mut f = failure(k, report, v);
                             f.singular = Some(det.singular_configuration(
                                 &model,
-                                q_at(k - 1),
+                                q_at(k.max(1) - 1),
                                 q,
                                 *before,
                                 now,

@@ -113,10 +113,22 @@ impl Determinacy {
         s
     }
 
+    /// The most sets [`Determinacy::best`] evaluates in one search.
+    pub const SEARCH_SETS: usize = 2000;
+
+    /// What [`Determinacy::best`] may spend in one search, in multiply-adds (each set
+    /// costs about ma³/2): a few seconds. A 128-link pendulum (ma = 256) has 32768
+    /// one-coordinate swaps per round, each 8e6 multiply-adds: unbounded, its search
+    /// ran for hours.
+    pub const SEARCH_WORK: f64 = 5e9;
+
     /// The set of independent coordinates that determines the others best at q, and
-    /// its distance to rank loss s: over every set where there are at most 2000,
-    /// else by swaps of one coordinate from the current set while s improves. Where
-    /// even the best s is small, Φ_q itself is close to losing a rank.
+    /// its distance to rank loss s: over every set where there are at most
+    /// [`Determinacy::SEARCH_SETS`], else by swaps of one coordinate from the current
+    /// set while s improves, within the same number of sets and
+    /// [`Determinacy::SEARCH_WORK`] (the best found so far where a large mechanism
+    /// runs out). Where even the best s is small, Φ_q itself is close to losing a
+    /// rank.
     pub fn best(&mut self, model: &Model, q: &[f64]) -> (f64, Vec<usize>) {
         let (n, f) = (model.n(), model.independent.len());
         self.jacobian(model, q);
@@ -124,16 +136,26 @@ impl Determinacy {
             self.distance_over(model, &complement(n, &model.independent)),
             model.independent.clone(),
         );
-        let consider = |det: &mut Determinacy, set: &[usize], best: &mut (f64, Vec<usize>)| {
+        let ma = model.active.len() as f64;
+        let affordable = (Self::SEARCH_WORK / (0.5 * ma * ma * ma).max(1.0)) as usize;
+        let mut budget = Self::SEARCH_SETS.min(affordable.max(1));
+        let mut consider = |det: &mut Determinacy, set: &[usize], best: &mut (f64, Vec<usize>)| {
+            if budget == 0 {
+                return false;
+            }
+            budget -= 1;
             let s = det.distance_over(model, &complement(n, set));
             if s > best.0 {
                 *best = (s, set.to_vec());
             }
+            true
         };
-        if binomial(n, f) <= 2000 {
+        if binomial(n, f) <= Self::SEARCH_SETS {
             let mut set: Vec<usize> = (0..f).collect();
             loop {
-                consider(self, &set, &mut best);
+                if !consider(self, &set, &mut best) {
+                    break;
+                }
                 // The next f-subset of 0..n in lexicographic order.
                 let Some(i) = (0..f).rev().find(|&i| set[i] < n - f + i) else {
                     break;
@@ -147,15 +169,19 @@ impl Determinacy {
             loop {
                 let before = best.0;
                 let current = best.1.clone();
-                for i in 0..f {
+                let mut exhausted = false;
+                'swaps: for i in 0..f {
                     for c in (0..n).filter(|c| !current.contains(c)) {
                         let mut set = current.clone();
                         set[i] = c;
                         set.sort_unstable();
-                        consider(self, &set, &mut best);
+                        if !consider(self, &set, &mut best) {
+                            exhausted = true;
+                            break 'swaps;
+                        }
                     }
                 }
-                if best.0 <= before {
+                if best.0 <= before || exhausted {
                     break;
                 }
             }
