@@ -303,4 +303,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # As harness.report, not __main__: the sweep's tasks name its functions, which the
+    # Dask scheduler and workers import.
+    from harness import report
+    sys.exit(report.main())

@@ -489,4 +489,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # As harness.robustness, not __main__: the sweep's tasks name its functions, which the
+    # Dask scheduler and workers import.
+    from harness import robustness
+    sys.exit(robustness.main())
