@@ -312,20 +312,16 @@ def run_cells(cells: list[Cell], fast: bool, progress=pages.progress,
     if sweep is None:
         with sweeps.Sweep() as own:
             return run_cells(cells, fast, progress, own)
-    # Longest first, so that the end is not one long cell.
-    order = sorted(range(len(cells)), key=lambda i: -estimated_seconds(
-        cells[i], size(cells[i].scene), round(planned_t_end(cells[i], fast) / cells[i].dt)))
 
     def done(_, o: Outcome) -> None:
         if o.status != "converged":
             progress(f"  {o.status}: {o.cell.label()}: {o.cause}")
 
+    def cost(c: Cell) -> float:
+        return estimated_seconds(c, size(c.scene), round(planned_t_end(c, fast) / c.dt))
+
     task = functools.partial(isolated_cell, fast=fast, integrator=INTEGRATOR)
-    out = sweep.map(task, [cells[i] for i in order], "robustness", done=done, progress=progress)
-    back = [None] * len(cells)
-    for i, o in zip(order, out):
-        back[i] = o
-    return back
+    return sweep.map(task, cells, "robustness", done=done, progress=progress, cost=cost)
 
 
 def isolated_cell(cell: Cell, fast: bool, integrator: str = "trapezoidal") -> Outcome:

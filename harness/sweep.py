@@ -115,10 +115,19 @@ class Sweep:
     # ------------------------------------------------------------ running cells
 
     def map(self, fn, cells: list, what: str = "cells", done=None, progress=None,
-            retries: int = RETRIES) -> list:
+            retries: int = RETRIES, cost=None) -> list:
         """[fn(cell) for cell in cells], as tasks on the workers, in the cells' order.
-        `done(cell, result)` is called as each one finishes (in the order they finish)."""
+        `done(cell, result)` is called as each one finishes (in the order they finish).
+        `cost(cell)`, an estimate: the costliest cells start first, so that the table
+        does not end on one long cell (the results keep the cells' order)."""
         cells = list(cells)
+        if cost is not None and not self.serial:
+            order = sorted(range(len(cells)), key=lambda i: -cost(cells[i]))
+            out = self.map(fn, [cells[i] for i in order], what, done, progress, retries)
+            back = [None] * len(cells)
+            for i, result in zip(order, out):
+                back[i] = result
+            return back
         count = Counter(what, len(cells), progress)
         if self.serial or not cells:
             out = []
