@@ -281,7 +281,7 @@ def isolated(fn, args: tuple, timeout: float):
     receive, send = ctx.Pipe(duplex=False)
     with children_allowed(), warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)   # fork in a threaded worker
-        child = ctx.Process(target=_child, args=(send, fn, args), daemon=True)
+        child = ctx.Process(target=_child, args=(send, fn, args, os.getpid()), daemon=True)
         child.start()
     send.close()
     try:
@@ -298,6 +298,21 @@ def isolated(fn, args: tuple, timeout: float):
         receive.close()
 
 
-def _child(conn, fn, args) -> None:
+def _child(conn, fn, args, parent: int) -> None:
+    die_with_parent(parent)
     conn.send(fn(*args))
     conn.close()
+
+
+def die_with_parent(parent: int) -> None:
+    """On Linux, this process is killed when its parent dies (a worker killed while its
+    child runs a cell leaves no orphan running on)."""
+    try:
+        import ctypes
+        import signal
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)        # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:               # it died before the line above
+        os._exit(1)

@@ -142,3 +142,41 @@ def test_scheduler_address_comes_from_the_environment(monkeypatch):
     assert sw.Sweep("serial").serial
     monkeypatch.delenv(sw.ENV)
     assert sw.Sweep().address is None
+
+
+def pid_then_sleep(path):
+    path.write_text(str(os.getpid()))
+    time.sleep(60)
+
+
+def isolated_pid_then_sleep(path):
+    sw.isolated(pid_then_sleep, (path,), 60.0)
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = open(f"/proc/{pid}/status").read().split("State:")[1].split()[0]
+    except (FileNotFoundError, IndexError):
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
+def test_a_child_dies_with_the_process_that_runs_it(tmp_path):
+    import multiprocessing
+    path = tmp_path / "pid"
+    parent = multiprocessing.get_context("spawn").Process(target=isolated_pid_then_sleep,
+                                                          args=(path,))
+    parent.start()
+    deadline = time.time() + 30
+    while not path.exists() or not path.read_text():
+        assert time.time() < deadline, "the child never started"
+        time.sleep(0.05)
+    child = int(path.read_text())
+    assert alive(child)
+    parent.kill()
+    parent.join()
+    deadline = time.time() + 10
+    while alive(child):
+        assert time.time() < deadline, "the child outlived the process that ran it"
+        time.sleep(0.05)
