@@ -237,13 +237,15 @@ def branch():
 
 
 def cases(fast: bool) -> list[tuple]:
-    """The suite: (case function, its arguments), each a task of a sweep."""
+    """The suite: (case function, its arguments), each a task of a sweep; a case with
+    several runs is one task per coordinates (and dt), in the order it runs them."""
+    dts = [1e-3] if fast else [1e-3, 1e-4, 1e-5]
     return [
-        (parallelogram, ([1e-3] if fast else [1e-3, 1e-4, 1e-5], ["dc", "ic"])),
-        (dead_centres, (["dc", "ic"],)),
-        (long_run, (60.0, ["dc"] if fast else ["dc", "ic"])),
+        *[(parallelogram, ([dt], [c])) for c in ("dc", "ic") for dt in dts],
+        *[(dead_centres, ([c],)) for c in ("dc", "ic")],
+        *[(long_run, (60.0, [c])) for c in (["dc"] if fast else ["dc", "ic"])],
         (stiff_spring, ()),
-        (large_steps, (["dc", "ic"],)),
+        *[(large_steps, ([c],)) for c in ("dc", "ic")],
         (redundant, ()),
         (branch, ()),
     ]
