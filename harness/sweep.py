@@ -81,8 +81,9 @@ class Sweep:
             # Worker processes (not threads: the native module holds the GIL through a
             # run), one thread each; the scheduler's web server (no dashboard without
             # bokeh) on any free port; no nanny restarts of a busy worker for
-            # its memory (a long batch solve is not a leak).
-            with dask.config.set({"distributed.worker.memory.terminate": False}):
+            # its memory (a long batch solve is not a leak), no sampling profiler.
+            with dask.config.set({"distributed.worker.memory.terminate": False,
+                                  "distributed.worker.profile.enabled": False}):
                 self.cluster = LocalCluster(n_workers=self.n_workers, threads_per_worker=1,
                                             processes=True, dashboard_address=":0",
                                             silence_logs=logging.ERROR)
