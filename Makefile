@@ -13,16 +13,18 @@ build:
 
 # The validation pages (reports/index.md): scene summaries, RMSE over window sizes
 # against the committed references, accuracy against time, hard cases, inverse dynamics.
+# Their sweeps run on a local Dask cluster, or on the scheduler at SCHEDULER
+# (e.g. `make report SCHEDULER=tcp://host:8786`; docs/sweeps.md).
 report: build python
 	@mkdir -p reports
 	@set -e; for s in $(SCENES); do $(MBFG) check $$s; echo; done > reports/check.txt
 	@echo "wrote reports/check.txt"
 	$(CARGO) run --release --example inverse_report
-	.venv/bin/python -m harness.report
+	.venv/bin/python -m harness.report $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
 # The committed ground truth (references/), regenerated from the scenes.
 reference: python
-	.venv/bin/python -m harness.reference
+	.venv/bin/python -m harness.reference $(if $(SCHEDULER),--scheduler $(SCHEDULER))
 
 test: python
 	$(CARGO) test --release

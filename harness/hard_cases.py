@@ -6,7 +6,7 @@ itself is ill-posed, stops with the status that names the step and the cause (th
 parallelogram in independent coordinates). `make test` runs the fast form (pytest,
 harness/tests/test_hard_cases.py); `make report` the full one.
 
-    python -m harness.hard_cases [--fast]      # prints the pass table
+    python -m harness.hard_cases [--fast] [--scheduler ADDRESS]   # prints the pass table
 """
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ import numpy as np
 
 import mbfg
 from harness import reference as refs
+from harness import sweep as sweeps
 from harness import trajectory as tj
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -235,23 +236,41 @@ def branch():
                   time.perf_counter() - start)
 
 
-def suite(fast: bool) -> list[Outcome]:
-    cases = [
-        parallelogram([1e-3] if fast else [1e-3, 1e-4, 1e-5], ["dc", "ic"]),
-        dead_centres(["dc", "ic"]),
-        long_run(60.0, ["dc"] if fast else ["dc", "ic"]),
-        stiff_spring(),
-        large_steps(["dc", "ic"]),
-        redundant(),
-        branch(),
+def cases(fast: bool) -> list[tuple]:
+    """The suite: (case function, its arguments), each a task of a sweep; a case with
+    several runs is one task per coordinates (and dt), in the order it runs them."""
+    dts = [1e-3] if fast else [1e-3, 1e-4, 1e-5]
+    return [
+        *[(parallelogram, ([dt], [c])) for c in ("dc", "ic") for dt in dts],
+        *[(dead_centres, ([c],)) for c in ("dc", "ic")],
+        *[(long_run, (60.0, [c])) for c in (["dc"] if fast else ["dc", "ic"])],
+        (stiff_spring, ()),
+        *[(large_steps, ([c],)) for c in ("dc", "ic")],
+        (redundant, ()),
+        (branch, ()),
     ]
-    out = []
-    for gen in cases:
-        for o in gen:
+
+
+def run_case(case: tuple) -> list[Outcome]:
+    fn, args = case
+    return list(fn(*args))
+
+
+def suite(fast: bool, sweep=None) -> list[Outcome]:
+    """Every case's outcomes, in the suite's order; the cases are tasks of `sweep`
+    (harness/sweep.py; None: in this process, one after the other)."""
+    def done(_, outcomes):
+        for o in outcomes:
             print(f"  {'pass' if o.passed else 'FAIL'}  {o.case} ({o.setting}): {o.figures}",
                   file=sys.stderr, flush=True)
-            out.append(o)
-    return out
+    if sweep is None:
+        per_case = []
+        for case in cases(fast):
+            per_case.append(run_case(case))
+            done(case, per_case[-1])
+    else:
+        per_case = sweep.map(run_case, cases(fast), "hard cases", done=done)
+    return [o for outcomes in per_case for o in outcomes]
 
 
 def table(outcomes: list[Outcome]) -> str:
@@ -266,8 +285,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m harness.hard_cases",
                                  description=__doc__.splitlines()[0])
     ap.add_argument("--fast", action="store_true", help="the fast form run by make test")
+    sweeps.add_argument(ap)
     args = ap.parse_args(argv)
-    outcomes = suite(args.fast)
+    with sweeps.from_args(args) as sweep:
+        outcomes = suite(args.fast, sweep)
     print(table(outcomes))
     passed = sum(o.passed for o in outcomes)
     print(f"\n{passed} of {len(outcomes)} hard-case runs pass")
@@ -275,4 +296,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # As harness.hard_cases, not __main__: the sweep's tasks name its functions, which the
+    # Dask scheduler and workers import.
+    from harness import hard_cases
+    sys.exit(hard_cases.main())

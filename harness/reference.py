@@ -15,6 +15,9 @@ come from the registry (harness/generators.py) at their reference settings.
                                                     # your scene: my-scene.reference/
     python -m harness.reference --check my-scene.yaml --t-end 2
                                                     # is my-scene.reference/ reproduced?
+    python -m harness.reference --scheduler tcp://host:8786
+                                                    # the runs on a Dask cluster
+                                                    # (docs/sweeps.md)
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ import numpy as np
 
 import mbfg
 from harness import generators
+from harness import sweep as sweeps
 from harness import trajectory as tj
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -161,27 +165,66 @@ def label(generator: tuple[str, dict]) -> str:
     return generator[0] + (f" {generator[1]}" if generator[1] else "")
 
 
-def generate(job: Job | str, out_dir: pathlib.Path | None = None) -> dict:
+def portable(path: pathlib.Path):
+    """A scene path as a task carries it: relative to the repository when inside it (a
+    worker resolves it in its own checkout), else as it is."""
+    try:
+        return ("repo", path.resolve().relative_to(ROOT).as_posix())
+    except ValueError:
+        return ("path", str(path))
+
+
+def produce(task: tuple) -> dict:
+    """One generator's run of a job, a task of a sweep: (generator, portable scene path,
+    t_end, quick) → {"run": (trajectory, provenance, wall time)}, {"refused": why} or
+    {"failed": why}."""
+    generator, (kind, where), t_end, quick = task
+    scene = ROOT / where if kind == "repo" else pathlib.Path(where)
+    try:
+        return {"run": run(generator, scene, t_end, quick)}
+    except tj.Unsupported as e:
+        return {"refused": str(e)}
+    except Exception as e:  # noqa: BLE001 (reported with the job)
+        return {"failed": generators.one_line(e)}
+
+
+def tasks_of(job: Job) -> list[tuple]:
+    """The runs of a job: its primary generator's, then each cross-check's."""
+    scene = portable(job.scene)
+    return ([(job.primary, scene, job.t_end, False)]
+            + [(check, scene, job.t_end, job.quick_checks) for check in job.checks])
+
+
+def generate(job: Job | str, out_dir: pathlib.Path | None = None, runs: list[dict] | None = None) -> dict:
     """Writes one reference and its provenance into out_dir (default: the job's);
-    returns the provenance. A suite name stands for its job."""
+    returns the provenance. A suite name stands for its job. `runs`: the results of
+    produce for tasks_of(job), if they were run elsewhere (generate_all)."""
     if isinstance(job, str):
         job = suite_job(job)
     out_dir = job.out if out_dir is None else out_dir
+    if runs is None:
+        runs = [produce(task) for task in tasks_of(job)]
     name, scene, t_end, primary = job.label, job.scene, job.t_end, job.primary
     model = mbfg.load(str(scene))
     print(f"{name}: {label(primary)} over {t_end} s …", flush=True)
-    try:
-        truth, prov, wall = run(primary, scene, t_end)
-    except Exception as e:  # refused or failed: one line, no reference
-        raise GeneratorFailed(f"{name}: {primary[0]} cannot make the reference: "
-                              f"{generators.one_line(e)} (another --generator, or looser "
-                              "settings with --set, may)") from e
+    first = runs[0]
+    if "run" not in first:  # refused or failed: one line, no reference
+        why = " ".join((first.get("refused") or first.get("failed")).split())[:300]
+        raise GeneratorFailed(f"{name}: {primary[0]} cannot make the reference: {why} (another "
+                              "--generator, or looser settings with --set, may)")
+    truth, prov, wall = first["run"]
     print(f"{name}:   done in {wall:.1f} s", flush=True)
     prov["cross_checks"] = []
-    for check in job.checks:
+    for check, result in zip(job.checks, runs[1:]):
         print(f"{name}:   cross-check with {label(check)} …", flush=True)
+        if "refused" in result:
+            prov["cross_checks"].append({"generator": check[0], "refused": result["refused"]})
+            print(f"{name}:   {check[0]} refuses the scene: {result['refused']}", flush=True)
+            continue
         try:
-            other, other_prov, other_wall = run(check, scene, t_end, job.quick_checks)
+            if "failed" in result:
+                raise RuntimeError(result["failed"])
+            other, other_prov, other_wall = result["run"]
             diff = disagreement(model, truth, other)
             prov["cross_checks"].append({
                 "generator": other_prov.get("generator", check[0]),
@@ -190,9 +233,6 @@ def generate(job: Job | str, out_dir: pathlib.Path | None = None) -> dict:
                 "wall_time_s": other_wall, **diff})
             print(f"{name}:   done in {other_wall:.1f} s; disagreement max {diff['max_m']:.2e} m, "
                   f"RMSE {diff['rmse_m']:.2e} m", flush=True)
-        except tj.Unsupported as e:
-            prov["cross_checks"].append({"generator": check[0], "refused": str(e)})
-            print(f"{name}:   {check[0]} refuses the scene: {e}", flush=True)
         except Exception as e:  # a cross-check's failure is recorded, not fatal
             prov["cross_checks"].append({"generator": check[0],
                                          "failed": generators.one_line(e)})
@@ -205,17 +245,30 @@ def generate(job: Job | str, out_dir: pathlib.Path | None = None) -> dict:
     return prov
 
 
-def check(jobs: list[Job | str]) -> int:
+def generate_all(jobs: list[Job], sweep=None, out_dirs: list | None = None) -> list[dict]:
+    """generate for every job, their generators' runs as the cells of `sweep`
+    (harness/sweep.py; None: in this process), written in the jobs' order."""
+    tasks = [tasks_of(job) for job in jobs]
+    flat = [t for ts in tasks for t in ts]
+    done = (sweep.map(produce, flat, "references") if sweep is not None
+            else [produce(t) for t in flat])
+    out, k = [], 0
+    for job, ts, out_dir in zip(jobs, tasks, out_dirs or [None] * len(jobs)):
+        out.append(generate(job, out_dir, done[k:k + len(ts)]))
+        k += len(ts)
+    return out
+
+
+def check(jobs: list[Job | str], sweep=None) -> int:
     """Regenerates into a temporary folder and compares with the stored references."""
     bad = 0
+    jobs = [suite_job(job) if isinstance(job, str) else job for job in jobs]
     with tempfile.TemporaryDirectory() as tmp:
-        for job in jobs:
-            if isinstance(job, str):
-                job = suite_job(job)
+        fresh_dirs = [pathlib.Path(tmp) / job.label.replace("/", "_") for job in jobs]
+        generate_all(jobs, sweep, fresh_dirs)
+        for job, fresh_dir in zip(jobs, fresh_dirs):
             committed = tj.read(job.out / "reference.csv.gz")
             stated = json.loads((job.out / "provenance.json").read_text())
-            fresh_dir = pathlib.Path(tmp) / job.label.replace("/", "_")
-            generate(job, fresh_dir)
             fresh = tj.read(fresh_dir / "reference.csv.gz")
             model = mbfg.load(str(job.scene))
             if len(fresh.t) != len(committed.t):
@@ -318,24 +371,33 @@ def main(argv=None) -> int:
                     help="a setting of the primary generator over its reference settings, e.g. rtol=1e-12")
     ap.add_argument("--quick", action="store_true",
                     help="cross-checks at their fast defaults instead of their reference settings")
+    sweeps.add_argument(ap)
     args = ap.parse_args(argv)
     if args.generator:
         tool_list(args.generator, ap)
     jobs = jobs_from(args, ap)
     start = time.perf_counter()
+    if args.check:
+        missing = [j for j in jobs if not (j.out / "reference.csv.gz").is_file()]
+        if missing:
+            print(f"reference: no stored reference to check at {missing[0].out} "
+                  "(make one without --check first)", file=sys.stderr)
+            return 2
+    # Every generator's run of every job is a cell of one sweep (harness/sweep.py).
     try:
-        if args.check:
-            missing = [j for j in jobs if not (j.out / "reference.csv.gz").is_file()]
-            if missing:
-                print(f"reference: no stored reference to check at {missing[0].out} "
-                      "(make one without --check first)", file=sys.stderr)
-                return 2
-            bad = check(jobs)
-            print(f"{len(jobs) - bad} of {len(jobs)} references reproduced "
-                  f"in {time.perf_counter() - start:.0f} s")
-            return 1 if bad else 0
-        for job in jobs:
-            generate(job)
+        with sweeps.from_args(args) as sweep:
+            if args.check:
+                bad = check(jobs, sweep)
+                print(f"{len(jobs) - bad} of {len(jobs)} references reproduced "
+                      f"in {time.perf_counter() - start:.0f} s")
+                return 1 if bad else 0
+            tasks = [tasks_of(job) for job in jobs]
+            flat = [t for ts in tasks for t in ts]
+            done = sweep.map(produce, flat, "references")
+        k = 0
+        for job, ts in zip(jobs, tasks):
+            generate(job, runs=done[k:k + len(ts)])
+            k += len(ts)
             print(f"{job.label}: wrote {tj.display_path(job.out)}/reference.csv.gz, provenance.json")
     except (GeneratorFailed, mbfg.SceneError) as e:
         print(f"reference: {generators.one_line(e)}", file=sys.stderr)
@@ -345,4 +407,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # As harness.reference, not __main__: the sweep's tasks name its functions, which the
+    # Dask scheduler and workers import.
+    from harness import reference
+    sys.exit(reference.main())

@@ -8,10 +8,14 @@
                                         # fast robustness matrix's summary line, printed
                                         # (the end of every CI log)
     python -m harness.report --only forward|timing|hard|inverse|robustness|scaling|horizons
+    python -m harness.report --scheduler tcp://host:8786   # on a Dask cluster
+                                        # (docs/sweeps.md; default: $MBFG_SCHEDULER, else
+                                        # a local cluster, one worker per core)
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 
@@ -19,6 +23,7 @@ import numpy as np
 
 import mbfg
 from harness import generators, hard_cases
+from harness import sweep as sweeps
 from harness.pages import (REPORTS, ROOT, errors, load_reference, machine, progress,
                            scene_path, window_kw, write_csv)
 
@@ -47,35 +52,62 @@ FORWARD = [
 INTEGRATORS = ["trapezoidal", "hermite-simpson"]
 
 
-def forward_tables(windows=WINDOWS, scenes=FORWARD) -> tuple[str, list[dict]]:
+def forward_tables(windows=WINDOWS, scenes=FORWARD, sweep=None) -> tuple[str, list[dict]]:
     """The RMSE-over-N_w table of every scene: the trapezoidal rule (the paper's, and
-    its columns) and Hermite–Simpson beside it."""
-    rows, md = [], []
+    its columns) and Hermite–Simpson beside it. One run per cell of `sweep`
+    (harness/sweep.py; None: in this process)."""
+    runs, heads = [], []
     for title, dc_scene, ic_scene, ref in scenes:
         truth, prov = load_reference(ref)
         t_end = float(truth.t[-1])
-        model = mbfg.load(scene_path(dc_scene))
         coords = [("dc", dc_scene)] + ([("ic", ic_scene)] if ic_scene and mbfg.load(scene_path(ic_scene)).independent else [])
-        progress(f"forward: {title}")
-        for integrator in INTEGRATORS:
-            for w in windows:
-                for c, scene in coords:
-                    row = {"scene": ref, "integrator": integrator, "coords": c, "window": w,
-                           "dt": 1e-3}
-                    try:
-                        r = mbfg.simulate(scene_path(scene), coords=c, dt=1e-3, t_end=t_end,
-                                          integrator=integrator, **window_kw(w))
-                        rmse, mx = errors(model, r.t, r.q, truth)
-                        s = r.summary
-                        row.update({"rmse_m": rmse, "max_m": mx, "worst_phi": s["worst_phi"],
-                                    "energy_drift_j": s["energy_drift"],
-                                    "mean_iterations": s["mean_iterations"],
-                                    "wall_time_s": s["wall_time"], "status": "converged"})
-                    except mbfg.SolveError as e:
-                        row["status"] = str(e)
-                    rows.append(row)
-        md.append(scene_table(title, ref, prov, [r for r in rows if r["scene"] == ref], t_end))
+        heads.append((title, ref, prov, t_end))
+        runs += [(ref, dc_scene, scene, c, integrator, w, t_end)
+                 for integrator in INTEGRATORS for w in windows for c, scene in coords]
+    rows = (sweep.map(forward_run, runs, "forward", cost=forward_cost) if sweep is not None
+            else [forward_run(r) for r in runs])
+    md = [scene_table(title, ref, prov, [r for r in rows if r["scene"] == ref], t_end)
+          for title, ref, prov, t_end in heads]
     return "\n".join(md), rows
+
+
+@functools.lru_cache(maxsize=None)
+def scene_size(scene: str) -> int:
+    return mbfg.load(scene_path(scene)).n
+
+
+def forward_cost(run: tuple) -> float:
+    """Roughly, a run's time: n² per step, a batch 3×, Hermite–Simpson 2×, IC 1.5×."""
+    _, _, scene, c, integrator, w, t_end = run
+    n = scene_size(scene)
+    return (n * n * t_end * (3 if w == "batch" else 1) * (2 if integrator != "trapezoidal" else 1)
+            * (1.5 if c == "ic" else 1))
+
+
+@functools.lru_cache(maxsize=None)
+def truth_of(ref: str, dc_scene: str):
+    """The committed reference and the model of the DC scene (cached in each worker)."""
+    return load_reference(ref)[0], mbfg.load(scene_path(dc_scene))
+
+
+def forward_run(run: tuple) -> dict:
+    """One row of the forward tables: (reference, DC scene, scene, coords, integrator,
+    N_w, t_end)."""
+    ref, dc_scene, scene, c, integrator, w, t_end = run
+    truth, model = truth_of(ref, dc_scene)
+    row = {"scene": ref, "integrator": integrator, "coords": c, "window": w, "dt": 1e-3}
+    try:
+        r = mbfg.simulate(scene_path(scene), coords=c, dt=1e-3, t_end=t_end,
+                          integrator=integrator, **window_kw(w))
+        rmse, mx = errors(model, r.t, r.q, truth)
+        s = r.summary
+        row.update({"rmse_m": rmse, "max_m": mx, "worst_phi": s["worst_phi"],
+                    "energy_drift_j": s["energy_drift"],
+                    "mean_iterations": s["mean_iterations"],
+                    "wall_time_s": s["wall_time"], "status": "converged"})
+    except mbfg.SolveError as e:
+        row["status"] = str(e)
+    return row
 
 
 def fmt(v, spec=".2e"):
@@ -136,9 +168,9 @@ def ms(r) -> str:
 
 # ---------------------------------------------------------------- hard cases
 
-def hard_page(fast: bool) -> tuple[str, list]:
+def hard_page(fast: bool, sweep=None) -> tuple[str, list]:
     progress("hard cases" + (" (fast form)" if fast else ""))
-    outcomes = hard_cases.suite(fast)
+    outcomes = hard_cases.suite(fast, sweep)
     passed = sum(o.passed for o in outcomes)
     text = ("# Hard-case stability suite\n\n"
             f"{passed} of {len(outcomes)} runs pass. Scenes in `scenes/hard/`; criteria and code in "
@@ -230,39 +262,46 @@ def main(argv=None) -> int:
     ap.add_argument("--only", choices=["forward", "timing", "hard", "inverse", "robustness",
                                        "scaling", "horizons"],
                     help="one part")
+    sweeps.add_argument(ap)
     args = ap.parse_args(argv)
     start = time.perf_counter()
+    # The sweeps' cells are tasks on Dask (harness/sweep.py, docs/sweeps.md); the timing
+    # part's run one at a time, with nothing else running.
+    sweep = sweeps.from_args(args).start()
+    progress(f"sweeps: {sweep.describe()}")
     if args.ci:
-        text, _ = forward_tables(scenes=FORWARD[:1])
+        text, _ = forward_tables(scenes=FORWARD[:1], sweep=sweep)
         print(text)
-        hard, outcomes = hard_page(fast=True)
+        hard, outcomes = hard_page(fast=True, sweep=sweep)
         print(hard)
         from harness import robustness
         progress("robustness matrix (fast form)")
-        cells = robustness.run(robustness.scenes(), fast=True, progress=lambda _: None)
+        cells = robustness.run(robustness.scenes(), fast=True, progress=lambda _: None,
+                               sweep=sweep)
         print(robustness.summary(cells, fast=True))
         return 0
     REPORTS.mkdir(exist_ok=True)
     parts = [args.only] if args.only else ["forward", "inverse", "timing", "hard", "robustness",
                                            "scaling"]
     if "forward" in parts:
-        text, rows = forward_tables()
+        text, rows = forward_tables(sweep=sweep)
         (REPORTS / "forward.md").write_text(
             "# Forward dynamics: RMSE over window sizes, DC and IC\n\n"
             "RMSE and max error over the x, y of every moving point against the committed "
-            "reference (`references/`); wall times are single runs (medians: `make bench` and "
+            "reference (`references/`); wall times are single runs, taken beside the other runs of "
+            "the table (one per core; medians, measured alone: `make bench` and "
             f"[accuracy against time](accuracy-vs-time.md)). Machine: {machine()}.\n\n" + text)
         write_csv(REPORTS / "forward.csv", rows)
         progress("wrote reports/forward.md, reports/forward.csv")
     if "timing" in parts:
         from harness import timing
-        timing.write(REPORTS, machine())
+        timing.write(REPORTS, sweep=sweep)
     if "inverse" in parts and (REPORTS / "inverse.md").exists():
         # The Rust example writes the page; the comparison with Pinocchio is added here.
         page = (REPORTS / "inverse.md").read_text().split("\n## Double pendulum against")[0]
         (REPORTS / "inverse.md").write_text(page.rstrip() + "\n\n" + rnea_section())
     if "hard" in parts:
-        text, outcomes = hard_page(fast=False)
+        text, outcomes = hard_page(fast=False, sweep=sweep)
         (REPORTS / "hard-cases.md").write_text(text)
         write_csv(REPORTS / "hard-cases.csv", [o.__dict__ for o in outcomes])
         progress("wrote reports/hard-cases.md, reports/hard-cases.csv")
@@ -273,8 +312,9 @@ def main(argv=None) -> int:
         from harness import robustness
         progress("robustness matrix")
         began = time.perf_counter()
-        outcomes = robustness.run(robustness.scenes(), fast=False)
-        robustness.write(outcomes, REPORTS, fast=False, seconds=time.perf_counter() - began)
+        outcomes = robustness.run(robustness.scenes(), fast=False, sweep=sweep)
+        robustness.write(outcomes, REPORTS, fast=False, seconds=time.perf_counter() - began,
+                         where=sweep.describe())
         progress(robustness.summary(outcomes))
         progress("wrote reports/robustness.md, reports/robustness.csv")
     if "scaling" in parts:
@@ -286,4 +326,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # As harness.report, not __main__: the sweep's tasks name its functions, which the
+    # Dask scheduler and workers import.
+    from harness import report
+    sys.exit(report.main())

@@ -15,8 +15,6 @@ import collections
 import dataclasses
 import functools
 import math
-import multiprocessing
-import multiprocessing.connection
 import pathlib
 import re
 import sys
@@ -28,6 +26,7 @@ import mbfg
 from harness import hard_cases
 from harness import reference as refs
 from harness import pages
+from harness import sweep as sweeps
 from harness import trajectory as tj
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -56,8 +55,7 @@ BUDGET = {False: 20.0, True: 1.0}        # s per cell: full, fast
 KILL_AFTER = {False: 120.0, True: 40.0}
 SHORTENINGS = 2
 MIN_STEPS = 10
-WORKERS = 2
-# The integrator of every cell (`--integrator`; the forked workers inherit it).
+# The integrator of every cell (`--integrator`; passed to every task).
 INTEGRATOR = "trapezoidal"
 
 # What a failure message names: "step 521 (t = 0.521 s)" (also the batch warm start's
@@ -222,12 +220,13 @@ def matrix(names: list[str], fast: bool) -> tuple[list[Cell], list[Outcome]]:
 
 # ---------------------------------------------------------------- one cell
 
-def attempt(cell: Cell, t_end: float):
+def attempt(cell: Cell, t_end: float, integrator: str | None = None):
     """(the run, None) or (None, what it raised). A panic in the native module arrives
     as pyo3's PanicException, a BaseException: caught too, so that it is a cell's error."""
     try:
         return mbfg.simulate(cell.path, coords=cell.coords, dt=cell.dt, t_end=t_end,
-                             integrator=INTEGRATOR, **pages.window_kw(cell.window)), None
+                             integrator=integrator or INTEGRATOR,
+                             **pages.window_kw(cell.window)), None
     except (KeyboardInterrupt, SystemExit):
         raise
     except BaseException as e:  # noqa: BLE001
@@ -267,8 +266,10 @@ def cell_t_end(cell: Cell, fast: bool, killed: tuple[float, ...] = ()) -> tuple[
         f"were killed after {KILL_AFTER[fast]:g} s")
 
 
-def run_cell(cell: Cell, fast: bool, killed: tuple[float, ...] = ()) -> Outcome:
-    """Runs one cell and says what became of it; never raises (but on Ctrl-C)."""
+def run_cell(cell: Cell, fast: bool, killed: tuple[float, ...] = (),
+             integrator: str | None = None) -> Outcome:
+    """Runs one cell (with `integrator`, default INTEGRATOR) and says what became of it;
+    never raises (but on Ctrl-C)."""
     t_end, note = cell_t_end(cell, fast, killed)
     out = Outcome(cell.scene, cell.coords, cell.window, cell.dt, t_end, "converged", note=note)
     # A shortened horizon below MIN_STEPS steps says too little to count; a scene's own
@@ -277,7 +278,7 @@ def run_cell(cell: Cell, fast: bool, killed: tuple[float, ...] = ()) -> Outcome:
         out.status, out.cause = "skipped", f"{out.note}: fewer than {MIN_STEPS} steps left"
         return out
     start = time.perf_counter()
-    r, failed = attempt(cell, t_end)
+    r, failed = attempt(cell, t_end, integrator)
     out.wall_time = time.perf_counter() - start
     if failed:
         v = verdict_of(failed)
@@ -296,77 +297,53 @@ def run_cell(cell: Cell, fast: bool, killed: tuple[float, ...] = ()) -> Outcome:
 
 # ---------------------------------------------------------------- the matrix
 
-def run(names: list[str], fast: bool, progress=pages.progress) -> list[Outcome]:
+def run(names: list[str], fast: bool, progress=pages.progress, sweep=None) -> list[Outcome]:
     """Every cell of the matrix over `names`, n/a cells included, in page order."""
     cells, na = matrix(names, fast)
-    return sorted(na + run_cells(cells, fast, progress=progress), key=lambda o: o.cell.key())
+    return sorted(na + run_cells(cells, fast, progress=progress, sweep=sweep),
+                  key=lambda o: o.cell.key())
 
 
-def run_cells(cells: list[Cell], fast: bool, workers: int = WORKERS,
-              progress=pages.progress) -> list[Outcome]:
-    """run_cell for every cell, `workers` at a time, each in a process of its own
-    (forked: it shares what this one loaded), so that a crash in the native module (a
-    panic is an exception, not a crash) or a run over KILL_AFTER ends that process alone.
-    Reports every cell that does not converge, and a count every 50 cells."""
-    ctx = multiprocessing.get_context("fork")
-    # Longest first, so that the end is not one long cell. With each cell, the horizons
-    # of its runs that were killed.
-    todo = [(c, ()) for c in sorted(cells, key=lambda c: -estimated_seconds(
-        c, size(c.scene), round(planned_t_end(c, fast) / c.dt)))]
-    running = {}   # pipe from the child → (child, cell, horizons tried, start)
-    out, start = [], time.perf_counter()
+def run_cells(cells: list[Cell], fast: bool, progress=pages.progress,
+              sweep=None) -> list[Outcome]:
+    """run_cell for every cell, in the cells' order: tasks of `sweep` (harness/sweep.py;
+    None: a sweep of its own, a local cluster by default), each cell in a process of its
+    own (isolated_cell). Reports every cell that does not converge, and the count."""
+    if sweep is None:
+        with sweeps.Sweep() as own:
+            return run_cells(cells, fast, progress, own)
 
-    def finish(o: Outcome) -> None:
-        out.append(o)
+    def done(_, o: Outcome) -> None:
         if o.status != "converged":
             progress(f"  {o.status}: {o.cell.label()}: {o.cause}")
-        if len(out) % 50 == 0 or len(out) == len(cells):
-            progress(f"robustness: {len(out)} of {len(cells)} cells run "
-                     f"({time.perf_counter() - start:.0f} s)")
 
-    def failed(cell: Cell, t_end: float, status: str, cause: str) -> None:
-        finish(Outcome(cell.scene, cell.coords, cell.window, cell.dt, t_end, status, cause))
+    def cost(c: Cell) -> float:
+        return estimated_seconds(c, size(c.scene), round(planned_t_end(c, fast) / c.dt))
 
-    while todo or running:
-        while todo and len(running) < workers:
-            cell, killed = todo.pop(0)
-            receive, send = ctx.Pipe(duplex=False)
-            child = ctx.Process(target=run_in_child, args=(send, cell, fast, killed), daemon=True)
-            child.start()
-            send.close()
-            tried = killed + (cell_t_end(cell, fast, killed)[0],)
-            running[receive] = (child, cell, tried, time.perf_counter())
-        for conn in multiprocessing.connection.wait(list(running), timeout=1.0):
-            child, cell, tried, _ = running.pop(conn)
-            try:
-                finish(conn.recv())
-            except EOFError:   # it died without an answer
-                child.join()
-                failed(cell, tried[-1], "error", f"the process running the cell died (exit code "
-                                                 f"{child.exitcode}): a crash in the native module")
-            child.join()
-            conn.close()
-        for conn, (child, cell, tried, began) in list(running.items()):
-            if time.perf_counter() - began < KILL_AFTER[fast]:
-                continue
-            child.kill()
-            child.join()
-            conn.close()
-            del running[conn]
-            progress(f"  killed after {KILL_AFTER[fast]:g} s: {cell.label()}, "
-                     f"t_end {tried[-1]:g} s")
-            if len(tried) <= SHORTENINGS:
-                todo.insert(0, (cell, tried))
-            else:
-                ends = ", ".join(f"{t:g}" for t in tried)
-                failed(cell, tried[-1], "skipped",
-                       f"killed after {KILL_AFTER[fast]:g} s at t_end = {ends} s")
-    return out
+    task = functools.partial(isolated_cell, fast=fast, integrator=INTEGRATOR)
+    return sweep.map(task, cells, "robustness", done=done, progress=progress, cost=cost)
 
 
-def run_in_child(conn, *args) -> None:
-    conn.send(run_cell(*args))
-    conn.close()
+def isolated_cell(cell: Cell, fast: bool, integrator: str = "trapezoidal") -> Outcome:
+    """run_cell in a child process (sweep.isolated), so that a crash in the native
+    module (a panic is an exception, not a crash) or a run over KILL_AFTER ends that
+    process alone. A killed run is run again over half its horizon, up to SHORTENINGS
+    times; then the cell is skipped."""
+    tried = ()
+    while True:
+        t_end = cell_t_end(cell, fast, tried)[0]
+        status, value = sweeps.isolated(run_cell, (cell, fast, tried, integrator), KILL_AFTER[fast])
+        if status == "ok":
+            return value
+        if status == "died":
+            return Outcome(cell.scene, cell.coords, cell.window, cell.dt, t_end, "error",
+                           f"the process running the cell died (exit code {value}): a crash "
+                           "in the native module")
+        tried += (t_end,)
+        if len(tried) > SHORTENINGS:
+            ends = ", ".join(f"{t:g}" for t in tried)
+            return Outcome(cell.scene, cell.coords, cell.window, cell.dt, t_end, "skipped",
+                           f"killed after {KILL_AFTER[fast]:g} s at t_end = {ends} s")
 
 
 # ---------------------------------------------------------------- pages
@@ -438,10 +415,12 @@ def scene_section(name: str, outcomes: list[Outcome]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def page(outcomes: list[Outcome], fast: bool, seconds: float, globs=SCENE_GLOBS) -> str:
+def page(outcomes: list[Outcome], fast: bool, seconds: float, globs=SCENE_GLOBS,
+         where: str = "") -> str:
     windows, dts = (FAST_WINDOWS, FAST_DTS) if fast else (WINDOWS, DTS)
     names = list(dict.fromkeys(o.scene for o in outcomes))
     integrator = "" if INTEGRATOR == "trapezoidal" else f" --integrator {INTEGRATOR}"
+    ran = f" on {where}" if where else ""
     head = f"""# Robustness matrix{' (fast)' if fast else ''}{f' ({INTEGRATOR})' if integrator else ''}
 
 {summary(outcomes, fast)}
@@ -457,8 +436,8 @@ under the grid).
 Per cell, `robustness.csv` has the horizon run, the cause, RMSE, LM iterations and wall
 time. How to read and rerun it: [docs/robustness.md](../docs/robustness.md).
 
-Generated by `python -m harness.robustness{' --fast' if fast else ''}{integrator}` in {seconds:.0f} s
-({WORKERS} worker processes). Machine: {pages.machine()}.
+Generated by `python -m harness.robustness{' --fast' if fast else ''}{integrator}` in {seconds:.0f} s{ran}.
+Machine: {pages.machine()}.
 """
     by_scene = collections.defaultdict(list)
     for o in outcomes:
@@ -467,9 +446,10 @@ Generated by `python -m harness.robustness{' --fast' if fast else ''}{integrator
 
 
 def write(outcomes: list[Outcome], out: pathlib.Path, fast: bool, seconds: float,
-          globs=SCENE_GLOBS) -> None:
+          globs=SCENE_GLOBS, where: str = "") -> None:
+    """`where`: where the cells ran (Sweep.describe)."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "robustness.md").write_text(page(outcomes, fast, seconds, globs))
+    (out / "robustness.md").write_text(page(outcomes, fast, seconds, globs, where))
     pages.write_csv(out / "robustness.csv", [dataclasses.asdict(o) for o in outcomes])
 
 
@@ -485,6 +465,7 @@ def main(argv=None) -> int:
                     help="folder for robustness.md and robustness.csv (default: reports/)")
     ap.add_argument("--integrator", choices=["trapezoidal", "hermite-simpson", "euler"],
                     default=INTEGRATOR, help="the integrator of every cell (default: %(default)s)")
+    sweeps.add_argument(ap)
     args = ap.parse_args(argv)
     INTEGRATOR = args.integrator
     try:
@@ -494,12 +475,17 @@ def main(argv=None) -> int:
     if not names:
         ap.error(f"no scene matches {' '.join(args.scenes)}")
     start = time.perf_counter()
-    outcomes = run(names, args.fast)
-    write(outcomes, args.out, args.fast, time.perf_counter() - start, args.scenes)
+    with sweeps.from_args(args) as cluster:
+        outcomes = run(names, args.fast, sweep=cluster)
+        where = cluster.describe()
+    write(outcomes, args.out, args.fast, time.perf_counter() - start, args.scenes, where)
     pages.progress(f"wrote {args.out / 'robustness.md'}, {args.out / 'robustness.csv'}")
     print(summary(outcomes, args.fast))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # As harness.robustness, not __main__: the sweep's tasks name its functions, which the
+    # Dask scheduler and workers import.
+    from harness import robustness
+    sys.exit(robustness.main())

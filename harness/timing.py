@@ -13,6 +13,8 @@ call. Writes accuracy-vs-time.md, .csv and one PNG per scene (several minutes).
 from __future__ import annotations
 
 import argparse
+import functools
+import itertools
 import pathlib
 import statistics
 import sys
@@ -20,6 +22,7 @@ import time
 
 import mbfg
 from harness import generators, pages
+from harness import sweep as sweeps
 from harness import trajectory as tj
 
 REPEATS = 3
@@ -37,10 +40,10 @@ SCENES = {
 }
 
 
-def timed(fn):
+def timed(fn, repeats: int | None = None):
     """(result of the last run, median wall time); a failure ends the repetitions."""
     times, out = [], None
-    for _ in range(REPEATS):
+    for _ in range(repeats or REPEATS):
         start = time.perf_counter()
         out = fn()
         times.append(time.perf_counter() - start)
@@ -74,25 +77,48 @@ def configurations(dc_scene, ic_scene, t_end):
                 yield gen.label, variant, f"{key} = {v:g}", run
 
 
-def measure(title, dc_scene, ic_scene, ref, t_end) -> list[dict]:
-    truth, _ = pages.load_reference(ref)
-    model = mbfg.load(pages.scene_path(ref))
-    rows = []
-    for tool, variant, setting, run in configurations(dc_scene, ic_scene, t_end):
-        row = {"scene": title, "tool": tool, "variant": variant, "setting": setting}
-        try:
-            (t, q), wall = timed(run)
-            rmse, mx = pages.errors(model, t, q[:, :model.n], truth)
-            row.update(rmse_m=rmse, max_m=mx, wall_time_s=wall, status="ok")
-        except tj.Unsupported as e:
-            row.update(status=f"refused: {e}")
-        except (mbfg.SolveError, RuntimeError, ValueError) as e:
-            row.update(status=f"failed: {str(e).splitlines()[0][:160]}")
-        pages.progress(f"  {title}: {tool} {variant} {setting}: "
-                        + (f"RMSE {row['rmse_m']:.2e} m in {row['wall_time_s'] * 1e3:.0f} ms"
-                           if row["status"] == "ok" else row["status"]))
-        rows.append(row)
-    return rows
+def measure(title, dc_scene, ic_scene, ref, t_end, sweep=None) -> list[dict]:
+    """Every point of a scene's plot: timing cells, run one at a time (`sweep`'s timing
+    phase, harness/sweep.py; None: in this process)."""
+    n = sum(1 for _ in configurations(dc_scene, ic_scene, t_end))
+    cells = [(title, k, REPEATS) for k in range(n)]
+
+    def done(_, row):
+        pages.progress(f"  {title}: {row['tool']} {row['variant']} {row['setting']}: "
+                       + (f"RMSE {row['rmse_m']:.2e} m in {row['wall_time_s'] * 1e3:.0f} ms"
+                          if row["status"] == "ok" else row["status"]))
+    if sweep is None:
+        rows = []
+        for cell in cells:
+            rows.append(measure_point(cell))
+            done(cell, rows[-1])
+        return rows
+    return sweep.one_at_a_time(measure_point, cells, f"accuracy against time: {title}",
+                               done=done)
+
+
+@functools.lru_cache(maxsize=None)
+def truth_of(ref: str):
+    return pages.load_reference(ref)[0], mbfg.load(pages.scene_path(ref))
+
+
+def measure_point(cell: tuple) -> dict:
+    """One timing cell: (scene title, index of the configuration, repeats) → its row."""
+    title, k, repeats = cell
+    dc_scene, ic_scene, ref, t_end = SCENES[title]
+    tool, variant, setting, run = next(itertools.islice(
+        configurations(dc_scene, ic_scene, t_end), k, None))
+    truth, model = truth_of(ref)
+    row = {"scene": title, "tool": tool, "variant": variant, "setting": setting}
+    try:
+        (t, q), wall = timed(run, repeats)
+        rmse, mx = pages.errors(model, t, q[:, :model.n], truth)
+        row.update(rmse_m=rmse, max_m=mx, wall_time_s=wall, status="ok")
+    except tj.Unsupported as e:
+        row.update(status=f"refused: {e}")
+    except (mbfg.SolveError, RuntimeError, ValueError) as e:
+        row.update(status=f"failed: {str(e).splitlines()[0][:160]}")
+    return row
 
 
 def fastest_table(rows: list[dict]) -> str:
@@ -140,14 +166,19 @@ def plot(rows: list[dict], title: str, path: pathlib.Path) -> None:
     plt.close(fig)
 
 
-def write(reports: pathlib.Path, machine: str, scenes=None) -> list[dict]:
+def write(reports: pathlib.Path, machine: str | None = None, scenes=None,
+          sweep=None) -> list[dict]:
+    """The page, its CSV and plots; `machine`: the line of the machine the times are
+    from (default: sweep.machine(), else this one's)."""
+    if machine is None:
+        machine = sweep.machine() if sweep is not None else pages.machine()
     all_rows, parts = [], []
     reports.mkdir(parents=True, exist_ok=True)
     for title, (dc, ic, ref, t_end) in SCENES.items():
         if scenes is not None and title not in scenes:
             continue
         pages.progress(f"accuracy against time: {title}")
-        rows = measure(title, dc, ic, ref, t_end)
+        rows = measure(title, dc, ic, ref, t_end, sweep)
         all_rows += rows
         png = f"accuracy-vs-time-{ref}.png"
         plot(rows, title, reports / png)
@@ -158,7 +189,8 @@ def write(reports: pathlib.Path, machine: str, scenes=None) -> list[dict]:
                                     for r in failed) if failed else "") + "\n")
     page = ("# Accuracy against wall time\n\n"
             f"All tools measured in one run on one machine ({machine}); wall times are medians of "
-            f"{REPEATS} runs of the whole call (model building included, files not written). Errors "
+            f"{REPEATS} runs of the whole call (model building included, files not written), each "
+            "point measured alone, with nothing else of the report running. Errors "
             "over the x, y of the moving points against the committed reference, at its 1 ms "
             "samples. mbfg: default noise; the trapezoidal rule at dt ∈ {10, 5, 2, 1, 0.5, 0.2, "
             "0.1} ms, and Hermite–Simpson (`HS`, fourth order) at dt ∈ {20, 10, 5, 2, 1, 0.5, "
@@ -181,6 +213,7 @@ def main(argv=None) -> int:
                     help="comma-separated scene titles (default: %(default)s)")
     ap.add_argument("--repeats", type=int, default=REPEATS,
                     help="runs per point, the median is kept (default: %(default)s)")
+    sweeps.add_argument(ap)
     args = ap.parse_args(argv)
     chosen = [t.strip() for t in args.scenes.split(",") if t.strip()]
     unknown = [t for t in chosen if t not in SCENES]
@@ -189,9 +222,13 @@ def main(argv=None) -> int:
     if args.repeats < 1:
         ap.error("--repeats must be at least 1")
     REPEATS = args.repeats
-    write(args.out, pages.machine(), chosen)
+    with sweeps.from_args(args) as sweep:
+        write(args.out, scenes=chosen, sweep=sweep)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # As harness.timing, not __main__: the sweep's tasks name its functions, which the
+    # Dask scheduler and workers import.
+    from harness import timing
+    sys.exit(timing.main())

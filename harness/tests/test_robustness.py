@@ -4,7 +4,8 @@ cell by cell: every scene × DC/IC × N_w ∈ {1, 5, batch} × dt ∈ {1, 5, 10,
 A cell passes when it converges, or when it stops as ill-posed where that is the right
 answer (ILL_POSED). The cells that fail today are KNOWN_FAILING, strictly: a newly
 failing cell fails the test, and a fixed one shows up as XPASS(strict) until its entry
-goes. The selected cells run once, two at a time, before the first test."""
+goes. The selected cells run once, as tasks of a local Dask cluster (one worker per
+core; harness/sweep.py), before the first test."""
 import math
 import os
 import time
@@ -13,6 +14,7 @@ import pytest
 
 import mbfg
 from harness import robustness as rb
+from harness.sweep import Sweep
 
 # Scene × coordinates whose motion reaches a configuration the independent coordinates
 # do not determine: stopping ahead of it (ill-posed) is the right answer there. An
@@ -159,15 +161,21 @@ def test_scene_without_independent_coordinates_has_no_ic_cells():
     assert {o.status for o in na} == {"n/a"}
 
 
+# In this process (a sweep without Dask), so that the monkeypatches hold in the cells.
+SERIAL = Sweep("serial")
+
+
 def test_a_crashed_cell_is_an_error(monkeypatch):
     monkeypatch.setattr(rb, "run_cell", lambda *args: os._exit(3))
-    [o] = rb.run_cells([rb.Cell("pendulum", "dc", 1, 2e-2)], fast=True, progress=lambda _: None)
+    [o] = rb.run_cells([rb.Cell("pendulum", "dc", 1, 2e-2)], fast=True, progress=lambda _: None,
+                       sweep=SERIAL)
     assert o.status == "error" and "exit code 3" in o.cause
 
 
 def test_a_cell_over_the_time_limit_is_shortened_then_skipped(monkeypatch):
     monkeypatch.setattr(rb, "run_cell", lambda *args: time.sleep(60))
     monkeypatch.setitem(rb.KILL_AFTER, True, 0.2)
-    [o] = rb.run_cells([rb.Cell("pendulum", "dc", 1, 2e-2)], fast=True, progress=lambda _: None)
+    [o] = rb.run_cells([rb.Cell("pendulum", "dc", 1, 2e-2)], fast=True, progress=lambda _: None,
+                       sweep=SERIAL)
     assert o.status == "skipped"
     assert o.cause == "killed after 0.2 s at t_end = 1, 0.5, 0.24 s"
