@@ -48,11 +48,15 @@ BATCH_STEPS = 5000
 # A cell whose estimated run time exceeds its budget runs a shorter horizon (the CSV's
 # t_end): an estimate, not a measurement, so that the cell is the same run on every
 # machine. Near rank loss the iterations multiply past any estimate (a DC batch on the
-# N four-bar: 100× it), so a run still going after KILL_AFTER is killed and the cell
-# runs half its horizon, up to SHORTENINGS times; then, or below MIN_STEPS steps, it is
-# skipped (and says why).
+# N four-bar: 100× it), so a run that has used KILL_AFTER s of CPU time is killed and
+# the cell runs half its horizon, up to SHORTENINGS times; then, or below MIN_STEPS
+# steps, it is skipped (and says why). CPU time, not wall time: on a loaded machine a
+# wall-time limit killed runs that had only waited for a core (the squeezer's DC
+# N_w = 5 cells, 8-11 s alone, at 40 s). A run stuck without using the CPU is killed
+# after WALL_FACTOR × KILL_AFTER s of wall time.
 BUDGET = {False: 20.0, True: 1.0}        # s per cell: full, fast
 KILL_AFTER = {False: 120.0, True: 40.0}
+WALL_FACTOR = 4.0
 SHORTENINGS = 2
 MIN_STEPS = 10
 # The integrator of every cell (`--integrator`; passed to every task).
@@ -263,7 +267,7 @@ def cell_t_end(cell: Cell, fast: bool, killed: tuple[float, ...] = ()) -> tuple[
         return affordable_t_end(cell, planned, BUDGET[fast])
     return round_down(killed[-1] / 2, cell.dt), (
         f"t_end shortened from {planned:g} s: the runs of {', '.join(f'{t:g}' for t in killed)} s "
-        f"were killed after {KILL_AFTER[fast]:g} s")
+        f"were killed after {KILL_AFTER[fast]:g} s of CPU time")
 
 
 def run_cell(cell: Cell, fast: bool, killed: tuple[float, ...] = (),
@@ -332,7 +336,9 @@ def isolated_cell(cell: Cell, fast: bool, integrator: str = "trapezoidal") -> Ou
     tried = ()
     while True:
         t_end = cell_t_end(cell, fast, tried)[0]
-        status, value = sweeps.isolated(run_cell, (cell, fast, tried, integrator), KILL_AFTER[fast])
+        status, value = sweeps.isolated(run_cell, (cell, fast, tried, integrator),
+                                        WALL_FACTOR * KILL_AFTER[fast],
+                                        cpu_seconds=KILL_AFTER[fast])
         if status == "ok":
             return value
         if status == "died":
@@ -343,7 +349,7 @@ def isolated_cell(cell: Cell, fast: bool, integrator: str = "trapezoidal") -> Ou
         if len(tried) > SHORTENINGS:
             ends = ", ".join(f"{t:g}" for t in tried)
             return Outcome(cell.scene, cell.coords, cell.window, cell.dt, t_end, "skipped",
-                           f"killed after {KILL_AFTER[fast]:g} s at t_end = {ends} s")
+                           f"killed after {KILL_AFTER[fast]:g} s of CPU time at t_end = {ends} s")
 
 
 # ---------------------------------------------------------------- pages

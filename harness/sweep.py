@@ -26,9 +26,12 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
+import math
 import multiprocessing
 import os
 import pathlib
+import resource
+import signal
 import time
 import sys
 import warnings
@@ -274,15 +277,19 @@ def children_allowed():
             me._config["daemon"] = was
 
 
-def isolated(fn, args: tuple, timeout: float):
+def isolated(fn, args: tuple, timeout: float, cpu_seconds: float | None = None):
     """fn(*args) in a child process forked from this one (it shares what this one has
-    loaded), killed after `timeout` s: ("ok", its result), ("died", exit code) or
-    ("timeout", None). A crash in the native module ends the child alone."""
+    loaded), killed after `timeout` s of wall time or, given `cpu_seconds`, once it has
+    used that much CPU time (RLIMIT_CPU: a limit that does not move with the machine's
+    load, where a wall-time limit kills a run that only waited for a busy core):
+    ("ok", its result), ("died", exit code) or ("timeout", None). A crash in the native
+    module ends the child alone."""
     ctx = multiprocessing.get_context("fork")
     receive, send = ctx.Pipe(duplex=False)
     with children_allowed(), warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)   # fork in a threaded worker
-        child = ctx.Process(target=_child, args=(send, fn, args, os.getpid()), daemon=True)
+        child = ctx.Process(target=_child, args=(send, fn, args, os.getpid(), cpu_seconds),
+                            daemon=True)
         child.start()
     send.close()
     try:
@@ -291,6 +298,8 @@ def isolated(fn, args: tuple, timeout: float):
                 return "ok", receive.recv()
             except EOFError:   # it died without an answer
                 child.join()
+                if child.exitcode == -signal.SIGXCPU:
+                    return "timeout", None
                 return "died", child.exitcode
         child.kill()
         return "timeout", None
@@ -299,8 +308,11 @@ def isolated(fn, args: tuple, timeout: float):
         receive.close()
 
 
-def _child(conn, fn, args, parent: int) -> None:
+def _child(conn, fn, args, parent: int, cpu_seconds: float | None) -> None:
     die_with_parent(parent)
+    if cpu_seconds is not None:
+        limit = max(1, math.ceil(cpu_seconds))
+        resource.setrlimit(resource.RLIMIT_CPU, (limit, limit + 5))
     conn.send(fn(*args))
     conn.close()
 

@@ -115,6 +115,20 @@ def test_a_worker_runs_calls_in_child_processes_it_can_kill(two):
         ("timeout", None), ("died", 3), ("ok", 1024)]
 
 
+def spin():
+    while True:
+        pass
+
+
+def test_a_cpu_time_limit_stops_a_busy_run_and_spares_a_waiting_one():
+    # Busy: stopped by its 1 s of CPU time, far inside its 60 s of wall time.
+    began = time.perf_counter()
+    assert sw.isolated(spin, (), 60.0, cpu_seconds=1.0) == ("timeout", None)
+    assert time.perf_counter() - began < 30.0
+    # Waiting (as a run does for a busy core) costs no CPU time: not stopped.
+    assert sw.isolated(time.sleep, (2.0,), 60.0, cpu_seconds=1.0) == ("ok", None)
+
+
 def test_progress_counts_cells():
     seen = []
     assert sw.Sweep("serial").map(abs, [-1, 2, -3], "abs", progress=seen.append) == [1, 2, 3]
