@@ -172,10 +172,26 @@ def test_a_crashed_cell_is_an_error(monkeypatch):
     assert o.status == "error" and "exit code 3" in o.cause
 
 
+def spin(*args):
+    while True:
+        pass
+
+
 def test_a_cell_over_the_time_limit_is_shortened_then_skipped(monkeypatch):
-    monkeypatch.setattr(rb, "run_cell", lambda *args: time.sleep(60))
+    # Busy: stopped by its CPU-time limit (whole seconds: 1 s here).
+    monkeypatch.setattr(rb, "run_cell", spin)
     monkeypatch.setitem(rb.KILL_AFTER, True, 0.2)
     [o] = rb.run_cells([rb.Cell("pendulum", "dc", 1, 2e-2)], fast=True, progress=lambda _: None,
                        sweep=SERIAL)
     assert o.status == "skipped"
-    assert o.cause == "killed after 0.2 s at t_end = 1, 0.5, 0.24 s"
+    assert o.cause == "killed after 0.2 s of CPU time at t_end = 1, 0.5, 0.24 s"
+
+
+def test_a_cell_stuck_without_using_the_cpu_is_stopped_by_the_wall_clock(monkeypatch):
+    monkeypatch.setattr(rb, "run_cell", lambda *args: time.sleep(60))
+    monkeypatch.setitem(rb.KILL_AFTER, True, 0.2)
+    began = time.perf_counter()
+    [o] = rb.run_cells([rb.Cell("pendulum", "dc", 1, 2e-2)], fast=True, progress=lambda _: None,
+                       sweep=SERIAL)
+    assert o.status == "skipped"
+    assert time.perf_counter() - began < 3 * rb.WALL_FACTOR * 0.2 + 10
