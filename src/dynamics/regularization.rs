@@ -5,7 +5,7 @@
 
 use super::kernel::DynamicsKernel;
 use crate::graph::{zeros, MemStack, StackReq};
-use crate::linalg::dense::inverse_trace;
+use crate::linalg::dense::{inverse_trace, sparse_gram};
 use crate::model::Model;
 use faer::dyn_stack::{DynArray, MemBuffer};
 
@@ -145,33 +145,16 @@ impl DynamicsKernel {
             first,
             ..
         } = scratch;
-        // The rows of a large mechanism's Φ_q touch a few coordinates each: every
-        // sum below runs over the terms that can be nonzero only, in the order of
-        // the full sum (leaving out exact zeros, so the same value to the bit).
-        for (i, &k) in model.active.iter().enumerate() {
-            let row = &mat[k * n..(k + 1) * n];
-            let start = row.iter().position(|v| *v != 0.0).unwrap_or(n);
-            let end = row.iter().rposition(|v| *v != 0.0).map_or(start, |e| e + 1);
-            span[i] = (start, end);
-        }
-        // AAᵀ (lower triangle) and the row norms from its diagonal; per row of G the
-        // first nonzero column (its Cholesky factor's rows start there too).
-        for (i, &ki) in model.active.iter().enumerate() {
-            let ri = &mat[ki * n..(ki + 1) * n];
-            first[i] = i;
-            for (j, &kj) in model.active[..=i].iter().enumerate() {
-                let rj = &mat[kj * n..(kj + 1) * n];
-                let (a, b) = (span[i].0.max(span[j].0), span[i].1.min(span[j].1));
-                let v: f64 = if a < b {
-                    ri[a..b].iter().zip(&rj[a..b]).map(|(x, y)| x * y).sum()
-                } else {
-                    0.0
-                };
-                if v != 0.0 && first[i] == i {
-                    first[i] = j;
-                }
-                chol[i * ma + j] = v;
-            }
+        // AAᵀ (lower triangle) over the rows' nonzeros, and the row norms from its
+        // diagonal.
+        sparse_gram(
+            ma,
+            |i| &mat[model.active[i] * n..(model.active[i] + 1) * n],
+            span,
+            first,
+            chol,
+        );
+        for i in 0..ma {
             let n2 = chol[i * ma + i];
             if !(n2 > 0.0) {
                 return singular;

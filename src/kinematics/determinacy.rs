@@ -257,23 +257,15 @@ impl Determinacy {
                 return 0.0;
             }
             row.iter_mut().for_each(|v| *v /= norm);
-            let start = row.iter().position(|v| *v != 0.0).unwrap_or(d);
-            let end = row.iter().rposition(|v| *v != 0.0).map_or(start, |e| e + 1);
-            self.spans[r] = (start, end);
         }
-        // The Gram matrix over each pair's common columns only (a large mechanism's
-        // rows touch a few coordinates; the sums lose only exact zeros at their ends).
-        let (rows, g, spans) = (&self.rows, &mut self.chol, &self.spans);
-        for i in 0..ma {
-            for j in 0..=i {
-                let (a, b) = (spans[i].0.max(spans[j].0), spans[i].1.min(spans[j].1));
-                g[i * ma + j] = if a < b {
-                    (a..b).map(|c| rows[i * d + c] * rows[j * d + c]).sum()
-                } else {
-                    0.0
-                };
-            }
-        }
+        let (rows, g) = (&self.rows, &mut self.chol);
+        dense::sparse_gram(
+            ma,
+            |i| &rows[i * d..(i + 1) * d],
+            &mut self.spans,
+            &mut self.first,
+            g,
+        );
         if dense::cholesky(g, ma).is_err() {
             return 0.0;
         }

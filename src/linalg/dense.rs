@@ -397,6 +397,45 @@ pub fn lu_solve_many_by_hand(
     b.copy_from_slice(x);
 }
 
+/// The lower triangle of the Gram matrix G_ij = rᵢ·rⱼ (row-major `count` × `count`
+/// in `g`) of the rows `row(i)`, each sum over the columns where both rows can be
+/// nonzero: a large mechanism's equations touch a few coordinates each, and the
+/// sums, in the order of the whole rows', lose only exact zeros at their ends (the
+/// same values to the bit). `spans` receives each row's nonzero columns
+/// [start, end), `first` each row of G's first nonzero column (where the rows of its
+/// Cholesky factor start too).
+pub fn sparse_gram<'a>(
+    count: usize,
+    row: impl Fn(usize) -> &'a [f64],
+    spans: &mut [(usize, usize)],
+    first: &mut [usize],
+    g: &mut [f64],
+) {
+    for (i, span) in spans[..count].iter_mut().enumerate() {
+        let r = row(i);
+        let start = r.iter().position(|v| *v != 0.0).unwrap_or(r.len());
+        let end = r.iter().rposition(|v| *v != 0.0).map_or(start, |e| e + 1);
+        *span = (start, end);
+    }
+    for i in 0..count {
+        let ri = row(i);
+        first[i] = i;
+        for j in 0..=i {
+            let rj = row(j);
+            let (a, b) = (spans[i].0.max(spans[j].0), spans[i].1.min(spans[j].1));
+            let v: f64 = if a < b {
+                ri[a..b].iter().zip(&rj[a..b]).map(|(x, y)| x * y).sum()
+            } else {
+                0.0
+            };
+            if v != 0.0 && first[i] == i {
+                first[i] = j;
+            }
+            g[i * count + j] = v;
+        }
+    }
+}
+
 /// tr G⁻¹ = ‖L⁻¹‖_F² from the lower Cholesky factor L of G (row-major ma × ma): L⁻¹
 /// column by column, each by forward substitution of a column of I
 /// ([`solve_lower`]) in `column` (length ma), and kept in the lower triangle

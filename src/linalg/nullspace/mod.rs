@@ -214,6 +214,19 @@ impl NullSpace {
         self.seg_end = vec![0; self.segments];
     }
 
+    /// w[..sf] ← Q w[..sf] with the last QR's reflectors (see [`apply_q`]).
+    fn apply_q_to_w(&mut self, sf: usize) {
+        apply_q(
+            &self.a,
+            &self.beta,
+            &self.rend,
+            &self.made,
+            sf,
+            &mut self.w[..sf],
+            self.summation,
+        );
+    }
+
     /// w ← H_k w (reflector k of the last QR, on rows k..rend[k]).
     fn reflect(&mut self, k: usize, sf: usize) {
         let end = self.rend[k];
@@ -423,15 +436,7 @@ impl NullSpace {
         for j in rank..sf {
             self.w[..sf].fill(0.0);
             self.w[j] = 1.0;
-            apply_q(
-                &self.a,
-                &self.beta,
-                &self.rend,
-                &self.made,
-                sf,
-                &mut self.w[..sf],
-                self.summation,
-            );
+            self.apply_q_to_w(sf);
             for a in 0..sf {
                 self.dense[a * q + (j - rank)] = self.w[a];
             }
@@ -559,15 +564,7 @@ impl NullSpace {
             }
         }
         self.w[rank..sf].fill(0.0);
-        apply_q(
-            &self.a,
-            &self.beta,
-            &self.rend,
-            &self.made,
-            sf,
-            &mut self.w[..sf],
-            self.summation,
-        );
+        self.apply_q_to_w(sf);
         for (a, &i) in self.qr_rows.iter().enumerate() {
             x[i] = self.w[a];
         }
