@@ -256,12 +256,17 @@ pub(crate) fn number(v: f64) -> String {
 fn write_number(out: &mut String, v: f64) {
     use std::fmt::Write as _;
     let a = v.abs();
-    // Writing into a String cannot fail.
-    let _ = if a == 0.0 || (1e-4..1e7).contains(&a) {
-        write!(out, "{v}")
+    if a == 0.0 || (1e-4..1e7).contains(&a) {
+        // The same shortest round-trip digits as `{v}` (tested), written by ryu at a
+        // third of the cost (the CSV text was a tenth of a four-bar run). ryu spells
+        // this range in plain decimals too, whole numbers with a trailing ".0".
+        let mut digits = ryu::Buffer::new();
+        let text = digits.format_finite(v);
+        out.push_str(text.strip_suffix(".0").unwrap_or(text));
     } else {
-        write!(out, "{v:e}")
-    };
+        // Writing into a String cannot fail.
+        let _ = write!(out, "{v:e}");
+    }
 }
 
 /// A numeric table read from a CSV file with a header row.
@@ -495,6 +500,44 @@ impl<R: std::io::Read> std::io::Read for Bounded<R> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The text of a number is exactly Rust's own shortest form, as it was before
+    /// the rows were written by ryu: over every binade of the plain range, the
+    /// boundaries, whole numbers, signed zeros and a million pseudo-random values.
+    #[test]
+    fn numbers_are_spelled_as_rust_spells_them() {
+        let reference = |v: f64| {
+            let a = v.abs();
+            if a == 0.0 || (1e-4..1e7).contains(&a) {
+                format!("{v}")
+            } else {
+                format!("{v:e}")
+            }
+        };
+        let mut cases = vec![
+            0.0, -0.0, 1.0, -1.0, 1e-4, 9.999_999_999_999_999e-5, 1e7, 9_999_999.999_999_998,
+            0.1, 0.2 + 0.1, 1.0 / 3.0, 1e6, 123_456.0, 5e-324, 1e300, f64::MAX, -2.5e-5,
+            std::f64::consts::PI,
+        ];
+        // A xorshift sequence over the bits: every exponent the plain range spans.
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        for _ in 0..1_000_000 {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            // Exponents 2^-15 .. 2^25, either sign, any mantissa.
+            let exponent = 1008 + (state >> 52) % 41;
+            let bits = (state & 0x800F_FFFF_FFFF_FFFF) | (exponent << 52);
+            cases.push(f64::from_bits(bits));
+        }
+        cases.extend((0..10_000).map(|i| i as f64 * 0.001));
+        cases.extend((0..10_000).map(|i| (i * 997) as f64));
+        for v in cases {
+            let mut text = String::new();
+            write_number(&mut text, v);
+            assert_eq!(text, reference(v), "bits {:#x}", v.to_bits());
+        }
+    }
 
     #[test]
     fn written_trajectory_reads_back_bit_for_bit() {
