@@ -64,8 +64,14 @@ pub(super) fn householder_grouped(
     beta: &mut [f64],
     perm: &mut [usize],
     norms: &mut [f64],
-    support: &mut [u64],
+    sparsity: Sparsity,
 ) -> usize {
+    let Sparsity {
+        support,
+        starts,
+        ends,
+        order,
+    } = sparsity;
     let Grouping {
         group,
         seg_end,
@@ -87,16 +93,24 @@ pub(super) fn householder_grouped(
     for j in 0..m {
         perm[j] = j;
         let col = &a[j * s..(j + 1) * s];
+        // A sequential sum over the nonzeros alone is the sum over all, to the bit.
+        let mut n2 = None;
         if words > 0 {
             let sj = &mut support[j * words..(j + 1) * words];
             sj.fill(0);
+            (starts[j], ends[j]) = (s, 0);
+            let mut sum = 0.0;
             for (i, v) in col.iter().enumerate() {
                 if *v != 0.0 {
                     sj[i / 64] |= 1 << (i % 64);
+                    starts[j] = starts[j].min(i);
+                    ends[j] = i + 1;
+                    sum += v * v;
                 }
             }
+            n2 = (how == Summation::Sequential).then_some(sum);
         }
-        let n2 = dot(col, col, how);
+        let n2 = n2.unwrap_or_else(|| dot(col, col, how));
         partial[j] = n2;
         reference[j] = n2;
         largest = largest.max(n2);
@@ -113,7 +127,13 @@ pub(super) fn householder_grouped(
             // reached these columns).
             for j in k..m {
                 if group[j] == g {
-                    let live = &a[j * s + k..j * s + end];
+                    // Within the column's rows where they are tracked (the same sum).
+                    let (lo, hi) = if words > 0 && how == Summation::Sequential {
+                        (k.max(starts[j]), end.min(ends[j]).max(k.max(starts[j])))
+                    } else {
+                        (k, end)
+                    };
+                    let live = &a[j * s + lo..j * s + hi];
                     partial[j] = dot(live, live, how);
                     reference[j] = partial[j];
                 }
@@ -126,6 +146,7 @@ pub(super) fn householder_grouped(
                     best = Some(j);
                 }
             }
+            let largest_left = best;
             let exhausted = match best {
                 None => true,
                 Some(b) if partial[b] <= tol2 => {
@@ -147,13 +168,22 @@ pub(super) fn householder_grouped(
                 }
                 break;
             }
-            let best = best.expect("a column of the group");
+            let mut best = best.expect("a column of the group");
+            if words > 0 && order {
+                best = sparse_pivot(partial, group, g, (k, m), largest_left, |j| {
+                    (ends[j], first_row(&support[j * words..(j + 1) * words], k))
+                });
+            }
             if best != k {
                 for i in 0..s {
                     a.swap(k * s + i, best * s + i);
                 }
                 for w in 0..words {
                     support.swap(k * words + w, best * words + w);
+                }
+                if words > 0 {
+                    starts.swap(k, best);
+                    ends.swap(k, best);
                 }
                 perm.swap(k, best);
                 partial.swap(k, best);
@@ -174,8 +204,10 @@ pub(super) fn householder_grouped(
             let v = &left[k * s + k..k * s + end];
             for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
                 let j = k + 1 + jj;
-                // This group's columns now; the later ones below, if at all.
-                if group[j] != g {
+                // This group's columns now; the later ones below, if at all. A column
+                // whose rows miss the reflector's is 0 on row k too: nothing changes
+                // (and its entries stay out of the cache).
+                if group[j] != g || (words > 0 && (starts[j] >= v_end || ends[j] <= k)) {
                     continue;
                 }
                 let live = &mut y[k..end];
@@ -185,6 +217,10 @@ pub(super) fn householder_grouped(
                     (k, end),
                     how,
                 ) {
+                    if words > 0 {
+                        starts[j] = starts[j].min(k);
+                        ends[j] = ends[j].max(v_end);
+                    }
                     let f = b * dot(&v[lo - k..hi - k], &live[lo - k..hi - k], how);
                     let reach = v_end - k;
                     for (yi, vi) in live[..reach].iter_mut().zip(&v[..reach]) {
@@ -209,7 +245,10 @@ pub(super) fn householder_grouped(
                 let v = &left[r * s + r..r * s + end];
                 for (jj, y) in right.chunks_exact_mut(s).take(m - r - 1).enumerate() {
                     let j = r + 1 + jj;
-                    if group[j] == DROPPED || group[j] <= g {
+                    if group[j] == DROPPED
+                        || group[j] <= g
+                        || (words > 0 && (starts[j] >= v_end || ends[j] <= r))
+                    {
                         continue;
                     }
                     let Some((lo, hi)) = overlap(
@@ -220,6 +259,10 @@ pub(super) fn householder_grouped(
                     ) else {
                         continue;
                     };
+                    if words > 0 {
+                        starts[j] = starts[j].min(r);
+                        ends[j] = ends[j].max(v_end);
+                    }
                     let live = &mut y[r..end];
                     let f = beta[r] * dot(&v[lo - r..hi - r], &live[lo - r..hi - r], how);
                     let reach = v_end - r;
@@ -235,6 +278,70 @@ pub(super) fn householder_grouped(
         }
     }
     k
+}
+
+/// The column supports a large mechanism's QR tracks (see [`householder_grouped`]):
+/// per column a superset of its nonzero rows (bits), with room for one reflector's
+/// rows after them, and the range of those rows (first, one past the last); and
+/// whether the pivots follow the supports ([`SPARSE_PIVOT`]). An empty `support`
+/// tracks nothing.
+pub(super) struct Sparsity<'a> {
+    pub(super) support: &'a mut [u64],
+    pub(super) starts: &'a mut [usize],
+    pub(super) ends: &'a mut [usize],
+    pub(super) order: bool,
+}
+
+/// A pivot this close to the largest column left (its remaining norm at least this
+/// fraction of the largest) is as good a pivot for a large mechanism's QR: the
+/// rank test and the damped corrections still see the largest, and the pivots taken
+/// stay well away from 0. Among those, [`householder_grouped`] takes the column
+/// whose rows end first, so that each reflector stays within the band of unknowns
+/// its equation touches: a chain's equations are then factored along the chain,
+/// each reflector a few rows long, where the largest-norm order jumps along it and
+/// fills the factors (the 50 four-bar loops: three quarters of the null space's
+/// cost).
+pub(super) const SPARSE_PIVOT: f64 = 0.1;
+
+/// The pivot among the group's columns `range` (of group `g`) whose remaining norm
+/// (squared, `partial`) is at least [`SPARSE_PIVOT`] of the largest one's
+/// (`largest`): the one whose rows (`extent`: last, first) end first, then start
+/// first; on a tie, the larger.
+fn sparse_pivot(
+    partial: &[f64],
+    group: &[usize],
+    g: usize,
+    (k, m): (usize, usize),
+    largest: Option<usize>,
+    first: impl Fn(usize) -> (usize, usize),
+) -> usize {
+    let largest = largest.expect("a column of the group");
+    let floor = SPARSE_PIVOT * SPARSE_PIVOT * partial[largest];
+    let mut pick = (first(largest), largest);
+    for j in k..m {
+        if j == largest || group[j] != g || partial[j] < floor {
+            continue;
+        }
+        let row = first(j);
+        if row < pick.0 || (row == pick.0 && partial[j] > partial[pick.1]) {
+            pick = (row, j);
+        }
+    }
+    pick.1
+}
+
+/// The first row from `k` on in a column's support bits (`usize::MAX` if none).
+fn first_row(bits: &[u64], k: usize) -> usize {
+    let mut w = k / 64;
+    let mut word = bits.get(w).map_or(0, |b| b & (!0u64 << (k % 64)));
+    while word == 0 {
+        w += 1;
+        match bits.get(w) {
+            Some(b) => word = *b,
+            None => return usize::MAX,
+        }
+    }
+    w * 64 + word.trailing_zeros() as usize
 }
 
 /// The number of rows from which [`householder_grouped`] tracks the columns'
@@ -287,10 +394,13 @@ fn overlap(
     if mask.is_empty() {
         return Some(rows);
     }
+    // The mask is 0 outside the words of the reflector's rows.
+    let (w0, w1) = (rows.0 / 64, rows.1.div_ceil(64).min(mask.len()));
+    let (column, mask) = (&mut column[w0..w1], &mask[w0..w1]);
     let first = column.iter().zip(mask).position(|(c, m)| c & m != 0)?;
-    let lo = first * 64 + (column[first] & mask[first]).trailing_zeros() as usize;
+    let lo = (w0 + first) * 64 + (column[first] & mask[first]).trailing_zeros() as usize;
     let last = column.iter().zip(mask).rposition(|(c, m)| c & m != 0)?;
-    let hi = last * 64 + 64 - (column[last] & mask[last]).leading_zeros() as usize;
+    let hi = (w0 + last) * 64 + 64 - (column[last] & mask[last]).leading_zeros() as usize;
     for (c, m) in column.iter_mut().zip(mask) {
         *c |= m;
     }

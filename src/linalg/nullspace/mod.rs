@@ -41,7 +41,9 @@
 //! is real, and is corrected exactly however small the pivot.
 
 use super::dense::{dot, Summation};
-use householder::{apply_q, householder_grouped, GroupReflectors, Grouping, TRACK_SUPPORT_FROM};
+use householder::{
+    apply_q, householder_grouped, GroupReflectors, Grouping, Sparsity, TRACK_SUPPORT_FROM,
+};
 
 mod householder;
 #[cfg(test)]
@@ -90,8 +92,11 @@ pub struct NullSpace {
     beta: Vec<f64>,
     perm: Vec<usize>,
     norms: Vec<f64>,
-    /// Per QR column, a superset of its nonzero rows (bits), and one reflector's.
+    /// Per QR column, a superset of its nonzero rows (bits), and one reflector's;
+    /// per column, the range of those rows.
     support: Vec<u64>,
+    support_start: Vec<usize>,
+    support_end: Vec<usize>,
     w: Vec<f64>,
     rhs: Vec<f64>,
     /// Per QR column (an equation of `others`), 1/its norm on the free unknowns: the
@@ -173,6 +178,8 @@ impl NullSpace {
             perm: vec![0; max_rows],
             norms: vec![0.0; 2 * max_rows],
             support: Vec::new(),
+            support_start: vec![0; max_rows],
+            support_end: vec![0; max_rows],
             w: vec![0.0; s],
             rhs: vec![0.0; max_rows],
             row_scale: vec![1.0; max_rows],
@@ -411,10 +418,15 @@ impl NullSpace {
             &mut self.beta,
             &mut self.perm,
             &mut self.norms,
-            if sf >= TRACK_SUPPORT_FROM {
-                &mut self.support
-            } else {
-                &mut []
+            Sparsity {
+                support: if sf >= TRACK_SUPPORT_FROM {
+                    &mut self.support
+                } else {
+                    &mut []
+                },
+                starts: &mut self.support_start,
+                ends: &mut self.support_end,
+                order: true,
             },
         );
         let fixed_count = s - sf - self.untouched.len();

@@ -422,6 +422,7 @@ mod sparse {
             let s = 2 * s_half;
             let seg_end = [s_half, s];
             let run = |track: bool| {
+                let (mut starts, mut ends) = (vec![0; m], vec![0; m]);
                 let mut a = a0.clone();
                 let mut group = group0.clone();
                 let (mut rend, mut made) = (vec![0; s.min(m)], Vec::new());
@@ -443,7 +444,12 @@ mod sparse {
                     &mut beta,
                     &mut perm,
                     &mut norms,
-                    &mut support,
+                    Sparsity {
+                        support: &mut support,
+                        starts: &mut starts,
+                        ends: &mut ends,
+                        order: false,
+                    },
                 );
                 let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 (rank, bits(&a), bits(&rdiag), bits(&beta), perm, group)
@@ -451,6 +457,162 @@ mod sparse {
             let (tracked, plain) = (run(true), run(false));
             assert_eq!(tracked.0, m - 1, "the repeated equation is dependent");
             assert!(tracked == plain, "s = {s}: the tracked QR differs");
+        }
+    }
+
+    /// A chain with nearly as many equations as unknowns per segment (a planar
+    /// chain's two per point): equation j touches unknowns j..j+3 of its segment (the
+    /// later segment's also the earlier segment's), two unknowns per segment left
+    /// free, and one equation repeating another.
+    fn tight_chain(s_half: usize, seed: &mut u64) -> (Vec<f64>, usize, Vec<usize>) {
+        let s = 2 * s_half;
+        let per = s_half - 2;
+        let m = 2 * per + 1;
+        let mut a = vec![0.0; s * m];
+        let mut group = vec![0; m];
+        for seg in 0..2 {
+            for j in 0..per {
+                let col = seg * per + j;
+                group[col] = seg;
+                for i in j..j + 3 {
+                    a[col * s + seg * s_half + i] = pseudo_random(seed);
+                    if seg == 1 {
+                        a[col * s + i] = pseudo_random(seed);
+                    }
+                }
+            }
+        }
+        let copy: Vec<f64> = a[5 * s..6 * s].to_vec();
+        a[(m - 1) * s..m * s].copy_from_slice(&copy);
+        group[m - 1] = 0;
+        (a, m, group)
+    }
+
+    /// The chain's equations listed out of order (every third, then the rest), as a
+    /// scene lists cranks before couplers.
+    fn scrambled(a: &[f64], s: usize, m: usize, group: &[usize]) -> (Vec<f64>, Vec<usize>) {
+        let order: Vec<usize> = (0..m)
+            .step_by(3)
+            .chain((0..m).filter(|j| j % 3 != 0))
+            .collect();
+        let mut out = vec![0.0; s * m];
+        let mut g = vec![0; m];
+        for (new, &old) in order.iter().enumerate() {
+            out[new * s..(new + 1) * s].copy_from_slice(&a[old * s..(old + 1) * s]);
+            g[new] = group[old];
+        }
+        (out, g)
+    }
+
+    /// Pivots that follow the supports keep a chain's reflectors within its band: far
+    /// fewer nonzeros below the diagonal than the largest-norm order leaves, and the
+    /// same rank.
+    #[test]
+    fn pivots_along_the_supports_keep_the_factors_banded() {
+        let mut seed = 5;
+        for s_half in [70, 131] {
+            let (a0, m, group0) = tight_chain(s_half, &mut seed);
+            let s = 2 * s_half;
+            let (a0, group0) = scrambled(&a0, s, m, &group0);
+            let seg_end = [s_half, s];
+            let run = |order: bool| {
+                let mut a = a0.clone();
+                let mut group = group0.clone();
+                let (mut rend, mut made) = (vec![0; s.min(m)], Vec::new());
+                let (mut rdiag, mut beta) = (vec![0.0; s.min(m)], vec![0.0; s.min(m)]);
+                let (mut perm, mut norms) = (vec![0; m], vec![0.0; 2 * m]);
+                let mut support = vec![0u64; (m + 1) * s.div_ceil(64)];
+                let (mut starts, mut ends) = (vec![0; m], vec![0; m]);
+                let rank = householder_grouped(
+                    &mut a,
+                    s,
+                    m,
+                    Grouping {
+                        group: &mut group,
+                        seg_end: &seg_end,
+                        rend: &mut rend,
+                        made: &mut made,
+                    },
+                    Summation::Sequential,
+                    &mut rdiag,
+                    &mut beta,
+                    &mut perm,
+                    &mut norms,
+                    Sparsity {
+                        support: &mut support,
+                        starts: &mut starts,
+                        ends: &mut ends,
+                        order,
+                    },
+                );
+                let below = (0..rank)
+                    .map(|k| {
+                        a[k * s + k + 1..(k + 1) * s]
+                            .iter()
+                            .filter(|v| **v != 0.0)
+                            .count()
+                    })
+                    .sum::<usize>();
+                (rank, below)
+            };
+            let ((rank, banded), (rank_plain, filled)) = (run(true), run(false));
+            assert_eq!(rank, m - 1, "the repeated equation is dependent");
+            assert_eq!(rank, rank_plain);
+            assert!(
+                3 * banded < filled,
+                "s = {s}: {banded} nonzeros in the reflectors, {filled} in largest-norm order"
+            );
+        }
+    }
+
+    /// The reduction of a large scrambled chain through the support-ordered QR: an
+    /// orthonormal basis of C's null space and the least-norm solution of C δ = b.
+    #[test]
+    fn a_large_scrambled_chain_reduces_exactly() {
+        let mut seed = 17;
+        let s_half = 131;
+        let (a, m, group) = tight_chain(s_half, &mut seed);
+        let s = 2 * s_half;
+        let (a, _) = scrambled(&a, s, m, &group);
+        // C row-major m × s is Cᵀ column-major.
+        let c = a.clone();
+        let mut b: Vec<f64> = (0..m).map(|_| pseudo_random(&mut seed)).collect();
+        // The repeated equation must agree with the one it repeats.
+        let row = |j: usize| &c[j * s..(j + 1) * s];
+        let (original, copy) = (0..m)
+            .flat_map(|i| (i + 1..m).map(move |j| (i, j)))
+            .find(|&(i, j)| row(i) == row(j))
+            .expect("the repeated equation");
+        b[copy] = b[original];
+        let mut ns = NullSpace::new(s, m);
+        let segment: Vec<usize> = (0..s).map(|i| usize::from(i >= s_half)).collect();
+        ns.set_segments(&segment);
+        ns.reduce(&c, &b, m);
+        assert_eq!(ns.dim, s - (m - 1));
+        let n = ns.basis();
+        let d = ns.dim;
+        for j in 0..m {
+            let row = &c[j * s..(j + 1) * s];
+            let cp: f64 = row.iter().zip(&ns.particular).map(|(x, y)| x * y).sum();
+            assert!(
+                (cp - b[j]).abs() < 1e-12,
+                "equation {j}: C p − b = {}",
+                cp - b[j]
+            );
+            for col in 0..d {
+                let cn: f64 = (0..s).map(|i| row[i] * n[i * d + col]).sum();
+                assert!(cn.abs() < 1e-12, "C N[{j}, {col}] = {cn}");
+            }
+        }
+        for x in 0..d {
+            for y in 0..d {
+                let g: f64 = (0..s).map(|i| n[i * d + x] * n[i * d + y]).sum();
+                let want = if x == y { 1.0 } else { 0.0 };
+                assert!((g - want).abs() < 1e-12, "NᵀN[{x}, {y}] = {g}");
+            }
+            // Least norm: p ⟂ the null space.
+            let pn: f64 = (0..s).map(|i| ns.particular[i] * n[i * d + x]).sum();
+            assert!(pn.abs() < 1e-12, "pᵀN[{x}] = {pn}");
         }
     }
 }
