@@ -2,7 +2,8 @@
 //! the sizes a step has (4–70 unknowns; 120 ≈ 4n for inverse dynamics with n = 30):
 //! `cholesky` (factor + one solve), `lu` (factor + n right-hand sides, as the
 //! dynamics kernel's Jacobians solve them) and `nullspace` (the reduction of a dense
-//! m × s constraint block: pivoted QR, null-space basis and least-norm solution).
+//! m × s constraint block: pivoted QR, null-space basis and least-norm solution) and
+//! `gram` (the lower triangle of YᵀY, the marginal prior's product).
 //!
 //! Both sides of `cholesky` and `lu` are the library's own functions
 //! (`dense::*_by_hand` and `dense::*_faer`; `dense::cholesky` and `dense::lu` pick
@@ -282,5 +283,33 @@ fn nullspace(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, cholesky, lu, nullspace);
+/// The Schur complement's YᵀY (lower triangle) of a DC step leaving the window: Y is
+/// (n + 2) × 3n for n coordinates (the four-bar, and the N four-bar with N = 10, 20,
+/// 40), by the loops and by faer (`dense::gram_lower` picks one by size).
+fn gram(c: &mut Criterion) {
+    let mut group = configure(c, "gram");
+    for n in [5, 23, 43, 83] {
+        let (k, s) = (n + 2, 3 * n);
+        let y = entries(k * s, s as u64);
+        let mut out = vec![0.0; s * s];
+        group.bench_with_input(BenchmarkId::new("hand", s), &s, |bench, &s| {
+            bench.iter(|| {
+                dense::gram_lower_by_hand(&y, k, s, &mut out);
+                black_box(&out);
+            })
+        });
+        group.bench_with_input(BenchmarkId::new("faer", s), &s, |bench, &s| {
+            bench.iter(|| {
+                dense::gram_lower_faer(
+                    dense::rows_mut(&mut out, s, s, s),
+                    dense::rows(&y, k, s, s),
+                );
+                black_box(&out);
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, cholesky, lu, nullspace, gram);
 criterion_main!(benches);

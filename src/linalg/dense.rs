@@ -397,6 +397,101 @@ pub fn lu_solve_many_by_hand(
     b.copy_from_slice(x);
 }
 
+/// Size (unknowns of a step, s) from which the dense products of the priors and of
+/// the marginal (the s × s information against the null-space basis, the Schur
+/// complement's YᵀY, s × s × dim each) go through faer's blocked kernels
+/// ([`multiply`], [`solve_lower_rows`], [`gram_lower`]) instead of the loops beside
+/// them: the 10 four-bar loops (69 unknowns a step in DC) and beyond. faer is the
+/// faster at every size `benches/linalg.rs` measures (group `gram`: faer/hand 0.57
+/// at s = 15, 0.10 at 69, 0.078 at 129, 0.063 at 249), but it sums in another order:
+/// below this size the loops are kept, operation for operation, so that the results
+/// of the scenes the reports and the regression table pin stay the same to the bit;
+/// at the four-bar's size the whole Schur complement is 4 % of a step.
+pub const FAER_PRODUCTS_FROM: usize = 64;
+
+/// Dense columns of a null-space basis from which its products with an s × s
+/// information matrix go through faer (with [`FAER_PRODUCTS_FROM`] unknowns): a
+/// chain of loops with one degree of freedom has 2 a step (the rest are unit
+/// vectors, which the loops skip and a dense product would not); an n-link
+/// pendulum 2n.
+pub const FAER_DENSE_COLUMNS_FROM: usize = 16;
+
+/// Whether the products of an s × s information matrix with a null-space basis of
+/// `q` dense columns are faster by faer's blocked kernels than by the loops.
+pub fn blocked_products(s: usize, q: usize) -> bool {
+    s >= FAER_PRODUCTS_FROM && q >= FAER_DENSE_COLUMNS_FROM
+}
+
+/// The row-major `rows` × `cols` matrix in `v` with row stride `ld`.
+pub fn rows(v: &[f64], rows: usize, cols: usize, ld: usize) -> MatRef<'_, f64> {
+    let len = if rows == 0 { 0 } else { (rows - 1) * ld + cols };
+    MatRef::from_row_major_slice_with_stride(&v[..len], rows, cols, ld)
+}
+
+/// [`rows`], writable. (As the transpose of a column-major view: faer 0.24.4's
+/// `from_row_major_slice_with_stride_mut` lays the slice out column by column.)
+pub fn rows_mut(v: &mut [f64], rows: usize, cols: usize, ld: usize) -> MatMut<'_, f64> {
+    let len = if rows == 0 { 0 } else { (rows - 1) * ld + cols };
+    MatMut::from_column_major_slice_with_stride_mut(&mut v[..len], cols, rows, ld).transpose_mut()
+}
+
+/// C ← A B, or C += A B with `add`, by faer's blocked product.
+pub fn multiply(c: MatMut<'_, f64>, add: bool, a: MatRef<'_, f64>, b: MatRef<'_, f64>) {
+    let accum = if add {
+        faer::Accum::Add
+    } else {
+        faer::Accum::Replace
+    };
+    faer::linalg::matmul::matmul(c, accum, a, b, 1.0, Par::Seq);
+}
+
+/// The lower triangle (diagonal included) of C ← AᵀA, A row-major k × n, C n × n
+/// row-major (its upper triangle not written): by loops below
+/// [`FAER_PRODUCTS_FROM`] columns, by faer from there on (`benches/linalg.rs`,
+/// group `gram`).
+pub fn gram_lower(a: &[f64], k: usize, n: usize, c: &mut [f64]) {
+    if n >= FAER_PRODUCTS_FROM {
+        gram_lower_faer(rows_mut(c, n, n, n), rows(a, k, n, n));
+    } else {
+        gram_lower_by_hand(a, k, n, c);
+    }
+}
+
+/// [`gram_lower`] by loops: summed over the rows of A in order.
+pub fn gram_lower_by_hand(a: &[f64], k: usize, n: usize, c: &mut [f64]) {
+    for i in 0..n {
+        c[i * n..=i * n + i].fill(0.0);
+    }
+    for row in a.chunks_exact(n).take(k) {
+        for (i, &ri) in row.iter().enumerate() {
+            for (o, rj) in c[i * n..=i * n + i].iter_mut().zip(row) {
+                *o += ri * rj;
+            }
+        }
+    }
+}
+
+/// [`gram_lower`] by faer's blocked kernel, on views.
+pub fn gram_lower_faer(c: MatMut<'_, f64>, a: MatRef<'_, f64>) {
+    use faer::linalg::matmul::triangular::{matmul, BlockStructure};
+    matmul(
+        c,
+        BlockStructure::TriangularLower,
+        faer::Accum::Replace,
+        a.transpose(),
+        BlockStructure::Rectangular,
+        a,
+        BlockStructure::Rectangular,
+        1.0,
+        Par::Seq,
+    );
+}
+
+/// B ← L⁻¹ B for the lower-triangular L (its upper part not read), by faer.
+pub fn solve_lower_rows(l: MatRef<'_, f64>, b: MatMut<'_, f64>) {
+    triangular_solve::solve_lower_triangular_in_place(l, b, Par::Seq);
+}
+
 /// The lower triangle of the Gram matrix G_ij = rᵢ·rⱼ (row-major `count` × `count`
 /// in `g`) of the rows `row(i)`, each sum over the columns where both rows can be
 /// nonzero: a large mechanism's equations touch a few coordinates each, and the
@@ -485,6 +580,64 @@ pub fn inverse_trace(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The row-major views address row i, column j at i·ld + j, also when written
+    /// through, and the blocked solve and product agree with their definitions.
+    #[test]
+    fn row_major_views_and_blocked_products() {
+        let (d, s) = (5, 7);
+        let mut l = vec![0.0; d * s];
+        for i in 0..d {
+            for j in 0..=i {
+                l[i * s + j] = 1.0 + (i * 3 + j) as f64 * 0.1;
+            }
+        }
+        let b0: Vec<f64> = (0..d * s).map(|i| (i as f64 * 0.37).sin()).collect();
+        let mut b = b0.clone();
+        {
+            let mut view = rows_mut(&mut b, d, s, s);
+            for i in 0..d {
+                for j in 0..s {
+                    assert_eq!(view[(i, j)], b0[i * s + j]);
+                }
+            }
+            view[(1, 2)] = 42.0;
+        }
+        assert_eq!(b[s + 2], 42.0);
+        b[s + 2] = b0[s + 2];
+        solve_lower_rows(rows(&l, d, d, s), rows_mut(&mut b, d, s, s));
+        for i in 0..d {
+            for j in 0..s {
+                let lb: f64 = (0..=i).map(|k| l[i * s + k] * b[k * s + j]).sum();
+                assert!((lb - b0[i * s + j]).abs() < 1e-12, "(L B)[{i}, {j}]");
+            }
+        }
+        let mut c = vec![1.0; s * s];
+        let bv = rows(&b, d, s, s);
+        multiply(rows_mut(&mut c, s, s, s), true, bv.transpose(), bv);
+        let (mut lower, mut by_hand) = (vec![7.0; s * s], vec![7.0; s * s]);
+        gram_lower_faer(rows_mut(&mut lower, s, s, s), bv);
+        gram_lower_by_hand(&b, d, s, &mut by_hand);
+        for i in 0..s {
+            for j in 0..s {
+                let want = if j <= i { c[i * s + j] - 1.0 } else { 7.0 };
+                assert!((lower[i * s + j] - want).abs() < 1e-12, "lower[{i}, {j}]");
+                assert!(
+                    (by_hand[i * s + j] - want).abs() < 1e-12,
+                    "by hand [{i}, {j}]"
+                );
+            }
+        }
+        for i in 0..s {
+            for j in 0..s {
+                let btb: f64 = (0..d).map(|k| b[k * s + i] * b[k * s + j]).sum();
+                assert!(
+                    (1.0 + btb - c[i * s + j]).abs() < 1e-12,
+                    "(1 + BᵀB)[{i}, {j}]"
+                );
+            }
+        }
+    }
     use nalgebra::DMatrix;
 
     #[test]

@@ -2,6 +2,7 @@
 //! conditional prior on the next step, and its projection on the tangent space.
 
 use super::*;
+use crate::linalg::dense;
 
 /// A Gaussian prior on one step's block left by marginalization, in information
 /// form: c + ηᵀδ + ½ δᵀΛδ with δ = x − x̄. With the hard equations eliminated
@@ -75,6 +76,18 @@ pub(super) fn conditional_prior(
     })
 }
 
+/// The s × s matrix `a` made exactly symmetric: each pair of entries replaced by
+/// their mean (the two triangles of a product are summed in different orders).
+fn symmetrize(a: &mut [f64], s: usize) {
+    for i in 0..s {
+        for j in 0..i {
+            let v = 0.5 * (a[i * s + j] + a[j * s + i]);
+            a[i * s + j] = v;
+            a[j * s + i] = v;
+        }
+    }
+}
+
 /// stride `ld`.
 pub(super) fn restride(src: &[f64], rows: usize, cols: usize, dst: &mut [f64], ld: usize) {
     for r in 0..rows {
@@ -122,7 +135,7 @@ impl WindowSolver {
         let (gt, rest) = rest.split_at_mut(s);
         let (ln, rest) = rest.split_at_mut(s * s);
         let (reduced, rest) = rest.split_at_mut(s * s);
-        let nr = &mut rest[..s * s];
+        let (nr, rest) = rest.split_at_mut(s * s);
         // δ = x̃ − x̄, ∇Q(x̃) = η + Λδ and Q(x̃).
         let (mut lin, mut quad) = (0.0, 0.0);
         for i in 0..s {
@@ -140,6 +153,44 @@ impl WindowSolver {
         // vector of `untouched[u]`, rows of fixed unknowns 0.
         let (free, untouched) = red.structure();
         let q = d - untouched.len();
+        if dense::blocked_products(s, q) {
+            // The same products, dense, by faer's blocked kernels.
+            let nb = &mut rest[..s * d];
+            red.basis_into(nb);
+            for (i, out) in gt[..d].iter_mut().enumerate() {
+                *out = (0..s).map(|k| nb[k * d + i] * grad[k]).sum();
+            }
+            let (nv, lambda) = (
+                dense::rows(nb, s, d, d),
+                dense::rows(&prior.information, s, s, s),
+            );
+            dense::multiply(dense::rows_mut(ln, s, d, d), false, lambda, nv);
+            let lnv = dense::rows(ln, s, d, d);
+            dense::multiply(
+                dense::rows_mut(reduced, d, d, d),
+                false,
+                nv.transpose(),
+                lnv,
+            );
+            let rv = dense::rows(reduced, d, d, d);
+            dense::multiply(dense::rows_mut(nr, s, d, d), false, nv, rv);
+            let nrv = dense::rows(nr, s, d, d);
+            dense::multiply(
+                dense::rows_mut(&mut prior.information, s, s, s),
+                false,
+                nrv,
+                nv.transpose(),
+            );
+            for (i, e) in prior.eta.iter_mut().enumerate() {
+                *e = (0..d).map(|a| nb[i * d + a] * gt[a]).sum();
+            }
+            symmetrize(&mut prior.information, s);
+            for i in 0..s {
+                prior.xbar[i] = x[i] + red.particular[i];
+            }
+            prior.constant = constant;
+            return Ok(());
+        }
         // ΛN̄ (s × d).
         for i in 0..s {
             let row = &prior.information[i * s..(i + 1) * s];
@@ -204,13 +255,8 @@ impl WindowSolver {
                 out[j] = row[q + u];
             }
         }
-        // Exactly symmetric (the two triangles summed in different orders).
+        symmetrize(&mut prior.information, s);
         for i in 0..s {
-            for j in 0..i {
-                let v = 0.5 * (prior.information[i * s + j] + prior.information[j * s + i]);
-                prior.information[i * s + j] = v;
-                prior.information[j * s + i] = v;
-            }
             prior.xbar[i] = x[i] + red.particular[i];
         }
         prior.constant = constant;
@@ -282,39 +328,46 @@ impl WindowSolver {
         let acc = &mut rest[..s];
         // L₀ = chol(H₀₀) in place; Y = L₀⁻¹H₀₁ (d0 × s, row-major; row j of h10 is
         // column j of H₀₁); w = L₀⁻¹g₀.
-        crate::linalg::dense::cholesky_strided(h00, d0, s).map_err(|_| {
+        dense::cholesky_strided(h00, d0, s).map_err(|_| {
             Error::singular(format!(
                 "marginalizing step {k0}: its soft factors leave a direction undetermined"
             ))
         })?;
-        // Forward substitution a whole row of Y at a time (the same sums, in the same
-        // order, as one column at a time, but along contiguous rows).
-        for a in 0..d0 {
-            acc.fill(0.0);
-            let (done, row) = y.split_at_mut(a * s);
-            for (l, yk) in h00[a * s..a * s + a].iter().zip(done.chunks_exact(s)) {
-                for (c, v) in acc.iter_mut().zip(yk) {
-                    *c += l * v;
+        let blocked = s >= dense::FAER_PRODUCTS_FROM;
+        if blocked {
+            for (a, row) in y.chunks_exact_mut(s).take(d0).enumerate() {
+                for (j, out) in row.iter_mut().enumerate() {
+                    *out = h10[j * s + a];
                 }
             }
-            let lii = h00[a * s + a];
-            for (j, out) in row[..s].iter_mut().enumerate() {
-                *out = (h10[j * s + a] - acc[j]) / lii;
+            dense::solve_lower_rows(dense::rows(h00, d0, d0, s), dense::rows_mut(y, d0, s, s));
+        } else {
+            // Forward substitution a whole row of Y at a time (the same sums, in the
+            // same order, as one column at a time, but along contiguous rows).
+            for a in 0..d0 {
+                acc.fill(0.0);
+                let (done, row) = y.split_at_mut(a * s);
+                for (l, yk) in h00[a * s..a * s + a].iter().zip(done.chunks_exact(s)) {
+                    for (c, v) in acc.iter_mut().zip(yk) {
+                        *c += l * v;
+                    }
+                }
+                let lii = h00[a * s + a];
+                for (j, out) in row[..s].iter_mut().enumerate() {
+                    *out = (h10[j * s + a] - acc[j]) / lii;
+                }
             }
         }
         w[..d0].copy_from_slice(&g01[..d0]);
-        crate::linalg::dense::solve_lower_strided(h00, d0, s, &mut w[..d0]);
+        dense::solve_lower_strided(h00, d0, s, &mut w[..d0]);
         // Λ = H₁₁ − YᵀY, η = g₁ − Yᵀw. YᵀY is summed over the rows of Y in order, one
         // triangle (Λ is symmetric, H₁₁ and YᵀY to the bit), then mirrored.
         let mut information = vec![0.0; ss];
         let mut eta = vec![0.0; s];
+        dense::gram_lower(y, d0, s, &mut information);
         for a in 0..d0 {
-            let ya = &y[a * s..(a + 1) * s];
-            for (i, &yi) in ya.iter().enumerate() {
-                for (o, yj) in information[i * s..=i * s + i].iter_mut().zip(ya) {
-                    *o += yi * yj;
-                }
-                eta[i] += yi * w[a];
+            for (e, yi) in eta.iter_mut().zip(&y[a * s..(a + 1) * s]) {
+                *e += yi * w[a];
             }
         }
         for i in 0..s {

@@ -505,13 +505,19 @@ impl NullSpace {
 
     /// The null-space basis N written out, row-major s × dim, orthonormal columns.
     pub fn basis(&self) -> Vec<f64> {
+        let mut n = vec![0.0; self.s * self.dim];
+        self.basis_into(&mut n);
+        n
+    }
+
+    /// [`NullSpace::basis`] into `n` (at least s × dim).
+    pub fn basis_into(&self, n: &mut [f64]) {
         let dim = self.dim;
-        let mut n = vec![0.0; self.s * dim];
+        n[..self.s * dim].fill(0.0);
         for i in 0..self.s {
             let (start, row) = self.row(i);
             n[i * dim + start..i * dim + start + row.len()].copy_from_slice(row);
         }
-        n
     }
 
     /// The least-norm solution x (length s) of the independent equations of the last
