@@ -425,6 +425,7 @@ impl WindowSolver {
             }
         }
         let mut cost = self.cost_first;
+        let blocked = s >= dense::FAER_PRODUCTS_FROM;
         // The factors joining k0 and k0 + 1.
         for index in 0..graph.step_terms().len() {
             let term = &graph.step_terms()[index];
@@ -498,12 +499,19 @@ impl WindowSolver {
                 }
                 if !window_holds_next {
                     for (a, &va) in j0.iter().enumerate() {
-                        for (o, vb) in h00[a * s..a * s + d0].iter_mut().zip(j0) {
-                            *o += va * vb;
+                        if !blocked {
+                            for (o, vb) in h00[a * s..a * s + d0].iter_mut().zip(j0) {
+                                *o += va * vb;
+                            }
                         }
                         g01[a] += va * rr;
                     }
                 }
+            }
+            if blocked && !window_holds_next {
+                // H₀₀ += (J₀N₀)ᵀ(J₀N₀) over the factor's rows at once.
+                let j0 = dense::rows(&self.reduced[1], dim, d0, s);
+                dense::multiply(dense::rows_mut(h00, d0, d0, s), true, j0.transpose(), j0);
             }
         }
         self.schur(k0, d0, cost, values)
