@@ -25,9 +25,11 @@
 
 use crate::error::{Error, Result};
 use crate::factors::{Euler, Trapezoidal};
-use crate::graph::{Factor, Key, StackReq, VarKind, Workspace};
+use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
+use crate::linalg::dense;
 use crate::model::Model;
-use nalgebra::{DMatrix, DVector};
+use faer::dyn_stack::{DynArray, MemStack};
+use nalgebra::DMatrix;
 use std::sync::Arc;
 
 /// Singular values of the row-normalized Φ_q below this (relative to the largest)
@@ -45,49 +47,100 @@ pub enum Rule {
 
 /// The row space of Φ_q at q, from the active rows (redundant constraints left out:
 /// on the manifold they add no direction) normalized, Â = D Φ_q,active: the
-/// projector P = I − Â⁺Â onto the null space (n × n) and Φ_q⁺ = Â⁺D (n × m over all
-/// m constraints, zero columns for the redundant ones), Â⁺ restricted to Â's rank.
-struct RowSpace {
-    p: DMatrix<f64>,
-    pinv: DMatrix<f64>,
+/// projector P = I − Â⁺Â onto the null space (row-major n × n) and Φ_q⁺ = Â⁺D
+/// (row-major n × m over all m constraints, zero columns for the redundant ones),
+/// Â⁺ restricted to Â's rank. Carved from the factor's workspace, with the scratch
+/// of their computation.
+struct RowSpace<'a> {
+    p: DynArray<'a, f64>,
+    pinv: DynArray<'a, f64>,
 }
 
-fn row_space(model: &Model, q: &[f64]) -> Result<RowSpace> {
-    let (m, n) = (model.m(), model.n());
-    let mut all = vec![0.0; m * n];
+/// The scratch of [`row_space`] and of the products after it, for `cols` columns
+/// at most in a Jacobian block.
+fn row_space_scratch(model: &Model, cols: usize) -> StackReq {
+    let (m, n, ma) = (model.m(), model.n(), model.active.len());
+    let reals = [n * n, n * m, m * n, ma * n, ma, ma * ma, ma * n, n * ma, ma];
+    let products = [n, m, n * n, m * n, n * cols.max(n)];
+    StackReq::all_of(&reals.map(StackReq::new::<f64>))
+        .and(StackReq::all_of(&products.map(StackReq::new::<f64>)))
+}
+
+fn row_space<'a>(
+    model: &Model,
+    q: &[f64],
+    stack: &'a mut MemStack,
+) -> Result<(RowSpace<'a>, &'a mut MemStack)> {
+    let (m, n, ma) = (model.m(), model.n(), model.active.len());
+    let (mut p, stack) = zeros(stack, n * n);
+    let (mut pinv, stack) = zeros(stack, n * m);
+    let (mut all, stack) = zeros(stack, m * n);
+    let (mut a, stack) = zeros(stack, ma * n);
+    let (mut d, stack) = zeros(stack, ma);
+    let (mut gram, stack) = zeros(stack, ma * ma);
+    let (mut x, stack) = zeros(stack, ma * n);
+    let (mut pinv_hat, stack) = zeros(stack, n * ma);
+    let (mut column, stack) = zeros(stack, ma);
     model.jacobian_into(q, &mut all);
     if all.iter().any(|v| !v.is_finite()) {
         return Err(Error::singular("Φ_q is not finite at the step's positions"));
     }
-    let rows = &model.active;
-    let mut a = DMatrix::zeros(rows.len(), n);
-    let mut d = vec![0.0; rows.len()];
-    for (i, &k) in rows.iter().enumerate() {
+    for (i, &k) in model.active.iter().enumerate() {
         let row = &all[k * n..(k + 1) * n];
         let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
         if norm > 0.0 {
             d[i] = 1.0 / norm;
-            for (j, v) in row.iter().enumerate() {
-                a[(i, j)] = v * d[i];
+            for (o, v) in a[i * n..(i + 1) * n].iter_mut().zip(row) {
+                *o = v * d[i];
             }
         }
     }
     // Â⁺ = Âᵀ(ÂÂᵀ)⁻¹ by Cholesky while the Gram matrix is well conditioned (the
     // usual case), the SVD otherwise: near a singular configuration the Gram matrix
     // squares a large condition number.
-    let pinv_hat = match (&a * a.transpose()).cholesky() {
-        Some(ch) if well_conditioned(&ch.l()) => a.transpose() * ch.inverse(),
-        _ => svd_pseudo_inverse(&a),
-    };
-    let mut p = -(&pinv_hat * &a);
+    for i in 0..ma {
+        for j in 0..=i {
+            let g = dense::dot(
+                &a[i * n..(i + 1) * n],
+                &a[j * n..(j + 1) * n],
+                dense::Summation::Sequential,
+            );
+            gram[i * ma + j] = g;
+            gram[j * ma + i] = g;
+        }
+    }
+    if dense::cholesky(&mut gram, ma).is_ok() && well_conditioned(&gram, ma) {
+        // X = (ÂÂᵀ)⁻¹Â column by column, Â⁺ = Xᵀ.
+        for j in 0..n {
+            for (c, i) in column.iter_mut().zip(0..ma) {
+                *c = a[i * n + j];
+            }
+            dense::cholesky_solve(&gram, ma, &mut column);
+            for (i, c) in column.iter().enumerate() {
+                x[i * n + j] = *c;
+            }
+        }
+        for i in 0..n {
+            for k in 0..ma {
+                pinv_hat[i * ma + k] = x[k * n + i];
+            }
+        }
+    } else {
+        svd_pseudo_inverse(&a, ma, n, &mut pinv_hat);
+    }
+    // P = I − Â⁺Â.
     for i in 0..n {
-        p[(i, i)] += 1.0;
+        for j in 0..n {
+            let pa: f64 = (0..ma).map(|k| pinv_hat[i * ma + k] * a[k * n + j]).sum();
+            p[i * n + j] = f64::from(u8::from(i == j)) - pa;
+        }
     }
-    let mut pinv = DMatrix::zeros(n, m);
-    for (i, &k) in rows.iter().enumerate() {
-        pinv.set_column(k, &(pinv_hat.column(i) * d[i]));
+    for (i, &k) in model.active.iter().enumerate() {
+        for r in 0..n {
+            pinv[r * m + k] = pinv_hat[r * ma + i] * d[i];
+        }
     }
-    Ok(RowSpace { p, pinv })
+    Ok((RowSpace { p, pinv }, stack))
 }
 
 /// The Gram matrix's Cholesky factor is trusted while its diagonal stays within this
@@ -95,18 +148,37 @@ fn row_space(model: &Model, q: &[f64]) -> Result<RowSpace> {
 /// distance of each row from the span of the ones before).
 const GRAM_DIAGONAL_RATIO: f64 = 1e-2;
 
-fn well_conditioned(l: &DMatrix<f64>) -> bool {
-    let diagonal = l.diagonal();
-    let largest = diagonal.iter().cloned().fold(0.0, f64::max);
-    diagonal.iter().all(|&v| v > GRAM_DIAGONAL_RATIO * largest)
+/// Whether the Cholesky factor L (row-major k × k) is trusted.
+fn well_conditioned(l: &[f64], k: usize) -> bool {
+    let diagonal = (0..k).map(|i| l[i * k + i]);
+    let largest = diagonal.clone().fold(0.0, f64::max);
+    diagonal
+        .into_iter()
+        .all(|v| v > GRAM_DIAGONAL_RATIO * largest)
 }
 
-/// Â⁺ from the SVD, singular values below RANK_TOLERANCE of the largest dropped.
-fn svd_pseudo_inverse(a: &DMatrix<f64>) -> DMatrix<f64> {
-    let svd = a.clone().svd(true, true);
+/// Â⁺ (row-major n × k) of the row-major k × n `a` from the SVD, singular values
+/// below RANK_TOLERANCE of the largest dropped (near a singular configuration only:
+/// this allocates).
+fn svd_pseudo_inverse(a: &[f64], k: usize, n: usize, out: &mut [f64]) {
+    let a = DMatrix::from_row_slice(k, n, &a[..k * n]);
+    let svd = a.svd(true, true);
     let largest = svd.singular_values.iter().cloned().fold(0.0, f64::max);
-    svd.pseudo_inverse(RANK_TOLERANCE * largest)
-        .unwrap_or_else(|_| DMatrix::zeros(a.ncols(), a.nrows()))
+    let pinv = svd
+        .pseudo_inverse(RANK_TOLERANCE * largest)
+        .unwrap_or_else(|_| DMatrix::zeros(n, k));
+    for i in 0..n {
+        for j in 0..k {
+            out[i * k + j] = pinv[(i, j)];
+        }
+    }
+}
+
+/// out ← A b for the row-major `rows` × `cols` A.
+fn multiply_vector(a: &[f64], rows: usize, cols: usize, b: &[f64], out: &mut [f64]) {
+    for (o, row) in out[..rows].iter_mut().zip(a.chunks_exact(cols)) {
+        *o = row.iter().zip(b).map(|(x, y)| x * y).sum();
+    }
 }
 
 /// Subtracts d(P e)/dq at fixed e, −P (Σₖ λₖ Φᵏ_qq) − Φ_q⁺ (Φ_qq u) with
@@ -115,22 +187,24 @@ fn subtract_projector_derivative(
     model: &Model,
     q: &[f64],
     rows: &RowSpace,
-    e: &DVector<f64>,
-    u: &DVector<f64>,
+    (e, u): (&[f64], &[f64]),
     block: &mut [f64],
+    stack: &mut MemStack,
 ) {
     let (m, n) = (model.m(), model.n());
-    let lambda = rows.pinv.tr_mul(e);
-    let mut w = vec![0.0; n * n];
-    model.add_all_weighted_hessians(q, lambda.as_slice(), &mut w);
-    let w = DMatrix::from_row_slice(n, n, &w);
-    let mut jw = vec![0.0; m * n];
-    model.jacobian_derivative_into(q, u.as_slice(), &mut jw);
-    let jw = DMatrix::from_row_slice(m, n, &jw);
-    let dp = &rows.p * w + &rows.pinv * jw;
+    let (mut lambda, stack) = zeros(stack, m);
+    let (mut w, stack) = zeros(stack, n * n);
+    let (mut jw, _) = zeros(stack, m * n);
+    for (k, l) in lambda.iter_mut().enumerate() {
+        *l = (0..n).map(|i| rows.pinv[i * m + k] * e[i]).sum();
+    }
+    model.add_all_weighted_hessians(q, &lambda, &mut w);
+    model.jacobian_derivative_into(q, u, &mut jw);
     for i in 0..n {
-        for k in 0..n {
-            block[i * n + k] -= dp[(i, k)];
+        for j in 0..n {
+            let pw: f64 = (0..n).map(|k| rows.p[i * n + k] * w[k * n + j]).sum();
+            let gj: f64 = (0..m).map(|k| rows.pinv[i * m + k] * jw[k * n + j]).sum();
+            block[i * n + j] -= pw + gj;
         }
     }
 }
@@ -201,7 +275,14 @@ impl Factor for Projected {
         self.inner.dim()
     }
     fn scratch(&self) -> StackReq {
-        self.inner.scratch()
+        let cols = (0..self.keys.len())
+            .map(|k| self.size(k))
+            .max()
+            .unwrap_or(0);
+        // The inner factor runs first, then the projection carves its own.
+        self.inner
+            .scratch()
+            .or(row_space_scratch(&self.model, cols))
     }
     fn evaluate(
         &self,
@@ -214,37 +295,45 @@ impl Factor for Projected {
         let n = self.model.n();
         let q = x[self.q_key];
         let inner_keys = self.inner.keys().len();
-        let mut e = DVector::zeros(n);
-        let rows = row_space(&self.model, q)?;
-        let Some(j) = jac else {
-            self.inner
-                .evaluate(t, &x[..inner_keys], e.as_mut_slice(), None, ws)?;
-            r.copy_from_slice((&rows.p * &e).as_slice());
-            return Ok(());
-        };
-        self.inner.evaluate(
-            t,
-            &x[..inner_keys],
-            e.as_mut_slice(),
-            Some(&mut j[..inner_keys]),
-            ws,
-        )?;
-        let u = &rows.p * &e;
-        r.copy_from_slice(u.as_slice());
-        for block in j[..inner_keys].iter_mut() {
-            let cols = block.len() / n;
-            let inner = DMatrix::from_row_slice(n, cols, block);
-            let projected = &rows.p * inner;
-            for i in 0..n {
-                for k in 0..cols {
-                    block[i * cols + k] = projected[(i, k)];
-                }
+        // e into r, projected at the end.
+        let mut jac = jac;
+        match jac.as_deref_mut() {
+            Some(j) => {
+                self.inner
+                    .evaluate(t, &x[..inner_keys], r, Some(&mut j[..inner_keys]), ws)?
             }
+            None => self.inner.evaluate(t, &x[..inner_keys], r, None, ws)?,
         }
-        if self.q_key >= inner_keys {
-            j[self.q_key].fill(0.0);
+        let (rows, stack) = row_space(&self.model, q, ws.stack())?;
+        let (mut u, stack) = zeros(stack, n);
+        multiply_vector(&rows.p, n, n, r, &mut u);
+        if let Some(j) = jac {
+            let (mut product, stack) = zeros(stack, j.iter().map(Vec::len).max().unwrap_or(0));
+            for block in j[..inner_keys].iter_mut() {
+                let cols = block.len() / n;
+                for i in 0..n {
+                    for k in 0..cols {
+                        product[i * cols + k] = (0..n)
+                            .map(|l| rows.p[i * n + l] * block[l * cols + k])
+                            .sum();
+                    }
+                }
+                let len = block.len();
+                block.copy_from_slice(&product[..len]);
+            }
+            if self.q_key >= inner_keys {
+                j[self.q_key].fill(0.0);
+            }
+            subtract_projector_derivative(
+                &self.model,
+                q,
+                &rows,
+                (r, &u),
+                &mut j[self.q_key],
+                stack,
+            );
         }
-        subtract_projector_derivative(&self.model, q, &rows, &e, &u, &mut j[self.q_key]);
+        r.copy_from_slice(&u);
         Ok(())
     }
 }
