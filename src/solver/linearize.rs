@@ -687,23 +687,22 @@ impl WindowSolver {
                 // In reduced coordinates δ₀ = p₀ + N₀y: H += N₀ᵀΛN₀, g += N₀ᵀ(grad + Λp₀).
                 let red = &self.hard[0].reduction;
                 let dim = red.dim;
-                let ln = &mut rest[..s * dim];
+                for (i, gi) in grad.iter_mut().enumerate() {
+                    let row = &p.information[i * s..(i + 1) * s];
+                    *gi += row
+                        .iter()
+                        .zip(&red.particular)
+                        .map(|(a, b)| a * b)
+                        .sum::<f64>();
+                }
                 // ΛN₀ over N₀'s nonzeros: its first q columns on the rows `free`, then
                 // one unit column per untouched unknown (each sum over rows in order).
                 let (free, untouched) = red.structure();
                 let q = dim - untouched.len();
+                let (ln, nb) = rest.split_at_mut(s * dim);
                 if dense::blocked_products(s, q) {
                     // The same products, dense, by faer's blocked kernels.
-                    let (ln, nb) = rest.split_at_mut(s * dim);
                     red.basis_into(nb);
-                    for i in 0..s {
-                        let row = &p.information[i * s..(i + 1) * s];
-                        grad[i] += row
-                            .iter()
-                            .zip(&red.particular)
-                            .map(|(a, b)| a * b)
-                            .sum::<f64>();
-                    }
                     let nv = dense::rows(nb, s, dim, dim);
                     let lambda = dense::rows(&p.information, s, s, s);
                     dense::multiply(dense::rows_mut(ln, s, dim, dim), false, lambda, nv);
@@ -721,11 +720,6 @@ impl WindowSolver {
                 } else {
                     for i in 0..s {
                         let row = &p.information[i * s..(i + 1) * s];
-                        grad[i] += row
-                            .iter()
-                            .zip(&red.particular)
-                            .map(|(a, b)| a * b)
-                            .sum::<f64>();
                         let out = &mut ln[i * dim..(i + 1) * dim];
                         // Row by row of N₀ (contiguous), each entry still summed over
                         // `free` in order from 0.

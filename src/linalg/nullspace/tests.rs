@@ -414,6 +414,50 @@ mod sparse {
         (a, m, group)
     }
 
+    /// The grouped QR of the column-major s × m `a0` (groups `group0`), with the
+    /// supports tracked or not and the pivots along them or not: the rank, the
+    /// factors, R's diagonal, β, the permutation and the groups after it.
+    #[allow(clippy::type_complexity)]
+    fn grouped_qr(
+        a0: &[f64],
+        group0: &[usize],
+        (s, m): (usize, usize),
+        seg_end: &[usize],
+        track: bool,
+        order: bool,
+    ) -> (usize, Vec<f64>, Vec<f64>, Vec<f64>, Vec<usize>, Vec<usize>) {
+        let mut a = a0.to_vec();
+        let mut group = group0.to_vec();
+        let (mut rend, mut made) = (vec![0; s.min(m)], Vec::new());
+        let (mut rdiag, mut beta) = (vec![0.0; s.min(m)], vec![0.0; s.min(m)]);
+        let (mut perm, mut norms) = (vec![0; m], vec![0.0; 2 * m]);
+        let mut support = vec![0u64; if track { (m + 1) * s.div_ceil(64) } else { 0 }];
+        let (mut starts, mut ends) = (vec![0; m], vec![0; m]);
+        let rank = householder_grouped(
+            &mut a,
+            s,
+            m,
+            Grouping {
+                group: &mut group,
+                seg_end,
+                rend: &mut rend,
+                made: &mut made,
+            },
+            Summation::Sequential,
+            &mut rdiag,
+            &mut beta,
+            &mut perm,
+            &mut norms,
+            Sparsity {
+                support: &mut support,
+                starts: &mut starts,
+                ends: &mut ends,
+                order,
+            },
+        );
+        (rank, a, rdiag, beta, perm, group)
+    }
+
     #[test]
     fn tracking_the_supports_changes_no_bit() {
         let mut seed = 11;
@@ -422,35 +466,8 @@ mod sparse {
             let s = 2 * s_half;
             let seg_end = [s_half, s];
             let run = |track: bool| {
-                let (mut starts, mut ends) = (vec![0; m], vec![0; m]);
-                let mut a = a0.clone();
-                let mut group = group0.clone();
-                let (mut rend, mut made) = (vec![0; s.min(m)], Vec::new());
-                let (mut rdiag, mut beta) = (vec![0.0; s.min(m)], vec![0.0; s.min(m)]);
-                let (mut perm, mut norms) = (vec![0; m], vec![0.0; 2 * m]);
-                let mut support = vec![0u64; if track { (m + 1) * s.div_ceil(64) } else { 0 }];
-                let rank = householder_grouped(
-                    &mut a,
-                    s,
-                    m,
-                    Grouping {
-                        group: &mut group,
-                        seg_end: &seg_end,
-                        rend: &mut rend,
-                        made: &mut made,
-                    },
-                    Summation::Sequential,
-                    &mut rdiag,
-                    &mut beta,
-                    &mut perm,
-                    &mut norms,
-                    Sparsity {
-                        support: &mut support,
-                        starts: &mut starts,
-                        ends: &mut ends,
-                        order: false,
-                    },
-                );
+                let (rank, a, rdiag, beta, perm, group) =
+                    grouped_qr(&a0, &group0, (s, m), &seg_end, track, false);
                 let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 (rank, bits(&a), bits(&rdiag), bits(&beta), perm, group)
             };
@@ -516,35 +533,7 @@ mod sparse {
             let (a0, group0) = scrambled(&a0, s, m, &group0);
             let seg_end = [s_half, s];
             let run = |order: bool| {
-                let mut a = a0.clone();
-                let mut group = group0.clone();
-                let (mut rend, mut made) = (vec![0; s.min(m)], Vec::new());
-                let (mut rdiag, mut beta) = (vec![0.0; s.min(m)], vec![0.0; s.min(m)]);
-                let (mut perm, mut norms) = (vec![0; m], vec![0.0; 2 * m]);
-                let mut support = vec![0u64; (m + 1) * s.div_ceil(64)];
-                let (mut starts, mut ends) = (vec![0; m], vec![0; m]);
-                let rank = householder_grouped(
-                    &mut a,
-                    s,
-                    m,
-                    Grouping {
-                        group: &mut group,
-                        seg_end: &seg_end,
-                        rend: &mut rend,
-                        made: &mut made,
-                    },
-                    Summation::Sequential,
-                    &mut rdiag,
-                    &mut beta,
-                    &mut perm,
-                    &mut norms,
-                    Sparsity {
-                        support: &mut support,
-                        starts: &mut starts,
-                        ends: &mut ends,
-                        order,
-                    },
-                );
+                let (rank, a, ..) = grouped_qr(&a0, &group0, (s, m), &seg_end, true, order);
                 let below = (0..rank)
                     .map(|k| {
                         a[k * s + k + 1..(k + 1) * s]
