@@ -386,12 +386,18 @@ mod sparse {
         ((*seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
     }
 
-    /// Cᵀ (column-major s × m) of a chain: equation j touches unknowns 2j..2j+4 of its
-    /// segment, the later segment's equations also the earlier segment's same
-    /// unknowns (like [Φ_q 0; Φ̇_q Φ_q]); one equation repeats another (dependent).
-    fn chain(s_half: usize, seed: &mut u64) -> (Vec<f64>, usize, Vec<usize>) {
+    /// Cᵀ (column-major s × m) of a chain, two segments of `s_half` unknowns with
+    /// `per` equations each: equation j touches unknowns `step`·j … `step`·j + `width`
+    /// of its segment, the later segment's equations also the earlier segment's same
+    /// unknowns (like [Φ_q 0; Φ̇_q Φ_q]); the last equation repeats equation `copied`
+    /// (dependent).
+    fn chain_of(
+        (s_half, per): (usize, usize),
+        (step, width): (usize, usize),
+        copied: usize,
+        seed: &mut u64,
+    ) -> (Vec<f64>, usize, Vec<usize>) {
         let s = 2 * s_half;
-        let per = (s_half - 4) / 2;
         let m = 2 * per + 1;
         let mut a = vec![0.0; s * m];
         let mut group = vec![0; m];
@@ -399,7 +405,7 @@ mod sparse {
             for j in 0..per {
                 let col = seg * per + j;
                 group[col] = seg;
-                for i in 2 * j..2 * j + 4 {
+                for i in step * j..step * j + width {
                     a[col * s + seg * s_half + i] = pseudo_random(seed);
                     if seg == 1 {
                         a[col * s + i] = pseudo_random(seed);
@@ -407,11 +413,21 @@ mod sparse {
                 }
             }
         }
-        // A copy of the third position equation.
-        let copy: Vec<f64> = a[2 * s..3 * s].to_vec();
+        let copy: Vec<f64> = a[copied * s..(copied + 1) * s].to_vec();
         a[(m - 1) * s..m * s].copy_from_slice(&copy);
         group[m - 1] = 0;
         (a, m, group)
+    }
+
+    /// A chain of one equation per two unknowns, 4 unknowns each.
+    fn chain(s_half: usize, seed: &mut u64) -> (Vec<f64>, usize, Vec<usize>) {
+        chain_of((s_half, (s_half - 4) / 2), (2, 4), 2, seed)
+    }
+
+    /// A chain with nearly as many equations as unknowns per segment (a planar
+    /// chain's two per point), 3 unknowns each, two unknowns per segment left free.
+    fn tight_chain(s_half: usize, seed: &mut u64) -> (Vec<f64>, usize, Vec<usize>) {
+        chain_of((s_half, s_half - 2), (1, 3), 5, seed)
     }
 
     /// The grouped QR of the column-major s × m `a0` (groups `group0`), with the
@@ -475,34 +491,6 @@ mod sparse {
             assert_eq!(tracked.0, m - 1, "the repeated equation is dependent");
             assert!(tracked == plain, "s = {s}: the tracked QR differs");
         }
-    }
-
-    /// A chain with nearly as many equations as unknowns per segment (a planar
-    /// chain's two per point): equation j touches unknowns j..j+3 of its segment (the
-    /// later segment's also the earlier segment's), two unknowns per segment left
-    /// free, and one equation repeating another.
-    fn tight_chain(s_half: usize, seed: &mut u64) -> (Vec<f64>, usize, Vec<usize>) {
-        let s = 2 * s_half;
-        let per = s_half - 2;
-        let m = 2 * per + 1;
-        let mut a = vec![0.0; s * m];
-        let mut group = vec![0; m];
-        for seg in 0..2 {
-            for j in 0..per {
-                let col = seg * per + j;
-                group[col] = seg;
-                for i in j..j + 3 {
-                    a[col * s + seg * s_half + i] = pseudo_random(seed);
-                    if seg == 1 {
-                        a[col * s + i] = pseudo_random(seed);
-                    }
-                }
-            }
-        }
-        let copy: Vec<f64> = a[5 * s..6 * s].to_vec();
-        a[(m - 1) * s..m * s].copy_from_slice(&copy);
-        group[m - 1] = 0;
-        (a, m, group)
     }
 
     /// The chain's equations listed out of order (every third, then the rest), as a
