@@ -27,7 +27,7 @@
 //! offset enters q̈_m smoothly and the step's error stays O(h⁵). The constraints hold
 //! exactly at the nodes, where the hard factors are.
 
-use crate::dynamics::{DynamicsKernel, KernelScratch};
+use crate::dynamics::{DynamicsKernel, KernelScratch, KktStructure};
 use crate::error::Result;
 use crate::factors::{identity, key_accessor};
 use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
@@ -138,6 +138,8 @@ pub struct SimpsonVelocity {
     /// The coordinates whose rows the residual has: all n (DC) or the independent ones.
     rows: Vec<usize>,
     dt: f64,
+    /// A large mechanism's KKT structure, analysed once.
+    kkt: Option<KktStructure>,
 }
 
 impl SimpsonVelocity {
@@ -145,6 +147,7 @@ impl SimpsonVelocity {
     pub fn dependent(model: Arc<Model>, dt: f64) -> Self {
         SimpsonVelocity {
             rows: (0..model.n()).collect(),
+            kkt: KktStructure::for_model(&model),
             model,
             name: "f_hs(dq)".into(),
             keys: Self::state_keys(),
@@ -157,6 +160,7 @@ impl SimpsonVelocity {
     pub fn independent(model: Arc<Model>, dt: f64) -> Self {
         SimpsonVelocity {
             rows: model.independent.clone(),
+            kkt: KktStructure::for_model(&model),
             model,
             name: "f_hs(dz)".into(),
             keys: Self::state_keys(),
@@ -202,7 +206,7 @@ impl Factor for SimpsonVelocity {
     ) -> Result<()> {
         let n = self.model.n();
         let h = self.dt;
-        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
         let [qm, vm, am, jq, jv] = Self::own_scratch(n);
         let (mut qm, stack) = zeros(stack, qm);
         let (mut vm, stack) = zeros(stack, vm);

@@ -6,7 +6,6 @@ use super::augmented::KernelScratch;
 use super::kernel::DynamicsKernel;
 use crate::error::Result;
 use crate::graph::{zeros, MemStack, StackReq};
-use crate::linalg::dense;
 use crate::model::Model;
 
 /// [`DynamicsKernel::along`]'s scratch beyond the kernel's, for up to `max_cols`
@@ -88,7 +87,7 @@ impl DynamicsKernel {
             }
         }
         let act = &act[..na];
-        let (kkt, perm, sol) = (&kernel.kkt[..], &kernel.perm[..], &kernel.sol[..]);
+        let sol = &kernel.sol[..];
         let (kq, kv, mat) = (&mut kq[..], &mut kv[..], &mut mat[..]);
         let (bq, bv, tmp) = (&mut bq[..], &mut bv[..], &mut tmp[..]);
         // The right-hand sides of `evaluate`'s Jacobians (the same terms in the same
@@ -157,7 +156,7 @@ impl DynamicsKernel {
                 *o += vrow[j];
             }
         }
-        dense::lu_solve_many(kkt, big, perm, b, na, tmp);
+        kernel.solve_many(b, na, tmp)?;
         let count = rows.map_or(n, <[usize]>::len);
         out[..count * c].fill(0.0);
         for r in 0..count {

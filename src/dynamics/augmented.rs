@@ -4,6 +4,7 @@
 
 use super::kernel::DynamicsKernel;
 use super::regularization::{mass_scale, MeasureScratch};
+use super::sparse_kkt::{KktStructure, SparseLu};
 use crate::error::{Error, Result};
 use crate::graph::{zeros, MemStack, StackReq};
 use crate::linalg::dense;
@@ -27,6 +28,10 @@ pub struct KernelScratch<'a> {
     cols: DynArray<'a, f64>,
     c: DynArray<'a, f64>,
     measure: MeasureScratch<'a>,
+    /// A large mechanism's K: its structure, and its factors once evaluated (then
+    /// `kkt` and `perm` are not used).
+    sparse: Option<&'a KktStructure>,
+    factors: Option<SparseLu<'a>>,
 }
 
 impl<'a> KernelScratch<'a> {
@@ -46,8 +51,13 @@ impl<'a> KernelScratch<'a> {
     }
 
     /// The scratch carved (zeroed) from `stack`, which must hold
-    /// [`DynamicsKernel::scratch`], and the rest of `stack`.
-    pub fn new(model: &Model, stack: &'a mut MemStack) -> (Self, &'a mut MemStack) {
+    /// [`DynamicsKernel::scratch`], and the rest of `stack`; with `sparse`, K is
+    /// factored sparse.
+    pub fn new(
+        model: &Model,
+        sparse: Option<&'a KktStructure>,
+        stack: &'a mut MemStack,
+    ) -> (Self, &'a mut MemStack) {
         let big = model.n() + model.active.len();
         let [kkt, sol, tmp, mat, kq, kv, cols, c] = Self::lens(model);
         let (kkt, stack) = zeros(stack, kkt);
@@ -71,13 +81,31 @@ impl<'a> KernelScratch<'a> {
             cols,
             c,
             measure,
+            sparse,
+            factors: None,
         };
         (scratch, stack)
     }
 }
 
+impl KernelScratch<'_> {
+    /// B ← K⁻¹B (row-major big × `cols`) with the factors [`DynamicsKernel::evaluate`]
+    /// left here; `tmp` holds big × `cols` for the dense ones.
+    pub(super) fn solve_many(&self, b: &mut [f64], cols: usize, tmp: &mut [f64]) -> Result<()> {
+        let big = self.perm.len();
+        match &self.factors {
+            Some(lu) => lu.solve_many(b, cols),
+            None => {
+                dense::lu_solve_many(&self.kkt, big, &self.perm, b, cols, tmp);
+                Ok(())
+            }
+        }
+    }
+}
+
 impl DynamicsKernel {
-    /// The scratch of a [`KernelScratch`].
+    /// The scratch of a [`KernelScratch`] (the sparse factors of a large K are on
+    /// the heap).
     pub fn scratch(model: &Model) -> StackReq {
         let big = model.n() + model.active.len();
         let reals = KernelScratch::lens(model).map(StackReq::new::<f64>);
@@ -114,31 +142,46 @@ impl DynamicsKernel {
             cols,
             c,
             measure: scratch,
+            sparse,
+            factors,
         } = scratch;
 
         // K = [M Aᵀ; A −E] and the right-hand side [Q; c].
         model.jacobian_into(q, mat);
         let reg = Self::measure(model, mat, scratch, false);
-        kkt.fill(0.0);
-        for i in 0..n {
-            for j in 0..n {
-                kkt[i * big + j] = model.mass[(i, j)];
+        if let Some(structure) = sparse {
+            // Sparse: K's values from M, Φ_q and E; factored below.
+            if reg.w > 0.0 {
+                let scale = Self::REGULARIZATION * reg.w / mass_scale(model);
+                for r in 0..ma {
+                    let norm = scratch.norms[r];
+                    scratch.eps[r] = scale * norm * norm;
+                }
             }
-        }
-        for (r, &k) in model.active.iter().enumerate() {
-            for j in 0..n {
-                let a = mat[k * n + j];
-                kkt[(n + r) * big + j] = a;
-                kkt[j * big + n + r] = a;
+            *factors =
+                Some(structure.factor(model, mat, (reg.w > 0.0).then_some(&scratch.eps[..ma]))?);
+        } else {
+            kkt.fill(0.0);
+            for i in 0..n {
+                for j in 0..n {
+                    kkt[i * big + j] = model.mass[(i, j)];
+                }
             }
-        }
-        if reg.w > 0.0 {
-            let scale = Self::REGULARIZATION * reg.w / mass_scale(model);
-            for r in 0..ma {
-                let norm = scratch.norms[r];
-                let e = scale * norm * norm;
-                scratch.eps[r] = e;
-                kkt[(n + r) * big + n + r] = -e;
+            for (r, &k) in model.active.iter().enumerate() {
+                for j in 0..n {
+                    let a = mat[k * n + j];
+                    kkt[(n + r) * big + j] = a;
+                    kkt[j * big + n + r] = a;
+                }
+            }
+            if reg.w > 0.0 {
+                let scale = Self::REGULARIZATION * reg.w / mass_scale(model);
+                for r in 0..ma {
+                    let norm = scratch.norms[r];
+                    let e = scale * norm * norm;
+                    scratch.eps[r] = e;
+                    kkt[(n + r) * big + n + r] = -e;
+                }
             }
         }
         sol.fill(0.0);
@@ -154,10 +197,15 @@ impl DynamicsKernel {
         for (r, &k) in model.active.iter().enumerate() {
             sol[n + r] = c[k];
         }
-        dense::lu(kkt, big, perm).map_err(|_| {
-            Error::singular("the augmented (KKT) system is singular: a singular configuration or dependent constraints")
-        })?;
-        dense::lu_solve(kkt, big, perm, sol, tmp);
+        match factors {
+            Some(lu) => lu.solve_many(&mut sol[..big], 1)?,
+            None => {
+                dense::lu(kkt, big, perm).map_err(|_| {
+                    Error::singular("the augmented (KKT) system is singular: a singular configuration or dependent constraints")
+                })?;
+                dense::lu_solve(kkt, big, perm, sol, tmp);
+            }
+        }
         ddq.copy_from_slice(&sol[..n]);
         let Some((jq, jv)) = jac else {
             return Ok(());
@@ -207,7 +255,10 @@ impl DynamicsKernel {
                 *o = -2.0 * v;
             }
         }
-        dense::lu_solve_many(kkt, big, perm, &mut cols[..big * w], w, tmp);
+        match factors {
+            Some(lu) => lu.solve_many(&mut cols[..big * w], w)?,
+            None => dense::lu_solve_many(kkt, big, perm, &mut cols[..big * w], w, tmp),
+        }
         for i in 0..n {
             jq[i * n..(i + 1) * n].copy_from_slice(&cols[i * w..i * w + n]);
             jv[i * n..(i + 1) * n].copy_from_slice(&cols[i * w + n..(i + 1) * w]);
@@ -223,7 +274,7 @@ impl DynamicsKernel {
         columns: &[usize],
         jf: &mut [f64],
         scratch: &mut KernelScratch,
-    ) {
+    ) -> Result<()> {
         let (n, ma) = (model.n(), model.active.len());
         let big = n + ma;
         let KernelScratch {
@@ -231,6 +282,7 @@ impl DynamicsKernel {
             perm,
             tmp,
             cols,
+            factors,
             ..
         } = scratch;
         let p = columns.len();
@@ -239,7 +291,11 @@ impl DynamicsKernel {
         for (c, &j) in columns.iter().enumerate() {
             rhs[j * p + c] = 1.0;
         }
-        dense::lu_solve_many(kkt, big, perm, rhs, p, tmp);
+        match factors {
+            Some(lu) => lu.solve_many(rhs, p)?,
+            None => dense::lu_solve_many(kkt, big, perm, rhs, p, tmp),
+        }
         jf[..n * p].copy_from_slice(&rhs[..n * p]);
+        Ok(())
     }
 }

@@ -3,15 +3,18 @@
 //! R-matrix method (paper, section 2); and the allocation-free [`DynamicsKernel`]
 //! with exact Jacobians on which the dynamics factors build (`kernel`, evaluated
 //! in `augmented`, its singularity measure in `regularization`, its directional
-//! products in `along`).
+//! products in `along`; a large mechanism's KKT system factored sparse in
+//! `sparse_kkt`).
 
 mod along;
 mod augmented;
 mod kernel;
 mod regularization;
+mod sparse_kkt;
 
 pub use augmented::KernelScratch;
 pub use kernel::DynamicsKernel;
+pub use sparse_kkt::{KktStructure, SPARSE_KKT_FROM};
 
 use crate::error::{Error, Result};
 use crate::kinematics::{s_and_r, well_conditioned};

@@ -3,7 +3,7 @@
 //! [`DynamicsKernel`].
 
 use super::shared::{identity, key_accessor};
-use crate::dynamics::{DynamicsKernel, KernelScratch};
+use crate::dynamics::{DynamicsKernel, KernelScratch, KktStructure};
 use crate::error::Result;
 use crate::graph::{zeros, AlongDirections, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
@@ -17,6 +17,8 @@ pub struct Dynamics {
     keys: Vec<Key>,
     /// Inverse dynamics: the coordinates the forces Q act on (see [`Actuated`]).
     actuated: Option<Actuated>,
+    /// A large mechanism's KKT structure, analysed once.
+    kkt: Option<KktStructure>,
 }
 
 /// The coordinates an inverse-dynamics factor's forces act on: all of them (Q has n
@@ -68,6 +70,7 @@ impl Actuated {
 impl Dynamics {
     pub fn new(model: Arc<Model>) -> Self {
         Dynamics {
+            kkt: KktStructure::for_model(&model),
             model,
             keys: vec![
                 Key::now(VarKind::Q),
@@ -144,7 +147,7 @@ impl Factor for Dynamics {
         ws: &mut Workspace,
     ) -> Result<()> {
         let n = self.model.n();
-        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
         let (mut own, _) = zeros(stack, n);
         let force = self.actuated.as_ref().map(|a| a.forces(x[3], &mut own));
         match jac {
@@ -169,7 +172,7 @@ impl Factor for Dynamics {
                         &a.indices,
                         &mut jf[0],
                         &mut kernel,
-                    );
+                    )?;
                 }
             }
             None => {
@@ -201,7 +204,7 @@ impl AlongDirections for Dynamics {
             return Ok(false);
         };
         let n = self.model.n();
-        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
         let (mut own, extra) = zeros(stack, n);
         let force = a.forces(x[3], &mut own);
         DynamicsKernel::evaluate(

@@ -4,7 +4,7 @@
 
 use super::shared::{identity, key_accessor, mat_vec};
 use crate::dynamics::DynamicsKernel;
-use crate::dynamics::KernelScratch;
+use crate::dynamics::{KernelScratch, KktStructure};
 use crate::error::Result;
 use crate::graph::{zeros, AlongDirections, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
@@ -239,12 +239,15 @@ pub struct IndependentDynamics {
     inverse: bool,
     /// Every coordinate, the columns of ∂q̈/∂Q (forces act on all of them).
     all: Vec<usize>,
+    /// A large mechanism's KKT structure, analysed once.
+    kkt: Option<KktStructure>,
 }
 
 impl IndependentDynamics {
     pub fn new(model: Arc<Model>) -> Self {
         IndependentDynamics {
             all: (0..model.n()).collect(),
+            kkt: KktStructure::for_model(&model),
             model,
             keys: vec![
                 Key::now(VarKind::Q),
@@ -311,7 +314,7 @@ impl Factor for IndependentDynamics {
     ) -> Result<()> {
         let n = self.model.n();
         let f = self.model.independent.len();
-        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
         let (mut ddq, stack) = zeros(stack, n);
         let (mut jq, stack) = zeros(stack, n * n);
         let (mut jv, stack) = zeros(stack, n * n);
@@ -339,7 +342,7 @@ impl Factor for IndependentDynamics {
             }
             identity(&mut j[2], f, -1.0);
             if self.inverse {
-                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, &mut kernel);
+                DynamicsKernel::force_jacobian(&self.model, &self.all, jf, &mut kernel)?;
                 for (k, &i) in self.model.independent.iter().enumerate() {
                     j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
                 }
@@ -367,7 +370,7 @@ impl AlongDirections for IndependentDynamics {
         }
         let n = self.model.n();
         let ind = &self.model.independent;
-        let (mut kernel, stack) = KernelScratch::new(&self.model, ws.stack());
+        let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
         let (mut ddq, extra) = zeros(stack, n);
         DynamicsKernel::evaluate(
             &self.model,
