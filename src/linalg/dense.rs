@@ -533,8 +533,9 @@ pub fn sparse_gram<'a>(
 
 /// tr G⁻¹ = ‖L⁻¹‖_F² from the lower Cholesky factor L of G (row-major ma × ma): L⁻¹
 /// column by column, each by forward substitution of a column of I
-/// ([`solve_lower`]) in `column` (length ma), and kept in the lower triangle
-/// of `linv` where one is given. `first` (length ma) receives each row's first
+/// ([`solve_lower`]) in `column` (length ma), or from [`FAER_PRODUCTS_FROM`] rows by
+/// faer's blocked triangular inverse, and kept in the lower triangle of `linv` where
+/// one is given. `first` (length ma) receives each row's first
 /// nonzero column.
 pub fn inverse_trace(
     l: &[f64],
@@ -549,6 +550,26 @@ pub fn inverse_trace(
             .iter()
             .position(|v| *v != 0.0)
             .unwrap_or(i);
+    }
+    if ma >= FAER_PRODUCTS_FROM {
+        // faer's blocked triangular inverse (the sums in its order).
+        let mut inverse = vec![0.0; ma * ma];
+        faer::linalg::triangular_inverse::invert_lower_triangular(
+            rows_mut(&mut inverse, ma, ma, ma),
+            rows(l, ma, ma, ma),
+            Par::Seq,
+        );
+        let mut trace = 0.0;
+        for i in 0..ma {
+            for j in 0..=i {
+                let v = inverse[i * ma + j];
+                if let Some(linv) = linv.as_deref_mut() {
+                    linv[i * ma + j] = v;
+                }
+                trace += v * v;
+            }
+        }
+        return trace;
     }
     let mut trace = 0.0;
     for j in 0..ma {
@@ -580,6 +601,54 @@ pub fn inverse_trace(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// tr G⁻¹ and L⁻¹ by the loops (small) and by faer (from FAER_PRODUCTS_FROM rows)
+    /// against G⁻¹'s diagonal from Cholesky solves and L L⁻¹ = I.
+    #[test]
+    fn inverse_trace_at_both_sizes() {
+        for ma in [12, FAER_PRODUCTS_FROM + 16] {
+            let mut g = vec![0.0; ma * ma];
+            for i in 0..ma {
+                for j in 0..ma {
+                    g[i * ma + j] = ((i * 7 + j * 3) as f64 * 0.31).sin() * 0.1;
+                }
+            }
+            for i in 0..ma {
+                for j in 0..i {
+                    let v = 0.5 * (g[i * ma + j] + g[j * ma + i]);
+                    g[i * ma + j] = v;
+                    g[j * ma + i] = v;
+                }
+                g[i * ma + i] += 2.0 + i as f64 * 0.01;
+            }
+            let mut l = g.clone();
+            cholesky(&mut l, ma).unwrap();
+            let (mut column, mut first) = (vec![0.0; ma], vec![0; ma]);
+            let mut linv = vec![0.0; ma * ma];
+            let trace = inverse_trace(&l, ma, &mut column, &mut first, Some(&mut linv));
+            let mut want = 0.0;
+            for i in 0..ma {
+                let mut e = vec![0.0; ma];
+                e[i] = 1.0;
+                cholesky_solve(&l, ma, &mut e);
+                want += e[i];
+            }
+            assert!(
+                (trace - want).abs() < 1e-12 * want,
+                "ma = {ma}: {trace} vs {want}"
+            );
+            for i in 0..ma {
+                for j in 0..=i {
+                    let lli: f64 = (j..=i).map(|k| l[i * ma + k] * linv[k * ma + j]).sum();
+                    let want = if i == j { 1.0 } else { 0.0 };
+                    assert!(
+                        (lli - want).abs() < 1e-12,
+                        "ma = {ma}: (L L⁻¹)[{i}, {j}] = {lli}"
+                    );
+                }
+            }
+        }
+    }
 
     /// The row-major views address row i, column j at i·ld + j, also when written
     /// through, and the blocked solve and product agree with their definitions.
