@@ -220,6 +220,7 @@ impl WindowSolver {
                         largest_step: largest,
                         small,
                         restored,
+                        chord: false,
                     });
                 }
                 if !held && !newton {
@@ -238,7 +239,70 @@ impl WindowSolver {
             }
             // The trial is linearized at once: accepted (the usual case), it is the
             // next iteration's system; rejected, the old point is linearized again.
+            // After an undamped Gauss-Newton step of a one-block window, the chord
+            // step from the trial may show convergence without that linearization.
+            let chord = mu == 0.0
+                && !newton
+                && !from_rows
+                && iterations < self.settings.max_iterations
+                && self.chord_ready(k0, k1, held);
             let trial = match self.correct(graph, values, k0, k1) {
+                Ok(()) if chord => {
+                    match self.evaluate(graph, values, k0, k1, prior, scope, false) {
+                        Ok(c) if c <= cost => {
+                            if let Some(step) = self.chord_step(graph, values, k0, prior) {
+                                // Back onto the hard equations to round-off: the
+                                // chord step's part p comes from the old C.
+                                if let Err(e) = self.correct(graph, values, k0, k1) {
+                                    return Ok(failed(e, c, iterations + 1));
+                                }
+                                if let Some(observer) = self.observer.as_mut() {
+                                    let first = Iteration {
+                                        k0,
+                                        k1,
+                                        iteration: iterations,
+                                        newton,
+                                        cost,
+                                        trial: Some(c),
+                                        damping: mu,
+                                        predicted,
+                                        largest_step: largest,
+                                        small,
+                                        restored,
+                                        chord: false,
+                                    };
+                                    observer.iteration(&first);
+                                    observer.iteration(&Iteration {
+                                        iteration: iterations + 1,
+                                        cost: c,
+                                        trial: None,
+                                        predicted: step.predicted,
+                                        largest_step: step.largest,
+                                        small: true,
+                                        restored: true,
+                                        chord: true,
+                                        ..first
+                                    });
+                                }
+                                if !held {
+                                    self.last = Some(LastSolve {
+                                        k0,
+                                        k1,
+                                        generation: self.generation,
+                                    });
+                                    self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
+                                }
+                                return Ok(SolveReport::new(
+                                    Termination::Converged,
+                                    iterations + 1,
+                                    c - step.predicted,
+                                ));
+                            }
+                            self.evaluate(graph, values, k0, k1, prior, scope, true)
+                        }
+                        _ => self.evaluate(graph, values, k0, k1, prior, scope, true),
+                    }
+                }
                 Ok(()) => self.evaluate(graph, values, k0, k1, prior, scope, true),
                 Err(e) => Err(e),
             };
@@ -276,6 +340,7 @@ impl WindowSolver {
                     largest_step: largest,
                     small,
                     restored,
+                    chord: false,
                 });
             }
 

@@ -109,7 +109,6 @@ pub(super) fn located(
 #[derive(Clone, Copy, PartialEq, Eq)]
 pub(super) enum HardPass {
     Linearize,
-    Cost,
     Residuals,
 }
 
@@ -284,7 +283,7 @@ impl WindowSolver {
     /// Evaluates the hard factors of block `b` (step k0 + b) of the listed instances,
     /// records their costs in `hard_cost`, and with `Linearize` reduces the block's
     /// equations C δ = −c; with `Residuals` leaves −c (in the same row order) in
-    /// `hard_rhs` for a correction with the current C.
+    /// `hard_rhs` for a correction (or a chord step) with the current C.
     pub(super) fn hard_block(
         &mut self,
         graph: &ChainGraph,
@@ -308,9 +307,6 @@ impl WindowSolver {
             let buf = &*buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
             let w = 1.0 / HARD_SIGMA;
             self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
-            if mode == HardPass::Cost {
-                continue;
-            }
             let dim = factor.dim();
             if linearize {
                 self.hard_jac[rows * s..(rows + dim) * s].fill(0.0);
@@ -480,6 +476,7 @@ impl WindowSolver {
                         .extend((0..d).map(|a| if a >= lo && a < hi { jr[a] } else { 0.0 }));
                     self.rows.push(rr);
                 }
+                self.row_instances.push(i);
             }
             accumulate(
                 &mut self.h,
@@ -599,12 +596,18 @@ impl WindowSolver {
         let mode = if linearize {
             HardPass::Linearize
         } else {
-            HardPass::Cost
+            HardPass::Residuals
         };
         let (mut soft, mut soft_first) = (0.0, 0.0);
-        self.rows.clear();
-        self.rows_width = None;
-        let record = linearize && blocks == 1 && prior.is_none();
+        // The rows describe the last linearization (as H and g do): an evaluation
+        // without one leaves them for a chord step from it.
+        if linearize {
+            self.rows.clear();
+            self.row_instances.clear();
+            self.rows_width = None;
+            self.rows_with_prior = prior.is_some();
+        }
+        let record = linearize && blocks == 1;
         if self.step_major && linearize {
             // Step by step: each step's hard equations, then its factors into its
             // blocks of H (and the lagged ones into the previous step's) while they

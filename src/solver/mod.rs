@@ -18,6 +18,7 @@ use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
 use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
 
+mod chord;
 mod iterate;
 mod linearize;
 mod marginal;
@@ -88,12 +89,17 @@ pub struct WindowSolver {
     /// directions.
     along_dirs: Vec<f64>,
     along_out: Vec<f64>,
-    /// The whitened, reduced rows [J N | r + J p] of a one-block window without a
-    /// prior, kept beside H for the least-squares step where H cannot be factored or
-    /// is conditioned past `Settings::normal_equations_limit` (see
-    /// `least_squares_step`); row-major, `d + 1` columns.
+    /// The whitened, reduced rows [J N | r + J p] of a one-block window's soft
+    /// factors, kept beside H: for the least-squares step where H cannot be factored
+    /// or is conditioned past `Settings::normal_equations_limit` (without a prior,
+    /// see `least_squares_step`), and for the chord step (`chord_step`); row-major,
+    /// `d + 1` columns, one factor after another as `row_instances` lists them.
     rows: Vec<f64>,
     rows_width: Option<usize>,
+    row_instances: Vec<usize>,
+    /// Whether a prior entered the linearization the rows belong to (its rows are
+    /// not among them).
+    rows_with_prior: bool,
     /// Set when a window solve ended on a small step: its linearization of the
     /// oldest block is still at hand (see `marginalize`).
     last: Option<LastSolve>,
@@ -206,6 +212,8 @@ impl WindowSolver {
             parked: Vec::new(),
             rows: Vec::new(),
             rows_width: None,
+            row_instances: Vec::new(),
+            rows_with_prior: false,
             last: None,
             cost_first: 0.0,
             correction: vec![0.0; s],

@@ -246,7 +246,7 @@ impl WindowSolver {
     /// independent coordinates) makes J's 1e8 into H's 1e16, where the Cholesky factor
     /// fails although J still determines the step to 8 digits.
     pub(super) fn least_squares_step(&mut self) -> bool {
-        let Some(d) = self.rows_width else {
+        let Some(d) = self.rows_width.filter(|_| !self.rows_with_prior) else {
             return false;
         };
         let m = self.rows.len() / (d + 1);

@@ -25,6 +25,9 @@ pub struct Iteration {
     /// equations.
     pub small: bool,
     pub restored: bool,
+    /// Whether the step was a chord step (the last linearization's model with the
+    /// residuals at the new point; see `Settings::chord_test`).
+    pub chord: bool,
 }
 
 /// Receives every iteration of every solve.
@@ -39,7 +42,7 @@ pub struct Trace;
 impl Observer for Trace {
     fn iteration(&mut self, it: &Iteration) {
         eprintln!(
-            "k0={} k1={} it={} newton={} cost={:.6e} trial={} mu={:.1e} pred={:.3e} |d|={:.2e} small={} restored={}",
+            "k0={} k1={} it={} newton={} cost={:.6e} trial={} mu={:.1e} pred={:.3e} |d|={:.2e} small={} restored={}{}",
             it.k0,
             it.k1,
             it.iteration,
@@ -50,7 +53,8 @@ impl Observer for Trace {
             it.predicted,
             it.largest_step,
             it.small,
-            it.restored
+            it.restored,
+            if it.chord { " chord" } else { "" }
         );
     }
 }

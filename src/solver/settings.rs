@@ -49,6 +49,14 @@ pub struct Settings {
     /// has no correct digit and the six-bar press's window solves wander for dozens
     /// of iterations.
     pub normal_equations_limit: f64,
+    /// Whether a one-block window's solve, after an undamped Gauss-Newton step that
+    /// lowered the cost, first tries the chord step (the last linearization's H and
+    /// Jacobians with the residuals at the new point) and stops when it is below the
+    /// tolerance, instead of linearizing again to find out. Only where no marginal
+    /// prior is made from that linearization: a solve with the step before held,
+    /// and every solve of a conditioned past (independent coordinates). Off: every
+    /// convergence is decided on a fresh linearization.
+    pub chord_test: bool,
     /// The iteration's finer thresholds.
     pub thresholds: Thresholds,
     /// Prints every iteration to standard error ([`Trace`]).
@@ -142,6 +150,7 @@ impl Default for Settings {
             past: Past::Marginalized,
             second_order: true,
             normal_equations_limit: 1e-10,
+            chord_test: true,
             thresholds: Thresholds::default(),
             trace: false,
         }

@@ -220,4 +220,83 @@ mod unit {
             assert!(it.cost.is_finite());
         }
     }
+
+    /// Records every iteration it sees.
+    struct Record(Arc<std::sync::Mutex<Vec<Iteration>>>);
+    impl Observer for Record {
+        fn iteration(&mut self, it: &Iteration) {
+            self.0.lock().unwrap().push(*it);
+        }
+    }
+
+    fn recorded(solver: &mut WindowSolver) -> Arc<std::sync::Mutex<Vec<Iteration>>> {
+        let seen = Arc::new(std::sync::Mutex::new(Vec::new()));
+        solver.observe(Box::new(Record(seen.clone())));
+        seen
+    }
+
+    /// A held one-step solve stops on a chord step below the tolerance, where the
+    /// same solve with every convergence decided on a fresh linearization ends
+    /// within the tolerance of the same point, after as many linear solves; a solve
+    /// whose linearization a marginal prior is made from never stops on one.
+    #[test]
+    fn a_chord_step_ends_a_solve_where_a_fresh_linearization_would() {
+        let (fg, values, prior, _, k) = window();
+        let s = fg.graph.layout().size();
+        let mut start = values.clone();
+        let (done, newest) = start.split_at_mut(k * s);
+        newest[..s].copy_from_slice(&done[(k - 1) * s..]);
+        let solve = |chord_test: bool| {
+            // Gauss-Newton throughout (the exact Hessian makes no chord steps).
+            let settings = Settings {
+                chord_test,
+                second_order: false,
+                ..Settings::default()
+            };
+            let mut solver = WindowSolver::new(&fg.graph, 2, settings).unwrap();
+            let seen = recorded(&mut solver);
+            let mut x = start.clone();
+            let report = solver
+                .solve_conditional(&fg.graph, &mut x, k, k + 1)
+                .unwrap();
+            assert_eq!(report.termination, Termination::Converged);
+            let seen = seen.lock().unwrap().clone();
+            (x, report, seen, solver)
+        };
+        let (x_with, report_with, seen_with, mut solver) = solve(true);
+        let (x_without, report_without, seen_without, _) = solve(false);
+        let with = &x_with[k * s..(k + 1) * s];
+        let without = &x_without[k * s..(k + 1) * s];
+        let last = seen_with.last().unwrap();
+        assert!(last.chord && last.small, "{last:?}");
+        assert!(last.largest_step <= Settings::default().step_tolerance);
+        assert!(seen_without.iter().all(|it| !it.chord));
+        assert_eq!(report_with.iterations, report_without.iterations);
+        for (a, b) in with.iter().zip(without) {
+            assert!((a - b).abs() <= 2e-8 * (1.0 + b.abs()), "{a} against {b}");
+        }
+        // The moved step is back on its hard equations to round-off.
+        let mut x = x_with.clone();
+        solver.correct(&fg.graph, &mut x, k, k + 1).unwrap();
+        for (a, b) in x[k * s..(k + 1) * s].iter().zip(with) {
+            assert!((a - b).abs() <= 1e-13 * (1.0 + b.abs()), "{a} against {b}");
+        }
+
+        // Marginalized past (the DC graph's tangent priors, as a run makes them):
+        // the window's linearization is the marginal's.
+        let settings = Settings {
+            tangent_priors: true,
+            ..Settings::default()
+        };
+        let mut solver = WindowSolver::new(&fg.graph, 2, settings).unwrap();
+        let seen = recorded(&mut solver);
+        let mut x = start.clone();
+        let mut prior = prior;
+        solver.project_prior(&fg.graph, &x, k, &mut prior).unwrap();
+        let report = solver
+            .solve(&fg.graph, &mut x, k, k + 1, Some(&prior))
+            .unwrap();
+        assert_eq!(report.termination, Termination::Converged);
+        assert!(seen.lock().unwrap().iter().all(|it| !it.chord));
+    }
 }
