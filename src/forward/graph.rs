@@ -51,8 +51,20 @@ impl ForwardGraph {
             }
         };
         // The position and velocity integrators of each coordinate set, soft with
-        // these σ.
+        // these σ. Tangent DC integrators leave one soft equation per unknown: the
+        // solution has a zero residual and does not depend on the σ's, only the
+        // conditioning of its normal equations does. Their σ are scaled by Δt (their
+        // residuals over Δt are a velocity and an acceleration), so that f_dyn's rows
+        // do not swamp them at a small Δt or on small links: with absolute σ, a 2 mm
+        // crank against a stiff spring at Δt = 1 µs gave the window's H a condition
+        // of 1e60 and a solution whose θ moved against θ̇. (Scaled by Δt² and Δt,
+        // into f_dyn's units, the six-bar press's batch at 5 ms no longer converged.)
         let sigma = [nm.integrator_position, nm.integrator_velocity];
+        let dc_sigma = if options.tangent_dc() {
+            [sigma[0] * dt, sigma[1] * dt]
+        } else {
+            sigma
+        };
         let hermite = (options.integrator == Integrator::HermiteSimpson)
             .then_some(|independent| collocation::factors(&model, independent, dt));
         let dc_integrators = || -> [Box<dyn Factor>; 2] {
@@ -85,7 +97,7 @@ impl ForwardGraph {
                         Box::new(Dynamics::new(model.clone())),
                         Noise::Isotropic(nm.dynamics),
                     );
-                for (factor, sigma) in dc_integrators().into_iter().zip(sigma) {
+                for (factor, sigma) in dc_integrators().into_iter().zip(dc_sigma) {
                     builder = builder.step_soft(factor, Noise::Isotropic(sigma));
                 }
                 builder
