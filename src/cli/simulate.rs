@@ -197,7 +197,10 @@ fn simulate(
 ) -> Result<(), Failure> {
     // Open the output first: an unwritable path is bad input, found before the run.
     let output = Output::open(out, &[scene])?;
-    if let Some(w) = mbfg::plausibility::idle_warning(&model) {
+    for w in mbfg::plausibility::idle_warning(&model)
+        .into_iter()
+        .chain(mbfg::plausibility::inertia_warning(&model))
+    {
         eprintln!("warning: {w}");
     }
     if let Some(w) = mbfg::plausibility::step_warning(&model, options.dt) {
@@ -305,6 +308,8 @@ fn simulate(
         // direction the cost barely sees), so --max-iterations is not suggested.
         let hint = if f.cause.is_some() {
             "an effect must be finite over the whole run"
+        } else if f.is_too_coarse() {
+            "without --no-refine the run is integrated again at a finer step"
         } else if options.mode == Mode::Batch && !f.warm_start {
             "the fixed-lag smoother (--window N) or a smaller dt may converge"
         } else if f.singular.is_some() {

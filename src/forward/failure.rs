@@ -42,6 +42,17 @@ impl StepFailure {
     /// step the implicit equations of a coarse step stop having a nearby solution.
     pub const LARGE_TURN: f64 = 0.5;
 
+    /// Whether the step's solve converged but a body turned more than
+    /// [`StepFailure::LARGE_TURN`] over it: the run is not to be trusted from there
+    /// (a failure only with refinement off; by default such a run is refined).
+    pub fn is_too_coarse(&self) -> bool {
+        self.report.termination == Termination::Converged
+            && self
+                .fast_body
+                .as_ref()
+                .is_some_and(|(_, turn)| *turn > Self::LARGE_TURN)
+    }
+
     /// The run's time step: t_k = k·Δt for every step of a run.
     pub fn dt(&self) -> f64 {
         self.t / self.step.max(1) as f64
@@ -90,6 +101,18 @@ impl StepFailure {
                     return format!(
                         "{stage}step {} (t = {t} s) cannot be solved: {cause}",
                         self.step
+                    );
+                }
+                if let Some((body, per_step)) =
+                    self.fast_body.as_ref().filter(|_| self.is_too_coarse())
+                {
+                    return format!(
+                        "step {} (t = {t} s) is too coarse for the motion: body {body} turns \
+                         about {per_step:.2} rad over it, where the integrators' chords no \
+                         longer follow the motion (dt below {:.2e} s keeps it under {} rad)",
+                        self.step,
+                        self.dt() * Self::LARGE_TURN / per_step,
+                        Self::LARGE_TURN
                     );
                 }
                 let turn = match &self.fast_body {

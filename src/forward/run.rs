@@ -103,6 +103,11 @@ pub fn simulate_streaming(
     let (mut summary, mut coarse) =
         simulate_integrators(model.clone(), options, progress, sink, None)?;
     if !options.refine {
+        // Refinement off: a run that converged over a step too coarse for the
+        // motion fails there (its answer is a poor one, see below), named as such.
+        if summary.failures.is_empty() && summary.interrupted.is_none() {
+            summary.failures.extend(coarse);
+        }
         return Ok(summary);
     }
     // A step too coarse for the motion: the implicit equations of a step over which a
@@ -164,9 +169,8 @@ pub fn simulate_streaming(
 struct Rows<'a> {
     model: &'a Model,
     sink: &'a mut dyn StepSink,
-    /// The attempt's time step, and whether its steps too coarse are looked for.
+    /// The attempt's time step.
     dt: f64,
-    refine: bool,
     /// A refined attempt: internal steps per row, and the row spacing asked for.
     every: Option<(usize, f64)>,
     /// Steps taken (the attempt's trajectory so far), rows passed on.
@@ -193,7 +197,6 @@ impl<'a> Rows<'a> {
             model,
             sink,
             dt: options.dt,
-            refine: options.refine,
             every,
             len: 0,
             written: 0,
@@ -223,7 +226,7 @@ impl<'a> Rows<'a> {
             return Ok(());
         }
         self.stats.add(self.model, q, dq)?;
-        if self.refine && self.coarse.is_none() {
+        if self.coarse.is_none() {
             self.coarse = coarse_turn(self.model, q, dq, t, self.dt, k);
         }
         match self.every {
@@ -246,8 +249,9 @@ impl<'a> Rows<'a> {
 }
 
 /// Whether a body turned more than [`StepFailure::LARGE_TURN`] over the step after
-/// step k (state q, q̇ at time t) of a converged run: a failure to refine from (its
-/// solve converged).
+/// step k (state q, q̇ at time t) of a converged run: a failure to refine from, or
+/// with refinement off to report ([`StepFailure::is_too_coarse`]: its solve
+/// converged).
 fn coarse_turn(
     model: &Model,
     q: &[f64],

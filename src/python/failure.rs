@@ -8,6 +8,8 @@
 //! - `"not-converged"`: `termination`, `iterations`, `cost`, `cause` (the effect
 //!   or evaluation at fault, or None), `batch`, `warm_start`,
 //!   `constraint_conditioning`, `fast_body` (name, turn per step) or None;
+//! - `"too-coarse"`: the step converged but a body turned more than half a radian
+//!   over it (refinement off): `fast_body` (name, turn per step);
 //! - `"singular"`: `what`;
 //! - `"data"`: `file`, `line`;
 //! - `"position-problem"`: `violated` (name, |Φ|) pairs;
@@ -24,6 +26,11 @@ pub(super) fn step_failure<'py>(py: Python<'py>, f: &StepFailure) -> PyResult<Bo
     d.set_item("message", f.message())?;
     d.set_item("step", f.step)?;
     d.set_item("t", crate::trajectory::round_time(f.t))?;
+    if f.is_too_coarse() {
+        d.set_item("kind", "too-coarse")?;
+        d.set_item("fast_body", f.fast_body.clone())?;
+        return Ok(d);
+    }
     match &f.singular {
         Some(c) => {
             d.set_item("kind", "singular-configuration")?;
