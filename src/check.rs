@@ -57,6 +57,7 @@ impl CheckReport {
                     [
                         crate::plausibility::placement_warning(model),
                         crate::plausibility::idle_warning(model),
+                        crate::plausibility::inertia_warning(model),
                     ]
                     .into_iter()
                     .flatten()

@@ -273,6 +273,55 @@ pub fn placement_warning(model: &Model) -> Option<String> {
     ))
 }
 
+/// Eigenvalues of the mass matrix on the free motions below this fraction of the
+/// largest count as no inertia at all (a point without mass): far below any mixture
+/// of scales a mechanism has (a 2 mm crank's 1e-9 kg·m² beside a 10 g slider).
+pub const MASSLESS_MOTION: f64 = 1e-14;
+
+/// A warning when the masses and inertias do not cover every motion the constraints
+/// allow at the initial state: along a motion without inertia (a point with no mass
+/// on no body) the dynamics does not determine the acceleration, and a run stops
+/// where that motion matters (a knee between two massless rods, when the chain
+/// straightens). Names the moving points that carry no mass.
+pub fn inertia_warning(model: &Model) -> Option<String> {
+    let basis = free_motions(model, &model.initial.q)?;
+    if basis.ncols() == 0 {
+        return None;
+    }
+    let reduced = basis.transpose() * &model.mass * &basis;
+    let eigen = reduced.symmetric_eigenvalues();
+    let top = eigen.max();
+    let low = eigen
+        .iter()
+        .filter(|&&v| v <= MASSLESS_MOTION * top)
+        .count();
+    if low == 0 {
+        return None;
+    }
+    let massless: Vec<&str> = model
+        .points
+        .iter()
+        .zip(&model.scene.points)
+        .filter_map(|(slot, p)| match slot {
+            crate::model::PointSlot::Free(i) => (model.mass[(*i, *i)] == 0.0
+                && model.mass[(i + 1, i + 1)] == 0.0)
+                .then_some(p.name.as_str()),
+            crate::model::PointSlot::Fixed(_) => None,
+        })
+        .collect();
+    let which = if massless.is_empty() {
+        String::new()
+    } else {
+        format!(" (moving without mass: {})", massless.join(", "))
+    };
+    Some(format!(
+        "{low} of the {} motions the constraints allow carry no inertia{which}: the \
+         dynamics does not determine their accelerations, and a run may stop where they \
+         matter; give those points a mass or put them on a body",
+        basis.ncols()
+    ))
+}
+
 /// A warning when nothing can set the mechanism moving: no effect, and at rest.
 pub fn idle_warning(model: &Model) -> Option<String> {
     let at_rest = model.initial.dq.iter().all(|v| *v == 0.0);

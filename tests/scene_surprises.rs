@@ -82,3 +82,37 @@ fn an_expression_cut_at_a_comma_says_to_quote_it() {
     );
     assert!(err.trim_end().chars().count() <= 300, "{err}");
 }
+
+#[test]
+fn a_point_that_moves_without_mass_is_named() {
+    // P2 hangs on a massless rod from the bob: its swing about P1 has no inertia.
+    let scene = temp_scene(
+        "massless.yaml",
+        "name: massless-end\n\
+         points:\n  - {name: A, x: 0, y: 0, fixed: true}\n  \
+         - {name: P1, x: 0.7, y: -0.7, mass: 1}\n  - {name: P2, x: 1.4, y: -0.7}\n\
+         constraints:\n  - {name: rod1, type: distance, points: [A, P1]}\n  \
+         - {name: rod2, type: distance, points: [P1, P2]}\n\
+         effects:\n  - {type: gravity, vector: [0, -9.81]}\n",
+    );
+    let text = stdout(&check(&scene));
+    std::fs::remove_file(&scene).ok();
+    assert!(
+        text.contains("warning: 1 of the 2 motions the constraints allow carry no inertia (moving without mass: P2)"),
+        "{text}"
+    );
+    // A point without mass whose every motion moves a mass (the knee between two
+    // rods, the tip carrying the mass) is no such case.
+    let knee = temp_scene(
+        "knee.yaml",
+        "name: knee\n\
+         points:\n  - {name: A, x: 0, y: 0, fixed: true}\n  \
+         - {name: P1, x: 0.7, y: -0.7}\n  - {name: P2, x: 1.4, y: -0.7, mass: 1}\n\
+         constraints:\n  - {name: rod1, type: distance, points: [A, P1]}\n  \
+         - {name: rod2, type: distance, points: [P1, P2]}\n\
+         effects:\n  - {type: gravity, vector: [0, -9.81]}\n",
+    );
+    let text = stdout(&check(&knee));
+    std::fs::remove_file(&knee).ok();
+    assert!(!text.contains("no inertia"), "{text}");
+}

@@ -182,6 +182,7 @@ pub(super) fn simulate_run<'py>(
         let requested = options.steps();
         let step_warning: Vec<String> = crate::plausibility::idle_warning(&model)
             .into_iter()
+            .chain(crate::plausibility::inertia_warning(&model))
             .chain(crate::plausibility::step_warning(&model, options.dt))
             .collect();
         let model_for_checks = model.clone();
