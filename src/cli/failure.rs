@@ -20,14 +20,23 @@ impl From<String> for Failure {
 /// longer messages are cut with an ellipsis.
 const MAX_MESSAGE_CHARS: usize = 300 - "error: ".len();
 
-/// One line of at most [`MAX_MESSAGE_CHARS`] characters.
+/// What a cut message keeps of its end: a failure's last words are what to do about
+/// it (`… (the fixed-lag smoother (--window N) or a smaller dt may converge)`).
+const KEPT_END_CHARS: usize = 110;
+
+/// One line of at most [`MAX_MESSAGE_CHARS`] characters: a longer one loses the
+/// middle, marked by an ellipsis, and keeps its beginning (what failed, where) and
+/// its end (the hint).
 pub fn shorten(message: &str) -> String {
     let line = message.replace(['\n', '\r'], " ");
-    if line.chars().count() <= MAX_MESSAGE_CHARS {
+    let chars: Vec<char> = line.chars().collect();
+    if chars.len() <= MAX_MESSAGE_CHARS {
         return line;
     }
-    let mut cut: String = line.chars().take(MAX_MESSAGE_CHARS - 1).collect();
+    let head = MAX_MESSAGE_CHARS - 1 - KEPT_END_CHARS;
+    let mut cut: String = chars[..head].iter().collect();
     cut.push('…');
+    cut.extend(&chars[chars.len() - KEPT_END_CHARS..]);
     cut
 }
 
@@ -52,5 +61,25 @@ pub fn plain(e: Error) -> String {
     match e {
         Error::InvalidArgument(m) => m,
         other => other.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_long_message_keeps_its_beginning_and_its_hint() {
+        let message = format!(
+            "step 12 (t = 0.012 s) did not converge: {}; nothing was written (the fixed-lag \
+             smoother (--window N) or a smaller dt may converge)",
+            "x".repeat(400)
+        );
+        let line = shorten(&message);
+        assert_eq!(line.chars().count(), MAX_MESSAGE_CHARS);
+        assert!(line.starts_with("step 12 (t = 0.012 s) did not converge: "));
+        assert!(line.ends_with("or a smaller dt may converge)"), "{line}");
+        assert!(line.contains('…'));
+        assert_eq!(shorten("short"), "short");
     }
 }
