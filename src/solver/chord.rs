@@ -13,6 +13,17 @@
 
 use super::*;
 
+/// What the chord test made of an undamped step.
+pub(super) enum ChordOutcome {
+    /// The chord step met the tolerance: the solve has converged.
+    Converged(SolveReport),
+    /// The correction after the chord step failed to evaluate, at this cost.
+    Failed(Error, f64),
+    /// No convergence shown: the trial point linearized as every iteration does (its
+    /// cost, or why it could not be evaluated).
+    Trial(Result<f64>),
+}
+
 /// A chord step that met the tolerance and was applied.
 pub(super) struct ChordStep {
     /// The decrease the linear model predicts for it.
@@ -22,6 +33,64 @@ pub(super) struct ChordStep {
 }
 
 impl WindowSolver {
+    /// After the undamped step `step` (its record, before the trial's cost is known)
+    /// to `values`, corrected onto the hard equations: the trial's cost without a
+    /// linearization, and where it is lower the chord step; the solve converges when
+    /// that is below the tolerance, else the trial is linearized as usual.
+    pub(super) fn chord_test(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        prior: Option<&LinearPrior>,
+        held: bool,
+        step: Iteration,
+    ) -> ChordOutcome {
+        let (k0, k1) = (step.k0, step.k1);
+        let scope = Scope::Window { held };
+        let cost = match self.evaluate(graph, values, k0, k1, prior, scope, false) {
+            Ok(c) if c <= step.cost => c,
+            _ => {
+                return ChordOutcome::Trial(
+                    self.evaluate(graph, values, k0, k1, prior, scope, true),
+                )
+            }
+        };
+        let Some(chord) = self.chord_step(graph, values, k0, prior) else {
+            return ChordOutcome::Trial(self.evaluate(graph, values, k0, k1, prior, scope, true));
+        };
+        // Back onto the hard equations to round-off: the chord step's part p comes
+        // from the old C.
+        if let Err(e) = self.correct(graph, values, k0, k1) {
+            return ChordOutcome::Failed(e, cost);
+        }
+        if let Some(observer) = self.observer.as_mut() {
+            let first = Iteration {
+                trial: Some(cost),
+                ..step
+            };
+            observer.iteration(&first);
+            observer.iteration(&Iteration {
+                iteration: step.iteration + 1,
+                cost,
+                trial: None,
+                predicted: chord.predicted,
+                largest_step: chord.largest,
+                small: true,
+                restored: true,
+                chord: true,
+                ..first
+            });
+        }
+        if !held {
+            self.keep_for_marginal(values, k0, k1);
+        }
+        ChordOutcome::Converged(SolveReport::new(
+            Termination::Converged,
+            step.iteration + 1,
+            cost - chord.predicted,
+        ))
+    }
+
     /// Whether a solve of steps k0..k1 may stop on a chord step: the last
     /// linearization recorded what one needs (the reduced rows of a one-block
     /// window's soft factors), and nothing is marginalized from that linearization

@@ -1,6 +1,7 @@
 //! The iteration: Gauss-Newton / Levenberg-Marquardt steps with backtracking,
 //! second-order correction and the switch to the exact Hessian.
 
+use super::chord::ChordOutcome;
 use super::*;
 
 impl WindowSolver {
@@ -91,6 +92,7 @@ impl WindowSolver {
     ) -> Result<SolveReport> {
         let scope = Scope::Window { held };
         let th = self.settings.thresholds;
+        self.prior_roots = None;
         if k1 <= k0 || k1 - k0 > self.h.capacity() {
             return Err(Error::InvalidArgument(format!(
                 "window {k0}..{k1} is empty or larger than the solver's capacity {}",
@@ -152,7 +154,7 @@ impl WindowSolver {
             let from_rows = mu == 0.0
                 && !newton
                 && (!factored || self.chol.pivot_ratio() < self.settings.normal_equations_limit)
-                && self.least_squares_step();
+                && self.least_squares_step(&values[k0 * s..(k0 + 1) * s], prior);
             if factored && !from_rows {
                 for i in 0..n {
                     self.delta[i] = -self.g[i];
@@ -202,34 +204,31 @@ impl WindowSolver {
                 }
             }
             let small = largest <= self.settings.step_tolerance;
+            // This iteration as an observer sees it (the trial's cost once known).
+            let record = Iteration {
+                k0,
+                k1,
+                iteration: iterations,
+                newton,
+                cost,
+                trial: None,
+                damping: mu,
+                predicted,
+                largest_step: largest,
+                small,
+                restored,
+                chord: false,
+            };
             if small && mu == 0.0 {
                 // Converged: the point moved by less than the tolerance, so the cost
                 // the model predicts is the cost there, to far below its round-off,
                 // and the hard equations, exact to first order along δ, are off by
                 // O(|δ|²) ≤ 1e-16: no correction needed.
                 if let Some(observer) = self.observer.as_mut() {
-                    observer.iteration(&Iteration {
-                        k0,
-                        k1,
-                        iteration: iterations,
-                        newton,
-                        cost,
-                        trial: None,
-                        damping: mu,
-                        predicted,
-                        largest_step: largest,
-                        small,
-                        restored,
-                        chord: false,
-                    });
+                    observer.iteration(&record);
                 }
                 if !held && !newton {
-                    self.last = Some(LastSolve {
-                        k0,
-                        k1,
-                        generation: self.generation,
-                    });
-                    self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
+                    self.keep_for_marginal(values, k0, k1);
                 }
                 return Ok(SolveReport::new(
                     Termination::Converged,
@@ -247,62 +246,11 @@ impl WindowSolver {
                 && iterations < self.settings.max_iterations
                 && self.chord_ready(k0, k1, held);
             let trial = match self.correct(graph, values, k0, k1) {
-                Ok(()) if chord => {
-                    match self.evaluate(graph, values, k0, k1, prior, scope, false) {
-                        Ok(c) if c <= cost => {
-                            if let Some(step) = self.chord_step(graph, values, k0, prior) {
-                                // Back onto the hard equations to round-off: the
-                                // chord step's part p comes from the old C.
-                                if let Err(e) = self.correct(graph, values, k0, k1) {
-                                    return Ok(failed(e, c, iterations + 1));
-                                }
-                                if let Some(observer) = self.observer.as_mut() {
-                                    let first = Iteration {
-                                        k0,
-                                        k1,
-                                        iteration: iterations,
-                                        newton,
-                                        cost,
-                                        trial: Some(c),
-                                        damping: mu,
-                                        predicted,
-                                        largest_step: largest,
-                                        small,
-                                        restored,
-                                        chord: false,
-                                    };
-                                    observer.iteration(&first);
-                                    observer.iteration(&Iteration {
-                                        iteration: iterations + 1,
-                                        cost: c,
-                                        trial: None,
-                                        predicted: step.predicted,
-                                        largest_step: step.largest,
-                                        small: true,
-                                        restored: true,
-                                        chord: true,
-                                        ..first
-                                    });
-                                }
-                                if !held {
-                                    self.last = Some(LastSolve {
-                                        k0,
-                                        k1,
-                                        generation: self.generation,
-                                    });
-                                    self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
-                                }
-                                return Ok(SolveReport::new(
-                                    Termination::Converged,
-                                    iterations + 1,
-                                    c - step.predicted,
-                                ));
-                            }
-                            self.evaluate(graph, values, k0, k1, prior, scope, true)
-                        }
-                        _ => self.evaluate(graph, values, k0, k1, prior, scope, true),
-                    }
-                }
+                Ok(()) if chord => match self.chord_test(graph, values, prior, held, record) {
+                    ChordOutcome::Converged(report) => return Ok(report),
+                    ChordOutcome::Failed(e, c) => return Ok(failed(e, c, iterations + 1)),
+                    ChordOutcome::Trial(trial) => trial,
+                },
                 Ok(()) => self.evaluate(graph, values, k0, k1, prior, scope, true),
                 Err(e) => Err(e),
             };
@@ -329,18 +277,8 @@ impl WindowSolver {
             let converged = (small || flat) && mu == 0.0;
             if let Some(observer) = self.observer.as_mut() {
                 observer.iteration(&Iteration {
-                    k0,
-                    k1,
-                    iteration: iterations,
-                    newton,
-                    cost,
                     trial: trial.as_ref().ok().copied(),
-                    damping: mu,
-                    predicted,
-                    largest_step: largest,
-                    small,
-                    restored,
-                    chord: false,
+                    ..record
                 });
             }
 

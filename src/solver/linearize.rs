@@ -605,7 +605,6 @@ impl WindowSolver {
             self.rows.clear();
             self.row_instances.clear();
             self.rows_width = None;
-            self.rows_with_prior = prior.is_some();
         }
         let record = linearize && blocks == 1;
         if self.step_major && linearize {

@@ -395,6 +395,18 @@ impl WindowSolver {
         })
     }
 
+    /// Keeps the converged window's linearization of its first block for
+    /// marginalizing it ([`LastSolve`]), with the values it holds at.
+    pub(super) fn keep_for_marginal(&mut self, values: &[f64], k0: usize, k1: usize) {
+        let s = self.s;
+        self.last = Some(LastSolve {
+            k0,
+            k1,
+            generation: self.generation,
+        });
+        self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
+    }
+
     /// Marginalization from the last window solve's linearization of its first block
     /// (it converged on a step below the tolerance, so that linearization is the one
     /// at the optimum up to O(tolerance)); only the factors joining k0 to k0 + 1 are

@@ -36,7 +36,7 @@ pub use settings::{Method, Past, Settings, Thresholds};
 
 use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
 use marginal::LastSolve;
-use newton::NewtonBuffers;
+use newton::{NewtonBuffers, PriorRoots};
 use structure::{factor_of, is_hard, Instance, Resolved, Scope};
 
 /// σ by which a hard factor's residual is weighted in the reported cost
@@ -90,16 +90,17 @@ pub struct WindowSolver {
     along_dirs: Vec<f64>,
     along_out: Vec<f64>,
     /// The whitened, reduced rows [J N | r + J p] of a one-block window's soft
-    /// factors, kept beside H: for the least-squares step where H cannot be factored
-    /// or is conditioned past `Settings::normal_equations_limit` (without a prior,
-    /// see `least_squares_step`), and for the chord step (`chord_step`); row-major,
-    /// `d + 1` columns, one factor after another as `row_instances` lists them.
+    /// factors (a prior's are not among them), kept beside H: for the least-squares
+    /// step where H cannot be factored or is conditioned past
+    /// `Settings::normal_equations_limit` (see `least_squares_step`), and for the
+    /// chord step (`chord_step`); row-major, `d + 1` columns, one factor after
+    /// another as `row_instances` lists them.
     rows: Vec<f64>,
     rows_width: Option<usize>,
     row_instances: Vec<usize>,
-    /// Whether a prior entered the linearization the rows belong to (its rows are
-    /// not among them).
-    rows_with_prior: bool,
+    /// The current solve's prior as rows, made when a least-squares step first
+    /// needs them.
+    prior_roots: Option<PriorRoots>,
     /// Set when a window solve ended on a small step: its linearization of the
     /// oldest block is still at hand (see `marginalize`).
     last: Option<LastSolve>,
@@ -213,7 +214,7 @@ impl WindowSolver {
             rows: Vec::new(),
             rows_width: None,
             row_instances: Vec::new(),
-            rows_with_prior: false,
+            prior_roots: None,
             last: None,
             cost_first: 0.0,
             correction: vec![0.0; s],

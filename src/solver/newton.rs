@@ -18,6 +18,35 @@ pub(super) struct NewtonBuffers {
     pub(super) max_hard: usize,
 }
 
+/// A prior's information as rows, Λ = Σᵢ (√λᵢ vᵢ)(√λᵢ vᵢ)ᵀ over the directions it
+/// informs above round-off (λᵢ > s ε λ_max), with vᵢᵀη / √λᵢ per row: its cost
+/// ½δᵀΛδ + ηᵀδ is ½|R δ + c|² up to a constant.
+pub(super) struct PriorRoots {
+    /// Row-major, s columns.
+    pub(super) rows: Vec<f64>,
+    pub(super) eta: Vec<f64>,
+}
+
+impl PriorRoots {
+    pub(super) fn of(prior: &LinearPrior, s: usize) -> Self {
+        let lambda = nalgebra::DMatrix::from_row_slice(s, s, &prior.information);
+        let eigen = lambda.symmetric_eigen();
+        let top = eigen.eigenvalues.iter().cloned().fold(0.0, f64::max);
+        let floor = s as f64 * f64::EPSILON * top;
+        let (mut rows, mut eta) = (Vec::new(), Vec::new());
+        for (i, &l) in eigen.eigenvalues.iter().enumerate() {
+            if !(l > floor && l.is_finite()) {
+                continue;
+            }
+            let v = eigen.eigenvectors.column(i);
+            let root = l.sqrt();
+            rows.extend(v.iter().map(|vk| root * vk));
+            eta.push(v.iter().zip(&prior.eta).map(|(a, b)| a * b).sum::<f64>() / root);
+        }
+        PriorRoots { rows, eta }
+    }
+}
+
 impl WindowSolver {
     /// The gradient of the Lagrangian of the window's problem in full coordinates,
     /// Σ Jᵢᵀrᵢ over the soft factors (whitened), the prior's Λ(x − x̄) + η, and
@@ -239,22 +268,49 @@ impl WindowSolver {
         Ok(())
     }
 
-    /// The Gauss-Newton step of a one-block window from its rows (`rows`), by an SVD
-    /// of the reduced Jacobian itself, into `delta`; false when the rows are not at
-    /// hand or the step is not finite. H = JᵀJ squares J's condition number: a stiff
-    /// force's row next to the integrators' (a light crank against a stiff spring, in
-    /// independent coordinates) makes J's 1e8 into H's 1e16, where the Cholesky factor
-    /// fails although J still determines the step to 8 digits.
-    pub(super) fn least_squares_step(&mut self) -> bool {
-        let Some(d) = self.rows_width.filter(|_| !self.rows_with_prior) else {
+    /// The Gauss-Newton step of a one-block window from its rows (`rows`) and those
+    /// of its prior, by an SVD of the reduced Jacobian itself, into `delta`; false
+    /// when the rows are not at hand or the step is not finite. H = JᵀJ squares J's
+    /// condition number: a stiff force's row next to the integrators' (a light crank
+    /// against a stiff spring, in independent coordinates) makes J's 1e8 into H's
+    /// 1e16, where the Cholesky factor fails although J still determines the step to
+    /// 8 digits; a 2 mm crank's f_dyn rows (∂q̈/∂q ~ 1e9 whitened) swamp the
+    /// integrators' information in a dependent-coordinate window's H altogether.
+    ///
+    /// The prior's rows come from its information Λ = V diag(λ) Vᵀ: the row
+    /// √λᵢ vᵢᵀ N with the residual √λᵢ vᵢᵀ(x + p − x̄) + vᵢᵀη / √λᵢ per direction
+    /// it informs above round-off (λᵢ > s ε λ_max), for ½(δᵀΛδ) + ηᵀδ with
+    /// δ = x + p + N y − x̄. Λ's own condition is that of its factors' rows squared
+    /// only, not that of the window's.
+    pub(super) fn least_squares_step(&mut self, x: &[f64], prior: Option<&LinearPrior>) -> bool {
+        let Some(d) = self.rows_width else {
             return false;
         };
-        let m = self.rows.len() / (d + 1);
-        if d == 0 || m < d {
+        let s = self.s;
+        let window_rows = self.rows.len() / (d + 1);
+        let mut rows = self.rows.clone();
+        if let Some(p) = prior {
+            // The prior is the same for the whole solve: its roots are made once.
+            let roots = self.prior_roots.get_or_insert_with(|| PriorRoots::of(p, s));
+            let red = &self.hard[0].reduction;
+            let mut basis = vec![0.0; s * d];
+            red.basis_into(&mut basis);
+            for (root, c) in roots.rows.chunks_exact(s).zip(&roots.eta) {
+                rows.extend(
+                    (0..d).map(|a| (0..s).map(|k| root[k] * basis[k * d + a]).sum::<f64>()),
+                );
+                let offset: f64 = (0..s)
+                    .map(|k| root[k] * (x[k] + red.particular[k] - p.xbar[k]))
+                    .sum();
+                rows.push(offset + c);
+            }
+        }
+        let m = rows.len() / (d + 1);
+        if d == 0 || m < d || (prior.is_none() && window_rows < d) {
             return false;
         }
-        let a = nalgebra::DMatrix::from_fn(m, d, |i, j| self.rows[i * (d + 1) + j]);
-        let b = nalgebra::DVector::from_fn(m, |i, _| -self.rows[i * (d + 1) + d]);
+        let a = nalgebra::DMatrix::from_fn(m, d, |i, j| rows[i * (d + 1) + j]);
+        let b = nalgebra::DVector::from_fn(m, |i, _| -rows[i * (d + 1) + d]);
         let svd = a.svd(true, true);
         let Some(&largest) = svd.singular_values.iter().max_by(|x, y| x.total_cmp(y)) else {
             return false;

@@ -299,4 +299,46 @@ mod unit {
         assert_eq!(report.termination, Termination::Converged);
         assert!(seen.lock().unwrap().iter().all(|it| !it.chord));
     }
+
+    /// A prior as rows: RᵀR = Λ and Rᵀc = η, for an information of lower rank than
+    /// its size (its null direction gets no row).
+    #[test]
+    fn a_prior_as_rows_has_its_information_and_gradient() {
+        let (s, r) = (5, 3);
+        // Λ = AᵀA with A r × s, η = Aᵀb: a prior of rank r.
+        let a: Vec<f64> = (0..r * s)
+            .map(|i| ((i * 7 % 11) as f64 - 5.0) * 0.3)
+            .collect();
+        let b = [0.7, -1.3, 2.1];
+        let mut information = vec![0.0; s * s];
+        let mut eta = vec![0.0; s];
+        for i in 0..s {
+            for j in 0..s {
+                information[i * s + j] = (0..r).map(|k| a[k * s + i] * a[k * s + j]).sum();
+            }
+            eta[i] = (0..r).map(|k| a[k * s + i] * b[k]).sum();
+        }
+        let prior = LinearPrior {
+            information: information.clone(),
+            eta: eta.clone(),
+            constant: 0.0,
+            xbar: vec![0.0; s],
+            projection: None,
+        };
+        let roots = newton::PriorRoots::of(&prior, s);
+        assert_eq!(roots.rows.len(), r * s, "one row per direction informed");
+        let rows = roots.rows.len() / s;
+        for i in 0..s {
+            for j in 0..s {
+                let rtr: f64 = (0..rows)
+                    .map(|k| roots.rows[k * s + i] * roots.rows[k * s + j])
+                    .sum();
+                assert!((rtr - information[i * s + j]).abs() <= 1e-12, "Λ[{i}][{j}]");
+            }
+            let rtc: f64 = (0..rows)
+                .map(|k| roots.rows[k * s + i] * roots.eta[k])
+                .sum();
+            assert!((rtc - eta[i]).abs() <= 1e-12, "η[{i}]");
+        }
+    }
 }
