@@ -95,8 +95,9 @@ impl DynamicsKernel {
         // −∂(Φ̇_q q̇)/∂q − Φ_qq q̈ and −2 Φ̇_q.
         kq.fill(0.0);
         kv.fill(0.0);
-        for f in &model.forces {
-            f.add_jacobians(model, (q, dq, t), kq, kv)?;
+        for (i, f) in model.forces.iter().enumerate() {
+            f.add_jacobians(model, (q, dq, t), kq, kv)
+                .map_err(|e| model.effect_error(i, e))?;
         }
         for (t, lam) in tmp.iter_mut().zip(&sol[n..big]) {
             *t = -lam;

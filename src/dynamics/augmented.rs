@@ -32,6 +32,12 @@ pub struct KernelScratch<'a> {
     /// `kkt` and `perm` are not used).
     sparse: Option<&'a KktStructure>,
     factors: Option<SparseLu<'a>>,
+    /// μ of the dense K factored as [M/μ Aᵀ; A −μE] (unknowns q̈ and λ/μ): 1 but
+    /// where the plain K failed its pivot test for a heavy mechanism
+    /// ([`DynamicsKernel::evaluate`]).
+    scale: f64,
+    /// Rows of K for λ (the active constraints).
+    active: usize,
 }
 
 impl<'a> KernelScratch<'a> {
@@ -83,6 +89,8 @@ impl<'a> KernelScratch<'a> {
             measure,
             sparse,
             factors: None,
+            scale: 1.0,
+            active: model.active.len(),
         };
         (scratch, stack)
     }
@@ -96,10 +104,68 @@ impl KernelScratch<'_> {
         match &self.factors {
             Some(lu) => lu.solve_many(b, cols),
             None => {
-                dense::lu_solve_many(&self.kkt, big, &self.perm, b, cols, tmp);
+                solve_dense(
+                    &self.kkt,
+                    &self.perm,
+                    (big - self.active, self.scale),
+                    b,
+                    cols,
+                    tmp,
+                );
                 Ok(())
             }
         }
+    }
+}
+
+/// K = [M/μ Aᵀ; A −μE] into `kkt` (row-major big × big), A the active rows of
+/// Φ_q (`jacobian`, all m rows × n), E the regularization's diagonal where there is
+/// one.
+fn fill_kkt(model: &Model, jacobian: &[f64], eps: Option<&[f64]>, mu: f64, kkt: &mut [f64]) {
+    let (n, ma) = (model.n(), model.active.len());
+    let big = n + ma;
+    kkt[..big * big].fill(0.0);
+    for i in 0..n {
+        for j in 0..n {
+            kkt[i * big + j] = if mu == 1.0 {
+                model.mass[(i, j)]
+            } else {
+                model.mass[(i, j)] / mu
+            };
+        }
+    }
+    for (r, &k) in model.active.iter().enumerate() {
+        for j in 0..n {
+            let a = jacobian[k * n + j];
+            kkt[(n + r) * big + j] = a;
+            kkt[j * big + n + r] = a;
+        }
+    }
+    if let Some(eps) = eps {
+        for (r, e) in eps.iter().enumerate() {
+            kkt[(n + r) * big + n + r] = -mu * e;
+        }
+    }
+}
+
+/// B ← K⁻¹B (row-major big × `cols`, its first `n` rows for q̈) with the dense
+/// factors of K scaled by `scale` (see [`KernelScratch::scale`]): those rows go in
+/// over μ, the others (λ) come out times μ.
+fn solve_dense(
+    lu: &[f64],
+    perm: &[usize],
+    (n, scale): (usize, f64),
+    b: &mut [f64],
+    cols: usize,
+    tmp: &mut [f64],
+) {
+    let big = perm.len();
+    if scale != 1.0 {
+        b[..n * cols].iter_mut().for_each(|v| *v /= scale);
+    }
+    dense::lu_solve_many(lu, big, perm, &mut b[..big * cols], cols, tmp);
+    if scale != 1.0 {
+        b[n * cols..big * cols].iter_mut().for_each(|v| *v *= scale);
     }
 }
 
@@ -144,9 +210,12 @@ impl DynamicsKernel {
             measure: scratch,
             sparse,
             factors,
+            scale,
+            ..
         } = scratch;
 
         // K = [M Aᵀ; A −E] and the right-hand side [Q; c].
+        *scale = 1.0;
         model.jacobian_into(q, mat);
         let reg = Self::measure(model, mat, scratch, false);
         if let Some(structure) = sparse {
@@ -161,32 +230,30 @@ impl DynamicsKernel {
             *factors =
                 Some(structure.factor(model, mat, (reg.w > 0.0).then_some(&scratch.eps[..ma]))?);
         } else {
-            kkt.fill(0.0);
-            for i in 0..n {
-                for j in 0..n {
-                    kkt[i * big + j] = model.mass[(i, j)];
-                }
-            }
-            for (r, &k) in model.active.iter().enumerate() {
-                for j in 0..n {
-                    let a = mat[k * n + j];
-                    kkt[(n + r) * big + j] = a;
-                    kkt[j * big + n + r] = a;
-                }
-            }
             if reg.w > 0.0 {
                 let scale = Self::REGULARIZATION * reg.w / mass_scale(model);
                 for r in 0..ma {
                     let norm = scratch.norms[r];
-                    let e = scale * norm * norm;
-                    scratch.eps[r] = e;
-                    kkt[(n + r) * big + n + r] = -e;
+                    scratch.eps[r] = scale * norm * norm;
                 }
+            }
+            let eps = (reg.w > 0.0).then_some(&scratch.eps[..ma]);
+            fill_kkt(model, mat, eps, 1.0, kkt);
+            // The pivot test is relative to K's largest entry: a heavy mechanism
+            // (1e8 kg on 1 m links) makes the constraint block's pivots, |Φ_q|²/m,
+            // look singular. Then K is factored again with M in units of its scale.
+            if dense::lu(kkt, big, perm).is_err() {
+                *scale = mass_scale(model);
+                fill_kkt(model, mat, eps, *scale, kkt);
+                dense::lu(kkt, big, perm).map_err(|_| {
+                    Error::singular("the augmented (KKT) system is singular: a singular configuration or dependent constraints")
+                })?;
             }
         }
         sol.fill(0.0);
-        for f in &model.forces {
-            f.add_to(model, q, dq, t, &mut sol[..n])?;
+        for (i, f) in model.forces.iter().enumerate() {
+            f.add_to(model, q, dq, t, &mut sol[..n])
+                .map_err(|e| model.effect_error(i, e))?;
         }
         if let Some(f) = force {
             for (s, v) in sol[..n].iter_mut().zip(f) {
@@ -199,12 +266,8 @@ impl DynamicsKernel {
         }
         match factors {
             Some(lu) => lu.solve_many(&mut sol[..big], 1)?,
-            None => {
-                dense::lu(kkt, big, perm).map_err(|_| {
-                    Error::singular("the augmented (KKT) system is singular: a singular configuration or dependent constraints")
-                })?;
-                dense::lu_solve(kkt, big, perm, sol, tmp);
-            }
+            None if *scale == 1.0 => dense::lu_solve(kkt, big, perm, &mut sol[..big], tmp),
+            None => solve_dense(kkt, perm, (n, *scale), &mut sol[..big], 1, tmp),
         }
         ddq.copy_from_slice(&sol[..n]);
         let Some((jq, jv)) = jac else {
@@ -214,8 +277,9 @@ impl DynamicsKernel {
         // Right-hand sides, column-major: n columns for q, then n for q̇.
         kq.fill(0.0);
         kv.fill(0.0);
-        for f in &model.forces {
-            f.add_jacobians(model, (q, dq, t), kq, kv)?;
+        for (i, f) in model.forces.iter().enumerate() {
+            f.add_jacobians(model, (q, dq, t), kq, kv)
+                .map_err(|e| model.effect_error(i, e))?;
         }
         // kq −= ∂(Φ_qᵀλ)/∂q, accumulated with −λ.
         for (t, l) in tmp.iter_mut().zip(&sol[n..big]) {
@@ -257,7 +321,7 @@ impl DynamicsKernel {
         }
         match factors {
             Some(lu) => lu.solve_many(&mut cols[..big * w], w)?,
-            None => dense::lu_solve_many(kkt, big, perm, &mut cols[..big * w], w, tmp),
+            None => solve_dense(kkt, perm, (n, *scale), &mut cols[..big * w], w, tmp),
         }
         for i in 0..n {
             jq[i * n..(i + 1) * n].copy_from_slice(&cols[i * w..i * w + n]);
@@ -283,6 +347,7 @@ impl DynamicsKernel {
             tmp,
             cols,
             factors,
+            scale,
             ..
         } = scratch;
         let p = columns.len();
@@ -293,7 +358,7 @@ impl DynamicsKernel {
         }
         match factors {
             Some(lu) => lu.solve_many(rhs, p)?,
-            None => dense::lu_solve_many(kkt, big, perm, rhs, p, tmp),
+            None => solve_dense(kkt, perm, (n, *scale), rhs, p, tmp),
         }
         jf[..n * p].copy_from_slice(&rhs[..n * p]);
         Ok(())

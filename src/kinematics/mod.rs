@@ -484,8 +484,9 @@ impl PrescribedKinematics {
         let (n, m) = (self.n, self.m);
         let r = &mut self.trial;
         r.fill(0.0);
-        for f in &model.forces {
-            f.add_to(model, q, dq, t, r)?;
+        for (i, f) in model.forces.iter().enumerate() {
+            f.add_to(model, q, dq, t, r)
+                .map_err(|e| model.effect_error(i, e))?;
         }
         for i in 0..n {
             r[i] -= (0..n).map(|j| model.mass[(i, j)] * ddq[j]).sum::<f64>();

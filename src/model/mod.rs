@@ -604,10 +604,21 @@ impl Model {
         t: f64,
     ) -> Result<DVector<f64>> {
         let mut out = DVector::zeros(self.n());
-        for f in &self.forces {
-            f.add_to(self, q.as_slice(), dq.as_slice(), t, out.as_mut_slice())?;
+        for (i, f) in self.forces.iter().enumerate() {
+            f.add_to(self, q.as_slice(), dq.as_slice(), t, out.as_mut_slice())
+                .map_err(|e| self.effect_error(i, e))?;
         }
         Ok(out)
+    }
+
+    /// Effect i's evaluation error, named as `mbfg check` names the effect (a value
+    /// that is not finite says where it comes from).
+    pub fn effect_error(&self, i: usize, e: Error) -> Error {
+        let effect = self.scene.effects[i].describe(&self.scene);
+        match e {
+            Error::InvalidArgument(m) => Error::InvalidArgument(format!("effect {effect}: {m}")),
+            other => other,
+        }
     }
 
     /// The first effect whose force at (q, q̇, t) cannot be evaluated or is not finite,
@@ -652,8 +663,9 @@ impl Model {
     ) -> Result<(DMatrix<f64>, DMatrix<f64>)> {
         let n = self.n();
         let (mut kq, mut kv) = (vec![0.0; n * n], vec![0.0; n * n]);
-        for f in &self.forces {
-            f.add_jacobians(self, (q.as_slice(), dq.as_slice(), t), &mut kq, &mut kv)?;
+        for (i, f) in self.forces.iter().enumerate() {
+            f.add_jacobians(self, (q.as_slice(), dq.as_slice(), t), &mut kq, &mut kv)
+                .map_err(|e| self.effect_error(i, e))?;
         }
         Ok((self.to_matrix(n, &kq), self.to_matrix(n, &kv)))
     }
