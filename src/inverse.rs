@@ -535,6 +535,17 @@ fn kinematic_start(model: &Model, p: &Prescription, d1: &[f64], d2: &[f64]) -> R
             q.copy_from_slice(&guess);
         }
         let reach = |e: Error| {
+            if k == 0 {
+                // Newton starts from the scene's placement: where that is a singular
+                // configuration of the prescribed coordinates (a pendulum drawn
+                // horizontal, its x prescribed), no step leaves it for either branch.
+                return Error::singular(format!(
+                    "the prescribed motion's first sample (t = {t}) cannot be reached from \
+                     the scene's placement: {e} (beyond the mechanism's reach, or the \
+                     placement is a configuration where the prescribed coordinates do not \
+                     determine the others: place the mechanism off it, on the branch wanted)"
+                ));
+            }
             Error::singular(format!(
                 "the prescribed motion is out of the mechanism's reach at t = {t} (sample {k}): {e}"
             ))

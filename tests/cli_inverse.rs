@@ -208,3 +208,24 @@ fn independent_coordinates_need_the_prescribed_ones_to_be_independent() {
     let line = one_error_line(&out, 2);
     assert!(line.contains("independent ones (theta)"), "{line}");
 }
+
+#[test]
+fn a_first_sample_unreachable_from_the_placement_says_how_to_place_it() {
+    // The pendulum is drawn horizontal: with P.x prescribed, P.y is undetermined
+    // there (the constraint's derivative along y is 0), on either branch.
+    let text = format!("t,P.x\n{}", rows(|k| format!("{},0.9", k as f64 * 0.01), 6));
+    let path = temp("placement.csv", &text);
+    let out = mbfg(&[
+        "inverse",
+        "scenes/pendulum.yaml",
+        "--trajectory",
+        path.to_str().unwrap(),
+    ]);
+    std::fs::remove_file(&path).ok();
+    let line = one_error_line(&out, 1);
+    assert!(
+        line.contains("first sample (t = 0) cannot be reached from the scene's placement"),
+        "{line}"
+    );
+    assert!(line.contains("place the mechanism off it"), "{line}");
+}
