@@ -122,7 +122,7 @@ fn inverse(
     let line = format!(
         "{} steps (dt = {} s, batch) in {:.3} s; {} LM iterations ({}); worst tracking error {:.2e}; worst |Φ| {:.2e}",
         s.steps,
-        prescription.dt,
+        super::seconds(prescription.dt),
         s.wall_time.as_secs_f64(),
         s.report.iterations,
         s.report.termination,

@@ -36,3 +36,25 @@ pub fn print_summary(to_file: bool, line: &str) {
         eprintln!("{line}");
     }
 }
+
+/// A time in seconds as the summary lines print it: as Rust writes it, except far
+/// outside any mechanism's time scales, where that would be hundreds of digits
+/// (dt = 1e-300 s).
+pub fn seconds(v: f64) -> String {
+    if v != 0.0 && !(1e-9..1e9).contains(&v.abs()) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn seconds_stay_short() {
+        assert_eq!(super::seconds(0.001), "0.001");
+        assert_eq!(super::seconds(0.00001), "0.00001");
+        assert_eq!(super::seconds(1e-300), "1e-300");
+        assert_eq!(super::seconds(0.0), "0");
+    }
+}

@@ -368,7 +368,7 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
         "{} steps (dt = {} s, {mode}) in {:.3} s; LM iterations per solve: mean {:.2}, max {}; \
          worst |Φ| {:.2e}, worst |Φq q̇| {:.2e}",
         s.steps,
-        options.dt,
+        super::seconds(options.dt),
         s.wall_time.as_secs_f64(),
         s.mean_iterations,
         s.max_iterations,
