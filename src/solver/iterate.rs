@@ -151,10 +151,21 @@ impl WindowSolver {
                 .is_ok();
             // Gauss-Newton from J itself where H = JᵀJ is too ill-conditioned for its
             // Cholesky factor to give the step to more than a few digits.
-            let from_rows = mu == 0.0
+            let ill_conditioned = mu == 0.0
                 && !newton
-                && (!factored || self.chol.pivot_ratio() < self.settings.normal_equations_limit)
-                && self.least_squares_step(&values[k0 * s..(k0 + 1) * s], prior);
+                && (!factored || self.chol.pivot_ratio() < self.settings.normal_equations_limit);
+            if ill_conditioned && self.rows_width.is_none() && k1 == k0 + 1 {
+                // The rows were not kept (a window a marginal prior is made from keeps
+                // none, see `evaluate`): the same linearization again, keeping them, as
+                // every one-step linearization will from now on (ill-conditioning
+                // persists along a run: the 128-link pendulum's every window).
+                self.keep_rows = true;
+                if let Err(e) = self.evaluate(graph, values, k0, k1, prior, scope, true) {
+                    return Ok(failed(e, cost, iterations));
+                }
+            }
+            let from_rows =
+                ill_conditioned && self.least_squares_step(&values[k0 * s..(k0 + 1) * s], prior);
             if factored && !from_rows {
                 for i in 0..n {
                     self.delta[i] = -self.g[i];

@@ -606,7 +606,14 @@ impl WindowSolver {
             self.row_instances.clear();
             self.rows_width = None;
         }
-        let record = linearize && blocks == 1;
+        // Rows for the chord test (whose solves make no marginal prior) and the
+        // least-squares step; the other one-step windows keep them only on demand.
+        let record = linearize
+            && blocks == 1
+            && (prior.is_none()
+                || self.past_conditioned()
+                || scope == (Scope::Window { held: true })
+                || self.keep_rows);
         if self.step_major && linearize {
             // Step by step: each step's hard equations, then its factors into its
             // blocks of H (and the lagged ones into the previous step's) while they

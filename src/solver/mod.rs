@@ -98,6 +98,9 @@ pub struct WindowSolver {
     rows: Vec<f64>,
     rows_width: Option<usize>,
     row_instances: Vec<usize>,
+    /// Every one-step linearization keeps its rows, whatever its window: set once a
+    /// window's normal equations proved too ill-conditioned to factor (`evaluate`).
+    keep_rows: bool,
     /// The current solve's prior as rows, made when a least-squares step first
     /// needs them.
     prior_roots: Option<PriorRoots>,
@@ -214,6 +217,7 @@ impl WindowSolver {
             rows: Vec::new(),
             rows_width: None,
             row_instances: Vec::new(),
+            keep_rows: false,
             prior_roots: None,
             last: None,
             cost_first: 0.0,
