@@ -144,6 +144,14 @@ fn bad_trajectory_files_exit_2_with_a_clear_message() {
     one_error_line(&out, 2);
 }
 
+/// The one error line of `mbfg inverse SCENE` on the trajectory `text` (exit 1).
+fn failed_inverse(scene: &str, name: &str, text: &str) -> String {
+    let path = temp(name, text);
+    let out = mbfg(&["inverse", scene, "--trajectory", path.to_str().unwrap()]);
+    std::fs::remove_file(&path).ok();
+    one_error_line(&out, 1)
+}
+
 #[test]
 fn a_prescription_out_of_reach_names_the_sample() {
     // P1 is on a unit crank: P1.y cannot exceed 1; it does after 0.5 s here.
@@ -154,15 +162,7 @@ fn a_prescription_out_of_reach_names_the_sample() {
             101
         )
     );
-    let path = temp("reach.csv", &text);
-    let out = mbfg(&[
-        "inverse",
-        "scenes/fourbar-theta.yaml",
-        "--trajectory",
-        path.to_str().unwrap(),
-    ]);
-    std::fs::remove_file(&path).ok();
-    let line = one_error_line(&out, 1);
+    let line = failed_inverse("scenes/fourbar-theta.yaml", "reach.csv", &text);
     assert!(line.contains("out of the mechanism's reach"), "{line}");
     let sample: usize = line
         .split("(sample ")
@@ -214,15 +214,7 @@ fn a_first_sample_unreachable_from_the_placement_says_how_to_place_it() {
     // The pendulum is drawn horizontal: with P.x prescribed, P.y is undetermined
     // there (the constraint's derivative along y is 0), on either branch.
     let text = format!("t,P.x\n{}", rows(|k| format!("{},0.9", k as f64 * 0.01), 6));
-    let path = temp("placement.csv", &text);
-    let out = mbfg(&[
-        "inverse",
-        "scenes/pendulum.yaml",
-        "--trajectory",
-        path.to_str().unwrap(),
-    ]);
-    std::fs::remove_file(&path).ok();
-    let line = one_error_line(&out, 1);
+    let line = failed_inverse("scenes/pendulum.yaml", "placement.csv", &text);
     assert!(
         line.contains("first sample (t = 0) cannot be reached from the scene's placement"),
         "{line}"
