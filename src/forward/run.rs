@@ -260,7 +260,7 @@ fn coarse_turn(
     dt: f64,
     k: usize,
 ) -> Option<StepFailure> {
-    let (body, omega) = model.fastest_body(q, dq)?;
+    let (body, omega) = model.fastest_body_index(q, dq)?;
     let turn = omega * dt;
     (turn > StepFailure::LARGE_TURN).then(|| StepFailure {
         step: k + 1,
@@ -271,7 +271,7 @@ fn coarse_turn(
         warm_start: false,
         batch: false,
         cause: None,
-        fast_body: Some((body, turn)),
+        fast_body: Some((model.scene.bodies[body].name.clone(), turn)),
     })
 }
 

@@ -412,10 +412,18 @@ impl Model {
     /// The body turning fastest at (q, q̇): its name and |ω| (rad/s), from its first two
     /// points (ω = (r₂ − r₁) × (v₂ − v₁) / |r₂ − r₁|²). None without bodies.
     pub fn fastest_body(&self, q: &[f64], dq: &[f64]) -> Option<(String, f64)> {
+        self.fastest_body_index(q, dq)
+            .map(|(b, omega)| (self.scene.bodies[b].name.clone(), omega))
+    }
+
+    /// [`Model::fastest_body`] by the body's index in the scene (no name copied: a
+    /// run asks at every step).
+    pub fn fastest_body_index(&self, q: &[f64], dq: &[f64]) -> Option<(usize, f64)> {
         self.scene
             .bodies
             .iter()
-            .filter_map(|b| {
+            .enumerate()
+            .filter_map(|(i, b)| {
                 let (r1, r2) = (
                     self.point_position(q, b.points[0]),
                     self.point_position(q, b.points[1]),
@@ -428,7 +436,7 @@ impl Model {
                 let w = [v2[0] - v1[0], v2[1] - v1[1]];
                 let length2 = e[0] * e[0] + e[1] * e[1];
                 let omega = ((e[0] * w[1] - e[1] * w[0]) / length2).abs();
-                (length2 > 0.0 && omega.is_finite()).then(|| (b.name.clone(), omega))
+                (length2 > 0.0 && omega.is_finite()).then_some((i, omega))
             })
             .max_by(|a, b| a.1.total_cmp(&b.1))
     }

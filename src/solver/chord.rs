@@ -187,7 +187,7 @@ impl WindowSolver {
             self.delta[i] = -self.g[i];
         }
         self.chol.solve(&mut self.delta[..s]);
-        // δ = p + N y; tested before it is applied.
+        // δ = p + N y, into `correction` (which held p); tested before it is applied.
         let red = &self.hard[0].reduction;
         let y = &self.delta[..s];
         let mut largest = 0.0f64;
@@ -199,20 +199,17 @@ impl WindowSolver {
                     .zip(&y[start..])
                     .map(|(a, b)| a * b)
                     .sum::<f64>();
+            self.correction[i] = step;
             largest = largest.max(step.abs() / (1.0 + xi.abs()));
         }
         if !(largest <= tolerance) {
             return None;
         }
-        let x = &mut values[k0 * s..(k0 + 1) * s];
-        for (i, xi) in x.iter_mut().enumerate() {
-            let (start, nrow) = red.row(i);
-            *xi += self.correction[i]
-                + nrow
-                    .iter()
-                    .zip(&y[start..])
-                    .map(|(a, b)| a * b)
-                    .sum::<f64>();
+        for (xi, step) in values[k0 * s..(k0 + 1) * s]
+            .iter_mut()
+            .zip(&self.correction)
+        {
+            *xi += step;
         }
         // The gradient at the new point is g + H y (`marginalize_last` reads both).
         self.h.multiply(&self.delta[..s], &mut self.hd[..s]);

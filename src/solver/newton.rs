@@ -288,29 +288,38 @@ impl WindowSolver {
         };
         let s = self.s;
         let window_rows = self.rows.len() / (d + 1);
-        let mut rows = self.rows.clone();
+        // The prior's rows, after the window's (the nalgebra matrix is made from both).
+        let mut extra = Vec::new();
         if let Some(p) = prior {
             // The prior is the same for the whole solve: its roots are made once.
             let roots = self.prior_roots.get_or_insert_with(|| PriorRoots::of(p, s));
             let red = &self.hard[0].reduction;
-            let mut basis = vec![0.0; s * d];
-            red.basis_into(&mut basis);
+            let basis = &mut self.scratch[..s * d];
+            red.basis_into(basis);
             for (root, c) in roots.rows.chunks_exact(s).zip(&roots.eta) {
-                rows.extend(
+                extra.extend(
                     (0..d).map(|a| (0..s).map(|k| root[k] * basis[k * d + a]).sum::<f64>()),
                 );
                 let offset: f64 = (0..s)
                     .map(|k| root[k] * (x[k] + red.particular[k] - p.xbar[k]))
                     .sum();
-                rows.push(offset + c);
+                extra.push(offset + c);
             }
         }
-        let m = rows.len() / (d + 1);
+        let m = window_rows + extra.len() / (d + 1);
         if d == 0 || m < d || (prior.is_none() && window_rows < d) {
             return false;
         }
-        let a = nalgebra::DMatrix::from_fn(m, d, |i, j| rows[i * (d + 1) + j]);
-        let b = nalgebra::DVector::from_fn(m, |i, _| -rows[i * (d + 1) + d]);
+        let (rows, extra) = (&self.rows, &extra);
+        let at = |i: usize, j: usize| {
+            if i < window_rows {
+                rows[i * (d + 1) + j]
+            } else {
+                extra[(i - window_rows) * (d + 1) + j]
+            }
+        };
+        let a = nalgebra::DMatrix::from_fn(m, d, &at);
+        let b = nalgebra::DVector::from_fn(m, |i, _| -at(i, d));
         let svd = a.svd(true, true);
         let Some(&largest) = svd.singular_values.iter().max_by(|x, y| x.total_cmp(y)) else {
             return false;
