@@ -29,16 +29,22 @@ pub(super) struct PriorRoots {
 
 impl PriorRoots {
     pub(super) fn of(prior: &LinearPrior, s: usize) -> Self {
-        let lambda = nalgebra::DMatrix::from_row_slice(s, s, &prior.information);
-        let eigen = lambda.symmetric_eigen();
-        let top = eigen.eigenvalues.iter().cloned().fold(0.0, f64::max);
-        let floor = s as f64 * f64::EPSILON * top;
+        let lambda = faer::MatRef::from_row_major_slice(&prior.information, s, s);
         let (mut rows, mut eta) = (Vec::new(), Vec::new());
-        for (i, &l) in eigen.eigenvalues.iter().enumerate() {
+        // An eigendecomposition that fails (a NaN in Λ) informs no direction: the
+        // step then rests on the window's rows, and a NaN in them ends the solve.
+        let Ok(eigen) = lambda.self_adjoint_eigen(faer::Side::Lower) else {
+            return PriorRoots { rows, eta };
+        };
+        let values = eigen.S().column_vector();
+        let vectors = eigen.U();
+        let top = values.iter().cloned().fold(0.0, f64::max);
+        let floor = s as f64 * f64::EPSILON * top;
+        for (i, &l) in values.iter().enumerate() {
             if !(l > floor && l.is_finite()) {
                 continue;
             }
-            let v = eigen.eigenvectors.column(i);
+            let v = vectors.col(i);
             let root = l.sqrt();
             rows.extend(v.iter().map(|vk| root * vk));
             eta.push(v.iter().zip(&prior.eta).map(|(a, b)| a * b).sum::<f64>() / root);
@@ -288,7 +294,7 @@ impl WindowSolver {
         };
         let s = self.s;
         let window_rows = self.rows.len() / (d + 1);
-        // The prior's rows, after the window's (the nalgebra matrix is made from both).
+        // The prior's rows, R N and R (x + p − x̄) + c, after the window's.
         let mut extra = Vec::new();
         if let Some(p) = prior {
             // The prior is the same for the whole solve: its roots are made once.
@@ -296,10 +302,18 @@ impl WindowSolver {
             let red = &self.hard[0].reduction;
             let basis = &mut self.scratch[..s * d];
             red.basis_into(basis);
-            for (root, c) in roots.rows.chunks_exact(s).zip(&roots.eta) {
-                extra.extend(
-                    (0..d).map(|a| (0..s).map(|k| root[k] * basis[k * d + a]).sum::<f64>()),
-                );
+            let r = roots.eta.len();
+            let mut reduced = faer::Mat::<f64>::zeros(r, d);
+            faer::linalg::matmul::matmul(
+                reduced.as_mut(),
+                faer::Accum::Replace,
+                faer::MatRef::from_row_major_slice(&roots.rows, r, s),
+                faer::MatRef::from_row_major_slice(basis, s, d),
+                1.0,
+                faer::Par::Seq,
+            );
+            for (i, (root, c)) in roots.rows.chunks_exact(s).zip(&roots.eta).enumerate() {
+                extra.extend((0..d).map(|a| reduced[(i, a)]));
                 let offset: f64 = (0..s)
                     .map(|k| root[k] * (x[k] + red.particular[k] - p.xbar[k]))
                     .sum();
@@ -318,20 +332,32 @@ impl WindowSolver {
                 extra[(i - window_rows) * (d + 1) + j]
             }
         };
-        let a = nalgebra::DMatrix::from_fn(m, d, &at);
-        let b = nalgebra::DVector::from_fn(m, |i, _| -at(i, d));
-        let svd = a.svd(true, true);
-        let Some(&largest) = svd.singular_values.iter().max_by(|x, y| x.total_cmp(y)) else {
+        let a = faer::Mat::from_fn(m, d, at);
+        let Ok(svd) = a.thin_svd() else {
             return false;
         };
-        let Ok(y) = svd.solve(&b, largest * self.settings.thresholds.least_squares_cutoff) else {
+        // y = V Σ⁺ Uᵀ b with b = −(the rows' residuals), over the singular values
+        // above the cutoff (sorted, the largest first).
+        let (u, sigma, v) = (svd.U(), svd.S().column_vector(), svd.V());
+        let Some(&largest) = sigma.iter().next().filter(|l| l.is_finite()) else {
             return false;
         };
+        let cutoff = largest * self.settings.thresholds.least_squares_cutoff;
+        let mut y = vec![0.0; d];
+        for (i, &sv) in sigma.iter().enumerate() {
+            if !(sv > cutoff) {
+                break;
+            }
+            let ub: f64 = (0..m).map(|r| -u[(r, i)] * at(r, d)).sum::<f64>() / sv;
+            for (yk, vk) in y.iter_mut().zip(v.col(i).iter()) {
+                *yk += vk * ub;
+            }
+        }
         if !y.iter().all(|v| v.is_finite()) {
             return false;
         }
         self.delta[..self.s].fill(0.0);
-        self.delta[..d].copy_from_slice(y.as_slice());
+        self.delta[..d].copy_from_slice(&y);
         true
     }
 }

@@ -435,3 +435,80 @@ pub(super) fn apply_q(
         }
     }
 }
+
+/// X ← H₀ H₁ … H_{r−1} X for the `q` columns X[:, c] = e_{r+c} at once (`x`
+/// row-major, `sf` × `q`, overwritten): the null-space basis of the last QR, with
+/// the sums of each column taken exactly as [`apply_q`] takes them for one vector.
+/// A column is still its unit vector until a reflector reaches its row, and so is
+/// left out until then; the rows of the others are swept once per reflector, all
+/// columns together, instead of once per column.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn apply_q_columns(
+    a: &[f64],
+    beta: &[f64],
+    rend: &[usize],
+    made: &[GroupReflectors],
+    sf: usize,
+    r: usize,
+    q: usize,
+    x: &mut [f64],
+    sums: &mut Vec<f64>,
+    how: Summation,
+) {
+    let x = &mut x[..sf * q];
+    x.fill(0.0);
+    for c in 0..q {
+        x[(r + c) * q + c] = 1.0;
+    }
+    if sums.len() < 5 * q {
+        sums.resize(5 * q, 0.0);
+    }
+    // Columns 0..active have met a reflector; the rest are still e_{r+c}.
+    let mut active = 0;
+    for g in made.iter().rev().filter(|g| !g.apart) {
+        for k in (g.ks..g.ke).rev() {
+            let end = rend[k];
+            active = active.max(end.saturating_sub(r)).min(q);
+            if active == 0 {
+                continue;
+            }
+            let v = &a[k * sf + k..k * sf + end];
+            let (lanes, tail) = sums.split_at_mut(4 * q);
+            let (lanes, tail) = (&mut lanes[..4 * active], &mut tail[..active]);
+            // f[c] = β vᵀ X[k..end, c], summed as `dot` sums one column.
+            let full = match how {
+                Summation::Sequential => 0,
+                Summation::Lanes => v.len() / 4 * 4,
+            };
+            lanes.fill(0.0);
+            tail.fill(-0.0);
+            for (t, vt) in v.iter().enumerate() {
+                let row = &x[(k + t) * q..(k + t) * q + active];
+                let acc = if t < full {
+                    &mut lanes[(t % 4) * active..(t % 4 + 1) * active]
+                } else {
+                    &mut *tail
+                };
+                for (s, xv) in acc.iter_mut().zip(row) {
+                    *s += vt * xv;
+                }
+            }
+            for c in 0..active {
+                let d = match how {
+                    Summation::Sequential => tail[c],
+                    Summation::Lanes => {
+                        let l = |i: usize| lanes[i * active + c];
+                        (l(0) + l(1)) + (l(2) + l(3)) + tail[c]
+                    }
+                };
+                tail[c] = beta[k] * d;
+            }
+            for (t, vt) in v.iter().enumerate() {
+                let row = &mut x[(k + t) * q..(k + t) * q + active];
+                for (xv, f) in row.iter_mut().zip(tail.iter()) {
+                    *xv -= f * vt;
+                }
+            }
+        }
+    }
+}

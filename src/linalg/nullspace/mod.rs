@@ -42,7 +42,8 @@
 
 use super::dense::{dot, Summation};
 use householder::{
-    apply_q, householder_grouped, GroupReflectors, Grouping, Sparsity, TRACK_SUPPORT_FROM,
+    apply_q, apply_q_columns, householder_grouped, GroupReflectors, Grouping, Sparsity,
+    TRACK_SUPPORT_FROM,
 };
 
 mod householder;
@@ -98,6 +99,8 @@ pub struct NullSpace {
     support_start: Vec<usize>,
     support_end: Vec<usize>,
     w: Vec<f64>,
+    /// The per-column sums of [`apply_q_columns`].
+    column_sums: Vec<f64>,
     rhs: Vec<f64>,
     /// Per QR column (an equation of `others`), 1/its norm on the free unknowns: the
     /// QR factors the equations normalized, so that its rank test and damping compare
@@ -181,6 +184,7 @@ impl NullSpace {
             support_start: vec![0; max_rows],
             support_end: vec![0; max_rows],
             w: vec![0.0; s],
+            column_sums: Vec::new(),
             rhs: vec![0.0; max_rows],
             row_scale: vec![1.0; max_rows],
             dense: Vec::new(),
@@ -445,14 +449,18 @@ impl NullSpace {
         // Null-space basis: Q e_j (j = rank..sf) on the free unknowns, 0 on fixed ones,
         // then a unit vector per untouched unknown (implicit).
         Self::ensure(&mut self.dense, sf * q);
-        for j in rank..sf {
-            self.w[..sf].fill(0.0);
-            self.w[j] = 1.0;
-            self.apply_q_to_w(sf);
-            for a in 0..sf {
-                self.dense[a * q + (j - rank)] = self.w[a];
-            }
-        }
+        apply_q_columns(
+            &self.a,
+            &self.beta,
+            &self.rend,
+            &self.made,
+            sf,
+            rank,
+            q,
+            &mut self.dense,
+            &mut self.column_sums,
+            self.summation,
+        );
         // Each row's span: its nonzeros (rows the earlier segments fix are 0).
         self.span.fill((0, 0));
         self.dense_row.fill(usize::MAX);

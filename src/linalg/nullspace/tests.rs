@@ -336,6 +336,60 @@ mod unit {
     }
 
     #[test]
+    fn basis_is_q_applied_to_each_unit_vector_to_the_bit() {
+        // The basis is formed for all its columns at once (`apply_q_columns`): each
+        // column must be what `apply_q` makes of its unit vector alone, bit for bit,
+        // in both summations, with segments (a group apart and one not) and a rank
+        // loss, at a size where the QR tracks its columns' supports.
+        let mut seed = 11;
+        let (p, s) = (70, 210);
+        let mut c = DMatrix::zeros(2 * p - 1, s);
+        for r in 0..p {
+            // A chain: equation r touches positions r … r + 5 (and its velocity row
+            // the same velocities and positions).
+            for j in (r..r + 6).map(|j| j % p) {
+                c[(r, j)] = pseudo_random(&mut seed);
+                if r + 1 < p {
+                    c[(p + r, p + j)] = pseudo_random(&mut seed);
+                    c[(p + r, j)] = pseudo_random(&mut seed);
+                }
+            }
+        }
+        // A redundant velocity equation: twice the first.
+        let first = c.row(p).clone_owned();
+        c.row_mut(2 * p - 2).copy_from(&(first * 2.0));
+        let rows = c.nrows();
+        let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+        let rhs: Vec<f64> = (0..rows).map(|_| pseudo_random(&mut seed)).collect();
+        let segments: Vec<usize> = (0..s).map(|i| i / p).collect();
+        for how in [Summation::Sequential, Summation::Lanes] {
+            let mut ns = NullSpace::new(s, rows);
+            ns.set_segments(&segments);
+            ns.set_summation(how);
+            ns.reduce(&row_major, &rhs, rows);
+            let sf = ns.free.len();
+            let rank = ns.rank - (s - sf - ns.untouched.len());
+            let q = sf - rank;
+            assert!(q > 0 && rank > 0 && ns.rank < rows, "a rank loss to see");
+            for j in rank..sf {
+                ns.w[..sf].fill(0.0);
+                ns.w[j] = 1.0;
+                ns.apply_q_to_w(sf);
+                for a in 0..sf {
+                    assert_eq!(
+                        ns.dense[a * q + (j - rank)].to_bits(),
+                        ns.w[a].to_bits(),
+                        "{how:?}: row {a} of column {}",
+                        j - rank
+                    );
+                }
+            }
+            let n = DMatrix::from_row_slice(s, ns.dim, &ns.basis());
+            assert!((&c * &n).amax() < 1e-12, "C N = 0");
+        }
+    }
+
+    #[test]
     fn multipliers_solve_the_least_squares_problem() {
         // Dense rank-deficient equations, and unit rows (one of them a duplicate)
         // next to them: C(Cᵀλ + g) = 0 is the least-squares condition.
