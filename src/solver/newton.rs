@@ -342,7 +342,11 @@ impl WindowSolver {
         let Some(&largest) = sigma.iter().next().filter(|l| l.is_finite()) else {
             return false;
         };
-        let cutoff = largest * self.settings.thresholds.least_squares_cutoff;
+        // Below max(m, d)·ε of the largest a singular value is its own round-off
+        // (the usual numerical-rank tolerance), whatever the threshold says.
+        let relative =
+            (m.max(d) as f64 * f64::EPSILON).max(self.settings.thresholds.least_squares_cutoff);
+        let cutoff = largest * relative;
         let mut y = vec![0.0; d];
         for (i, &sv) in sigma.iter().enumerate() {
             if !(sv > cutoff) {

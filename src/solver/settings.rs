@@ -91,7 +91,8 @@ pub struct Thresholds {
     /// Halvings tried after an undamped step overshoots (1/2 … 1/2ⁿ).
     pub backtrack_halvings: usize,
     /// Singular values of a one-block window's reduced Jacobian below this fraction
-    /// of the largest are taken as 0 by the least-squares step (round-off in J).
+    /// of the largest are taken as 0 by the least-squares step (round-off in J); so
+    /// are those below max(rows, columns)·ε of it, the round-off of the SVD itself.
     pub least_squares_cutoff: f64,
 }
 
