@@ -21,7 +21,7 @@ reports/scaling-baseline.csv when present) the page gives each time's speed-up
 against it.
 
     python -m harness.scaling [--out DIR] [--repeats N] [--budget S] [--baseline CSV]
-                              [--families n-fourbar,n-pendulum] [--max-size N]
+                              [--families n-fourbar,n-pendulum] [--max-size N | FAMILY=N,...]
 """
 from __future__ import annotations
 
@@ -47,6 +47,7 @@ MIN_STEPS = 10
 MAX_STEPS = 700       # 0.7 s: the N four-bar's first flat configuration is at ≥ 0.708 s
 BUDGET = 30.0         # s: the most a MIN_STEPS-step run may take
 PROBE_START = 10.0    # s the one-step probe's child process is given to start
+GUARD_FROM = 0.2      # a run expected to take more than this fraction of BUDGET is tried first
 G = 9.81
 
 FAMILIES = {
@@ -128,6 +129,26 @@ def probe(path, coords, kw, timeout):
     return float(out.stdout.strip().splitlines()[-1])
 
 
+def run_within(path, coords, kw, steps, timeout) -> bool:
+    """Whether a `steps`-step run finishes within `timeout` seconds (in a child process,
+    stopped then)."""
+    mode = "batch" if kw.get("batch") else str(kw["window"])
+    code = ("import sys, mbfg\n"
+            "mbfg.simulate(sys.argv[1], coords=sys.argv[2], dt=float(sys.argv[3]), "
+            "t_end=float(sys.argv[4]), "
+            "**({'batch': True} if sys.argv[5] == 'batch' else {'window': int(sys.argv[5])}))")
+    try:
+        out = subprocess.run([sys.executable, "-c", code, str(path), coords, repr(DT),
+                              repr(steps * DT), mode],
+                             capture_output=True, text=True, timeout=timeout, cwd=pages.ROOT)
+    except subprocess.TimeoutExpired:
+        return False
+    if out.returncode != 0:
+        lines = out.stderr.strip().splitlines()
+        raise RuntimeError(lines[-1] if lines else f"run exited with {out.returncode}")
+    return True
+
+
 def measure_series(family, sizes, label, coords, kw, repeats, budget, models) -> list[dict]:
     rows, measured = [], []        # measured: (coordinates, seconds per step), ascending
     skipped_from = None
@@ -164,6 +185,17 @@ def measure_series(family, sizes, label, coords, kw, repeats, budget, models) ->
                 rows.append(row)
                 continue
             steps = int(min(MAX_STEPS, max(MIN_STEPS, round(TARGET / one))))
+            if one * steps > GUARD_FROM * budget and not run_within(
+                    scene(family, size), coords, kw, steps, budget + PROBE_START):
+                # A later step may take far longer than the first (a solve that crawls
+                # to its iteration limit): a long run is tried in a child process first,
+                # and given up after the budget.
+                skipped_from = size
+                row["status"] = (f"skipped: {steps} steps did not finish within {budget:g} s "
+                                 f"(the first step took {one:.1f} s)")
+                pages.progress(f"  {family}-{size} {label}: {row['status']}")
+                rows.append(row)
+                continue
             walls, r = [], None
             for _ in range(repeats):
                 r, wall = run_once(scene(family, size), coords, kw, steps)
@@ -289,10 +321,14 @@ def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
     baseline = read_baseline(baseline_path)
     began = time.perf_counter()
     rows = []
+    left_out = []
     for family, (title, _, sizes) in FAMILIES.items():
         if families is not None and family not in families:
             continue
-        sizes = [s for s in sizes if max_size is None or s <= max_size]
+        # One bound for every family, or per family ({family: size}).
+        bound = max_size.get(family) if isinstance(max_size, dict) else max_size
+        left_out += [f"{family}-{s}" for s in sizes if bound is not None and s > bound]
+        sizes = [s for s in sizes if bound is None or s <= bound]
         models = {s: mbfg.load(str(scene(family, s))) for s in sizes}
         for label, coords, kw in SERIES:
             pages.progress(f"scaling: {title}, {label}")
@@ -339,7 +375,10 @@ def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
         f"of wall time, at least {MIN_STEPS}, at most {MAX_STEPS}). A size whose "
         f"{MIN_STEPS}-step run would take more than {budget:g} s (extrapolated from the smaller "
         "sizes with the series' last local slope, at least 1, or estimated from one step) is "
-        "skipped, with the larger sizes of its series. The horizons differ between sizes, so "
+        "skipped, with the larger sizes of its series; so is a size whose run, expected to take "
+        f"more than {GUARD_FROM * budget:g} s, does not finish within {budget:g} s when tried "
+        "first in a child process (a later step can take far longer than the first). "
+        "The horizons differ between sizes, so "
         "a batch's per-step time is over batches of different lengths. The slopes are least-squares fits of "
         "log µs/step against log n (n = number of coordinates); the upper half is the larger "
         "half of the sizes measured. Raw numbers: [scaling.csv](scaling.csv).\n",
@@ -365,9 +404,35 @@ def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
     if not_run:
         parts.append("## Not measured\n\n" + "\n".join(
             f"- {r['family']}-{r['size']} {r['series']}: {r['status']}" for r in not_run) + "\n")
+    if left_out:
+        parts.append("## Left out\n\nAbove `--max-size`, not run: " + ", ".join(left_out)
+                     + ".\n")
     (reports / "scaling.md").write_text("\n".join(parts))
     pages.progress(f"wrote {reports}/scaling.md, scaling.csv, scaling.png")
     return rows
+
+
+def parse_max_size(text: str | None) -> int | dict | None:
+    """`--max-size`: None, one size for every family, or {family: size}."""
+    if text is None:
+        return None
+    if "=" not in text:
+        try:
+            return int(text)
+        except ValueError:
+            raise ValueError(f"--max-size: '{text}' is not a whole number") from None
+    bounds = {}
+    for pair in text.split(","):
+        family, _, size = pair.partition("=")
+        family = family.strip()
+        if family not in FAMILIES:
+            raise ValueError(f"--max-size: unknown family '{family}'; one of "
+                             f"{', '.join(FAMILIES)}")
+        try:
+            bounds[family] = int(size)
+        except ValueError:
+            raise ValueError(f"--max-size: '{size}' for {family} is not a whole number") from None
+    return bounds
 
 
 def main(argv=None) -> int:
@@ -385,7 +450,9 @@ def main(argv=None) -> int:
                          "OUT/scaling-baseline.csv when present)")
     ap.add_argument("--families", default=",".join(FAMILIES),
                     help="comma-separated (default: %(default)s)")
-    ap.add_argument("--max-size", type=int, default=None, help="largest N or n measured")
+    ap.add_argument("--max-size", default=None,
+                    help="largest N or n measured: one number for every family, or "
+                         "FAMILY=SIZE pairs, comma-separated (n-pendulum=64)")
     args = ap.parse_args(argv)
     chosen = [f.strip() for f in args.families.split(",") if f.strip()]
     unknown = [f for f in chosen if f not in FAMILIES]
@@ -393,8 +460,12 @@ def main(argv=None) -> int:
         ap.error(f"unknown famil(ies) {', '.join(unknown)}; one of {', '.join(FAMILIES)}")
     if args.repeats < 1 or args.budget <= 0:
         ap.error("--repeats must be at least 1 and --budget positive")
+    try:
+        max_size = parse_max_size(args.max_size)
+    except ValueError as e:
+        ap.error(str(e))
     write(args.out, pages.machine(), chosen, args.repeats, args.budget, args.baseline,
-          args.max_size)
+          max_size)
     return 0
 
 

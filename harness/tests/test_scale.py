@@ -237,6 +237,7 @@ def test_scaling_page_on_small_sizes(tmp_path, monkeypatch):
     assert page.startswith("# Per-step cost") and "| n-link pendulum | DC N_w=1 | 2 … 8 (3) |" in page
     assert "× baseline" in page
     assert "## Not measured" not in page
+    assert "Above `--max-size`, not run: n-pendulum-16, n-pendulum-32" in page
 
     rows = scaling.write(tmp_path, "test machine", families=["n-pendulum"], repeats=1,
                          budget=1e-6, max_size=4)
@@ -245,3 +246,22 @@ def test_scaling_page_on_small_sizes(tmp_path, monkeypatch):
     for r in rows:
         assert f"- n-pendulum-{r['size']} {r['series']}: skipped" in page
     assert "× baseline" not in page
+
+
+def test_max_size_bounds_one_family_or_all():
+    from harness.scaling import parse_max_size
+    assert parse_max_size(None) is None
+    assert parse_max_size("8") == 8
+    assert parse_max_size("n-pendulum=64") == {"n-pendulum": 64}
+    assert parse_max_size("n-pendulum=64,n-fourbar=10") == {"n-pendulum": 64, "n-fourbar": 10}
+    for bad, says in [("x", "not a whole number"), ("foo=3", "unknown family 'foo'"),
+                      ("n-pendulum=x", "'x' for n-pendulum")]:
+        with pytest.raises(ValueError, match=says):
+            parse_max_size(bad)
+
+
+def test_a_long_run_is_tried_apart_and_given_up_after_its_time():
+    from harness import scaling
+    path = scaling.scene("n-pendulum", 2)
+    assert scaling.run_within(path, "dc", {"window": 1}, 5, timeout=60)
+    assert not scaling.run_within(path, "dc", {"window": 1}, 5, timeout=1e-3)
