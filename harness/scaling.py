@@ -101,52 +101,44 @@ def run_once(path, coords, kw, steps):
     return r, time.perf_counter() - start
 
 
-PROBE = """
+CHILD = """
 import sys, time, mbfg
 def one():
     start = time.perf_counter()
-    mbfg.simulate(sys.argv[1], coords=sys.argv[2], dt=float(sys.argv[3]), t_end=float(sys.argv[3]),
-                  **({"batch": True} if sys.argv[4] == "batch" else {"window": int(sys.argv[4])}))
+    mbfg.simulate(sys.argv[1], coords=sys.argv[2], dt=float(sys.argv[3]), t_end=float(sys.argv[4]),
+                  **({"batch": True} if sys.argv[5] == "batch" else {"window": int(sys.argv[5])}))
     return time.perf_counter() - start
 first = one()
-print(first if first > 0.1 else min(first, one()))
+print(first if first > 0.1 or sys.argv[6] == "once" else min(first, one()))
 """
 
 
-def probe(path, coords, kw, timeout):
-    """Seconds of a one-step run (with the set-up a run pays once; the better of two when
-    short, as a process's first run pays for more than its step), in a child process
-    that is stopped after `timeout` seconds (then None): a step can take minutes."""
+def in_child(path, coords, kw, steps, timeout, once) -> float | None:
+    """Seconds of a `steps`-step run in a child process stopped after `timeout` seconds
+    (then None); unless `once`, the better of two runs when short (a process's first run
+    pays for more than its steps)."""
     mode = "batch" if kw.get("batch") else str(kw["window"])
     try:
-        out = subprocess.run([sys.executable, "-c", PROBE, str(path), coords, repr(DT), mode],
+        out = subprocess.run([sys.executable, "-c", CHILD, str(path), coords, repr(DT),
+                              repr(steps * DT), mode, "once" if once else "best"],
                              capture_output=True, text=True, timeout=timeout, cwd=pages.ROOT)
     except subprocess.TimeoutExpired:
         return None
     if out.returncode != 0:
         lines = out.stderr.strip().splitlines()
-        raise RuntimeError(lines[-1] if lines else f"probe exited with {out.returncode}")
+        raise RuntimeError(lines[-1] if lines else f"child run exited with {out.returncode}")
     return float(out.stdout.strip().splitlines()[-1])
 
 
+def probe(path, coords, kw, timeout):
+    """Seconds of a one-step run (with the set-up a run pays once), or None after
+    `timeout` seconds: a step can take minutes."""
+    return in_child(path, coords, kw, 1, timeout, once=False)
+
+
 def run_within(path, coords, kw, steps, timeout) -> bool:
-    """Whether a `steps`-step run finishes within `timeout` seconds (in a child process,
-    stopped then)."""
-    mode = "batch" if kw.get("batch") else str(kw["window"])
-    code = ("import sys, mbfg\n"
-            "mbfg.simulate(sys.argv[1], coords=sys.argv[2], dt=float(sys.argv[3]), "
-            "t_end=float(sys.argv[4]), "
-            "**({'batch': True} if sys.argv[5] == 'batch' else {'window': int(sys.argv[5])}))")
-    try:
-        out = subprocess.run([sys.executable, "-c", code, str(path), coords, repr(DT),
-                              repr(steps * DT), mode],
-                             capture_output=True, text=True, timeout=timeout, cwd=pages.ROOT)
-    except subprocess.TimeoutExpired:
-        return False
-    if out.returncode != 0:
-        lines = out.stderr.strip().splitlines()
-        raise RuntimeError(lines[-1] if lines else f"run exited with {out.returncode}")
-    return True
+    """Whether a `steps`-step run finishes within `timeout` seconds."""
+    return in_child(path, coords, kw, steps, timeout, once=True) is not None
 
 
 def measure_series(family, sizes, label, coords, kw, repeats, budget, models) -> list[dict]:
@@ -160,6 +152,7 @@ def measure_series(family, sizes, label, coords, kw, repeats, budget, models) ->
             row["status"] = f"skipped: {family}-{skipped_from} already over the budget"
             rows.append(row)
             continue
+        reason = None            # why the size is skipped
         if measured:
             # Extrapolated from the sizes measured with the series' last local slope (at
             # least 1, the cost being at least linear in n): over the budget, the size is
@@ -168,31 +161,28 @@ def measure_series(family, sizes, label, coords, kw, repeats, budget, models) ->
             k = max(1.0, math.log(t1 / t0) / math.log(n1 / n0)) if n1 > n0 else 1.0
             guess = t1 * (model.n / n1) ** k * MIN_STEPS
             if guess > budget:
-                skipped_from = size
-                row["status"] = (f"skipped: {MIN_STEPS} steps ≈ {guess:.0f} s (extrapolated "
-                                 f"with slope {k:.1f}) > budget {budget:g} s")
-                pages.progress(f"  {family}-{size} {label}: {row['status']}")
-                rows.append(row)
-                continue
+                reason = (f"{MIN_STEPS} steps ≈ {guess:.0f} s (extrapolated with slope "
+                          f"{k:.1f}) > budget {budget:g} s")
         try:
-            one = probe(scene(family, size), coords, kw, timeout=budget + PROBE_START)
-            if one is None or one * MIN_STEPS > budget:
+            if reason is None:
+                one = probe(scene(family, size), coords, kw, timeout=budget + PROBE_START)
+                if one is None:
+                    reason = f"one step did not finish within {budget:g} s"
+                elif one * MIN_STEPS > budget:
+                    reason = (f"{MIN_STEPS} steps ≈ {one * MIN_STEPS:.0f} s (one step "
+                              f"{one:.1f} s) > budget {budget:g} s")
+                else:
+                    steps = int(min(MAX_STEPS, max(MIN_STEPS, round(TARGET / one))))
+                    # A later step may take far longer than the first (a solve that
+                    # crawls to its iteration limit): a long run is tried in a child
+                    # process first, and given up after the budget.
+                    if one * steps > GUARD_FROM * budget and not run_within(
+                            scene(family, size), coords, kw, steps, budget + PROBE_START):
+                        reason = (f"{steps} steps did not finish within {budget:g} s (the "
+                                  f"first step took {one:.1f} s)")
+            if reason is not None:
                 skipped_from = size
-                row["status"] = (f"skipped: one step did not finish within {budget:g} s" if one is None
-                                 else f"skipped: {MIN_STEPS} steps ≈ {one * MIN_STEPS:.0f} s "
-                                      f"(one step {one:.1f} s) > budget {budget:g} s")
-                pages.progress(f"  {family}-{size} {label}: {row['status']}")
-                rows.append(row)
-                continue
-            steps = int(min(MAX_STEPS, max(MIN_STEPS, round(TARGET / one))))
-            if one * steps > GUARD_FROM * budget and not run_within(
-                    scene(family, size), coords, kw, steps, budget + PROBE_START):
-                # A later step may take far longer than the first (a solve that crawls
-                # to its iteration limit): a long run is tried in a child process first,
-                # and given up after the budget.
-                skipped_from = size
-                row["status"] = (f"skipped: {steps} steps did not finish within {budget:g} s "
-                                 f"(the first step took {one:.1f} s)")
+                row["status"] = f"skipped: {reason}"
                 pages.progress(f"  {family}-{size} {label}: {row['status']}")
                 rows.append(row)
                 continue
