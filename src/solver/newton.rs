@@ -294,50 +294,47 @@ impl WindowSolver {
         };
         let s = self.s;
         let window_rows = self.rows.len() / (d + 1);
-        // The prior's rows, R N and R (x + p − x̄) + c, after the window's.
-        let mut extra = Vec::new();
         if let Some(p) = prior {
             // The prior is the same for the whole solve: its roots are made once.
-            let roots = self.prior_roots.get_or_insert_with(|| PriorRoots::of(p, s));
+            self.prior_roots.get_or_insert_with(|| PriorRoots::of(p, s));
+        }
+        let prior_rows = self.prior_roots.as_ref().map_or(0, |r| r.eta.len());
+        let m = window_rows + if prior.is_some() { prior_rows } else { 0 };
+        if d == 0 || m < d || (prior.is_none() && window_rows < d) {
+            return false;
+        }
+        // [J N; R N] y ≈ b: the window's rows, then the prior's (R N, with the residual
+        // R (x + p − x̄) + c), b their residuals negated.
+        let mut a = faer::Mat::<f64>::zeros(m, d);
+        let mut b = vec![0.0; m];
+        for (i, row) in self.rows.chunks_exact(d + 1).enumerate() {
+            a.row_mut(i).iter_mut().zip(row).for_each(|(o, v)| *o = *v);
+            b[i] = -row[d];
+        }
+        if let (Some(p), Some(roots)) = (prior, self.prior_roots.as_ref()) {
             let red = &self.hard[0].reduction;
             let basis = &mut self.scratch[..s * d];
             red.basis_into(basis);
-            let r = roots.eta.len();
-            let mut reduced = faer::Mat::<f64>::zeros(r, d);
             faer::linalg::matmul::matmul(
-                reduced.as_mut(),
+                a.as_mut().subrows_mut(window_rows, prior_rows),
                 faer::Accum::Replace,
-                faer::MatRef::from_row_major_slice(&roots.rows, r, s),
+                faer::MatRef::from_row_major_slice(&roots.rows, prior_rows, s),
                 faer::MatRef::from_row_major_slice(basis, s, d),
                 1.0,
                 faer::Par::Seq,
             );
             for (i, (root, c)) in roots.rows.chunks_exact(s).zip(&roots.eta).enumerate() {
-                extra.extend((0..d).map(|a| reduced[(i, a)]));
                 let offset: f64 = (0..s)
                     .map(|k| root[k] * (x[k] + red.particular[k] - p.xbar[k]))
                     .sum();
-                extra.push(offset + c);
+                b[window_rows + i] = -(offset + c);
             }
         }
-        let m = window_rows + extra.len() / (d + 1);
-        if d == 0 || m < d || (prior.is_none() && window_rows < d) {
-            return false;
-        }
-        let (rows, extra) = (&self.rows, &extra);
-        let at = |i: usize, j: usize| {
-            if i < window_rows {
-                rows[i * (d + 1) + j]
-            } else {
-                extra[(i - window_rows) * (d + 1) + j]
-            }
-        };
-        let a = faer::Mat::from_fn(m, d, at);
         let Ok(svd) = a.thin_svd() else {
             return false;
         };
-        // y = V Σ⁺ Uᵀ b with b = −(the rows' residuals), over the singular values
-        // above the cutoff (sorted, the largest first).
+        // y = V Σ⁺ Uᵀ b over the singular values above the cutoff (sorted, the
+        // largest first).
         let (u, sigma, v) = (svd.U(), svd.S().column_vector(), svd.V());
         let Some(&largest) = sigma.iter().next().filter(|l| l.is_finite()) else {
             return false;
@@ -352,7 +349,7 @@ impl WindowSolver {
             if !(sv > cutoff) {
                 break;
             }
-            let ub: f64 = (0..m).map(|r| -u[(r, i)] * at(r, d)).sum::<f64>() / sv;
+            let ub: f64 = (0..m).map(|r| u[(r, i)] * b[r]).sum::<f64>() / sv;
             for (yk, vk) in y.iter_mut().zip(v.col(i).iter()) {
                 *yk += vk * ub;
             }
