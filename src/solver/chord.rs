@@ -166,13 +166,7 @@ impl WindowSolver {
             let red = &self.hard[0].reduction;
             let (diff, rest) = self.scratch.split_at_mut(s);
             let grad = &mut rest[..s];
-            for i in 0..s {
-                diff[i] = x[i] - p.xbar[i];
-            }
-            for i in 0..s {
-                let row = &p.information[i * s..(i + 1) * s];
-                grad[i] = p.eta[i] + row.iter().zip(diff.iter()).map(|(a, b)| a * b).sum::<f64>();
-            }
+            p.gradient(x, diff, grad);
             for (k, gk) in grad.iter().enumerate() {
                 let (start, nrow) = red.row(k);
                 for (ga, na) in g[start..].iter_mut().zip(nrow) {

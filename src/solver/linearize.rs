@@ -5,7 +5,6 @@
 use super::*;
 #[cfg(doc)]
 use crate::graph::AlongDirections;
-use crate::linalg::dense;
 
 /// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
 pub(super) struct FactorBuffers {
@@ -678,87 +677,15 @@ impl WindowSolver {
             let x = &values[k0 * s..(k0 + 1) * s];
             let (d, rest) = self.scratch.split_at_mut(s);
             let (grad, rest) = rest.split_at_mut(s);
-            for i in 0..s {
-                d[i] = x[i] - p.xbar[i];
-            }
             // grad = Λδ + η; cost = c + ηᵀδ + ½δᵀΛδ.
-            let mut quad = 0.0;
-            for i in 0..s {
-                let row = &p.information[i * s..(i + 1) * s];
-                let ld: f64 = row.iter().zip(d.iter()).map(|(a, b)| a * b).sum();
-                quad += d[i] * ld;
-                grad[i] = ld + p.eta[i];
-            }
-            let lin: f64 = p.eta.iter().zip(d.iter()).map(|(a, b)| a * b).sum();
-            cost += p.constant + lin + 0.5 * quad;
-            cost_first += p.constant + lin + 0.5 * quad;
+            let value = p.gradient(x, d, grad);
+            cost += value;
+            cost_first += value;
             if linearize {
                 // In reduced coordinates δ₀ = p₀ + N₀y: H += N₀ᵀΛN₀, g += N₀ᵀ(grad + Λp₀).
                 let red = &self.hard[0].reduction;
-                let dim = red.dim;
-                for (i, gi) in grad.iter_mut().enumerate() {
-                    let row = &p.information[i * s..(i + 1) * s];
-                    *gi += row
-                        .iter()
-                        .zip(&red.particular)
-                        .map(|(a, b)| a * b)
-                        .sum::<f64>();
-                }
-                // ΛN₀ over N₀'s nonzeros: its first q columns on the rows `free`, then
-                // one unit column per untouched unknown (each sum over rows in order).
-                let (free, untouched) = red.structure();
-                let q = dim - untouched.len();
-                let (ln, nb) = rest.split_at_mut(s * dim);
-                if dense::blocked_products(s, q) {
-                    // The same products, dense, by faer's blocked kernels.
-                    red.basis_into(nb);
-                    let nv = dense::rows(nb, s, dim, dim);
-                    let lambda = dense::rows(&p.information, s, s, s);
-                    dense::multiply(dense::rows_mut(ln, s, dim, dim), false, lambda, nv);
-                    let lnv = dense::rows(ln, s, dim, dim);
-                    let h0 = self.h.diag_mut(0);
-                    dense::multiply(
-                        dense::rows_mut(h0, dim, dim, dim),
-                        true,
-                        nv.transpose(),
-                        lnv,
-                    );
-                    for (a, g) in self.g[..dim].iter_mut().enumerate() {
-                        *g += (0..s).map(|k| nb[k * dim + a] * grad[k]).sum::<f64>();
-                    }
-                } else {
-                    for i in 0..s {
-                        let row = &p.information[i * s..(i + 1) * s];
-                        let out = &mut ln[i * dim..(i + 1) * dim];
-                        // Row by row of N₀ (contiguous), each entry still summed over
-                        // `free` in order from 0.
-                        out[..q].fill(0.0);
-                        for &k in free {
-                            let rk = row[k];
-                            for (o, nk) in out[..q].iter_mut().zip(red.free_row(k)) {
-                                *o += rk * nk;
-                            }
-                        }
-                        for (o, &k) in out[q..].iter_mut().zip(untouched) {
-                            *o = 0.0 + row[k];
-                        }
-                    }
-                    let h0 = self.h.diag_mut(0);
-                    for k in 0..s {
-                        let (start, nrow) = red.row(k);
-                        let lrow = &ln[k * dim..(k + 1) * dim];
-                        for (a, &na) in nrow.iter().enumerate() {
-                            let a = start + a;
-                            if na == 0.0 {
-                                continue;
-                            }
-                            for (o, lv) in h0[a * dim..(a + 1) * dim].iter_mut().zip(lrow) {
-                                *o += na * lv;
-                            }
-                            self.g[a] += na * grad[k];
-                        }
-                    }
-                }
+                p.add_information_times(&red.particular, grad);
+                p.add_reduced(red, grad, self.h.diag_mut(0), &mut self.g, rest);
             }
         }
 

@@ -1,34 +1,9 @@
 //! What a step leaves as it leaves a fixed-lag window: the marginal (Schur) or
 //! conditional prior on the next step, and its projection on the tangent space.
 
+use super::prior::{Information, TangentInformation};
 use super::*;
 use crate::linalg::dense;
-
-/// A Gaussian prior on one step's block left by marginalization, in information
-/// form: c + ηᵀδ + ½ δᵀΛδ with δ = x − x̄. With the hard equations eliminated
-/// exactly, Λ holds only soft information (no 1/σ_hard² next to 1/σ_soft²), so the
-/// information form loses nothing that a square-root form would keep.
-#[derive(Debug, Clone, PartialEq)]
-pub struct LinearPrior {
-    /// Row-major s × s.
-    pub information: Vec<f64>,
-    pub eta: Vec<f64>,
-    /// The cost at δ = 0 (what the marginalized factors leave behind).
-    pub constant: f64,
-    pub xbar: Vec<f64>,
-    /// Set by [`WindowSolver::project_prior`]: the reduction of step `step`'s hard
-    /// equations it made, which a one-step solve of that step reuses while the
-    /// solver has linearized nothing since and the step's values are the ones
-    /// reduced (x + p = x̄ to the bit).
-    pub projection: Option<Projection>,
-}
-
-/// Which linearization of a step's hard equations a projected prior was made on.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Projection {
-    pub(super) step: usize,
-    pub(super) generation: u64,
-}
 
 /// What a window solve that converged on a small step leaves for marginalizing its
 /// first block: valid while the solver has linearized nothing since
@@ -68,7 +43,7 @@ pub(super) fn conditional_prior(
         )));
     }
     Ok(LinearPrior {
-        information,
+        information: Information::Dense(information),
         eta: g1.to_vec(),
         constant: cost,
         xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),
@@ -127,6 +102,12 @@ impl WindowSolver {
         if block.rows == 0 {
             return Ok(());
         }
+        if let Information::Tangent(_) = prior.information {
+            prior.information = Information::Dense(prior.dense_information());
+        }
+        let Information::Dense(lambda) = &mut prior.information else {
+            unreachable!("made dense above")
+        };
         let red = &block.reduction;
         let d = red.dim;
         let x = &values[k * s..(k + 1) * s];
@@ -142,7 +123,7 @@ impl WindowSolver {
             delta[i] = x[i] + red.particular[i] - prior.xbar[i];
         }
         for i in 0..s {
-            let row = &prior.information[i * s..(i + 1) * s];
+            let row = &lambda[i * s..(i + 1) * s];
             let ld: f64 = row.iter().zip(delta.iter()).map(|(a, b)| a * b).sum();
             grad[i] = prior.eta[i] + ld;
             quad += delta[i] * ld;
@@ -153,18 +134,16 @@ impl WindowSolver {
         // vector of `untouched[u]`, rows of fixed unknowns 0.
         let (free, untouched) = red.structure();
         let q = d - untouched.len();
-        if dense::blocked_products(s, q) {
+        let blocked = dense::blocked_products(s, q);
+        let nb = &mut rest[..s * d];
+        if blocked {
             // The same products, dense, by faer's blocked kernels.
-            let nb = &mut rest[..s * d];
             red.basis_into(nb);
             for (i, out) in gt[..d].iter_mut().enumerate() {
                 *out = (0..s).map(|k| nb[k * d + i] * grad[k]).sum();
             }
-            let (nv, lambda) = (
-                dense::rows(nb, s, d, d),
-                dense::rows(&prior.information, s, s, s),
-            );
-            dense::multiply(dense::rows_mut(ln, s, d, d), false, lambda, nv);
+            let (nv, lv) = (dense::rows(nb, s, d, d), dense::rows(lambda, s, s, s));
+            dense::multiply(dense::rows_mut(ln, s, d, d), false, lv, nv);
             let lnv = dense::rows(ln, s, d, d);
             dense::multiply(
                 dense::rows_mut(reduced, d, d, d),
@@ -172,58 +151,68 @@ impl WindowSolver {
                 nv.transpose(),
                 lnv,
             );
+        } else {
+            // ΛN̄ (s × d).
+            for i in 0..s {
+                let row = &lambda[i * s..(i + 1) * s];
+                let out = &mut ln[i * d..(i + 1) * d];
+                out[..q].fill(0.0);
+                for &j in free {
+                    let lij = row[j];
+                    for (o, b) in out[..q].iter_mut().zip(red.free_row(j)) {
+                        *o += lij * b;
+                    }
+                }
+                for (o, &j) in out[q..].iter_mut().zip(untouched) {
+                    *o = row[j];
+                }
+            }
+            // N̄ᵀΛN̄ (d × d) and N̄ᵀ∇Q.
+            reduced[..q * d].fill(0.0);
+            gt[..q].fill(0.0);
+            for &i in free {
+                let li = &ln[i * d..(i + 1) * d];
+                for (a, &b) in red.free_row(i).iter().enumerate() {
+                    gt[a] += b * grad[i];
+                    for (o, l) in reduced[a * d..(a + 1) * d].iter_mut().zip(li) {
+                        *o += b * l;
+                    }
+                }
+            }
+            for (u, &i) in untouched.iter().enumerate() {
+                let a = q + u;
+                gt[a] = grad[i];
+                reduced[a * d..(a + 1) * d].copy_from_slice(&ln[i * d..(i + 1) * d]);
+            }
+        }
+        for i in 0..s {
+            prior.xbar[i] = x[i] + red.particular[i];
+        }
+        prior.constant = constant;
+        if s >= self.tangent_form_from {
+            // Kept as N̄CN̄ᵀ with C = N̄ᵀΛN̄, η = N̄(N̄ᵀ∇Q).
+            symmetrize(&mut reduced[..d * d], d);
+            let tangent = TangentInformation::new(red, reduced[..d * d].to_vec(), gt[..d].to_vec());
+            for (i, e) in prior.eta.iter_mut().enumerate() {
+                let (start, row) = red.row(i);
+                *e = row.iter().zip(&gt[start..d]).map(|(a, b)| a * b).sum();
+            }
+            prior.information = Information::Tangent(tangent);
+            return Ok(());
+        }
+        // Back to full coordinates: R = N̄(N̄ᵀΛN̄) (s × d), PΛP = R N̄ᵀ, P∇Q = N̄(N̄ᵀ∇Q).
+        if blocked {
+            let nv = dense::rows(nb, s, d, d);
             let rv = dense::rows(reduced, d, d, d);
             dense::multiply(dense::rows_mut(nr, s, d, d), false, nv, rv);
             let nrv = dense::rows(nr, s, d, d);
-            dense::multiply(
-                dense::rows_mut(&mut prior.information, s, s, s),
-                false,
-                nrv,
-                nv.transpose(),
-            );
+            dense::multiply(dense::rows_mut(lambda, s, s, s), false, nrv, nv.transpose());
             for (i, e) in prior.eta.iter_mut().enumerate() {
                 *e = (0..d).map(|a| nb[i * d + a] * gt[a]).sum();
             }
-            symmetrize(&mut prior.information, s);
-            for i in 0..s {
-                prior.xbar[i] = x[i] + red.particular[i];
-            }
-            prior.constant = constant;
+            symmetrize(lambda, s);
             return Ok(());
         }
-        // ΛN̄ (s × d).
-        for i in 0..s {
-            let row = &prior.information[i * s..(i + 1) * s];
-            let out = &mut ln[i * d..(i + 1) * d];
-            out[..q].fill(0.0);
-            for &j in free {
-                let lij = row[j];
-                for (o, b) in out[..q].iter_mut().zip(red.free_row(j)) {
-                    *o += lij * b;
-                }
-            }
-            for (o, &j) in out[q..].iter_mut().zip(untouched) {
-                *o = row[j];
-            }
-        }
-        // N̄ᵀΛN̄ (d × d) and N̄ᵀ∇Q.
-        reduced[..q * d].fill(0.0);
-        gt[..q].fill(0.0);
-        for &i in free {
-            let li = &ln[i * d..(i + 1) * d];
-            for (a, &b) in red.free_row(i).iter().enumerate() {
-                gt[a] += b * grad[i];
-                for (o, l) in reduced[a * d..(a + 1) * d].iter_mut().zip(li) {
-                    *o += b * l;
-                }
-            }
-        }
-        for (u, &i) in untouched.iter().enumerate() {
-            let a = q + u;
-            gt[a] = grad[i];
-            reduced[a * d..(a + 1) * d].copy_from_slice(&ln[i * d..(i + 1) * d]);
-        }
-        // Back to full coordinates: R = N̄(N̄ᵀΛN̄) (s × d), PΛP = R N̄ᵀ, P∇Q = N̄(N̄ᵀ∇Q).
         nr[..s * d].fill(0.0);
         prior.eta.fill(0.0);
         for &i in free {
@@ -240,10 +229,10 @@ impl WindowSolver {
             prior.eta[i] = gt[a];
             nr[i * d..(i + 1) * d].copy_from_slice(&reduced[a * d..(a + 1) * d]);
         }
-        prior.information.fill(0.0);
+        lambda.fill(0.0);
         for i in 0..s {
             let row = &nr[i * d..(i + 1) * d];
-            let out = &mut prior.information[i * s..(i + 1) * s];
+            let out = &mut lambda[i * s..(i + 1) * s];
             for &j in free {
                 out[j] = row[..q]
                     .iter()
@@ -255,11 +244,7 @@ impl WindowSolver {
                 out[j] = row[q + u];
             }
         }
-        symmetrize(&mut prior.information, s);
-        for i in 0..s {
-            prior.xbar[i] = x[i] + red.particular[i];
-        }
-        prior.constant = constant;
+        symmetrize(lambda, s);
         Ok(())
     }
 
@@ -387,7 +372,7 @@ impl WindowSolver {
             )));
         }
         Ok(LinearPrior {
-            information,
+            information: Information::Dense(information),
             eta,
             constant,
             xbar: values[(k0 + 1) * s..(k0 + 2) * s].to_vec(),

@@ -24,14 +24,15 @@ mod linearize;
 mod marginal;
 mod newton;
 mod observer;
+mod prior;
 mod settings;
 mod structure;
 #[cfg(test)]
 mod tests;
 
 pub use crate::convergence::{SolveReport, Termination};
-pub use marginal::{LinearPrior, Projection};
 pub use observer::{Iteration, Observer, Trace};
+pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};
 
 use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
@@ -125,6 +126,9 @@ pub struct WindowSolver {
     /// The first block's values where the last solve converged (see `LastSolve`).
     last_x: Vec<f64>,
     observer: Option<Box<dyn Observer>>,
+    /// Unknowns per step from which a projected prior is kept as N̄CN̄ᵀ
+    /// ([`TANGENT_FORM_FROM`]; the tests set it to compare the two forms).
+    tangent_form_from: usize,
 }
 
 impl WindowSolver {
@@ -229,6 +233,7 @@ impl WindowSolver {
             generation: 0,
             last_x: vec![0.0; s],
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
+            tangent_form_from: TANGENT_FORM_FROM,
             newton: NewtonBuffers {
                 lambda: vec![0.0; capacity * max_hard],
                 grad: vec![0.0; n],

@@ -29,8 +29,14 @@ pub(super) struct PriorRoots {
 
 impl PriorRoots {
     pub(super) fn of(prior: &LinearPrior, s: usize) -> Self {
-        let lambda = faer::MatRef::from_row_major_slice(&prior.information, s, s);
         let (mut rows, mut eta) = (Vec::new(), Vec::new());
+        // Λ = V diag(λ) Vᵀ; on a tangent space Λ = N̄CN̄ᵀ and C's eigenvectors u
+        // give Λ's as N̄u, with vᵀη = uᵀγ.
+        let (matrix, size) = match &prior.information {
+            Information::Dense(lambda) => (lambda.as_slice(), s),
+            Information::Tangent(t) => (t.core(), t.dim()),
+        };
+        let lambda = faer::MatRef::from_row_major_slice(matrix, size, size);
         // An eigendecomposition that fails (a NaN in Λ) informs no direction: the
         // step then rests on the window's rows, and a NaN in them ends the solve.
         let Ok(eigen) = lambda.self_adjoint_eigen(faer::Side::Lower) else {
@@ -40,14 +46,28 @@ impl PriorRoots {
         let vectors = eigen.U();
         let top = values.iter().cloned().fold(0.0, f64::max);
         let floor = s as f64 * f64::EPSILON * top;
+        let mut u = vec![0.0; size];
+        let mut v = vec![0.0; s];
         for (i, &l) in values.iter().enumerate() {
             if !(l > floor && l.is_finite()) {
                 continue;
             }
-            let v = vectors.col(i);
+            u.iter_mut()
+                .zip(vectors.col(i).iter())
+                .for_each(|(o, x)| *o = *x);
             let root = l.sqrt();
+            let along = match &prior.information {
+                Information::Dense(_) => {
+                    v.copy_from_slice(&u);
+                    u.iter().zip(&prior.eta).map(|(a, b)| a * b).sum::<f64>()
+                }
+                Information::Tangent(t) => {
+                    t.lift(&u, &mut v);
+                    u.iter().zip(t.gamma()).map(|(a, b)| a * b).sum::<f64>()
+                }
+            };
             rows.extend(v.iter().map(|vk| root * vk));
-            eta.push(v.iter().zip(&prior.eta).map(|(a, b)| a * b).sum::<f64>() / root);
+            eta.push(along / root);
         }
         PriorRoots { rows, eta }
     }
@@ -108,10 +128,11 @@ impl WindowSolver {
         }
         if let Some(p) = prior {
             let x = &values[k0 * s..(k0 + 1) * s];
-            for i in 0..s {
-                let row = &p.information[i * s..(i + 1) * s];
-                let ld: f64 = (0..s).map(|j| row[j] * (x[j] - p.xbar[j])).sum();
-                out[i] += ld + p.eta[i];
+            let (delta, rest) = self.scratch.split_at_mut(s);
+            let grad = &mut rest[..s];
+            p.gradient(x, delta, grad);
+            for (o, g) in out.iter_mut().zip(grad.iter()) {
+                *o += g;
             }
         }
         Ok(())

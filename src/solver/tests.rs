@@ -143,7 +143,7 @@ mod unit {
                 .map(|i| {
                     dx[i]
                         * (0..s)
-                            .map(|j| p.information[i * s + j] * dx[j])
+                            .map(|j| p.dense_information()[i * s + j] * dx[j])
                             .sum::<f64>()
                 })
                 .sum();
@@ -154,7 +154,7 @@ mod unit {
                 .map(|i| {
                     p.eta[i]
                         + (0..s)
-                            .map(|j| p.information[i * s + j] * (x[j] - p.xbar[j]))
+                            .map(|j| p.dense_information()[i * s + j] * (x[j] - p.xbar[j]))
                             .sum::<f64>()
                 })
                 .collect()
@@ -179,7 +179,7 @@ mod unit {
         }
         // Across the manifold the tangent prior is flat.
         let normal: Vec<f64> = (0..s).map(|i| ga[i] - gb[i]).collect();
-        assert!(tangent.information.iter().all(|v| v.is_finite()));
+        assert!(tangent.dense_information().iter().all(|v| v.is_finite()));
         assert!(
             normal.iter().any(|v| v.abs() > 0.0),
             "the prior pulled across the manifold"
@@ -300,6 +300,99 @@ mod unit {
         assert!(seen.lock().unwrap().iter().all(|it| !it.chord));
     }
 
+    /// A projected prior kept as N̄CN̄ᵀ is the one written out s × s: the same Λ, η,
+    /// value and gradient, the same reduced normal equations of the window, the same
+    /// rows for the least-squares step and the same solve.
+    #[test]
+    fn the_tangent_form_of_a_prior_is_the_written_out_one() {
+        let (fg, values, prior, mut solver, k) = window();
+        let s = solver.s;
+        let project = |solver: &mut WindowSolver, from: usize| {
+            let mut p = prior.clone();
+            solver.tangent_form_from = from;
+            solver.project_prior(&fg.graph, &values, k, &mut p).unwrap();
+            p
+        };
+        let dense = project(&mut solver, usize::MAX);
+        let tangent = project(&mut solver, 0);
+        assert!(matches!(dense.information, Information::Dense(_)));
+        assert!(matches!(tangent.information, Information::Tangent(_)));
+        let close = |a: &[f64], b: &[f64], what: &str| {
+            let scale = a.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+            for (i, (x, y)) in a.iter().zip(b).enumerate() {
+                assert!(
+                    (x - y).abs() <= 1e-12 * scale,
+                    "{what}[{i}]: {x:e} vs {y:e}"
+                );
+            }
+        };
+        let lambda = dense.dense_information();
+        close(&lambda, &tangent.dense_information(), "Λ");
+        close(&dense.eta, &tangent.eta, "η");
+        close(&dense.xbar, &tangent.xbar, "x̄");
+        close(&[dense.constant], &[tangent.constant], "c");
+        // Off the mean, and off the manifold.
+        let x: Vec<f64> = (0..s)
+            .map(|i| dense.xbar[i] + 1e-3 * ((i * 5 % 7) as f64 - 3.0))
+            .collect();
+        let (mut delta, mut ga, mut gb) = (vec![0.0; s], vec![0.0; s], vec![0.0; s]);
+        let va = dense.gradient(&x, &mut delta, &mut ga);
+        let vb = tangent.gradient(&x, &mut delta, &mut gb);
+        close(&[va], &[vb], "value");
+        close(&ga, &gb, "gradient");
+        // The window's reduced normal equations with each.
+        let mut moved = values.clone();
+        moved[k * s..(k + 1) * s].copy_from_slice(&x);
+        let mut normal = |p: &LinearPrior| {
+            let scope = Scope::Window { held: false };
+            let cost = solver
+                .evaluate(&fg.graph, &moved, k, k + 1, Some(p), scope, true)
+                .unwrap();
+            let d = solver.h.dim(0);
+            (
+                cost,
+                solver.h.diag(0)[..d * d].to_vec(),
+                solver.g[..d].to_vec(),
+            )
+        };
+        let (ca, ha, gna) = normal(&dense);
+        let (cb, hb, gnb) = normal(&tangent);
+        close(&[ca], &[cb], "cost");
+        close(&ha, &hb, "H");
+        close(&gna, &gnb, "g");
+        // Its rows: RᵀR = Λ, Rᵀc = η.
+        let roots = newton::PriorRoots::of(&tangent, s);
+        let rows = roots.eta.len();
+        let scale = lambda.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+        for i in 0..s {
+            for j in 0..s {
+                let rtr: f64 = (0..rows)
+                    .map(|r| roots.rows[r * s + i] * roots.rows[r * s + j])
+                    .sum();
+                assert!(
+                    (rtr - lambda[i * s + j]).abs() <= 1e-11 * scale,
+                    "RᵀR[{i}][{j}]"
+                );
+            }
+            let rtc: f64 = (0..rows)
+                .map(|r| roots.rows[r * s + i] * roots.eta[r])
+                .sum();
+            assert!((rtc - dense.eta[i]).abs() <= 1e-11 * scale, "Rᵀc[{i}]");
+        }
+        // The same solve of the window, from near its solution.
+        let solve = |solver: &mut WindowSolver, p: &LinearPrior| {
+            let mut v = values.clone();
+            for (i, vi) in v[k * s..(k + 1) * s].iter_mut().enumerate() {
+                *vi += 1e-6 * ((i * 3 % 5) as f64 - 2.0);
+            }
+            let report = solver.solve(&fg.graph, &mut v, k, k + 1, Some(p)).unwrap();
+            assert_eq!(report.termination, Termination::Converged);
+            v[k * s..(k + 1) * s].to_vec()
+        };
+        let (xa, xb) = (solve(&mut solver, &dense), solve(&mut solver, &tangent));
+        close(&xa, &xb, "solution");
+    }
+
     /// A prior as rows: RᵀR = Λ and Rᵀc = η, for an information of lower rank than
     /// its size (its null direction gets no row).
     #[test]
@@ -319,7 +412,7 @@ mod unit {
             eta[i] = (0..r).map(|k| a[k * s + i] * b[k]).sum();
         }
         let prior = LinearPrior {
-            information: information.clone(),
+            information: Information::Dense(information.clone()),
             eta: eta.clone(),
             constant: 0.0,
             xbar: vec![0.0; s],
