@@ -325,23 +325,22 @@ fn leave(
     prior: Option<&LinearPrior>,
     settings: Settings,
 ) -> Result<LinearPrior> {
-    let mut p = solver
-        .marginalize(graph, values, k0, prior)
-        .map_err(|e| match e {
-            crate::Error::Singular { what, .. } => crate::Error::Singular {
-                what: format!(
-                    "{what}; --past conditioned holds the past at its estimate instead of \
+    let marginal = if settings.tangent_priors {
+        solver.marginalize_projected(graph, values, k0, prior)
+    } else {
+        solver.marginalize(graph, values, k0, prior)
+    };
+    marginal.map_err(|e| match e {
+        crate::Error::Singular { what, .. } => crate::Error::Singular {
+            what: format!(
+                "{what}; --past conditioned holds the past at its estimate instead of \
                      marginalizing it"
-                ),
-                step: Some(k0),
-                t: Some(crate::trajectory::round_time(graph.time(k0))),
-            },
-            other => other,
-        })?;
-    if settings.tangent_priors {
-        solver.project_prior(graph, values, k0 + 1, &mut p)?;
-    }
-    Ok(p)
+            ),
+            step: Some(k0),
+            t: Some(crate::trajectory::round_time(graph.time(k0))),
+        },
+        other => other,
+    })
 }
 
 /// One window solve [k0, k]: the newest step first brought to its optimum given the

@@ -16,6 +16,38 @@ pub(super) struct LastSolve {
     pub(super) generation: u64,
 }
 
+/// Sparse rows on one step's unknowns with their residuals (see
+/// `WindowSolver::joint`).
+#[derive(Default)]
+pub(super) struct JointRows {
+    nonzeros: Vec<(usize, f64)>,
+    end: Vec<usize>,
+    residual: Vec<f64>,
+}
+
+impl JointRows {
+    fn clear(&mut self) {
+        self.nonzeros.clear();
+        self.end.clear();
+        self.residual.clear();
+    }
+
+    fn push(&mut self, nonzeros: &[(usize, f64)], residual: f64) {
+        self.nonzeros.extend_from_slice(nonzeros);
+        self.end.push(self.nonzeros.len());
+        self.residual.push(residual);
+    }
+
+    /// Each row's nonzeros and residual, in order.
+    fn rows(&self) -> impl Iterator<Item = (&[(usize, f64)], f64)> {
+        let starts = std::iter::once(0).chain(self.end.iter().copied());
+        starts
+            .zip(&self.end)
+            .zip(&self.residual)
+            .map(|((a, &b), &r)| (&self.nonzeros[a..b], r))
+    }
+}
+
 /// Copies a rows × cols matrix stored with row stride cols into `dst` with row
 /// The prior on block k0 + 1 with block k0 held at its estimate: H₁₁ and g₁ of the
 /// 2-block system in the scratch (see [`WindowSolver::schur`]), and the factors' cost.
@@ -260,6 +292,35 @@ impl WindowSolver {
         k0: usize,
         prior: Option<&LinearPrior>,
     ) -> Result<LinearPrior> {
+        self.marginalize_with(graph, values, k0, prior, false)
+    }
+
+    /// [`WindowSolver::marginalize`], then [`WindowSolver::project_prior`] on step
+    /// k0 + 1. A large mechanism's marginal from the last solve's linearization is
+    /// projected as it is made, C = N̄ᵀH₁₁N̄ − (YN̄)ᵀ(YN̄) from the rows joining the
+    /// two steps and Y's products with N̄, so that its s × s form is never written.
+    pub fn marginalize_projected(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        prior: Option<&LinearPrior>,
+    ) -> Result<LinearPrior> {
+        let mut p = self.marginalize_with(graph, values, k0, prior, true)?;
+        if p.projection.is_none() {
+            self.project_prior(graph, values, k0 + 1, &mut p)?;
+        }
+        Ok(p)
+    }
+
+    fn marginalize_with(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        prior: Option<&LinearPrior>,
+        project: bool,
+    ) -> Result<LinearPrior> {
         let s = self.s;
         if let Some(last) = self.last.take() {
             let x = &values[k0 * s..(k0 + 1) * s];
@@ -269,7 +330,8 @@ impl WindowSolver {
                     .zip(&self.last_x)
                     .all(|(a, b)| a.to_bits() == b.to_bits())
             {
-                return self.marginalize_last(graph, values, k0, last.k1);
+                let project = project && s >= self.tangent_form_from && !self.past_conditioned();
+                return self.marginalize_last(graph, values, k0, last.k1, project);
             }
         }
         let cost = self.evaluate(graph, values, k0, k0 + 2, prior, Scope::Oldest, true)?;
@@ -396,12 +458,15 @@ impl WindowSolver {
     /// (it converged on a step below the tolerance, so that linearization is the one
     /// at the optimum up to O(tolerance)); only the factors joining k0 to k0 + 1 are
     /// evaluated again, for their columns on k0 + 1 in full coordinates.
+    /// With `project`, the prior comes projected on step k0 + 1's tangent space
+    /// (see [`WindowSolver::marginalize_projected`]).
     pub(super) fn marginalize_last(
         &mut self,
         graph: &ChainGraph,
         values: &[f64],
         k0: usize,
         k1: usize,
+        project: bool,
     ) -> Result<LinearPrior> {
         let s = self.s;
         let ss = s * s;
@@ -411,11 +476,13 @@ impl WindowSolver {
         {
             let (h00, rest) = self.scratch.split_at_mut(ss);
             let (h10, rest) = rest.split_at_mut(ss);
-            let (h11, rest) = rest.split_at_mut(ss);
+            let (_, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
             restride(self.h.diag(0), d0, d0, h00, s);
-            h10.fill(0.0);
-            h11.fill(0.0);
+            // H₁₀ is read only in its first d0 columns.
+            for row in h10.chunks_exact_mut(s) {
+                row[..d0].fill(0.0);
+            }
             g01.fill(0.0);
             for a in 0..d0 {
                 g01[a] = self.g[a] + self.hd[a];
@@ -423,6 +490,7 @@ impl WindowSolver {
         }
         let mut cost = self.cost_first;
         let blocked = s >= dense::FAER_PRODUCTS_FROM;
+        self.joint.clear();
         // The factors joining k0 and k0 + 1.
         for index in 0..graph.step_terms().len() {
             let term = &graph.step_terms()[index];
@@ -473,7 +541,7 @@ impl WindowSolver {
             }
             let (h00, rest) = self.scratch.split_at_mut(ss);
             let (h10, rest) = rest.split_at_mut(ss);
-            let (h11, rest) = rest.split_at_mut(ss);
+            let (_, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
             for r in 0..dim {
                 let j1 = &self.reduced[0][r * s..(r + 1) * s];
@@ -488,12 +556,8 @@ impl WindowSolver {
                     for (o, v) in h10[i * s..i * s + d0].iter_mut().zip(j0) {
                         *o += vi * v;
                     }
-                    let out = &mut h11[i * s..(i + 1) * s];
-                    for &(j, vj) in &self.nonzero {
-                        out[j] += vi * vj;
-                    }
-                    g01[s + i] += vi * rr;
                 }
+                self.joint.push(&self.nonzero, rr);
                 if !window_holds_next {
                     for (a, &va) in j0.iter().enumerate() {
                         if !blocked {
@@ -511,6 +575,169 @@ impl WindowSolver {
                 dense::multiply(dense::rows_mut(h00, d0, d0, s), true, j0.transpose(), j0);
             }
         }
+        if project {
+            return self.schur_projected(graph, values, k0, d0, cost);
+        }
+        self.joint_into_scratch();
         self.schur(k0, d0, cost, values)
+    }
+
+    /// H₁₁ and g₁ of the 2-block system in the scratch from the joining rows
+    /// (`joint`), row after row.
+    fn joint_into_scratch(&mut self) {
+        let s = self.s;
+        let ss = s * s;
+        let (h11, rest) = self.scratch[2 * ss..].split_at_mut(ss);
+        let g1 = &mut rest[s..2 * s];
+        h11.fill(0.0);
+        for (row, r) in self.joint.rows() {
+            for &(i, vi) in row {
+                let out = &mut h11[i * s..(i + 1) * s];
+                for &(j, vj) in row {
+                    out[j] += vi * vj;
+                }
+                g1[i] += vi * r;
+            }
+        }
+    }
+
+    /// The Schur complement of block 0 in the 2-block system (H₀₀ and H₁₀ in the
+    /// scratch, H₁₁ and g₁ as the joining rows), projected on the tangent space of
+    /// step k0 + 1's hard equations as it is formed: with N̄ and p̄ their reduction,
+    /// Y = L₀⁻¹H₀₁ and w = L₀⁻¹g₀,
+    ///   C = N̄ᵀH₁₁N̄ − (YN̄)ᵀ(YN̄),  γ = N̄ᵀ(g₁ + H₁₁p̄) − (YN̄)ᵀ(w + Yp̄),
+    /// the value at x̄ + p̄ from the same products; nothing s × s is formed.
+    fn schur_projected(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        d0: usize,
+        cost: f64,
+    ) -> Result<LinearPrior> {
+        let s = self.s;
+        let ss = s * s;
+        let k = k0 + 1;
+        self.collect_instances(graph, k, k + 1, Scope::Window { held: false });
+        self.hard_block(graph, values, 0, HardPass::Linearize)?;
+        let projection = Some(Projection {
+            step: k,
+            generation: self.generation,
+        });
+        if self.hard[0].rows == 0 {
+            // No tangent space to project on: the prior as it is.
+            self.joint_into_scratch();
+            let mut p = self.schur(k0, d0, cost, values)?;
+            p.projection = projection;
+            return Ok(p);
+        }
+        let red = &self.hard[0].reduction;
+        let d = red.dim;
+        let (h00, rest) = self.scratch.split_at_mut(ss);
+        let (h10, rest) = rest.split_at_mut(ss);
+        let (_, rest) = rest.split_at_mut(ss);
+        let (g01, rest) = rest.split_at_mut(2 * s);
+        let yn = &mut rest[..d0 * d];
+        dense::cholesky_strided(h00, d0, s).map_err(|_| {
+            Error::singular(format!(
+                "marginalizing step {k0}: its soft factors leave a direction undetermined"
+            ))
+        })?;
+        // H₀₁N̄ (d0 × d) and H₀₁p̄ over N̄'s nonzeros (row i of H₁₀ is column i of
+        // H₀₁), then YN̄ and Yp̄ by L₀⁻¹; w = L₀⁻¹g₀.
+        yn.fill(0.0);
+        let mut yp = vec![0.0; d0];
+        for i in 0..s {
+            let (first, row) = red.row(i);
+            let pi = red.particular[i];
+            for (a, &v) in h10[i * s..i * s + d0].iter().enumerate() {
+                if v == 0.0 {
+                    continue;
+                }
+                yp[a] += v * pi;
+                let out = &mut yn[a * d + first..a * d + first + row.len()];
+                for (o, n) in out.iter_mut().zip(row) {
+                    *o += v * n;
+                }
+            }
+        }
+        let l0 = dense::rows(h00, d0, d0, s);
+        dense::solve_lower_rows(l0, dense::rows_mut(yn, d0, d, d));
+        dense::solve_lower_strided(h00, d0, s, &mut yp);
+        let mut w = g01[..d0].to_vec();
+        dense::solve_lower_strided(h00, d0, s, &mut w);
+        // N̄ᵀH₁₁N̄, N̄ᵀ(g₁ + H₁₁p̄), g₁ᵀp̄ and p̄ᵀH₁₁p̄ row by row: each joining row j
+        // (two nonzeros for an integrator) meets few of N̄'s columns.
+        let mut core = vec![0.0; d * d];
+        let mut gamma = vec![0.0; d];
+        let (mut nj, mut seen, mut touched) = (vec![0.0; d], vec![false; d], Vec::new());
+        let (mut g1p, mut php) = (0.0, 0.0);
+        for (row, r) in self.joint.rows() {
+            let mut jp = 0.0;
+            for &(i, v) in row {
+                jp += v * red.particular[i];
+                let (first, nrow) = red.row(i);
+                for (a, &n) in nrow.iter().enumerate() {
+                    let a = first + a;
+                    if !seen[a] {
+                        seen[a] = true;
+                        touched.push(a);
+                    }
+                    nj[a] += v * n;
+                }
+            }
+            for &a in &touched {
+                let va = nj[a];
+                for &b in &touched {
+                    core[a * d + b] += va * nj[b];
+                }
+                gamma[a] += va * (r + jp);
+            }
+            g1p += r * jp;
+            php += jp * jp;
+            for &a in &touched {
+                nj[a] = 0.0;
+                seen[a] = false;
+            }
+            touched.clear();
+        }
+        // − (YN̄)ᵀ(YN̄) and − (YN̄)ᵀ(w + Yp̄).
+        let mut gram = vec![0.0; d * d];
+        dense::gram_lower(yn, d0, d, &mut gram);
+        for i in 0..d {
+            for j in 0..=i {
+                let v = core[i * d + j] - gram[i * d + j];
+                core[i * d + j] = v;
+                core[j * d + i] = v;
+            }
+        }
+        for a in 0..d0 {
+            let wa = w[a] + yp[a];
+            for (g, y) in gamma.iter_mut().zip(&yn[a * d..(a + 1) * d]) {
+                *g -= y * wa;
+            }
+        }
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+        // The marginal's value at x̄ (≥ 0 but for round-off, as in `schur`), then at
+        // x̄ + p̄: + ηᵀp̄ + ½p̄ᵀΛp̄.
+        let at_mean = (cost - 0.5 * dot(&w, &w)).max(0.0);
+        let constant = at_mean + (g1p - dot(&w, &yp)) + 0.5 * (php - dot(&yp, &yp));
+        if !(core.iter().chain(&gamma).all(|v| v.is_finite()) && constant.is_finite()) {
+            return Err(Error::singular(format!(
+                "marginalizing step {k0}: non-finite values"
+            )));
+        }
+        let x = &values[k * s..(k + 1) * s];
+        let xbar = x.iter().zip(&red.particular).map(|(a, b)| a + b).collect();
+        let tangent = TangentInformation::new(red, core, gamma);
+        let mut eta = vec![0.0; s];
+        tangent.lift(tangent.gamma(), &mut eta);
+        Ok(LinearPrior {
+            information: Information::Tangent(tangent),
+            eta,
+            constant,
+            xbar,
+            projection,
+        })
     }
 }

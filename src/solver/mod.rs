@@ -36,7 +36,7 @@ pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGEN
 pub use settings::{Method, Past, Settings, Thresholds};
 
 use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
-use marginal::LastSolve;
+use marginal::{JointRows, LastSolve};
 use newton::{NewtonBuffers, PriorRoots};
 use structure::{factor_of, is_hard, Instance, Resolved, Scope};
 
@@ -114,6 +114,10 @@ pub struct WindowSolver {
     /// The nonzeros of a Jacobian row (per block it touches, for `accumulate`).
     nonzero: Vec<(usize, f64)>,
     nonzeros: [Vec<(usize, f64)>; 2],
+    /// The rows of the factors joining a marginalized step to the next, on the
+    /// next step's unknowns (`marginalize_last`): their nonzeros one row after
+    /// another, each row's end, and each row's whitened residual.
+    joint: JointRows,
     ws: Workspace,
     scratch: Vec<f64>,
     newton: NewtonBuffers,
@@ -228,6 +232,7 @@ impl WindowSolver {
             correction: vec![0.0; s],
             nonzero: Vec::with_capacity(s),
             nonzeros: [Vec::with_capacity(s), Vec::with_capacity(s)],
+            joint: JointRows::default(),
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
             generation: 0,

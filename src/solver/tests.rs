@@ -393,6 +393,52 @@ mod unit {
         close(&xa, &xb, "solution");
     }
 
+    /// The marginal of a converged one-step window projected as it is formed (from
+    /// the joining rows and Y's products with N̄) is the marginal written out and
+    /// then projected.
+    #[test]
+    fn a_marginal_projected_as_it_is_formed_is_the_projected_marginal() {
+        let (fg, values, _, _, k) = window();
+        let marginal = |from: usize| {
+            let mut solver = WindowSolver::new(&fg.graph, 2, Settings::default()).unwrap();
+            solver.tangent_form_from = from;
+            let mut v = values.clone();
+            let report = solver.solve(&fg.graph, &mut v, k - 1, k, None).unwrap();
+            assert_eq!(report.termination, Termination::Converged);
+            assert!(solver.last.is_some(), "the solve left its linearization");
+            // The next step off its constraints: projected through p̄ ≠ 0.
+            let s = solver.s;
+            for (i, x) in v[k * s..(k + 1) * s].iter_mut().enumerate() {
+                *x += 1e-4 * ((i * 3 % 7) as f64 - 3.0);
+            }
+            let p = solver
+                .marginalize_projected(&fg.graph, &v, k - 1, None)
+                .unwrap();
+            assert_eq!(p.projection.map(|pr| pr.step), Some(k));
+            p
+        };
+        let (dense, tangent) = (marginal(usize::MAX), marginal(0));
+        assert!(matches!(dense.information, Information::Dense(_)));
+        assert!(matches!(tangent.information, Information::Tangent(_)));
+        let close = |a: &[f64], b: &[f64], what: &str| {
+            let scale = a.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+            for (i, (x, y)) in a.iter().zip(b).enumerate() {
+                assert!(
+                    (x - y).abs() <= 1e-10 * scale,
+                    "{what}[{i}]: {x:e} vs {y:e}"
+                );
+            }
+        };
+        close(
+            &dense.dense_information(),
+            &tangent.dense_information(),
+            "Λ",
+        );
+        close(&dense.eta, &tangent.eta, "η");
+        close(&dense.xbar, &tangent.xbar, "x̄");
+        close(&[dense.constant], &[tangent.constant], "c");
+    }
+
     /// A prior as rows: RᵀR = Λ and Rᵀc = η, for an information of lower rank than
     /// its size (its null direction gets no row).
     #[test]
