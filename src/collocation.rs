@@ -208,11 +208,11 @@ impl Factor for SimpsonVelocity {
         let h = self.dt;
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
         let [qm, vm, am, jq, jv] = Self::own_scratch(n);
-        let (mut qm, stack) = zeros(stack, qm);
-        let (mut vm, stack) = zeros(stack, vm);
-        let (mut am, stack) = zeros(stack, am);
-        let (mut jq, stack) = zeros(stack, jq);
-        let (mut jv, _) = zeros(stack, jv);
+        let (qm, stack) = zeros(stack, qm);
+        let (vm, stack) = zeros(stack, vm);
+        let (am, stack) = zeros(stack, am);
+        let (jq, stack) = zeros(stack, jq);
+        let (jv, _) = zeros(stack, jv);
         let (qm, vm, am) = (&mut qm[..], &mut vm[..], &mut am[..]);
         let (jq, jv) = (&mut jq[..], &mut jv[..]);
         let (q0, q1, v0, v1, a0, a1) = (x[0], x[1], x[2], x[3], x[4], x[5]);

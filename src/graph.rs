@@ -6,10 +6,10 @@
 //! the normal equations are block tridiagonal when unknowns are ordered by step.
 
 use crate::error::{Error, Result};
-use faer::dyn_stack::{DynArray, MemBuffer};
+use faer::dyn_stack::PodBuffer;
 /// faer's scratch mechanism (the `dyn-stack` crate), in which factors state and carve
 /// their scratch.
-pub use faer::dyn_stack::{MemStack, StackReq};
+pub use faer::dyn_stack::{PodStack, StackReq};
 
 /// The kind of a variable; its size comes from the model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -155,29 +155,36 @@ impl Noise {
 
 /// Scratch memory that evaluation may use: one buffer, allocated once from the
 /// factors' combined [`StackReq`] ([`ChainGraph::workspace`]), from which each
-/// evaluation carves its arrays ([`MemStack::make_with`]), so that no evaluation
+/// evaluation carves its arrays ([`zeros`], [`carve`]), so that no evaluation
 /// allocates.
 pub struct Workspace {
-    buffer: MemBuffer,
+    buffer: PodBuffer,
 }
 
 impl Workspace {
     /// A workspace large enough for the request `req`.
     pub fn new(req: StackReq) -> Self {
         Workspace {
-            buffer: MemBuffer::new(req),
+            buffer: PodBuffer::new(req),
         }
     }
 
     /// The whole buffer as a stack to carve from.
-    pub fn stack(&mut self) -> &mut MemStack {
-        MemStack::new(&mut self.buffer)
+    pub fn stack(&mut self) -> &mut PodStack {
+        PodStack::new(&mut self.buffer)
     }
 }
 
 /// `len` zeros carved from `stack`, and the rest of `stack`.
-pub fn zeros(stack: &mut MemStack, len: usize) -> (DynArray<'_, f64>, &mut MemStack) {
+pub fn zeros(stack: &mut PodStack, len: usize) -> (&mut [f64], &mut PodStack) {
     stack.make_with(len, |_| 0.0)
+}
+
+/// `len` values carved from `stack` as an earlier evaluation left them, and the
+/// rest of `stack`: for arrays whose every entry is written before it is read,
+/// which zeroing would only cost (a large mechanism's n × n blocks).
+pub fn carve(stack: &mut PodStack, len: usize) -> (&mut [f64], &mut PodStack) {
+    stack.make_raw(len)
 }
 
 impl std::fmt::Debug for Workspace {

@@ -28,7 +28,7 @@ use crate::factors::{Euler, Trapezoidal};
 use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
 use crate::linalg::dense;
 use crate::model::Model;
-use faer::dyn_stack::{DynArray, MemStack};
+use faer::dyn_stack::PodStack;
 use nalgebra::DMatrix;
 use std::sync::Arc;
 
@@ -52,8 +52,8 @@ pub enum Rule {
 /// Â⁺ restricted to Â's rank. Carved from the factor's workspace, with the scratch
 /// of their computation.
 struct RowSpace<'a> {
-    p: DynArray<'a, f64>,
-    pinv: DynArray<'a, f64>,
+    p: &'a mut [f64],
+    pinv: &'a mut [f64],
 }
 
 /// The scratch of [`row_space`] and of the products after it, for `cols` columns
@@ -69,19 +69,19 @@ fn row_space_scratch(model: &Model, cols: usize) -> StackReq {
 fn row_space<'a>(
     model: &Model,
     q: &[f64],
-    stack: &'a mut MemStack,
-) -> Result<(RowSpace<'a>, &'a mut MemStack)> {
+    stack: &'a mut PodStack,
+) -> Result<(RowSpace<'a>, &'a mut PodStack)> {
     let (m, n, ma) = (model.m(), model.n(), model.active.len());
-    let (mut p, stack) = zeros(stack, n * n);
-    let (mut pinv, stack) = zeros(stack, n * m);
-    let (mut all, stack) = zeros(stack, m * n);
-    let (mut a, stack) = zeros(stack, ma * n);
-    let (mut d, stack) = zeros(stack, ma);
-    let (mut gram, stack) = zeros(stack, ma * ma);
-    let (mut x, stack) = zeros(stack, ma * n);
-    let (mut pinv_hat, stack) = zeros(stack, n * ma);
-    let (mut column, stack) = zeros(stack, ma);
-    model.jacobian_into(q, &mut all);
+    let (p, stack) = zeros(stack, n * n);
+    let (pinv, stack) = zeros(stack, n * m);
+    let (all, stack) = zeros(stack, m * n);
+    let (a, stack) = zeros(stack, ma * n);
+    let (d, stack) = zeros(stack, ma);
+    let (gram, stack) = zeros(stack, ma * ma);
+    let (x, stack) = zeros(stack, ma * n);
+    let (pinv_hat, stack) = zeros(stack, n * ma);
+    let (column, stack) = zeros(stack, ma);
+    model.jacobian_into(q, all);
     if all.iter().any(|v| !v.is_finite()) {
         return Err(Error::singular("Φ_q is not finite at the step's positions"));
     }
@@ -109,13 +109,13 @@ fn row_space<'a>(
             gram[j * ma + i] = g;
         }
     }
-    if dense::cholesky(&mut gram, ma).is_ok() && well_conditioned(&gram, ma) {
+    if dense::cholesky(gram, ma).is_ok() && well_conditioned(gram, ma) {
         // X = (ÂÂᵀ)⁻¹Â column by column, Â⁺ = Xᵀ.
         for j in 0..n {
             for (c, i) in column.iter_mut().zip(0..ma) {
                 *c = a[i * n + j];
             }
-            dense::cholesky_solve(&gram, ma, &mut column);
+            dense::cholesky_solve(gram, ma, column);
             for (i, c) in column.iter().enumerate() {
                 x[i * n + j] = *c;
             }
@@ -126,7 +126,7 @@ fn row_space<'a>(
             }
         }
     } else {
-        svd_pseudo_inverse(&a, ma, n, &mut pinv_hat);
+        svd_pseudo_inverse(a, ma, n, pinv_hat);
     }
     // P = I − Â⁺Â.
     for i in 0..n {
@@ -189,17 +189,17 @@ fn subtract_projector_derivative(
     rows: &RowSpace,
     (e, u): (&[f64], &[f64]),
     block: &mut [f64],
-    stack: &mut MemStack,
+    stack: &mut PodStack,
 ) {
     let (m, n) = (model.m(), model.n());
-    let (mut lambda, stack) = zeros(stack, m);
-    let (mut w, stack) = zeros(stack, n * n);
-    let (mut jw, _) = zeros(stack, m * n);
+    let (lambda, stack) = zeros(stack, m);
+    let (w, stack) = zeros(stack, n * n);
+    let (jw, _) = zeros(stack, m * n);
     for (k, l) in lambda.iter_mut().enumerate() {
         *l = (0..n).map(|i| rows.pinv[i * m + k] * e[i]).sum();
     }
-    model.add_all_weighted_hessians(q, &lambda, &mut w);
-    model.jacobian_derivative_into(q, u, &mut jw);
+    model.add_all_weighted_hessians(q, lambda, w);
+    model.jacobian_derivative_into(q, u, jw);
     for i in 0..n {
         for j in 0..n {
             let pw: f64 = (0..n).map(|k| rows.p[i * n + k] * w[k * n + j]).sum();
@@ -305,10 +305,10 @@ impl Factor for Projected {
             None => self.inner.evaluate(t, &x[..inner_keys], r, None, ws)?,
         }
         let (rows, stack) = row_space(&self.model, q, ws.stack())?;
-        let (mut u, stack) = zeros(stack, n);
-        multiply_vector(&rows.p, n, n, r, &mut u);
+        let (u, stack) = zeros(stack, n);
+        multiply_vector(rows.p, n, n, r, u);
         if let Some(j) = jac {
-            let (mut product, stack) = zeros(stack, j.iter().map(Vec::len).max().unwrap_or(0));
+            let (product, stack) = zeros(stack, j.iter().map(Vec::len).max().unwrap_or(0));
             for block in j[..inner_keys].iter_mut() {
                 let cols = block.len() / n;
                 for i in 0..n {
@@ -328,12 +328,12 @@ impl Factor for Projected {
                 &self.model,
                 q,
                 &rows,
-                (r, &u),
+                (r, u),
                 &mut j[self.q_key],
                 stack,
             );
         }
-        r.copy_from_slice(&u);
+        r.copy_from_slice(u);
         Ok(())
     }
 }

@@ -643,10 +643,7 @@ fn inverse_dynamics_on_some_coordinates_is_the_full_factor_with_the_other_forces
 
 #[test]
 fn inverse_dynamics_along_directions_is_the_jacobian_times_them() {
-    // evaluate_along against J·V from the (finite-difference checked) Jacobians, for
-    // f^d_idyn on some coordinates and f^i_idyn; V has zero rows and columns like a
-    // null-space basis restricted to a factor's keys; too many nonzero columns are
-    // declined.
+    // f^d_idyn on some coordinates and f^i_idyn.
     let mut rng = Rng(17);
     for name in SCENES {
         let model = load(name);
@@ -658,81 +655,100 @@ fn inverse_dynamics_along_directions_is_the_jacobian_times_them() {
             factors.push(Box::new(IndependentDynamics::inverse(model.clone())));
         }
         for factor in &factors {
-            assert!(factor.along().is_some());
-            let step = Step::random(&model, &mut rng);
-            let mut xs = inputs(factor.as_ref(), &step, &step);
-            if let Some(f) = xs.get_mut(3) {
-                f.truncate(factor.size(3));
-            }
-            let dim = factor.dim();
-            let c = 7;
-            let dirs: Vec<Vec<f64>> = xs
-                .iter()
-                .map(|x| {
-                    (0..x.len() * c)
-                        .map(|i| {
-                            let (row, col) = (i / c, i % c);
-                            if col == 3 || (row + col) % 3 == 0 {
-                                0.0
-                            } else {
-                                rng.values(1, 1.0)[0]
-                            }
-                        })
-                        .collect()
-                })
-                .collect();
-            let slices: Vec<&[f64]> = xs.iter().map(Vec::as_slice).collect();
-            let mut ws = workspace_for(factor.as_ref());
-            let mut r = vec![0.0; dim];
-            let mut jac: Vec<Vec<f64>> = xs.iter().map(|x| vec![0.0; dim * x.len()]).collect();
-            factor
-                .evaluate(T, &slices, &mut r, Some(&mut jac), &mut ws)
-                .unwrap();
-            let mut expect = vec![0.0; dim * c];
-            for (a, x) in xs.iter().enumerate() {
-                let d = x.len();
-                for i in 0..dim {
-                    for j in 0..c {
-                        expect[i * c + j] += (0..d)
-                            .map(|k| jac[a][i * d + k] * dirs[a][k * c + j])
-                            .sum::<f64>();
-                    }
-                }
-            }
-            let dir_slices: Vec<&[f64]> = dirs.iter().map(Vec::as_slice).collect();
-            let (mut r2, mut out) = (vec![f64::NAN; dim], vec![f64::NAN; dim * c]);
-            let along = factor.along().expect("linearizes along directions");
-            let done = along
-                .evaluate_along(T, &slices, &mut r2, &dir_slices, c, &mut out, &mut ws)
-                .unwrap();
-            assert!(done, "{name}: {}", factor.name());
-            assert!(same_bits(&r, &r2), "{name}: {} residual", factor.name());
-            let scale = expect.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-            assert!(
-                max_abs_diff(&out, &expect) <= 1e-10 * scale,
-                "{name}: {} J·V off by {:.2e}",
-                factor.name(),
-                max_abs_diff(&out, &expect)
-            );
-            for (i, v) in out.iter().enumerate() {
-                if i % c == 3 {
-                    assert_eq!(*v, 0.0, "{name}: a zero direction gives 0");
-                }
-            }
-            // More nonzero directions than the Jacobians have columns: declined.
-            let wide = 3 * n + 2;
-            let dense: Vec<Vec<f64>> = xs.iter().map(|x| rng.values(x.len() * wide, 1.0)).collect();
-            let dense_slices: Vec<&[f64]> = dense.iter().map(Vec::as_slice).collect();
-            let mut out = vec![0.0; dim * wide];
-            assert!(!along
-                .evaluate_along(T, &slices, &mut r2, &dense_slices, wide, &mut out, &mut ws)
-                .unwrap());
+            check_along(factor.as_ref(), &model, name, &mut rng);
         }
     }
-    // Factors without it decline.
+    // f^d_dyn of a small mechanism forms its Jacobians.
     let model = load("fourbar.yaml");
     let forward = Dynamics::new(model.clone());
+    assert!(model.n() < mbfg::factors::ALONG_FROM);
     assert!(forward.along().is_none());
+}
+
+#[test]
+fn forward_dynamics_of_a_large_mechanism_along_directions_is_the_jacobian_times_them() {
+    let mut rng = Rng(23);
+    for name in ["scale/n-fourbar-10.yaml", "scale/n-pendulum-8.yaml"] {
+        let model = load(name);
+        assert!(model.n() >= mbfg::factors::ALONG_FROM, "{name}");
+        check_along(&Dynamics::new(model.clone()), &model, name, &mut rng);
+    }
+}
+
+/// evaluate_along against J·V from the (finite-difference checked) Jacobians; V has
+/// zero rows and columns like a null-space basis restricted to a factor's keys; too
+/// many nonzero columns are declined.
+fn check_along(factor: &dyn Factor, model: &Model, name: &str, rng: &mut Rng) {
+    let n = model.n();
+    assert!(factor.along().is_some());
+    let step = Step::random(model, rng);
+    let mut xs = inputs(factor, &step, &step);
+    if let Some(f) = xs.get_mut(3) {
+        f.truncate(factor.size(3));
+    }
+    let dim = factor.dim();
+    let c = 7;
+    let dirs: Vec<Vec<f64>> = xs
+        .iter()
+        .map(|x| {
+            (0..x.len() * c)
+                .map(|i| {
+                    let (row, col) = (i / c, i % c);
+                    if col == 3 || (row + col) % 3 == 0 {
+                        0.0
+                    } else {
+                        rng.values(1, 1.0)[0]
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let slices: Vec<&[f64]> = xs.iter().map(Vec::as_slice).collect();
+    let mut ws = workspace_for(factor);
+    let mut r = vec![0.0; dim];
+    let mut jac: Vec<Vec<f64>> = xs.iter().map(|x| vec![0.0; dim * x.len()]).collect();
+    factor
+        .evaluate(T, &slices, &mut r, Some(&mut jac), &mut ws)
+        .unwrap();
+    let mut expect = vec![0.0; dim * c];
+    for (a, x) in xs.iter().enumerate() {
+        let d = x.len();
+        for i in 0..dim {
+            for j in 0..c {
+                expect[i * c + j] += (0..d)
+                    .map(|k| jac[a][i * d + k] * dirs[a][k * c + j])
+                    .sum::<f64>();
+            }
+        }
+    }
+    let dir_slices: Vec<&[f64]> = dirs.iter().map(Vec::as_slice).collect();
+    let (mut r2, mut out) = (vec![f64::NAN; dim], vec![f64::NAN; dim * c]);
+    let along = factor.along().expect("linearizes along directions");
+    let done = along
+        .evaluate_along(T, &slices, &mut r2, &dir_slices, c, &mut out, &mut ws)
+        .unwrap();
+    assert!(done, "{name}: {}", factor.name());
+    assert!(same_bits(&r, &r2), "{name}: {} residual", factor.name());
+    let scale = expect.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+    assert!(
+        max_abs_diff(&out, &expect) <= 1e-10 * scale,
+        "{name}: {} J·V off by {:.2e}",
+        factor.name(),
+        max_abs_diff(&out, &expect)
+    );
+    for (i, v) in out.iter().enumerate() {
+        if i % c == 3 {
+            assert_eq!(*v, 0.0, "{name}: a zero direction gives 0");
+        }
+    }
+    // More nonzero directions than the Jacobians have columns: declined.
+    let wide = 3 * n + 2;
+    let dense: Vec<Vec<f64>> = xs.iter().map(|x| rng.values(x.len() * wide, 1.0)).collect();
+    let dense_slices: Vec<&[f64]> = dense.iter().map(Vec::as_slice).collect();
+    let mut out = vec![0.0; dim * wide];
+    assert!(!along
+        .evaluate_along(T, &slices, &mut r2, &dense_slices, wide, &mut out, &mut ws)
+        .unwrap());
 }
 
 #[test]

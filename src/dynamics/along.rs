@@ -5,7 +5,7 @@
 use super::augmented::KernelScratch;
 use super::kernel::DynamicsKernel;
 use crate::error::Result;
-use crate::graph::{zeros, MemStack, StackReq};
+use crate::graph::{carve, PodStack, StackReq};
 use crate::model::Model;
 
 /// [`DynamicsKernel::along`]'s scratch beyond the kernel's, for up to `max_cols`
@@ -49,21 +49,12 @@ impl DynamicsKernel {
         c: usize,
         out: &mut [f64],
         kernel: &KernelScratch,
-        stack: &mut MemStack,
+        stack: &mut PodStack,
         max_cols: usize,
     ) -> Result<bool> {
         let [vq, vv, vf] = directions;
         let (n, ma) = (model.n(), model.active.len());
         let big = n + ma;
-        let [kq, kv, mat, bq, bv, b] = lens(model, max_cols);
-        let (mut kq, stack) = zeros(stack, kq);
-        let (mut kv, stack) = zeros(stack, kv);
-        let (mut mat, stack) = zeros(stack, mat);
-        let (mut bq, stack) = zeros(stack, bq);
-        let (mut bv, stack) = zeros(stack, bv);
-        let (mut b, stack) = zeros(stack, b);
-        let (mut tmp, stack) = zeros(stack, b.len());
-        let (mut act, _) = stack.make_with(max_cols, |_| 0usize);
         // The columns where a direction is nonzero (flags in `out`'s first row).
         let flags = &mut out[..c];
         flags.fill(0.0);
@@ -76,17 +67,33 @@ impl DynamicsKernel {
                 }
             }
         }
-        let mut na = 0;
-        for (j, f) in flags.iter().enumerate() {
-            if *f != 0.0 {
-                if na == max_cols {
-                    return Ok(false);
-                }
-                act[na] = j;
-                na += 1;
-            }
+        let na = flags.iter().filter(|f| **f != 0.0).count();
+        if na > max_cols {
+            return Ok(false);
         }
-        let act = &act[..na];
+        let count = rows.map_or(n, <[usize]>::len);
+        if na == 0 {
+            // No direction moves q, q̇ or the forces.
+            out[..count * c].fill(0.0);
+            return Ok(true);
+        }
+        let (act, stack) = stack.make_with(na, |_| 0usize);
+        for (a, (j, _)) in act
+            .iter_mut()
+            .zip(flags.iter().enumerate().filter(|(_, f)| **f != 0.0))
+        {
+            *a = j;
+        }
+        let act = &act[..];
+        // Every array below is written before it is read.
+        let [kq, kv, mat, bq, bv, _] = lens(model, max_cols);
+        let (kq, stack) = carve(stack, kq);
+        let (kv, stack) = carve(stack, kv);
+        let (mat, stack) = carve(stack, mat);
+        let (bq, stack) = carve(stack, bq);
+        let (bv, stack) = carve(stack, bv);
+        let (b, stack) = carve(stack, big * na);
+        let (tmp, _) = carve(stack, big * na);
         let sol = &kernel.sol[..];
         let (kq, kv, mat) = (&mut kq[..], &mut kv[..], &mut mat[..]);
         let (bq, bv, tmp) = (&mut bq[..], &mut bv[..], &mut tmp[..]);
@@ -158,7 +165,6 @@ impl DynamicsKernel {
             }
         }
         kernel.solve_many(b, na, tmp)?;
-        let count = rows.map_or(n, <[usize]>::len);
         out[..count * c].fill(0.0);
         for r in 0..count {
             let i = rows.map_or(r, |rows| rows[r]);

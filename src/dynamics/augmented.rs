@@ -6,27 +6,26 @@ use super::kernel::DynamicsKernel;
 use super::regularization::{mass_scale, MeasureScratch};
 use super::sparse_kkt::{KktStructure, SparseLu};
 use crate::error::{Error, Result};
-use crate::graph::{zeros, MemStack, StackReq};
+use crate::graph::{carve, PodStack, StackReq};
 use crate::linalg::dense;
 use crate::model::Model;
-use faer::dyn_stack::DynArray;
 
-/// The kernel's scratch, carved from a [`MemStack`]: the augmented system (its LU
+/// The kernel's scratch, carved from a [`PodStack`]: the augmented system (its LU
 /// factors after an evaluation) and their pivots, [q̈; λ], room for the solves,
 /// Φ_q and its like (m × n), ∂Q/∂q and ∂Q/∂q̇ (n × n), the Jacobians' right-hand
 /// sides (big × 2n), c (m) and the singularity measure's ([`MeasureScratch`]).
 /// [`DynamicsKernel::evaluate`] leaves the factors and [q̈; λ] in it for
 /// [`DynamicsKernel::force_jacobian`] and [`DynamicsKernel::along`].
 pub struct KernelScratch<'a> {
-    pub(super) kkt: DynArray<'a, f64>,
-    pub(super) perm: DynArray<'a, usize>,
-    pub(super) sol: DynArray<'a, f64>,
-    tmp: DynArray<'a, f64>,
-    mat: DynArray<'a, f64>,
-    kq: DynArray<'a, f64>,
-    kv: DynArray<'a, f64>,
-    cols: DynArray<'a, f64>,
-    c: DynArray<'a, f64>,
+    pub(super) kkt: &'a mut [f64],
+    pub(super) perm: &'a mut [usize],
+    pub(super) sol: &'a mut [f64],
+    tmp: &'a mut [f64],
+    mat: &'a mut [f64],
+    kq: &'a mut [f64],
+    kv: &'a mut [f64],
+    cols: &'a mut [f64],
+    c: &'a mut [f64],
     measure: MeasureScratch<'a>,
     /// A large mechanism's K: its structure, and its factors once evaluated (then
     /// `kkt` and `perm` are not used).
@@ -62,19 +61,23 @@ impl<'a> KernelScratch<'a> {
     pub fn new(
         model: &Model,
         sparse: Option<&'a KktStructure>,
-        stack: &'a mut MemStack,
-    ) -> (Self, &'a mut MemStack) {
+        stack: &'a mut PodStack,
+    ) -> (Self, &'a mut PodStack) {
         let big = model.n() + model.active.len();
         let [kkt, sol, tmp, mat, kq, kv, cols, c] = Self::lens(model);
-        let (kkt, stack) = zeros(stack, kkt);
+        // Every array is written before it is read (K by `fill_kkt`, the others as
+        // `evaluate` and the solves fill them): carved as they were left, not zeroed,
+        // which for a large mechanism was most of an evaluation. A sparse K has no
+        // dense copy.
+        let (kkt, stack) = carve(stack, if sparse.is_some() { 0 } else { kkt });
         let (perm, stack) = stack.make_with(big, |_| 0usize);
-        let (sol, stack) = zeros(stack, sol);
-        let (tmp, stack) = zeros(stack, tmp);
-        let (mat, stack) = zeros(stack, mat);
-        let (kq, stack) = zeros(stack, kq);
-        let (kv, stack) = zeros(stack, kv);
-        let (cols, stack) = zeros(stack, cols);
-        let (c, stack) = zeros(stack, c);
+        let (sol, stack) = carve(stack, sol);
+        let (tmp, stack) = carve(stack, tmp);
+        let (mat, stack) = carve(stack, mat);
+        let (kq, stack) = carve(stack, kq);
+        let (kv, stack) = carve(stack, kv);
+        let (cols, stack) = carve(stack, cols);
+        let (c, stack) = carve(stack, c);
         let (measure, stack) = MeasureScratch::new(model, stack);
         let scratch = KernelScratch {
             kkt,
@@ -105,8 +108,8 @@ impl KernelScratch<'_> {
             Some(lu) => lu.solve_many(b, cols),
             None => {
                 solve_dense(
-                    &self.kkt,
-                    &self.perm,
+                    self.kkt,
+                    self.perm,
                     (big - self.active, self.scale),
                     b,
                     cols,

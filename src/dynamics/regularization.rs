@@ -4,27 +4,27 @@
 //! regularization adds to the Jacobians (see [`DynamicsKernel`]).
 
 use super::kernel::DynamicsKernel;
-use crate::graph::{zeros, MemStack, StackReq};
+use crate::graph::{zeros, PodStack, StackReq};
 use crate::linalg::dense::{inverse_trace, sparse_gram};
 use crate::model::Model;
-use faer::dyn_stack::{DynArray, MemBuffer};
+use faer::dyn_stack::PodBuffer;
 
 /// The singularity measure's scratch: Â (ma × n), G and its Cholesky factor, L⁻¹
 /// (G⁻² in [`DynamicsKernel::measure_gradient`]), G⁻¹ (ma × ma each), per-row vectors
 /// and their Hessian products (m × n each), εₖ and ‖aₖ‖ (ma each), ∂s/∂q (n), and per
 /// active row the columns [start, end) outside which it is 0 and G's row starts.
 pub(super) struct MeasureScratch<'a> {
-    pub(super) abar: DynArray<'a, f64>,
-    pub(super) chol: DynArray<'a, f64>,
-    pub(super) linv: DynArray<'a, f64>,
-    pub(super) ginv: DynArray<'a, f64>,
-    pub(super) vrows: DynArray<'a, f64>,
-    pub(super) hrows: DynArray<'a, f64>,
-    pub(super) eps: DynArray<'a, f64>,
-    pub(super) norms: DynArray<'a, f64>,
-    pub(super) ds: DynArray<'a, f64>,
-    span: DynArray<'a, (usize, usize)>,
-    first: DynArray<'a, usize>,
+    pub(super) abar: &'a mut [f64],
+    pub(super) chol: &'a mut [f64],
+    pub(super) linv: &'a mut [f64],
+    pub(super) ginv: &'a mut [f64],
+    pub(super) vrows: &'a mut [f64],
+    pub(super) hrows: &'a mut [f64],
+    pub(super) eps: &'a mut [f64],
+    pub(super) norms: &'a mut [f64],
+    pub(super) ds: &'a mut [f64],
+    span: &'a mut [[usize; 2]],
+    first: &'a mut [usize],
 }
 
 impl<'a> MeasureScratch<'a> {
@@ -43,7 +43,7 @@ impl<'a> MeasureScratch<'a> {
     }
 
     /// The scratch carved (zeroed) from `stack`, and the rest of `stack`.
-    pub(super) fn new(model: &Model, stack: &'a mut MemStack) -> (Self, &'a mut MemStack) {
+    pub(super) fn new(model: &Model, stack: &'a mut PodStack) -> (Self, &'a mut PodStack) {
         let [abar, chol, linv, ginv, vrows, hrows, eps, norms, ds] = Self::lens(model);
         let (abar, stack) = zeros(stack, abar);
         let (chol, stack) = zeros(stack, chol);
@@ -55,7 +55,7 @@ impl<'a> MeasureScratch<'a> {
         let (norms, stack) = zeros(stack, norms);
         let (ds, stack) = zeros(stack, ds);
         let ma = model.active.len();
-        let (span, stack) = stack.make_with(ma, |_| (0, 0));
+        let (span, stack) = stack.make_with(ma, |_| [0, 0]);
         let (first, stack) = stack.make_with(ma, |_| 0);
         let scratch = MeasureScratch {
             abar,
@@ -101,8 +101,8 @@ impl DynamicsKernel {
         let (n, m) = (model.n(), model.m());
         let mut mat = vec![0.0; m * n];
         model.jacobian_into(q, &mut mat);
-        let mut buffer = MemBuffer::new(MeasureScratch::req(model));
-        let (mut scratch, _) = MeasureScratch::new(model, MemStack::new(&mut buffer));
+        let mut buffer = PodBuffer::new(MeasureScratch::req(model));
+        let (mut scratch, _) = MeasureScratch::new(model, PodStack::new(&mut buffer));
         let reg = Self::measure(model, &mat, &mut scratch, true);
         let gradient = (reg.dw != 0.0).then(|| {
             Self::measure_gradient(model, q, reg.s, &mut scratch);

@@ -87,7 +87,7 @@ impl Factor for VelocityConstraints {
         ws: &mut Workspace,
     ) -> Result<()> {
         let (m, n) = (self.model.m(), self.model.n());
-        let (mut a, _) = zeros(ws.stack(), m * n);
+        let (a, _) = zeros(ws.stack(), m * n);
         let a = &mut a[..];
         self.model.jacobian_into(x[0], a);
         mat_vec(a, m, n, x[1], r);

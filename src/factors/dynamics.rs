@@ -9,6 +9,11 @@ use crate::graph::{zeros, AlongDirections, Factor, Key, StackReq, VarKind, Works
 use crate::model::Model;
 use std::sync::Arc;
 
+/// Coordinates from which f^d_dyn linearizes along the window's directions
+/// ([`Dynamics::along`]) rather than forming ∂q̈/∂q and ∂q̈/∂q̇: a solve per
+/// direction the hard equations leave free instead of one per coordinate.
+pub const ALONG_FROM: usize = 20;
+
 /// f^d_dyn: e = q̈(q, q̇, t) − q̈_t; with [`Dynamics::inverse`], f^d_idyn:
 /// e = q̈(q, q̇, t; Q_scene + Q) − q̈_t with the actuator forces Q a variable (fourth
 /// key), ∂e/∂Q the first n rows of the augmented system's inverse applied to [I; 0].
@@ -123,20 +128,17 @@ impl Factor for Dynamics {
     fn scratch(&self) -> StackReq {
         let n = self.model.n();
         let kernel = DynamicsKernel::scratch(&self.model).and(StackReq::new::<f64>(n));
-        match &self.actuated {
-            Some(a) => kernel.and(DynamicsKernel::along_scratch(
-                &self.model,
-                2 * n + a.indices.len(),
-            )),
+        match self.along_columns() {
+            Some(max_cols) => kernel.and(DynamicsKernel::along_scratch(&self.model, max_cols)),
             None => kernel,
         }
     }
     fn diagonal_jacobian(&self, key: usize) -> bool {
         key == 2
     }
-    /// f^d_idyn only.
+    /// f^d_idyn, and f^d_dyn of [`ALONG_FROM`] coordinates on.
     fn along(&self) -> Option<&dyn AlongDirections> {
-        self.actuated.as_ref().map(|_| self as &dyn AlongDirections)
+        self.along_columns().map(|_| self as &dyn AlongDirections)
     }
     fn evaluate(
         &self,
@@ -148,8 +150,8 @@ impl Factor for Dynamics {
     ) -> Result<()> {
         let n = self.model.n();
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
-        let (mut own, _) = zeros(stack, n);
-        let force = self.actuated.as_ref().map(|a| a.forces(x[3], &mut own));
+        let (own, _) = zeros(stack, n);
+        let force = self.actuated.as_ref().map(|a| a.forces(x[3], own));
         match jac {
             Some(j) => {
                 let (jq, rest) = j.split_at_mut(1);
@@ -186,10 +188,35 @@ impl Factor for Dynamics {
     }
 }
 
+impl Dynamics {
+    /// The most directions it linearizes along (see [`Dynamics::along`]): f^d_idyn's
+    /// Jacobians take a solve per coordinate and force, f^d_dyn's one per coordinate
+    /// twice; more directions than n make f^d_dyn's Jacobians the cheaper.
+    fn along_columns(&self) -> Option<usize> {
+        let n = self.model.n();
+        match &self.actuated {
+            Some(a) => Some(2 * n + a.indices.len()),
+            None => (n >= ALONG_FROM).then_some(n),
+        }
+    }
+}
+
+/// How many of the c columns of the row-major direction blocks `dirs` are nonzero
+/// somewhere.
+fn nonzero_columns(dirs: &[&[f64]], c: usize) -> usize {
+    (0..c)
+        .filter(|&j| {
+            dirs.iter()
+                .any(|v| v.chunks_exact(c).any(|row| row[j] != 0.0))
+        })
+        .count()
+}
+
 impl AlongDirections for Dynamics {
-    /// f^d_idyn only: e = q̈(q, q̇, t; Q) − q̈_t along V: K⁻¹ applied to the
-    /// Jacobians' right-hand sides times V (see [`DynamicsKernel::along`]), minus V on
-    /// q̈_t.
+    /// e = q̈(q, q̇, t; Q) − q̈_t along V: K⁻¹ applied to the Jacobians' right-hand
+    /// sides times V (see [`DynamicsKernel::along`]), minus V on q̈_t. f^d_dyn
+    /// declines, before evaluating anything, directions that move q and q̇ in more
+    /// than n columns.
     fn evaluate_along(
         &self,
         t: f64,
@@ -200,34 +227,31 @@ impl AlongDirections for Dynamics {
         out: &mut [f64],
         ws: &mut Workspace,
     ) -> Result<bool> {
-        let Some(a) = &self.actuated else {
+        let Some(max_cols) = self.along_columns() else {
             return Ok(false);
         };
+        if self.actuated.is_none() && nonzero_columns(&dirs[..2], c) > max_cols {
+            return Ok(false);
+        }
         let n = self.model.n();
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
-        let (mut own, extra) = zeros(stack, n);
-        let force = a.forces(x[3], &mut own);
-        DynamicsKernel::evaluate(
-            &self.model,
-            x[0],
-            x[1],
-            t,
-            Some(force),
-            r,
-            None,
-            &mut kernel,
-        )?;
+        let (own, extra) = zeros(stack, n);
+        let (force, force_dirs, columns): (_, &[f64], &[usize]) = match &self.actuated {
+            Some(a) => (Some(a.forces(x[3], own)), dirs[3], &a.indices),
+            None => (None, &[], &[]),
+        };
+        DynamicsKernel::evaluate(&self.model, x[0], x[1], t, force, r, None, &mut kernel)?;
         if !DynamicsKernel::along(
             &self.model,
             (x[0], x[1], t),
-            [dirs[0], dirs[1], dirs[3]],
-            &a.indices,
+            [dirs[0], dirs[1], force_dirs],
+            columns,
             None,
             c,
             out,
             &kernel,
             extra,
-            2 * n + a.indices.len(),
+            max_cols,
         )? {
             return Ok(false);
         }

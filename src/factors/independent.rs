@@ -125,7 +125,7 @@ impl Factor for IndependentVelocity {
         ws: &mut Workspace,
     ) -> Result<()> {
         let (m, n) = (self.model.m(), self.model.n());
-        let (mut a, _) = zeros(ws.stack(), m * n);
+        let (a, _) = zeros(ws.stack(), m * n);
         let a = &mut a[..];
         self.model.jacobian_into(x[0], a);
         mat_vec(a, m, n, x[1], &mut r[..m]);
@@ -195,8 +195,8 @@ impl Factor for IndependentAcceleration {
     ) -> Result<()> {
         let (m, n) = (self.model.m(), self.model.n());
         let (q, dq, ddq, ddz) = (x[0], x[1], x[2], x[3]);
-        let (mut a, stack) = zeros(ws.stack(), m * n);
-        let (mut c, _) = zeros(stack, m);
+        let (a, stack) = zeros(ws.stack(), m * n);
+        let (c, _) = zeros(stack, m);
         let (a, c) = (&mut a[..], &mut c[..]);
         self.model.jacobian_into(q, a);
         self.model.acceleration_rhs_into(q, dq, c);
@@ -315,10 +315,10 @@ impl Factor for IndependentDynamics {
         let n = self.model.n();
         let f = self.model.independent.len();
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
-        let (mut ddq, stack) = zeros(stack, n);
-        let (mut jq, stack) = zeros(stack, n * n);
-        let (mut jv, stack) = zeros(stack, n * n);
-        let (mut jf, _) = zeros(stack, n * n);
+        let (ddq, stack) = zeros(stack, n);
+        let (jq, stack) = zeros(stack, n * n);
+        let (jv, stack) = zeros(stack, n * n);
+        let (jf, _) = zeros(stack, n * n);
         let (ddq, jq, jv, jf) = (&mut ddq[..], &mut jq[..], &mut jv[..], &mut jf[..]);
         let want = jac.is_some();
         let force = if self.inverse { Some(x[3]) } else { None };
@@ -371,14 +371,14 @@ impl AlongDirections for IndependentDynamics {
         let n = self.model.n();
         let ind = &self.model.independent;
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
-        let (mut ddq, extra) = zeros(stack, n);
+        let (ddq, extra) = zeros(stack, n);
         DynamicsKernel::evaluate(
             &self.model,
             x[0],
             x[1],
             t,
             Some(x[3]),
-            &mut ddq,
+            ddq,
             None,
             &mut kernel,
         )?;

@@ -26,7 +26,7 @@ mod shared;
 
 pub use crate::dynamics::{DynamicsKernel, KernelScratch};
 pub use constraints::{PositionConstraints, VelocityConstraints};
-pub use dynamics::Dynamics;
+pub use dynamics::{Dynamics, ALONG_FROM};
 pub use independent::{
     IndependentAcceleration, IndependentDynamics, IndependentPosition, IndependentVelocity,
 };

@@ -43,7 +43,7 @@ pub struct Determinacy {
     column: Vec<f64>,
     /// Per row of `rows`, the columns [start, end) outside which it is 0; per row
     /// of L, its first nonzero column.
-    spans: Vec<(usize, usize)>,
+    spans: Vec<[usize; 2]>,
     first: Vec<usize>,
 }
 
@@ -96,7 +96,7 @@ impl Determinacy {
             rows: vec![0.0; ma * dependent.len()],
             chol: vec![0.0; ma * ma],
             column: vec![0.0; ma],
-            spans: vec![(0, 0); ma],
+            spans: vec![[0, 0]; ma],
             first: vec![0; ma],
             dependent,
         };

@@ -502,7 +502,7 @@ pub fn solve_lower_rows(l: MatRef<'_, f64>, b: MatMut<'_, f64>) {
 pub fn sparse_gram<'a>(
     count: usize,
     row: impl Fn(usize) -> &'a [f64],
-    spans: &mut [(usize, usize)],
+    spans: &mut [[usize; 2]],
     first: &mut [usize],
     g: &mut [f64],
 ) {
@@ -510,14 +510,14 @@ pub fn sparse_gram<'a>(
         let r = row(i);
         let start = r.iter().position(|v| *v != 0.0).unwrap_or(r.len());
         let end = r.iter().rposition(|v| *v != 0.0).map_or(start, |e| e + 1);
-        *span = (start, end);
+        *span = [start, end];
     }
     for i in 0..count {
         let ri = row(i);
         first[i] = i;
         for j in 0..=i {
             let rj = row(j);
-            let (a, b) = (spans[i].0.max(spans[j].0), spans[i].1.min(spans[j].1));
+            let (a, b) = (spans[i][0].max(spans[j][0]), spans[i][1].min(spans[j][1]));
             let v: f64 = if a < b {
                 ri[a..b].iter().zip(&rj[a..b]).map(|(x, y)| x * y).sum()
             } else {
