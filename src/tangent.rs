@@ -324,14 +324,7 @@ impl Factor for Projected {
             if self.q_key >= inner_keys {
                 j[self.q_key].fill(0.0);
             }
-            subtract_projector_derivative(
-                &self.model,
-                q,
-                &rows,
-                (r, u),
-                &mut j[self.q_key],
-                stack,
-            );
+            subtract_projector_derivative(&self.model, q, &rows, (r, u), &mut j[self.q_key], stack);
         }
         r.copy_from_slice(u);
         Ok(())

@@ -4,7 +4,7 @@
 //! regularization adds to the Jacobians (see [`DynamicsKernel`]).
 
 use super::kernel::DynamicsKernel;
-use crate::graph::{zeros, PodStack, StackReq};
+use crate::graph::{carve, PodStack, StackReq};
 use crate::linalg::dense::{inverse_trace, sparse_gram};
 use crate::model::Model;
 use faer::dyn_stack::PodBuffer;
@@ -42,18 +42,20 @@ impl<'a> MeasureScratch<'a> {
         ])
     }
 
-    /// The scratch carved (zeroed) from `stack`, and the rest of `stack`.
+    /// The scratch carved from `stack` (not zeroed: the measure and its gradient
+    /// write every entry they read, the triangles they use of the square ones), and
+    /// the rest of `stack`.
     pub(super) fn new(model: &Model, stack: &'a mut PodStack) -> (Self, &'a mut PodStack) {
         let [abar, chol, linv, ginv, vrows, hrows, eps, norms, ds] = Self::lens(model);
-        let (abar, stack) = zeros(stack, abar);
-        let (chol, stack) = zeros(stack, chol);
-        let (linv, stack) = zeros(stack, linv);
-        let (ginv, stack) = zeros(stack, ginv);
-        let (vrows, stack) = zeros(stack, vrows);
-        let (hrows, stack) = zeros(stack, hrows);
-        let (eps, stack) = zeros(stack, eps);
-        let (norms, stack) = zeros(stack, norms);
-        let (ds, stack) = zeros(stack, ds);
+        let (abar, stack) = carve(stack, abar);
+        let (chol, stack) = carve(stack, chol);
+        let (linv, stack) = carve(stack, linv);
+        let (ginv, stack) = carve(stack, ginv);
+        let (vrows, stack) = carve(stack, vrows);
+        let (hrows, stack) = carve(stack, hrows);
+        let (eps, stack) = carve(stack, eps);
+        let (norms, stack) = carve(stack, norms);
+        let (ds, stack) = carve(stack, ds);
         let ma = model.active.len();
         let (span, stack) = stack.make_with(ma, |_| [0, 0]);
         let (first, stack) = stack.make_with(ma, |_| 0);

@@ -552,20 +552,24 @@ pub fn inverse_trace(
             .unwrap_or(i);
     }
     if ma >= FAER_PRODUCTS_FROM {
-        // faer's blocked triangular inverse (the sums in its order).
-        let mut inverse = vec![0.0; ma * ma];
+        // faer's blocked triangular inverse (the sums in its order), into `linv`
+        // where one is given.
+        let mut own = Vec::new();
+        let inverse = match linv {
+            Some(linv) => &mut linv[..ma * ma],
+            None => {
+                own.resize(ma * ma, 0.0);
+                &mut own[..]
+            }
+        };
         faer::linalg::triangular_inverse::invert_lower_triangular(
-            rows_mut(&mut inverse, ma, ma, ma),
+            rows_mut(inverse, ma, ma, ma),
             rows(l, ma, ma, ma),
             Par::Seq,
         );
         let mut trace = 0.0;
         for i in 0..ma {
-            for j in 0..=i {
-                let v = inverse[i * ma + j];
-                if let Some(linv) = linv.as_deref_mut() {
-                    linv[i * ma + j] = v;
-                }
+            for v in &inverse[i * ma..=i * ma + i] {
                 trace += v * v;
             }
         }
