@@ -175,7 +175,13 @@ pub(super) fn householder_grouped(
                 });
             }
             if best != k {
-                for i in 0..s {
+                // Rows outside both columns' tracked ranges are 0 in both.
+                let (lo, hi) = if words > 0 {
+                    (starts[k].min(starts[best]), ends[k].max(ends[best]))
+                } else {
+                    (0, s)
+                };
+                for i in lo..hi {
                     a.swap(k * s + i, best * s + i);
                 }
                 for w in 0..words {
