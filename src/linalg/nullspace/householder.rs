@@ -204,8 +204,14 @@ pub(super) fn householder_grouped(
             let b = if vnorm2 > 0.0 { 2.0 / vnorm2 } else { 0.0 };
             rdiag[k] = alpha;
             beta[k] = b;
-            rend[k] = end;
             let v_end = reflector_rows(support, k, end, words, mask);
+            // Applied later over its own rows only (the rest of the segment's are
+            // exact zeros, which sequential sums lose to the bit).
+            rend[k] = if how == Summation::Sequential {
+                v_end
+            } else {
+                end
+            };
             let (left, right) = a.split_at_mut((k + 1) * s);
             let v = &left[k * s + k..k * s + end];
             for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {

@@ -238,6 +238,16 @@ impl NullSpace {
         );
     }
 
+    /// The first row where column i of the last QR's R may be nonzero: the start
+    /// of its tracked rows, 0 where the QR tracked none.
+    fn r_start(&self, i: usize) -> usize {
+        if self.free.len() >= TRACK_SUPPORT_FROM {
+            self.support_start[i].min(i)
+        } else {
+            0
+        }
+    }
+
     /// w ← H_k w (reflector k of the last QR, on rows k..rend[k]).
     fn reflect(&mut self, k: usize, sf: usize) {
         let end = self.rend[k];
@@ -566,7 +576,9 @@ impl NullSpace {
                 let mut acc = self.rhs[self.perm[i]];
                 match self.summation {
                     Summation::Sequential => {
-                        for l in 0..i {
+                        // R's column i is 0 above the rows its support tracking
+                        // saw first (0 where nothing is tracked).
+                        for l in self.r_start(i)..i {
                             acc -= self.a[i * sf + l] * self.w[l];
                         }
                     }
