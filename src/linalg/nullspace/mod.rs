@@ -66,6 +66,14 @@ pub struct NullSpace {
     /// touches it.
     fixed: Vec<Option<usize>>,
     touched: Vec<bool>,
+    /// Each equation's nonzero unknowns, one equation after another, and where
+    /// each equation's end; per unknown its position in `qr_rows` (usize::MAX if
+    /// not free).
+    nonzeros: Vec<usize>,
+    nonzeros_end: Vec<usize>,
+    qr_pos: Vec<usize>,
+    /// One column's nonzero positions in `qr_rows`.
+    entries: Vec<usize>,
     /// Unknowns neither fixed by unit equations nor untouched by the others (those
     /// the QR sees, ascending), the other equations, and the unknowns no equation
     /// touches.
@@ -164,6 +172,10 @@ impl NullSpace {
             rows: 0,
             fixed: vec![None; s],
             touched: vec![false; s],
+            nonzeros: Vec::new(),
+            nonzeros_end: Vec::with_capacity(max_rows),
+            qr_pos: vec![usize::MAX; s],
+            entries: Vec::new(),
             free: Vec::with_capacity(s),
             segment: vec![0; s],
             segments: 1,
@@ -318,29 +330,31 @@ impl NullSpace {
         // others touch.
         let touched = &mut self.touched;
         touched.fill(false);
+        self.nonzeros.clear();
+        self.nonzeros_end.clear();
         for j in 0..rows {
             let row = &c[j * s..(j + 1) * s];
-            let mut nonzero = row
-                .iter()
-                .enumerate()
-                .filter(|(_, v)| **v != 0.0)
-                .map(|(i, _)| i);
-            match (nonzero.next(), nonzero.next()) {
-                (Some(i), None) => {
+            let start = self.nonzeros.len();
+            self.nonzeros.extend(
+                row.iter()
+                    .enumerate()
+                    .filter(|(_, v)| **v != 0.0)
+                    .map(|(i, _)| i),
+            );
+            self.nonzeros_end.push(self.nonzeros.len());
+            match self.nonzeros[start..] {
+                [i] => {
                     if self.fixed[i].is_none() {
                         self.fixed[i] = Some(j);
                     }
                 }
-                (None, None) => {}
-                (Some(i0), Some(i1)) => {
+                [] => {}
+                ref several => {
                     self.others.push(j);
-                    touched[i0] = true;
-                    touched[i1] = true;
-                    for i in nonzero {
+                    for &i in several {
                         touched[i] = true;
                     }
                 }
-                (None, Some(_)) => unreachable!("a second nonzero without a first"),
             }
         }
         self.free.clear();
@@ -389,32 +403,43 @@ impl NullSpace {
         if self.support.len() < (m + 1) * sf.div_ceil(64) {
             self.support.resize((m + 1) * sf.div_ceil(64), 0);
         }
+        self.qr_pos.fill(usize::MAX);
+        for (a, &i) in self.qr_rows.iter().enumerate() {
+            self.qr_pos[i] = a;
+        }
         // A = Cᵀ[free, others]: column k is equation others[k] on the free unknowns;
-        // its group is the segment of the last of them it touches.
+        // its group is the segment of the last of them it touches. Each column is
+        // written, measured and scaled over its nonzeros (in the QR's row order, so
+        // that its norm is the same sum as over the whole column).
+        let entries = &mut self.entries;
         for (k, &j) in self.others.iter().enumerate() {
             let col = &mut self.a[k * sf..(k + 1) * sf];
-            for (o, &i) in col.iter_mut().zip(&self.qr_rows) {
-                *o = c[j * s + i];
+            col.fill(0.0);
+            let start = if j > 0 { self.nonzeros_end[j - 1] } else { 0 };
+            entries.clear();
+            for &i in &self.nonzeros[start..self.nonzeros_end[j]] {
+                let a = self.qr_pos[i];
+                if a != usize::MAX {
+                    col[a] = c[j * s + i];
+                    entries.push(a);
+                }
             }
-            self.group[k] = col
-                .iter()
-                .rposition(|v| *v != 0.0)
-                .map_or(0, |a| self.segment[self.qr_rows[a]]);
+            entries.sort_unstable();
+            self.group[k] = entries.last().map_or(0, |&a| self.segment[self.qr_rows[a]]);
             // Its size on the unknowns of its own segment, those its pivot is taken
             // from: an acceleration row's coefficients on q and q̇ grow like q̇², its
             // pivot on q̈ does not.
             let g = self.group[k];
-            let norm = col
+            let norm = entries
                 .iter()
-                .zip(&self.qr_rows)
-                .filter(|(_, &i)| self.segment[i] == g)
-                .map(|(v, _)| v * v)
+                .filter(|&&a| self.segment[self.qr_rows[a]] == g)
+                .map(|&a| col[a] * col[a])
                 .sum::<f64>()
                 .sqrt();
             let scale = if norm > 0.0 { 1.0 / norm } else { 1.0 };
             self.row_scale[k] = scale;
-            for o in col.iter_mut() {
-                *o *= scale;
+            for &a in entries.iter() {
+                col[a] *= scale;
             }
         }
         let rank = householder_grouped(
