@@ -71,6 +71,7 @@ pub(super) fn householder_grouped(
         starts,
         ends,
         order,
+        nonzeros,
     } = sparsity;
     let Grouping {
         group,
@@ -100,12 +101,24 @@ pub(super) fn householder_grouped(
             sj.fill(0);
             (starts[j], ends[j]) = (s, 0);
             let mut sum = 0.0;
-            for (i, v) in col.iter().enumerate() {
-                if *v != 0.0 {
-                    sj[i / 64] |= 1 << (i % 64);
-                    starts[j] = starts[j].min(i);
-                    ends[j] = i + 1;
-                    sum += v * v;
+            let mut add = |i: usize, v: f64| {
+                sj[i / 64] |= 1 << (i % 64);
+                starts[j] = starts[j].min(i);
+                ends[j] = i + 1;
+                sum += v * v;
+            };
+            match nonzeros {
+                Some((rows, bounds)) => {
+                    for &i in &rows[bounds[j]..bounds[j + 1]] {
+                        add(i, col[i]);
+                    }
+                }
+                None => {
+                    for (i, v) in col.iter().enumerate() {
+                        if *v != 0.0 {
+                            add(i, *v);
+                        }
+                    }
                 }
             }
             n2 = (how == Summation::Sequential).then_some(sum);
@@ -302,6 +315,10 @@ pub(super) struct Sparsity<'a> {
     pub(super) starts: &'a mut [usize],
     pub(super) ends: &'a mut [usize],
     pub(super) order: bool,
+    /// Each column's nonzero rows, ascending, where the caller knows them
+    /// (column j's are rows[bounds[j]..bounds[j + 1]]): the support is made from
+    /// them instead of a scan of the column.
+    pub(super) nonzeros: Option<(&'a [usize], &'a [usize])>,
 }
 
 /// A pivot this close to the largest column left (its remaining norm at least this

@@ -72,8 +72,11 @@ pub struct NullSpace {
     nonzeros: Vec<usize>,
     nonzeros_end: Vec<usize>,
     qr_pos: Vec<usize>,
-    /// One column's nonzero positions in `qr_rows`.
+    /// One column's nonzero positions in `qr_rows`; every column's, one after
+    /// another, and where each begins (for the QR's support).
     entries: Vec<usize>,
+    column_rows: Vec<usize>,
+    column_bounds: Vec<usize>,
     /// Unknowns neither fixed by unit equations nor untouched by the others (those
     /// the QR sees, ascending), the other equations, and the unknowns no equation
     /// touches.
@@ -176,6 +179,8 @@ impl NullSpace {
             nonzeros_end: Vec::with_capacity(max_rows),
             qr_pos: vec![usize::MAX; s],
             entries: Vec::new(),
+            column_rows: Vec::new(),
+            column_bounds: Vec::with_capacity(max_rows + 1),
             free: Vec::with_capacity(s),
             segment: vec![0; s],
             segments: 1,
@@ -412,6 +417,9 @@ impl NullSpace {
         // written, measured and scaled over its nonzeros (in the QR's row order, so
         // that its norm is the same sum as over the whole column).
         let entries = &mut self.entries;
+        self.column_rows.clear();
+        self.column_bounds.clear();
+        self.column_bounds.push(0);
         for (k, &j) in self.others.iter().enumerate() {
             let col = &mut self.a[k * sf..(k + 1) * sf];
             col.fill(0.0);
@@ -441,6 +449,8 @@ impl NullSpace {
             for &a in entries.iter() {
                 col[a] *= scale;
             }
+            self.column_rows.extend_from_slice(entries);
+            self.column_bounds.push(self.column_rows.len());
         }
         let rank = householder_grouped(
             &mut self.a,
@@ -466,6 +476,7 @@ impl NullSpace {
                 starts: &mut self.support_start,
                 ends: &mut self.support_end,
                 order: true,
+                nonzeros: Some((&self.column_rows, &self.column_bounds)),
             },
         );
         let fixed_count = s - sf - self.untouched.len();

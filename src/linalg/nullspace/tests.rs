@@ -523,6 +523,7 @@ mod sparse {
                 starts: &mut starts,
                 ends: &mut ends,
                 order,
+                nonzeros: None,
             },
         );
         (rank, a, rdiag, beta, perm, group)
