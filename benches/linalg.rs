@@ -27,7 +27,7 @@ use mbfg::linalg::nullspace::NullSpace;
 use std::hint::black_box;
 use std::time::Duration;
 
-const SIZES: [usize; 8] = [4, 8, 16, 32, 48, 70, 96, 120];
+const SIZES: [usize; 9] = [4, 8, 16, 32, 48, 70, 85, 96, 120];
 
 /// Deterministic entries in [−0.5, 0.5) from a linear congruential generator.
 fn entries(len: usize, seed: u64) -> Vec<f64> {

@@ -300,6 +300,17 @@ mod unit {
         assert!(seen.lock().unwrap().iter().all(|it| !it.chord));
     }
 
+    /// |a − b| ≤ `relative` × max(1, max |a|), entry by entry.
+    fn assert_close(a: &[f64], b: &[f64], relative: f64, what: &str) {
+        let scale = a.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!(
+                (x - y).abs() <= relative * scale,
+                "{what}[{i}]: {x:e} vs {y:e}"
+            );
+        }
+    }
+
     /// A projected prior kept as N̄CN̄ᵀ is the one written out s × s: the same Λ, η,
     /// value and gradient, the same reduced normal equations of the window, the same
     /// rows for the least-squares step and the same solve.
@@ -317,15 +328,7 @@ mod unit {
         let tangent = project(&mut solver, 0);
         assert!(matches!(dense.information, Information::Dense(_)));
         assert!(matches!(tangent.information, Information::Tangent(_)));
-        let close = |a: &[f64], b: &[f64], what: &str| {
-            let scale = a.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-            for (i, (x, y)) in a.iter().zip(b).enumerate() {
-                assert!(
-                    (x - y).abs() <= 1e-12 * scale,
-                    "{what}[{i}]: {x:e} vs {y:e}"
-                );
-            }
-        };
+        let close = |a: &[f64], b: &[f64], what: &str| assert_close(a, b, 1e-12, what);
         let lambda = dense.dense_information();
         close(&lambda, &tangent.dense_information(), "Λ");
         close(&dense.eta, &tangent.eta, "η");
@@ -420,15 +423,7 @@ mod unit {
         let (dense, tangent) = (marginal(usize::MAX), marginal(0));
         assert!(matches!(dense.information, Information::Dense(_)));
         assert!(matches!(tangent.information, Information::Tangent(_)));
-        let close = |a: &[f64], b: &[f64], what: &str| {
-            let scale = a.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-            for (i, (x, y)) in a.iter().zip(b).enumerate() {
-                assert!(
-                    (x - y).abs() <= 1e-10 * scale,
-                    "{what}[{i}]: {x:e} vs {y:e}"
-                );
-            }
-        };
+        let close = |a: &[f64], b: &[f64], what: &str| assert_close(a, b, 1e-10, what);
         close(
             &dense.dense_information(),
             &tangent.dense_information(),
