@@ -16,9 +16,10 @@ use faer::{MatMut, MatRef, Par};
 use std::mem::MaybeUninit;
 
 /// Order from which [`cholesky`] and its strided variants call faer: the hand-written
-/// loop is as fast or faster up to 70 unknowns, faer from 96 on (`benches/linalg.rs`,
-/// group `cholesky`: faer/hand 1.05–1.45 at 4–70, 0.63 at 96, 0.59 at 120).
-pub const FAER_CHOLESKY_FROM: usize = 96;
+/// loop is as fast or faster up to 70 unknowns, faer from 85 on (`benches/linalg.rs`,
+/// group `cholesky`: faer/hand 1.05–1.45 at 4–70, 0.66 at 85, 0.63 at 96, 0.59 at
+/// 120).
+pub const FAER_CHOLESKY_FROM: usize = 80;
 
 /// Order from which [`lu`], [`lu_solve`] and [`lu_solve_many`] call faer: the
 /// hand-written loops win up to 16 unknowns, faer from 32 on (`benches/linalg.rs`,
