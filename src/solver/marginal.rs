@@ -48,6 +48,25 @@ impl JointRows {
     }
 }
 
+/// Sparse row entries (column, value) sorted by column, the values of one column
+/// summed in their order (as a dense row accumulates them), the sums that vanish
+/// dropped.
+fn merge_columns(entries: &mut Vec<(usize, f64)>) {
+    entries.sort_by_key(|e| e.0);
+    let mut kept = 0;
+    for i in 0..entries.len() {
+        let (c, v) = entries[i];
+        if kept > 0 && entries[kept - 1].0 == c {
+            entries[kept - 1].1 += v;
+        } else {
+            entries[kept] = (c, v);
+            kept += 1;
+        }
+    }
+    entries.truncate(kept);
+    entries.retain(|e| e.1 != 0.0);
+}
+
 /// Copies a rows × cols matrix stored with row stride cols into `dst` with row
 /// The prior on block k0 + 1 with block k0 held at its estimate: H₁₁ and g₁ of the
 /// 2-block system in the scratch (see [`WindowSolver::schur`]), and the factors' cost.
@@ -513,11 +532,15 @@ impl WindowSolver {
                     cost += 0.5 * r * r;
                 }
             }
-            // Rows: J₀N₀ (dim × d0) into reduced[1], J₁ full (dim × s) into reduced[0].
+            // Rows: J₀N₀ (dim × d0, row stride s) into reduced[1]; J₁ row by row below.
             let red = &self.hard[0].reduction;
-            self.reduced[0][..dim * s].fill(0.0);
-            self.reduced[1][..dim * s].fill(0.0);
+            for row in self.reduced[1].chunks_exact_mut(s).take(dim) {
+                row[..d0].fill(0.0);
+            }
             for (a, k) in keys.iter().enumerate() {
+                if k.lag == 0 {
+                    continue;
+                }
                 let (off, d) = buf.slots[a];
                 let diagonal = factor.diagonal_jacobian(a);
                 for r in 0..dim {
@@ -527,14 +550,10 @@ impl WindowSolver {
                         if v == 0.0 {
                             continue;
                         }
-                        if k.lag == 0 {
-                            self.reduced[0][r * s + off + j] += v;
-                        } else {
-                            let (start, nrow) = red.row(off + j);
-                            let out = &mut self.reduced[1][r * s + start..r * s + d0];
-                            for (o, nv) in out.iter_mut().zip(nrow) {
-                                *o += v * nv;
-                            }
+                        let (start, nrow) = red.row(off + j);
+                        let out = &mut self.reduced[1][r * s + start..r * s + d0];
+                        for (o, nv) in out.iter_mut().zip(nrow) {
+                            *o += v * nv;
                         }
                     }
                 }
@@ -544,14 +563,29 @@ impl WindowSolver {
             let (_, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
             for r in 0..dim {
-                let j1 = &self.reduced[0][r * s..(r + 1) * s];
                 let j0 = &self.reduced[1][r * s..r * s + d0];
                 let rr = buf.r[r];
-                // J₁'s rows are sparse (integrators: two entries): its products over
-                // the nonzeros only.
+                // J₁'s row: its nonzeros (integrators: two) by ascending column, the
+                // keys' entries on one column summed in key order.
                 self.nonzero.clear();
-                self.nonzero
-                    .extend((0..s).filter(|&i| j1[i] != 0.0).map(|i| (i, j1[i])));
+                for (a, k) in keys.iter().enumerate() {
+                    if k.lag != 0 {
+                        continue;
+                    }
+                    let (off, d) = buf.slots[a];
+                    let columns = if factor.diagonal_jacobian(a) {
+                        r..r + 1
+                    } else {
+                        0..d
+                    };
+                    for j in columns {
+                        let v = buf.jac[a][r * d + j];
+                        if v != 0.0 {
+                            self.nonzero.push((off + j, v));
+                        }
+                    }
+                }
+                merge_columns(&mut self.nonzero);
                 for &(i, vi) in &self.nonzero {
                     for (o, v) in h10[i * s..i * s + d0].iter_mut().zip(j0) {
                         *o += vi * v;
@@ -647,7 +681,11 @@ impl WindowSolver {
         // H₀₁), then YN̄ and Yp̄ by L₀⁻¹; w = L₀⁻¹g₀.
         yn.fill(0.0);
         let mut yp = vec![0.0; d0];
-        for i in 0..s {
+        // H₁₀'s rows are 0 but on the columns the joining rows touch.
+        let mut touched: Vec<usize> = self.joint.nonzeros.iter().map(|e| e.0).collect();
+        touched.sort_unstable();
+        touched.dedup();
+        for &i in &touched {
             let (first, row) = red.row(i);
             let pi = red.particular[i];
             for (a, &v) in h10[i * s..i * s + d0].iter().enumerate() {
