@@ -135,10 +135,14 @@ pub(super) fn householder_grouped(
         let end = seg_end[g];
         let start = if g > 0 { seg_end[g - 1] } else { 0 };
         let ks = k;
+        // The group's columns lie before `ge` and stay there: a pivot's swap moves
+        // the column at k, a dropped one or one of the group, to the pivot's place.
+        // The searches and updates of the group's own columns stop there.
+        let ge = (k..m).rev().find(|&j| group[j] == g).map_or(k, |j| j + 1);
         if groups > 1 {
             // Norms over the live rows (earlier groups' reflectors may not have
             // reached these columns).
-            for j in k..m {
+            for j in k..ge {
                 if group[j] == g {
                     // Within the column's rows where they are tracked (the same sum).
                     let (lo, hi) = if words > 0 && how == Summation::Sequential {
@@ -154,7 +158,7 @@ pub(super) fn householder_grouped(
         }
         while k < s.min(m) {
             let mut best = None;
-            for j in k..m {
+            for j in k..ge {
                 if group[j] == g && best.is_none_or(|b| partial[j] > partial[b]) {
                     best = Some(j);
                 }
@@ -176,14 +180,14 @@ pub(super) fn householder_grouped(
                 Some(_) => false,
             };
             if exhausted {
-                for gj in group[k..m].iter_mut().filter(|gj| **gj == g) {
+                for gj in group[k..ge].iter_mut().filter(|gj| **gj == g) {
                     *gj = DROPPED;
                 }
                 break;
             }
             let mut best = best.expect("a column of the group");
             if words > 0 && order {
-                best = sparse_pivot(partial, group, g, (k, m), largest_left, |j| {
+                best = sparse_pivot(partial, group, g, (k, ge), largest_left, |j| {
                     (ends[j], first_row(&support[j * words..(j + 1) * words], k))
                 });
             }
@@ -227,7 +231,7 @@ pub(super) fn householder_grouped(
             };
             let (left, right) = a.split_at_mut((k + 1) * s);
             let v = &left[k * s + k..k * s + end];
-            for (jj, y) in right.chunks_exact_mut(s).take(m - k - 1).enumerate() {
+            for (jj, y) in right.chunks_exact_mut(s).take(ge - k - 1).enumerate() {
                 let j = k + 1 + jj;
                 // This group's columns now; the later ones below, if at all. A column
                 // whose rows miss the reflector's is 0 on row k too: nothing changes
