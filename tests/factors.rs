@@ -671,8 +671,18 @@ fn forward_dynamics_of_a_large_mechanism_along_directions_is_the_jacobian_times_
     for name in ["scale/n-fourbar-10.yaml", "scale/n-pendulum-8.yaml"] {
         let model = load(name);
         assert!(model.n() >= mbfg::factors::ALONG_FROM, "{name}");
+        assert!(!model.independent.is_empty(), "{name}");
         check_along(&Dynamics::new(model.clone()), &model, name, &mut rng);
+        check_along(
+            &IndependentDynamics::new(model.clone()),
+            &model,
+            name,
+            &mut rng,
+        );
     }
+    // f^i_dyn of a small mechanism forms its Jacobians.
+    let model = load("fourbar-theta.yaml");
+    assert!(IndependentDynamics::new(model).along().is_none());
 }
 
 /// evaluate_along against J·V from the (finite-difference checked) Jacobians; V has

@@ -2,7 +2,7 @@
 //! form f^d_idyn with the actuator forces a variable ([`Dynamics`]), on the
 //! [`DynamicsKernel`].
 
-use super::shared::{identity, key_accessor};
+use super::shared::{identity, key_accessor, nonzero_columns};
 use crate::dynamics::{DynamicsKernel, KernelScratch, KktStructure};
 use crate::error::Result;
 use crate::graph::{zeros, AlongDirections, Factor, Key, StackReq, VarKind, Workspace};
@@ -199,17 +199,6 @@ impl Dynamics {
             None => (n >= ALONG_FROM).then_some(n),
         }
     }
-}
-
-/// How many of the c columns of the row-major direction blocks `dirs` are nonzero
-/// somewhere.
-fn nonzero_columns(dirs: &[&[f64]], c: usize) -> usize {
-    (0..c)
-        .filter(|&j| {
-            dirs.iter()
-                .any(|v| v.chunks_exact(c).any(|row| row[j] != 0.0))
-        })
-        .count()
 }
 
 impl AlongDirections for Dynamics {

@@ -2,11 +2,12 @@
 //! ([`IndependentVelocity`]), f^i_ac ([`IndependentAcceleration`]) and f^i_dyn
 //! ([`IndependentDynamics`], with its inverse-dynamics form f^i_idyn).
 
-use super::shared::{identity, key_accessor, mat_vec};
+use super::dynamics::ALONG_FROM;
+use super::shared::{identity, key_accessor, mat_vec, nonzero_columns};
 use crate::dynamics::DynamicsKernel;
 use crate::dynamics::{KernelScratch, KktStructure};
 use crate::error::Result;
-use crate::graph::{zeros, AlongDirections, Factor, Key, StackReq, VarKind, Workspace};
+use crate::graph::{carve, zeros, AlongDirections, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -294,15 +295,16 @@ impl Factor for IndependentDynamics {
         let n = self.model.n();
         let kernel = DynamicsKernel::scratch(&self.model).and(StackReq::new::<f64>(n));
         let jacobians = StackReq::new::<f64>(3 * n * n);
-        if self.inverse {
-            kernel.and(jacobians.or(DynamicsKernel::along_scratch(&self.model, 3 * n)))
-        } else {
-            kernel.and(jacobians)
+        match self.along_columns() {
+            Some(max_cols) => {
+                kernel.and(jacobians.or(DynamicsKernel::along_scratch(&self.model, max_cols)))
+            }
+            None => kernel.and(jacobians),
         }
     }
-    /// f^i_idyn only.
+    /// f^i_idyn, and f^i_dyn of [`ALONG_FROM`] coordinates on.
     fn along(&self) -> Option<&dyn AlongDirections> {
-        self.inverse.then_some(self as &dyn AlongDirections)
+        self.along_columns().map(|_| self as &dyn AlongDirections)
     }
     fn evaluate(
         &self,
@@ -315,10 +317,11 @@ impl Factor for IndependentDynamics {
         let n = self.model.n();
         let f = self.model.independent.len();
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
-        let (ddq, stack) = zeros(stack, n);
-        let (jq, stack) = zeros(stack, n * n);
-        let (jv, stack) = zeros(stack, n * n);
-        let (jf, _) = zeros(stack, n * n);
+        // Written whole before they are read (q̈ and the Jacobians by the kernel).
+        let (ddq, stack) = carve(stack, n);
+        let (jq, stack) = carve(stack, n * n);
+        let (jv, stack) = carve(stack, n * n);
+        let (jf, _) = carve(stack, n * n);
         let (ddq, jq, jv, jf) = (&mut ddq[..], &mut jq[..], &mut jv[..], &mut jf[..]);
         let want = jac.is_some();
         let force = if self.inverse { Some(x[3]) } else { None };
@@ -352,9 +355,24 @@ impl Factor for IndependentDynamics {
     }
 }
 
+impl IndependentDynamics {
+    /// The most directions it linearizes along (see [`IndependentDynamics::along`]):
+    /// f^i_idyn's Jacobians take a solve per coordinate and force; f^i_dyn's one per
+    /// coordinate twice, and more directions than n make them the cheaper.
+    fn along_columns(&self) -> Option<usize> {
+        let n = self.model.n();
+        if self.inverse {
+            Some(3 * n)
+        } else {
+            (n >= ALONG_FROM).then_some(n)
+        }
+    }
+}
+
 impl AlongDirections for IndependentDynamics {
-    /// f^i_idyn only: the independent rows of q̈(q, q̇, t; Q) along V (see
-    /// [`DynamicsKernel::along`]), minus V on z̈_t.
+    /// The independent rows of q̈(q, q̇, t; Q) along V (see
+    /// [`DynamicsKernel::along`]), minus V on z̈_t. f^i_dyn declines, before
+    /// evaluating anything, directions that move q and q̇ in more than n columns.
     fn evaluate_along(
         &self,
         t: f64,
@@ -365,34 +383,33 @@ impl AlongDirections for IndependentDynamics {
         out: &mut [f64],
         ws: &mut Workspace,
     ) -> Result<bool> {
-        if !self.inverse {
+        let Some(max_cols) = self.along_columns() else {
+            return Ok(false);
+        };
+        if !self.inverse && nonzero_columns(&dirs[..2], c) > max_cols {
             return Ok(false);
         }
         let n = self.model.n();
         let ind = &self.model.independent;
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
-        let (ddq, extra) = zeros(stack, n);
-        DynamicsKernel::evaluate(
-            &self.model,
-            x[0],
-            x[1],
-            t,
-            Some(x[3]),
-            ddq,
-            None,
-            &mut kernel,
-        )?;
+        let (ddq, extra) = carve(stack, n);
+        let (force, force_dirs, columns): (_, &[f64], &[usize]) = if self.inverse {
+            (Some(x[3]), dirs[3], &self.all)
+        } else {
+            (None, &[], &[])
+        };
+        DynamicsKernel::evaluate(&self.model, x[0], x[1], t, force, ddq, None, &mut kernel)?;
         if !DynamicsKernel::along(
             &self.model,
             (x[0], x[1], t),
-            [dirs[0], dirs[1], dirs[3]],
-            &self.all,
+            [dirs[0], dirs[1], force_dirs],
+            columns,
             Some(ind),
             c,
             out,
             &kernel,
             extra,
-            3 * n,
+            max_cols,
         )? {
             return Ok(false);
         }

@@ -25,3 +25,14 @@ pub(super) fn mat_vec(a: &[f64], rows: usize, cols: usize, x: &[f64], y: &mut [f
         y[i] = (0..cols).map(|j| a[i * cols + j] * x[j]).sum();
     }
 }
+
+/// How many of the c columns of the row-major direction blocks `dirs` are nonzero
+/// somewhere.
+pub(super) fn nonzero_columns(dirs: &[&[f64]], c: usize) -> usize {
+    (0..c)
+        .filter(|&j| {
+            dirs.iter()
+                .any(|v| v.chunks_exact(c).any(|row| row[j] != 0.0))
+        })
+        .count()
+}
