@@ -321,11 +321,21 @@ impl WindowSolver {
                 self.hard_rhs[rows + r] = -buf.r[r];
             }
             if linearize {
-                // Round-off in each residual: ε times the size of its terms, Σ|C||x|.
+                // Round-off in each residual: ε times the size of its terms, Σ|C||x|,
+                // summed along the row over its keys' blocks (the rest of the row is 0).
                 let x = &values[inst.step * s..(inst.step + 1) * s];
+                let mut keys: [usize; 8] = std::array::from_fn(|a| a);
+                let keys = &mut keys[..buf.slots.len()];
+                keys.sort_by_key(|&a| buf.slots[a].0);
                 for r in 0..dim {
-                    let row = &self.hard_jac[(rows + r) * s..(rows + r + 1) * s];
-                    let terms: f64 = row.iter().zip(x).map(|(c, v)| (c * v).abs()).sum();
+                    let mut terms = 0.0;
+                    for &a in keys.iter() {
+                        let (off, d) = buf.slots[a];
+                        let jr = &buf.jac[a][r * d..(r + 1) * d];
+                        for (c, v) in jr.iter().zip(&x[off..off + d]) {
+                            terms += (c * v).abs();
+                        }
+                    }
                     let noise = f64::EPSILON * (terms + buf.r[r].abs());
                     self.hard_noise[rows + r] = noise;
                     at_round_off &= buf.r[r].abs() <= NullSpace::NOISE_MARGIN * noise;
