@@ -685,6 +685,53 @@ fn forward_dynamics_of_a_large_mechanism_along_directions_is_the_jacobian_times_
     assert!(IndependentDynamics::new(model).along().is_none());
 }
 
+/// Near a singular configuration the dynamics regularize K, and their Jacobians
+/// carry the regularization's derivative, which directions leave out: f_dyn and
+/// f^i_dyn decline there (their Jacobians are formed instead). Without this the 40
+/// four-bar loops' DC batch at 10 ms no longer converged with the paper's
+/// integrators.
+#[test]
+fn dynamics_decline_directions_where_they_regularize() {
+    let model = load("scale/n-fourbar-10.yaml");
+    let theta: f64 = 1e-3;
+    let mut q = model.initial.q.as_slice().to_vec();
+    for i in 0..=10 {
+        for (axis, value) in [("x", i as f64 + theta.cos()), ("y", theta.sin())] {
+            let k = model
+                .index_of(&format!("B{i}.{axis}"))
+                .expect("a coordinate");
+            q[k] = value;
+        }
+    }
+    q[model.index_of("theta").expect("the crank angle")] = theta;
+    let (_, w, _) = DynamicsKernel::regularization_at(&model, &q);
+    assert!(w > 0.0, "not regularized at θ = {theta}");
+    let mut rng = Rng(5);
+    let dq = rng.values(model.n(), 1.0);
+    let factors: [Box<dyn Factor>; 2] = [
+        Box::new(Dynamics::new(model.clone())),
+        Box::new(IndependentDynamics::new(model.clone())),
+    ];
+    for factor in &factors {
+        let along = factor.along().expect("linearizes along directions");
+        let xs = [q.clone(), dq.clone(), vec![0.0; factor.size(2)]];
+        let c = 3;
+        let dirs: Vec<Vec<f64>> = xs.iter().map(|x| rng.values(x.len() * c, 1.0)).collect();
+        let slices: Vec<&[f64]> = xs.iter().map(Vec::as_slice).collect();
+        let dir_slices: Vec<&[f64]> = dirs.iter().map(Vec::as_slice).collect();
+        let mut ws = workspace_for(factor.as_ref());
+        let (mut r, mut out) = (vec![0.0; factor.dim()], vec![0.0; factor.dim() * c]);
+        let done = along
+            .evaluate_along(T, &slices, &mut r, &dir_slices, c, &mut out, &mut ws)
+            .unwrap();
+        assert!(
+            !done,
+            "{} linearized along directions where it regularizes",
+            factor.name()
+        );
+    }
+}
+
 /// evaluate_along against J·V from the (finite-difference checked) Jacobians; V has
 /// zero rows and columns like a null-space basis restricted to a factor's keys; too
 /// many nonzero columns are declined.

@@ -38,7 +38,8 @@ impl DynamicsKernel {
     /// which `evaluate` solves for ∂q̈/∂q and ∂q̈/∂q̇. Only the columns where some
     /// direction is nonzero are solved for (one pair of triangular solves each, where
     /// the Jacobians take one per coordinate and force); returns false when more
-    /// than `max_cols` are (`out` then holds nothing of use).
+    /// than `max_cols` are, or where the evaluation regularized K (`out` then holds
+    /// nothing of use).
     #[allow(clippy::too_many_arguments)]
     pub fn along(
         model: &Model,
@@ -55,6 +56,11 @@ impl DynamicsKernel {
         let [vq, vv, vf] = directions;
         let (n, ma) = (model.n(), model.active.len());
         let big = n + ma;
+        if kernel.regularized {
+            // Near a singular configuration the Jacobians carry the regularization's
+            // derivative (λₖ ∂εₖ/∂q), which the directions here leave out.
+            return Ok(false);
+        }
         // The columns where a direction is nonzero (flags in `out`'s first row).
         let flags = &mut out[..c];
         flags.fill(0.0);

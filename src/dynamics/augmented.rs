@@ -37,6 +37,10 @@ pub struct KernelScratch<'a> {
     scale: f64,
     /// Rows of K for λ (the active constraints).
     active: usize,
+    /// Whether the last evaluation regularized K near a singular configuration
+    /// (w > 0): its Jacobians then carry the regularization's derivative, which
+    /// [`DynamicsKernel::along`] does not form.
+    pub(super) regularized: bool,
 }
 
 impl<'a> KernelScratch<'a> {
@@ -94,6 +98,7 @@ impl<'a> KernelScratch<'a> {
             factors: None,
             scale: 1.0,
             active: model.active.len(),
+            regularized: false,
         };
         (scratch, stack)
     }
@@ -214,6 +219,7 @@ impl DynamicsKernel {
             sparse,
             factors,
             scale,
+            regularized,
             ..
         } = scratch;
 
@@ -221,6 +227,7 @@ impl DynamicsKernel {
         *scale = 1.0;
         model.jacobian_into(q, mat);
         let reg = Self::measure(model, mat, scratch, false);
+        *regularized = reg.w > 0.0;
         if let Some(structure) = sparse {
             // Sparse: K's values from M, Φ_q and E; factored below.
             if reg.w > 0.0 {
