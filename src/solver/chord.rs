@@ -165,8 +165,8 @@ impl WindowSolver {
             // The prior's gradient Λ(x − x̄) + η, reduced by N₀ᵀ.
             let red = &self.hard[0].reduction;
             let (diff, rest) = self.scratch.split_at_mut(s);
-            let grad = &mut rest[..s];
-            p.gradient(x, diff, grad);
+            let (grad, work) = rest.split_at_mut(s);
+            p.gradient(x, diff, grad, work);
             for (k, gk) in grad.iter().enumerate() {
                 let (start, nrow) = red.row(k);
                 for (ga, na) in g[start..].iter_mut().zip(nrow) {

@@ -688,13 +688,13 @@ impl WindowSolver {
             let (d, rest) = self.scratch.split_at_mut(s);
             let (grad, rest) = rest.split_at_mut(s);
             // grad = Λδ + η; cost = c + ηᵀδ + ½δᵀΛδ.
-            let value = p.gradient(x, d, grad);
+            let value = p.gradient(x, d, grad, rest);
             cost += value;
             cost_first += value;
             if linearize {
                 // In reduced coordinates δ₀ = p₀ + N₀y: H += N₀ᵀΛN₀, g += N₀ᵀ(grad + Λp₀).
                 let red = &self.hard[0].reduction;
-                p.add_information_times(&red.particular, grad);
+                p.add_information_times(&red.particular, grad, rest);
                 p.add_reduced(red, grad, self.h.diag_mut(0), &mut self.g, rest);
             }
         }

@@ -129,8 +129,8 @@ impl WindowSolver {
         if let Some(p) = prior {
             let x = &values[k0 * s..(k0 + 1) * s];
             let (delta, rest) = self.scratch.split_at_mut(s);
-            let grad = &mut rest[..s];
-            p.gradient(x, delta, grad);
+            let (grad, work) = rest.split_at_mut(s);
+            p.gradient(x, delta, grad, work);
             for (o, g) in out.iter_mut().zip(grad.iter()) {
                 *o += g;
             }

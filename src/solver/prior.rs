@@ -182,8 +182,14 @@ impl LinearPrior {
     }
 
     /// grad = Λδ + η with δ = x − x̄ (into `delta`); returns the prior's cost
-    /// c + ηᵀδ + ½δᵀΛδ.
-    pub(super) fn gradient(&self, x: &[f64], delta: &mut [f64], grad: &mut [f64]) -> f64 {
+    /// c + ηᵀδ + ½δᵀΛδ. `work` holds 2d values (the tangent form's N̄ᵀδ and CN̄ᵀδ).
+    pub(super) fn gradient(
+        &self,
+        x: &[f64],
+        delta: &mut [f64],
+        grad: &mut [f64],
+        work: &mut [f64],
+    ) -> f64 {
         let s = self.size();
         for i in 0..s {
             delta[i] = x[i] - self.xbar[i];
@@ -202,8 +208,7 @@ impl LinearPrior {
             }
             Information::Tangent(t) => {
                 let d = t.dim();
-                let mut z = vec![0.0; 2 * d];
-                let (z, cz) = z.split_at_mut(d);
+                let (z, cz) = work[..2 * d].split_at_mut(d);
                 t.reduce(delta, z);
                 t.core_times(z, cz);
                 let quad = z.iter().zip(cz.iter()).map(|(a, b)| a * b).sum();
@@ -217,8 +222,8 @@ impl LinearPrior {
         self.constant + lin + 0.5 * quad
     }
 
-    /// out += Λv.
-    pub(super) fn add_information_times(&self, v: &[f64], out: &mut [f64]) {
+    /// out += Λv; `work` holds 2d values.
+    pub(super) fn add_information_times(&self, v: &[f64], out: &mut [f64], work: &mut [f64]) {
         let s = self.size();
         match &self.information {
             Information::Dense(lambda) => {
@@ -229,8 +234,7 @@ impl LinearPrior {
             }
             Information::Tangent(t) => {
                 let d = t.dim();
-                let mut z = vec![0.0; 2 * d];
-                let (z, cz) = z.split_at_mut(d);
+                let (z, cz) = work[..2 * d].split_at_mut(d);
                 t.reduce(v, z);
                 t.core_times(z, cz);
                 for (i, o) in out.iter_mut().enumerate() {

@@ -339,8 +339,9 @@ mod unit {
             .map(|i| dense.xbar[i] + 1e-3 * ((i * 5 % 7) as f64 - 3.0))
             .collect();
         let (mut delta, mut ga, mut gb) = (vec![0.0; s], vec![0.0; s], vec![0.0; s]);
-        let va = dense.gradient(&x, &mut delta, &mut ga);
-        let vb = tangent.gradient(&x, &mut delta, &mut gb);
+        let mut work = vec![0.0; 2 * s];
+        let va = dense.gradient(&x, &mut delta, &mut ga, &mut work);
+        let vb = tangent.gradient(&x, &mut delta, &mut gb, &mut work);
         close(&[va], &[vb], "value");
         close(&ga, &gb, "gradient");
         // The window's reduced normal equations with each.
