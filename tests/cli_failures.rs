@@ -587,3 +587,120 @@ fn the_solver_trace_goes_to_stderr_and_changes_nothing() {
         std::fs::read(&traced).unwrap()
     );
 }
+
+/// Three parallel cranks on one coupler (two redundant constraints) reach a flat
+/// position where θ stops determining the rest: IC stops ahead of it in a window and in
+/// a batch alike, and the hint names what passes it (DC), not a window or a dt.
+#[test]
+fn an_ill_posed_stop_in_a_batch_points_to_dc() {
+    let dir = scratch("triple-crank");
+    let scene = dir.join("triple-crank.yaml");
+    std::fs::write(
+        &scene,
+        "name: triple-crank
+parameters: {rc: 0.5, th0: pi/3}
+points:
+  - {name: A, x: 0, y: 0, fixed: true}
+  - {name: B, x: 1, y: 0, fixed: true}
+  - {name: C, x: 2, y: 0, fixed: true}
+  - {name: P1, x: rc*cos(th0), y: rc*sin(th0)}
+  - {name: P2, x: 1 + rc*cos(th0), y: rc*sin(th0)}
+  - {name: P3, x: 2 + rc*cos(th0), y: rc*sin(th0)}
+bodies:
+  - {name: crank1, points: [A, P1], mass: 1}
+  - {name: crank2, points: [B, P2], mass: 1}
+  - {name: crank3, points: [C, P3], mass: 1}
+  - {name: coupler, points: [P1, P2, P3], mass: 3, cog: [1, 0], inertia: 1}
+coordinates:
+  - {name: theta, type: angle, points: [A, P1]}
+independent: [theta]
+initial: {velocities: {theta: 2}}
+effects:
+  - {type: gravity, vector: [0, -9.81]}
+",
+    )
+    .unwrap();
+    let out = dir.join("run.csv");
+    for mode in ["--batch", "--window=1"] {
+        let run = mbfg(&[
+            "simulate",
+            scene.to_str().unwrap(),
+            "--coords",
+            "ic",
+            mode,
+            "--dt",
+            "0.01",
+            "--t-end",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let line = error_line(&run, 1);
+        assert!(line.contains("singular configuration"), "{mode}: {line}");
+        assert!(
+            line.ends_with("(--coords dc does not stop there)"),
+            "{mode}: {line}"
+        );
+    }
+}
+
+/// A block on a spring dragged by a slow belt with Coulomb friction written as
+/// sign(): at the first stick the implicit step has no solution (the friction's jump
+/// reverses the motion that made it). The failure names the jumping effect and how to
+/// smooth it.
+#[test]
+fn a_step_across_a_jumping_load_names_the_jump() {
+    let dir = scratch("stick-slip");
+    let scene = dir.join("stick-slip.yaml");
+    let mut text = String::from(
+        "name: stick-slip
+parameters: {mu: 3, vb: 0.1}
+points:
+  - {name: A, x: 0, y: 0, fixed: true}
+  - {name: G, x: 1, y: 0, fixed: true}
+  - {name: S, x: 1, y: 0, mass: 1}
+constraints:
+  - {name: guide, type: fixed_slider, point: S, line: [A, G]}
+coordinates:
+  - {name: s, type: distance, point: S, along: [A, G]}
+independent: [s]
+effects:
+  - {name: spring, type: spring_damper, points: [A, S], stiffness: 100, rest_length: 1}
+",
+    );
+    let jumping =
+        "  - {name: friction, type: force, point: S, value: [\"-mu*sign(vx(S) - vb)\", 0]}\n";
+    let smooth =
+        "  - {name: friction, type: force, point: S, value: [\"-mu*tanh((vx(S) - vb)/1e-3)\", 0]}\n";
+    let out = dir.join("run.csv");
+    let run = |scene: &Path| {
+        mbfg(&[
+            "simulate",
+            scene.to_str().unwrap(),
+            "--dt",
+            "0.001",
+            "--t-end",
+            "0.5",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    std::fs::write(&scene, text.clone() + jumping).unwrap();
+    let line = error_line(&run(&scene), 1);
+    assert!(line.contains("did not converge"), "{line}");
+    assert!(
+        line.ends_with(
+            "(effect 'friction' jumps with sign(): smooth it, e.g. tanh(x/1e-3) for sign(x))"
+        ),
+        "{line}"
+    );
+    // Smoothed, the same scene runs.
+    text.push_str(smooth);
+    std::fs::write(&scene, text).unwrap();
+    let ok = run(&scene);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+}

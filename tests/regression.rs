@@ -1,7 +1,8 @@
 //! RMSE regression thresholds against the committed references.
 //!
 //! `tests/data/rmse-bounds.csv` lists scene × coordinates × window × dt with an RMSE
-//! bound in metres over the x, y of every moving point: the value measured when the
+//! bound in metres over the x, y of every moving point (coordinates `dc` and `ic` at
+//! the defaults, `dc-full` DC with the paper's integrator factors): the value measured when the
 //! row was added, with a small margin. A run above its bound fails; tightening a bound
 //! is how an improvement is locked in (`python -m harness.regression` measures every
 //! row and rewrites the file with fresh values and the margin).
@@ -9,7 +10,7 @@
 mod common;
 
 use common::reference_rmse;
-use mbfg::forward::{simulate, Coordinates, ForwardOptions};
+use mbfg::forward::{simulate, Coordinates, DcIntegrators, ForwardOptions};
 use mbfg::smoother::Mode;
 use mbfg::{Model, Scene};
 use std::path::PathBuf;
@@ -24,6 +25,7 @@ struct Row {
     scene: String,
     reference: String,
     coords: Coordinates,
+    integrators: DcIntegrators,
     mode: Mode,
     dt: f64,
     t_end: f64,
@@ -43,9 +45,14 @@ fn bounds() -> Vec<Row> {
                 scene: f[0].into(),
                 reference: f[1].into(),
                 coords: match f[2] {
-                    "dc" => Coordinates::Dependent,
+                    "dc" | "dc-full" => Coordinates::Dependent,
                     "ic" => Coordinates::Independent,
                     other => panic!("rmse-bounds.csv: coords '{other}'"),
+                },
+                integrators: if f[2] == "dc-full" {
+                    DcIntegrators::Full
+                } else {
+                    DcIntegrators::Auto
                 },
                 mode: match f[3] {
                     "batch" => Mode::Batch,
@@ -67,7 +74,8 @@ fn rmse_stays_within_the_checked_in_bounds() {
     for row in &rows {
         let scene = Scene::load(root().join("scenes").join(format!("{}.yaml", row.scene))).unwrap();
         let model = Arc::new(Model::new(&scene).unwrap());
-        let options = ForwardOptions::new(row.coords, row.dt, row.t_end, row.mode);
+        let mut options = ForwardOptions::new(row.coords, row.dt, row.t_end, row.mode);
+        options.dc_integrators = row.integrators;
         let (run, summary) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
         let measured = if summary.failures.is_empty() {
             reference_rmse(&model, &run, &row.reference)

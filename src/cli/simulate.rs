@@ -306,14 +306,35 @@ fn simulate(
         print_summary(to_file, &line);
         // More iterations do not help the solves that stall (they crawl along a
         // direction the cost barely sees), so --max-iterations is not suggested.
+        let jumping: Vec<&str> = model
+            .scene
+            .effects
+            .iter()
+            .filter(|e| e.jumps())
+            .filter_map(|e| e.name())
+            .collect();
+        let jump_hint;
         let hint = if f.cause.is_some() {
             "an effect must be finite over the whole run"
+        } else if f.singular.is_none() && !jumping.is_empty() {
+            // A step across a jump of the load (Coulomb friction as sign(v)) has no
+            // implicit solution when the load's jump reverses the motion that made it.
+            jump_hint = format!(
+                "{} jumps with sign(): smooth it, e.g. tanh(x/1e-3) for sign(x)",
+                jumping
+                    .iter()
+                    .map(|n| format!("effect '{n}'"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+            &jump_hint
         } else if f.is_too_coarse() {
             "without --no-refine the run is integrated again at a finer step"
-        } else if options.mode == Mode::Batch && !f.warm_start {
-            "the fixed-lag smoother (--window N) or a smaller dt may converge"
-        } else if f.singular.is_some() {
+        } else if f.singular.is_some() && options.coordinates == Coordinates::Independent {
+            // Ill-posed ahead: no window or dt passes it in IC.
             "--coords dc does not stop there"
+        } else if options.mode == Mode::Batch && !f.warm_start && f.singular.is_none() {
+            "the fixed-lag smoother (--window N) or a smaller dt may converge"
         } else if f.warm_start {
             "--window 1 writes the run up to there"
         } else if f.report.termination == mbfg::solver::Termination::Diverged {
@@ -390,6 +411,13 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
     if let Some(f) = &s.tangent_after {
         line += &format!(
             "; tangent integrators (the paper's did not converge at step {}, t = {} s)",
+            f.step,
+            forward::round_time(f.t)
+        );
+    }
+    if let Some(f) = &s.full_after {
+        line += &format!(
+            "; the paper's integrators (tangent ones did not converge at step {}, t = {} s)",
             f.step,
             forward::round_time(f.t)
         );

@@ -25,6 +25,17 @@ pub(super) fn collect_names<'a>(n: &'a Node, seen: &mut HashSet<&'a str>, out: &
     }
 }
 
+/// Whether the tree calls `sign`, the one function that jumps.
+pub(super) fn calls_sign(n: &Node) -> bool {
+    match n {
+        Node::Num(_) | Node::Slot(_) | Node::Var(_) => false,
+        Node::Neg(a) => calls_sign(a),
+        Node::Chain(first, rest) => calls_sign(first) || rest.iter().any(|(_, x)| calls_sign(x)),
+        Node::Pow(a, b) => calls_sign(a) || calls_sign(b),
+        Node::Call(f, args) => *f == super::functions::Func::Sign || args.iter().any(calls_sign),
+    }
+}
+
 fn builtin(name: &str) -> Option<f64> {
     match name {
         "pi" => Some(std::f64::consts::PI),

@@ -189,6 +189,12 @@ impl Expr {
         out
     }
 
+    /// Whether the expression jumps somewhere: it calls `sign` (abs, min and max only
+    /// kink).
+    pub fn jumps(&self) -> bool {
+        eval::calls_sign(&self.root)
+    }
+
     /// Whether the expression refers to `name`.
     pub fn uses(&self, name: &str) -> bool {
         self.names().iter().any(|n| n == name)

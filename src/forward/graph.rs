@@ -2,7 +2,7 @@
 //! in dependent or independent coordinates, the initial guess and the prediction of
 //! each step, and the conversions between its variables and a [`Trajectory`].
 
-use super::options::{DcIntegrators, ForwardOptions, Integrator};
+use super::options::{ForwardOptions, Integrator};
 use crate::collocation;
 use crate::coordinates::Coordinates;
 use crate::dynamics;
@@ -43,11 +43,10 @@ impl ForwardGraph {
                 Integrator::Trapezoidal | Integrator::HermiteSimpson => Rule::Trapezoidal,
                 Integrator::Euler => Rule::Euler,
             };
-            match options.dc_integrators {
-                DcIntegrators::Tangent => {
-                    Box::new(Projected::integrator(model.clone(), x, dx, rule, dt))
-                }
-                DcIntegrators::Full | DcIntegrators::Auto => integrate(x, dx, n),
+            if options.tangent_dc(n) {
+                Box::new(Projected::integrator(model.clone(), x, dx, rule, dt))
+            } else {
+                integrate(x, dx, n)
             }
         };
         // The position and velocity integrators of each coordinate set, soft with
@@ -60,7 +59,7 @@ impl ForwardGraph {
         // of 1e60 and a solution whose θ moved against θ̇. (Scaled by Δt² and Δt,
         // into f_dyn's units, the six-bar press's batch at 5 ms no longer converged.)
         let sigma = [nm.integrator_position, nm.integrator_velocity];
-        let dc_sigma = if options.tangent_dc() {
+        let dc_sigma = if options.tangent_dc(n) {
             [sigma[0] * dt, sigma[1] * dt]
         } else {
             sigma
@@ -69,7 +68,7 @@ impl ForwardGraph {
             .then_some(|independent| collocation::factors(&model, independent, dt));
         let dc_integrators = || -> [Box<dyn Factor>; 2] {
             match &hermite {
-                Some(factors) if options.tangent_dc() => factors(false)
+                Some(factors) if options.tangent_dc(n) => factors(false)
                     .map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>),
                 Some(factors) => factors(false),
                 None => [

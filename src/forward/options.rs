@@ -19,10 +19,14 @@ pub enum Integrator {
 /// What the integrator factors ask of a step in dependent coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum DcIntegrators {
-    /// The paper's ([`DcIntegrators::Full`]); a run in which a solve fails with them
-    /// (not at an ill-posed configuration, not interrupted; a batch solve: within
-    /// [`AUTO_BATCH_ITERATIONS`](super::segment::AUTO_BATCH_ITERATIONS)) is run again with [`DcIntegrators::Tangent`], and
-    /// [`RunSummary::tangent_after`](super::summary::RunSummary::tangent_after) says so.
+    /// [`DcIntegrators::Tangent`] below [`AUTO_TANGENT_BELOW`] coordinates (and for
+    /// Hermite–Simpson at any size), the paper's [`DcIntegrators::Full`] from there on
+    /// ([`ForwardOptions::tangent_dc`]). A run in which a solve fails with the first
+    /// (not at an ill-posed configuration, not interrupted; a batch solve with the
+    /// paper's: within [`AUTO_BATCH_ITERATIONS`](super::segment::AUTO_BATCH_ITERATIONS))
+    /// is run again with the other, and
+    /// [`RunSummary::tangent_after`](super::summary::RunSummary::tangent_after) or
+    /// [`RunSummary::full_after`](super::summary::RunSummary::full_after) says so.
     Auto,
     /// Only along the directions the constraints leave free (see [`crate::tangent`]):
     /// one soft equation per unknown, all of them satisfied, so that every window
@@ -32,6 +36,18 @@ pub enum DcIntegrators {
     /// step, solved as a least-squares compromise weighted by the σ's.
     Full,
 }
+
+/// Coordinates from which [`DcIntegrators::Auto`] starts with the paper's integrator
+/// factors instead of tangent ones. Tangent factors hold exactly where the paper's
+/// settle on a least-squares compromise between integrators and constraints, and
+/// that compromise bends fast motion: at dt = 1 ms the paper's factors ended 16×
+/// further from IDA than tangent ones on a driven Watt six-bar, 33× on Andrews'
+/// squeezer (0.1 ms), 46× on a light link driven by a flywheel, 2–6× on the double
+/// pendulum and the compressor slider-crank; 1.3–1.6× closer on the four-bar family
+/// alone. Their projector is dense, n × n a factor per evaluation: from about 20
+/// coordinates on a one-step window costs more with them (7× at the 40 four-bar
+/// loops' 83), where the paper's keep their own cost.
+pub const AUTO_TANGENT_BELOW: usize = 20;
 
 /// Standard deviations of the soft factors. Constraint factors (f_pc, f_vc, f^i_ac)
 /// and the priors on the initial state are hard: the solver satisfies them exactly
@@ -143,26 +159,30 @@ impl ForwardOptions {
     /// Whether the graph has one soft equation per unknown (IC, and DC with tangent
     /// integrators): its residual is zero at the solution, where Gauss-Newton is
     /// Newton's method ([`Settings::second_order`] is then of no use).
-    pub fn is_square(&self) -> bool {
-        self.coordinates == Coordinates::Independent || self.tangent_dc()
+    pub fn is_square(&self, n: usize) -> bool {
+        self.coordinates == Coordinates::Independent || self.tangent_dc(n)
     }
 
-    /// Whether the integrator factors of dependent coordinates are projected on the
-    /// tangent space: asked for, or Hermite–Simpson under `auto` (its full factors'
-    /// least-squares compromise costs windows two orders of accuracy, and a retry
-    /// would gain nothing).
-    pub fn tangent_dc(&self) -> bool {
-        self.dc_integrators == DcIntegrators::Tangent
-            || (self.dc_integrators == DcIntegrators::Auto
-                && self.integrator == Integrator::HermiteSimpson)
+    /// Whether the integrator factors of dependent coordinates, for a model of `n`
+    /// coordinates, are projected on the tangent space: asked for, or under `auto`
+    /// below [`AUTO_TANGENT_BELOW`] coordinates and with Hermite–Simpson (its full
+    /// factors' least-squares compromise costs windows two orders of accuracy).
+    pub fn tangent_dc(&self, n: usize) -> bool {
+        match self.dc_integrators {
+            DcIntegrators::Tangent => true,
+            DcIntegrators::Full => false,
+            DcIntegrators::Auto => {
+                self.integrator == Integrator::HermiteSimpson || n < AUTO_TANGENT_BELOW
+            }
+        }
     }
 
-    /// Whether a DC run whose full integrator factors fail is made again with
-    /// tangent ones ([`DcIntegrators::Auto`] with the trapezoidal rule or Euler).
-    pub(super) fn retries_tangent(&self) -> bool {
+    /// Whether a DC run whose integrator factors fail is made again with the other
+    /// ones ([`DcIntegrators::Auto`] with the trapezoidal rule or Euler).
+    pub(super) fn retries_other(&self) -> bool {
         self.coordinates == Coordinates::Dependent
             && self.dc_integrators == DcIntegrators::Auto
-            && !self.tangent_dc()
+            && self.integrator != Integrator::HermiteSimpson
     }
 
     /// Number of steps including t = 0: t_k = k·dt for k = 0..=round(t_end/dt)

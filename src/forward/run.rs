@@ -275,9 +275,9 @@ fn coarse_turn(
     })
 }
 
-/// One run at `options.dt`; with [`DcIntegrators::Auto`], made again with tangent
-/// integrators where the paper's do not converge. Returns its summary and its first
-/// step too coarse for the motion (see [`coarse_turn`]).
+/// One run at `options.dt`; with [`DcIntegrators::Auto`], made again with the other
+/// integrator factors where the first do not converge. Returns its summary and its
+/// first step too coarse for the motion (see [`coarse_turn`]).
 fn simulate_integrators(
     model: Arc<Model>,
     options: &ForwardOptions,
@@ -286,7 +286,7 @@ fn simulate_integrators(
     every: Option<(usize, f64)>,
 ) -> Result<(RunSummary, Option<StepFailure>)> {
     let (summary, coarse) = simulate_with(model.clone(), options, progress, sink, every)?;
-    let retry = options.retries_tangent()
+    let retry = options.retries_other()
         && summary.interrupted.is_none()
         && summary.failures.iter().all(|f| f.singular.is_none());
     let Some(failure) = summary.failures.first().filter(|_| retry) else {
@@ -294,14 +294,24 @@ fn simulate_integrators(
     };
     // The paper's factors ask more equations than a step has unknowns; where their
     // least-squares compromise does not converge, the tangent ones (one equation per
-    // unknown) usually do.
+    // unknown) usually do. Where tangent ones fail (their projector at a step
+    // whose positions are far from its prediction), the paper's may not.
     let failure = failure.clone();
-    let mut tangent = options.clone();
-    tangent.dc_integrators = DcIntegrators::Tangent;
+    let tangent_first = options.tangent_dc(model.n());
+    let mut other = options.clone();
+    other.dc_integrators = if tangent_first {
+        DcIntegrators::Full
+    } else {
+        DcIntegrators::Tangent
+    };
     let first_attempt = summary.wall_time;
     sink.restart()?;
-    let (mut summary, coarse) = simulate_with(model, &tangent, progress, sink, every)?;
-    summary.tangent_after = Some(failure);
+    let (mut summary, coarse) = simulate_with(model, &other, progress, sink, every)?;
+    if tangent_first {
+        summary.full_after = Some(failure);
+    } else {
+        summary.tangent_after = Some(failure);
+    }
     summary.wall_time += first_attempt;
     Ok((summary, coarse))
 }

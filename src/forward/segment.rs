@@ -121,12 +121,12 @@ pub(super) fn segment(
                 // ended 0.1 rad off at dt = 50 µs with marginal priors, 7.8e-4 rad
                 // with conditioned ones (and a batch of the mm slider-crank at 1 ms
                 // had a cost of 6.3 to remove from the marginal run's start).
-                past: if options.is_square() && options.settings.past == Past::Adaptive {
+                past: if options.is_square(model.n()) && options.settings.past == Past::Adaptive {
                     Past::Conditioned
                 } else {
                     options.settings.past
                 },
-                second_order: options.settings.second_order && !options.is_square(),
+                second_order: options.settings.second_order && !options.is_square(model.n()),
                 ..options.settings
             };
             // The steps of `values` are from the graph's step offset on (the segment's
@@ -319,8 +319,8 @@ pub(super) fn segment(
                 completed = rows;
                 let mut settings = options.settings;
                 // One equation per unknown: Gauss-Newton is Newton's method.
-                settings.second_order &= !options.is_square();
-                if options.retries_tangent() {
+                settings.second_order &= !options.is_square(model.n());
+                if options.retries_other() && !options.tangent_dc(model.n()) {
                     // The paper's factors get the iterations a window needs; past them
                     // their compromise crawls (the double pendulum at 1 ms: 30
                     // iterations, 35 s) where tangent ones converge in one.

@@ -33,6 +33,9 @@ pub struct RunSummary {
     /// With [`DcIntegrators::Auto`](super::options::DcIntegrators::Auto): the failure with the paper's integrator factors
     /// after which this run was made again with tangent ones.
     pub tangent_after: Option<StepFailure>,
+    /// With [`DcIntegrators::Auto`](super::options::DcIntegrators::Auto): the failure with tangent integrator factors
+    /// after which this run was made again with the paper's.
+    pub full_after: Option<StepFailure>,
     /// With [`ForwardOptions::refine`](super::options::ForwardOptions::refine): the finer step this run was integrated at.
     pub refinement: Option<Refinement>,
 }
@@ -176,6 +179,7 @@ impl Stats {
             reselections: Vec::new(),
             interrupted: None,
             tangent_after: None,
+            full_after: None,
             refinement: None,
         }
     }

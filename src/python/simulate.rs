@@ -40,6 +40,7 @@ fn forward_result<'py>(
         "tangent_after",
         s.tangent_after.as_ref().map(|f| (f.step, f.t)),
     )?;
+    summary.set_item("full_after", s.full_after.as_ref().map(|f| (f.step, f.t)))?;
     let refinement = match &s.refinement {
         Some(r) => {
             let d = PyDict::new(py);

@@ -452,6 +452,16 @@ impl Effect {
         }
     }
 
+    /// Whether the effect's value jumps somewhere (a torque or force expression that
+    /// calls `sign`): an implicit step across the jump may have no solution.
+    pub fn jumps(&self) -> bool {
+        match self {
+            Effect::Torque { value, .. } => value.expr.jumps(),
+            Effect::Force { value, .. } => value.iter().any(|v| v.expr.jumps()),
+            _ => false,
+        }
+    }
+
     /// The effect's name (gravity has none).
     pub fn name(&self) -> Option<&str> {
         match self {
