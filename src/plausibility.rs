@@ -26,6 +26,8 @@ pub const ENERGY_DRIFT_FLOOR: f64 = 1e-12;
 pub struct TimeScale {
     /// The effect, as `mbfg check` describes it.
     pub effect: String,
+    /// Its name in the scene (`'tie'`), or its kind where it has none.
+    pub name: String,
     /// Fastest natural frequency from its stiffness, rad/s (0 when it has none).
     pub omega: f64,
     /// Fastest decay rate from its damping, 1/s (0 when it has none).
@@ -84,8 +86,12 @@ pub fn time_scales(model: &Model) -> Vec<TimeScale> {
         }
         let stiffness = -DMatrix::from_row_slice(n, n, &kq);
         let damping = -DMatrix::from_row_slice(n, n, &kv);
+        let effect = &model.scene.effects[i];
         let scale = TimeScale {
-            effect: model.scene.effects[i].describe(&model.scene),
+            effect: effect.describe(&model.scene),
+            name: effect
+                .name()
+                .map_or_else(|| "gravity".into(), |n| format!("'{n}'")),
             omega: largest(&stiffness).sqrt(),
             rate: largest(&damping),
         };
@@ -124,15 +130,19 @@ fn free_motions(model: &Model, q: &DVector<f64>) -> Option<DMatrix<f64>> {
     }))
 }
 
+/// The fastest effect's time scale where `dt` is too coarse for it (ω·dt above
+/// [`MAX_OMEGA_DT`] at the initial state).
+pub fn too_fast(model: &Model, dt: f64) -> Option<TimeScale> {
+    time_scales(model)
+        .into_iter()
+        .max_by(|a, b| a.speed().total_cmp(&b.speed()))
+        .filter(|fastest| fastest.speed() * dt > MAX_OMEGA_DT)
+}
+
 /// A warning when `dt` is too coarse for the fastest effect, with its numbers.
 pub fn step_warning(model: &Model, dt: f64) -> Option<String> {
-    let fastest = time_scales(model)
-        .into_iter()
-        .max_by(|a, b| a.speed().total_cmp(&b.speed()))?;
+    let fastest = too_fast(model, dt)?;
     let speed = fastest.speed();
-    if speed * dt <= MAX_OMEGA_DT {
-        return None;
-    }
     let what = if fastest.omega >= fastest.rate {
         format!(
             "its period is {:.3e} s (ω = {:.3e} rad/s)",

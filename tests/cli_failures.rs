@@ -704,3 +704,58 @@ effects:
         String::from_utf8_lossy(&ok.stderr)
     );
 }
+
+/// A double pendulum tied to the ground by a 1e6 N/m spring, in IC at dt = 1 ms (ω·dt
+/// about 1.7): the warning before the run names the spring, and the failure it leads
+/// to says so again with the dt that resolves it.
+#[test]
+fn a_failure_on_a_step_too_coarse_for_a_spring_names_it() {
+    let dir = scratch("stiff-tie");
+    let scene = dir.join("stiff-tie.yaml");
+    std::fs::write(
+        &scene,
+        "name: stiff-tie
+points:
+  - {name: O, x: 0, y: 0, fixed: true}
+  - {name: W, x: 1.5, y: -1, fixed: true}
+  - {name: P1, x: 1, y: 0}
+  - {name: P2, x: 2, y: 0}
+bodies:
+  - {name: l1, points: [O, P1], mass: 1}
+  - {name: l2, points: [P1, P2], mass: 1}
+coordinates:
+  - {name: a1, type: angle, points: [O, P1]}
+  - {name: a2, type: angle, points: [P1, P2]}
+independent: [a1, a2]
+effects:
+  - {type: gravity, vector: [0, -9.81]}
+  - {name: tie, type: spring_damper, points: [W, P2], stiffness: 1e6, rest_length: 0.99*auto}
+",
+    )
+    .unwrap();
+    let out = dir.join("run.csv");
+    let run = mbfg(&[
+        "simulate",
+        scene.to_str().unwrap(),
+        "--coords",
+        "ic",
+        "--dt",
+        "0.001",
+        "--t-end",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        err.contains("warning: dt = 0.001 s is too coarse for"),
+        "{err}"
+    );
+    let line = error_line(&run, 1);
+    assert!(line.contains("did not converge"), "{line}");
+    assert!(line.contains("(dt is too coarse for"), "{line}");
+    assert!(
+        line.contains("'tie'") && line.ends_with("s resolves it)"),
+        "{line}"
+    );
+}

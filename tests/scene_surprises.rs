@@ -116,3 +116,24 @@ fn a_point_that_moves_without_mass_is_named() {
     std::fs::remove_file(&knee).ok();
     assert!(!text.contains("no inertia"), "{text}");
 }
+
+/// A spring's `rest_length` takes `auto` inside an expression as a distance's `length`
+/// does (it read "undefined name 'auto'"): 0.5*auto is half the placed distance.
+#[test]
+fn a_rest_length_may_scale_the_placed_distance() {
+    let text = "name: half-rest
+points:
+  - {name: O, x: 0, y: 0, fixed: true}
+  - {name: P, x: 0, y: -2}
+bodies:
+  - {name: bob, points: [O, P], mass: 1}
+effects:
+  - {name: spring, type: spring_damper, points: [O, P], stiffness: 10, rest_length: 0.5*auto}
+";
+    let scene = mbfg::Scene::from_str(text, Path::new("half-rest.yaml")).unwrap();
+    let rest = scene.effects.iter().find_map(|e| match e {
+        mbfg::scene::Effect::SpringDamper { rest_length, .. } => Some(*rest_length),
+        _ => None,
+    });
+    assert_eq!(rest, Some(1.0));
+}

@@ -33,10 +33,22 @@ pub fn shorten(message: &str) -> String {
     if chars.len() <= MAX_MESSAGE_CHARS {
         return line;
     }
-    let head = MAX_MESSAGE_CHARS - 1 - KEPT_END_CHARS;
+    // Cut between words where one is near (a name or number is not cut in two).
+    let near = 30;
+    let mut head = MAX_MESSAGE_CHARS - 1 - KEPT_END_CHARS;
+    if let Some(space) = (head.saturating_sub(near)..head)
+        .rev()
+        .find(|&i| chars[i] == ' ')
+    {
+        head = space + 1;
+    }
+    let mut tail = chars.len() - KEPT_END_CHARS;
+    if let Some(space) = (tail..(tail + near).min(chars.len())).find(|&i| chars[i] == ' ') {
+        tail = space;
+    }
     let mut cut: String = chars[..head].iter().collect();
     cut.push('…');
-    cut.extend(&chars[chars.len() - KEPT_END_CHARS..]);
+    cut.extend(&chars[tail..]);
     cut
 }
 
@@ -76,10 +88,23 @@ mod tests {
             "x".repeat(400)
         );
         let line = shorten(&message);
-        assert_eq!(line.chars().count(), MAX_MESSAGE_CHARS);
+        assert!(line.chars().count() <= MAX_MESSAGE_CHARS);
         assert!(line.starts_with("step 12 (t = 0.012 s) did not converge: "));
         assert!(line.ends_with("or a smaller dt may converge)"), "{line}");
         assert!(line.contains('…'));
         assert_eq!(shorten("short"), "short");
+    }
+
+    #[test]
+    fn a_long_message_is_cut_between_words() {
+        let items: Vec<String> = (0..40)
+            .map(|k| format!("coupler{k}: distance(P{k},Q{k}) (|Φ| = 2.277e-1)"))
+            .collect();
+        let line = shorten(&format!("constraints left violated: {}", items.join(", ")));
+        assert!(line.chars().count() <= MAX_MESSAGE_CHARS);
+        let (head, tail) = line.split_once('…').unwrap();
+        assert!(head.ends_with(' '), "{line}");
+        assert!(tail.starts_with(' '), "{line}");
+        assert!(line.ends_with("(|Φ| = 2.277e-1)"), "{line}");
     }
 }

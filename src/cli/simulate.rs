@@ -314,6 +314,8 @@ fn simulate(
             .filter_map(|e| e.name())
             .collect();
         let jump_hint;
+        let fast_hint;
+        let too_fast = mbfg::plausibility::too_fast(&model, options.dt);
         let hint = if f.cause.is_some() {
             "an effect must be finite over the whole run"
         } else if f.singular.is_none() && !jumping.is_empty() {
@@ -328,6 +330,14 @@ fn simulate(
                     .join(", ")
             );
             &jump_hint
+        } else if let (true, Some(fast)) = (f.singular.is_none(), &too_fast) {
+            // The warning before the run named it; the failure is where it shows.
+            fast_hint = format!(
+                "dt is too coarse for effect {}: dt ≤ {:.2e} s resolves it",
+                fast.name,
+                mbfg::plausibility::MAX_OMEGA_DT / fast.speed()
+            );
+            &fast_hint
         } else if f.is_too_coarse() {
             "without --no-refine the run is integrated again at a finer step"
         } else if f.singular.is_some() && options.coordinates == Coordinates::Independent {

@@ -101,7 +101,17 @@ impl<'a> Ctx<'a> {
 
     /// A number that must be ≥ 0.
     pub fn non_negative(&self, node: &Node, key: &str) -> Result<f64, SceneError> {
-        let v = self.num(node, key, &[])?;
+        self.non_negative_with(node, key, &[])
+    }
+
+    /// [`Self::non_negative`] with `extra` names (`auto`) in its expression.
+    pub fn non_negative_with(
+        &self,
+        node: &Node,
+        key: &str,
+        extra: &[(&str, f64)],
+    ) -> Result<f64, SceneError> {
+        let v = self.num(node, key, extra)?;
         if v >= 0.0 {
             Ok(v)
         } else {

@@ -449,7 +449,7 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                 let rest_length = match f.get("rest_length") {
                     None => auto,
                     Some(n) if matches!(&n.value, Value::String(s) if s.trim() == "auto") => auto,
-                    Some(n) => ctx.non_negative(n, &f.key("rest_length"))?,
+                    Some(n) => ctx.non_negative_with(n, &f.key("rest_length"), &[("auto", auto)])?,
                 };
                 f.finish(ctx, &["type", "name", "points", "stiffness", "rest_length", "damping"])?;
                 if stiffness == 0.0 && damping == 0.0 {
