@@ -91,12 +91,7 @@ impl<'a> Ctx<'a> {
         key: &str,
         extra: &[(&str, f64)],
     ) -> Result<f64, SceneError> {
-        let v = self.num(node, key, extra)?;
-        if v > 0.0 {
-            Ok(v)
-        } else {
-            Err(self.err(node.line, key, format!("must be positive, got {v}")))
-        }
+        self.bounded(node, key, extra, |v| v > 0.0, "must be positive")
     }
 
     /// A number that must be ≥ 0.
@@ -111,11 +106,23 @@ impl<'a> Ctx<'a> {
         key: &str,
         extra: &[(&str, f64)],
     ) -> Result<f64, SceneError> {
+        self.bounded(node, key, extra, |v| v >= 0.0, "must not be negative")
+    }
+
+    /// A number that `holds`, or the error `what` with the value.
+    fn bounded(
+        &self,
+        node: &Node,
+        key: &str,
+        extra: &[(&str, f64)],
+        holds: impl Fn(f64) -> bool,
+        what: &str,
+    ) -> Result<f64, SceneError> {
         let v = self.num(node, key, extra)?;
-        if v >= 0.0 {
+        if holds(v) {
             Ok(v)
         } else {
-            Err(self.err(node.line, key, format!("must not be negative, got {v}")))
+            Err(self.err(node.line, key, format!("{what}, got {v}")))
         }
     }
 
