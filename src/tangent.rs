@@ -61,7 +61,7 @@ struct RowSpace<'a> {
 fn row_space_scratch(model: &Model, cols: usize) -> StackReq {
     let (m, n, ma) = (model.m(), model.n(), model.active.len());
     let reals = [n * n, n * m, m * n, ma * n, ma, ma * ma, ma * n, n * ma, ma];
-    let products = [n, m, n * n, m * n, n * cols.max(n)];
+    let products = [n, m, n * n, m * n, n * n, n * n, n * cols.max(n)];
     StackReq::all_of(&reals.map(StackReq::new::<f64>))
         .and(StackReq::all_of(&products.map(StackReq::new::<f64>)))
 }
@@ -194,18 +194,31 @@ fn subtract_projector_derivative(
     let (m, n) = (model.m(), model.n());
     let (lambda, stack) = zeros(stack, m);
     let (w, stack) = zeros(stack, n * n);
-    let (jw, _) = zeros(stack, m * n);
+    let (jw, stack) = zeros(stack, m * n);
+    let (pw, stack) = zeros(stack, n * n);
+    let (gj, _) = zeros(stack, n * n);
     for (k, l) in lambda.iter_mut().enumerate() {
         *l = (0..n).map(|i| rows.pinv[i * m + k] * e[i]).sum();
     }
     model.add_all_weighted_hessians(q, lambda, w);
     model.jacobian_derivative_into(q, u, jw);
-    for i in 0..n {
-        for j in 0..n {
-            let pw: f64 = (0..n).map(|k| rows.p[i * n + k] * w[k * n + j]).sum();
-            let gj: f64 = (0..m).map(|k| rows.pinv[i * m + k] * jw[k * n + j]).sum();
-            block[i * n + j] -= pw + gj;
+    // P W + Φ_q⁺ Jw over the nonzeros of W and Jw (a few per row: each constraint
+    // involves a few coordinates), in ascending k as the dense sums: the same value.
+    let add = |a: &[f64], b: &[f64], inner: usize, sum: &mut [f64]| {
+        for k in 0..inner {
+            for (j, &bkj) in b[k * n..(k + 1) * n].iter().enumerate() {
+                if bkj != 0.0 {
+                    for i in 0..n {
+                        sum[i * n + j] += a[i * inner + k] * bkj;
+                    }
+                }
+            }
         }
+    };
+    add(rows.p, w, n, pw);
+    add(rows.pinv, jw, m, gj);
+    for ((b, p), g) in block.iter_mut().zip(pw.iter()).zip(gj.iter()) {
+        *b -= p + g;
     }
 }
 
@@ -309,13 +322,23 @@ impl Factor for Projected {
         multiply_vector(rows.p, n, n, r, u);
         if let Some(j) = jac {
             let (product, stack) = zeros(stack, j.iter().map(Vec::len).max().unwrap_or(0));
-            for block in j[..inner_keys].iter_mut() {
+            for (a, block) in j[..inner_keys].iter_mut().enumerate() {
                 let cols = block.len() / n;
-                for i in 0..n {
-                    for k in 0..cols {
-                        product[i * cols + k] = (0..n)
-                            .map(|l| rows.p[i * n + l] * block[l * cols + k])
-                            .sum();
+                if self.inner.diagonal_jacobian(a) && cols == n {
+                    // P diag(d): P's columns scaled (the dense product's only
+                    // nonzero term).
+                    for i in 0..n {
+                        for k in 0..n {
+                            product[i * n + k] = rows.p[i * n + k] * block[k * n + k];
+                        }
+                    }
+                } else {
+                    for i in 0..n {
+                        for k in 0..cols {
+                            product[i * cols + k] = (0..n)
+                                .map(|l| rows.p[i * n + l] * block[l * cols + k])
+                                .sum();
+                        }
                     }
                 }
                 let len = block.len();
