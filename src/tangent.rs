@@ -98,13 +98,18 @@ fn row_space<'a>(
     // Â⁺ = Âᵀ(ÂÂᵀ)⁻¹ by Cholesky while the Gram matrix is well conditioned (the
     // usual case), the SVD otherwise: near a singular configuration the Gram matrix
     // squares a large condition number.
+    // Over row i's nonzeros (a few: each constraint involves a few coordinates), in
+    // ascending order as the dense dot product: the same sums.
     for i in 0..ma {
+        let row = &a[i * n..(i + 1) * n];
         for j in 0..=i {
-            let g = dense::dot(
-                &a[i * n..(i + 1) * n],
-                &a[j * n..(j + 1) * n],
-                dense::Summation::Sequential,
-            );
+            let other = &a[j * n..(j + 1) * n];
+            let g: f64 = row
+                .iter()
+                .zip(other)
+                .filter(|(x, _)| **x != 0.0)
+                .map(|(x, y)| x * y)
+                .sum();
             gram[i * ma + j] = g;
             gram[j * ma + i] = g;
         }
@@ -128,11 +133,19 @@ fn row_space<'a>(
     } else {
         svd_pseudo_inverse(a, ma, n, pinv_hat);
     }
-    // P = I − Â⁺Â.
+    // P = I − Â⁺Â, Â⁺Â over Â's nonzeros in ascending k as the dense sums.
+    for k in 0..ma {
+        for (j, &akj) in a[k * n..(k + 1) * n].iter().enumerate() {
+            if akj != 0.0 {
+                for i in 0..n {
+                    p[i * n + j] += pinv_hat[i * ma + k] * akj;
+                }
+            }
+        }
+    }
     for i in 0..n {
         for j in 0..n {
-            let pa: f64 = (0..ma).map(|k| pinv_hat[i * ma + k] * a[k * n + j]).sum();
-            p[i * n + j] = f64::from(u8::from(i == j)) - pa;
+            p[i * n + j] = f64::from(u8::from(i == j)) - p[i * n + j];
         }
     }
     for (i, &k) in model.active.iter().enumerate() {
