@@ -45,8 +45,8 @@ pub enum DcIntegrators {
 /// squeezer (0.1 ms), 46× on a light link driven by a flywheel, 2–6× on the double
 /// pendulum and the compressor slider-crank; 1.3–1.6× closer on the four-bar family
 /// alone. Their projector is dense, n × n a factor per evaluation: from about 20
-/// coordinates on a one-step window costs more with them (7× at the 40 four-bar
-/// loops' 83), where the paper's keep their own cost.
+/// coordinates on a one-step window costs more with them (1.3× at 23, 1.9× at 43 and
+/// at the 40 four-bar loops' 83), where the paper's keep their own cost.
 pub const AUTO_TANGENT_BELOW: usize = 20;
 
 /// Standard deviations of the soft factors. Constraint factors (f_pc, f_vc, f^i_ac)
