@@ -208,6 +208,8 @@ impl Parser {
         }
         let arg: String = self.chars[start..self.pos].iter().collect();
         if self.peek() != Some(')') {
+            // The name quoted at most QUOTE characters long: a message is one short line.
+            let arg = excerpt(&arg, QUOTE);
             return Err(self.error(format!("missing ')' after {accessor}({arg}")));
         }
         self.pos += 1;
@@ -274,6 +276,14 @@ mod tests {
             ev("2*3/4*5-1+L").unwrap(),
             ((2.0 * 3.0) / 4.0) * 5.0 - 1.0 + 2.0
         );
+    }
+
+    #[test]
+    fn a_long_name_in_an_unclosed_accessor_is_quoted_short() {
+        let text = format!("rate({}", "M".repeat(500));
+        let msg = Expr::parse(&text).unwrap_err().to_string();
+        assert!(msg.contains("missing ')' after rate("), "{msg}");
+        assert!(msg.chars().count() <= 120, "{msg}");
     }
 
     #[test]
