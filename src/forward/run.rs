@@ -294,8 +294,8 @@ fn simulate_integrators(
     };
     // The paper's factors ask more equations than a step has unknowns; where their
     // least-squares compromise does not converge, the tangent ones (one equation per
-    // unknown) usually do. Where tangent ones fail (their projector at a step
-    // whose positions are far from its prediction), the paper's may not.
+    // unknown) usually do; and where tangent ones fail, the paper's compromise is
+    // still worth a try.
     let failure = failure.clone();
     let tangent_first = options.tangent_dc(model.n());
     let mut other = options.clone();
