@@ -128,7 +128,7 @@ def scene_table(title, ref, prov, rows, t_end) -> str:
     lines = [f"## {title}\n",
              f"{t_end:g} s at dt = 1 ms, default noise models; the trapezoidal rule (the "
              f"paper's), and Hermite–Simpson (HS, fourth order) beside it. DC at the "
-             f"defaults (tangent integrator factors below 20 coordinates), and with the "
+             f"defaults (tangent integrator factors), and with the "
              f"paper's integrator factors (`--dc-integrators full`). Reference: "
              f"{prov['generator']} ({prov.get('formulation', '')}), cross-checked by {checks}.\n"]
     head = ("| N_w | DC RMSE (m) | DC, paper's factors, RMSE (m) | IC RMSE (m) |"

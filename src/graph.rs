@@ -309,6 +309,31 @@ pub struct ChainGraph {
     /// ([`crate::smoother::fixed_lag_streaming`]); 0 otherwise. [`ChainGraph::time`]
     /// adds it, so that a step's time is the same bits wherever its values sit.
     offset: std::sync::atomic::AtomicUsize,
+    /// A solver of one step given the step before, where the graph's steps have as
+    /// many equations as unknowns.
+    exact: Option<Box<dyn ExactStep>>,
+}
+
+/// What bounds a step's Newton iteration in an [`ExactStep`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepLimits {
+    /// At most this many linear solves.
+    pub max_iterations: usize,
+    /// Converged once a step moves every variable by at most this times (1 + |x|).
+    pub step_tolerance: f64,
+}
+
+/// One step of a graph whose steps have as many equations as unknowns, all of which
+/// hold at the solution, solved on its own given the step before: the same
+/// solution as a window's, by a route that knows the step's structure (a DC step's
+/// sparse square system, [`crate::forward`]). A step it declines goes to the
+/// general solver.
+pub trait ExactStep: Send + Sync {
+    /// Solves step `block` (guess in, solution out) at time `t`, given the step
+    /// before (`before`); the linear solves taken, or `None` where it declines or
+    /// does not converge (`block` is then unspecified).
+    fn solve(&self, t: f64, before: &[f64], block: &mut [f64], limits: StepLimits)
+        -> Option<usize>;
 }
 
 impl ChainGraph {
@@ -322,6 +347,7 @@ impl ChainGraph {
                 step: Vec::new(),
                 initial: Vec::new(),
                 offset: std::sync::atomic::AtomicUsize::new(0),
+                exact: None,
             },
         }
     }
@@ -378,6 +404,11 @@ impl ChainGraph {
             .store(offset, std::sync::atomic::Ordering::Relaxed);
     }
 
+    /// The graph's solver of one step given the step before, if it has one.
+    pub fn exact_step(&self) -> Option<&dyn ExactStep> {
+        self.exact.as_deref()
+    }
+
     /// Whether a step factor exists at `step` (its lagged variables must exist).
     pub fn exists_at(factor: &dyn Factor, step: usize) -> bool {
         factor.keys().iter().all(|k| k.lag <= step)
@@ -410,6 +441,13 @@ impl ChainGraphBuilder {
     /// A soft factor at every step, weighted by 1/σ of `noise`.
     pub fn step_soft(mut self, factor: Box<dyn Factor>, noise: Noise) -> Self {
         self.graph.step.push(Term::Soft(factor, noise));
+        self
+    }
+
+    /// A solver of one step given the step before, for a graph whose steps have as
+    /// many equations as unknowns (the caller vouches for that).
+    pub fn exact_step(mut self, exact: Box<dyn ExactStep>) -> Self {
+        self.graph.exact = Some(exact);
         self
     }
 

@@ -3,7 +3,7 @@
 //! prior on the ones that remain) and the batch solve of the whole horizon.
 
 use crate::error::{Error, Result};
-use crate::graph::ChainGraph;
+use crate::graph::{ChainGraph, StepLimits};
 use crate::solver::{LinearPrior, Past, Settings, SolveReport, Termination, WindowSolver};
 
 /// How a horizon is solved.
@@ -19,6 +19,32 @@ pub enum Mode {
 pub enum Next {
     Continue,
     Stop,
+}
+
+/// Step k of `values` solved by the graph's [`ExactStep`] given step k − 1, if it
+/// has one and it converges; else step k keeps its guess and `None` is returned.
+fn exact_step(
+    graph: &ChainGraph,
+    values: &mut [f64],
+    k: usize,
+    settings: &Settings,
+) -> Option<SolveReport> {
+    let exact = graph.exact_step()?;
+    let s = graph.layout().size();
+    let (before, block) = values[(k - 1) * s..(k + 1) * s].split_at_mut(s);
+    let guess = block.to_vec();
+    let limits = StepLimits {
+        max_iterations: settings.max_iterations,
+        step_tolerance: settings.step_tolerance,
+    };
+    match exact.solve(graph.time(k), before, block, limits) {
+        // Its equations hold to round-off: a cost of zero.
+        Some(iterations) => Some(SolveReport::new(Termination::Converged, iterations, 0.0)),
+        None => {
+            block.copy_from_slice(&guess);
+            None
+        }
+    }
 }
 
 /// Runs the fixed-lag smoother over steps 0..steps of `values` (step-major; step 0
@@ -216,7 +242,10 @@ fn run_fixed_lag(
             k0 = k;
             start.clear();
             start.extend_from_slice(&values[(k - 1) * s..(k + 1) * s]);
-            let mut report = solver.solve_conditional(graph, values, k, k + 1)?;
+            let mut report = match exact_step(graph, values, k, solver.settings()) {
+                Some(report) => report,
+                None => solver.solve_conditional(graph, values, k, k + 1)?,
+            };
             if report.termination != Termination::Converged {
                 report =
                     solve_from_rescue(values, s, &start, k - 1, k0, k, report, &mut rescue, |v| {

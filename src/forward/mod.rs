@@ -5,6 +5,7 @@
 //! `options` holds what a run is asked, `graph` the factor graph, `run` and
 //! `segment` the run over the horizon, `failure` and `summary` what it reports.
 
+mod exact_step;
 mod failure;
 mod graph;
 mod options;

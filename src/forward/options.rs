@@ -19,13 +19,9 @@ pub enum Integrator {
 /// What the integrator factors ask of a step in dependent coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum DcIntegrators {
-    /// [`DcIntegrators::Tangent`] below [`AUTO_TANGENT_BELOW`] coordinates (and for
-    /// Hermite–Simpson at any size), the paper's [`DcIntegrators::Full`] from there on
-    /// ([`ForwardOptions::tangent_dc`]). A run in which a solve fails with the first
-    /// (not at an ill-posed configuration, not interrupted; a batch solve with the
-    /// paper's: within [`AUTO_BATCH_ITERATIONS`](super::segment::AUTO_BATCH_ITERATIONS))
-    /// is run again with the other, and
-    /// [`RunSummary::tangent_after`](super::summary::RunSummary::tangent_after) or
+    /// [`DcIntegrators::Tangent`] ([`ForwardOptions::tangent_dc`]). A run in which a
+    /// solve fails with them (not at an ill-posed configuration, not interrupted) is
+    /// run again with the paper's [`DcIntegrators::Full`], and
     /// [`RunSummary::full_after`](super::summary::RunSummary::full_after) says so.
     Auto,
     /// Only along the directions the constraints leave free (see [`crate::tangent`]):
@@ -36,18 +32,6 @@ pub enum DcIntegrators {
     /// step, solved as a least-squares compromise weighted by the σ's.
     Full,
 }
-
-/// Coordinates from which [`DcIntegrators::Auto`] starts with the paper's integrator
-/// factors instead of tangent ones. Tangent factors hold exactly where the paper's
-/// settle on a least-squares compromise between integrators and constraints, and
-/// that compromise bends fast motion: at dt = 1 ms the paper's factors ended 16×
-/// further from IDA than tangent ones on a driven Watt six-bar, 33× on Andrews'
-/// squeezer (0.1 ms), 46× on a light link driven by a flywheel, 2–6× on the double
-/// pendulum and the compressor slider-crank; 1.3–1.6× closer on the four-bar family
-/// alone. Their projector is dense, n × n a factor per evaluation: from about 20
-/// coordinates on a one-step window costs more with them (1.3× at 23, 1.9× at 43 and
-/// at the 40 four-bar loops' 83), where the paper's keep their own cost.
-pub const AUTO_TANGENT_BELOW: usize = 20;
 
 /// Standard deviations of the soft factors. Constraint factors (f_pc, f_vc, f^i_ac)
 /// and the priors on the initial state are hard: the solver satisfies them exactly
@@ -134,6 +118,12 @@ pub struct ForwardOptions {
     /// `dt / factor` and keep every `factor`-th state, so that the output stays on the
     /// grid asked for ([`RunSummary::refinement`](super::summary::RunSummary::refinement) says so).
     pub refine: bool,
+    /// Take each DC step with tangent integrators as a sparse square system where it
+    /// can (from [`EXACT_STEP_FROM`](super::exact_step::EXACT_STEP_FROM) coordinates,
+    /// away from singular configurations); `false` sends every step through the
+    /// general solver, for comparison. The solution is the same to the step
+    /// tolerance.
+    pub exact_steps: bool,
 }
 
 impl ForwardOptions {
@@ -153,6 +143,7 @@ impl ForwardOptions {
             },
             continue_on_failure: false,
             refine: true,
+            exact_steps: true,
         }
     }
 
@@ -163,17 +154,21 @@ impl ForwardOptions {
         self.coordinates == Coordinates::Independent || self.tangent_dc(n)
     }
 
-    /// Whether the integrator factors of dependent coordinates, for a model of `n`
-    /// coordinates, are projected on the tangent space: asked for, or under `auto`
-    /// below [`AUTO_TANGENT_BELOW`] coordinates and with Hermite–Simpson (its full
-    /// factors' least-squares compromise costs windows two orders of accuracy).
-    pub fn tangent_dc(&self, n: usize) -> bool {
+    /// Whether the integrator factors of dependent coordinates are projected on the
+    /// tangent space: asked for, or under `auto`. Tangent factors hold exactly where
+    /// the paper's settle on a least-squares compromise between integrators and
+    /// constraints, and that compromise bends fast motion: at dt = 1 ms the paper's
+    /// factors ended 16× further from IDA than tangent ones on a driven Watt six-bar,
+    /// 33× on Andrews' squeezer (0.1 ms), 46× on a light link driven by a flywheel,
+    /// 2–6× on the double pendulum and the compressor slider-crank; 1.3–1.6× closer
+    /// on the four-bar family alone. From
+    /// [`EXACT_STEP_FROM`](super::exact_step::EXACT_STEP_FROM) coordinates on their
+    /// steps are solved as a sparse square system, at a cost that grows with the
+    /// number of bodies where the paper's grows with its square or more.
+    pub fn tangent_dc(&self, _n: usize) -> bool {
         match self.dc_integrators {
-            DcIntegrators::Tangent => true,
+            DcIntegrators::Tangent | DcIntegrators::Auto => true,
             DcIntegrators::Full => false,
-            DcIntegrators::Auto => {
-                self.integrator == Integrator::HermiteSimpson || n < AUTO_TANGENT_BELOW
-            }
         }
     }
 

@@ -142,7 +142,13 @@ pub(super) fn segment(
                     on_final: &mut on_final,
                 },
                 steps,
-                window,
+                // Steps taken exactly are the solution of every window length
+                // (each holds all its equations): one at a time, sparse.
+                if fg.graph.exact_step().is_some() {
+                    1
+                } else {
+                    window
+                },
                 settings,
                 |v, k| fg.predict(v, k),
                 |v, k| fg.substep_guess(&model, options, settings, first + at(k), v, k),
@@ -326,8 +332,18 @@ pub(super) fn segment(
                     // iterations, 35 s) where tangent ones converge in one.
                     settings.max_iterations = settings.max_iterations.min(AUTO_BATCH_ITERATIONS);
                 }
-                let report = smoother::batch(&fg.graph, &mut values, completed, settings)?;
-                run.iterations.push(report.iterations);
+                // Steps that hold all their equations (tangent integrators) make the
+                // N_w = 1 start the batch's solution: a large mechanism's is not
+                // solved again at the dense cost of the whole horizon's
+                // linearization only to confirm it.
+                let report = if fg.graph.exact_step().is_some() {
+                    run.iterations.extend(std::mem::take(&mut warm.iterations));
+                    SolveReport::new(Termination::Converged, 0, 0.0)
+                } else {
+                    let report = smoother::batch(&fg.graph, &mut values, completed, settings)?;
+                    run.iterations.push(report.iterations);
+                    report
+                };
                 if report.termination != Termination::Converged {
                     let k = completed - 1;
                     run.failures.push(StepFailure {

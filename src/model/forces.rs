@@ -628,6 +628,49 @@ impl Force {
         Ok(())
     }
 
+    /// The rows and columns of Q that [`Force::add_jacobians`] can write (the same for
+    /// ∂Q/∂q and ∂Q/∂q̇, whatever the state): `None` where any entry may be (a load
+    /// computed outside the scene). What a sparse Jacobian of Q reserves room for.
+    pub fn jacobian_pattern(&self, model: &Model) -> Option<(Vec<usize>, Vec<usize>)> {
+        let point = |p: usize| match model.points[p] {
+            PointSlot::Free(i) => vec![i, i + 1],
+            PointSlot::Fixed(_) => Vec::new(),
+        };
+        let load = |rows: Vec<usize>, loads: &[&Load]| {
+            let mut cols: Vec<usize> = loads
+                .iter()
+                .flat_map(|l| &l.quantities)
+                .flat_map(|quantity| match *quantity {
+                    Quantity::Coordinate(i) | Quantity::Rate(i) => vec![i],
+                    Quantity::Position { point: p, .. } | Quantity::Velocity { point: p, .. } => {
+                        point(p)
+                    }
+                    Quantity::Angle([a, b]) | Quantity::Omega([a, b]) => {
+                        [point(a), point(b)].concat()
+                    }
+                })
+                .collect();
+            cols.sort_unstable();
+            cols.dedup();
+            (rows, cols)
+        };
+        Some(match self {
+            Force::Gravity { .. } => (Vec::new(), Vec::new()),
+            Force::SpringDamper { points, .. } => {
+                let slots = [point(points[0]), point(points[1])].concat();
+                (slots.clone(), slots)
+            }
+            Force::RotationalSpringDamper { index, .. } | Force::Motor { index, .. } => {
+                (vec![*index], vec![*index])
+            }
+            Force::Torque { index, value } => load(vec![*index], &[value]),
+            Force::PointForce { index, value } => {
+                load(vec![*index, index + 1], &[&value[0], &value[1]])
+            }
+            Force::External { .. } => return None,
+        })
+    }
+
     /// Potential energy of conservative effects (0 for the others).
     pub fn potential(&self, model: &Model, q: &[f64]) -> f64 {
         match self {

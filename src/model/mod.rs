@@ -79,6 +79,11 @@ impl Constraint {
         self.index[..self.equation.len()].iter().flatten().copied()
     }
 
+    /// For each local coordinate, its index in q (`None` for a fixed point's).
+    pub fn local_index(&self) -> &[Option<usize>] {
+        &self.index[..self.equation.len()]
+    }
+
     /// The local vector u of positions.
     pub fn gather(&self, q: &[f64], u: &mut [f64; MAX_LOCAL]) {
         for k in 0..self.equation.len() {

@@ -1,0 +1,819 @@
+//! One step of a dependent-coordinate run with tangent integrators, solved as the
+//! square system it is, with a sparse Jacobian: per-step cost that grows with the
+//! number of bodies, not with its cube.
+//!
+//! With tangent integrators a DC step has as many equations as unknowns and they
+//! hold exactly (see [`crate::tangent`]): Φ(q) = 0, Φ_q q̇ = 0, f_dyn = 0, and the
+//! projected integrators P(q) e = 0. Each projection is dense (P couples every
+//! coordinate of a chain), but P e = 0 says e lies in the row space of Φ_q, that is
+//! e = Φ_qᵀμ for a multiplier μ; and f_dyn = 0 is the augmented system with its
+//! multiplier λ. So the step is also the root of
+//!
+//! ```text
+//!   Φ(q) = 0                       Φ_q q̈ + q̇ᵀΦ_qq q̇ = 0
+//!   Φ_q q̇ = 0                      M q̈ + Φ_qᵀλ − Q(q, q̇, t) = 0
+//!   e_q(q, q̇) − Φ_qᵀμ₁ = 0         e_v(q̇, q̈) − Φ_qᵀμ₂ = 0
+//! ```
+//!
+//! (active constraints only; e_q, e_v the trapezoidal or Euler residuals of the
+//! positions and velocities), whose Jacobian has a few nonzeros per row: Newton's
+//! method with faer's sparse LU, its symbolic analysis done once per mechanism.
+//!
+//! The general solver's dynamics regularize the augmented system near a singular
+//! configuration (see [`crate::dynamics::DynamicsKernel`]); there the two systems
+//! differ. A step is therefore taken from here only where the kernel's measure of
+//! the distance to a rank loss, s = (tr G⁻¹)^(−1/2) with G the Gram matrix of the
+//! normalized rows of Φ_q, is at least [`DynamicsKernel::REGULAR_ABOVE`] at the
+//! solution (tr G⁻¹ by selected inversion of G's sparse Cholesky factor), and
+//! where Newton converges within a few iterations. Anything else (and every
+//! failure) goes back to the general solver.
+
+use crate::dynamics::DynamicsKernel;
+use crate::graph::{ExactStep, StepLimits};
+use crate::model::{Model, MAX_LOCAL};
+use crate::tangent::Rule;
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::linalg::lu::partial_pivoting::factor::PartialPivLuParams;
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymbolicCholeskyRaw,
+    SymmetricOrdering,
+};
+use faer::sparse::linalg::lu::{factorize_symbolic_lu, LuRef, NumericLu, SymbolicLu};
+use faer::sparse::linalg::SupernodalThreshold;
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
+use faer::{Conj, MatMut, Par, Side, Spec};
+use std::sync::{Arc, Mutex};
+
+/// Coordinates from which a DC run with tangent integrators takes its steps from
+/// here: below, the general solver's dense steps are as fast (criterion, the N
+/// four-bar chain).
+pub const EXACT_STEP_FROM: usize = 20;
+
+/// s must pass [`DynamicsKernel::REGULAR_ABOVE`] by this factor: the kernel
+/// computes it densely, in another order of rounding.
+const REGULAR_MARGIN: f64 = 1.001;
+
+/// Newton iterations after which a step goes back to the general solver: from a
+/// step's prediction Newton converges in two to four.
+const MAX_NEWTON: usize = 8;
+
+/// A compressed-column pattern and, for each entry the assembly emits (in its
+/// fixed order), where it adds up.
+struct Pattern {
+    size: usize,
+    col_ptr: Vec<usize>,
+    row_idx: Vec<usize>,
+    slots: Vec<usize>,
+}
+
+impl Pattern {
+    /// The pattern of the (row, column) pairs in emission order.
+    fn new(size: usize, emitted: &[(usize, usize)]) -> Pattern {
+        let mut order: Vec<usize> = (0..emitted.len()).collect();
+        order.sort_unstable_by_key(|&t| (emitted[t].1, emitted[t].0));
+        let mut col_ptr = vec![0; size + 1];
+        let mut row_idx = Vec::new();
+        let mut slots = vec![0; emitted.len()];
+        let mut last = None;
+        for &t in &order {
+            let (row, col) = emitted[t];
+            if last != Some((row, col)) {
+                row_idx.push(row);
+                col_ptr[col + 1] += 1;
+                last = Some((row, col));
+            }
+            slots[t] = row_idx.len() - 1;
+        }
+        for c in 0..size {
+            col_ptr[c + 1] += col_ptr[c];
+        }
+        Pattern {
+            size,
+            col_ptr,
+            row_idx,
+            slots,
+        }
+    }
+
+    fn symbolic(&self) -> SymbolicSparseColMatRef<'_, usize> {
+        SymbolicSparseColMatRef::new_checked(
+            self.size,
+            self.size,
+            &self.col_ptr,
+            None,
+            &self.row_idx,
+        )
+    }
+}
+
+/// Where the emitted entries go: collected as a pattern, or added into the values.
+enum Sink<'a> {
+    Pattern(&'a mut Vec<(usize, usize)>),
+    Values {
+        slots: &'a [usize],
+        values: &'a mut [f64],
+        next: usize,
+    },
+}
+
+impl Sink<'_> {
+    #[inline]
+    fn add(&mut self, row: usize, col: usize, value: f64) {
+        match self {
+            Sink::Pattern(list) => list.push((row, col)),
+            Sink::Values {
+                slots,
+                values,
+                next,
+            } => {
+                values[slots[*next]] += value;
+                *next += 1;
+            }
+        }
+    }
+}
+
+/// The scratch of the regularity test: G, its Cholesky factor and G⁻¹ on the
+/// factor's pattern.
+struct GramWork {
+    values: Vec<f64>,
+    factor: Vec<f64>,
+    /// (LLᵀ)⁻¹ on L's pattern.
+    inverse: Vec<f64>,
+    memory: MemBuffer,
+}
+
+/// The scratch of one step's Newton iteration.
+struct Work {
+    x: Vec<f64>,
+    residual: Vec<f64>,
+    values: Vec<f64>,
+    q_force: Vec<f64>,
+    kq: Vec<f64>,
+    kv: Vec<f64>,
+    numeric: NumericLu<usize, f64>,
+    lu_memory: MemBuffer,
+    solve_memory: MemBuffer,
+    gram: GramWork,
+    /// The multipliers of the last step solved: the next step's first guess.
+    multipliers: Vec<f64>,
+}
+
+/// The equations of a DC step with tangent integrators (see the module's
+/// documentation): residual and Jacobian.
+struct System {
+    model: Arc<Model>,
+    rule: Rule,
+    dt: f64,
+    /// The nonzeros of M: (row, column, value).
+    mass: Vec<(usize, usize, f64)>,
+    /// (row, column) of the entries of ∂Q/∂q and ∂Q/∂q̇ any effect can write.
+    force_entries: Vec<(usize, usize)>,
+}
+
+/// The square system of a DC step with tangent integrators, with its sparsity
+/// analysed once.
+pub struct DcExactStep {
+    system: System,
+    jacobian: Pattern,
+    lu: SymbolicLu<usize>,
+    /// The lower triangle of G = ÂÂᵀ: per entry the pair of active rows (i, j ≤ i)
+    /// and the pairs of their local coordinates that are one coordinate of q.
+    gram_entries: Vec<GramEntry>,
+    gram: Pattern,
+    cholesky: SymbolicCholesky<usize>,
+    work: Mutex<Work>,
+}
+
+impl DcExactStep {
+    /// The step system of `model` for `rule` at `dt`; `None` where its sparse
+    /// analysis fails (the general solver then takes every step).
+    pub fn new(model: Arc<Model>, rule: Rule, dt: f64) -> Option<DcExactStep> {
+        let (n, ma) = (model.n(), model.active.len());
+        let size = 3 * n + 3 * ma;
+        let mut force_entries = Vec::new();
+        for force in &model.forces {
+            match force.jacobian_pattern(&model) {
+                Some((rows, cols)) => {
+                    for &r in &rows {
+                        force_entries.extend(cols.iter().map(|&c| (r, c)));
+                    }
+                }
+                None => force_entries.extend((0..n).flat_map(|r| (0..n).map(move |c| (r, c)))),
+            }
+        }
+        force_entries.sort_unstable();
+        force_entries.dedup();
+        let mass = (0..n)
+            .flat_map(|i| (0..n).map(move |j| (i, j)))
+            .filter_map(|(i, j)| {
+                let m = model.mass[(i, j)];
+                (m != 0.0).then_some((i, j, m))
+            })
+            .collect();
+        let system = System {
+            model,
+            rule,
+            dt,
+            mass,
+            force_entries,
+        };
+        // The Jacobian's pattern from one structural pass of its assembly.
+        let mut emitted = Vec::new();
+        let x = vec![0.0; size];
+        let dense = if system.force_entries.is_empty() {
+            0
+        } else {
+            n * n
+        };
+        let (kq, kv) = (vec![0.0; dense], vec![0.0; dense]);
+        system.assemble(&x, &kq, &kv, &mut Sink::Pattern(&mut emitted));
+        let jacobian = Pattern::new(size, &emitted);
+        let lu = factorize_symbolic_lu(jacobian.symbolic(), Default::default()).ok()?;
+        let gram_entries = gram_entries(&system.model);
+        let lower: Vec<(usize, usize)> = gram_entries.iter().map(|e| (e.0, e.1)).collect();
+        let gram = Pattern::new(ma, &lower);
+        let cholesky = factorize_symbolic_cholesky(
+            gram.symbolic(),
+            Side::Lower,
+            SymmetricOrdering::Amd,
+            // Simplicial: its factor's columns are what the selected inversion reads.
+            CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SIMPLICIAL,
+                ..Default::default()
+            },
+        )
+        .ok()?;
+        let params: Spec<PartialPivLuParams, f64> = Default::default();
+        let work = Work {
+            x,
+            residual: vec![0.0; size],
+            values: vec![0.0; jacobian.row_idx.len()],
+            q_force: vec![0.0; n],
+            kq,
+            kv,
+            numeric: NumericLu::new(),
+            lu_memory: MemBuffer::new(lu.factorize_numeric_lu_scratch::<f64>(Par::Seq, params)),
+            solve_memory: MemBuffer::new(lu.solve_in_place_scratch::<f64>(1, Par::Seq)),
+            gram: GramWork {
+                values: vec![0.0; gram.row_idx.len()],
+                factor: vec![0.0; cholesky.len_val()],
+                inverse: vec![0.0; cholesky.len_val()],
+                memory: MemBuffer::new(
+                    cholesky.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
+                ),
+            },
+            multipliers: vec![0.0; 3 * ma],
+        };
+        Some(DcExactStep {
+            system,
+            jacobian,
+            lu,
+            gram_entries,
+            gram,
+            cholesky,
+            work: Mutex::new(work),
+        })
+    }
+}
+
+impl System {
+    /// Emits the Jacobian of the step system at `x` into `sink` (∂Q/∂q and ∂Q/∂q̇
+    /// in `kq`, `kv`, row-major n × n, read at `force_entries` only).
+    fn assemble(&self, x: &[f64], kq: &[f64], kv: &[f64], sink: &mut Sink) {
+        let model = &*self.model;
+        let (n, ma) = (model.n(), model.active.len());
+        let (q, v, a) = (&x[..n], &x[n..2 * n], &x[2 * n..3 * n]);
+        let mult = &x[3 * n..];
+        // Rows: Φ, Φ_q q̇, the acceleration equations, then M q̈ + Φ_qᵀλ − Q and
+        // the two integrators. Columns: q, q̇, q̈, λ, μ₁, μ₂.
+        let (r_vel, r_acc, r_dyn, r_pos_int, r_vel_int) =
+            (ma, 2 * ma, 3 * ma, 3 * ma + n, 3 * ma + 2 * n);
+        let (c_lambda, c_mu1, c_mu2) = (3 * n, 3 * n + ma, 3 * n + 2 * ma);
+        let half = match self.rule {
+            Rule::Trapezoidal => 0.5 * self.dt,
+            Rule::Euler => 0.0,
+        };
+        for i in 0..n {
+            sink.add(r_pos_int + i, i, 1.0);
+            sink.add(r_vel_int + i, n + i, 1.0);
+            if self.rule == Rule::Trapezoidal {
+                sink.add(r_pos_int + i, n + i, -half);
+                sink.add(r_vel_int + i, 2 * n + i, -half);
+            }
+        }
+        for &(i, j, mass) in &self.mass {
+            sink.add(r_dyn + i, 2 * n + j, mass);
+        }
+        for &(r, c) in &self.force_entries {
+            sink.add(r_dyn + r, c, -kq[r * n + c]);
+            sink.add(r_dyn + r, n + c, -kv[r * n + c]);
+        }
+        let mut local = Local::default();
+        for (row, &k) in model.active.iter().enumerate() {
+            let c = &model.constraints[k];
+            local.at(c, q, v, a);
+            let len = local.len;
+            let index = c.local_index();
+            let (lambda, mu1, mu2) = (mult[row], mult[ma + row], mult[2 * ma + row]);
+            for (p, ip) in index.iter().enumerate() {
+                let Some(ip) = *ip else { continue };
+                let g = local.gradient[p];
+                sink.add(row, ip, g);
+                sink.add(r_vel + row, n + ip, g);
+                sink.add(r_acc + row, 2 * n + ip, g);
+                sink.add(r_dyn + ip, c_lambda + row, g);
+                sink.add(r_pos_int + ip, c_mu1 + row, -g);
+                sink.add(r_vel_int + ip, c_mu2 + row, -g);
+                // ∂(Φ_q q̇)/∂q = (Φ_qq q̇)ᵀ; the acceleration row's
+                // ∂/∂q = (Φ_qq q̈)ᵀ + ∂(q̇ᵀΦ_qq q̇)/∂q and ∂/∂q̇ = 2 (Φ_qq q̇)ᵀ.
+                sink.add(r_vel + row, ip, local.hv[p]);
+                sink.add(r_acc + row, ip, local.ha[p] + local.third[p]);
+                sink.add(r_acc + row, n + ip, 2.0 * local.hv[p]);
+                for (s, is) in index.iter().enumerate() {
+                    let Some(is) = *is else { continue };
+                    // ∂(Φ_qᵀw)/∂q: entry (coordinate p, coordinate s) is w·H[p][s].
+                    let h = local.hessian[p * len + s];
+                    sink.add(r_dyn + ip, is, lambda * h);
+                    sink.add(r_pos_int + ip, is, -mu1 * h);
+                    sink.add(r_vel_int + ip, is, -mu2 * h);
+                }
+            }
+        }
+    }
+
+    /// The residual of the step system at `x`, given the step before (`before`: q,
+    /// q̇, q̈) and the generalized forces Q in `work.q_force`.
+    fn residual(&self, x: &[f64], before: &[f64], q_force: &[f64], out: &mut [f64]) {
+        let model = &*self.model;
+        let (n, ma) = (model.n(), model.active.len());
+        let (q, v, a) = (&x[..n], &x[n..2 * n], &x[2 * n..3 * n]);
+        let (qp, vp, ap) = (&before[..n], &before[n..2 * n], &before[2 * n..3 * n]);
+        let mult = &x[3 * n..];
+        let dt = self.dt;
+        let (r_dyn, r_pos_int, r_vel_int) = (3 * ma, 3 * ma + n, 3 * ma + 2 * n);
+        for i in 0..n {
+            out[r_dyn + i] = -q_force[i];
+            (out[r_pos_int + i], out[r_vel_int + i]) = match self.rule {
+                Rule::Trapezoidal => (
+                    q[i] - qp[i] - 0.5 * dt * (vp[i] + v[i]),
+                    v[i] - vp[i] - 0.5 * dt * (ap[i] + a[i]),
+                ),
+                Rule::Euler => (q[i] - qp[i] - dt * vp[i], v[i] - vp[i] - dt * ap[i]),
+            };
+        }
+        for &(i, j, mass) in &self.mass {
+            out[r_dyn + i] += mass * a[j];
+        }
+        let mut local = Local::default();
+        for (row, &k) in model.active.iter().enumerate() {
+            let c = &model.constraints[k];
+            local.at(c, q, v, a);
+            out[row] = local.phi;
+            let (mut vel, mut acc) = (0.0, 0.0);
+            for (p, ip) in c.local_index().iter().enumerate() {
+                let Some(ip) = *ip else { continue };
+                let g = local.gradient[p];
+                vel += g * v[ip];
+                acc += g * a[ip] + local.hv[p] * v[ip];
+                out[r_dyn + ip] += g * mult[row];
+                out[r_pos_int + ip] -= g * mult[ma + row];
+                out[r_vel_int + ip] -= g * mult[2 * ma + row];
+            }
+            out[ma + row] = vel;
+            out[2 * ma + row] = acc;
+        }
+    }
+}
+
+impl DcExactStep {
+    /// Whether the active rows of Φ_q at q are far enough from a rank loss that the
+    /// dynamics kernel uses the plain augmented system: its measure
+    /// s = (tr G⁻¹)^(−1/2) at least [`DynamicsKernel::REGULAR_ABOVE`] (with a
+    /// margin for rounding), tr G⁻¹ from the sparse Cholesky factor of G.
+    fn regular(&self, q: &[f64], gram: &mut GramWork) -> bool {
+        self.distance_to_rank_loss(q, gram) >= REGULAR_MARGIN * DynamicsKernel::REGULAR_ABOVE
+    }
+
+    /// The dynamics kernel's s at q (0 where G does not factor).
+    fn distance_to_rank_loss(&self, q: &[f64], gram: &mut GramWork) -> f64 {
+        let model = &*self.system.model;
+        let ma = model.active.len();
+        if ma == 0 {
+            return f64::INFINITY;
+        }
+        let mut gradients = vec![[0.0; MAX_LOCAL]; ma];
+        let mut u = [0.0; MAX_LOCAL];
+        for (row, &k) in model.active.iter().enumerate() {
+            let c = &model.constraints[k];
+            c.gather(q, &mut u);
+            c.equation.gradient(&u, &mut gradients[row]);
+        }
+        // AAᵀ over the shared coordinates (a coordinate a row holds twice adds up),
+        // the row norms from its diagonal, then G.
+        let dots: Vec<f64> = self
+            .gram_entries
+            .iter()
+            .map(|(i, j, shared)| {
+                shared
+                    .iter()
+                    .map(|&(p, s)| gradients[*i][p] * gradients[*j][s])
+                    .sum()
+            })
+            .collect();
+        let mut norms = vec![0.0; ma];
+        for ((i, j, _), dot) in self.gram_entries.iter().zip(&dots) {
+            if i == j {
+                norms[*i] = dot.sqrt();
+            }
+        }
+        if !norms.iter().all(|v| *v > 0.0 && v.is_finite()) {
+            return 0.0;
+        }
+        gram.values.fill(0.0);
+        for (t, ((i, j, _), dot)) in self.gram_entries.iter().zip(&dots).enumerate() {
+            gram.values[self.gram.slots[t]] += dot / (norms[*i] * norms[*j]);
+        }
+        let matrix = SparseColMatRef::new(self.gram.symbolic(), &gram.values);
+        let factored = self.cholesky.factorize_numeric_llt(
+            &mut gram.factor,
+            matrix,
+            Side::Lower,
+            LltRegularization::default(),
+            Par::Seq,
+            MemStack::new(&mut gram.memory),
+            Default::default(),
+        );
+        let SymbolicCholeskyRaw::Simplicial(l) = self.cholesky.raw() else {
+            return 0.0;
+        };
+        if factored.is_err() {
+            return 0.0;
+        }
+        let trace = inverse_trace(l.col_ptr(), l.row_idx(), &gram.factor, &mut gram.inverse);
+        trace.map_or(0.0, |t| t.recip().sqrt())
+    }
+
+    /// The residual (`work.residual`) and the Jacobian's values (`work.values`) of
+    /// the step system at `work.x`; `None` where an effect cannot be evaluated or
+    /// either is not finite.
+    fn linearize(&self, t: f64, before: &[f64], work: &mut Work) -> Option<()> {
+        let system = &self.system;
+        let model = &*system.model;
+        let n = model.n();
+        let (q, v) = (&work.x[..n], &work.x[n..2 * n]);
+        work.q_force.fill(0.0);
+        for force in &model.forces {
+            force.add_to(model, q, v, t, &mut work.q_force).ok()?;
+        }
+        if !system.force_entries.is_empty() {
+            for force in &model.forces {
+                force
+                    .add_jacobians(model, (q, v, t), &mut work.kq, &mut work.kv)
+                    .ok()?;
+            }
+        }
+        system.residual(&work.x, before, &work.q_force, &mut work.residual);
+        work.values.fill(0.0);
+        system.assemble(
+            &work.x,
+            &work.kq,
+            &work.kv,
+            &mut Sink::Values {
+                slots: &self.jacobian.slots,
+                values: &mut work.values,
+                next: 0,
+            },
+        );
+        for &(r, c) in &system.force_entries {
+            work.kq[r * n + c] = 0.0;
+            work.kv[r * n + c] = 0.0;
+        }
+        work.values
+            .iter()
+            .chain(&work.residual)
+            .all(|v| v.is_finite())
+            .then_some(())
+    }
+
+    /// Newton's method on the step system from the guess in `block`; the
+    /// iterations taken when it converged.
+    fn newton(
+        &self,
+        t: f64,
+        before: &[f64],
+        block: &mut [f64],
+        limits: StepLimits,
+        work: &mut Work,
+    ) -> Option<usize> {
+        let system = &self.system;
+        let model = &*system.model;
+        let (n, ma) = (model.n(), model.active.len());
+        let size = 3 * n + 3 * ma;
+        work.x[..3 * n].copy_from_slice(&block[..3 * n]);
+        work.x[3 * n..].copy_from_slice(&work.multipliers);
+        let params: Spec<PartialPivLuParams, f64> = Default::default();
+        for iteration in 1..=limits.max_iterations.min(MAX_NEWTON) {
+            self.linearize(t, before, work)?;
+            let matrix = SparseColMatRef::new(self.jacobian.symbolic(), &work.values);
+            self.lu
+                .factorize_numeric_lu(
+                    &mut work.numeric,
+                    matrix,
+                    Par::Seq,
+                    MemStack::new(&mut work.lu_memory),
+                    params,
+                )
+                .ok()?;
+            let lu = LuRef::new_unchecked(&self.lu, &work.numeric);
+            let rhs = MatMut::from_column_major_slice_mut(&mut work.residual, size, 1);
+            lu.solve_in_place_with_conj(
+                Conj::No,
+                rhs,
+                Par::Seq,
+                MemStack::new(&mut work.solve_memory),
+            );
+            let mut small = true;
+            for (xi, di) in work.x.iter_mut().zip(&work.residual) {
+                if !di.is_finite() {
+                    return None;
+                }
+                *xi -= di;
+            }
+            for (xi, di) in work.x[..3 * n].iter().zip(&work.residual) {
+                small &= di.abs() <= limits.step_tolerance * (1.0 + xi.abs());
+            }
+            if small {
+                if !self.regular(&work.x[..n], &mut work.gram) {
+                    return None;
+                }
+                block[..3 * n].copy_from_slice(&work.x[..3 * n]);
+                let multipliers = work.x[3 * n..].to_vec();
+                work.multipliers.copy_from_slice(&multipliers);
+                return Some(iteration);
+            }
+        }
+        None
+    }
+}
+
+impl ExactStep for DcExactStep {
+    fn solve(
+        &self,
+        t: f64,
+        before: &[f64],
+        block: &mut [f64],
+        limits: StepLimits,
+    ) -> Option<usize> {
+        let mut work = self.work.lock().ok()?;
+        let solved = self.newton(t, before, block, limits, &mut work);
+        if solved.is_none() {
+            // The next step starts its multipliers afresh.
+            work.multipliers.fill(0.0);
+        }
+        solved
+    }
+}
+
+/// One active constraint's local quantities at (q, q̇, q̈): Φ, ∇Φ, Φ_qq (row-major
+/// len × len), Φ_qq q̇, Φ_qq q̈ and ∂(q̇ᵀΦ_qq q̇)/∂q.
+struct Local {
+    len: usize,
+    phi: f64,
+    gradient: [f64; MAX_LOCAL],
+    hessian: [f64; MAX_LOCAL * MAX_LOCAL],
+    hv: [f64; MAX_LOCAL],
+    ha: [f64; MAX_LOCAL],
+    third: [f64; MAX_LOCAL],
+}
+
+impl Default for Local {
+    fn default() -> Local {
+        Local {
+            len: 0,
+            phi: 0.0,
+            gradient: [0.0; MAX_LOCAL],
+            hessian: [0.0; MAX_LOCAL * MAX_LOCAL],
+            hv: [0.0; MAX_LOCAL],
+            ha: [0.0; MAX_LOCAL],
+            third: [0.0; MAX_LOCAL],
+        }
+    }
+}
+
+impl Local {
+    fn at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64], a: &[f64]) {
+        let len = c.equation.len();
+        self.len = len;
+        let (mut u, mut w, mut acc, mut e) = (
+            [0.0; MAX_LOCAL],
+            [0.0; MAX_LOCAL],
+            [0.0; MAX_LOCAL],
+            [0.0; MAX_LOCAL],
+        );
+        c.gather(q, &mut u);
+        c.gather_rate(v, &mut w);
+        c.gather_rate(a, &mut acc);
+        self.phi = c.equation.phi(&u);
+        c.equation.gradient(&u, &mut self.gradient);
+        c.equation.hessian_times(&u, &w, &mut self.hv);
+        c.equation.hessian_times(&u, &acc, &mut self.ha);
+        c.equation.third_order(&u, &w, &mut self.third);
+        let mut column = [0.0; MAX_LOCAL];
+        for s in 0..len {
+            e[..len].fill(0.0);
+            e[s] = 1.0;
+            c.equation.hessian_times(&u, &e, &mut column);
+            for p in 0..len {
+                self.hessian[p * len + s] = column[p];
+            }
+        }
+    }
+}
+
+/// An entry of G's lower triangle: rows (i, j ≤ i) and the pairs of their local
+/// coordinates that are one coordinate of q.
+type GramEntry = (usize, usize, Vec<(usize, usize)>);
+
+/// tr (LLᵀ)⁻¹ of the sparse lower-triangular L (compressed columns, each column's
+/// diagonal first, rows ascending) by selected inversion (Takahashi's equations):
+/// the entries of Z = (LLᵀ)⁻¹ on L's pattern, last column first, each from the ones
+/// after it, in as many operations as Σⱼ (nonzeros of column j)². `None` where L
+/// is not laid out so.
+fn inverse_trace(col_ptr: &[usize], row_idx: &[usize], l: &[f64], z: &mut [f64]) -> Option<f64> {
+    let size = col_ptr.len() - 1;
+    // Z's entry (i, k), i ≥ k, on L's pattern (closed under the elimination tree,
+    // so every entry the recurrence reads is there).
+    let find = |i: usize, k: usize| -> Option<usize> {
+        let (row, col) = if i >= k { (i, k) } else { (k, i) };
+        let range = col_ptr[col]..col_ptr[col + 1];
+        row_idx[range.clone()]
+            .binary_search(&row)
+            .ok()
+            .map(|p| range.start + p)
+    };
+    let mut trace = 0.0;
+    for j in (0..size).rev() {
+        let (start, end) = (col_ptr[j], col_ptr[j + 1]);
+        if row_idx.get(start) != Some(&j) || !(l[start] > 0.0) {
+            return None;
+        }
+        let diagonal = l[start];
+        for e in (start + 1..end).rev() {
+            let i = row_idx[e];
+            let mut sum = 0.0;
+            for f in start + 1..end {
+                sum += l[f] * z[find(i, row_idx[f])?];
+            }
+            z[e] = -sum / diagonal;
+        }
+        let sum: f64 = (start + 1..end).map(|f| l[f] * z[f]).sum();
+        z[start] = (1.0 / diagonal - sum) / diagonal;
+        trace += z[start];
+    }
+    Some(trace)
+}
+
+/// The lower triangle of G = ÂÂᵀ over the active rows: (i, j ≤ i, the local
+/// coordinate pairs of rows j and i that are one coordinate of q).
+fn gram_entries(model: &Model) -> Vec<GramEntry> {
+    let ma = model.active.len();
+    let mut rows_of = vec![Vec::new(); model.n()];
+    for (row, &k) in model.active.iter().enumerate() {
+        for (p, ip) in model.constraints[k].local_index().iter().enumerate() {
+            if let Some(ip) = *ip {
+                rows_of[ip].push((row, p));
+            }
+        }
+    }
+    let mut pairs: Vec<(usize, usize, usize, usize)> = Vec::new();
+    for list in &rows_of {
+        for &(i, p) in list {
+            for &(j, s) in list {
+                if j <= i {
+                    pairs.push((i, j, p, s));
+                }
+            }
+        }
+    }
+    pairs.sort_unstable();
+    let mut entries: Vec<GramEntry> = Vec::new();
+    for (i, j, p, s) in pairs {
+        match entries.last_mut() {
+            Some(last) if last.0 == i && last.1 == j => last.2.push((p, s)),
+            _ => entries.push((i, j, vec![(p, s)])),
+        }
+    }
+    // Every row's diagonal, even one whose gradient touches no free coordinate.
+    let mut diagonal = vec![false; ma];
+    for e in &entries {
+        diagonal[e.0] |= e.0 == e.1;
+    }
+    for (i, _) in diagonal.iter().enumerate().filter(|(_, d)| !**d) {
+        entries.push((i, i, Vec::new()));
+    }
+    entries
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::Scene;
+
+    fn step_of(scene: &str, rule: Rule) -> DcExactStep {
+        let path = format!("{}/scenes/{scene}", env!("CARGO_MANIFEST_DIR"));
+        let model = Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap());
+        DcExactStep::new(model, rule, 1e-3).unwrap()
+    }
+
+    /// A deterministic spread of values in (−1, 1).
+    fn wobble(i: usize) -> f64 {
+        ((i as f64 + 1.0) * 0.754_877_666).fract() * 2.0 - 1.0
+    }
+
+    /// The assembled Jacobian against central differences of the residual, at a
+    /// state off the manifold with nonzero multipliers (every term of every block).
+    fn check_jacobian(scene: &str, rule: Rule) {
+        let step = step_of(scene, rule);
+        let model = step.system.model.clone();
+        let (n, ma) = (model.n(), model.active.len());
+        let size = 3 * n + 3 * ma;
+        let mut x: Vec<f64> = (0..size).map(|i| 0.3 * wobble(i)).collect();
+        for i in 0..n {
+            x[i] = model.initial.q[i] + 0.01 * wobble(i + 7);
+        }
+        let before: Vec<f64> = (0..3 * n).map(|i| x[i % n] + 0.1 * wobble(i + 3)).collect();
+        let t = 0.37;
+        let mut work = step.work.lock().unwrap();
+        work.x.copy_from_slice(&x);
+        step.linearize(t, &before, &mut work).unwrap();
+        let mut dense = vec![0.0; size * size];
+        let pattern = &step.jacobian;
+        for col in 0..size {
+            for e in pattern.col_ptr[col]..pattern.col_ptr[col + 1] {
+                dense[pattern.row_idx[e] * size + col] = work.values[e];
+            }
+        }
+        let mut worst: f64 = 0.0;
+        for col in 0..size {
+            let h = 1e-6 * (1.0 + x[col].abs());
+            let mut residual_at = |value: f64| {
+                work.x.copy_from_slice(&x);
+                work.x[col] = value;
+                step.linearize(t, &before, &mut work).unwrap();
+                work.residual.clone()
+            };
+            let (plus, minus) = (residual_at(x[col] + h), residual_at(x[col] - h));
+            for row in 0..size {
+                let fd = (plus[row] - minus[row]) / (2.0 * h);
+                let err = (fd - dense[row * size + col]).abs() / (1.0 + fd.abs());
+                worst = worst.max(err);
+                assert!(
+                    err < 1e-6,
+                    "{scene}: d(row {row})/d(col {col}): {} assembled, {fd} by differences",
+                    dense[row * size + col]
+                );
+            }
+        }
+        assert!(worst.is_finite());
+    }
+
+    #[test]
+    fn distance_to_rank_loss_is_the_kernels() {
+        // Chains of loops and of links (their G ill-conditioned like 1/N²), a
+        // mechanism with angle coordinates and springs, and configurations off the
+        // initial one.
+        for scene in [
+            "scale/n-fourbar-10.yaml",
+            "scale/n-pendulum-16.yaml",
+            "benchmarks/andrews-squeezer.yaml",
+            "driven/watt-six-bar.yaml",
+        ] {
+            let step = step_of(scene, Rule::Trapezoidal);
+            let model = step.system.model.clone();
+            for shift in [0.0, 0.05, 0.3] {
+                let q: Vec<f64> = (0..model.n())
+                    .map(|i| model.initial.q[i] + shift * wobble(i))
+                    .collect();
+                let mut work = step.work.lock().unwrap();
+                let sparse = step.distance_to_rank_loss(&q, &mut work.gram);
+                let (dense, _, _) = DynamicsKernel::regularization_at(&model, &q);
+                assert!(
+                    (sparse - dense).abs() <= 1e-9 * dense,
+                    "{scene} shifted by {shift}: s = {sparse} sparse, {dense} dense"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn jacobian_matches_finite_differences() {
+        // Springs and state-dependent torques; angle coordinates (third-order terms);
+        // a controller reading rates; both integration rules.
+        check_jacobian("benchmarks/andrews-squeezer.yaml", Rule::Trapezoidal);
+        check_jacobian("scale/n-pendulum-4.yaml", Rule::Trapezoidal);
+        check_jacobian("driven/controlled-crank-rocker.yaml", Rule::Euler);
+        check_jacobian("driven/watt-six-bar.yaml", Rule::Trapezoidal);
+    }
+}

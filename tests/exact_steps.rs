@@ -1,0 +1,80 @@
+//! DC steps with tangent integrators taken as a sparse square system (from 20
+//! coordinates on, away from singular configurations): the same solution as the
+//! general solver's, to the step tolerance, and the one of every window length.
+
+mod common;
+
+use common::scene_path;
+use mbfg::forward::{simulate, Coordinates, ForwardOptions, RunSummary, Trajectory};
+use mbfg::smoother::Mode;
+use mbfg::{Model, Scene};
+use std::sync::Arc;
+
+fn run(scene: &str, dt: f64, t_end: f64, mode: Mode, exact: bool) -> (Trajectory, RunSummary) {
+    let model = Arc::new(Model::new(&Scene::load(scene_path(scene)).unwrap()).unwrap());
+    let mut options = ForwardOptions::new(Coordinates::Dependent, dt, t_end, mode);
+    options.exact_steps = exact;
+    let (trajectory, summary) = simulate(model, &options, &mut |_, _| {}).unwrap();
+    assert!(
+        summary.failures.is_empty(),
+        "{scene} {mode:?} exact {exact}: {}",
+        summary.failures[0].message()
+    );
+    (trajectory, summary)
+}
+
+fn largest_difference(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
+}
+
+/// A chain of ten square loops through its flat configuration (t ≈ 0.72 s, where
+/// the steps go back to the general solver) and an eight-link pendulum (angle
+/// coordinates): positions, velocities and accelerations as the general solver
+/// takes them, step by step.
+#[test]
+fn sparse_steps_are_the_general_solvers_steps() {
+    for (scene, t_end) in [
+        ("benchmarks/n-fourbar-10.yaml", 0.8),
+        ("scale/n-pendulum-8.yaml", 0.5),
+    ] {
+        let (sparse, s) = run(scene, 1e-3, t_end, Mode::FixedLag(1), true);
+        let (general, g) = run(scene, 1e-3, t_end, Mode::FixedLag(1), false);
+        assert_eq!(sparse.len(), general.len());
+        let dq = largest_difference(&sparse.q, &general.q);
+        let ddq = largest_difference(&sparse.dq, &general.dq);
+        let dddq = largest_difference(&sparse.ddq, &general.ddq);
+        assert!(
+            dq <= 1e-9 && ddq <= 1e-7 && dddq <= 1e-5,
+            "{scene}: q {dq:e}, q̇ {ddq:e}, q̈ {dddq:e} apart"
+        );
+        assert!(s.worst_phi <= 1e-12, "{scene}: |Φ| {:e}", s.worst_phi);
+        assert!(
+            s.max_iterations <= g.max_iterations.max(5),
+            "{scene}: {} Newton iterations, the general solver {}",
+            s.max_iterations,
+            g.max_iterations
+        );
+    }
+}
+
+/// Each step holds all its equations, so every window length and the batch have
+/// the one-step solution; with sparse steps they are that solution.
+#[test]
+fn every_window_and_the_batch_are_the_one_step_solution() {
+    let scene = "scale/n-pendulum-8.yaml";
+    let (one, _) = run(scene, 1e-3, 0.3, Mode::FixedLag(1), true);
+    for mode in [Mode::FixedLag(5), Mode::Batch] {
+        let (other, s) = run(scene, 1e-3, 0.3, mode, true);
+        assert_eq!(one.q, other.q, "{mode:?}");
+        assert_eq!(one.ddq, other.ddq, "{mode:?}");
+        assert!(s.max_iterations >= 1, "{mode:?}: no iterations reported");
+        // And the general solver's window of five agrees to its tolerance.
+        let (general, _) = run(scene, 1e-3, 0.3, mode, false);
+        let d = largest_difference(&one.q, &general.q);
+        assert!(d <= 1e-9, "{mode:?}: the general solver's is {d:e} m away");
+    }
+}
