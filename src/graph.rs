@@ -334,6 +334,12 @@ pub trait ExactStep: Send + Sync {
     /// does not converge (`block` is then unspecified).
     fn solve(&self, t: f64, before: &[f64], block: &mut [f64], limits: StepLimits)
         -> Option<usize>;
+
+    /// Solves step 0 (`block`, guess in, solution out) under the graph's initial
+    /// factors; `None` where it declines (the general solver then takes it).
+    fn solve_first(&self, _t: f64, _block: &mut [f64]) -> Option<usize> {
+        None
+    }
 }
 
 impl ChainGraph {

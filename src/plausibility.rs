@@ -49,6 +49,14 @@ impl TimeScale {
 pub fn time_scales(model: &Model) -> Vec<TimeScale> {
     let n = model.n();
     let (q, dq) = (&model.initial.q, &model.initial.dq);
+    // Only springs, dampers and state-dependent loads have a time scale: without one
+    // the basis (an eigendecomposition of n × n) is not formed.
+    if !model.forces.iter().any(|f| {
+        f.jacobian_pattern(model)
+            .is_none_or(|(rows, cols)| !rows.is_empty() && !cols.is_empty())
+    }) {
+        return Vec::new();
+    }
     let Some(basis) = free_motions(model, q) else {
         return Vec::new();
     };

@@ -257,6 +257,20 @@ fn run_fixed_lag(
             }
             continue;
         }
+        if run_k == 0 && window == 1 && solver.settings().past == Past::Conditioned {
+            // The first step, where the graph can solve it alone: the later steps
+            // are held on it, and need no prior from it.
+            if let Some(iterations) = graph
+                .exact_step()
+                .and_then(|e| e.solve_first(graph.time(0), &mut values[..s]))
+            {
+                let report = SolveReport::new(Termination::Converged, iterations, 0.0);
+                if let Next::Stop = on_step(k, &report, values) {
+                    break;
+                }
+                continue;
+            }
+        }
         if k + 1 - k0 > window {
             // The prior on k0 moves to `earlier` (no copy): it is what a re-solve of
             // this window after a conditioned prior starts from.

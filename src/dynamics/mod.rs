@@ -88,6 +88,39 @@ pub fn lagrange(
     })
 }
 
+/// q̈ at (q, q̇, t) as a starting guess: for a mechanism whose augmented system is
+/// factored sparse ([`SPARSE_KKT_FROM`] unknowns on) by its sparse LU, else (and
+/// where that fails) by [`lagrange`], whose pivot test names a singular
+/// configuration.
+pub fn accelerations_guess(
+    model: &Model,
+    q: &DVector<f64>,
+    dq: &DVector<f64>,
+    t: f64,
+) -> Result<DVector<f64>> {
+    let sparse = || -> Option<DVector<f64>> {
+        let structure = KktStructure::for_model(model)?;
+        let (n, m) = (model.n(), model.m());
+        let mut jac = vec![0.0; m * n];
+        model.jacobian_into(q.as_slice(), &mut jac);
+        let lu = structure.factor(model, &jac, None).ok()?;
+        let c = model.acceleration_rhs(q, dq);
+        let mut rhs: Vec<f64> = model
+            .generalized_forces(q, dq, t)
+            .ok()?
+            .iter()
+            .copied()
+            .collect();
+        rhs.extend(model.active.iter().map(|&k| c[k]));
+        lu.solve_many(&mut rhs, 1).ok()?;
+        Some(DVector::from_column_slice(&rhs[..n]))
+    };
+    match sparse() {
+        Some(ddq) => Ok(ddq),
+        None => Ok(lagrange(model, q, dq, t)?.ddq),
+    }
+}
+
 /// Accelerations in independent coordinates by the R-matrix method.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RMatrixSolution {

@@ -28,7 +28,7 @@
 //! where Newton converges within a few iterations. Anything else (and every
 //! failure) goes back to the general solver.
 
-use crate::dynamics::DynamicsKernel;
+use crate::dynamics::{self, DynamicsKernel};
 use crate::graph::{ExactStep, StepLimits};
 use crate::model::{Model, MAX_LOCAL};
 use crate::tangent::Rule;
@@ -43,6 +43,7 @@ use faer::sparse::linalg::lu::{factorize_symbolic_lu, LuRef, NumericLu, Symbolic
 use faer::sparse::linalg::SupernodalThreshold;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Conj, MatMut, Par, Side, Spec};
+use nalgebra::DVector;
 use std::sync::{Arc, Mutex};
 
 /// Coordinates from which a DC run with tangent integrators takes its steps from
@@ -559,6 +560,26 @@ impl DcExactStep {
 }
 
 impl ExactStep for DcExactStep {
+    /// Step 0 holds q and q̇ at the model's initial state (in `block`), and f_dyn
+    /// asks q̈ of the augmented system there, which is regular where the steps are
+    /// taken from here: its solution, once the configuration passes the same test.
+    fn solve_first(&self, t: f64, block: &mut [f64]) -> Option<usize> {
+        let model = &*self.system.model;
+        let n = model.n();
+        let mut work = self.work.lock().ok()?;
+        if !self.regular(&block[..n], &mut work.gram) {
+            return None;
+        }
+        let q = DVector::from_column_slice(&block[..n]);
+        let dq = DVector::from_column_slice(&block[n..2 * n]);
+        let ddq = dynamics::accelerations_guess(model, &q, &dq, t).ok()?;
+        if !ddq.iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        block[2 * n..3 * n].copy_from_slice(ddq.as_slice());
+        Some(1)
+    }
+
     fn solve(
         &self,
         t: f64,

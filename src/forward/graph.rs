@@ -182,7 +182,7 @@ impl ForwardGraph {
     /// The initial guess of step 0: the model's initial state and its accelerations.
     pub(super) fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
         let init = &model.initial;
-        let ddq = dynamics::lagrange(model, &init.q, &init.dq, self.graph.t0())?.ddq;
+        let ddq = dynamics::accelerations_guess(model, &init.q, &init.dq, self.graph.t0())?;
         let mut block = Vec::with_capacity(self.graph.layout().size());
         block.extend_from_slice(init.q.as_slice());
         block.extend_from_slice(init.dq.as_slice());
