@@ -78,3 +78,25 @@ fn every_window_and_the_batch_are_the_one_step_solution() {
         assert!(d <= 1e-9, "{mode:?}: the general solver's is {d:e} m away");
     }
 }
+
+/// A large mechanism's first accelerations come from the sparse LU of the augmented
+/// system (160 unknowns on): its solution as the dense, equilibrated one gives it.
+#[test]
+fn the_sparse_first_accelerations_are_the_augmented_systems() {
+    for scene in ["scale/n-pendulum-64.yaml", "scale/n-fourbar-100.yaml"] {
+        let model = Model::new(&Scene::load(scene_path(scene)).unwrap()).unwrap();
+        assert!(
+            mbfg::dynamics::KktStructure::for_model(&model).is_some(),
+            "{scene}: its augmented system is not factored sparse"
+        );
+        let (q, dq) = (&model.initial.q, &model.initial.dq);
+        let sparse = mbfg::dynamics::accelerations_guess(&model, q, dq, 0.0).unwrap();
+        let dense = mbfg::dynamics::lagrange(&model, q, dq, 0.0).unwrap().ddq;
+        let scale = dense.amax();
+        let d = largest_difference(sparse.as_slice(), dense.as_slice());
+        assert!(
+            d <= 1e-10 * scale,
+            "{scene}: {d:e} apart (largest {scale:e})"
+        );
+    }
+}
