@@ -247,7 +247,9 @@ def test_nfourbar_ida_follows_exact_motion_to_first_flat(n_loops):
                                    atol=1e-9)
         np.testing.assert_allclose(traj.q[:, m.names.index(f"B{i}.y")], np.sin(th_ex), atol=1e-9)
     energy = total_energy(m, traj)
-    assert np.max(np.abs(energy - energy[0])) <= 1e-8
+    # Relative to the chain's energy (20 J for one loop, 159 J for ten): at rtol 1e-12
+    # the drift is 3e-11 to 7e-11 of it, its last digits set by the CPU's rounding.
+    assert np.max(np.abs(energy - energy[0])) <= 1e-10 * abs(energy[0])
 
 
 @pytest.mark.parametrize("n_loops", [1, 5])
