@@ -553,8 +553,7 @@ impl DcExactStep {
                     return None;
                 }
                 block[..3 * n].copy_from_slice(&work.x[..3 * n]);
-                let multipliers = work.x[3 * n..].to_vec();
-                work.multipliers.copy_from_slice(&multipliers);
+                work.multipliers.copy_from_slice(&work.x[3 * n..]);
                 return Some(iteration);
             }
         }
