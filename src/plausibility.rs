@@ -291,6 +291,74 @@ pub fn placement_warning(model: &Model) -> Option<String> {
     ))
 }
 
+/// Coordinates from which [`inertia_warning`] first tries the sparse certificate
+/// [`mass_covers_free_motions`]: below, the eigendecomposition costs less.
+const SPARSE_INERTIA_FROM: usize = 48;
+
+/// Whether the mass matrix certainly covers every motion the constraints allow at
+/// q, with its smallest eigenvalue there well above [`MASSLESS_MOTION`] of the
+/// largest, shown without the n × n eigendecomposition. On a motion v the
+/// constraints allow (Av = 0, |v| = 1), vᵀMv = vᵀ(M + ρAᵀA)v, so the smallest such
+/// value is at least the smallest eigenvalue of M + ρAᵀA, itself at least
+/// 1 / tr (M + ρAᵀA)⁻¹ (a sparse Cholesky factor and its selected inversion); the
+/// largest is at most M's largest row sum. ρ scales AᵀA to M. `false` leaves the
+/// question to the eigendecomposition.
+fn mass_covers_free_motions(model: &Model, q: &DVector<f64>) -> bool {
+    let n = model.n();
+    let mass = &model.mass;
+    let largest = (0..n)
+        .map(|i| mass.row(i).iter().map(|v| v.abs()).sum::<f64>())
+        .fold(0.0, f64::max);
+    let jac = model.jacobian(q);
+    let rows: Vec<Vec<(usize, f64)>> = model
+        .active
+        .iter()
+        .map(|&k| {
+            (0..n)
+                .filter(|&j| jac[(k, j)] != 0.0)
+                .map(|j| (j, jac[(k, j)]))
+                .collect()
+        })
+        .collect();
+    let mut gram_diagonal = vec![0.0; n];
+    for row in &rows {
+        for &(j, v) in row {
+            gram_diagonal[j] += v * v;
+        }
+    }
+    let top_gram = gram_diagonal.iter().fold(0.0, |m: f64, v| m.max(*v));
+    let top_mass = (0..n).map(|i| mass[(i, i)]).fold(0.0, f64::max);
+    if !(largest.is_finite() && top_mass > 0.0 && top_gram.is_finite()) {
+        return false;
+    }
+    let rho = if top_gram > 0.0 {
+        top_mass / top_gram
+    } else {
+        0.0
+    };
+    let mut lower = Vec::new();
+    for c in 0..n {
+        for r in c..n {
+            if mass[(r, c)] != 0.0 {
+                lower.push((r, c, mass[(r, c)]));
+            }
+        }
+    }
+    for row in &rows {
+        for &(i, vi) in row {
+            for &(j, vj) in row {
+                if j <= i {
+                    lower.push((i, j, rho * vi * vj));
+                }
+            }
+        }
+    }
+    let Some(trace) = crate::linalg::sparse::spd_inverse_trace(n, &lower) else {
+        return false;
+    };
+    trace > 0.0 && 1.0 / trace > 10.0 * MASSLESS_MOTION * largest
+}
+
 /// Eigenvalues of the mass matrix on the free motions below this fraction of the
 /// largest count as no inertia at all (a point without mass): far below any mixture
 /// of scales a mechanism has (a 2 mm crank's 1e-9 kg·m² beside a 10 g slider).
@@ -302,6 +370,9 @@ pub const MASSLESS_MOTION: f64 = 1e-14;
 /// where that motion matters (a knee between two massless rods, when the chain
 /// straightens). Names the moving points that carry no mass.
 pub fn inertia_warning(model: &Model) -> Option<String> {
+    if model.n() >= SPARSE_INERTIA_FROM && mass_covers_free_motions(model, &model.initial.q) {
+        return None;
+    }
     let basis = free_motions(model, &model.initial.q)?;
     if basis.ncols() == 0 {
         return None;

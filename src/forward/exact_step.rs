@@ -30,6 +30,7 @@
 
 use crate::dynamics::{self, DynamicsKernel};
 use crate::graph::{ExactStep, StepLimits};
+use crate::linalg::sparse::selected_inverse_trace;
 use crate::model::{Model, MAX_LOCAL};
 use crate::tangent::Rule;
 use faer::dyn_stack::{MemBuffer, MemStack};
@@ -455,7 +456,8 @@ impl DcExactStep {
         if factored.is_err() {
             return 0.0;
         }
-        let trace = inverse_trace(l.col_ptr(), l.row_idx(), &gram.factor, &mut gram.inverse);
+        let trace =
+            selected_inverse_trace(l.col_ptr(), l.row_idx(), &gram.factor, &mut gram.inverse);
         trace.map_or(0.0, |t| t.recip().sqrt())
     }
 
@@ -658,45 +660,6 @@ impl Local {
 /// An entry of G's lower triangle: rows (i, j ≤ i) and the pairs of their local
 /// coordinates that are one coordinate of q.
 type GramEntry = (usize, usize, Vec<(usize, usize)>);
-
-/// tr (LLᵀ)⁻¹ of the sparse lower-triangular L (compressed columns, each column's
-/// diagonal first, rows ascending) by selected inversion (Takahashi's equations):
-/// the entries of Z = (LLᵀ)⁻¹ on L's pattern, last column first, each from the ones
-/// after it, in as many operations as Σⱼ (nonzeros of column j)². `None` where L
-/// is not laid out so.
-fn inverse_trace(col_ptr: &[usize], row_idx: &[usize], l: &[f64], z: &mut [f64]) -> Option<f64> {
-    let size = col_ptr.len() - 1;
-    // Z's entry (i, k), i ≥ k, on L's pattern (closed under the elimination tree,
-    // so every entry the recurrence reads is there).
-    let find = |i: usize, k: usize| -> Option<usize> {
-        let (row, col) = if i >= k { (i, k) } else { (k, i) };
-        let range = col_ptr[col]..col_ptr[col + 1];
-        row_idx[range.clone()]
-            .binary_search(&row)
-            .ok()
-            .map(|p| range.start + p)
-    };
-    let mut trace = 0.0;
-    for j in (0..size).rev() {
-        let (start, end) = (col_ptr[j], col_ptr[j + 1]);
-        if row_idx.get(start) != Some(&j) || !(l[start] > 0.0) {
-            return None;
-        }
-        let diagonal = l[start];
-        for e in (start + 1..end).rev() {
-            let i = row_idx[e];
-            let mut sum = 0.0;
-            for f in start + 1..end {
-                sum += l[f] * z[find(i, row_idx[f])?];
-            }
-            z[e] = -sum / diagonal;
-        }
-        let sum: f64 = (start + 1..end).map(|f| l[f] * z[f]).sum();
-        z[start] = (1.0 / diagonal - sum) / diagonal;
-        trace += z[start];
-    }
-    Some(trace)
-}
 
 /// The lower triangle of G = ÂÂᵀ over the active rows: (i, j ≤ i, the local
 /// coordinate pairs of rows j and i that are one coordinate of q).

@@ -114,14 +114,27 @@ pub struct RankInfo {
     pub redundant: Vec<usize>,
 }
 
+/// Constraints from which [`constraint_rank`] first tries to certify full rank by a
+/// sparse factorization: below, the scan's m²n operations cost less.
+const SPARSE_RANK_FROM: usize = 48;
+
 /// Scans the rows of Φ_q in order, keeping those not in the span of the kept ones.
+/// A large mechanism's rows are first certified independent, with a wide margin,
+/// by the sparse Cholesky factor of their Gram matrix; only where that fails does
+/// the scan run.
 pub fn constraint_rank(model: &Model, q: &DVector<f64>) -> RankInfo {
     let jac = model.jacobian(q);
-    let mut basis: Vec<DVector<f64>> = Vec::new();
-    let mut redundant = Vec::new();
     let scale = (0..jac.nrows())
         .map(|r| jac.row(r).norm())
         .fold(0.0, f64::max);
+    if jac.nrows() >= SPARSE_RANK_FROM && certainly_full_rank(&jac, scale) {
+        return RankInfo {
+            rank: jac.nrows(),
+            redundant: Vec::new(),
+        };
+    }
+    let mut basis: Vec<DVector<f64>> = Vec::new();
+    let mut redundant = Vec::new();
     for r in 0..jac.nrows() {
         let row = jac.row(r).transpose();
         let residual = orthogonalize(&row, &basis);
@@ -136,6 +149,36 @@ pub fn constraint_rank(model: &Model, q: &DVector<f64>) -> RankInfo {
         rank: basis.len(),
         redundant,
     }
+}
+
+/// Whether no row of `jac` comes near the scan's redundancy test. The k-th pivot of
+/// the Cholesky factor of the Gram matrix of the normalized rows, in their order, is
+/// the part of row k outside the span of the rows before it, which the scan
+/// measures. It is read through a squared quantity (rounding ~1e-16 relative), so a
+/// pivot is trusted only from 1e-6 (1e-4 relative accuracy), a hundred times the
+/// scan's threshold; below, the scan decides.
+fn certainly_full_rank(jac: &DMatrix<f64>, scale: f64) -> bool {
+    let (m, n) = (jac.nrows(), jac.ncols());
+    let norms: Vec<f64> = (0..m).map(|r| jac.row(r).norm()).collect();
+    if !norms.iter().all(|v| *v > 0.0 && v.is_finite()) {
+        return false;
+    }
+    let mut lower = Vec::new();
+    for j in 0..n {
+        let rows: Vec<usize> = (0..m).filter(|&r| jac[(r, j)] != 0.0).collect();
+        for (a, &i) in rows.iter().enumerate() {
+            for &k in &rows[..=a] {
+                lower.push((i, k, jac[(i, j)] * jac[(k, j)] / (norms[i] * norms[k])));
+            }
+        }
+    }
+    let Some(pivots) = crate::linalg::sparse::cholesky_pivots(m, &lower) else {
+        return false;
+    };
+    pivots
+        .iter()
+        .zip(&norms)
+        .all(|(p, norm)| *p >= 1e-6 && p * norm >= 1e-12 * scale)
 }
 
 /// Removes from v its components along an orthonormal basis (twice, for accuracy).
@@ -231,6 +274,11 @@ fn solve_augmented(
     }
     b.rows_mut(model.active.len(), values.len())
         .copy_from_slice(values);
+    if n >= crate::dynamics::SPARSE_KKT_FROM {
+        if let Some(x) = solve_sparse(&a, &b) {
+            return Ok(x);
+        }
+    }
     let lu = a.full_piv_lu();
     if !well_conditioned(lu.u().diagonal().as_slice()) {
         return Err(Error::singular(format!(
@@ -240,6 +288,25 @@ fn solve_augmented(
     }
     lu.solve(&b)
         .ok_or_else(|| Error::singular(format!("{what} problem")))
+}
+
+/// Largest condition number (1-norm estimate) at which [`solve_sparse`] trusts
+/// its answer: a hundred times below where the dense pivot test (a pivot ratio
+/// of 1e-13) calls the matrix singular; nearer, the dense test decides.
+const SPARSE_TRUSTED_CONDITION: f64 = 1e11;
+
+/// The solution of the square system A x = b by a sparse LU, when A is clearly
+/// regular; `None` sends the caller to the dense factorization and its pivot test.
+fn solve_sparse(a: &DMatrix<f64>, b: &DVector<f64>) -> Option<DVector<f64>> {
+    let size = a.nrows();
+    let triplets: Vec<(usize, usize, f64)> = (0..size)
+        .flat_map(|c| (0..size).map(move |r| (r, c)))
+        .filter(|&(r, c)| a[(r, c)] != 0.0)
+        .map(|(r, c)| (r, c, a[(r, c)]))
+        .collect();
+    let mut x = b.as_slice().to_vec();
+    let condition = crate::linalg::sparse::solve_square(size, &triplets, &mut x)?;
+    (condition <= SPARSE_TRUSTED_CONDITION).then(|| DVector::from_vec(x))
 }
 
 /// Whether the pivots of an LU factorization show a regular matrix.
