@@ -24,6 +24,9 @@ impl std::fmt::Display for Termination {
 pub struct SolveReport {
     /// Linear solves performed.
     pub iterations: usize,
+    /// Factorizations performed: one per linear solve for the general solver; a
+    /// sparse step's simplified iterations reuse one.
+    pub factorizations: usize,
     pub termination: Termination,
     /// ½ Σ‖whitened residual‖² at the returned estimate (prior included; hard
     /// factors weighted by 1/[`HARD_SIGMA`](crate::solver::HARD_SIGMA)).
@@ -38,6 +41,7 @@ impl SolveReport {
     pub fn new(termination: Termination, iterations: usize, cost: f64) -> SolveReport {
         SolveReport {
             iterations,
+            factorizations: iterations,
             termination,
             cost,
             cause: None,

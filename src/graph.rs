@@ -323,6 +323,15 @@ pub struct StepLimits {
     pub step_tolerance: f64,
 }
 
+/// What an [`ExactStep`] took to solve a step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StepWork {
+    /// Linear solves.
+    pub iterations: usize,
+    /// Factorizations (a linear solve may reuse an earlier one).
+    pub factorizations: usize,
+}
+
 /// One step of a graph whose steps have as many equations as unknowns, all of which
 /// hold at the solution, solved on its own given the step before: the same
 /// solution as a window's, by a route that knows the step's structure (a DC step's
@@ -330,14 +339,19 @@ pub struct StepLimits {
 /// general solver.
 pub trait ExactStep: Send + Sync {
     /// Solves step `block` (guess in, solution out) at time `t`, given the step
-    /// before (`before`); the linear solves taken, or `None` where it declines or
-    /// does not converge (`block` is then unspecified).
-    fn solve(&self, t: f64, before: &[f64], block: &mut [f64], limits: StepLimits)
-        -> Option<usize>;
+    /// before (`before`); the work taken, or `None` where it declines or does not
+    /// converge (`block` is then unspecified).
+    fn solve(
+        &self,
+        t: f64,
+        before: &[f64],
+        block: &mut [f64],
+        limits: StepLimits,
+    ) -> Option<StepWork>;
 
     /// Solves step 0 (`block`, guess in, solution out) under the graph's initial
     /// factors; `None` where it declines (the general solver then takes it).
-    fn solve_first(&self, _t: f64, _block: &mut [f64]) -> Option<usize> {
+    fn solve_first(&self, _t: f64, _block: &mut [f64]) -> Option<StepWork> {
         None
     }
 }

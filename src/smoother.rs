@@ -39,7 +39,10 @@ fn exact_step(
     };
     match exact.solve(graph.time(k), before, block, limits) {
         // Its equations hold to round-off: a cost of zero.
-        Some(iterations) => Some(SolveReport::new(Termination::Converged, iterations, 0.0)),
+        Some(work) => Some(SolveReport {
+            factorizations: work.factorizations,
+            ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
+        }),
         None => {
             block.copy_from_slice(&guess);
             None
@@ -260,11 +263,14 @@ fn run_fixed_lag(
         if run_k == 0 && window == 1 && solver.settings().past == Past::Conditioned {
             // The first step, where the graph can solve it alone: the later steps
             // are held on it, and need no prior from it.
-            if let Some(iterations) = graph
+            if let Some(work) = graph
                 .exact_step()
                 .and_then(|e| e.solve_first(graph.time(0), &mut values[..s]))
             {
-                let report = SolveReport::new(Termination::Converged, iterations, 0.0);
+                let report = SolveReport {
+                    factorizations: work.factorizations,
+                    ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
+                };
                 if let Next::Stop = on_step(k, &report, values) {
                     break;
                 }
@@ -311,6 +317,7 @@ fn run_fixed_lag(
             let again = solve_window(&mut solver, graph, values, k0, k, prior.as_ref())?;
             report = SolveReport {
                 iterations: report.iterations + again.iterations,
+                factorizations: report.factorizations + again.factorizations,
                 ..again
             };
         }
@@ -355,6 +362,7 @@ fn solve_from_rescue(
     let again = solve(values)?;
     Ok(SolveReport {
         iterations: failed.iterations + again.iterations,
+        factorizations: failed.factorizations + again.factorizations,
         ..again
     })
 }

@@ -396,13 +396,14 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
         Mode::FixedLag(n) => format!("window {n}"),
     };
     let mut line = format!(
-        "{} steps (dt = {} s, {mode}) in {:.3} s; LM iterations per solve: mean {:.2}, max {}; \
-         worst |Φ| {:.2e}, worst |Φq q̇| {:.2e}",
+        "{} steps (dt = {} s, {mode}) in {:.3} s; LM iterations per solve: mean {:.2}, max {} \
+         (factorizations: mean {:.2}); worst |Φ| {:.2e}, worst |Φq q̇| {:.2e}",
         s.steps,
         super::seconds(options.dt),
         s.wall_time.as_secs_f64(),
         s.mean_iterations,
         s.max_iterations,
+        s.mean_factorizations,
         s.worst_phi,
         s.worst_velocity_constraint
     );

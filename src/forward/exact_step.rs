@@ -29,7 +29,7 @@
 //! failure) goes back to the general solver.
 
 use crate::dynamics::{self, DynamicsKernel};
-use crate::graph::{ExactStep, StepLimits};
+use crate::graph::{ExactStep, StepLimits, StepWork};
 use crate::linalg::sparse::selected_inverse_trace;
 use crate::model::{Model, MAX_LOCAL};
 use crate::tangent::Rule;
@@ -59,9 +59,28 @@ pub const EXACT_STEP_FROM: usize = 20;
 /// computes it densely, in another order of rounding.
 const REGULAR_MARGIN: f64 = 1.001;
 
-/// Newton iterations after which a step goes back to the general solver: from a
-/// step's prediction Newton converges in two to four.
-const MAX_NEWTON: usize = 8;
+/// Iterations after which a step goes back to the general solver: from a step's
+/// prediction Newton converges in two to four, the simplified iteration (factors
+/// of an earlier Jacobian) in five to eight.
+const MAX_ITERATIONS: usize = 24;
+
+/// Where the simplified iteration stops: an estimated error below this fraction of
+/// the step tolerance (a converged Newton iteration's error is about the square of
+/// its last update).
+const SETTLED: f64 = 1e-4;
+
+/// A contraction from which updates below the step tolerance count as the
+/// rounding of the residual: they no longer shrink.
+const ROUNDING_FLOOR: f64 = 0.5;
+
+/// Fresh factorizations after which a step goes back to the general solver.
+const MAX_FACTORIZATIONS: usize = 8;
+
+/// The largest contraction (an update's size over the one before) accepted from
+/// an iteration with factors of an earlier Jacobian: then the error left after an
+/// update below the tolerance is below the tolerance too. Slower, the iterate is
+/// linearized and factored afresh.
+const MAX_CONTRACTION: f64 = 0.25;
 
 /// A compressed-column pattern and, for each entry the assembly emits (in its
 /// fixed order), where it adds up.
@@ -163,6 +182,9 @@ struct Work {
     gram: GramWork,
     /// The multipliers of the last step solved: the next step's first guess.
     multipliers: Vec<f64>,
+    /// Whether `numeric` holds the LU of a Jacobian of this system (of an earlier
+    /// iterate, maybe of an earlier step), which the next iterations may reuse.
+    factored: bool,
 }
 
 /// The equations of a DC step with tangent integrators (see the module's
@@ -261,6 +283,7 @@ impl DcExactStep {
             numeric: NumericLu::new(),
             lu_memory: MemBuffer::new(lu.factorize_numeric_lu_scratch::<f64>(Par::Seq, params)),
             solve_memory: MemBuffer::new(lu.solve_in_place_scratch::<f64>(1, Par::Seq)),
+            factored: false,
             gram: GramWork {
                 values: vec![0.0; gram.row_idx.len()],
                 factor: vec![0.0; cholesky.len_val()],
@@ -461,10 +484,9 @@ impl DcExactStep {
         trace.map_or(0.0, |t| t.recip().sqrt())
     }
 
-    /// The residual (`work.residual`) and the Jacobian's values (`work.values`) of
-    /// the step system at `work.x`; `None` where an effect cannot be evaluated or
-    /// either is not finite.
-    fn linearize(&self, t: f64, before: &[f64], work: &mut Work) -> Option<()> {
+    /// The residual of the step system at `work.x` in `work.residual`; `None`
+    /// where an effect cannot be evaluated or it is not finite.
+    fn residual(&self, t: f64, before: &[f64], work: &mut Work) -> Option<()> {
         let system = &self.system;
         let model = &*system.model;
         let n = model.n();
@@ -473,6 +495,20 @@ impl DcExactStep {
         for force in &model.forces {
             force.add_to(model, q, v, t, &mut work.q_force).ok()?;
         }
+        system.residual(&work.x, before, &work.q_force, &mut work.residual);
+        work.residual.iter().all(|v| v.is_finite()).then_some(())
+    }
+
+    /// The residual (`work.residual`) and the Jacobian's values (`work.values`) of
+    /// the step system at `work.x`, and the Jacobian's LU (`work.numeric`); `None`
+    /// where an effect cannot be evaluated, either is not finite or the LU fails.
+    fn linearize(&self, t: f64, before: &[f64], work: &mut Work) -> Option<()> {
+        let system = &self.system;
+        let model = &*system.model;
+        let n = model.n();
+        work.factored = false;
+        self.residual(t, before, work)?;
+        let (q, v) = (&work.x[..n], &work.x[n..2 * n]);
         if !system.force_entries.is_empty() {
             for force in &model.forces {
                 force
@@ -480,7 +516,6 @@ impl DcExactStep {
                     .ok()?;
             }
         }
-        system.residual(&work.x, before, &work.q_force, &mut work.residual);
         work.values.fill(0.0);
         system.assemble(
             &work.x,
@@ -496,15 +531,30 @@ impl DcExactStep {
             work.kq[r * n + c] = 0.0;
             work.kv[r * n + c] = 0.0;
         }
-        work.values
-            .iter()
-            .chain(&work.residual)
-            .all(|v| v.is_finite())
-            .then_some(())
+        if !work.values.iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        let matrix = SparseColMatRef::new(self.jacobian.symbolic(), &work.values);
+        let params: Spec<PartialPivLuParams, f64> = Default::default();
+        self.lu
+            .factorize_numeric_lu(
+                &mut work.numeric,
+                matrix,
+                Par::Seq,
+                MemStack::new(&mut work.lu_memory),
+                params,
+            )
+            .ok()?;
+        work.factored = true;
+        Some(())
     }
 
     /// Newton's method on the step system from the guess in `block`; the
-    /// iterations taken when it converged.
+    /// iterations taken when it converged. Simplified where it may be: the LU of
+    /// an earlier Jacobian (of this step or of one before) is used as long as the
+    /// updates shrink by [`MAX_CONTRACTION`] or faster (a step's Jacobian changes
+    /// little from the one before it); the first update that does not is discarded
+    /// and the iterate factored afresh.
     fn newton(
         &self,
         t: f64,
@@ -512,26 +562,27 @@ impl DcExactStep {
         block: &mut [f64],
         limits: StepLimits,
         work: &mut Work,
-    ) -> Option<usize> {
+    ) -> Option<StepWork> {
         let system = &self.system;
         let model = &*system.model;
         let (n, ma) = (model.n(), model.active.len());
         let size = 3 * n + 3 * ma;
         work.x[..3 * n].copy_from_slice(&block[..3 * n]);
         work.x[3 * n..].copy_from_slice(&work.multipliers);
-        let params: Spec<PartialPivLuParams, f64> = Default::default();
-        for iteration in 1..=limits.max_iterations.min(MAX_NEWTON) {
-            self.linearize(t, before, work)?;
-            let matrix = SparseColMatRef::new(self.jacobian.symbolic(), &work.values);
-            self.lu
-                .factorize_numeric_lu(
-                    &mut work.numeric,
-                    matrix,
-                    Par::Seq,
-                    MemStack::new(&mut work.lu_memory),
-                    params,
-                )
-                .ok()?;
+        // The size of the last update taken with the factors now held.
+        let mut last = f64::INFINITY;
+        let mut factorizations = 0;
+        for iteration in 1..=limits.max_iterations.min(MAX_ITERATIONS) {
+            let fresh = !work.factored;
+            if fresh {
+                factorizations += 1;
+                if factorizations > MAX_FACTORIZATIONS {
+                    return None;
+                }
+                self.linearize(t, before, work)?;
+            } else {
+                self.residual(t, before, work)?;
+            }
             let lu = LuRef::new_unchecked(&self.lu, &work.numeric);
             let rhs = MatMut::from_column_major_slice_mut(&mut work.residual, size, 1);
             lu.solve_in_place_with_conj(
@@ -540,23 +591,47 @@ impl DcExactStep {
                 Par::Seq,
                 MemStack::new(&mut work.solve_memory),
             );
-            let mut small = true;
-            for (xi, di) in work.x.iter_mut().zip(&work.residual) {
-                if !di.is_finite() {
-                    return None;
+            if !work.residual.iter().all(|d| d.is_finite()) {
+                return None;
+            }
+            let update = work.x[..3 * n]
+                .iter()
+                .zip(&work.residual)
+                .map(|(xi, di)| di.abs() / (1.0 + xi.abs()))
+                .fold(0.0, f64::max);
+            // The error left after this update: about its square after a Newton
+            // update; after a simplified one, θ/(1 − θ) of it at the contraction θ
+            // seen. Updates that stop shrinking below the tolerance are the
+            // residual's rounding, as far as any iteration gets.
+            // (None: no update taken with these factors yet.)
+            let contraction = (!fresh && last.is_finite()).then(|| update / last);
+            let settled = match contraction {
+                _ if fresh => update <= limits.step_tolerance,
+                None => false,
+                Some(c) => {
+                    c < 1.0 && c / (1.0 - c) * update <= SETTLED * limits.step_tolerance
+                        || (c >= ROUNDING_FLOOR && update <= limits.step_tolerance)
                 }
+            };
+            if !settled && contraction.is_some_and(|c| c > MAX_CONTRACTION) {
+                // The earlier Jacobian no longer carries the iteration.
+                work.factored = false;
+                continue;
+            }
+            last = update;
+            for (xi, di) in work.x.iter_mut().zip(&work.residual) {
                 *xi -= di;
             }
-            for (xi, di) in work.x[..3 * n].iter().zip(&work.residual) {
-                small &= di.abs() <= limits.step_tolerance * (1.0 + xi.abs());
-            }
-            if small {
+            if settled {
                 if !self.regular(&work.x[..n], &mut work.gram) {
                     return None;
                 }
                 block[..3 * n].copy_from_slice(&work.x[..3 * n]);
                 work.multipliers.copy_from_slice(&work.x[3 * n..]);
-                return Some(iteration);
+                return Some(StepWork {
+                    iterations: iteration,
+                    factorizations,
+                });
             }
         }
         None
@@ -567,7 +642,7 @@ impl ExactStep for DcExactStep {
     /// Step 0 holds q and q̇ at the model's initial state (in `block`), and f_dyn
     /// asks q̈ of the augmented system there, which is regular where the steps are
     /// taken from here: its solution, once the configuration passes the same test.
-    fn solve_first(&self, t: f64, block: &mut [f64]) -> Option<usize> {
+    fn solve_first(&self, t: f64, block: &mut [f64]) -> Option<StepWork> {
         let model = &*self.system.model;
         let n = model.n();
         let mut work = self.work.lock().ok()?;
@@ -581,7 +656,10 @@ impl ExactStep for DcExactStep {
             return None;
         }
         block[2 * n..3 * n].copy_from_slice(ddq.as_slice());
-        Some(1)
+        Some(StepWork {
+            iterations: 1,
+            factorizations: 1,
+        })
     }
 
     fn solve(
@@ -590,12 +668,13 @@ impl ExactStep for DcExactStep {
         before: &[f64],
         block: &mut [f64],
         limits: StepLimits,
-    ) -> Option<usize> {
+    ) -> Option<StepWork> {
         let mut work = self.work.lock().ok()?;
         let solved = self.newton(t, before, block, limits, &mut work);
         if solved.is_none() {
-            // The next step starts its multipliers afresh.
+            // The next step starts its multipliers and its Jacobian afresh.
             work.multipliers.fill(0.0);
+            work.factored = false;
         }
         solved
     }

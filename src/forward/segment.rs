@@ -153,7 +153,7 @@ pub(super) fn segment(
                 |v, k| fg.predict(v, k),
                 |v, k| fg.substep_guess(&model, options, settings, first + at(k), v, k),
                 |k, report, v| {
-                    iterations.push(report.iterations);
+                    iterations.push(report);
                     // Asked to stop: after this step's own outcome is recorded.
                     let stop = progress(first + at(k) + 1, total).is_break();
                     // The positions of step j of the window's values.
@@ -341,7 +341,7 @@ pub(super) fn segment(
                     SolveReport::new(Termination::Converged, 0, 0.0)
                 } else {
                     let report = smoother::batch(&fg.graph, &mut values, completed, settings)?;
-                    run.iterations.push(report.iterations);
+                    run.iterations.push(&report);
                     report
                 };
                 if report.termination != Termination::Converged {

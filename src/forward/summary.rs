@@ -3,6 +3,7 @@
 //! refined ([`Refinement`]) or switched coordinates ([`Reselection`]).
 
 use super::failure::StepFailure;
+use crate::convergence::SolveReport;
 use crate::error::{Error, Result};
 use crate::model::Model;
 use std::time::Duration;
@@ -15,6 +16,9 @@ pub struct RunSummary {
     /// Mean and max linear solves per window solve (per step for the smoother).
     pub mean_iterations: f64,
     pub max_iterations: usize,
+    /// Mean factorizations per window solve: as many as the linear solves for the
+    /// general solver, fewer for sparse steps (which reuse one while it carries).
+    pub mean_factorizations: f64,
     /// max |Φ| and max |Φ_q q̇| over the trajectory.
     pub worst_phi: f64,
     pub worst_velocity_constraint: f64,
@@ -81,19 +85,22 @@ pub struct Reselection {
 #[derive(Debug, Clone, Copy, Default)]
 pub(super) struct Iterations {
     total: usize,
+    factorizations: usize,
     count: usize,
     max: usize,
 }
 
 impl Iterations {
-    pub(super) fn push(&mut self, iterations: usize) {
-        self.total += iterations;
+    pub(super) fn push(&mut self, report: &SolveReport) {
+        self.total += report.iterations;
+        self.factorizations += report.factorizations;
         self.count += 1;
-        self.max = self.max.max(iterations);
+        self.max = self.max.max(report.iterations);
     }
 
     pub(super) fn extend(&mut self, other: Iterations) {
         self.total += other.total;
+        self.factorizations += other.factorizations;
         self.count += other.count;
         self.max = self.max.max(other.max);
     }
@@ -169,6 +176,7 @@ impl Stats {
             steps: self.steps,
             wall_time,
             mean_iterations: iterations.total as f64 / iterations.count.max(1) as f64,
+            mean_factorizations: iterations.factorizations as f64 / iterations.count.max(1) as f64,
             max_iterations: iterations.max,
             worst_phi: self.worst_phi,
             worst_velocity_constraint: self.worst_vel,

@@ -31,6 +31,7 @@ fn forward_result<'py>(
     summary.set_item("requested_steps", requested)?;
     summary.set_item("wall_time", s.wall_time.as_secs_f64())?;
     summary.set_item("mean_iterations", s.mean_iterations)?;
+    summary.set_item("mean_factorizations", s.mean_factorizations)?;
     summary.set_item("max_iterations", s.max_iterations)?;
     summary.set_item("worst_phi", s.worst_phi)?;
     summary.set_item("worst_velocity_constraint", s.worst_velocity_constraint)?;
