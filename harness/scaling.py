@@ -7,7 +7,9 @@ dt = 1 ms from the scene's start. µs/step is the wall time of the whole
 `mbfg.simulate` call (model building included) divided by its steps, the median of
 REPEATS runs made one at a time. The horizon of a size is cut to about TARGET seconds
 of wall time a run (at least MIN_STEPS, at most MAX_STEPS steps, i.e. 0.7 s: before
-the N four-bar's first flat configuration), from a one-step run in a child process; a
+the N four-bar's first flat configuration), from a one-step run in a child process
+(and, where that takes SPLIT_FROM seconds or more, a PROBE_STEPS-step one, which
+separates the set-up from the steps); a
 size whose MIN_STEPS-step run would exceed BUDGET seconds (extrapolated from the smaller
 sizes, or from that one step, which is stopped after BUDGET seconds) is skipped, with
 every larger size of the series, and the page says so. The log-log slope of µs/step against the number of coordinates is fitted per
@@ -48,6 +50,8 @@ MAX_STEPS = 700       # 0.7 s: the N four-bar's first flat configuration is at �
 BUDGET = 30.0         # s: the most a MIN_STEPS-step run may take
 PROBE_START = 10.0    # s the one-step probe's child process is given to start
 GUARD_FROM = 0.2      # a run expected to take more than this fraction of BUDGET is tried first
+SPLIT_FROM = 0.02     # s: a one-step probe from which a second one separates the set-up
+PROBE_STEPS = 5       # steps of that second probe
 G = 9.81
 
 FAMILIES = {
@@ -136,6 +140,20 @@ def probe(path, coords, kw, timeout):
     return in_child(path, coords, kw, 1, timeout, once=False)
 
 
+def split_setup(path, coords, kw, one, budget) -> tuple[float, float]:
+    """(seconds per step, seconds of set-up) from the one-step probe `one` and, when
+    it is long enough for the set-up (parsing, assembly, first factorizations) to
+    matter, a PROBE_STEPS-step one: so that the runs of a large mechanism last about
+    TARGET seconds as the others do, instead of about TARGET of set-up per step."""
+    if one < SPLIT_FROM:
+        return one, 0.0
+    few = in_child(path, coords, kw, PROBE_STEPS, timeout=budget + PROBE_START, once=False)
+    if few is None or few <= one:
+        return one, 0.0
+    per_step = max((few - one) / (PROBE_STEPS - 1), one / PROBE_STEPS)
+    return per_step, max(0.0, one - per_step)
+
+
 def run_within(path, coords, kw, steps, timeout) -> bool:
     """Whether a `steps`-step run finishes within `timeout` seconds."""
     return in_child(path, coords, kw, steps, timeout, once=True) is not None
@@ -172,11 +190,12 @@ def measure_series(family, sizes, label, coords, kw, repeats, budget, models) ->
                     reason = (f"{MIN_STEPS} steps ≈ {one * MIN_STEPS:.0f} s (one step "
                               f"{one:.1f} s) > budget {budget:g} s")
                 else:
-                    steps = int(min(MAX_STEPS, max(MIN_STEPS, round(TARGET / one))))
+                    per_step, setup = split_setup(scene(family, size), coords, kw, one, budget)
+                    steps = int(min(MAX_STEPS, max(MIN_STEPS, round((TARGET - setup) / per_step))))
                     # A later step may take far longer than the first (a solve that
                     # crawls to its iteration limit): a long run is tried in a child
                     # process first, and given up after the budget.
-                    if one * steps > GUARD_FROM * budget and not run_within(
+                    if setup + per_step * steps > GUARD_FROM * budget and not run_within(
                             scene(family, size), coords, kw, steps, budget + PROBE_START):
                         reason = (f"{steps} steps did not finish within {budget:g} s (the "
                                   f"first step took {one:.1f} s)")
@@ -362,7 +381,9 @@ def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
         f"dt = {DT * 1e3:g} ms from the scene's start; µs/step is the wall time of the whole "
         "`mbfg.simulate` call (model building included) divided by its steps, the median of "
         f"{repeats} runs made one at a time (steps per run in parentheses: about {TARGET:g} s "
-        f"of wall time, at least {MIN_STEPS}, at most {MAX_STEPS}). A size whose "
+        f"of wall time, at least {MIN_STEPS}, at most {MAX_STEPS}, set from a one-step run and, "
+        f"where that takes {SPLIT_FROM:g} s or more, a {PROBE_STEPS}-step one that separates "
+        "the set-up from the steps). A size whose "
         f"{MIN_STEPS}-step run would take more than {budget:g} s (extrapolated from the smaller "
         "sizes with the series' last local slope, at least 1, or estimated from one step) is "
         "skipped, with the larger sizes of its series; so is a size whose run, expected to take "

@@ -2,7 +2,7 @@
 //! in dependent or independent coordinates, the initial guess and the prediction of
 //! each step, and the conversions between its variables and a [`Trajectory`].
 
-use super::exact_step::{DcExactStep, EXACT_STEP_FROM};
+use super::exact_step::DcExactStep;
 use super::options::{ForwardOptions, Integrator};
 use crate::collocation;
 use crate::coordinates::Coordinates;
@@ -14,20 +14,6 @@ use crate::model::Model;
 use crate::tangent::{Projected, Rule};
 use crate::trajectory::Trajectory;
 use std::sync::Arc;
-
-/// The integration rule of a DC graph whose steps are taken by [`DcExactStep`]
-/// where it can: tangent trapezoidal or Euler integrators, from
-/// [`EXACT_STEP_FROM`] coordinates on.
-fn exact_step_rule(options: &ForwardOptions, n: usize) -> Option<Rule> {
-    if !options.exact_steps || !options.tangent_dc(n) || n < EXACT_STEP_FROM {
-        return None;
-    }
-    match options.integrator {
-        Integrator::Trapezoidal => Some(Rule::Trapezoidal),
-        Integrator::Euler => Some(Rule::Euler),
-        Integrator::HermiteSimpson => None,
-    }
-}
 
 /// The graph of a forward problem, with its layout.
 pub struct ForwardGraph {
@@ -114,7 +100,7 @@ impl ForwardGraph {
                 for (factor, sigma) in dc_integrators().into_iter().zip(dc_sigma) {
                     builder = builder.step_soft(factor, Noise::Isotropic(sigma));
                 }
-                if let Some(rule) = exact_step_rule(options, n) {
+                if let Some(rule) = options.exact_step_rule(n) {
                     if let Some(step) = DcExactStep::new(model.clone(), rule, dt) {
                         builder = builder.exact_step(Box::new(step));
                     }

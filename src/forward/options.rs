@@ -1,11 +1,13 @@
 //! What a forward run is asked: the coordinates, the step and horizon, the solve's
 //! mode, the integrator and its factors, the noise models ([`ForwardOptions`]).
 
+use super::exact_step::EXACT_STEP_FROM;
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::smoother::Mode;
 use crate::solver::{Past, Settings};
+use crate::tangent::Rule;
 
 /// The integrator factor between consecutive steps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -172,6 +174,21 @@ impl ForwardOptions {
         }
     }
 
+    /// The integration rule of a DC graph of `n` coordinates whose steps are taken
+    /// by [`DcExactStep`](super::exact_step::DcExactStep) where it can: tangent
+    /// trapezoidal or Euler integrators, from
+    /// [`EXACT_STEP_FROM`](super::exact_step::EXACT_STEP_FROM) coordinates on.
+    pub(super) fn exact_step_rule(&self, n: usize) -> Option<Rule> {
+        if !self.exact_steps || !self.tangent_dc(n) || n < EXACT_STEP_FROM {
+            return None;
+        }
+        match self.integrator {
+            Integrator::Trapezoidal => Some(Rule::Trapezoidal),
+            Integrator::Euler => Some(Rule::Euler),
+            Integrator::HermiteSimpson => None,
+        }
+    }
+
     /// Whether a DC run whose integrator factors fail is made again with the other
     /// ones ([`DcIntegrators::Auto`] with the trapezoidal rule or Euler).
     pub(super) fn retries_other(&self) -> bool {
@@ -210,6 +227,13 @@ impl ForwardOptions {
                 (crate::smoother::stream_capacity(w) as f64).min(steps),
                 (w as f64).min(steps) + 1.0,
             ),
+            // A batch of DC steps that are solved one by one holds the one window.
+            Mode::Batch
+                if self.coordinates == Coordinates::Dependent
+                    && self.exact_step_rule(model.n()).is_some() =>
+            {
+                (steps, 2.0f64.min(steps))
+            }
             Mode::Batch => (steps, steps),
         };
         8.0 * held * s * 2.0 + per_step_system * solved

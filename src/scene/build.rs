@@ -221,6 +221,18 @@ pub fn relative_value(points: &[Point], kind: &RelativeKind) -> f64 {
 
 /// Names of q in model order: free points' `<name>.x`, `<name>.y`, then relative
 /// coordinates.
+/// Whether `name` is one of [`coordinate_names`], without listing them (a scene
+/// names its coordinates one by one: listing them each time costs n² strings).
+pub fn is_coordinate_name(scene: &Scene, name: &str) -> bool {
+    let free_point_axis = name.rsplit_once('.').is_some_and(|(point, axis)| {
+        (axis == "x" || axis == "y")
+            && scene
+                .point_index(point)
+                .is_some_and(|i| !scene.points[i].fixed)
+    });
+    free_point_axis || scene.coordinate_index(name).is_some()
+}
+
 pub fn coordinate_names(scene: &Scene) -> Vec<String> {
     let mut names = Vec::new();
     for p in scene.points.iter().filter(|p| !p.fixed) {

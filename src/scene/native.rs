@@ -533,7 +533,7 @@ fn q_name(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<String, Sc
             format!("expected a coordinate name, found {}", node.kind()),
         )
     })?;
-    if build::coordinate_names(scene).contains(&name) {
+    if build::is_coordinate_name(scene, &name) {
         return Ok(name);
     }
     let hint = match name.split_once('.') {
