@@ -67,7 +67,7 @@ const MAX_ITERATIONS: usize = 24;
 /// Where the simplified iteration stops: an estimated error below this fraction of
 /// the step tolerance (a converged Newton iteration's error is about the square of
 /// its last update).
-const SETTLED: f64 = 1e-4;
+const SETTLED: f64 = 1e-6;
 
 /// A contraction from which updates below the step tolerance count as the
 /// rounding of the residual: they no longer shrink.
@@ -182,6 +182,8 @@ struct Work {
     gram: GramWork,
     /// The multipliers of the last step solved: the next step's first guess.
     multipliers: Vec<f64>,
+    /// The iterate before an update that may be undone.
+    saved: Vec<f64>,
     /// Whether `numeric` holds the LU of a Jacobian of this system (of an earlier
     /// iterate, maybe of an earlier step), which the next iterations may reuse.
     factored: bool,
@@ -284,6 +286,7 @@ impl DcExactStep {
             lu_memory: MemBuffer::new(lu.factorize_numeric_lu_scratch::<f64>(Par::Seq, params)),
             solve_memory: MemBuffer::new(lu.solve_in_place_scratch::<f64>(1, Par::Seq)),
             factored: false,
+            saved: vec![0.0; size],
             gram: GramWork {
                 values: vec![0.0; gram.row_idx.len()],
                 factor: vec![0.0; cholesky.len_val()],
@@ -572,6 +575,10 @@ impl DcExactStep {
         // The size of the last update taken with the factors now held.
         let mut last = f64::INFINITY;
         let mut factorizations = 0;
+        // Whether the last update was taken with an earlier step's factors and
+        // nothing to judge them by: undone (from `work.saved`) if the next one shows
+        // they do not carry the iteration.
+        let mut blind = false;
         for iteration in 1..=limits.max_iterations.min(MAX_ITERATIONS) {
             let fresh = !work.factored;
             if fresh {
@@ -616,7 +623,15 @@ impl DcExactStep {
             if !settled && contraction.is_some_and(|c| c > MAX_CONTRACTION) {
                 // The earlier Jacobian no longer carries the iteration.
                 work.factored = false;
+                if blind {
+                    work.x.copy_from_slice(&work.saved);
+                    blind = false;
+                }
                 continue;
+            }
+            blind = !fresh && contraction.is_none();
+            if blind {
+                work.saved.copy_from_slice(&work.x);
             }
             last = update;
             for (xi, di) in work.x.iter_mut().zip(&work.residual) {

@@ -99,3 +99,57 @@ fn jacobian_matches_finite_differences() {
     check_jacobian("driven/controlled-crank-rocker.yaml", Rule::Euler);
     check_jacobian("driven/watt-six-bar.yaml", Rule::Trapezoidal);
 }
+
+/// A step solved after another far from it: the earlier step's factors, kept for
+/// the simplified iteration, are refreshed where they do not carry it, and the step
+/// is the one a step with fresh factors finds.
+#[test]
+fn factors_of_a_distant_step_do_not_change_the_solution() {
+    let limits = StepLimits {
+        max_iterations: 50,
+        step_tolerance: 1e-8,
+    };
+    let scene = "benchmarks/andrews-squeezer.yaml";
+    let kept = step_of(scene, Rule::Trapezoidal);
+    let model = kept.system.model.clone();
+    let n = model.n();
+    // The squeezer 40 ms into its motion: the crank has turned through a radian.
+    let options = crate::forward::ForwardOptions::new(
+        crate::coordinates::Coordinates::Dependent,
+        1e-3,
+        0.04,
+        crate::smoother::Mode::FixedLag(1),
+    );
+    let (trajectory, _) =
+        crate::forward::simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
+    let state = |k: usize| -> Vec<f64> {
+        let row = k * n..(k + 1) * n;
+        let mut v = trajectory.q[row.clone()].to_vec();
+        v.extend(&trajectory.dq[row.clone()]);
+        v.extend(&trajectory.ddq[row]);
+        v
+    };
+    // A first step from the start, which leaves its factors behind.
+    let before = state(0);
+    let mut block = before.clone();
+    assert!(kept.solve(0.001, &before, &mut block, limits).is_some());
+    // The step after the last: with the kept factors and with none.
+    let last = trajectory.len() - 1;
+    let before = state(last);
+    let t = trajectory.t[last] + 1e-3;
+    let mut with_kept = before.clone();
+    let work = kept.solve(t, &before, &mut with_kept, limits).unwrap();
+    assert!(work.factorizations >= 1, "the kept factors were refreshed");
+    let fresh = step_of(scene, Rule::Trapezoidal);
+    let mut with_fresh = before.clone();
+    fresh.solve(t, &before, &mut with_fresh, limits).unwrap();
+    for i in 0..3 * n {
+        let scale = 1.0 + with_fresh[i].abs();
+        assert!(
+            (with_kept[i] - with_fresh[i]).abs() <= 1e-9 * scale,
+            "unknown {i}: {} with the kept factors, {} with fresh ones",
+            with_kept[i],
+            with_fresh[i]
+        );
+    }
+}
