@@ -30,18 +30,14 @@
 
 use crate::dynamics::{self, DynamicsKernel};
 use crate::graph::{ExactStep, StepLimits, StepWork};
-use crate::linalg::sparse::selected_inverse_trace;
+use crate::linalg::sparse::{selected_inverse_trace, simplicial_symbolic};
 use crate::model::{Model, MAX_LOCAL};
 use crate::tangent::Rule;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::linalg::lu::partial_pivoting::factor::PartialPivLuParams;
-use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymbolicCholeskyRaw,
-    SymmetricOrdering,
-};
+use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering};
 use faer::sparse::linalg::lu::{factorize_symbolic_lu, LuRef, NumericLu, SymbolicLu};
-use faer::sparse::linalg::SupernodalThreshold;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Conj, MatMut, Par, Side, Spec};
 use nalgebra::DVector;
@@ -263,17 +259,7 @@ impl DcExactStep {
         let gram_entries = gram_entries(&system.model);
         let lower: Vec<(usize, usize)> = gram_entries.iter().map(|e| (e.0, e.1)).collect();
         let gram = Pattern::new(ma, &lower);
-        let cholesky = factorize_symbolic_cholesky(
-            gram.symbolic(),
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            // Simplicial: its factor's columns are what the selected inversion reads.
-            CholeskySymbolicParams {
-                supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SIMPLICIAL,
-                ..Default::default()
-            },
-        )
-        .ok()?;
+        let cholesky = simplicial_symbolic(gram.symbolic(), Side::Lower, SymmetricOrdering::Amd)?;
         let params: Spec<PartialPivLuParams, f64> = Default::default();
         let work = Work {
             x,

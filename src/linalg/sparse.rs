@@ -8,10 +8,11 @@ use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::linalg::solvers::SolveCore;
 use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholeskyRaw, SymmetricOrdering,
+    factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymbolicCholeskyRaw,
+    SymmetricOrdering,
 };
 use faer::sparse::linalg::SupernodalThreshold;
-use faer::sparse::{SparseColMat, SparseColMatRef, Triplet};
+use faer::sparse::{SparseColMat, SparseColMatRef, SymbolicSparseColMatRef, Triplet};
 use faer::{Conj, MatMut, Par, Side};
 
 /// Solves the square system A x = b given by the triplets (row, column, value;
@@ -85,29 +86,50 @@ fn inverse_norm_estimate(size: usize, mut solve: impl FnMut(&mut [f64], bool)) -
     estimate
 }
 
-/// The diagonal of the Cholesky factor L (A = L Lᵀ) of the symmetric matrix whose
-/// lower triangle the triplets give (row ≥ column; repeated positions add up),
-/// eliminated in the given order (no reordering: L_kk is then the part of the k-th
-/// row or column not explained by the earlier ones). `None` when A is not positive
-/// definite to working precision.
-pub fn cholesky_pivots(size: usize, lower: &[(usize, usize, f64)]) -> Option<Vec<f64>> {
-    // Stored as the upper triangle: without a reordering faer's symbolic analysis
-    // reads that side.
-    let entries: Vec<Triplet<usize, usize, f64>> = lower
-        .iter()
-        .map(|&(row, col, val)| Triplet::new(col, row, val))
-        .collect();
-    let a = SparseColMat::<usize, f64>::try_new_from_triplets(size, size, &entries).ok()?;
-    let symbolic = factorize_symbolic_cholesky(
-        a.symbolic(),
-        Side::Upper,
-        SymmetricOrdering::Identity,
+/// The simplicial symbolic Cholesky analysis of a symmetric pattern: simplicial
+/// because the callers read its factor's columns (pivots, selected inversion).
+pub fn simplicial_symbolic(
+    pattern: SymbolicSparseColMatRef<'_, usize>,
+    side: Side,
+    ordering: SymmetricOrdering<'_, usize>,
+) -> Option<SymbolicCholesky<usize>> {
+    factorize_symbolic_cholesky(
+        pattern,
+        side,
+        ordering,
         CholeskySymbolicParams {
             supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SIMPLICIAL,
             ..Default::default()
         },
     )
-    .ok()?;
+    .ok()
+}
+
+/// A simplicial factor L (A = L Lᵀ) of the symmetric matrix whose lower triangle
+/// the triplets give (row ≥ column; repeated positions add up): L's column pointers,
+/// row indices (each column's diagonal first) and values. Without reordering
+/// (`reorder` false) A is eliminated in the given order; else in a fill-reducing
+/// one. `None` when A is not positive definite to working precision.
+fn simplicial_llt(
+    size: usize,
+    lower: &[(usize, usize, f64)],
+    reorder: bool,
+) -> Option<(Vec<usize>, Vec<usize>, Vec<f64>)> {
+    // Without a reordering faer's symbolic analysis reads the upper triangle.
+    let (side, ordering) = if reorder {
+        (Side::Lower, SymmetricOrdering::Amd)
+    } else {
+        (Side::Upper, SymmetricOrdering::Identity)
+    };
+    let entries: Vec<Triplet<usize, usize, f64>> = lower
+        .iter()
+        .map(|&(row, col, val)| match side {
+            Side::Lower => Triplet::new(row, col, val),
+            Side::Upper => Triplet::new(col, row, val),
+        })
+        .collect();
+    let a = SparseColMat::<usize, f64>::try_new_from_triplets(size, size, &entries).ok()?;
+    let symbolic = simplicial_symbolic(a.symbolic(), side, ordering)?;
     let mut factor = vec![0.0; symbolic.len_val()];
     let mut memory =
         MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()));
@@ -115,7 +137,7 @@ pub fn cholesky_pivots(size: usize, lower: &[(usize, usize, f64)]) -> Option<Vec
         .factorize_numeric_llt(
             &mut factor,
             SparseColMatRef::new(a.symbolic(), a.val()),
-            Side::Upper,
+            side,
             LltRegularization::default(),
             Par::Seq,
             MemStack::new(&mut memory),
@@ -125,7 +147,16 @@ pub fn cholesky_pivots(size: usize, lower: &[(usize, usize, f64)]) -> Option<Vec
     let SymbolicCholeskyRaw::Simplicial(l) = symbolic.raw() else {
         return None;
     };
-    let (col_ptr, row_idx) = (l.col_ptr(), l.row_idx());
+    Some((l.col_ptr().to_vec(), l.row_idx().to_vec(), factor))
+}
+
+/// The diagonal of the Cholesky factor L (A = L Lᵀ) of the symmetric matrix whose
+/// lower triangle the triplets give (row ≥ column; repeated positions add up),
+/// eliminated in the given order (no reordering: L_kk is then the part of the k-th
+/// row or column not explained by the earlier ones). `None` when A is not positive
+/// definite to working precision.
+pub fn cholesky_pivots(size: usize, lower: &[(usize, usize, f64)]) -> Option<Vec<f64>> {
+    let (col_ptr, row_idx, factor) = simplicial_llt(size, lower, false)?;
     (0..size)
         .map(|j| {
             let start = col_ptr[j];
@@ -185,40 +216,9 @@ pub fn selected_inverse_trace(
 /// inversion of [`selected_inverse_trace`]. `None` when A is not positive definite
 /// to working precision. 1 / tr A⁻¹ bounds A's smallest eigenvalue from below.
 pub fn spd_inverse_trace(size: usize, lower: &[(usize, usize, f64)]) -> Option<f64> {
-    let entries: Vec<Triplet<usize, usize, f64>> = lower
-        .iter()
-        .map(|&(row, col, val)| Triplet::new(row, col, val))
-        .collect();
-    let a = SparseColMat::<usize, f64>::try_new_from_triplets(size, size, &entries).ok()?;
-    let symbolic = factorize_symbolic_cholesky(
-        a.symbolic(),
-        Side::Lower,
-        SymmetricOrdering::Amd,
-        CholeskySymbolicParams {
-            supernodal_flop_ratio_threshold: SupernodalThreshold::FORCE_SIMPLICIAL,
-            ..Default::default()
-        },
-    )
-    .ok()?;
-    let mut factor = vec![0.0; symbolic.len_val()];
-    let mut memory =
-        MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()));
-    symbolic
-        .factorize_numeric_llt(
-            &mut factor,
-            SparseColMatRef::new(a.symbolic(), a.val()),
-            Side::Lower,
-            LltRegularization::default(),
-            Par::Seq,
-            MemStack::new(&mut memory),
-            Default::default(),
-        )
-        .ok()?;
-    let SymbolicCholeskyRaw::Simplicial(l) = symbolic.raw() else {
-        return None;
-    };
+    let (col_ptr, row_idx, factor) = simplicial_llt(size, lower, true)?;
     let mut inverse = vec![0.0; factor.len()];
-    selected_inverse_trace(l.col_ptr(), l.row_idx(), &factor, &mut inverse)
+    selected_inverse_trace(&col_ptr, &row_idx, &factor, &mut inverse)
 }
 
 #[cfg(test)]
