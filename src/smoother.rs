@@ -22,17 +22,18 @@ pub enum Next {
 }
 
 /// Step k of `values` solved by the graph's [`ExactStep`] given step k − 1, if it
-/// has one and it converges; else step k keeps its guess and `None` is returned.
+/// has one and it converges; else step k is given back its `guess` (what it held)
+/// and `None` is returned.
 fn exact_step(
     graph: &ChainGraph,
     values: &mut [f64],
     k: usize,
+    guess: &[f64],
     settings: &Settings,
 ) -> Option<SolveReport> {
     let exact = graph.exact_step()?;
     let s = graph.layout().size();
     let (before, block) = values[(k - 1) * s..(k + 1) * s].split_at_mut(s);
-    let guess = block.to_vec();
     let limits = StepLimits {
         max_iterations: settings.max_iterations,
         step_tolerance: settings.step_tolerance,
@@ -44,7 +45,7 @@ fn exact_step(
             ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
         }),
         None => {
-            block.copy_from_slice(&guess);
+            block.copy_from_slice(guess);
             None
         }
     }
@@ -245,7 +246,7 @@ fn run_fixed_lag(
             k0 = k;
             start.clear();
             start.extend_from_slice(&values[(k - 1) * s..(k + 1) * s]);
-            let mut report = match exact_step(graph, values, k, solver.settings()) {
+            let mut report = match exact_step(graph, values, k, &start[s..], solver.settings()) {
                 Some(report) => report,
                 None => solver.solve_conditional(graph, values, k, k + 1)?,
             };

@@ -157,6 +157,10 @@ impl Sink<'_> {
 /// The scratch of the regularity test: G, its Cholesky factor and G⁻¹ on the
 /// factor's pattern.
 struct GramWork {
+    /// Each active row's gradient, the entries of AAᵀ and the row norms.
+    gradients: Vec<[f64; MAX_LOCAL]>,
+    dots: Vec<f64>,
+    norms: Vec<f64>,
     values: Vec<f64>,
     factor: Vec<f64>,
     /// (LLᵀ)⁻¹ on L's pattern.
@@ -274,6 +278,9 @@ impl DcExactStep {
             factored: false,
             saved: vec![0.0; size],
             gram: GramWork {
+                gradients: vec![[0.0; MAX_LOCAL]; ma],
+                dots: vec![0.0; gram_entries.len()],
+                norms: vec![0.0; ma],
                 values: vec![0.0; gram.row_idx.len()],
                 factor: vec![0.0; cholesky.len_val()],
                 inverse: vec![0.0; cholesky.len_val()],
@@ -420,7 +427,12 @@ impl DcExactStep {
         if ma == 0 {
             return f64::INFINITY;
         }
-        let mut gradients = vec![[0.0; MAX_LOCAL]; ma];
+        let GramWork {
+            gradients,
+            dots,
+            norms,
+            ..
+        } = gram;
         let mut u = [0.0; MAX_LOCAL];
         for (row, &k) in model.active.iter().enumerate() {
             let c = &model.constraints[k];
@@ -429,18 +441,13 @@ impl DcExactStep {
         }
         // AAᵀ over the shared coordinates (a coordinate a row holds twice adds up),
         // the row norms from its diagonal, then G.
-        let dots: Vec<f64> = self
-            .gram_entries
-            .iter()
-            .map(|(i, j, shared)| {
-                shared
-                    .iter()
-                    .map(|&(p, s)| gradients[*i][p] * gradients[*j][s])
-                    .sum()
-            })
-            .collect();
-        let mut norms = vec![0.0; ma];
-        for ((i, j, _), dot) in self.gram_entries.iter().zip(&dots) {
+        for ((i, j, shared), dot) in self.gram_entries.iter().zip(dots.iter_mut()) {
+            *dot = shared
+                .iter()
+                .map(|&(p, s)| gradients[*i][p] * gradients[*j][s])
+                .sum();
+        }
+        for ((i, j, _), dot) in self.gram_entries.iter().zip(dots.iter()) {
             if i == j {
                 norms[*i] = dot.sqrt();
             }
@@ -449,8 +456,8 @@ impl DcExactStep {
             return 0.0;
         }
         gram.values.fill(0.0);
-        for (t, ((i, j, _), dot)) in self.gram_entries.iter().zip(&dots).enumerate() {
-            gram.values[self.gram.slots[t]] += dot / (norms[*i] * norms[*j]);
+        for (t, ((i, j, _), dot)) in self.gram_entries.iter().zip(&gram.dots).enumerate() {
+            gram.values[self.gram.slots[t]] += dot / (gram.norms[*i] * gram.norms[*j]);
         }
         let matrix = SparseColMatRef::new(self.gram.symbolic(), &gram.values);
         let factored = self.cholesky.factorize_numeric_llt(
