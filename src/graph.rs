@@ -332,6 +332,22 @@ pub struct StepWork {
     pub factorizations: usize,
 }
 
+/// One iteration of an [`ExactStep`], as a solve's observer sees it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepIteration {
+    /// 1-based iteration of this step.
+    pub iteration: usize,
+    /// Half the squared norm of the residual the update was solved from.
+    pub cost: f64,
+    /// max |δᵢ| / (1 + |xᵢ|) over the step's variables.
+    pub update: f64,
+    /// Whether the Jacobian was factored afresh for this update (else an earlier
+    /// one's factors were used: a chord update).
+    pub fresh: bool,
+    /// Whether the iteration stopped here, converged.
+    pub settled: bool,
+}
+
 /// One step of a graph whose steps have as many equations as unknowns, all of which
 /// hold at the solution, solved on its own given the step before: the same
 /// solution as a window's, by a route that knows the step's structure (a DC step's
@@ -340,13 +356,14 @@ pub struct StepWork {
 pub trait ExactStep: Send + Sync {
     /// Solves step `block` (guess in, solution out) at time `t`, given the step
     /// before (`before`); the work taken, or `None` where it declines or does not
-    /// converge (`block` is then unspecified).
+    /// converge (`block` is then unspecified). `watch` sees every iteration.
     fn solve(
         &self,
         t: f64,
         before: &[f64],
         block: &mut [f64],
         limits: StepLimits,
+        watch: Option<&mut dyn FnMut(&StepIteration)>,
     ) -> Option<StepWork>;
 
     /// Solves step 0 (`block`, guess in, solution out) under the graph's initial

@@ -3,8 +3,10 @@
 //! prior on the ones that remain) and the batch solve of the whole horizon.
 
 use crate::error::{Error, Result};
-use crate::graph::{ChainGraph, StepLimits};
-use crate::solver::{LinearPrior, Past, Settings, SolveReport, Termination, WindowSolver};
+use crate::graph::{ChainGraph, StepIteration, StepLimits};
+use crate::solver::{
+    Iteration, LinearPrior, Observer, Past, Settings, SolveReport, Termination, WindowSolver,
+};
 
 /// How a horizon is solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -23,22 +25,39 @@ pub enum Next {
 
 /// Step k of `values` solved by the graph's [`ExactStep`] given step k − 1, if it
 /// has one and it converges; else step k is given back its `guess` (what it held)
-/// and `None` is returned.
+/// and `None` is returned. Its iterations go to `observer` as the window k..k+1's.
 fn exact_step(
     graph: &ChainGraph,
     values: &mut [f64],
     k: usize,
     guess: &[f64],
-    settings: &Settings,
+    limits: StepLimits,
+    observer: Option<&mut dyn Observer>,
 ) -> Option<SolveReport> {
     let exact = graph.exact_step()?;
     let s = graph.layout().size();
     let (before, block) = values[(k - 1) * s..(k + 1) * s].split_at_mut(s);
-    let limits = StepLimits {
-        max_iterations: settings.max_iterations,
-        step_tolerance: settings.step_tolerance,
-    };
-    match exact.solve(graph.time(k), before, block, limits) {
+    let mut watch = observer.map(|observer| {
+        move |step: &StepIteration| {
+            observer.iteration(&Iteration {
+                k0: k,
+                k1: k + 1,
+                iteration: step.iteration,
+                newton: true,
+                cost: step.cost,
+                trial: None,
+                damping: 0.0,
+                // Newton's model of a square system predicts its residual gone.
+                predicted: step.cost,
+                largest_step: step.update,
+                small: step.settled,
+                restored: false,
+                chord: !step.fresh,
+            })
+        }
+    });
+    let watch = watch.as_mut().map(|w| w as &mut dyn FnMut(&StepIteration));
+    match exact.solve(graph.time(k), before, block, limits, watch) {
         // Its equations hold to round-off: a cost of zero.
         Some(work) => Some(SolveReport {
             factorizations: work.factorizations,
@@ -246,7 +265,12 @@ fn run_fixed_lag(
             k0 = k;
             start.clear();
             start.extend_from_slice(&values[(k - 1) * s..(k + 1) * s]);
-            let mut report = match exact_step(graph, values, k, &start[s..], solver.settings()) {
+            let limits = StepLimits {
+                max_iterations: solver.settings().max_iterations,
+                step_tolerance: solver.settings().step_tolerance,
+            };
+            let exact = exact_step(graph, values, k, &start[s..], limits, solver.observer());
+            let mut report = match exact {
                 Some(report) => report,
                 None => solver.solve_conditional(graph, values, k, k + 1)?,
             };

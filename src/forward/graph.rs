@@ -2,7 +2,7 @@
 //! in dependent or independent coordinates, the initial guess and the prediction of
 //! each step, and the conversions between its variables and a [`Trajectory`].
 
-use super::exact_step::DcExactStep;
+use super::exact_step::SquareStep;
 use super::options::{ForwardOptions, Integrator};
 use crate::collocation;
 use crate::coordinates::Coordinates;
@@ -101,7 +101,7 @@ impl ForwardGraph {
                     builder = builder.step_soft(factor, Noise::Isotropic(sigma));
                 }
                 if let Some(rule) = options.exact_step_rule(n) {
-                    if let Some(step) = DcExactStep::new(model.clone(), rule, dt) {
+                    if let Some(step) = SquareStep::dependent(model.clone(), rule, dt) {
                         builder = builder.exact_step(Box::new(step));
                     }
                 }
@@ -142,6 +142,11 @@ impl ForwardGraph {
                     );
                 for (factor, sigma) in ic_integrators().into_iter().zip(sigma) {
                     builder = builder.step_soft(factor, Noise::Isotropic(sigma));
+                }
+                if let Some(rule) = options.exact_step_rule(n) {
+                    if let Some(step) = SquareStep::independent(model.clone(), rule, dt) {
+                        builder = builder.exact_step(Box::new(step));
+                    }
                 }
                 builder
                     .step_soft(

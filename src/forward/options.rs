@@ -1,7 +1,6 @@
 //! What a forward run is asked: the coordinates, the step and horizon, the solve's
 //! mode, the integrator and its factors, the noise models ([`ForwardOptions`]).
 
-use super::exact_step::EXACT_STEP_FROM;
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::model::Model;
@@ -120,11 +119,11 @@ pub struct ForwardOptions {
     /// `dt / factor` and keep every `factor`-th state, so that the output stays on the
     /// grid asked for ([`RunSummary::refinement`](super::summary::RunSummary::refinement) says so).
     pub refine: bool,
-    /// Take each DC step with tangent integrators as a sparse square system where it
-    /// can (from [`EXACT_STEP_FROM`](super::exact_step::EXACT_STEP_FROM) coordinates,
-    /// away from singular configurations); `false` sends every step through the
-    /// general solver, for comparison. The solution is the same to the step
-    /// tolerance.
+    /// Take each step of an IC run, or of a DC run with tangent integrators, with
+    /// the trapezoidal rule or Euler as the sparse square system it is, where it can
+    /// (away from singular configurations, and in IC without redundant constraints);
+    /// `false` sends every step through the general solver, for comparison. The
+    /// solution is the same to the step tolerance.
     pub exact_steps: bool,
 }
 
@@ -163,10 +162,10 @@ impl ForwardOptions {
     /// factors ended 16× further from IDA than tangent ones on a driven Watt six-bar,
     /// 33× on Andrews' squeezer (0.1 ms), 46× on a light link driven by a flywheel,
     /// 2–6× on the double pendulum and the compressor slider-crank; 1.3–1.6× closer
-    /// on the four-bar family alone. From
-    /// [`EXACT_STEP_FROM`](super::exact_step::EXACT_STEP_FROM) coordinates on their
-    /// steps are solved as a sparse square system, at a cost that grows with the
-    /// number of bodies where the paper's grows with its square or more.
+    /// on the four-bar family alone. With the trapezoidal rule or Euler their steps
+    /// are solved as a sparse square system ([`ForwardOptions::exact_steps`]), at a
+    /// cost that grows with the number of bodies where the paper's grows with its
+    /// square or more.
     pub fn tangent_dc(&self, _n: usize) -> bool {
         match self.dc_integrators {
             DcIntegrators::Tangent | DcIntegrators::Auto => true,
@@ -174,12 +173,11 @@ impl ForwardOptions {
         }
     }
 
-    /// The integration rule of a DC graph of `n` coordinates whose steps are taken
-    /// by [`DcExactStep`](super::exact_step::DcExactStep) where it can: tangent
-    /// trapezoidal or Euler integrators, from
-    /// [`EXACT_STEP_FROM`](super::exact_step::EXACT_STEP_FROM) coordinates on.
+    /// The integration rule of a graph of `n` coordinates whose steps are taken by
+    /// [`SquareStep`](super::exact_step::SquareStep) where it can: IC, or DC with
+    /// tangent integrators, with the trapezoidal rule or Euler.
     pub(super) fn exact_step_rule(&self, n: usize) -> Option<Rule> {
-        if !self.exact_steps || !self.tangent_dc(n) || n < EXACT_STEP_FROM {
+        if !self.exact_steps || !self.is_square(n) {
             return None;
         }
         match self.integrator {

@@ -308,6 +308,15 @@ impl WindowSolver {
         self.observer = Some(observer);
     }
 
+    /// The installed observer, for solves made beside this solver (a graph's exact
+    /// steps) to report their iterations to it.
+    pub fn observer(&mut self) -> Option<&mut dyn Observer> {
+        match &mut self.observer {
+            Some(observer) => Some(observer.as_mut()),
+            None => None,
+        }
+    }
+
     pub fn settings(&self) -> &Settings {
         &self.settings
     }

@@ -1,6 +1,6 @@
-//! One step of a dependent-coordinate run with tangent integrators, solved as the
-//! square system it is, with a sparse Jacobian: per-step cost that grows with the
-//! number of bodies, not with its cube.
+//! One step of a dependent-coordinate run with tangent integrators, or of an
+//! independent-coordinate run, solved as the square system it is, with a sparse
+//! Jacobian: per-step cost that grows with the number of bodies, not with its cube.
 //!
 //! With tangent integrators a DC step has as many equations as unknowns and they
 //! hold exactly (see [`crate::tangent`]): Φ(q) = 0, Φ_q q̇ = 0, f_dyn = 0, and the
@@ -19,6 +19,13 @@
 //! positions and velocities), whose Jacobian has a few nonzeros per row: Newton's
 //! method with faer's sparse LU, its symbolic analysis done once per mechanism.
 //!
+//! An IC step is the same system with the integrators on the independent
+//! coordinates z only and no μ: q follows from z through Φ(q) = 0, and f^i_dyn = 0
+//! is the augmented system's q̈ on z. Its equations are as many as its unknowns
+//! where the constraints have full rank (m + f = n); the weak f_eq between
+//! consecutive q, which the general solver also weighs, is left out (at its default
+//! σ its weight is 1e-16 of the integrators').
+//!
 //! The general solver's dynamics regularize the augmented system near a singular
 //! configuration (see [`crate::dynamics::DynamicsKernel`]); there the two systems
 //! differ. A step is therefore taken from here only where the kernel's measure of
@@ -29,27 +36,20 @@
 //! failure) goes back to the general solver.
 
 use crate::dynamics::{self, DynamicsKernel};
-use crate::graph::{ExactStep, StepLimits, StepWork};
+use crate::graph::{ExactStep, StepIteration, StepLimits, StepWork};
 use crate::linalg::sparse::{selected_inverse_trace, simplicial_symbolic};
 use crate::model::{Model, MAX_LOCAL};
 use crate::tangent::Rule;
+
+mod factors;
+use factors::Factors;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
-use faer::linalg::lu::partial_pivoting::factor::PartialPivLuParams;
 use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering};
-use faer::sparse::linalg::lu::{factorize_symbolic_lu, LuRef, NumericLu, SymbolicLu};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
-use faer::{Conj, MatMut, Par, Side, Spec};
+use faer::{Par, Side};
 use nalgebra::DVector;
 use std::sync::{Arc, Mutex};
-
-/// Coordinates from which a DC run with tangent integrators takes its steps from
-/// here. Below, the general solver takes the steps, so every scene of the suite
-/// (all under 20 coordinates) keeps its results to the bit; its cost against this
-/// path there is not measured. Above, this path is the faster one from the first size measured
-/// (the 10 four-bar loops, 23 coordinates: 146 µs a step on the scaling page, the
-/// general solver 120 µs for the 5 loops' 13).
-pub const EXACT_STEP_FROM: usize = 20;
 
 /// s must pass [`DynamicsKernel::REGULAR_ABOVE`] by this factor: the kernel
 /// computes it densely, in another order of rounding.
@@ -176,15 +176,13 @@ struct Work {
     q_force: Vec<f64>,
     kq: Vec<f64>,
     kv: Vec<f64>,
-    numeric: NumericLu<usize, f64>,
-    lu_memory: MemBuffer,
-    solve_memory: MemBuffer,
+    factors: Factors,
     gram: GramWork,
     /// The multipliers of the last step solved: the next step's first guess.
     multipliers: Vec<f64>,
     /// The iterate before an update that may be undone.
     saved: Vec<f64>,
-    /// Whether `numeric` holds the LU of a Jacobian of this system (of an earlier
+    /// Whether `factors` hold the LU of a Jacobian of this system (of an earlier
     /// iterate, maybe of an earlier step), which the next iterations may reuse.
     factored: bool,
 }
@@ -199,14 +197,46 @@ struct System {
     mass: Vec<(usize, usize, f64)>,
     /// (row, column) of the entries of ∂Q/∂q and ∂Q/∂q̇ any effect can write.
     force_entries: Vec<(usize, usize)>,
+    /// The coordinates the integrators hold: every one (DC), or z's (IC).
+    integrated: Vec<usize>,
+    /// Whether the integrators are projected on the tangent space (DC: with
+    /// multipliers μ₁, μ₂) or hold as they are (IC).
+    projected: bool,
 }
 
-/// The square system of a DC step with tangent integrators, with its sparsity
-/// analysed once.
-pub struct DcExactStep {
+impl System {
+    /// The unknowns: q, q̇, q̈, λ and (projected) μ₁, μ₂.
+    fn size(&self) -> usize {
+        let multipliers = if self.projected { 3 } else { 1 };
+        3 * self.model.n() + multipliers * self.model.active.len()
+    }
+
+    /// In IC, z, ż, z̈ of a step's `block` (after q, q̇, q̈) from its q, q̇, q̈.
+    fn fill_independent(&self, block: &mut [f64]) {
+        if self.projected {
+            return;
+        }
+        let (n, f) = (self.model.n(), self.integrated.len());
+        let (state, z) = block.split_at_mut(3 * n);
+        for j in 0..3 {
+            for (k, &i) in self.integrated.iter().enumerate() {
+                z[j * f + k] = state[j * n + i];
+            }
+        }
+    }
+
+    /// The equations: the constraints at three levels, the dynamics and the
+    /// integrators.
+    fn equations(&self) -> usize {
+        3 * self.model.active.len() + self.model.n() + 2 * self.integrated.len()
+    }
+}
+
+/// The square system of a DC step with tangent integrators or of an IC step, with
+/// its sparsity analysed once.
+pub struct SquareStep {
     system: System,
     jacobian: Pattern,
-    lu: SymbolicLu<usize>,
     /// The lower triangle of G = ÂÂᵀ: per entry the pair of active rows (i, j ≤ i)
     /// and the pairs of their local coordinates that are one coordinate of q.
     gram_entries: Vec<GramEntry>,
@@ -215,12 +245,34 @@ pub struct DcExactStep {
     work: Mutex<Work>,
 }
 
-impl DcExactStep {
-    /// The step system of `model` for `rule` at `dt`; `None` where its sparse
-    /// analysis fails (the general solver then takes every step).
-    pub fn new(model: Arc<Model>, rule: Rule, dt: f64) -> Option<DcExactStep> {
+impl SquareStep {
+    /// The step system of a DC graph of `model` with tangent integrators of `rule`
+    /// at `dt`; `None` where its sparse analysis fails (the general solver then
+    /// takes every step).
+    pub fn dependent(model: Arc<Model>, rule: Rule, dt: f64) -> Option<SquareStep> {
+        let integrated = (0..model.n()).collect();
+        SquareStep::new(model, rule, dt, integrated, true)
+    }
+
+    /// The step system of an IC graph of `model` (integrators of `rule` on its
+    /// independent coordinates) at `dt`; `None` where it is not square (redundant
+    /// constraints) or its sparse analysis fails.
+    pub fn independent(model: Arc<Model>, rule: Rule, dt: f64) -> Option<SquareStep> {
+        if model.active.len() != model.m() {
+            return None;
+        }
+        let integrated = model.independent.clone();
+        SquareStep::new(model, rule, dt, integrated, false)
+    }
+
+    fn new(
+        model: Arc<Model>,
+        rule: Rule,
+        dt: f64,
+        integrated: Vec<usize>,
+        projected: bool,
+    ) -> Option<SquareStep> {
         let (n, ma) = (model.n(), model.active.len());
-        let size = 3 * n + 3 * ma;
         let mut force_entries = Vec::new();
         for force in &model.forces {
             match force.jacobian_pattern(&model) {
@@ -247,7 +299,13 @@ impl DcExactStep {
             dt,
             mass,
             force_entries,
+            integrated,
+            projected,
         };
+        let size = system.size();
+        if system.equations() != size {
+            return None;
+        }
         // The Jacobian's pattern from one structural pass of its assembly.
         let mut emitted = Vec::new();
         let x = vec![0.0; size];
@@ -259,12 +317,11 @@ impl DcExactStep {
         let (kq, kv) = (vec![0.0; dense], vec![0.0; dense]);
         system.assemble(&x, &kq, &kv, &mut Sink::Pattern(&mut emitted));
         let jacobian = Pattern::new(size, &emitted);
-        let lu = factorize_symbolic_lu(jacobian.symbolic(), Default::default()).ok()?;
+        let factors = Factors::new(&jacobian)?;
         let gram_entries = gram_entries(&system.model);
         let lower: Vec<(usize, usize)> = gram_entries.iter().map(|e| (e.0, e.1)).collect();
         let gram = Pattern::new(ma, &lower);
         let cholesky = simplicial_symbolic(gram.symbolic(), Side::Lower, SymmetricOrdering::Amd)?;
-        let params: Spec<PartialPivLuParams, f64> = Default::default();
         let work = Work {
             x,
             residual: vec![0.0; size],
@@ -272,9 +329,7 @@ impl DcExactStep {
             q_force: vec![0.0; n],
             kq,
             kv,
-            numeric: NumericLu::new(),
-            lu_memory: MemBuffer::new(lu.factorize_numeric_lu_scratch::<f64>(Par::Seq, params)),
-            solve_memory: MemBuffer::new(lu.solve_in_place_scratch::<f64>(1, Par::Seq)),
+            factors,
             factored: false,
             saved: vec![0.0; size],
             gram: GramWork {
@@ -288,12 +343,11 @@ impl DcExactStep {
                     cholesky.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
                 ),
             },
-            multipliers: vec![0.0; 3 * ma],
+            multipliers: vec![0.0; size - 3 * n],
         };
-        Some(DcExactStep {
+        Some(SquareStep {
             system,
             jacobian,
-            lu,
             gram_entries,
             gram,
             cholesky,
@@ -311,20 +365,22 @@ impl System {
         let (q, v, a) = (&x[..n], &x[n..2 * n], &x[2 * n..3 * n]);
         let mult = &x[3 * n..];
         // Rows: Φ, Φ_q q̇, the acceleration equations, then M q̈ + Φ_qᵀλ − Q and
-        // the two integrators. Columns: q, q̇, q̈, λ, μ₁, μ₂.
+        // the two integrators (of every coordinate in DC, where the μ rows of
+        // coordinate i are its integrators'). Columns: q, q̇, q̈, λ, μ₁, μ₂.
+        let ni = self.integrated.len();
         let (r_vel, r_acc, r_dyn, r_pos_int, r_vel_int) =
-            (ma, 2 * ma, 3 * ma, 3 * ma + n, 3 * ma + 2 * n);
+            (ma, 2 * ma, 3 * ma, 3 * ma + n, 3 * ma + n + ni);
         let (c_lambda, c_mu1, c_mu2) = (3 * n, 3 * n + ma, 3 * n + 2 * ma);
         let half = match self.rule {
             Rule::Trapezoidal => 0.5 * self.dt,
             Rule::Euler => 0.0,
         };
-        for i in 0..n {
-            sink.add(r_pos_int + i, i, 1.0);
-            sink.add(r_vel_int + i, n + i, 1.0);
+        for (r, &i) in self.integrated.iter().enumerate() {
+            sink.add(r_pos_int + r, i, 1.0);
+            sink.add(r_vel_int + r, n + i, 1.0);
             if self.rule == Rule::Trapezoidal {
-                sink.add(r_pos_int + i, n + i, -half);
-                sink.add(r_vel_int + i, 2 * n + i, -half);
+                sink.add(r_pos_int + r, n + i, -half);
+                sink.add(r_vel_int + r, 2 * n + i, -half);
             }
         }
         for &(i, j, mass) in &self.mass {
@@ -340,7 +396,12 @@ impl System {
             local.at(c, q, v, a);
             let len = local.len;
             let index = c.local_index();
-            let (lambda, mu1, mu2) = (mult[row], mult[ma + row], mult[2 * ma + row]);
+            let lambda = mult[row];
+            let (mu1, mu2) = if self.projected {
+                (mult[ma + row], mult[2 * ma + row])
+            } else {
+                (0.0, 0.0)
+            };
             for (p, ip) in index.iter().enumerate() {
                 let Some(ip) = *ip else { continue };
                 let g = local.gradient[p];
@@ -348,8 +409,10 @@ impl System {
                 sink.add(r_vel + row, n + ip, g);
                 sink.add(r_acc + row, 2 * n + ip, g);
                 sink.add(r_dyn + ip, c_lambda + row, g);
-                sink.add(r_pos_int + ip, c_mu1 + row, -g);
-                sink.add(r_vel_int + ip, c_mu2 + row, -g);
+                if self.projected {
+                    sink.add(r_pos_int + ip, c_mu1 + row, -g);
+                    sink.add(r_vel_int + ip, c_mu2 + row, -g);
+                }
                 // ∂(Φ_q q̇)/∂q = (Φ_qq q̇)ᵀ; the acceleration row's
                 // ∂/∂q = (Φ_qq q̈)ᵀ + ∂(q̇ᵀΦ_qq q̇)/∂q and ∂/∂q̇ = 2 (Φ_qq q̇)ᵀ.
                 sink.add(r_vel + row, ip, local.hv[p]);
@@ -360,8 +423,10 @@ impl System {
                     // ∂(Φ_qᵀw)/∂q: entry (coordinate p, coordinate s) is w·H[p][s].
                     let h = local.hessian[p * len + s];
                     sink.add(r_dyn + ip, is, lambda * h);
-                    sink.add(r_pos_int + ip, is, -mu1 * h);
-                    sink.add(r_vel_int + ip, is, -mu2 * h);
+                    if self.projected {
+                        sink.add(r_pos_int + ip, is, -mu1 * h);
+                        sink.add(r_vel_int + ip, is, -mu2 * h);
+                    }
                 }
             }
         }
@@ -376,10 +441,13 @@ impl System {
         let (qp, vp, ap) = (&before[..n], &before[n..2 * n], &before[2 * n..3 * n]);
         let mult = &x[3 * n..];
         let dt = self.dt;
-        let (r_dyn, r_pos_int, r_vel_int) = (3 * ma, 3 * ma + n, 3 * ma + 2 * n);
-        for i in 0..n {
-            out[r_dyn + i] = -q_force[i];
-            (out[r_pos_int + i], out[r_vel_int + i]) = match self.rule {
+        let ni = self.integrated.len();
+        let (r_dyn, r_pos_int, r_vel_int) = (3 * ma, 3 * ma + n, 3 * ma + n + ni);
+        for (r, force) in out[r_dyn..r_dyn + n].iter_mut().zip(q_force) {
+            *r = -force;
+        }
+        for (r, &i) in self.integrated.iter().enumerate() {
+            (out[r_pos_int + r], out[r_vel_int + r]) = match self.rule {
                 Rule::Trapezoidal => (
                     q[i] - qp[i] - 0.5 * dt * (vp[i] + v[i]),
                     v[i] - vp[i] - 0.5 * dt * (ap[i] + a[i]),
@@ -393,7 +461,7 @@ impl System {
         let mut local = Local::default();
         for (row, &k) in model.active.iter().enumerate() {
             let c = &model.constraints[k];
-            local.at(c, q, v, a);
+            local.values_at(c, q, v);
             out[row] = local.phi;
             let (mut vel, mut acc) = (0.0, 0.0);
             for (p, ip) in c.local_index().iter().enumerate() {
@@ -402,8 +470,10 @@ impl System {
                 vel += g * v[ip];
                 acc += g * a[ip] + local.hv[p] * v[ip];
                 out[r_dyn + ip] += g * mult[row];
-                out[r_pos_int + ip] -= g * mult[ma + row];
-                out[r_vel_int + ip] -= g * mult[2 * ma + row];
+                if self.projected {
+                    out[r_pos_int + ip] -= g * mult[ma + row];
+                    out[r_vel_int + ip] -= g * mult[2 * ma + row];
+                }
             }
             out[ma + row] = vel;
             out[2 * ma + row] = acc;
@@ -411,7 +481,7 @@ impl System {
     }
 }
 
-impl DcExactStep {
+impl SquareStep {
     /// Whether the active rows of Φ_q at q are far enough from a rank loss that the
     /// dynamics kernel uses the plain augmented system: its measure
     /// s = (tr G⁻¹)^(−1/2) at least [`DynamicsKernel::REGULAR_ABOVE`] (with a
@@ -496,7 +566,7 @@ impl DcExactStep {
     }
 
     /// The residual (`work.residual`) and the Jacobian's values (`work.values`) of
-    /// the step system at `work.x`, and the Jacobian's LU (`work.numeric`); `None`
+    /// the step system at `work.x`, and the Jacobian's LU (`work.factors`); `None`
     /// where an effect cannot be evaluated, either is not finite or the LU fails.
     fn linearize(&self, t: f64, before: &[f64], work: &mut Work) -> Option<()> {
         let system = &self.system;
@@ -530,17 +600,7 @@ impl DcExactStep {
         if !work.values.iter().all(|v| v.is_finite()) {
             return None;
         }
-        let matrix = SparseColMatRef::new(self.jacobian.symbolic(), &work.values);
-        let params: Spec<PartialPivLuParams, f64> = Default::default();
-        self.lu
-            .factorize_numeric_lu(
-                &mut work.numeric,
-                matrix,
-                Par::Seq,
-                MemStack::new(&mut work.lu_memory),
-                params,
-            )
-            .ok()?;
+        work.factors.factor(&self.jacobian, &work.values)?;
         work.factored = true;
         Some(())
     }
@@ -558,11 +618,11 @@ impl DcExactStep {
         block: &mut [f64],
         limits: StepLimits,
         work: &mut Work,
+        mut watch: Option<&mut dyn FnMut(&StepIteration)>,
     ) -> Option<StepWork> {
         let system = &self.system;
         let model = &*system.model;
-        let (n, ma) = (model.n(), model.active.len());
-        let size = 3 * n + 3 * ma;
+        let n = model.n();
         work.x[..3 * n].copy_from_slice(&block[..3 * n]);
         work.x[3 * n..].copy_from_slice(&work.multipliers);
         // The size of the last update taken with the factors now held.
@@ -583,14 +643,11 @@ impl DcExactStep {
             } else {
                 self.residual(t, before, work)?;
             }
-            let lu = LuRef::new_unchecked(&self.lu, &work.numeric);
-            let rhs = MatMut::from_column_major_slice_mut(&mut work.residual, size, 1);
-            lu.solve_in_place_with_conj(
-                Conj::No,
-                rhs,
-                Par::Seq,
-                MemStack::new(&mut work.solve_memory),
-            );
+            let cost = match watch {
+                Some(_) => 0.5 * work.residual.iter().map(|r| r * r).sum::<f64>(),
+                None => 0.0,
+            };
+            work.factors.solve_in_place(&mut work.residual);
             if !work.residual.iter().all(|d| d.is_finite()) {
                 return None;
             }
@@ -613,6 +670,15 @@ impl DcExactStep {
                         || (c >= ROUNDING_FLOOR && update <= limits.step_tolerance)
                 }
             };
+            if let Some(watch) = watch.as_mut() {
+                watch(&StepIteration {
+                    iteration,
+                    cost,
+                    update,
+                    fresh,
+                    settled,
+                });
+            }
             if !settled && contraction.is_some_and(|c| c > MAX_CONTRACTION) {
                 // The earlier Jacobian no longer carries the iteration.
                 work.factored = false;
@@ -635,6 +701,7 @@ impl DcExactStep {
                     return None;
                 }
                 block[..3 * n].copy_from_slice(&work.x[..3 * n]);
+                system.fill_independent(block);
                 work.multipliers.copy_from_slice(&work.x[3 * n..]);
                 return Some(StepWork {
                     iterations: iteration,
@@ -646,7 +713,7 @@ impl DcExactStep {
     }
 }
 
-impl ExactStep for DcExactStep {
+impl ExactStep for SquareStep {
     /// Step 0 holds q and q̇ at the model's initial state (in `block`), and f_dyn
     /// asks q̈ of the augmented system there, which is regular where the steps are
     /// taken from here: its solution, once the configuration passes the same test.
@@ -664,6 +731,7 @@ impl ExactStep for DcExactStep {
             return None;
         }
         block[2 * n..3 * n].copy_from_slice(ddq.as_slice());
+        self.system.fill_independent(block);
         Some(StepWork {
             iterations: 1,
             factorizations: 1,
@@ -676,9 +744,10 @@ impl ExactStep for DcExactStep {
         before: &[f64],
         block: &mut [f64],
         limits: StepLimits,
+        watch: Option<&mut dyn FnMut(&StepIteration)>,
     ) -> Option<StepWork> {
         let mut work = self.work.lock().ok()?;
-        let solved = self.newton(t, before, block, limits, &mut work);
+        let solved = self.newton(t, before, block, limits, &mut work, watch);
         if solved.is_none() {
             // The next step starts its multipliers and its Jacobian afresh.
             work.multipliers.fill(0.0);
@@ -715,6 +784,18 @@ impl Default for Local {
 }
 
 impl Local {
+    /// What the residual needs: Φ, ∇Φ and Φ_qq q̇.
+    fn values_at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64]) {
+        let (mut u, mut w) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        self.len = c.equation.len();
+        c.gather(q, &mut u);
+        c.gather_rate(v, &mut w);
+        self.phi = c.equation.phi(&u);
+        c.equation.gradient(&u, &mut self.gradient);
+        c.equation.hessian_times(&u, &w, &mut self.hv);
+    }
+
+    /// Everything, for the Jacobian.
     fn at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64], a: &[f64]) {
         let len = c.equation.len();
         self.len = len;
@@ -790,5 +871,4 @@ fn gram_entries(model: &Model) -> Vec<GramEntry> {
 }
 
 #[cfg(test)]
-#[path = "exact_step_tests.rs"]
 mod tests;

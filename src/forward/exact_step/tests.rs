@@ -4,10 +4,17 @@
 use super::*;
 use crate::scene::Scene;
 
-fn step_of(scene: &str, rule: Rule) -> DcExactStep {
+fn model_of(scene: &str) -> Arc<Model> {
     let path = format!("{}/scenes/{scene}", env!("CARGO_MANIFEST_DIR"));
-    let model = Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap());
-    DcExactStep::new(model, rule, 1e-3).unwrap()
+    Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap())
+}
+
+fn step_of(scene: &str, rule: Rule) -> SquareStep {
+    SquareStep::dependent(model_of(scene), rule, 1e-3).unwrap()
+}
+
+fn ic_step_of(scene: &str, rule: Rule) -> SquareStep {
+    SquareStep::independent(model_of(scene), rule, 1e-3).unwrap()
 }
 
 /// A deterministic spread of values in (−1, 1).
@@ -17,11 +24,10 @@ fn wobble(i: usize) -> f64 {
 
 /// The assembled Jacobian against central differences of the residual, at a
 /// state off the manifold with nonzero multipliers (every term of every block).
-fn check_jacobian(scene: &str, rule: Rule) {
-    let step = step_of(scene, rule);
+fn check_jacobian(scene: &str, step: SquareStep) {
     let model = step.system.model.clone();
-    let (n, ma) = (model.n(), model.active.len());
-    let size = 3 * n + 3 * ma;
+    let n = model.n();
+    let size = step.system.size();
     let mut x: Vec<f64> = (0..size).map(|i| 0.3 * wobble(i)).collect();
     for i in 0..n {
         x[i] = model.initial.q[i] + 0.01 * wobble(i + 7);
@@ -94,10 +100,38 @@ fn distance_to_rank_loss_is_the_kernels() {
 fn jacobian_matches_finite_differences() {
     // Springs and state-dependent torques; angle coordinates (third-order terms);
     // a controller reading rates; both integration rules.
-    check_jacobian("benchmarks/andrews-squeezer.yaml", Rule::Trapezoidal);
-    check_jacobian("scale/n-pendulum-4.yaml", Rule::Trapezoidal);
-    check_jacobian("driven/controlled-crank-rocker.yaml", Rule::Euler);
-    check_jacobian("driven/watt-six-bar.yaml", Rule::Trapezoidal);
+    for (scene, rule) in [
+        ("benchmarks/andrews-squeezer.yaml", Rule::Trapezoidal),
+        ("scale/n-pendulum-4.yaml", Rule::Trapezoidal),
+        ("driven/controlled-crank-rocker.yaml", Rule::Euler),
+        ("driven/watt-six-bar.yaml", Rule::Trapezoidal),
+    ] {
+        check_jacobian(scene, step_of(scene, rule));
+    }
+    // In independent coordinates: integrators on z alone, no μ.
+    for (scene, rule) in [
+        ("benchmarks/andrews-squeezer.yaml", Rule::Trapezoidal),
+        ("driven/controlled-crank-rocker.yaml", Rule::Euler),
+        ("driven/watt-six-bar.yaml", Rule::Trapezoidal),
+        ("double-pendulum.yaml", Rule::Trapezoidal),
+    ] {
+        check_jacobian(scene, ic_step_of(scene, rule));
+    }
+}
+
+/// An IC step is square only where the constraints have full rank: a scene with a
+/// redundant bar leaves it to the general solver.
+#[test]
+fn independent_steps_need_independent_constraints() {
+    let model = model_of("hard/redundant-fourbar.yaml");
+    assert!(
+        model.active.len() < model.m(),
+        "the coupler is constrained twice"
+    );
+    assert!(SquareStep::independent(model, Rule::Trapezoidal, 1e-3).is_none());
+    let model = model_of("fourbar-theta.yaml");
+    let step = SquareStep::independent(model.clone(), Rule::Trapezoidal, 1e-3).unwrap();
+    assert_eq!(step.system.size(), 3 * model.n() + model.m());
 }
 
 /// A step solved after another far from it: the earlier step's factors, kept for
@@ -132,17 +166,23 @@ fn factors_of_a_distant_step_do_not_change_the_solution() {
     // A first step from the start, which leaves its factors behind.
     let before = state(0);
     let mut block = before.clone();
-    assert!(kept.solve(0.001, &before, &mut block, limits).is_some());
+    assert!(kept
+        .solve(0.001, &before, &mut block, limits, None)
+        .is_some());
     // The step after the last: with the kept factors and with none.
     let last = trajectory.len() - 1;
     let before = state(last);
     let t = trajectory.t[last] + 1e-3;
     let mut with_kept = before.clone();
-    let work = kept.solve(t, &before, &mut with_kept, limits).unwrap();
+    let work = kept
+        .solve(t, &before, &mut with_kept, limits, None)
+        .unwrap();
     assert!(work.factorizations >= 1, "the kept factors were refreshed");
     let fresh = step_of(scene, Rule::Trapezoidal);
     let mut with_fresh = before.clone();
-    fresh.solve(t, &before, &mut with_fresh, limits).unwrap();
+    fresh
+        .solve(t, &before, &mut with_fresh, limits, None)
+        .unwrap();
     for i in 0..3 * n {
         let scale = 1.0 + with_fresh[i].abs();
         assert!(
