@@ -2,6 +2,7 @@
 //! distance to rank loss against the dynamics kernel's.
 
 use super::*;
+use crate::dynamics::DynamicsKernel;
 use crate::scene::Scene;
 
 fn model_of(scene: &str) -> Arc<Model> {
@@ -86,7 +87,9 @@ fn distance_to_rank_loss_is_the_kernels() {
                 .map(|i| model.initial.q[i] + shift * wobble(i))
                 .collect();
             let mut work = step.work.lock().unwrap();
-            let sparse = step.distance_to_rank_loss(&q, &mut work.gram);
+            let sparse = step
+                .regularity
+                .distance_to_rank_loss(&model, &q, &mut work.gram);
             let (dense, _, _) = DynamicsKernel::regularization_at(&model, &q);
             assert!(
                 (sparse - dense).abs() <= 1e-9 * dense,

@@ -1,0 +1,190 @@
+//! Whether a step may be taken as a square system: the dynamics kernel's distance
+//! to a rank loss of Φ_q, s = (tr G⁻¹)^(−1/2), from G's sparse Cholesky factor by
+//! selected inversion, with G's pattern analysed once per mechanism.
+
+use super::system::Pattern;
+use crate::dynamics::DynamicsKernel;
+use crate::linalg::sparse::{selected_inverse_trace, simplicial_symbolic};
+use crate::model::{Model, MAX_LOCAL};
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering};
+use faer::sparse::SparseColMatRef;
+use faer::{Par, Side};
+
+/// s must pass [`DynamicsKernel::REGULAR_ABOVE`] by this factor: the kernel
+/// computes it densely, in another order of rounding.
+const REGULAR_MARGIN: f64 = 1.001;
+
+/// G's structure over a mechanism's active constraints.
+pub(super) struct Regularity {
+    /// The lower triangle of G = ÂÂᵀ: per entry the pair of active rows (i, j ≤ i)
+    /// and the pairs of their local coordinates that are one coordinate of q.
+    entries: Vec<GramEntry>,
+    gram: Pattern,
+    cholesky: SymbolicCholesky<usize>,
+}
+
+/// The scratch of the regularity test: G, its Cholesky factor and G⁻¹ on the
+/// factor's pattern.
+pub(super) struct GramWork {
+    /// Each active row's gradient, the entries of AAᵀ and the row norms.
+    gradients: Vec<[f64; MAX_LOCAL]>,
+    dots: Vec<f64>,
+    norms: Vec<f64>,
+    values: Vec<f64>,
+    factor: Vec<f64>,
+    /// (LLᵀ)⁻¹ on L's pattern.
+    inverse: Vec<f64>,
+    memory: MemBuffer,
+}
+
+impl Regularity {
+    /// G's pattern for `model` and its symbolic analysis; `None` where that fails.
+    pub(super) fn new(model: &Model) -> Option<Regularity> {
+        let entries = gram_entries(model);
+        let lower: Vec<(usize, usize)> = entries.iter().map(|e| (e.0, e.1)).collect();
+        let gram = Pattern::new(model.active.len(), &lower);
+        let cholesky = simplicial_symbolic(gram.symbolic(), Side::Lower, SymmetricOrdering::Amd)?;
+        Some(Regularity {
+            entries,
+            gram,
+            cholesky,
+        })
+    }
+
+    /// The scratch of [`Regularity::regular`] for `model`.
+    pub(super) fn work(&self, model: &Model) -> GramWork {
+        let ma = model.active.len();
+        let len = self.cholesky.len_val();
+        GramWork {
+            gradients: vec![[0.0; MAX_LOCAL]; ma],
+            dots: vec![0.0; self.entries.len()],
+            norms: vec![0.0; ma],
+            values: vec![0.0; self.gram.row_idx.len()],
+            factor: vec![0.0; len],
+            inverse: vec![0.0; len],
+            memory: MemBuffer::new(
+                self.cholesky
+                    .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
+            ),
+        }
+    }
+
+    /// Whether the active rows of Φ_q at q are far enough from a rank loss that the
+    /// dynamics kernel uses the plain augmented system: its measure
+    /// s = (tr G⁻¹)^(−1/2) at least [`DynamicsKernel::REGULAR_ABOVE`] (with a
+    /// margin for rounding), tr G⁻¹ from the sparse Cholesky factor of G.
+    pub(super) fn regular(&self, model: &Model, q: &[f64], gram: &mut GramWork) -> bool {
+        self.distance_to_rank_loss(model, q, gram) >= REGULAR_MARGIN * DynamicsKernel::REGULAR_ABOVE
+    }
+
+    /// The dynamics kernel's s at q (0 where G does not factor).
+    pub(super) fn distance_to_rank_loss(
+        &self,
+        model: &Model,
+        q: &[f64],
+        gram: &mut GramWork,
+    ) -> f64 {
+        let ma = model.active.len();
+        if ma == 0 {
+            return f64::INFINITY;
+        }
+        let GramWork {
+            gradients,
+            dots,
+            norms,
+            ..
+        } = gram;
+        let mut u = [0.0; MAX_LOCAL];
+        for (row, &k) in model.active.iter().enumerate() {
+            let c = &model.constraints[k];
+            c.gather(q, &mut u);
+            c.equation.gradient(&u, &mut gradients[row]);
+        }
+        // AAᵀ over the shared coordinates (a coordinate a row holds twice adds up),
+        // the row norms from its diagonal, then G.
+        for ((i, j, shared), dot) in self.entries.iter().zip(dots.iter_mut()) {
+            *dot = shared
+                .iter()
+                .map(|&(p, s)| gradients[*i][p] * gradients[*j][s])
+                .sum();
+        }
+        for ((i, j, _), dot) in self.entries.iter().zip(dots.iter()) {
+            if i == j {
+                norms[*i] = dot.sqrt();
+            }
+        }
+        if !norms.iter().all(|v| *v > 0.0 && v.is_finite()) {
+            return 0.0;
+        }
+        gram.values.fill(0.0);
+        for (t, ((i, j, _), dot)) in self.entries.iter().zip(&gram.dots).enumerate() {
+            gram.values[self.gram.slots[t]] += dot / (gram.norms[*i] * gram.norms[*j]);
+        }
+        let matrix = SparseColMatRef::new(self.gram.symbolic(), &gram.values);
+        let factored = self.cholesky.factorize_numeric_llt(
+            &mut gram.factor,
+            matrix,
+            Side::Lower,
+            LltRegularization::default(),
+            Par::Seq,
+            MemStack::new(&mut gram.memory),
+            Default::default(),
+        );
+        let SymbolicCholeskyRaw::Simplicial(l) = self.cholesky.raw() else {
+            return 0.0;
+        };
+        if factored.is_err() {
+            return 0.0;
+        }
+        let trace =
+            selected_inverse_trace(l.col_ptr(), l.row_idx(), &gram.factor, &mut gram.inverse);
+        trace.map_or(0.0, |t| t.recip().sqrt())
+    }
+}
+
+/// An entry of G's lower triangle: rows (i, j ≤ i) and the pairs of their local
+/// coordinates that are one coordinate of q.
+type GramEntry = (usize, usize, Vec<(usize, usize)>);
+
+/// The lower triangle of G = ÂÂᵀ over the active rows: (i, j ≤ i, the local
+/// coordinate pairs of rows j and i that are one coordinate of q).
+fn gram_entries(model: &Model) -> Vec<GramEntry> {
+    let ma = model.active.len();
+    let mut rows_of = vec![Vec::new(); model.n()];
+    for (row, &k) in model.active.iter().enumerate() {
+        for (p, ip) in model.constraints[k].local_index().iter().enumerate() {
+            if let Some(ip) = *ip {
+                rows_of[ip].push((row, p));
+            }
+        }
+    }
+    let mut pairs: Vec<(usize, usize, usize, usize)> = Vec::new();
+    for list in &rows_of {
+        for &(i, p) in list {
+            for &(j, s) in list {
+                if j <= i {
+                    pairs.push((i, j, p, s));
+                }
+            }
+        }
+    }
+    pairs.sort_unstable();
+    let mut entries: Vec<GramEntry> = Vec::new();
+    for (i, j, p, s) in pairs {
+        match entries.last_mut() {
+            Some(last) if last.0 == i && last.1 == j => last.2.push((p, s)),
+            _ => entries.push((i, j, vec![(p, s)])),
+        }
+    }
+    // Every row's diagonal, even one whose gradient touches no free coordinate.
+    let mut diagonal = vec![false; ma];
+    for e in &entries {
+        diagonal[e.0] |= e.0 == e.1;
+    }
+    for (i, _) in diagonal.iter().enumerate().filter(|(_, d)| !**d) {
+        entries.push((i, i, Vec::new()));
+    }
+    entries
+}

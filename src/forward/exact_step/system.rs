@@ -1,0 +1,321 @@
+//! The equations of a square step (see the module above): their residual and their
+//! Jacobian, emitted entry by entry in a fixed order onto a compressed-column pattern.
+
+use crate::model::{Model, MAX_LOCAL};
+use crate::tangent::Rule;
+use faer::sparse::SymbolicSparseColMatRef;
+use std::sync::Arc;
+
+/// A compressed-column pattern and, for each entry the assembly emits (in its
+/// fixed order), where it adds up.
+pub(super) struct Pattern {
+    pub(super) size: usize,
+    pub(super) col_ptr: Vec<usize>,
+    pub(super) row_idx: Vec<usize>,
+    pub(super) slots: Vec<usize>,
+}
+
+impl Pattern {
+    /// The pattern of the (row, column) pairs in emission order.
+    pub(super) fn new(size: usize, emitted: &[(usize, usize)]) -> Pattern {
+        let mut order: Vec<usize> = (0..emitted.len()).collect();
+        order.sort_unstable_by_key(|&t| (emitted[t].1, emitted[t].0));
+        let mut col_ptr = vec![0; size + 1];
+        let mut row_idx = Vec::new();
+        let mut slots = vec![0; emitted.len()];
+        let mut last = None;
+        for &t in &order {
+            let (row, col) = emitted[t];
+            if last != Some((row, col)) {
+                row_idx.push(row);
+                col_ptr[col + 1] += 1;
+                last = Some((row, col));
+            }
+            slots[t] = row_idx.len() - 1;
+        }
+        for c in 0..size {
+            col_ptr[c + 1] += col_ptr[c];
+        }
+        Pattern {
+            size,
+            col_ptr,
+            row_idx,
+            slots,
+        }
+    }
+
+    pub(super) fn symbolic(&self) -> SymbolicSparseColMatRef<'_, usize> {
+        SymbolicSparseColMatRef::new_checked(
+            self.size,
+            self.size,
+            &self.col_ptr,
+            None,
+            &self.row_idx,
+        )
+    }
+}
+
+/// Where the emitted entries go: collected as a pattern, or added into the values.
+pub(super) enum Sink<'a> {
+    Pattern(&'a mut Vec<(usize, usize)>),
+    Values {
+        slots: &'a [usize],
+        values: &'a mut [f64],
+        next: usize,
+    },
+}
+
+impl Sink<'_> {
+    #[inline]
+    fn add(&mut self, row: usize, col: usize, value: f64) {
+        match self {
+            Sink::Pattern(list) => list.push((row, col)),
+            Sink::Values {
+                slots,
+                values,
+                next,
+            } => {
+                values[slots[*next]] += value;
+                *next += 1;
+            }
+        }
+    }
+}
+
+/// The equations of a DC step with tangent integrators or of an IC step (see
+/// the documentation of `forward::exact_step`): residual and Jacobian.
+pub(super) struct System {
+    pub(super) model: Arc<Model>,
+    pub(super) rule: Rule,
+    pub(super) dt: f64,
+    /// The nonzeros of M: (row, column, value).
+    pub(super) mass: Vec<(usize, usize, f64)>,
+    /// (row, column) of the entries of ∂Q/∂q and ∂Q/∂q̇ any effect can write.
+    pub(super) force_entries: Vec<(usize, usize)>,
+    /// The coordinates the integrators hold: every one (DC), or z's (IC).
+    pub(super) integrated: Vec<usize>,
+    /// Whether the integrators are projected on the tangent space (DC: with
+    /// multipliers μ₁, μ₂) or hold as they are (IC).
+    pub(super) projected: bool,
+}
+
+impl System {
+    /// The unknowns: q, q̇, q̈, λ and (projected) μ₁, μ₂.
+    pub(super) fn size(&self) -> usize {
+        let multipliers = if self.projected { 3 } else { 1 };
+        3 * self.model.n() + multipliers * self.model.active.len()
+    }
+
+    /// In IC, z, ż, z̈ of a step's `block` (after q, q̇, q̈) from its q, q̇, q̈.
+    pub(super) fn fill_independent(&self, block: &mut [f64]) {
+        if self.projected {
+            return;
+        }
+        let (n, f) = (self.model.n(), self.integrated.len());
+        let (state, z) = block.split_at_mut(3 * n);
+        for j in 0..3 {
+            for (k, &i) in self.integrated.iter().enumerate() {
+                z[j * f + k] = state[j * n + i];
+            }
+        }
+    }
+
+    /// The equations: the constraints at three levels, the dynamics and the
+    /// integrators.
+    pub(super) fn equations(&self) -> usize {
+        3 * self.model.active.len() + self.model.n() + 2 * self.integrated.len()
+    }
+}
+
+impl System {
+    /// Emits the Jacobian of the step system at `x` into `sink` (∂Q/∂q and ∂Q/∂q̇
+    /// in `kq`, `kv`, row-major n × n, read at `force_entries` only).
+    pub(super) fn assemble(&self, x: &[f64], kq: &[f64], kv: &[f64], sink: &mut Sink) {
+        let model = &*self.model;
+        let (n, ma) = (model.n(), model.active.len());
+        let (q, v, a) = (&x[..n], &x[n..2 * n], &x[2 * n..3 * n]);
+        let mult = &x[3 * n..];
+        // Rows: Φ, Φ_q q̇, the acceleration equations, then M q̈ + Φ_qᵀλ − Q and
+        // the two integrators (of every coordinate in DC, where the μ rows of
+        // coordinate i are its integrators'). Columns: q, q̇, q̈, λ, μ₁, μ₂.
+        let ni = self.integrated.len();
+        let (r_vel, r_acc, r_dyn, r_pos_int, r_vel_int) =
+            (ma, 2 * ma, 3 * ma, 3 * ma + n, 3 * ma + n + ni);
+        let (c_lambda, c_mu1, c_mu2) = (3 * n, 3 * n + ma, 3 * n + 2 * ma);
+        let half = match self.rule {
+            Rule::Trapezoidal => 0.5 * self.dt,
+            Rule::Euler => 0.0,
+        };
+        for (r, &i) in self.integrated.iter().enumerate() {
+            sink.add(r_pos_int + r, i, 1.0);
+            sink.add(r_vel_int + r, n + i, 1.0);
+            if self.rule == Rule::Trapezoidal {
+                sink.add(r_pos_int + r, n + i, -half);
+                sink.add(r_vel_int + r, 2 * n + i, -half);
+            }
+        }
+        for &(i, j, mass) in &self.mass {
+            sink.add(r_dyn + i, 2 * n + j, mass);
+        }
+        for &(r, c) in &self.force_entries {
+            sink.add(r_dyn + r, c, -kq[r * n + c]);
+            sink.add(r_dyn + r, n + c, -kv[r * n + c]);
+        }
+        let mut local = Local::default();
+        for (row, &k) in model.active.iter().enumerate() {
+            let c = &model.constraints[k];
+            local.at(c, q, v, a);
+            let len = local.len;
+            let index = c.local_index();
+            let lambda = mult[row];
+            let (mu1, mu2) = if self.projected {
+                (mult[ma + row], mult[2 * ma + row])
+            } else {
+                (0.0, 0.0)
+            };
+            for (p, ip) in index.iter().enumerate() {
+                let Some(ip) = *ip else { continue };
+                let g = local.gradient[p];
+                sink.add(row, ip, g);
+                sink.add(r_vel + row, n + ip, g);
+                sink.add(r_acc + row, 2 * n + ip, g);
+                sink.add(r_dyn + ip, c_lambda + row, g);
+                if self.projected {
+                    sink.add(r_pos_int + ip, c_mu1 + row, -g);
+                    sink.add(r_vel_int + ip, c_mu2 + row, -g);
+                }
+                // ∂(Φ_q q̇)/∂q = (Φ_qq q̇)ᵀ; the acceleration row's
+                // ∂/∂q = (Φ_qq q̈)ᵀ + ∂(q̇ᵀΦ_qq q̇)/∂q and ∂/∂q̇ = 2 (Φ_qq q̇)ᵀ.
+                sink.add(r_vel + row, ip, local.hv[p]);
+                sink.add(r_acc + row, ip, local.ha[p] + local.third[p]);
+                sink.add(r_acc + row, n + ip, 2.0 * local.hv[p]);
+                for (s, is) in index.iter().enumerate() {
+                    let Some(is) = *is else { continue };
+                    // ∂(Φ_qᵀw)/∂q: entry (coordinate p, coordinate s) is w·H[p][s].
+                    let h = local.hessian[p * len + s];
+                    sink.add(r_dyn + ip, is, lambda * h);
+                    if self.projected {
+                        sink.add(r_pos_int + ip, is, -mu1 * h);
+                        sink.add(r_vel_int + ip, is, -mu2 * h);
+                    }
+                }
+            }
+        }
+    }
+
+    /// The residual of the step system at `x`, given the step before (`before`: q,
+    /// q̇, q̈) and the generalized forces Q in `work.q_force`.
+    pub(super) fn residual(&self, x: &[f64], before: &[f64], q_force: &[f64], out: &mut [f64]) {
+        let model = &*self.model;
+        let (n, ma) = (model.n(), model.active.len());
+        let (q, v, a) = (&x[..n], &x[n..2 * n], &x[2 * n..3 * n]);
+        let (qp, vp, ap) = (&before[..n], &before[n..2 * n], &before[2 * n..3 * n]);
+        let mult = &x[3 * n..];
+        let dt = self.dt;
+        let ni = self.integrated.len();
+        let (r_dyn, r_pos_int, r_vel_int) = (3 * ma, 3 * ma + n, 3 * ma + n + ni);
+        for (r, force) in out[r_dyn..r_dyn + n].iter_mut().zip(q_force) {
+            *r = -force;
+        }
+        for (r, &i) in self.integrated.iter().enumerate() {
+            (out[r_pos_int + r], out[r_vel_int + r]) = match self.rule {
+                Rule::Trapezoidal => (
+                    q[i] - qp[i] - 0.5 * dt * (vp[i] + v[i]),
+                    v[i] - vp[i] - 0.5 * dt * (ap[i] + a[i]),
+                ),
+                Rule::Euler => (q[i] - qp[i] - dt * vp[i], v[i] - vp[i] - dt * ap[i]),
+            };
+        }
+        for &(i, j, mass) in &self.mass {
+            out[r_dyn + i] += mass * a[j];
+        }
+        let mut local = Local::default();
+        for (row, &k) in model.active.iter().enumerate() {
+            let c = &model.constraints[k];
+            local.values_at(c, q, v);
+            out[row] = local.phi;
+            let (mut vel, mut acc) = (0.0, 0.0);
+            for (p, ip) in c.local_index().iter().enumerate() {
+                let Some(ip) = *ip else { continue };
+                let g = local.gradient[p];
+                vel += g * v[ip];
+                acc += g * a[ip] + local.hv[p] * v[ip];
+                out[r_dyn + ip] += g * mult[row];
+                if self.projected {
+                    out[r_pos_int + ip] -= g * mult[ma + row];
+                    out[r_vel_int + ip] -= g * mult[2 * ma + row];
+                }
+            }
+            out[ma + row] = vel;
+            out[2 * ma + row] = acc;
+        }
+    }
+}
+
+/// One active constraint's local quantities at (q, q̇, q̈): Φ, ∇Φ, Φ_qq (row-major
+/// len × len), Φ_qq q̇, Φ_qq q̈ and ∂(q̇ᵀΦ_qq q̇)/∂q.
+struct Local {
+    len: usize,
+    phi: f64,
+    gradient: [f64; MAX_LOCAL],
+    hessian: [f64; MAX_LOCAL * MAX_LOCAL],
+    hv: [f64; MAX_LOCAL],
+    ha: [f64; MAX_LOCAL],
+    third: [f64; MAX_LOCAL],
+}
+
+impl Default for Local {
+    fn default() -> Local {
+        Local {
+            len: 0,
+            phi: 0.0,
+            gradient: [0.0; MAX_LOCAL],
+            hessian: [0.0; MAX_LOCAL * MAX_LOCAL],
+            hv: [0.0; MAX_LOCAL],
+            ha: [0.0; MAX_LOCAL],
+            third: [0.0; MAX_LOCAL],
+        }
+    }
+}
+
+impl Local {
+    /// What the residual needs: Φ, ∇Φ and Φ_qq q̇.
+    fn values_at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64]) {
+        let (mut u, mut w) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        self.len = c.equation.len();
+        c.gather(q, &mut u);
+        c.gather_rate(v, &mut w);
+        self.phi = c.equation.phi(&u);
+        c.equation.gradient(&u, &mut self.gradient);
+        c.equation.hessian_times(&u, &w, &mut self.hv);
+    }
+
+    /// Everything, for the Jacobian.
+    fn at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64], a: &[f64]) {
+        let len = c.equation.len();
+        self.len = len;
+        let (mut u, mut w, mut acc, mut e) = (
+            [0.0; MAX_LOCAL],
+            [0.0; MAX_LOCAL],
+            [0.0; MAX_LOCAL],
+            [0.0; MAX_LOCAL],
+        );
+        c.gather(q, &mut u);
+        c.gather_rate(v, &mut w);
+        c.gather_rate(a, &mut acc);
+        self.phi = c.equation.phi(&u);
+        c.equation.gradient(&u, &mut self.gradient);
+        c.equation.hessian_times(&u, &w, &mut self.hv);
+        c.equation.hessian_times(&u, &acc, &mut self.ha);
+        c.equation.third_order(&u, &w, &mut self.third);
+        let mut column = [0.0; MAX_LOCAL];
+        for s in 0..len {
+            e[..len].fill(0.0);
+            e[s] = 1.0;
+            c.equation.hessian_times(&u, &e, &mut column);
+            for p in 0..len {
+                self.hessian[p * len + s] = column[p];
+            }
+        }
+    }
+}
