@@ -5,7 +5,7 @@
 //! (`constraint_conditioning`) that a failure message quotes.
 
 use crate::linalg::{dense, sparse};
-use crate::model::{Model, PointSlot};
+use crate::model::{Model, PointSlot, MAX_LOCAL};
 
 /// Active constraints from which s is taken from G's sparse Cholesky factor by
 /// selected inversion (linear in a chain's length) instead of the dense factor and
@@ -53,6 +53,10 @@ pub struct Determinacy {
     first: Vec<usize>,
     /// G's lower triangle as triplets, for the sparse route.
     lower: Vec<(usize, usize, f64)>,
+    /// The sparse route's dependent columns, and per column the (active row,
+    /// normalized value) of its nonzeros.
+    mask: Vec<bool>,
+    incidence: Vec<Vec<(usize, f64)>>,
 }
 
 impl Determinacy {
@@ -107,6 +111,8 @@ impl Determinacy {
             spans: vec![[0, 0]; ma],
             first: vec![0; ma],
             lower: Vec::new(),
+            mask: vec![false; model.n()],
+            incidence: vec![Vec::new(); model.n()],
             dependent,
         };
         det.set_column_scales(model, model.initial.q.as_slice());
@@ -114,7 +120,21 @@ impl Determinacy {
     }
 
     /// s at q: 0 where the dependent block has lost a rank (or is not square).
+    /// From [`SPARSE_DISTANCE_FROM`] active constraints over each constraint's own
+    /// coordinates, in time linear in a chain's length.
     pub fn distance(&mut self, model: &Model, q: &[f64]) -> f64 {
+        if model.active.len() >= SPARSE_DISTANCE_FROM {
+            let dependent = std::mem::take(&mut self.dependent);
+            let s = self.sparse_distance(model, q, &dependent);
+            self.dependent = dependent;
+            return s;
+        }
+        self.dense_distance(model, q)
+    }
+
+    /// [`Determinacy::distance`] from the dense Φ_q, leaving the scaled dependent
+    /// block in `rows`.
+    fn dense_distance(&mut self, model: &Model, q: &[f64]) -> f64 {
         self.jacobian(model, q);
         let dependent = std::mem::take(&mut self.dependent);
         let s = self.distance_over(model, &dependent);
@@ -262,6 +282,74 @@ impl Determinacy {
         }
     }
 
+    /// s of Φ_q at q restricted to the columns `dependent`, each row of Φ_q formed
+    /// over its constraint's coordinates and G over the pairs of rows that share a
+    /// dependent column: the same scaling and G as [`Determinacy::distance_over`].
+    fn sparse_distance(&mut self, model: &Model, q: &[f64], dependent: &[usize]) -> f64 {
+        let ma = model.active.len();
+        if ma != dependent.len() {
+            return 0.0;
+        }
+        if ma == 0 {
+            return f64::INFINITY;
+        }
+        self.mask.fill(false);
+        for &c in dependent {
+            self.mask[c] = true;
+        }
+        self.incidence.iter_mut().for_each(Vec::clear);
+        let (mut u, mut gradient) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (row, &k) in model.active.iter().enumerate() {
+            let c = &model.constraints[k];
+            c.gather(q, &mut u);
+            c.equation.gradient(&u, &mut gradient);
+            // The row's nonzeros by column (a column the constraint holds twice adds
+            // up), scaled by the columns' norms.
+            let mut entries = [(0usize, 0.0f64); MAX_LOCAL];
+            let mut len = 0;
+            for (p, ip) in c.local_index().iter().enumerate() {
+                let Some(ip) = *ip else { continue };
+                match entries[..len].iter_mut().find(|e| e.0 == ip) {
+                    Some(e) => e.1 += gradient[p],
+                    None => {
+                        entries[len] = (ip, gradient[p]);
+                        len += 1;
+                    }
+                }
+            }
+            let entries = &mut entries[..len];
+            entries.sort_unstable_by_key(|e| e.0);
+            let mut norm = 0.0;
+            for e in entries.iter_mut() {
+                e.1 /= self.column_norms[e.0];
+                norm += e.1 * e.1;
+            }
+            let norm = norm.sqrt();
+            if !(norm > 0.0) {
+                return 0.0;
+            }
+            let mut held = false;
+            for &(col, v) in entries.iter().filter(|e| self.mask[e.0] && e.1 != 0.0) {
+                self.incidence[col].push((row, v / norm));
+                held = true;
+            }
+            if !held {
+                // An equation without a dependent coordinate determines none.
+                return 0.0;
+            }
+        }
+        self.lower.clear();
+        for list in &self.incidence {
+            // Rows in ascending order: (i, j ≤ i) pairs of rows sharing this column.
+            for (a, &(i, vi)) in list.iter().enumerate() {
+                for &(j, vj) in &list[..=a] {
+                    self.lower.push((i, j, vi * vj));
+                }
+            }
+        }
+        sparse::spd_inverse_trace(ma, &self.lower).map_or(0.0, |trace| trace.recip().sqrt())
+    }
+
     /// s of Φ_q (in `self.jac`) restricted to the columns `dependent`.
     fn distance_over(&mut self, model: &Model, dependent: &[usize]) -> f64 {
         let sparse = model.active.len() >= SPARSE_DISTANCE_FROM;
@@ -353,7 +441,7 @@ impl Determinacy {
         };
         let d = self.dependent.len();
         let singular_values = |det: &mut Self, at: &[f64]| -> Option<Vec<f64>> {
-            det.distance(model, at);
+            det.dense_distance(model, at);
             let rows = nalgebra::DMatrix::from_row_slice(model.active.len(), d, &det.rows);
             // nalgebra's SVD does not return on a non-finite matrix.
             rows.iter().all(|v| v.is_finite()).then(|| {
@@ -446,29 +534,30 @@ mod tests {
     use crate::scene::Scene;
     use std::sync::Arc;
 
-    /// The sparse route gives the dense one's s, on a chain of 40 loops at its
-    /// start and moved towards its flat configuration, where s is small.
+    /// The sparse routes give the dense one's s, on a chain of 40 loops and a
+    /// 32-link pendulum (angle coordinates), at the start and moved off it.
     #[test]
     fn sparse_distance_is_the_dense_one() {
-        let path = format!(
-            "{}/scenes/benchmarks/n-fourbar-40.yaml",
-            env!("CARGO_MANIFEST_DIR")
-        );
-        let model = Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap());
-        assert!(model.active.len() >= SPARSE_DISTANCE_FROM);
-        let mut det = Determinacy::new(&model);
-        let dependent = complement(model.n(), &model.independent);
-        for shift in [0.0, 0.02, 0.2] {
-            let q: Vec<f64> = (0..model.n())
-                .map(|i| model.initial.q[i] + shift * ((i as f64 * 0.618).fract() - 0.5))
-                .collect();
-            det.jacobian(&model, &q);
-            let sparse = det.distance_over_by(&model, &dependent, true);
-            let dense = det.distance_over_by(&model, &dependent, false);
-            assert!(
-                (sparse - dense).abs() <= 1e-10 * dense,
-                "shift {shift}: s = {sparse} sparse, {dense} dense"
-            );
+        for scene in ["benchmarks/n-fourbar-40.yaml", "scale/n-pendulum-32.yaml"] {
+            let path = format!("{}/scenes/{scene}", env!("CARGO_MANIFEST_DIR"));
+            let model = Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap());
+            assert!(model.active.len() >= SPARSE_DISTANCE_FROM);
+            let mut det = Determinacy::new(&model);
+            let dependent = complement(model.n(), &model.independent);
+            for shift in [0.0, 0.02, 0.2] {
+                let q: Vec<f64> = (0..model.n())
+                    .map(|i| model.initial.q[i] + shift * ((i as f64 * 0.618).fract() - 0.5))
+                    .collect();
+                det.jacobian(&model, &q);
+                let sparse = det.distance_over_by(&model, &dependent, true);
+                let dense = det.distance_over_by(&model, &dependent, false);
+                let by_rows = det.sparse_distance(&model, &q, &dependent);
+                assert!(
+                    (sparse - dense).abs() <= 1e-10 * dense
+                        && (by_rows - dense).abs() <= 1e-10 * dense,
+                    "{scene} shifted by {shift}: s = {sparse} sparse, {by_rows} by rows, {dense} dense"
+                );
+            }
         }
     }
 }
