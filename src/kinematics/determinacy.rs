@@ -160,9 +160,21 @@ impl Determinacy {
     /// rank.
     pub fn best(&mut self, model: &Model, q: &[f64]) -> (f64, Vec<usize>) {
         let (n, f) = (model.n(), model.independent.len());
-        self.jacobian(model, q);
+        // Each set's s by the sparse route from SPARSE_DISTANCE_FROM rows (the same
+        // sets within the same budget: only faster), else from the dense Φ_q.
+        let sparse = model.active.len() >= SPARSE_DISTANCE_FROM;
+        if !sparse {
+            self.jacobian(model, q);
+        }
+        let distance_of = |det: &mut Determinacy, dependent: &[usize]| {
+            if sparse {
+                det.sparse_distance(model, q, dependent)
+            } else {
+                det.distance_over(model, dependent)
+            }
+        };
         let mut best = (
-            self.distance_over(model, &complement(n, &model.independent)),
+            distance_of(self, &complement(n, &model.independent)),
             model.independent.clone(),
         );
         let ma = model.active.len() as f64;
@@ -175,7 +187,7 @@ impl Determinacy {
                 return false;
             }
             budget -= 1;
-            let s = det.distance_over(model, &complement(n, set));
+            let s = distance_of(det, &complement(n, set));
             seen.push((s, set.to_vec()));
             if s > best.0 {
                 *best = (s, set.to_vec());
