@@ -219,7 +219,11 @@ pub(super) fn segment(
                             now.1
                         };
                         let falling = now.1 < before.1;
-                        if falling && ahead < Determinacy::SEARCH_BELOW {
+                        // A long chain reads s below the threshold from its start (about
+                        // 0.6/k for k links) with no better set to switch to: as for the
+                        // stop below, it searches only where s has fallen to half its
+                        // start (for a start above twice the threshold, every s below it).
+                        if falling && ahead < Determinacy::SEARCH_BELOW && ahead <= 0.5 * *origin {
                             let (best, set) = det.best(&model, q);
                             if k > 0 && best >= Determinacy::SWITCH_GAIN * now.1 {
                                 reselect = Some((first + at(k), set));
