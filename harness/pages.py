@@ -5,14 +5,12 @@ references and the point errors against them, the CSV writer and the machine lin
 from __future__ import annotations
 
 import csv
-import datetime
 import json
-import os
 import pathlib
-import platform
 import sys
 
 from harness import reference as refs
+from harness.sweep import machine  # noqa: F401 (the pages' machine line)
 from harness import trajectory as tj
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -48,13 +46,3 @@ def write_csv(path: pathlib.Path, rows: list[dict]) -> None:
         w.writerows(rows)
 
 
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {datetime.date.today()}"

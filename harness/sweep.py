@@ -24,19 +24,20 @@ takes `--scheduler` (add_argument, from_args).
 from __future__ import annotations
 
 import contextlib
+import datetime
 import hashlib
 import logging
 import math
 import multiprocessing
 import os
 import pathlib
+import platform
 import resource
 import signal
 import time
 import sys
 import warnings
 
-# (harness.pages is imported where used: it imports harness.reference, which imports this.)
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 ENV = "MBFG_SCHEDULER"
@@ -196,9 +197,21 @@ class Sweep:
         return self._machine
 
 
+def machine() -> str:
+    """This machine's line for a page: processor, cores, Python, date."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {datetime.date.today()}"
+
+
 def machine_line(_=None) -> str:
-    from harness import pages
-    return pages.machine()
+    return machine()
 
 
 def stderr_line(msg: str) -> None:

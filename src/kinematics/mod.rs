@@ -118,6 +118,11 @@ pub struct RankInfo {
 /// sparse factorization: below, the scan's m²n operations cost less.
 const SPARSE_RANK_FROM: usize = 48;
 
+/// Coordinates from which the velocity and acceleration problems are solved with a
+/// sparse LU (under its condition estimate): the size from which the dynamics factor
+/// their KKT system sparse too (the 40 four-bar loops on).
+const SPARSE_SOLVE_FROM: usize = 160;
+
 /// Scans the rows of Φ_q in order, keeping those not in the span of the kept ones.
 /// A large mechanism's rows are first certified independent, with a wide margin,
 /// by the sparse Cholesky factor of their Gram matrix; only where that fails does
@@ -274,7 +279,7 @@ fn solve_augmented(
     }
     b.rows_mut(model.active.len(), values.len())
         .copy_from_slice(values);
-    if n >= crate::dynamics::SPARSE_KKT_FROM {
+    if n >= SPARSE_SOLVE_FROM {
         if let Some(x) = solve_sparse(&a, &b) {
             return Ok(x);
         }
