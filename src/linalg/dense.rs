@@ -6,7 +6,8 @@
 //! and [`FAER_LU_FROM`] unknowns and faer's blocked in-place kernels from there on,
 //! on the same row-major buffers: `benches/linalg.rs` (groups `cholesky` and `lu`)
 //! times both at the sizes a step has, and the hand-written ones are kept only where
-//! they are faster.
+//! they are faster. (Over 800 lines for that reason: each kernel stands beside its
+//! faer counterpart and the switch between them, as the benchmark compares them.)
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt;
