@@ -779,3 +779,73 @@ effects:
         "{line}"
     );
 }
+
+/// A 1 m arm with a tail of eight 2 mm links at dt = 10 ms: the tail's links turn
+/// far more than a radian a step. The run is refined (a body turns 0.12 rad a step at
+/// 10 ms); its tangent run at 5 ms then failed at step 18 with a body turning fast,
+/// was retried with the paper's integrator factors, which failed at step 1 (a slow
+/// step, not one to refine), and the run ended there. A failure on a step too
+/// coarse for the motion is now refined further first: the run completes, at the
+/// finer step, with the default integrators.
+#[test]
+fn a_whip_of_millimetre_links_is_refined_not_retried_with_other_factors() {
+    let dir = scratch("mm-tail");
+    let scene = dir.join("mm-tail.yaml");
+    let mut text = String::from(
+        "name: mm-tail
+points:
+  - {name: O, x: 0, y: 0, fixed: true}
+  - {name: A, x: 1, y: 0}
+",
+    );
+    let mut bodies = String::from("  - {name: arm, points: [O, A], mass: 5}\n");
+    for i in 1..=8 {
+        let prev = if i == 1 {
+            "A".to_string()
+        } else {
+            format!("Q{}", i - 1)
+        };
+        text += &format!(
+            "  - {{name: Q{i}, x: {}, y: {}}}\n",
+            1.0 + 0.002 * i as f64,
+            -0.001 * i as f64
+        );
+        bodies += &format!("  - {{name: c{i}, points: [{prev}, Q{i}], mass: 0.001}}\n");
+    }
+    text += "bodies:\n";
+    text += &bodies;
+    text += "coordinates:
+  - {name: phi, type: angle, points: [O, A]}
+  - {name: psi1, type: angle, points: [A, Q1]}
+effects:
+  - {type: gravity, vector: [0, -9.81]}
+";
+    std::fs::write(&scene, text).unwrap();
+    let out = dir.join("run.csv");
+    let run = mbfg(&[
+        "simulate",
+        scene.to_str().unwrap(),
+        "--dt",
+        "0.01",
+        "--t-end",
+        "0.5",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{err}");
+    let summary = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        summary.contains("integrated at dt =") && !summary.contains("the paper's integrators"),
+        "{summary}"
+    );
+    assert_eq!(
+        text_lines(&out),
+        51 + 1,
+        "a row per step on the grid asked for"
+    );
+}
+
+fn text_lines(p: &Path) -> usize {
+    text(p).lines().count()
+}

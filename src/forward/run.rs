@@ -129,15 +129,9 @@ pub fn simulate_streaming(
                 None => break,
             },
         };
-        let turn = match &failure.fast_body {
-            Some((_, turn)) if *turn >= Refinement::MIN_TURN => *turn,
-            _ => break,
-        };
-        let more = ((turn / Refinement::TARGET_TURN).ceil() as usize).max(2);
-        let next = factor.saturating_mul(more);
-        if next > Refinement::MAX_FACTOR {
+        let Some(next) = refinement_factor(&failure, factor) else {
             break;
-        }
+        };
         factor = next;
         let mut finer = options.clone();
         finer.dt = options.dt / factor as f64;
@@ -275,6 +269,21 @@ fn coarse_turn(
     })
 }
 
+/// The refinement factor a run at `factor` times finer than asked goes to after
+/// `failure`: one that keeps the turn of its fastest body near
+/// [`Refinement::TARGET_TURN`] a step; `None` where the body turned less than
+/// [`Refinement::MIN_TURN`] (the step's size is not the cause) or that would pass
+/// [`Refinement::MAX_FACTOR`].
+fn refinement_factor(failure: &StepFailure, factor: usize) -> Option<usize> {
+    let turn = match &failure.fast_body {
+        Some((_, turn)) if *turn >= Refinement::MIN_TURN => *turn,
+        _ => return None,
+    };
+    let more = ((turn / Refinement::TARGET_TURN).ceil() as usize).max(2);
+    let next = factor.saturating_mul(more);
+    (next <= Refinement::MAX_FACTOR).then_some(next)
+}
+
 /// One run at `options.dt`; with [`DcIntegrators::Auto`], made again with the other
 /// integrator factors where the first do not converge. Returns its summary and its
 /// first step too coarse for the motion (see [`coarse_turn`]).
@@ -292,6 +301,14 @@ fn simulate_integrators(
     let Some(failure) = summary.failures.first().filter(|_| retry) else {
         return Ok((summary, coarse));
     };
+    // A failure on a step too coarse for the motion is refined first, with the same
+    // factors (a 1 m arm with a tail of 2 mm links at 10 ms: its tangent run, refined
+    // to 5 ms, failed at step 18; the paper's factors then failed at step 1, and that
+    // failure, on a slow step, ended the refinement).
+    let factor = every.map_or(1, |(factor, _)| factor);
+    if options.refine && refinement_factor(failure, factor).is_some() {
+        return Ok((summary, coarse));
+    }
     // The paper's factors ask more equations than a step has unknowns; where their
     // least-squares compromise does not converge, the tangent ones (one equation per
     // unknown) usually do; and where tangent ones fail, the paper's compromise is
