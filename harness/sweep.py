@@ -186,6 +186,8 @@ class Sweep:
     def timing_host(self) -> str:
         """The host every timing cell runs on: the first worker's (a worker restarted
         there keeps it)."""
+        # A worker that died is being restarted by its nanny: wait for one to be back.
+        self.client.wait_for_workers(1)
         workers = sorted(self.client.scheduler_info(n_workers=-1)["workers"])
         from distributed.comm import get_address_host
         return get_address_host(workers[0])
