@@ -8,8 +8,9 @@ reports/horizons.md (+ .csv, + .png).
     python -m harness.horizons --steps 100,1000 --out-dir /tmp/h   # a quick look
 
 The rows go to a CSV file as the steps become final (`--out`), so the smoother's
-memory should stay flat while the batch's grows with the steps (its linear system
-spans them all). The batch runs with `--dc-integrators tangent`: with the paper's
+memory should stay flat while the batch's grows with the steps (it holds the
+trajectory; its steps, square systems with tangent integrators, are solved one at a
+time, so it holds no system of the whole horizon). The batch runs with `--dc-integrators tangent`: with the paper's
 integrator factors (the default `auto` tries them first) a batch solve's iteration
 count grows with the horizon before it gives up and runs again with tangent ones.
 """

@@ -53,8 +53,10 @@ def test_tiny_horizons_write_the_page(tmp_path: pathlib.Path):
         assert float(r["reported_mib"]) > 1.0
         assert float(r["cpu_s"]) >= 0.0 and float(r["mean_iterations"]) >= 1.0
     batch = {int(r["steps"]): float(r["peak_rss_mib"]) for r in rows if r["config"] == "batch"}
-    # The batch holds every step: 10x the steps is more memory.
-    assert batch[1000] > batch[100]
+    # The batch holds every step, but its steps are solved one at a time as square
+    # systems: it holds the trajectory alone (96 bytes a four-bar step, below the
+    # resolution of a tiny run's peak), so 10x the steps is not less memory.
+    assert batch[1000] >= batch[100]
     page = (tmp_path / "horizons.md").read_text()
     assert "| smoother N_w=1 | 1,000 |" in page and "## Verdicts" in page
     assert (tmp_path / "horizons.png").stat().st_size > 1000
