@@ -124,17 +124,9 @@ pub(super) struct Stats {
 
 impl Stats {
     pub(super) fn new(model: &Model) -> Self {
-        let n = model.n();
-        let mass = (0..n)
-            .flat_map(|i| (0..n).map(move |j| (i, j)))
-            .filter_map(|(i, j)| {
-                let v = model.mass[(i, j)];
-                (v != 0.0).then_some((i, j, v))
-            })
-            .collect();
         Stats {
             phi: vec![0.0; model.m()],
-            mass,
+            mass: model.mass_entries(),
             worst_phi: 0.0,
             worst_vel: 0.0,
             conservative: model.scene.is_conservative(),

@@ -705,6 +705,19 @@ impl Model {
         Ok(())
     }
 
+    /// The nonzeros of M as (row, column, value), row by row: what a large
+    /// mechanism's per-step work reads instead of the dense n × n matrix.
+    pub fn mass_entries(&self) -> Vec<(usize, usize, f64)> {
+        let n = self.n();
+        (0..n)
+            .flat_map(|i| (0..n).map(move |j| (i, j)))
+            .filter_map(|(i, j)| {
+                let m = self.mass[(i, j)];
+                (m != 0.0).then_some((i, j, m))
+            })
+            .collect()
+    }
+
     /// Kinetic energy ½ q̇ᵀ M q̇.
     pub fn kinetic_energy(&self, dq: &DVector<f64>) -> f64 {
         0.5 * dq.dot(&(&self.mass * dq))

@@ -141,13 +141,7 @@ impl SquareStep {
         }
         force_entries.sort_unstable();
         force_entries.dedup();
-        let mass = (0..n)
-            .flat_map(|i| (0..n).map(move |j| (i, j)))
-            .filter_map(|(i, j)| {
-                let m = model.mass[(i, j)];
-                (m != 0.0).then_some((i, j, m))
-            })
-            .collect();
+        let mass = model.mass_entries();
         let system = System {
             model,
             rule,
