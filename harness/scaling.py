@@ -3,14 +3,17 @@
 The N four-bar (IFToMM A02, N = 1 … 100 loops: 2N + 3 coordinates) and the n-link
 pendulum (n = 2 … 256 links: 3n coordinates) of scenes/scale/ (N = 40 from
 scenes/benchmarks/), each in three series: DC with N_w = 1, IC with N_w = 1, DC batch;
-dt = 1 ms from the scene's start. µs/step is the wall time of the whole
-`mbfg.simulate` call (model building included) divided by its steps, the median of
-REPEATS runs made one at a time. The horizon of a size is cut to about TARGET seconds
-of wall time a run (at least MIN_STEPS, at most MAX_STEPS steps, i.e. 0.7 s: before
-the N four-bar's first flat configuration), from a one-step run in a child process
-(and, where that takes SPLIT_FROM seconds or more, a PROBE_STEPS-step one, which
-separates the set-up from the steps); a
-size whose MIN_STEPS-step run would exceed BUDGET seconds (extrapolated from the smaller
+dt = 1 ms from the scene's start. µs/step is the cost of a step: the wall time of an
+`mbfg.simulate` call over the common horizon of MAX_STEPS steps (0.6 s, before the N
+four-bar's first flat configuration) less that of a one-step call (parsing, model
+building, the sparse analyses and the first step), divided by the steps between,
+each the median of the runs of REPEATS rounds over the series' sizes (a round runs
+every size in turn, short runs several times, so that each median covers about
+MIN_MEASURED seconds). The one-step call's time is
+reported as the set-up. A size whose horizon would take more than LONG_RUN seconds
+(from a one-step run in a child process and, where that takes SPLIT_FROM seconds or
+more, a PROBE_STEPS-step one) is run over fewer steps, at least MIN_STEPS; a size
+whose MIN_STEPS-step run would exceed BUDGET seconds (extrapolated from the smaller
 sizes, or from that one step, which is stopped after BUDGET seconds) is skipped, with
 every larger size of the series, and the page says so. The log-log slope of µs/step against the number of coordinates is fitted per
 series over all sizes measured and over their upper half.
@@ -43,10 +46,13 @@ import mbfg
 from harness import pages
 
 DT = 1e-3
-REPEATS = 3
-TARGET = 1.5          # s of wall time a measured run aims at
+REPEATS = 5           # rounds over a series' sizes
 MIN_STEPS = 10
-MAX_STEPS = 700       # 0.7 s: the N four-bar's first flat configuration is at ≥ 0.708 s
+MAX_STEPS = 600       # the common horizon, 0.6 s: the N four-bar's first flat configuration is at ≥ 0.708 s
+                      # (IC runs of 50 and 100 loops stop on its approach from 0.67 s)
+LONG_RUN = 20.0       # s: a horizon expected to take longer is cut to about this
+MIN_MEASURED = 0.5    # s: the least wall time the repeats of one median add up to
+MAX_REPEATS = 40
 BUDGET = 30.0         # s: the most a MIN_STEPS-step run may take
 PROBE_START = 10.0    # s the one-step probe's child process is given to start
 GUARD_FROM = 0.2      # a run expected to take more than this fraction of BUDGET is tried first
@@ -143,13 +149,17 @@ def probe(path, coords, kw, timeout):
 def split_setup(path, coords, kw, one, budget) -> tuple[float, float]:
     """(seconds per step, seconds of set-up) from the one-step probe `one` and, when
     it is long enough for the set-up (parsing, assembly, first factorizations) to
-    matter, a PROBE_STEPS-step one: so that the runs of a large mechanism last about
-    TARGET seconds as the others do, instead of about TARGET of set-up per step."""
+    matter, a PROBE_STEPS-step one: so that a large mechanism's horizon is cut only
+    where its steps, not its set-up, would make it longer than LONG_RUN."""
     if one < SPLIT_FROM:
         return one, 0.0
     few = in_child(path, coords, kw, PROBE_STEPS, timeout=budget + PROBE_START, once=False)
-    if few is None or few <= one:
+    if few is None:
         return one, 0.0
+    if few <= one:
+        # The set-up outweighs the steps' cost and the noise: few / PROBE_STEPS
+        # bounds a step's cost from above.
+        return few / PROBE_STEPS, max(0.0, one - few / PROBE_STEPS)
     per_step = max((few - one) / (PROBE_STEPS - 1), one / PROBE_STEPS)
     return per_step, max(0.0, one - per_step)
 
@@ -160,15 +170,20 @@ def run_within(path, coords, kw, steps, timeout) -> bool:
 
 
 def measure_series(family, sizes, label, coords, kw, repeats, budget, models) -> list[dict]:
-    rows, measured = [], []        # measured: (coordinates, seconds per step), ascending
+    """The rows of one series: each size planned (its horizon, or why it is skipped)
+    and run once, then measured in rounds over all its sizes, so that the machine's
+    slow spells (a run can take 1.7× its usual time for seconds on end) fall on every
+    size alike instead of on the sizes measured during them."""
+    rows, plans = [], []
+    measured = []                  # (coordinates, seconds per step), ascending
     skipped_from = None
     for size in sizes:
         model = models[size]
         row = {"family": family, "size": size, "n": model.n, "m": model.m, "dof": model.dof,
                "series": label}
+        rows.append(row)
         if skipped_from is not None:
             row["status"] = f"skipped: {family}-{skipped_from} already over the budget"
-            rows.append(row)
             continue
         reason = None            # why the size is skipped
         if measured:
@@ -181,46 +196,73 @@ def measure_series(family, sizes, label, coords, kw, repeats, budget, models) ->
             if guess > budget:
                 reason = (f"{MIN_STEPS} steps ≈ {guess:.0f} s (extrapolated with slope "
                           f"{k:.1f}) > budget {budget:g} s")
+        path = scene(family, size)
         try:
             if reason is None:
-                one = probe(scene(family, size), coords, kw, timeout=budget + PROBE_START)
+                one = probe(path, coords, kw, timeout=budget + PROBE_START)
                 if one is None:
                     reason = f"one step did not finish within {budget:g} s"
                 elif one * MIN_STEPS > budget:
                     reason = (f"{MIN_STEPS} steps ≈ {one * MIN_STEPS:.0f} s (one step "
                               f"{one:.1f} s) > budget {budget:g} s")
                 else:
-                    per_step, setup = split_setup(scene(family, size), coords, kw, one, budget)
-                    steps = int(min(MAX_STEPS, max(MIN_STEPS, round((TARGET - setup) / per_step))))
+                    per_step, setup = split_setup(path, coords, kw, one, budget)
+                    steps = MAX_STEPS
+                    if setup + per_step * steps > LONG_RUN:
+                        steps = int(max(MIN_STEPS, (LONG_RUN - setup) / per_step))
                     # A later step may take far longer than the first (a solve that
                     # crawls to its iteration limit): a long run is tried in a child
                     # process first, and given up after the budget.
                     if setup + per_step * steps > GUARD_FROM * budget and not run_within(
-                            scene(family, size), coords, kw, steps, budget + PROBE_START):
+                            path, coords, kw, steps, budget + PROBE_START):
                         reason = (f"{steps} steps did not finish within {budget:g} s (the "
                                   f"first step took {one:.1f} s)")
             if reason is not None:
                 skipped_from = size
                 row["status"] = f"skipped: {reason}"
                 pages.progress(f"  {family}-{size} {label}: {row['status']}")
-                rows.append(row)
                 continue
-            walls, r = [], None
-            for _ in range(repeats):
-                r, wall = run_once(scene(family, size), coords, kw, steps)
-                walls.append(wall)
+            r, whole = run_once(path, coords, kw, steps)
+            first = run_once(path, coords, kw, 1)[1]
             assert r.summary["complete"] and len(r.t) == steps + 1
-            us = statistics.median(walls) / steps * 1e6
-            row.update(steps=steps, us_per_step=us, wall_s=statistics.median(walls),
-                       mean_iterations=r.summary["mean_iterations"], status="ok",
+            row.update(mean_iterations=r.summary["mean_iterations"],
+                       mean_factorizations=r.summary.get("mean_factorizations"),
                        **checks(family, size, model, r))
-            measured.append((model.n, us * 1e-6))
-            pages.progress(f"  {family}-{size} {label}: {us:.0f} µs/step ({steps} steps, "
-                           f"max |Φ| {row['max_phi']:.1e})")
+            # Short runs are repeated within a round, up to MIN_MEASURED seconds in all.
+            inner = max(1, min(MAX_REPEATS // repeats,
+                               math.ceil(MIN_MEASURED / (repeats * (whole + first)))))
+            plans.append({"row": row, "path": path, "steps": steps, "inner": inner,
+                          "wholes": [whole], "firsts": [first]})
+            measured.append((model.n, max(whole - first, 0.1 * whole) / steps))
         except (mbfg.SolveError, RuntimeError, ValueError) as e:
             row["status"] = f"failed: {str(e).splitlines()[0][:200]}"
             pages.progress(f"  {family}-{size} {label}: {row['status']}")
-        rows.append(row)
+    for round_ in range(repeats):
+        for plan in plans:
+            if "status" in plan["row"]:
+                continue
+            try:
+                for _ in range(plan["inner"] if round_ or repeats == 1 else plan["inner"] - 1):
+                    plan["wholes"].append(run_once(plan["path"], coords, kw, plan["steps"])[1])
+                    plan["firsts"].append(run_once(plan["path"], coords, kw, 1)[1])
+            except (mbfg.SolveError, RuntimeError, ValueError) as e:
+                plan["row"]["status"] = f"failed: {str(e).splitlines()[0][:200]}"
+    for plan in plans:
+        row, steps = plan["row"], plan["steps"]
+        if "status" in row:
+            continue
+        whole, first = statistics.median(plan["wholes"]), statistics.median(plan["firsts"])
+        if whole <= first:
+            row["status"] = (f"failed: the {steps}-step run ({whole:.3g} s) was no slower "
+                             f"than the one-step run ({first:.3g} s): timing noise")
+            continue
+        us = (whole - first) / (steps - 1) * 1e6
+        row.update(steps=steps, us_per_step=us, setup_ms=first * 1e3,
+                   us_per_step_whole=whole / steps * 1e6, wall_s=whole,
+                   runs=len(plan["wholes"]), status="ok")
+        pages.progress(f"  {family}-{row['size']} {label}: {us:.0f} µs/step ({steps} steps, "
+                       f"set-up {first * 1e3:.1f} ms, {len(plan['wholes'])} runs, max |Φ| "
+                       f"{row['max_phi']:.1e})")
     return rows
 
 
@@ -271,7 +313,7 @@ def plot(rows: list[dict], fits: dict, path: pathlib.Path) -> None:
         ref = min(r["us_per_step"] for r in rows if r.get("status") == "ok")
         ax.loglog(ns, [ref * n / ns[0] for n in ns], ":", color="grey", label="slope 1 (linear)")
     ax.set_xlabel("n, number of coordinates")
-    ax.set_ylabel("µs per step (whole-run wall time / steps, median)")
+    ax.set_ylabel("µs per step (horizon's wall time less one step's, per step)")
     ax.set_title("Per-step cost against the size of the mechanism (dt = 1 ms)")
     ax.grid(True, which="both", alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
@@ -289,7 +331,7 @@ def family_table(family: str, rows: list[dict], baseline: dict) -> str:
     title, letter, sizes = FAMILIES[family]
     head = f"| {letter} | coordinates | equations | dof |"
     for label, _, _ in SERIES:
-        head += f" {label} µs/step (steps) |" + (f" {label} × baseline |" if baseline else "")
+        head += f" {label} µs/step (steps; set-up ms) |" + (f" {label} × baseline |" if baseline else "")
     head += " max \\|Φ\\| |"
     head += " branch deviation (m) | θ − exact (rad) |" if family == "n-fourbar" else " energy drift (J) |"
     lines = [head, "|" + "---|" * (head.replace("\\|", "").count("|") - 1)]
@@ -303,7 +345,7 @@ def family_table(family: str, rows: list[dict], baseline: dict) -> str:
         for label, _, _ in SERIES:
             r = by.get(label, {})
             if r.get("status") == "ok":
-                line += f" {r['us_per_step']:.0f} ({r['steps']}) |"
+                line += f" {r['us_per_step']:.0f} ({r['steps']}; {r['setup_ms']:.1f}) |"
                 b = baseline.get((family, size, label))
                 if baseline:
                     line += f" {b / r['us_per_step']:.2f} |" if b else " — |"
@@ -378,19 +420,26 @@ def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
         "[docs/benchmarks.md](../docs/benchmarks.md). The N four-bar has N + 1 cranks and N "
         "couplers (2N + 3 coordinates, one degree of freedom), the n-link pendulum n links "
         "(3n coordinates: the points' x, y and the link angles, n degrees of freedom). "
-        f"dt = {DT * 1e3:g} ms from the scene's start; µs/step is the wall time of the whole "
-        "`mbfg.simulate` call (model building included) divided by its steps, the median of "
-        f"{repeats} runs made one at a time (steps per run in parentheses: about {TARGET:g} s "
-        f"of wall time, at least {MIN_STEPS}, at most {MAX_STEPS}, set from a one-step run and, "
-        f"where that takes {SPLIT_FROM:g} s or more, a {PROBE_STEPS}-step one that separates "
-        "the set-up from the steps). A size whose "
-        f"{MIN_STEPS}-step run would take more than {budget:g} s (extrapolated from the smaller "
-        "sizes with the series' last local slope, at least 1, or estimated from one step) is "
-        "skipped, with the larger sizes of its series; so is a size whose run, expected to take "
-        f"more than {GUARD_FROM * budget:g} s, does not finish within {budget:g} s when tried "
-        "first in a child process (a later step can take far longer than the first). "
-        "The horizons differ between sizes, so "
-        "a batch's per-step time is over batches of different lengths. The slopes are least-squares fits of "
+        f"dt = {DT * 1e3:g} ms from the scene's start. µs/step is the cost of a step: the "
+        f"wall time of an `mbfg.simulate` call over the common horizon ({MAX_STEPS} steps, "
+        f"{MAX_STEPS * DT:g} s) less that of a one-step call, divided by the steps between; "
+        "the one-step call's time (parsing, model building, the sparse analyses and the "
+        "first step) is the set-up, in milliseconds after the steps in parentheses. Each "
+        f"time is the median of the runs of {repeats} rounds over the series' sizes, made "
+        "one at a time, the two kinds alternating (a round runs every size in turn, so that "
+        "the machine's slow spells fall on every size alike; short runs several times a "
+        f"round, until they add up to {MIN_MEASURED:g} s, at most {MAX_REPEATS}; the runs "
+        "of each are in the CSV). A size whose horizon would take more "
+        f"than {LONG_RUN:g} s is run over fewer steps (at least {MIN_STEPS}; estimated from a "
+        f"one-step run in a child process and, where that takes {SPLIT_FROM:g} s or more, a "
+        f"{PROBE_STEPS}-step one); a size whose {MIN_STEPS}-step run would take more than "
+        f"{budget:g} s (extrapolated from the smaller sizes with the series' last local slope, "
+        "at least 1, or estimated from one step) is skipped, with the larger sizes of its "
+        "series; so is a size whose run, expected to take more than "
+        f"{GUARD_FROM * budget:g} s, does not finish within {budget:g} s when tried first in a "
+        "child process (a later step can take far longer than the first). "
+        "The whole call's time divided by its steps is in the CSV (`us_per_step_whole`). "
+        "The slopes are least-squares fits of "
         "log µs/step against log n (n = number of coordinates); the upper half is the larger "
         "half of the sizes measured. Raw numbers: [scaling.csv](scaling.csv).\n",
         "![µs per step against the number of coordinates](scaling.png)\n",
@@ -412,6 +461,13 @@ def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
                  "(the pendulum is conservative)")
         parts.append(f"## {title}\n\n{check}; each the worst of the series measured.\n\n"
                      + family_table(family, rows, baseline) + "\n")
+        work = [r for r in rows if r["family"] == family and r["series"] == SERIES[0][0]
+                and r.get("status") == "ok" and r.get("mean_factorizations") is not None]
+        if work:
+            parts.append(f"What a {SERIES[0][0]} step did, on average (Newton iterations / "
+                         "sparse LU factorizations): " + ", ".join(
+                             f"{r['size']}: {r['mean_iterations']:.1f} / "
+                             f"{r['mean_factorizations']:.2f}" for r in work) + ".\n")
     if not_run:
         parts.append("## Not measured\n\n" + "\n".join(
             f"- {r['family']}-{r['size']} {r['series']}: {r['status']}" for r in not_run) + "\n")
@@ -452,7 +508,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=pathlib.Path, default=pages.REPORTS,
                     help="folder for scaling.md, .csv, .png (default: reports/)")
     ap.add_argument("--repeats", type=int, default=REPEATS,
-                    help="runs per size and series, the median is kept (default: %(default)s)")
+                    help="rounds over each series' sizes; each time is the median of their runs "
+                         "(default: %(default)s)")
     ap.add_argument("--budget", type=float, default=BUDGET,
                     help=f"seconds a {MIN_STEPS}-step run may take before its size is skipped "
                          "(default: %(default)s)")
