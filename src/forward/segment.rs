@@ -223,9 +223,16 @@ pub(super) fn segment(
                         // 0.6/k for k links) with no better set to switch to: as for the
                         // stop below, it searches only where s has fallen to half its
                         // start (for a start above twice the threshold, every s below it).
-                        if falling && ahead < Determinacy::SEARCH_BELOW && ahead <= 0.5 * *origin {
+                        // Not at a segment's first step, where no switch is made (its
+                        // start is unknown there: a 128-link pendulum's IC run searched
+                        // for 90 ms at step 0 and dropped the result).
+                        if k > 0
+                            && falling
+                            && ahead < Determinacy::SEARCH_BELOW
+                            && ahead <= 0.5 * *origin
+                        {
                             let (best, set) = det.best(&model, q);
-                            if k > 0 && best >= Determinacy::SWITCH_GAIN * now.1 {
+                            if best >= Determinacy::SWITCH_GAIN * now.1 {
                                 reselect = Some((first + at(k), set));
                                 completed = at(k) + 1;
                                 return Next::Stop;
