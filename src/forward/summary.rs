@@ -5,7 +5,7 @@
 use super::failure::StepFailure;
 use crate::convergence::SolveReport;
 use crate::error::{Error, Result};
-use crate::model::{Model, MAX_LOCAL};
+use crate::model::Model;
 use std::time::Duration;
 
 /// What a run reports beside its trajectory.
@@ -109,7 +109,8 @@ impl Iterations {
 /// The summary's measures of a trajectory, accumulated step by step as the steps
 /// become final (so that a long run holds none of them).
 pub(super) struct Stats {
-    phi: Vec<f64>,
+    /// Per constraint: Φ, then Φ_q q̇.
+    rows: Vec<f64>,
     /// The nonzeros of M (row, column, value): the kinetic energy in time linear in
     /// a chain's length, as Φ_q q̇ over each constraint's own coordinates.
     mass: Vec<(usize, usize, f64)>,
@@ -125,7 +126,7 @@ pub(super) struct Stats {
 impl Stats {
     pub(super) fn new(model: &Model) -> Self {
         Stats {
-            phi: vec![0.0; model.m()],
+            rows: vec![0.0; model.m()],
             mass: model.mass_entries(),
             worst_phi: 0.0,
             worst_vel: 0.0,
@@ -145,16 +146,10 @@ impl Stats {
                 self.steps
             )));
         }
-        model.phi_into(q, &mut self.phi);
-        self.worst_phi = self.phi.iter().fold(self.worst_phi, |w, v| w.max(v.abs()));
-        let (mut u, mut w, mut g) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
-        for c in &model.constraints {
-            c.gather(q, &mut u);
-            c.gather_rate(dq, &mut w);
-            c.equation.gradient(&u, &mut g);
-            let v: f64 = (0..c.equation.len()).map(|k| g[k] * w[k]).sum();
-            self.worst_vel = self.worst_vel.max(v.abs());
-        }
+        model.phi_into(q, &mut self.rows);
+        self.worst_phi = self.rows.iter().fold(self.worst_phi, |w, v| w.max(v.abs()));
+        model.constraint_rates_into(q, dq, &mut self.rows);
+        self.worst_vel = self.rows.iter().fold(self.worst_vel, |w, v| w.max(v.abs()));
         let kinetic = 0.5
             * self
                 .mass

@@ -362,14 +362,10 @@ impl Determinacy {
         sparse::spd_inverse_trace(ma, &self.lower).map_or(0.0, |trace| trace.recip().sqrt())
     }
 
-    /// s of Φ_q (in `self.jac`) restricted to the columns `dependent`.
+    /// s of Φ_q (in `self.jac`) restricted to the columns `dependent`, from the dense
+    /// Gram matrix (a large mechanism's s is [`Determinacy::sparse_distance`]'s; this
+    /// route serves it only for the scaled block in `rows`).
     fn distance_over(&mut self, model: &Model, dependent: &[usize]) -> f64 {
-        let sparse = model.active.len() >= SPARSE_DISTANCE_FROM;
-        self.distance_over_by(model, dependent, sparse)
-    }
-
-    /// [`Determinacy::distance_over`] by the sparse route or the dense one.
-    fn distance_over_by(&mut self, model: &Model, dependent: &[usize], sparse: bool) -> f64 {
         let (n, ma, d) = (model.n(), model.active.len(), dependent.len());
         if ma != d {
             return 0.0;
@@ -407,20 +403,6 @@ impl Determinacy {
             &mut self.first,
             g,
         );
-        if sparse {
-            // G's lower triangle from each row's first nonzero column on.
-            self.lower.clear();
-            for i in 0..ma {
-                for j in self.first[i]..=i {
-                    let v = g[i * ma + j];
-                    if v != 0.0 {
-                        self.lower.push((i, j, v));
-                    }
-                }
-            }
-            return sparse::spd_inverse_trace(ma, &self.lower)
-                .map_or(0.0, |trace| trace.recip().sqrt());
-        }
         if dense::cholesky(g, ma).is_err() {
             return 0.0;
         }
@@ -546,7 +528,7 @@ mod tests {
     use crate::scene::Scene;
     use std::sync::Arc;
 
-    /// The sparse routes give the dense one's s, on a chain of 40 loops and a
+    /// The sparse route gives the dense one's s, on a chain of 40 loops and a
     /// 32-link pendulum (angle coordinates), at the start and moved off it.
     #[test]
     fn sparse_distance_is_the_dense_one() {
@@ -561,13 +543,11 @@ mod tests {
                     .map(|i| model.initial.q[i] + shift * ((i as f64 * 0.618).fract() - 0.5))
                     .collect();
                 det.jacobian(&model, &q);
-                let sparse = det.distance_over_by(&model, &dependent, true);
-                let dense = det.distance_over_by(&model, &dependent, false);
+                let dense = det.distance_over(&model, &dependent);
                 let by_rows = det.sparse_distance(&model, &q, &dependent);
                 assert!(
-                    (sparse - dense).abs() <= 1e-10 * dense
-                        && (by_rows - dense).abs() <= 1e-10 * dense,
-                    "{scene} shifted by {shift}: s = {sparse} sparse, {by_rows} by rows, {dense} dense"
+                    (by_rows - dense).abs() <= 1e-10 * dense,
+                    "{scene} shifted by {shift}: s = {by_rows} by rows, {dense} dense"
                 );
             }
         }

@@ -494,6 +494,17 @@ impl Model {
         self.rows_into(q, Some(dq), out, |e, u, w, h| e.third_order(u, w, h));
     }
 
+    /// Φ_q q̇ into `out` (length m), each row over its constraint's own coordinates.
+    pub fn constraint_rates_into(&self, q: &[f64], dq: &[f64], out: &mut [f64]) {
+        let (mut u, mut w, mut g) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for (o, c) in out.iter_mut().zip(&self.constraints) {
+            c.gather(q, &mut u);
+            c.gather_rate(dq, &mut w);
+            c.equation.gradient(&u, &mut g);
+            *o = (0..c.equation.len()).map(|k| g[k] * w[k]).sum();
+        }
+    }
+
     /// c = −Φ̇_q q̇ into `out` (length m).
     pub fn acceleration_rhs_into(&self, q: &[f64], dq: &[f64], out: &mut [f64]) {
         let (mut u, mut w, mut h) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
