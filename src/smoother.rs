@@ -204,8 +204,14 @@ fn run_fixed_lag(
     mut on_step: impl FnMut(usize, &SolveReport, &[f64]) -> Next,
     mut on_switch: impl FnMut(usize),
 ) -> Result<(usize, usize)> {
-    // A window longer than the run is the whole run.
-    let window = window.max(1).min(steps.max(1));
+    // A window longer than the run is the whole run. Steps a graph takes exactly are
+    // the solution of every window length (each holds all its equations): one at a
+    // time.
+    let window = if graph.exact_step().is_some() {
+        1
+    } else {
+        window.max(1).min(steps.max(1))
+    };
     let s = graph.layout().size();
     let mut solver = WindowSolver::new(graph, window + 1, settings)?;
     let mut adaptive = settings.past == Past::Adaptive;

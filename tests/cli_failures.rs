@@ -840,12 +840,8 @@ effects:
         "{summary}"
     );
     assert_eq!(
-        text_lines(&out),
+        std::fs::read_to_string(&out).unwrap().lines().count(),
         51 + 1,
         "a row per step on the grid asked for"
     );
-}
-
-fn text_lines(p: &Path) -> usize {
-    text(p).lines().count()
 }

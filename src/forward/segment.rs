@@ -142,13 +142,7 @@ pub(super) fn segment(
                     on_final: &mut on_final,
                 },
                 steps,
-                // Steps taken exactly are the solution of every window length
-                // (each holds all its equations): one at a time, sparse.
-                if fg.graph.exact_step().is_some() {
-                    1
-                } else {
-                    window
-                },
+                window,
                 settings,
                 |v, k| fg.predict(v, k),
                 |v, k| fg.substep_guess(&model, options, settings, first + at(k), v, k),
