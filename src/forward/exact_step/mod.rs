@@ -66,10 +66,13 @@ const ROUNDING_FLOOR: f64 = 0.5;
 /// Fresh factorizations after which a step goes back to the general solver.
 const MAX_FACTORIZATIONS: usize = 8;
 
-/// The largest contraction (an update's size over the one before) accepted from
-/// an iteration with factors of an earlier Jacobian: then the error left after an
-/// update below the tolerance is below the tolerance too. Slower, the iterate is
-/// linearized and factored afresh.
+/// The largest contraction accepted from an iteration with factors of an earlier
+/// Jacobian: then the error left after an update below the tolerance is below the
+/// tolerance too. Slower, the iterate is linearized and factored afresh. The
+/// contraction is the mean over the last two updates where there are two: the
+/// error of a stiff mechanism's fast modes often alternates (an update shrinking
+/// by 0.01, the next by 0.4), and one update alone would refactor an iteration
+/// that converges fast.
 const MAX_CONTRACTION: f64 = 0.25;
 
 /// The scratch of one step's Newton iteration.
@@ -266,8 +269,8 @@ impl SquareStep {
         let n = model.n();
         work.x[..3 * n].copy_from_slice(&block[..3 * n]);
         work.x[3 * n..].copy_from_slice(&work.multipliers);
-        // The size of the last update taken with the factors now held.
-        let mut last = f64::INFINITY;
+        // The sizes of the last two updates taken with the factors now held.
+        let (mut last, mut before_last) = (f64::INFINITY, f64::INFINITY);
         let mut factorizations = 0;
         // Whether the last update was taken with an earlier step's factors and
         // nothing to judge them by: undone (from `work.saved`) if the next one shows
@@ -297,16 +300,27 @@ impl SquareStep {
                 .zip(&work.residual)
                 .map(|(xi, di)| di.abs() / (1.0 + xi.abs()))
                 .fold(0.0, f64::max);
-            // The error left after this update: about its square after a Newton
-            // update; after a simplified one, θ/(1 − θ) of it at the contraction θ
-            // seen. Updates that stop shrinking below the tolerance are the
-            // residual's rounding, as far as any iteration gets.
-            // (None: no update taken with these factors yet.)
-            let contraction = (!fresh && last.is_finite()).then(|| update / last);
+            // The contraction θ over the last update and, where there are two, over
+            // the last two (their geometric mean). The error left after this update:
+            // about its square after a Newton update; after a simplified one,
+            // θ/(1 − θ) of it at the last update's θ (an alternating iteration's
+            // next update may shrink 50 times less, well inside SETTLED's margin).
+            // Updates that stop shrinking below the tolerance are the residual's
+            // rounding, as far as any iteration gets. (None: no update taken with
+            // these factors yet.)
+            let contraction = (!fresh && last.is_finite()).then(|| {
+                let one = update / last;
+                let two = if before_last.is_finite() {
+                    (update / before_last).sqrt()
+                } else {
+                    one
+                };
+                (one, two)
+            });
             let settled = match contraction {
                 _ if fresh => update <= limits.step_tolerance,
                 None => false,
-                Some(c) => {
+                Some((c, _)) => {
                     c < 1.0 && c / (1.0 - c) * update <= SETTLED * limits.step_tolerance
                         || (c >= ROUNDING_FLOOR && update <= limits.step_tolerance)
                 }
@@ -326,7 +340,7 @@ impl SquareStep {
             // 0.9 factorizations a step there).
             if !settled
                 && update > limits.step_tolerance
-                && contraction.is_some_and(|c| c > MAX_CONTRACTION)
+                && contraction.is_some_and(|(one, two)| one >= 1.0 || two > MAX_CONTRACTION)
             {
                 // The earlier Jacobian no longer carries the iteration.
                 work.factored = false;
@@ -340,7 +354,11 @@ impl SquareStep {
             if blind {
                 work.saved.copy_from_slice(&work.x);
             }
-            last = update;
+            (before_last, last) = if fresh {
+                (f64::INFINITY, update)
+            } else {
+                (last, update)
+            };
             for (xi, di) in work.x.iter_mut().zip(&work.residual) {
                 *xi -= di;
             }
