@@ -63,6 +63,9 @@ const SETTLED: f64 = 1e-6;
 /// rounding of the residual: they no longer shrink.
 const ROUNDING_FLOOR: f64 = 0.5;
 
+/// The largest rounding (a fraction of the step tolerance) later steps settle at.
+const ROUNDING_KEPT: f64 = 1e-2;
+
 /// Fresh factorizations after which a step goes back to the general solver.
 const MAX_FACTORIZATIONS: usize = 8;
 
@@ -92,6 +95,9 @@ struct Work {
     /// Whether `factors` hold the LU of a Jacobian of this system (of an earlier
     /// iterate, maybe of an earlier step), which the next iterations may reuse.
     factored: bool,
+    /// The size of the updates where the last step that reached the residual's
+    /// rounding stopped shrinking (0 before any did): no iteration gets below it.
+    rounding: f64,
 }
 
 /// The square system of a DC step with tangent integrators or of an IC step, with
@@ -180,6 +186,7 @@ impl SquareStep {
             kv,
             factors,
             factored: false,
+            rounding: 0.0,
             saved: vec![0.0; size],
             gram: regularity.work(&system.model),
             multipliers: vec![0.0; size - 3 * n],
@@ -306,8 +313,11 @@ impl SquareStep {
             // θ/(1 − θ) of it at the last update's θ (an alternating iteration's
             // next update may shrink 50 times less, well inside SETTLED's margin).
             // Updates that stop shrinking below the tolerance are the residual's
-            // rounding, as far as any iteration gets. (None: no update taken with
-            // these factors yet.)
+            // rounding, as far as any iteration gets; an error estimated below the
+            // rounding an earlier step reached is settled too (a large mechanism's
+            // rounding, 1e-12 to 1e-10, is above SETTLED's target: each step
+            // spent two or three iterations finding it again). (None: no update
+            // taken with these factors yet.)
             let contraction = (!fresh && last.is_finite()).then(|| {
                 let one = update / last;
                 let two = if before_last.is_finite() {
@@ -321,8 +331,14 @@ impl SquareStep {
                 _ if fresh => update <= limits.step_tolerance,
                 None => false,
                 Some((c, _)) => {
-                    c < 1.0 && c / (1.0 - c) * update <= SETTLED * limits.step_tolerance
-                        || (c >= ROUNDING_FLOOR && update <= limits.step_tolerance)
+                    let floor = c >= ROUNDING_FLOOR && update <= limits.step_tolerance;
+                    // (Remembered only well below the tolerance, where it cannot
+                    // be a slow iteration.)
+                    if floor && update <= ROUNDING_KEPT * limits.step_tolerance {
+                        work.rounding = update;
+                    }
+                    let target = (SETTLED * limits.step_tolerance).max(work.rounding);
+                    c < 1.0 && c / (1.0 - c) * update <= target || floor
                 }
             };
             if let Some(watch) = watch.as_mut() {
@@ -418,6 +434,7 @@ impl ExactStep for SquareStep {
             // The next step starts its multipliers and its Jacobian afresh.
             work.multipliers.fill(0.0);
             work.factored = false;
+            work.rounding = 0.0;
         }
         solved
     }
