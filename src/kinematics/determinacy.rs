@@ -4,7 +4,8 @@
 //! stop ahead of a singular configuration), and the scale-free σ_r/σ₁ of Φ_q itself
 //! (`constraint_conditioning`) that a failure message quotes.
 
-use crate::linalg::{dense, sparse};
+use crate::linalg::dense;
+use crate::linalg::sparse::InverseTrace;
 use crate::model::{Model, PointSlot, MAX_LOCAL};
 
 /// Active constraints from which s is taken from G's sparse Cholesky factor by
@@ -51,8 +52,12 @@ pub struct Determinacy {
     /// of L, its first nonzero column.
     spans: Vec<[usize; 2]>,
     first: Vec<usize>,
-    /// G's lower triangle as triplets, for the sparse route.
-    lower: Vec<(usize, usize, f64)>,
+    /// G's lower triangle, for the sparse route: its entries (rows i ≥ j) and their
+    /// values, and tr G⁻¹ with the symbolic analysis of the entries it was made for
+    /// (the same until the dependent columns change).
+    lower: Vec<(usize, usize)>,
+    values: Vec<f64>,
+    trace: Option<(Vec<(usize, usize)>, InverseTrace)>,
     /// The sparse route's dependent columns, and per column the (active row,
     /// normalized value) of its nonzeros.
     mask: Vec<bool>,
@@ -111,6 +116,8 @@ impl Determinacy {
             spans: vec![[0, 0]; ma],
             first: vec![0; ma],
             lower: Vec::new(),
+            values: Vec::new(),
+            trace: None,
             mask: vec![false; model.n()],
             incidence: vec![Vec::new(); model.n()],
             dependent,
@@ -340,10 +347,11 @@ impl Determinacy {
             if !(norm > 0.0) {
                 return 0.0;
             }
+            // (Zeros too: G's pattern, and its analysis, stay those of the columns.)
             let mut held = false;
-            for &(col, v) in entries.iter().filter(|e| self.mask[e.0] && e.1 != 0.0) {
+            for &(col, v) in entries.iter().filter(|e| self.mask[e.0]) {
                 self.incidence[col].push((row, v / norm));
-                held = true;
+                held |= v != 0.0;
             }
             if !held {
                 // An equation without a dependent coordinate determines none.
@@ -351,15 +359,27 @@ impl Determinacy {
             }
         }
         self.lower.clear();
+        self.values.clear();
         for list in &self.incidence {
             // Rows in ascending order: (i, j ≤ i) pairs of rows sharing this column.
             for (a, &(i, vi)) in list.iter().enumerate() {
                 for &(j, vj) in &list[..=a] {
-                    self.lower.push((i, j, vi * vj));
+                    self.lower.push((i, j));
+                    self.values.push(vi * vj);
                 }
             }
         }
-        sparse::spd_inverse_trace(ma, &self.lower).map_or(0.0, |trace| trace.recip().sqrt())
+        if self
+            .trace
+            .as_ref()
+            .is_none_or(|(lower, _)| *lower != self.lower)
+        {
+            self.trace = InverseTrace::new(ma, &self.lower).map(|t| (self.lower.clone(), t));
+        }
+        self.trace
+            .as_mut()
+            .and_then(|(_, trace)| trace.trace(&self.values))
+            .map_or(0.0, |trace| trace.recip().sqrt())
     }
 
     /// s of Φ_q (in `self.jac`) restricted to the columns `dependent`, from the dense

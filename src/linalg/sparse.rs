@@ -15,6 +15,56 @@ use faer::sparse::linalg::SupernodalThreshold;
 use faer::sparse::{SparseColMat, SparseColMatRef, SymbolicSparseColMatRef, Triplet};
 use faer::{Conj, MatMut, Par, Side};
 
+/// A compressed-column pattern and, for each entry an assembly emits (in its
+/// fixed order), where it adds up: the values of matrices of one structure,
+/// assembled entry by entry, without building triplets each time.
+pub struct Pattern {
+    pub size: usize,
+    pub col_ptr: Vec<usize>,
+    pub row_idx: Vec<usize>,
+    pub slots: Vec<usize>,
+}
+
+impl Pattern {
+    /// The pattern of the (row, column) pairs in emission order.
+    pub fn new(size: usize, emitted: &[(usize, usize)]) -> Pattern {
+        let mut order: Vec<usize> = (0..emitted.len()).collect();
+        order.sort_unstable_by_key(|&t| (emitted[t].1, emitted[t].0));
+        let mut col_ptr = vec![0; size + 1];
+        let mut row_idx = Vec::new();
+        let mut slots = vec![0; emitted.len()];
+        let mut last = None;
+        for &t in &order {
+            let (row, col) = emitted[t];
+            if last != Some((row, col)) {
+                row_idx.push(row);
+                col_ptr[col + 1] += 1;
+                last = Some((row, col));
+            }
+            slots[t] = row_idx.len() - 1;
+        }
+        for c in 0..size {
+            col_ptr[c + 1] += col_ptr[c];
+        }
+        Pattern {
+            size,
+            col_ptr,
+            row_idx,
+            slots,
+        }
+    }
+
+    pub fn symbolic(&self) -> SymbolicSparseColMatRef<'_, usize> {
+        SymbolicSparseColMatRef::new_checked(
+            self.size,
+            self.size,
+            &self.col_ptr,
+            None,
+            &self.row_idx,
+        )
+    }
+}
+
 /// Solves the square system A x = b given by the triplets (row, column, value;
 /// repeated positions add up) and `b` in `x`. Returns the estimate of A's 1-norm
 /// condition number, or `None` when the factorization fails or the solution is not
@@ -106,30 +156,20 @@ pub fn simplicial_symbolic(
 }
 
 /// A simplicial factor L (A = L Lᵀ) of the symmetric matrix whose lower triangle
-/// the triplets give (row ≥ column; repeated positions add up): L's column pointers,
-/// row indices (each column's diagonal first) and values. Without reordering
-/// (`reorder` false) A is eliminated in the given order; else in a fill-reducing
-/// one. `None` when A is not positive definite to working precision.
+/// the triplets give (row ≥ column; repeated positions add up), eliminated in the
+/// given order: L's column pointers, row indices (each column's diagonal first) and
+/// values. `None` when A is not positive definite to working precision.
 fn simplicial_llt(
     size: usize,
     lower: &[(usize, usize, f64)],
-    reorder: bool,
 ) -> Option<(Vec<usize>, Vec<usize>, Vec<f64>)> {
     // Without a reordering faer's symbolic analysis reads the upper triangle.
-    let (side, ordering) = if reorder {
-        (Side::Lower, SymmetricOrdering::Amd)
-    } else {
-        (Side::Upper, SymmetricOrdering::Identity)
-    };
     let entries: Vec<Triplet<usize, usize, f64>> = lower
         .iter()
-        .map(|&(row, col, val)| match side {
-            Side::Lower => Triplet::new(row, col, val),
-            Side::Upper => Triplet::new(col, row, val),
-        })
+        .map(|&(row, col, val)| Triplet::new(col, row, val))
         .collect();
     let a = SparseColMat::<usize, f64>::try_new_from_triplets(size, size, &entries).ok()?;
-    let symbolic = simplicial_symbolic(a.symbolic(), side, ordering)?;
+    let symbolic = simplicial_symbolic(a.symbolic(), Side::Upper, SymmetricOrdering::Identity)?;
     let mut factor = vec![0.0; symbolic.len_val()];
     let mut memory =
         MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()));
@@ -137,7 +177,7 @@ fn simplicial_llt(
         .factorize_numeric_llt(
             &mut factor,
             SparseColMatRef::new(a.symbolic(), a.val()),
-            side,
+            Side::Upper,
             LltRegularization::default(),
             Par::Seq,
             MemStack::new(&mut memory),
@@ -156,7 +196,7 @@ fn simplicial_llt(
 /// row or column not explained by the earlier ones). `None` when A is not positive
 /// definite to working precision.
 pub fn cholesky_pivots(size: usize, lower: &[(usize, usize, f64)]) -> Option<Vec<f64>> {
-    let (col_ptr, row_idx, factor) = simplicial_llt(size, lower, false)?;
+    let (col_ptr, row_idx, factor) = simplicial_llt(size, lower)?;
     (0..size)
         .map(|j| {
             let start = col_ptr[j];
@@ -211,14 +251,76 @@ pub fn selected_inverse_trace(
 }
 
 /// tr A⁻¹ of the symmetric positive definite matrix whose lower triangle the
-/// triplets give (row ≥ column; repeated positions add up): its sparse Cholesky
-/// factor (fill-reducing order; the trace does not depend on it) and the selected
-/// inversion of [`selected_inverse_trace`]. `None` when A is not positive definite
-/// to working precision. 1 / tr A⁻¹ bounds A's smallest eigenvalue from below.
+/// triplets give (row ≥ column; repeated positions add up): see [`InverseTrace`].
+/// `None` when A is not positive definite to working precision. 1 / tr A⁻¹ bounds
+/// A's smallest eigenvalue from below.
 pub fn spd_inverse_trace(size: usize, lower: &[(usize, usize, f64)]) -> Option<f64> {
-    let (col_ptr, row_idx, factor) = simplicial_llt(size, lower, true)?;
-    let mut inverse = vec![0.0; factor.len()];
-    selected_inverse_trace(&col_ptr, &row_idx, &factor, &mut inverse)
+    let pairs: Vec<(usize, usize)> = lower.iter().map(|&(i, j, _)| (i, j)).collect();
+    let values: Vec<f64> = lower.iter().map(|e| e.2).collect();
+    InverseTrace::new(size, &pairs)?.trace(&values)
+}
+
+/// tr A⁻¹ of symmetric positive definite matrices of one pattern: the sparse
+/// Cholesky factor (fill-reducing order; the trace does not depend on it) and the
+/// selected inversion of [`selected_inverse_trace`], the pattern's symbolic
+/// analysis made once (a long chain's is most of the work of one trace).
+pub struct InverseTrace {
+    pattern: Pattern,
+    cholesky: SymbolicCholesky<usize>,
+    values: Vec<f64>,
+    factor: Vec<f64>,
+    /// (LLᵀ)⁻¹ on L's pattern.
+    inverse: Vec<f64>,
+    memory: MemBuffer,
+}
+
+impl InverseTrace {
+    /// For matrices whose lower triangle has the entries `lower` (row ≥ column, in
+    /// the order [`InverseTrace::trace`] is given their values; repeated positions
+    /// add up); `None` where the analysis fails.
+    pub fn new(size: usize, lower: &[(usize, usize)]) -> Option<InverseTrace> {
+        let pattern = Pattern::new(size, lower);
+        let cholesky =
+            simplicial_symbolic(pattern.symbolic(), Side::Lower, SymmetricOrdering::Amd)?;
+        let len = cholesky.len_val();
+        let memory = MemBuffer::new(
+            cholesky.factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
+        );
+        Some(InverseTrace {
+            values: vec![0.0; pattern.row_idx.len()],
+            pattern,
+            cholesky,
+            factor: vec![0.0; len],
+            inverse: vec![0.0; len],
+            memory,
+        })
+    }
+
+    /// tr A⁻¹ of the matrix with these values of the entries given at
+    /// [`InverseTrace::new`]; `None` when it is not positive definite to working
+    /// precision.
+    pub fn trace(&mut self, lower: &[f64]) -> Option<f64> {
+        self.values.fill(0.0);
+        for (value, &slot) in lower.iter().zip(&self.pattern.slots) {
+            self.values[slot] += value;
+        }
+        let matrix = SparseColMatRef::new(self.pattern.symbolic(), &self.values);
+        self.cholesky
+            .factorize_numeric_llt(
+                &mut self.factor,
+                matrix,
+                Side::Lower,
+                LltRegularization::default(),
+                Par::Seq,
+                MemStack::new(&mut self.memory),
+                Default::default(),
+            )
+            .ok()?;
+        let SymbolicCholeskyRaw::Simplicial(l) = self.cholesky.raw() else {
+            return None;
+        };
+        selected_inverse_trace(l.col_ptr(), l.row_idx(), &self.factor, &mut self.inverse)
+    }
 }
 
 #[cfg(test)]
@@ -311,5 +413,34 @@ mod tests {
         indefinite.push((size - 1, size - 1, -1e3));
         assert!(cholesky_pivots(size, &indefinite).is_none());
         assert!(spd_inverse_trace(size, &indefinite).is_none());
+    }
+
+    /// One analysis serves every matrix of its pattern, and a matrix that is not
+    /// positive definite does not spoil the next.
+    #[test]
+    fn an_inverse_trace_is_reused_across_values() {
+        let size = 30;
+        let (_, a) = chain(size, 0.2);
+        let base = &a * a.transpose();
+        let entries: Vec<(usize, usize)> = (0..size)
+            .flat_map(|c| (c..size).map(move |r| (r, c)))
+            .filter(|&(r, c)| base[(r, c)] != 0.0)
+            .collect();
+        let mut trace = InverseTrace::new(size, &entries).unwrap();
+        for shift in [1e-3, -1e3, 0.5, 2.0] {
+            let spd = &base + DMatrix::identity(size, size) * shift;
+            let values: Vec<f64> = entries.iter().map(|&(r, c)| spd[(r, c)]).collect();
+            let got = trace.trace(&values);
+            if shift < 0.0 {
+                assert!(got.is_none(), "indefinite: {got:?}");
+                continue;
+            }
+            let exact = spd.try_inverse().unwrap().trace();
+            let got = got.unwrap();
+            assert!(
+                (got - exact).abs() <= 1e-10 * exact,
+                "shift {shift}: {got} vs {exact}"
+            );
+        }
     }
 }

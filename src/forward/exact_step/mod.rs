@@ -176,7 +176,7 @@ impl SquareStep {
         system.assemble(&x, &kq, &kv, &mut Sink::Pattern(&mut emitted));
         let jacobian = Pattern::new(size, &emitted);
         let factors = Factors::new(&jacobian)?;
-        let regularity = Regularity::new(&system.model)?;
+        let regularity = Regularity::new(&system.model);
         let work = Work {
             x,
             residual: vec![0.0; size],
@@ -188,7 +188,7 @@ impl SquareStep {
             factored: false,
             rounding: 0.0,
             saved: vec![0.0; size],
-            gram: regularity.work(&system.model),
+            gram: regularity.work(&system.model)?,
             multipliers: vec![0.0; size - 3 * n],
         };
         Some(SquareStep {

@@ -2,15 +2,9 @@
 //! to a rank loss of Φ_q, s = (tr G⁻¹)^(−1/2), from G's sparse Cholesky factor by
 //! selected inversion, with G's pattern analysed once per mechanism.
 
-use super::system::Pattern;
 use crate::dynamics::DynamicsKernel;
-use crate::linalg::sparse::{selected_inverse_trace, simplicial_symbolic};
+use crate::linalg::sparse::InverseTrace;
 use crate::model::{Model, MAX_LOCAL};
-use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::linalg::cholesky::llt::factor::LltRegularization;
-use faer::sparse::linalg::cholesky::{SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering};
-use faer::sparse::SparseColMatRef;
-use faer::{Par, Side};
 
 /// s must pass [`DynamicsKernel::REGULAR_ABOVE`] by this factor: the kernel
 /// computes it densely, in another order of rounding.
@@ -21,54 +15,39 @@ pub(super) struct Regularity {
     /// The lower triangle of G = ÂÂᵀ: per entry the pair of active rows (i, j ≤ i)
     /// and the pairs of their local coordinates that are one coordinate of q.
     entries: Vec<GramEntry>,
-    gram: Pattern,
-    cholesky: SymbolicCholesky<usize>,
 }
 
-/// The scratch of the regularity test: G, its Cholesky factor and G⁻¹ on the
-/// factor's pattern.
+/// The scratch of the regularity test: the rows' gradients, G and tr G⁻¹.
 pub(super) struct GramWork {
     /// Each active row's gradient, the entries of AAᵀ and the row norms.
     gradients: Vec<[f64; MAX_LOCAL]>,
     dots: Vec<f64>,
     norms: Vec<f64>,
+    /// G's lower triangle, entry by entry as in `entries`.
     values: Vec<f64>,
-    factor: Vec<f64>,
-    /// (LLᵀ)⁻¹ on L's pattern.
-    inverse: Vec<f64>,
-    memory: MemBuffer,
+    trace: InverseTrace,
 }
 
 impl Regularity {
-    /// G's pattern for `model` and its symbolic analysis; `None` where that fails.
-    pub(super) fn new(model: &Model) -> Option<Regularity> {
-        let entries = gram_entries(model);
-        let lower: Vec<(usize, usize)> = entries.iter().map(|e| (e.0, e.1)).collect();
-        let gram = Pattern::new(model.active.len(), &lower);
-        let cholesky = simplicial_symbolic(gram.symbolic(), Side::Lower, SymmetricOrdering::Amd)?;
-        Some(Regularity {
-            entries,
-            gram,
-            cholesky,
-        })
+    /// G's pattern for `model`.
+    pub(super) fn new(model: &Model) -> Regularity {
+        Regularity {
+            entries: gram_entries(model),
+        }
     }
 
-    /// The scratch of [`Regularity::regular`] for `model`.
-    pub(super) fn work(&self, model: &Model) -> GramWork {
+    /// The scratch of [`Regularity::regular`] for `model`, with G's symbolic
+    /// analysis; `None` where that fails.
+    pub(super) fn work(&self, model: &Model) -> Option<GramWork> {
         let ma = model.active.len();
-        let len = self.cholesky.len_val();
-        GramWork {
+        let lower: Vec<(usize, usize)> = self.entries.iter().map(|e| (e.0, e.1)).collect();
+        Some(GramWork {
             gradients: vec![[0.0; MAX_LOCAL]; ma],
             dots: vec![0.0; self.entries.len()],
             norms: vec![0.0; ma],
-            values: vec![0.0; self.gram.row_idx.len()],
-            factor: vec![0.0; len],
-            inverse: vec![0.0; len],
-            memory: MemBuffer::new(
-                self.cholesky
-                    .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default()),
-            ),
-        }
+            values: vec![0.0; self.entries.len()],
+            trace: InverseTrace::new(ma, &lower)?,
+        })
     }
 
     /// Whether the active rows of Φ_q at q are far enough from a rank loss that the
@@ -118,29 +97,12 @@ impl Regularity {
         if !norms.iter().all(|v| *v > 0.0 && v.is_finite()) {
             return 0.0;
         }
-        gram.values.fill(0.0);
-        for (t, ((i, j, _), dot)) in self.entries.iter().zip(&gram.dots).enumerate() {
-            gram.values[self.gram.slots[t]] += dot / (gram.norms[*i] * gram.norms[*j]);
+        for ((value, (i, j, _)), dot) in gram.values.iter_mut().zip(&self.entries).zip(&gram.dots) {
+            *value = dot / (gram.norms[*i] * gram.norms[*j]);
         }
-        let matrix = SparseColMatRef::new(self.gram.symbolic(), &gram.values);
-        let factored = self.cholesky.factorize_numeric_llt(
-            &mut gram.factor,
-            matrix,
-            Side::Lower,
-            LltRegularization::default(),
-            Par::Seq,
-            MemStack::new(&mut gram.memory),
-            Default::default(),
-        );
-        let SymbolicCholeskyRaw::Simplicial(l) = self.cholesky.raw() else {
-            return 0.0;
-        };
-        if factored.is_err() {
-            return 0.0;
-        }
-        let trace =
-            selected_inverse_trace(l.col_ptr(), l.row_idx(), &gram.factor, &mut gram.inverse);
-        trace.map_or(0.0, |t| t.recip().sqrt())
+        gram.trace
+            .trace(&gram.values)
+            .map_or(0.0, |t| t.recip().sqrt())
     }
 }
 

@@ -1,59 +1,10 @@
 //! The equations of a square step (see the module above): their residual and their
 //! Jacobian, emitted entry by entry in a fixed order onto a compressed-column pattern.
 
+pub(super) use crate::linalg::sparse::Pattern;
 use crate::model::{Model, MAX_LOCAL};
 use crate::tangent::Rule;
-use faer::sparse::SymbolicSparseColMatRef;
 use std::sync::Arc;
-
-/// A compressed-column pattern and, for each entry the assembly emits (in its
-/// fixed order), where it adds up.
-pub(super) struct Pattern {
-    pub(super) size: usize,
-    pub(super) col_ptr: Vec<usize>,
-    pub(super) row_idx: Vec<usize>,
-    pub(super) slots: Vec<usize>,
-}
-
-impl Pattern {
-    /// The pattern of the (row, column) pairs in emission order.
-    pub(super) fn new(size: usize, emitted: &[(usize, usize)]) -> Pattern {
-        let mut order: Vec<usize> = (0..emitted.len()).collect();
-        order.sort_unstable_by_key(|&t| (emitted[t].1, emitted[t].0));
-        let mut col_ptr = vec![0; size + 1];
-        let mut row_idx = Vec::new();
-        let mut slots = vec![0; emitted.len()];
-        let mut last = None;
-        for &t in &order {
-            let (row, col) = emitted[t];
-            if last != Some((row, col)) {
-                row_idx.push(row);
-                col_ptr[col + 1] += 1;
-                last = Some((row, col));
-            }
-            slots[t] = row_idx.len() - 1;
-        }
-        for c in 0..size {
-            col_ptr[c + 1] += col_ptr[c];
-        }
-        Pattern {
-            size,
-            col_ptr,
-            row_idx,
-            slots,
-        }
-    }
-
-    pub(super) fn symbolic(&self) -> SymbolicSparseColMatRef<'_, usize> {
-        SymbolicSparseColMatRef::new_checked(
-            self.size,
-            self.size,
-            &self.col_ptr,
-            None,
-            &self.row_idx,
-        )
-    }
-}
 
 /// Where the emitted entries go: collected as a pattern, or added into the values.
 pub(super) enum Sink<'a> {
