@@ -15,19 +15,7 @@ fn scratch(name: &str) -> PathBuf {
 
 /// `mbfg simulate SCENE --dt 0.001 --t-end T --out OUT` and `extra`; must succeed.
 fn simulate(scene: &str, t_end: &str, out: &Path, extra: &[&str]) -> Table {
-    let mut args = vec![
-        "simulate",
-        scene,
-        "--dt",
-        "0.001",
-        "--t-end",
-        t_end,
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    args.extend(extra);
-    let run = mbfg(&args);
-    assert!(run.status.success(), "{}", stderr(&run));
+    common::simulate(scene, t_end, out, extra);
     read_table(out).unwrap()
 }
 

@@ -116,18 +116,12 @@ struct Iteration {
 fn traced_steps(t_end: &str, name: &str) -> Vec<Vec<Iteration>> {
     let dir = common::scratch("exact", name);
     let out = dir.join("out.csv");
-    let run = common::mbfg(&[
-        "simulate",
+    let run = common::simulate(
         "scenes/scale/n-pendulum-32.yaml",
-        "--dt",
-        "0.001",
-        "--t-end",
         t_end,
-        "--out",
-        out.to_str().unwrap(),
-        "--trace-solver",
-    ]);
-    assert!(run.status.success(), "{}", common::stderr(&run));
+        &out,
+        &["--trace-solver"],
+    );
     let field = |line: &str, key: &str| -> String {
         let start = line.find(key).unwrap() + key.len();
         line[start..].split(' ').next().unwrap().to_string()

@@ -1,7 +1,7 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// A scene of the suite by file name.
 pub fn scene_path(name: &str) -> PathBuf {
@@ -109,4 +109,22 @@ pub fn reference_rmse(
     }
     assert!(count > 0, "no common samples with {}", path.display());
     (sum / count as f64).sqrt()
+}
+
+/// `mbfg simulate SCENE --dt 0.001 --t-end T --out OUT` and `extra`; must succeed.
+pub fn simulate(scene: &str, t_end: &str, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "simulate",
+        scene,
+        "--dt",
+        "0.001",
+        "--t-end",
+        t_end,
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend(extra);
+    let run = mbfg(&args);
+    assert!(run.status.success(), "{}", stderr(&run));
+    run
 }

@@ -3,7 +3,7 @@
 //! no faster: cheaper to factor, dearer to solve with, and a step solves several
 //! times per factorization.)
 
-use super::Pattern;
+use crate::linalg::sparse::Pattern;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::lu::partial_pivoting::factor::PartialPivLuParams;
 use faer::sparse::linalg::lu::{factorize_symbolic_lu, LuRef, NumericLu, SymbolicLu};

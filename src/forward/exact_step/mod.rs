@@ -41,13 +41,14 @@ mod system;
 
 use crate::dynamics;
 use crate::graph::{ExactStep, StepIteration, StepLimits, StepWork};
+use crate::linalg::sparse::Pattern;
 use crate::model::Model;
 use crate::tangent::Rule;
 use factors::Factors;
 use nalgebra::DVector;
 use regularity::{GramWork, Regularity};
 use std::sync::{Arc, Mutex};
-use system::{Pattern, Sink, System};
+use system::{Sink, System};
 
 /// Iterations after which a step goes back to the general solver: from a step's
 /// prediction Newton converges in two to four, the simplified iteration (factors

@@ -1,7 +1,6 @@
 //! The equations of a square step (see the module above): their residual and their
 //! Jacobian, emitted entry by entry in a fixed order onto a compressed-column pattern.
 
-pub(super) use crate::linalg::sparse::Pattern;
 use crate::model::{Model, MAX_LOCAL};
 use crate::tangent::Rule;
 use std::sync::Arc;
