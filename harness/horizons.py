@@ -82,7 +82,7 @@ def run_once(binary: pathlib.Path, steps: int, options: list[str], workdir: path
     summary = stdout.decode(errors="replace").strip()
     solve = re.search(r" in ([0-9.]+) s;", summary)
     reported = re.search(r"; peak memory ([0-9.]+) MiB", summary)
-    iterations = re.search(r"LM iterations per solve: mean ([0-9.]+)", summary)
+    iterations = re.search(r"iterations per solve: mean ([0-9.]+)", summary)
     rows = 0
     if out.exists():
         with open(out, "rb") as f:

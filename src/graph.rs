@@ -304,73 +304,6 @@ pub struct ChainGraph {
     step: Vec<Term>,
     /// Factors of step 0 only (priors on the initial state).
     initial: Vec<Term>,
-    /// The step of the run that step 0 of the values stands for, while a fixed-lag
-    /// run keeps only its newest steps in a compacted buffer
-    /// ([`crate::smoother::fixed_lag_streaming`]); 0 otherwise. [`ChainGraph::time`]
-    /// adds it, so that a step's time is the same bits wherever its values sit.
-    offset: std::sync::atomic::AtomicUsize,
-    /// A solver of one step given the step before, where the graph's steps have as
-    /// many equations as unknowns.
-    exact: Option<Box<dyn ExactStep>>,
-}
-
-/// What bounds a step's Newton iteration in an [`ExactStep`].
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct StepLimits {
-    /// At most this many linear solves.
-    pub max_iterations: usize,
-    /// Converged once a step moves every variable by at most this times (1 + |x|).
-    pub step_tolerance: f64,
-}
-
-/// What an [`ExactStep`] took to solve a step.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct StepWork {
-    /// Linear solves.
-    pub iterations: usize,
-    /// Factorizations (a linear solve may reuse an earlier one).
-    pub factorizations: usize,
-}
-
-/// One iteration of an [`ExactStep`], as a solve's observer sees it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct StepIteration {
-    /// 1-based iteration of this step.
-    pub iteration: usize,
-    /// Half the squared norm of the residual the update was solved from.
-    pub cost: f64,
-    /// max |δᵢ| / (1 + |xᵢ|) over the step's variables.
-    pub update: f64,
-    /// Whether the Jacobian was factored afresh for this update (else an earlier
-    /// one's factors were used: a chord update).
-    pub fresh: bool,
-    /// Whether the iteration stopped here, converged.
-    pub settled: bool,
-}
-
-/// One step of a graph whose steps have as many equations as unknowns, all of which
-/// hold at the solution, solved on its own given the step before: the same
-/// solution as a window's, by a route that knows the step's structure (a DC step's
-/// sparse square system, [`crate::forward`]). A step it declines goes to the
-/// general solver.
-pub trait ExactStep: Send + Sync {
-    /// Solves step `block` (guess in, solution out) at time `t`, given the step
-    /// before (`before`); the work taken, or `None` where it declines or does not
-    /// converge (`block` is then unspecified). `watch` sees every iteration.
-    fn solve(
-        &self,
-        t: f64,
-        before: &[f64],
-        block: &mut [f64],
-        limits: StepLimits,
-        watch: Option<&mut dyn FnMut(&StepIteration)>,
-    ) -> Option<StepWork>;
-
-    /// Solves step 0 (`block`, guess in, solution out) under the graph's initial
-    /// factors; `None` where it declines (the general solver then takes it).
-    fn solve_first(&self, _t: f64, _block: &mut [f64]) -> Option<StepWork> {
-        None
-    }
 }
 
 impl ChainGraph {
@@ -383,8 +316,6 @@ impl ChainGraph {
                 t0,
                 step: Vec::new(),
                 initial: Vec::new(),
-                offset: std::sync::atomic::AtomicUsize::new(0),
-                exact: None,
             },
         }
     }
@@ -419,36 +350,9 @@ impl ChainGraph {
         &self.initial
     }
 
-    /// The time of step `step` of the values (the run's step `step` + the offset of
-    /// a compacted buffer, see [`ChainGraph::step_offset`]).
-    pub fn time(&self, step: usize) -> f64 {
-        self.run_time(step + self.step_offset())
-    }
-
-    /// The time of the run's step `step`, t₀ + step·dt, whatever the offset.
+    /// The time of the run's step `step`, t₀ + step·dt.
     pub fn run_time(&self, step: usize) -> f64 {
         self.t0 + step as f64 * self.dt
-    }
-
-    /// The run step that step 0 of the values stands for (0 but during a
-    /// [`crate::smoother::fixed_lag_streaming`] run, which compacts its buffer).
-    pub fn step_offset(&self) -> usize {
-        self.offset.load(std::sync::atomic::Ordering::Relaxed)
-    }
-
-    pub(crate) fn set_step_offset(&self, offset: usize) {
-        self.offset
-            .store(offset, std::sync::atomic::Ordering::Relaxed);
-    }
-
-    /// The graph's solver of one step given the step before, if it has one.
-    pub fn exact_step(&self) -> Option<&dyn ExactStep> {
-        self.exact.as_deref()
-    }
-
-    /// Whether a step factor exists at `step` (its lagged variables must exist).
-    pub fn exists_at(factor: &dyn Factor, step: usize) -> bool {
-        factor.keys().iter().all(|k| k.lag <= step)
     }
 
     /// Workspace large enough for every factor (one evaluates at a time).
@@ -478,13 +382,6 @@ impl ChainGraphBuilder {
     /// A soft factor at every step, weighted by 1/σ of `noise`.
     pub fn step_soft(mut self, factor: Box<dyn Factor>, noise: Noise) -> Self {
         self.graph.step.push(Term::Soft(factor, noise));
-        self
-    }
-
-    /// A solver of one step given the step before, for a graph whose steps have as
-    /// many equations as unknowns (the caller vouches for that).
-    pub fn exact_step(mut self, exact: Box<dyn ExactStep>) -> Self {
-        self.graph.exact = Some(exact);
         self
     }
 
@@ -590,7 +487,7 @@ mod tests {
         assert!(g.step_terms()[0].is_constraint());
         assert_eq!(g.step_terms()[1].noise(), Some(&Noise::Isotropic(0.5)));
         assert_eq!(g.initial_terms().len(), 1);
-        assert_eq!(g.time(3), 0.1 * 3.0);
+        assert_eq!(g.run_time(3), 0.1 * 3.0);
     }
 
     #[test]

@@ -457,7 +457,7 @@ pub fn solve(
 
     let mut tr = Trajectory {
         names: model.names.clone(),
-        t: (0..steps).map(|k| graph.time(k)).collect(),
+        t: (0..steps).map(|k| graph.run_time(k)).collect(),
         q: Vec::with_capacity(steps * n),
         dq: Vec::with_capacity(steps * n),
         ddq: Vec::with_capacity(steps * n),

@@ -51,11 +51,14 @@ fn writes_the_trajectory_csv_and_a_summary() {
     assert!(out.status.success(), "{}", stderr(&out));
     let summary = String::from_utf8_lossy(&out.stdout);
     assert!(
-        summary.starts_with("501 steps (dt = 0.001 s, window 2)"),
+        // Square steps: the plan takes the window of two one step at a time, and says so.
+        summary.starts_with(
+            "501 steps (dt = 0.001 s, window 2 asked, taken one step at a time, square steps)"
+        ),
         "{summary}"
     );
     for part in [
-        "LM iterations per solve",
+        "iterations per solve",
         "worst |Φ|",
         "worst |Φq q̇|",
         "energy drift",
@@ -103,7 +106,9 @@ fn without_out_the_csv_goes_to_stdout_and_the_summary_to_stderr() {
     let csv = String::from_utf8_lossy(&out.stdout);
     assert!(csv.starts_with("t,q:P1.x,q:P1.y,q:P2.x,q:P2.y,q:theta,dq:P1.x"));
     assert_eq!(csv.lines().count(), 12);
-    assert!(stderr(&out).starts_with("11 steps (dt = 0.01 s, batch)"));
+    assert!(
+        stderr(&out).starts_with("11 steps (dt = 0.01 s, batch asked, taken one step at a time")
+    );
 }
 
 #[test]

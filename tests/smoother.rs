@@ -4,8 +4,8 @@
 use mbfg::error::Result;
 use mbfg::factors::{Prior, Trapezoidal};
 use mbfg::graph::{ChainGraph, Factor, Key, Layout, Noise, VarKind, Workspace};
-use mbfg::smoother::{self, Next};
-use mbfg::solver::{Method, Settings, Termination};
+use mbfg::smoother::{self, FixedLag, Hooks, Next};
+use mbfg::solver::{Method, Settings, SolveReport, Termination};
 
 /// e = A x_t + B x_{t−1} − y(t): a linear factor coupling two steps, with a
 /// time-varying target so that every step carries different information.
@@ -130,6 +130,54 @@ fn settings() -> Settings {
     }
 }
 
+/// The hooks of these runs: each step's guess is the step before, each newest
+/// estimate is kept, and the steps handed out final are collected.
+#[derive(Default)]
+struct Recorder {
+    s: usize,
+    newest: Vec<Vec<f64>>,
+    finals: Vec<(usize, Vec<f64>)>,
+    all_converged: bool,
+}
+
+impl Recorder {
+    fn new(s: usize) -> Self {
+        Recorder {
+            s,
+            all_converged: true,
+            ..Recorder::default()
+        }
+    }
+}
+
+impl Hooks for Recorder {
+    fn predict(&mut self, v: &mut [f64], k: usize) {
+        let s = self.s;
+        let (prev, next) = v.split_at_mut(k * s);
+        next[..s].copy_from_slice(&prev[(k - 1) * s..]);
+    }
+
+    fn on_step(&mut self, k: usize, _: usize, report: &SolveReport, v: &[f64]) -> Next {
+        self.all_converged &= report.termination == Termination::Converged;
+        self.newest.push(v[k * self.s..(k + 1) * self.s].to_vec());
+        Next::Continue
+    }
+
+    fn on_final(&mut self, j: usize, block: &[f64]) -> Result<()> {
+        self.finals.push((j, block.to_vec()));
+        Ok(())
+    }
+}
+
+fn horizon(steps: usize, window: usize, capacity: Option<usize>) -> FixedLag {
+    FixedLag {
+        steps,
+        window,
+        settings: settings(),
+        capacity,
+    }
+}
+
 #[test]
 fn newest_smoother_estimate_equals_the_batch_solution() {
     let graph = chain();
@@ -137,25 +185,16 @@ fn newest_smoother_estimate_equals_the_batch_solution() {
     let steps = 25;
     for window in [1, 2, 3, 5, 10, 30] {
         let mut values = vec![0.0; steps * s];
-        let mut newest: Vec<Vec<f64>> = Vec::new();
+        let mut hooks = Recorder::new(s);
         smoother::fixed_lag(
             &graph,
             &mut values,
-            steps,
-            window,
-            settings(),
-            |v, k| {
-                let (prev, next) = v.split_at_mut(k * s);
-                next[..s].copy_from_slice(&prev[(k - 1) * s..]);
-            },
-            |k, report, v| {
-                assert_eq!(report.termination, Termination::Converged);
-                newest.push(v[k * s..(k + 1) * s].to_vec());
-                Next::Continue
-            },
-            |_| {},
+            &horizon(steps, window, None),
+            &mut hooks,
         )
         .unwrap();
+        assert!(hooks.all_converged, "window {window}");
+        let newest = hooks.newest;
         for k in 0..steps {
             let mut batch = vec![0.0; (k + 1) * s];
             let report = smoother::batch(&graph, &mut batch, k + 1, settings()).unwrap();
@@ -180,15 +219,12 @@ fn smoother_with_whole_horizon_window_reproduces_the_batch_everywhere() {
     let s = graph.layout().size();
     let steps = 12;
     let mut values = vec![0.0; steps * s];
+    let mut hooks = Recorder::new(s);
     smoother::fixed_lag(
         &graph,
         &mut values,
-        steps,
-        steps,
-        settings(),
-        |_, _| {},
-        |_, _, _| Next::Continue,
-        |_| {},
+        &horizon(steps, steps, None),
+        &mut hooks,
     )
     .unwrap();
     let mut batch = vec![0.0; steps * s];
@@ -205,56 +241,30 @@ fn a_streaming_run_in_a_small_buffer_equals_the_run_in_place_to_the_bit() {
     let graph = chain();
     let s = graph.layout().size();
     let steps = 60;
-    let predict = |v: &mut [f64], k: usize| {
-        let (prev, next) = v.split_at_mut(k * s);
-        next[..s].copy_from_slice(&prev[(k - 1) * s..]);
-    };
     for window in [1, 3] {
         let mut in_place = vec![0.0; steps * s];
-        let mut newest_in_place = Vec::new();
+        let mut first = Recorder::new(s);
         smoother::fixed_lag(
             &graph,
             &mut in_place,
-            steps,
-            window,
-            settings(),
-            predict,
-            |k, _, v| {
-                newest_in_place.push(v[k * s..(k + 1) * s].to_vec());
-                Next::Continue
-            },
-            |_| {},
+            &horizon(steps, window, None),
+            &mut first,
         )
         .unwrap();
+        let newest_in_place = first.newest;
         let capacity = window + 4;
         let mut buffer = vec![0.0; capacity * s];
-        let mut finals: Vec<(usize, Vec<f64>)> = Vec::new();
-        let mut newest = Vec::new();
-        let mut on_final = |j: usize, block: &[f64]| {
-            finals.push((j, block.to_vec()));
-            Ok(())
-        };
-        let (base, handed) = smoother::fixed_lag_streaming(
+        let mut streamed = Recorder::new(s);
+        let end = smoother::fixed_lag(
             &graph,
             &mut buffer,
-            smoother::Stream {
-                capacity,
-                on_final: &mut on_final,
-            },
-            steps,
-            window,
-            settings(),
-            predict,
-            |_, _| false,
-            |k, _, v| {
-                newest.push(v[k * s..(k + 1) * s].to_vec());
-                Next::Continue
-            },
-            |_| {},
+            &horizon(steps, window, Some(capacity)),
+            &mut streamed,
         )
         .unwrap();
+        let (base, handed) = (end.base, end.handed);
+        let (newest, mut finals) = (streamed.newest, streamed.finals);
         assert!(base > 0, "window {window}: the buffer was never compacted");
-        assert_eq!(graph.step_offset(), 0, "the graph's offset is put back");
         assert_eq!(
             newest, newest_in_place,
             "window {window}: the newest estimates"

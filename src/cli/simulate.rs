@@ -8,7 +8,7 @@ use super::written::{Written, WrittenArgs};
 use super::{load, print_summary};
 use clap::ValueEnum;
 use mbfg::forward::{
-    self, Coordinates, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary,
+    self, Coordinates, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary, Schedule,
 };
 use mbfg::smoother::Mode;
 use mbfg::solver::Past;
@@ -210,7 +210,11 @@ fn simulate(
         eprintln!("warning: {w}");
     }
     super::interrupt::install();
-    let mut bar = Progress::new(options.mode == Mode::Batch);
+    let batch = forward::Plan::new(&model, options)
+        .map_err(|e| Failure::Input(plain(e)))?
+        .schedule
+        == Schedule::Batch;
+    let mut bar = Progress::new(batch);
     let model = Arc::new(model);
     // The rows go to the file as the steps become final where nothing needs the
     // whole run first: the optional columns (work integrals over every step) and
@@ -281,10 +285,11 @@ fn simulate(
         return Err(Failure::Interrupted(format!("{why}; {what}")));
     }
     let first_failure = summary.failures.first().cloned();
-    let stopped = match options.mode {
-        // A batch that did not converge has no trustworthy step.
-        Mode::Batch => first_failure.is_some(),
-        Mode::FixedLag(_) => steps < options.steps(),
+    let batch = summary.plan.schedule == Schedule::Batch;
+    // A batch that did not converge has no trustworthy step.
+    let stopped = match batch {
+        true => first_failure.is_some(),
+        false => steps < options.steps(),
     };
     for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
         eprintln!("warning: {}", shorten(&f.message()));
@@ -297,7 +302,7 @@ fn simulate(
                 options.steps()
             )));
         };
-        let what = if options.mode == Mode::Batch || steps == 0 {
+        let what = if batch || steps == 0 {
             output.discard();
             "nothing was written".to_string()
         } else {
@@ -343,7 +348,7 @@ fn simulate(
         } else if f.singular.is_some() && options.coordinates == Coordinates::Independent {
             // Ill-posed ahead: no window or dt passes it in IC.
             "--coords dc does not stop there"
-        } else if options.mode == Mode::Batch && !f.warm_start && f.singular.is_none() {
+        } else if batch && !f.warm_start && f.singular.is_none() {
             "the fixed-lag smoother (--window N) or a smaller dt may converge"
         } else if f.warm_start {
             "--window 1 writes the run up to there"
@@ -391,12 +396,9 @@ enum Run {
 /// The summary line; `peak_memory`, the process's peak resident memory in bytes,
 /// where the system reports it.
 fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u64>) -> String {
-    let mode = match options.mode {
-        Mode::Batch => "batch".to_string(),
-        Mode::FixedLag(n) => format!("window {n}"),
-    };
+    let mode = s.plan.describe();
     let mut line = format!(
-        "{} steps (dt = {} s, {mode}) in {:.3} s; LM iterations per solve: mean {:.2}, max {} \
+        "{} steps (dt = {} s, {mode}) in {:.3} s; iterations per solve: mean {:.2}, max {} \
          (factorizations: mean {:.2}); worst |Φ| {:.2e}, worst |Φq q̇| {:.2e}",
         s.steps,
         super::seconds(options.dt),
@@ -419,11 +421,11 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
             r.t
         );
     }
-    if let Some(f) = &s.tangent_after {
+    if s.general_steps > 0 {
         line += &format!(
-            "; tangent integrators (the paper's did not converge at step {}, t = {} s)",
-            f.step,
-            forward::round_time(f.t)
+            "; {} of {} steps by the general solver (the square step declined them)",
+            s.general_steps,
+            s.general_steps + s.square_steps
         );
     }
     if let Some(f) = &s.full_after {

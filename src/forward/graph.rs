@@ -2,8 +2,8 @@
 //! in dependent or independent coordinates, the initial guess and the prediction of
 //! each step, and the conversions between its variables and a [`Trajectory`].
 
-use super::exact_step::SquareStep;
-use super::options::{ForwardOptions, Integrator};
+use super::options::{ForwardOptions, Integrator, NoiseModels};
+use super::plan::Plan;
 use crate::collocation;
 use crate::coordinates::Coordinates;
 use crate::dynamics;
@@ -26,13 +26,18 @@ pub struct ForwardGraph {
 impl ForwardGraph {
     /// Builds the DC or IC graph for `model` (initial priors from its initial state).
     pub fn new(model: Arc<Model>, options: &ForwardOptions) -> Result<Self> {
-        options.validate(&model)?;
+        let plan = Plan::new(&model, options)?;
+        ForwardGraph::planned(model, &plan, &options.noise)
+    }
+
+    /// The graph of `plan` for `model`, with the noise models `noise`.
+    pub fn planned(model: Arc<Model>, plan: &Plan, noise: &NoiseModels) -> Result<Self> {
         let (n, f) = (model.n(), model.independent.len());
-        let nm = options.noise;
-        let dt = options.dt;
+        let nm = *noise;
+        let dt = plan.dt;
         let init = &model.initial;
         let integrate = |x: VarKind, dx: VarKind, dim: usize| -> Box<dyn Factor> {
-            match options.integrator {
+            match plan.integrator {
                 Integrator::Trapezoidal | Integrator::HermiteSimpson => {
                     Box::new(Trapezoidal::new(x, dx, dim, dt))
                 }
@@ -40,11 +45,11 @@ impl ForwardGraph {
             }
         };
         let dc_integrate = |x: VarKind, dx: VarKind| -> Box<dyn Factor> {
-            let rule = match options.integrator {
+            let rule = match plan.integrator {
                 Integrator::Trapezoidal | Integrator::HermiteSimpson => Rule::Trapezoidal,
                 Integrator::Euler => Rule::Euler,
             };
-            if options.tangent_dc(n) {
+            if plan.tangent_dc() {
                 Box::new(Projected::integrator(model.clone(), x, dx, rule, dt))
             } else {
                 integrate(x, dx, n)
@@ -60,16 +65,16 @@ impl ForwardGraph {
         // of 1e60 and a solution whose θ moved against θ̇. (Scaled by Δt² and Δt,
         // into f_dyn's units, the six-bar press's batch at 5 ms no longer converged.)
         let sigma = [nm.integrator_position, nm.integrator_velocity];
-        let dc_sigma = if options.tangent_dc(n) {
+        let dc_sigma = if plan.tangent_dc() {
             [sigma[0] * dt, sigma[1] * dt]
         } else {
             sigma
         };
-        let hermite = (options.integrator == Integrator::HermiteSimpson)
+        let hermite = (plan.integrator == Integrator::HermiteSimpson)
             .then_some(|independent| collocation::factors(&model, independent, dt));
         let dc_integrators = || -> [Box<dyn Factor>; 2] {
             match &hermite {
-                Some(factors) if options.tangent_dc(n) => factors(false)
+                Some(factors) if plan.tangent_dc() => factors(false)
                     .map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>),
                 Some(factors) => factors(false),
                 None => [
@@ -87,7 +92,7 @@ impl ForwardGraph {
                 ],
             }
         };
-        let graph = match options.coordinates {
+        let graph = match plan.coordinates {
             Coordinates::Dependent => {
                 let layout = Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]);
                 let mut builder = ChainGraph::builder(layout, dt, 0.0)
@@ -99,11 +104,6 @@ impl ForwardGraph {
                     );
                 for (factor, sigma) in dc_integrators().into_iter().zip(dc_sigma) {
                     builder = builder.step_soft(factor, Noise::Isotropic(sigma));
-                }
-                if let Some(rule) = options.exact_step_rule(n) {
-                    if let Some(step) = SquareStep::dependent(model.clone(), rule, dt) {
-                        builder = builder.exact_step(Box::new(step));
-                    }
                 }
                 builder
                     .initial_constraint(Box::new(Prior::new(
@@ -143,11 +143,6 @@ impl ForwardGraph {
                 for (factor, sigma) in ic_integrators().into_iter().zip(sigma) {
                     builder = builder.step_soft(factor, Noise::Isotropic(sigma));
                 }
-                if let Some(rule) = options.exact_step_rule(n) {
-                    if let Some(step) = SquareStep::independent(model.clone(), rule, dt) {
-                        builder = builder.exact_step(Box::new(step));
-                    }
-                }
                 builder
                     .step_soft(
                         Box::new(Equality::new(VarKind::Q, n)),
@@ -164,7 +159,7 @@ impl ForwardGraph {
         };
         Ok(ForwardGraph {
             graph,
-            coordinates: options.coordinates,
+            coordinates: plan.coordinates,
             n,
             f,
         })

@@ -2,16 +2,27 @@
 //! dependent coordinates (DC) and in independent coordinates (IC), and a simulation
 //! run over a horizon by the fixed-lag smoother or in batch.
 //!
-//! `options` holds what a run is asked, `graph` the factor graph, `run` and
-//! `segment` the run over the horizon, `failure` and `summary` what it reports.
+//! `options` holds what a run is asked and `plan` what the run decides from it
+//! once: the schedule that runs, the solver of a step, the rescues in their order.
+//! `graph` is the factor graph; `run` makes the run over the horizon (again at a
+//! finer step or with other integrator factors where the plan's rescues say so) in
+//! `segment`s, whose steps `stepwise` takes one at a time (`square_step` where it
+//! can) or `windows` hands to the general smoother, each step judged by `judge`
+//! (failures, the IC watch) and rescued by `substeps`; `failure` and `summary`
+//! are what it reports.
 
-mod exact_step;
 mod failure;
 mod graph;
+mod judge;
 mod options;
+mod plan;
 mod run;
 mod segment;
+mod square_step;
+mod stepwise;
+mod substeps;
 mod summary;
+mod windows;
 
 pub use crate::coordinates::Coordinates;
 pub use crate::kinematics::{Determinacy, SingularConfiguration};
@@ -19,6 +30,6 @@ pub use crate::trajectory::{round_time, Trajectory};
 pub use failure::StepFailure;
 pub use graph::ForwardGraph;
 pub use options::{DcIntegrators, ForwardOptions, Integrator, NoiseModels};
+pub use plan::{Memory, Plan, Rescue, Schedule};
 pub use run::{simulate, simulate_interruptible, simulate_streaming, StepSink};
-pub use segment::AUTO_BATCH_ITERATIONS;
 pub use summary::{Refinement, Reselection, RunSummary};

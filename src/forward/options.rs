@@ -1,12 +1,12 @@
 //! What a forward run is asked: the coordinates, the step and horizon, the solve's
 //! mode, the integrator and its factors, the noise models ([`ForwardOptions`]).
 
+use super::plan::Plan;
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::smoother::Mode;
 use crate::solver::{Past, Settings};
-use crate::tangent::Rule;
 
 /// The integrator factor between consecutive steps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -20,7 +20,7 @@ pub enum Integrator {
 /// What the integrator factors ask of a step in dependent coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum DcIntegrators {
-    /// [`DcIntegrators::Tangent`] ([`ForwardOptions::tangent_dc`]). A run in which a
+    /// [`DcIntegrators::Tangent`]. A run in which a
     /// solve fails with them (not at an ill-posed configuration, not interrupted) is
     /// run again with the paper's [`DcIntegrators::Full`], and
     /// [`RunSummary::full_after`](super::summary::RunSummary::full_after) says so.
@@ -120,11 +120,12 @@ pub struct ForwardOptions {
     /// grid asked for ([`RunSummary::refinement`](super::summary::RunSummary::refinement) says so).
     pub refine: bool,
     /// Take each step of an IC run, or of a DC run with tangent integrators, with
-    /// the trapezoidal rule or Euler as the sparse square system it is, where it can
-    /// (away from singular configurations, and in IC without redundant constraints);
-    /// `false` sends every step through the general solver, for comparison. The
-    /// solution is the same to the step tolerance.
-    pub exact_steps: bool,
+    /// the trapezoidal rule or Euler as the sparse square system it is (the square
+    /// step), where it can (away from singular configurations, and in IC without
+    /// redundant constraints); `false` sends every step through the general solver
+    /// with the window or batch asked, for comparison. The solution is the same to
+    /// the step tolerance.
+    pub square_steps: bool,
 }
 
 impl ForwardOptions {
@@ -144,55 +145,8 @@ impl ForwardOptions {
             },
             continue_on_failure: false,
             refine: true,
-            exact_steps: true,
+            square_steps: true,
         }
-    }
-
-    /// Whether the graph has one soft equation per unknown (IC, and DC with tangent
-    /// integrators): its residual is zero at the solution, where Gauss-Newton is
-    /// Newton's method ([`Settings::second_order`] is then of no use).
-    pub fn is_square(&self, n: usize) -> bool {
-        self.coordinates == Coordinates::Independent || self.tangent_dc(n)
-    }
-
-    /// Whether the integrator factors of dependent coordinates are projected on the
-    /// tangent space: asked for, or under `auto`. Tangent factors hold exactly where
-    /// the paper's settle on a least-squares compromise between integrators and
-    /// constraints, and that compromise bends fast motion: at dt = 1 ms the paper's
-    /// factors ended 16× further from IDA than tangent ones on a driven Watt six-bar,
-    /// 33× on Andrews' squeezer (0.1 ms), 46× on a light link driven by a flywheel,
-    /// 2–6× on the double pendulum and the compressor slider-crank; 1.3–1.6× closer
-    /// on the four-bar family alone. With the trapezoidal rule or Euler their steps
-    /// are solved as a sparse square system ([`ForwardOptions::exact_steps`]), at a
-    /// cost that grows with the number of bodies where the paper's grows with its
-    /// square or more.
-    pub fn tangent_dc(&self, _n: usize) -> bool {
-        match self.dc_integrators {
-            DcIntegrators::Tangent | DcIntegrators::Auto => true,
-            DcIntegrators::Full => false,
-        }
-    }
-
-    /// The integration rule of a graph of `n` coordinates whose steps are taken by
-    /// [`SquareStep`](super::exact_step::SquareStep) where it can: IC, or DC with
-    /// tangent integrators, with the trapezoidal rule or Euler.
-    pub(super) fn exact_step_rule(&self, n: usize) -> Option<Rule> {
-        if !self.exact_steps || !self.is_square(n) {
-            return None;
-        }
-        match self.integrator {
-            Integrator::Trapezoidal => Some(Rule::Trapezoidal),
-            Integrator::Euler => Some(Rule::Euler),
-            Integrator::HermiteSimpson => None,
-        }
-    }
-
-    /// Whether a DC run whose integrator factors fail is made again with the other
-    /// ones ([`DcIntegrators::Auto`] with the trapezoidal rule or Euler).
-    pub(super) fn retries_other(&self) -> bool {
-        self.coordinates == Coordinates::Dependent
-            && self.dc_integrators == DcIntegrators::Auto
-            && self.integrator != Integrator::HermiteSimpson
     }
 
     /// Number of steps including t = 0: t_k = k·dt for k = 0..=round(t_end/dt)
@@ -202,68 +156,34 @@ impl ForwardOptions {
     }
 
     /// Bytes a run of `model` with these options holds at its peak, roughly, when it
-    /// returns its trajectory ([`simulate`](super::simulate)): what it holds streamed
-    /// ([`ForwardOptions::streamed_memory_estimate`]) and the trajectory of every step.
-    pub fn memory_estimate(&self, model: &Model) -> f64 {
-        let n = model.n() as f64;
-        let steps = self.steps() as f64;
-        self.streamed_memory_estimate(model) + 8.0 * steps * 3.0 * n * 2.0
-    }
-
-    /// Bytes a run holds at its peak, roughly, when it hands its steps out as they
-    /// become final ([`simulate_streaming`](super::simulate_streaming)): the variables
-    /// the solve keeps (the fixed-lag smoother's buffer of a few thousand steps, every
-    /// step for a batch), the window's linear system, and for a batch solve the system
-    /// of the whole horizon.
-    pub fn streamed_memory_estimate(&self, model: &Model) -> f64 {
-        let n = model.n() as f64;
-        let s = 3.0 * (n + model.independent.len() as f64);
-        let steps = self.steps() as f64;
-        let per_step_system = 8.0 * s * (3.0 * s + 2.0 * model.m() as f64) * 4.0;
-        let (held, solved) = match self.mode {
-            Mode::FixedLag(w) => (
-                (crate::smoother::stream_capacity(w) as f64).min(steps),
-                (w as f64).min(steps) + 1.0,
-            ),
-            // A batch of DC steps that are solved one by one holds the one window.
-            Mode::Batch
-                if self.coordinates == Coordinates::Dependent
-                    && self.exact_step_rule(model.n()).is_some() =>
-            {
-                (steps, 2.0f64.min(steps))
-            }
-            Mode::Batch => (steps, steps),
-        };
-        8.0 * held * s * 2.0 + per_step_system * solved
+    /// returns its trajectory ([`simulate`](super::simulate)); see [`Plan::memory`].
+    pub fn memory_estimate(&self, model: &Model) -> Result<f64> {
+        Ok(Plan::new(model, self)?.memory.held)
     }
 
     /// Refuses a run whose estimate does not fit the memory available: with its
-    /// trajectory `held` ([`ForwardOptions::memory_estimate`]) or streamed
-    /// ([`ForwardOptions::streamed_memory_estimate`], which [`validate`](Self::validate)
-    /// checks).
+    /// trajectory `held`, or streamed (which [`validate`](Self::validate) checks).
     pub fn check_memory(&self, model: &Model, held: bool) -> Result<()> {
+        let plan = Plan::new(model, self)?;
         let bytes = if held {
-            self.memory_estimate(model)
+            plan.memory.held
         } else {
-            self.streamed_memory_estimate(model)
+            plan.memory.streamed
         };
-        self.ensure_fits(model, bytes)
-    }
-
-    /// [`crate::limits::ensure_fits`] for a run that needs `bytes`.
-    fn ensure_fits(&self, model: &Model, bytes: f64) -> Result<()> {
         crate::limits::ensure_fits(
-            &format!(
-                "a run of {} steps of {} coordinates",
-                self.steps(),
-                model.n()
-            ),
+            &format!("a run of {} steps of {} coordinates", plan.steps, model.n()),
             bytes,
         )
     }
 
-    /// Refuses options that make no sense, with the reason.
+    /// Refuses options that make no sense, or a run that does not fit the memory
+    /// available (streamed), with the reason.
     pub fn validate(&self, model: &Model) -> Result<()> {
+        Plan::new(model, self).map(drop)
+    }
+
+    /// Refuses options that make no sense, with the reason.
+    pub(super) fn validate_options(&self, model: &Model) -> Result<()> {
         let bad = |m: String| Err(Error::InvalidArgument(m));
         if !(self.dt > 0.0 && self.dt.is_finite()) {
             return bad(format!("the time step must be positive, got {}", self.dt));
@@ -295,9 +215,6 @@ impl ForwardOptions {
             }
         }
         self.noise.validate()?;
-        self.settings.validate()?;
-        // What any run needs; one that returns its trajectory is checked for it too
-        // (`simulate_interruptible`).
-        self.check_memory(model, false)
+        self.settings.validate()
     }
 }

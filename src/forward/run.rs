@@ -5,7 +5,8 @@
 use super::failure::non_finite_at;
 use super::failure::StepFailure;
 use super::options::{DcIntegrators, ForwardOptions};
-use super::segment::{segment, Run};
+use super::plan::{Plan, Rescue};
+use super::segment::{Run, Segment};
 use super::summary::{Refinement, Reselection, RunSummary, Stats};
 use crate::error::Result;
 use crate::model::Model;
@@ -70,7 +71,6 @@ pub fn simulate_interruptible(
     options: &ForwardOptions,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
 ) -> Result<(Trajectory, RunSummary)> {
-    options.validate(&model)?;
     // The trajectory of every step is held too.
     options.check_memory(&model, true)?;
     let mut trajectory = Trajectory {
@@ -294,8 +294,9 @@ fn simulate_integrators(
     sink: &mut dyn StepSink,
     every: Option<(usize, f64)>,
 ) -> Result<(RunSummary, Option<StepFailure>)> {
+    let plan = Plan::new(&model, options)?;
     let (summary, coarse) = simulate_with(model.clone(), options, progress, sink, every)?;
-    let retry = options.retries_other()
+    let retry = plan.tries(Rescue::PaperIntegrators)
         && summary.interrupted.is_none()
         && summary.failures.iter().all(|f| f.singular.is_none());
     let Some(failure) = summary.failures.first().filter(|_| retry) else {
@@ -306,29 +307,18 @@ fn simulate_integrators(
     // to 5 ms, failed at step 18; the paper's factors then failed at step 1, and that
     // failure, on a slow step, ended the refinement).
     let factor = every.map_or(1, |(factor, _)| factor);
-    if options.refine && refinement_factor(failure, factor).is_some() {
+    if plan.tries(Rescue::Refinement) && refinement_factor(failure, factor).is_some() {
         return Ok((summary, coarse));
     }
-    // The paper's factors ask more equations than a step has unknowns; where their
-    // least-squares compromise does not converge, the tangent ones (one equation per
-    // unknown) usually do; and where tangent ones fail, the paper's compromise is
-    // still worth a try.
+    // The tangent factors hold one equation per unknown; where they fail, the
+    // paper's least-squares compromise is still worth a try.
     let failure = failure.clone();
-    let tangent_first = options.tangent_dc(model.n());
     let mut other = options.clone();
-    other.dc_integrators = if tangent_first {
-        DcIntegrators::Full
-    } else {
-        DcIntegrators::Tangent
-    };
+    other.dc_integrators = DcIntegrators::Full;
     let first_attempt = summary.wall_time;
     sink.restart()?;
     let (mut summary, coarse) = simulate_with(model, &other, progress, sink, every)?;
-    if tangent_first {
-        summary.full_after = Some(failure);
-    } else {
-        summary.tangent_after = Some(failure);
-    }
+    summary.full_after = Some(failure);
     summary.wall_time += first_attempt;
     Ok((summary, coarse))
 }
@@ -340,8 +330,8 @@ fn simulate_with(
     sink: &mut dyn StepSink,
     every: Option<(usize, f64)>,
 ) -> Result<(RunSummary, Option<StepFailure>)> {
-    options.validate(&model)?;
-    let total = options.steps();
+    let plan = Plan::new(&model, options)?;
+    let total = plan.steps;
     let start = Instant::now();
     let mut run = Run::default();
     let mut rows = Rows::new(&model, options, sink, every);
@@ -349,21 +339,21 @@ fn simulate_with(
     let mut first = 0;
     loop {
         // A later segment's first step is the state the one before ended with.
-        let next = segment(
-            segment_model.clone(),
+        let segment = Segment {
+            model: segment_model.clone(),
             options,
+            plan: &plan,
             first,
             total,
-            progress,
-            &mut run,
-            &mut |j, t, block| {
+        };
+        let next = segment
+            .run(progress, &mut run, &mut |j, t, block| {
                 if j == first && first > 0 {
                     return Ok(());
                 }
                 rows.take(t, block)
-            },
-        )?
-        .filter(|_| run.interrupted.is_none());
+            })?
+            .filter(|_| run.interrupted.is_none());
         let Some((k, independent)) = next else { break };
         let n = model.n();
         run.reselections.push(Reselection {
@@ -392,7 +382,11 @@ fn simulate_with(
         run.failures.push(f);
     }
     let wall_time = start.elapsed();
-    let mut summary = rows.stats.finish(wall_time, run.iterations, run.failures);
+    let mut summary = rows
+        .stats
+        .finish(wall_time, run.iterations, run.failures, plan);
+    summary.square_steps = run.square_steps;
+    summary.general_steps = run.general_steps;
     summary.steps = rows.written;
     summary.conditioned_from = run.conditioned_from;
     summary.reselections = run.reselections;

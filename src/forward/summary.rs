@@ -3,6 +3,7 @@
 //! refined ([`Refinement`]) or switched coordinates ([`Reselection`]).
 
 use super::failure::StepFailure;
+use super::plan::Plan;
 use crate::convergence::SolveReport;
 use crate::error::{Error, Result};
 use crate::model::Model;
@@ -13,7 +14,16 @@ use std::time::Duration;
 pub struct RunSummary {
     pub steps: usize,
     pub wall_time: Duration,
-    /// Mean and max linear solves per window solve (per step for the smoother).
+    /// What the run decided and ran: its schedule, integrator factors and settings
+    /// (of the attempt whose trajectory this is).
+    pub plan: Plan,
+    /// Steps the square step took, and steps of a stepwise run the general solver
+    /// took (near a rank loss of Φ_q, or where the square step did not converge).
+    pub square_steps: usize,
+    pub general_steps: usize,
+    /// Mean and max Newton or Levenberg–Marquardt iterations (linear solves) per
+    /// solve: per step for a stepwise run or the smoother, of the whole horizon for
+    /// a batch.
     pub mean_iterations: f64,
     pub max_iterations: usize,
     /// Mean factorizations per window solve: as many as the linear solves for the
@@ -34,9 +44,6 @@ pub struct RunSummary {
     pub reselections: Vec<Reselection>,
     /// Set (to the last step kept) when the caller interrupted the run.
     pub interrupted: Option<usize>,
-    /// With [`DcIntegrators::Auto`](super::options::DcIntegrators::Auto): the failure with the paper's integrator factors
-    /// after which this run was made again with tangent ones.
-    pub tangent_after: Option<StepFailure>,
     /// With [`DcIntegrators::Auto`](super::options::DcIntegrators::Auto): the failure with tangent integrator factors
     /// after which this run was made again with the paper's.
     pub full_after: Option<StepFailure>,
@@ -173,8 +180,12 @@ impl Stats {
         wall_time: Duration,
         iterations: Iterations,
         failures: Vec<StepFailure>,
+        plan: Plan,
     ) -> RunSummary {
         RunSummary {
+            plan,
+            square_steps: 0,
+            general_steps: 0,
             steps: self.steps,
             wall_time,
             mean_iterations: iterations.total as f64 / iterations.count.max(1) as f64,
@@ -188,7 +199,6 @@ impl Stats {
             conditioned_from: None,
             reselections: Vec::new(),
             interrupted: None,
-            tangent_after: None,
             full_after: None,
             refinement: None,
         }

@@ -542,6 +542,121 @@ pub(crate) fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
     }
 }
 
+/// What a [`Watch`] makes of a step.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Watched {
+    /// The coordinates in use determine the others well enough: go on.
+    Continue,
+    /// They approach a configuration where they stop determining the others while
+    /// Φ_q keeps its rank: go on from this step with these independent coordinates.
+    Reselect(Vec<usize>),
+    /// Φ_q itself approaches a rank loss (the problem is ill-posed there): stop
+    /// before this step, which is named with the configuration ahead.
+    Stop(SingularConfiguration),
+}
+
+/// A run in independent coordinates watching, step by step, how well its
+/// coordinates determine the others ([`Determinacy::distance`], s): it switches to a
+/// better set where s falls while another set's stays high, and stops ahead of a
+/// configuration where every set's falls.
+pub struct Watch {
+    determinacy: Determinacy,
+    /// The last two converged steps' (t, s).
+    before: (f64, f64),
+    older: (f64, f64),
+    /// s at the segment's first step: a long chain reads s well below the
+    /// thresholds from its start (about 0.6/k for k links) with no better set, and
+    /// is judged by how far s has fallen from there.
+    origin: f64,
+}
+
+impl Watch {
+    pub fn new(model: &Model) -> Watch {
+        let far = (0.0, f64::INFINITY);
+        Watch {
+            determinacy: Determinacy::new(model),
+            before: far,
+            older: far,
+            origin: f64::INFINITY,
+        }
+    }
+
+    /// After a converged step j of the segment (j = 0 its first) at time t with
+    /// positions q, those of step j − 1 being `q_before`.
+    pub fn observe(
+        &mut self,
+        model: &Model,
+        j: usize,
+        t: f64,
+        q_before: &[f64],
+        q: &[f64],
+    ) -> Watched {
+        let before = self.before;
+        let now = (t, self.determinacy.distance(model, q));
+        // At coarse steps s can fall from well above the thresholds to beyond the
+        // singular point in one step: judge by the lower of s and its linear
+        // extrapolation to the next step.
+        let ahead = if before.1.is_finite() {
+            now.1.min(2.0 * now.1 - before.1).max(0.0)
+        } else {
+            now.1
+        };
+        let falling = now.1 < before.1;
+        // No switch at a segment's first step (its start is unknown there).
+        if j > 0 && falling && ahead < Determinacy::SEARCH_BELOW && ahead <= 0.5 * self.origin {
+            let (best, set) = self.determinacy.best(model, q);
+            if best >= Determinacy::SWITCH_GAIN * now.1 {
+                return Watched::Reselect(set);
+            }
+        }
+        // The stop on the extrapolation only where it crosses 0 within the step: a
+        // regular dip seen at coarse steps must not stop the run.
+        let crossing = before.1.is_finite() && 2.0 * now.1 <= before.1;
+        if !before.1.is_finite() {
+            self.origin = now.1;
+        }
+        let low = now.1 < Determinacy::STOP_BELOW && now.1 <= 0.5 * self.origin;
+        if falling && (low || crossing) {
+            let singular = self
+                .determinacy
+                .singular_configuration(model, q_before, q, before, now);
+            return Watched::Stop(singular);
+        }
+        self.older = before;
+        self.before = now;
+        Watched::Continue
+    }
+
+    /// After step j's solve failed: the singular configuration it fails because of,
+    /// where z and every other set of coordinates approach a rank loss, located from
+    /// the last two converged steps (`q_older`, `q_before`). `too_coarse`: a body
+    /// turned so far over the step that s moving fast says nothing on its own.
+    pub fn attribute(
+        &mut self,
+        model: &Model,
+        j: usize,
+        dt: f64,
+        (q_older, q_before): (&[f64], &[f64]),
+        too_coarse: bool,
+    ) -> Option<SingularConfiguration> {
+        let (before, older) = (self.before, self.older);
+        let rate = (older.1 - before.1) / (before.0 - older.0);
+        let steps_to_rank_loss = before.1 / (rate * dt);
+        let near = (steps_to_rank_loss <= Determinacy::ATTRIBUTE_WITHIN
+            && before.1 < Determinacy::ATTRIBUTE_BELOW
+            && !too_coarse)
+            || before.1 < Determinacy::SEARCH_BELOW;
+        if j < 2 || rate <= 0.0 || !near {
+            return None;
+        }
+        let (best, _) = self.determinacy.best(model, q_before);
+        (best < Determinacy::SWITCH_GAIN * before.1).then(|| {
+            self.determinacy
+                .singular_configuration(model, q_older, q_before, older, before)
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -7,7 +7,7 @@ mod assembly;
 pub mod determinacy;
 
 pub(crate) use determinacy::constraint_conditioning;
-pub use determinacy::{Determinacy, SingularConfiguration};
+pub use determinacy::{Determinacy, SingularConfiguration, Watch, Watched};
 
 use crate::error::{Error, Result};
 use crate::linalg::nullspace::NullSpace;

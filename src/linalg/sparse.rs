@@ -18,6 +18,7 @@ use faer::{Conj, MatMut, Par, Side};
 /// A compressed-column pattern and, for each entry an assembly emits (in its
 /// fixed order), where it adds up: the values of matrices of one structure,
 /// assembled entry by entry, without building triplets each time.
+#[derive(Debug, Clone)]
 pub struct Pattern {
     pub size: usize,
     pub col_ptr: Vec<usize>,

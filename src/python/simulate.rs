@@ -8,7 +8,7 @@ use super::failure::{error_failure, step_failure, with_failure};
 use super::model::study_model;
 use super::run::{coordinates, interruptible, run_table, with_result};
 use crate::forward::{
-    self, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary, Trajectory,
+    self, DcIntegrators, ForwardOptions, Integrator, NoiseModels, RunSummary, Schedule, Trajectory,
 };
 use crate::smoother::Mode;
 use crate::solver::Past;
@@ -37,10 +37,50 @@ fn forward_result<'py>(
     summary.set_item("worst_velocity_constraint", s.worst_velocity_constraint)?;
     summary.set_item("energy_drift", s.energy_drift)?;
     summary.set_item("conditioned_from", s.conditioned_from)?;
-    summary.set_item(
-        "tangent_after",
-        s.tangent_after.as_ref().map(|f| (f.step, f.t)),
+    // What ran: the schedule (one step at a time where a window or batch asked of
+    // a square graph has that solution), the integrator factors, the solvers.
+    let plan = PyDict::new(py);
+    plan.set_item("schedule", schedule_name(s.plan.schedule))?;
+    plan.set_item(
+        "window",
+        match s.plan.schedule {
+            Schedule::FixedLag(n) => Some(n),
+            Schedule::Stepwise => Some(1),
+            Schedule::Batch => None,
+        },
     )?;
+    plan.set_item(
+        "asked",
+        match s.plan.asked {
+            Mode::FixedLag(n) => format!("window {n}"),
+            Mode::Batch => "batch".to_string(),
+        },
+    )?;
+    plan.set_item("description", s.plan.describe())?;
+    plan.set_item("square_step", s.plan.square_step)?;
+    plan.set_item("dt", s.plan.dt)?;
+    plan.set_item(
+        "integrator",
+        format!("{:?}", s.plan.integrator).to_lowercase(),
+    )?;
+    plan.set_item(
+        "dc_integrators",
+        s.plan
+            .dc_integrators
+            .map(|d| format!("{d:?}").to_lowercase()),
+    )?;
+    plan.set_item("past", format!("{:?}", s.plan.settings.past).to_lowercase())?;
+    plan.set_item(
+        "rescues",
+        s.plan
+            .rescues
+            .iter()
+            .map(|r| format!("{r:?}"))
+            .collect::<Vec<_>>(),
+    )?;
+    summary.set_item("plan", plan)?;
+    summary.set_item("square_steps", s.square_steps)?;
+    summary.set_item("general_steps", s.general_steps)?;
     summary.set_item("full_after", s.full_after.as_ref().map(|f| (f.step, f.t)))?;
     let refinement = match &s.refinement {
         Some(r) => {
@@ -251,4 +291,13 @@ pub(super) fn simulate_run<'py>(
             .map_err(|e| with_result(py, e, Some(&out)))?;
         Ok(out)
     })
+}
+
+/// A schedule's name in Python.
+fn schedule_name(schedule: Schedule) -> &'static str {
+    match schedule {
+        Schedule::Stepwise => "stepwise",
+        Schedule::FixedLag(_) => "fixed_lag",
+        Schedule::Batch => "batch",
+    }
 }

@@ -267,7 +267,7 @@ impl WindowSolver {
             let base = (inst.step - k.lag) * s + off;
             *slot = &values[base..base + d];
         }
-        let t = graph.time(inst.step);
+        let t = graph.run_time(self.base + inst.step);
         factor
             .evaluate(
                 t,
@@ -559,7 +559,7 @@ impl WindowSolver {
             *d = &self.along_dirs[a..b];
         }
         let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
-        let t = graph.time(inst.step);
+        let t = graph.run_time(self.base + inst.step);
         along
             .evaluate_along(
                 t,

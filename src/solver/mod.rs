@@ -130,6 +130,10 @@ pub struct WindowSolver {
     /// The first block's values where the last solve converged (see `LastSolve`).
     last_x: Vec<f64>,
     observer: Option<Box<dyn Observer>>,
+    /// The run step that step 0 of the values stands for: a fixed-lag run keeps only
+    /// its newest steps in a compacted buffer ([`WindowSolver::shift_steps`]), and a
+    /// step's time is the same bits wherever its values sit.
+    base: usize,
     /// Unknowns per step from which a projected prior is kept as N̄CN̄ᵀ
     /// ([`TANGENT_FORM_FROM`]; the tests set it to compare the two forms).
     tangent_form_from: usize,
@@ -238,6 +242,7 @@ impl WindowSolver {
             generation: 0,
             last_x: vec![0.0; s],
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
+            base: 0,
             tangent_form_from: TANGENT_FORM_FROM,
             newton: NewtonBuffers {
                 lambda: vec![0.0; capacity * max_hard],
@@ -320,6 +325,16 @@ impl WindowSolver {
     pub fn settings(&self) -> &Settings {
         &self.settings
     }
+
+    /// The run step that step 0 of the values stands for.
+    pub fn base(&self) -> usize {
+        self.base
+    }
+
+    /// The time of step `step` of the values.
+    pub fn time(&self, graph: &ChainGraph, step: usize) -> f64 {
+        graph.run_time(self.base + step)
+    }
 }
 
 impl WindowSolver {
@@ -328,6 +343,7 @@ impl WindowSolver {
     /// what the solver keeps by step follows them, so that the next solve and
     /// marginalization reuse it as they would have in place.
     pub fn shift_steps(&mut self, by: usize) {
+        self.base += by;
         if let Some(last) = self.last.as_mut() {
             last.k0 -= by;
             last.k1 -= by;

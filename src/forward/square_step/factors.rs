@@ -34,6 +34,21 @@ impl Factors {
         })
     }
 
+    /// Factors for Jacobians of the same pattern, from this one's symbolic analysis.
+    pub(super) fn like(&self) -> Factors {
+        let params: Spec<PartialPivLuParams, f64> = Default::default();
+        let symbolic = self.symbolic.clone();
+        let lu_memory =
+            MemBuffer::new(symbolic.factorize_numeric_lu_scratch::<f64>(Par::Seq, params));
+        let solve_memory = MemBuffer::new(symbolic.solve_in_place_scratch::<f64>(1, Par::Seq));
+        Factors {
+            symbolic,
+            numeric: NumericLu::new(),
+            lu_memory,
+            solve_memory,
+        }
+    }
+
     /// Factors the Jacobian with `values` on `pattern`; `None` where the LU fails.
     pub(super) fn factor(&mut self, pattern: &Pattern, values: &[f64]) -> Option<()> {
         let matrix = SparseColMatRef::new(pattern.symbolic(), values);

@@ -34,6 +34,7 @@ impl Sink<'_> {
 
 /// The equations of a DC step with tangent integrators or of an IC step (see
 /// the documentation of `forward::exact_step`): residual and Jacobian.
+#[derive(Clone)]
 pub(super) struct System {
     pub(super) model: Arc<Model>,
     pub(super) rule: Rule,

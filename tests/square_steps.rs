@@ -13,7 +13,7 @@ use std::sync::Arc;
 fn run(scene: &str, dt: f64, t_end: f64, mode: Mode, exact: bool) -> (Trajectory, RunSummary) {
     let model = Arc::new(Model::new(&Scene::load(scene_path(scene)).unwrap()).unwrap());
     let mut options = ForwardOptions::new(Coordinates::Dependent, dt, t_end, mode);
-    options.exact_steps = exact;
+    options.square_steps = exact;
     let (trajectory, summary) = simulate(model, &options, &mut |_, _| {}).unwrap();
     assert!(
         summary.failures.is_empty(),

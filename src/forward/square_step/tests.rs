@@ -25,21 +25,21 @@ fn wobble(i: usize) -> f64 {
 
 /// The assembled Jacobian against central differences of the residual, at a
 /// state off the manifold with nonzero multipliers (every term of every block).
-fn check_jacobian(scene: &str, step: SquareStep) {
-    let model = step.system.model.clone();
+fn check_jacobian(scene: &str, mut step: SquareStep) {
+    let model = step.equations.system.model.clone();
     let n = model.n();
-    let size = step.system.size();
+    let size = step.equations.system.size();
     let mut x: Vec<f64> = (0..size).map(|i| 0.3 * wobble(i)).collect();
     for i in 0..n {
         x[i] = model.initial.q[i] + 0.01 * wobble(i + 7);
     }
     let before: Vec<f64> = (0..3 * n).map(|i| x[i % n] + 0.1 * wobble(i + 3)).collect();
     let t = 0.37;
-    let mut work = step.work.lock().unwrap();
+    let work = &mut step.work;
     work.x.copy_from_slice(&x);
-    step.linearize(t, &before, &mut work).unwrap();
+    step.equations.linearize(t, &before, work).unwrap();
     let mut dense = vec![0.0; size * size];
-    let pattern = &step.jacobian;
+    let pattern = &step.equations.jacobian;
     for col in 0..size {
         for e in pattern.col_ptr[col]..pattern.col_ptr[col + 1] {
             dense[pattern.row_idx[e] * size + col] = work.values[e];
@@ -51,7 +51,7 @@ fn check_jacobian(scene: &str, step: SquareStep) {
         let mut residual_at = |value: f64| {
             work.x.copy_from_slice(&x);
             work.x[col] = value;
-            step.linearize(t, &before, &mut work).unwrap();
+            step.equations.linearize(t, &before, work).unwrap();
             work.residual.clone()
         };
         let (plus, minus) = (residual_at(x[col] + h), residual_at(x[col] - h));
@@ -80,16 +80,17 @@ fn distance_to_rank_loss_is_the_kernels() {
         "benchmarks/andrews-squeezer.yaml",
         "driven/watt-six-bar.yaml",
     ] {
-        let step = step_of(scene, Rule::Trapezoidal);
-        let model = step.system.model.clone();
+        let mut step = step_of(scene, Rule::Trapezoidal);
+        let model = step.equations.system.model.clone();
         for shift in [0.0, 0.05, 0.3] {
             let q: Vec<f64> = (0..model.n())
                 .map(|i| model.initial.q[i] + shift * wobble(i))
                 .collect();
-            let mut work = step.work.lock().unwrap();
-            let sparse = step
-                .regularity
-                .distance_to_rank_loss(&model, &q, &mut work.gram);
+            let work = &mut step.work;
+            let sparse =
+                step.equations
+                    .regularity
+                    .distance_to_rank_loss(&model, &q, &mut work.gram);
             let (dense, _, _) = DynamicsKernel::regularization_at(&model, &q);
             assert!(
                 (sparse - dense).abs() <= 1e-9 * dense,
@@ -135,7 +136,7 @@ fn independent_steps_need_independent_constraints() {
     assert!(SquareStep::independent(model, Rule::Trapezoidal, 1e-3).is_none());
     let model = model_of("fourbar-theta.yaml");
     let step = SquareStep::independent(model.clone(), Rule::Trapezoidal, 1e-3).unwrap();
-    assert_eq!(step.system.size(), 3 * model.n() + model.m());
+    assert_eq!(step.equations.system.size(), 3 * model.n() + model.m());
 }
 
 /// A step solved after another far from it: the earlier step's factors, kept for
@@ -148,8 +149,8 @@ fn factors_of_a_distant_step_do_not_change_the_solution() {
         step_tolerance: 1e-8,
     };
     let scene = "benchmarks/andrews-squeezer.yaml";
-    let kept = step_of(scene, Rule::Trapezoidal);
-    let model = kept.system.model.clone();
+    let mut kept = step_of(scene, Rule::Trapezoidal);
+    let model = kept.equations.system.model.clone();
     let n = model.n();
     // The squeezer 40 ms into its motion: the crank has turned through a radian.
     let options = crate::forward::ForwardOptions::new(
@@ -182,7 +183,7 @@ fn factors_of_a_distant_step_do_not_change_the_solution() {
         .solve(t, &before, &mut with_kept, limits, None)
         .unwrap();
     assert!(work.factorizations >= 1, "the kept factors were refreshed");
-    let fresh = step_of(scene, Rule::Trapezoidal);
+    let mut fresh = step_of(scene, Rule::Trapezoidal);
     let mut with_fresh = before.clone();
     fresh
         .solve(t, &before, &mut with_fresh, limits, None)

@@ -11,6 +11,7 @@ use crate::model::{Model, MAX_LOCAL};
 const REGULAR_MARGIN: f64 = 1.001;
 
 /// G's structure over a mechanism's active constraints.
+#[derive(Clone)]
 pub(super) struct Regularity {
     /// The lower triangle of G = ÂÂᵀ: per entry the pair of active rows (i, j ≤ i)
     /// and the pairs of their local coordinates that are one coordinate of q.

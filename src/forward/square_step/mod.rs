@@ -39,15 +39,17 @@ mod factors;
 mod regularity;
 mod system;
 
+use super::options::Integrator;
+use super::plan::Plan;
+use crate::coordinates::Coordinates;
 use crate::dynamics;
-use crate::graph::{ExactStep, StepIteration, StepLimits, StepWork};
 use crate::linalg::sparse::Pattern;
 use crate::model::Model;
 use crate::tangent::Rule;
 use factors::Factors;
 use nalgebra::DVector;
 use regularity::{GramWork, Regularity};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use system::{Sink, System};
 
 /// Iterations after which a step goes back to the general solver: from a step's
@@ -79,6 +81,40 @@ const MAX_FACTORIZATIONS: usize = 8;
 /// that converges fast.
 const MAX_CONTRACTION: f64 = 0.25;
 
+/// What bounds a step's Newton iteration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepLimits {
+    /// At most this many linear solves.
+    pub max_iterations: usize,
+    /// Converged once a step moves every variable by at most this times (1 + |x|).
+    pub step_tolerance: f64,
+}
+
+/// What the square step took to solve a step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StepWork {
+    /// Linear solves.
+    pub iterations: usize,
+    /// Factorizations (a linear solve may reuse an earlier one).
+    pub factorizations: usize,
+}
+
+/// One iteration of the square step, as a solve's observer sees it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepIteration {
+    /// 1-based iteration of this step.
+    pub iteration: usize,
+    /// Half the squared norm of the residual the update was solved from.
+    pub cost: f64,
+    /// max |δᵢ| / (1 + |xᵢ|) over the step's variables.
+    pub update: f64,
+    /// Whether the Jacobian was factored afresh for this update (else an earlier
+    /// one's factors were used: a chord update).
+    pub fresh: bool,
+    /// Whether the iteration stopped here, converged.
+    pub settled: bool,
+}
+
 /// The scratch of one step's Newton iteration.
 struct Work {
     x: Vec<f64>,
@@ -104,10 +140,17 @@ struct Work {
 /// The square system of a DC step with tangent integrators or of an IC step, with
 /// its sparsity analysed once.
 pub struct SquareStep {
+    equations: Equations,
+    work: Work,
+}
+
+/// The step system with its Jacobian's pattern and the regularity test: what the
+/// iteration reads, apart from its scratch ([`Work`]).
+#[derive(Clone)]
+struct Equations {
     system: System,
     jacobian: Pattern,
     regularity: Regularity,
-    work: Mutex<Work>,
 }
 
 impl SquareStep {
@@ -178,30 +221,84 @@ impl SquareStep {
         let jacobian = Pattern::new(size, &emitted);
         let factors = Factors::new(&jacobian)?;
         let regularity = Regularity::new(&system.model);
-        let work = Work {
-            x,
+        let work = Work::new(&system, &jacobian, &regularity, factors)?;
+        Some(SquareStep {
+            equations: Equations {
+                system,
+                jacobian,
+                regularity,
+            },
+            work,
+        })
+    }
+
+    /// The same step system at another time step, with this one's sparse analysis
+    /// (a failed step's substeps).
+    pub fn at_dt(&self, dt: f64) -> Option<SquareStep> {
+        let mut equations = self.equations.clone();
+        equations.system.dt = dt;
+        let factors = self.work.factors.like();
+        let work = Work::new(
+            &equations.system,
+            &equations.jacobian,
+            &equations.regularity,
+            factors,
+        )?;
+        Some(SquareStep { equations, work })
+    }
+}
+
+/// The square step of `plan`'s graph for `model`, where the plan has one (its
+/// integrator is the trapezoidal rule or Euler) and its sparse analysis succeeds.
+pub(super) fn for_plan(model: &Arc<Model>, plan: &Plan) -> Option<SquareStep> {
+    if !plan.square_step {
+        return None;
+    }
+    let rule = match plan.integrator {
+        Integrator::Trapezoidal => Rule::Trapezoidal,
+        Integrator::Euler => Rule::Euler,
+        Integrator::HermiteSimpson => return None,
+    };
+    match plan.coordinates {
+        Coordinates::Dependent => SquareStep::dependent(model.clone(), rule, plan.dt),
+        Coordinates::Independent => SquareStep::independent(model.clone(), rule, plan.dt),
+    }
+}
+
+impl Work {
+    /// Scratch for `system`'s iteration, unfactored, its multipliers at 0; `None`
+    /// where G's analysis fails.
+    fn new(
+        system: &System,
+        jacobian: &Pattern,
+        regularity: &Regularity,
+        factors: Factors,
+    ) -> Option<Work> {
+        let n = system.model.n();
+        let size = system.size();
+        let dense = if system.force_entries.is_empty() {
+            0
+        } else {
+            n * n
+        };
+        Some(Work {
+            x: vec![0.0; size],
             residual: vec![0.0; size],
             values: vec![0.0; jacobian.row_idx.len()],
             q_force: vec![0.0; n],
-            kq,
-            kv,
+            kq: vec![0.0; dense],
+            kv: vec![0.0; dense],
             factors,
             factored: false,
             rounding: 0.0,
             saved: vec![0.0; size],
             gram: regularity.work(&system.model)?,
             multipliers: vec![0.0; size - 3 * n],
-        };
-        Some(SquareStep {
-            system,
-            jacobian,
-            regularity,
-            work: Mutex::new(work),
         })
     }
 }
 
-impl SquareStep {
+impl Equations {
     /// The residual of the step system at `work.x` in `work.residual`; `None`
     /// where an effect cannot be evaluated or it is not finite.
     fn residual(&self, t: f64, before: &[f64], work: &mut Work) -> Option<()> {
@@ -396,15 +493,19 @@ impl SquareStep {
     }
 }
 
-impl ExactStep for SquareStep {
+impl SquareStep {
     /// Step 0 holds q and q̇ at the model's initial state (in `block`), and f_dyn
     /// asks q̈ of the augmented system there, which is regular where the steps are
-    /// taken from here: its solution, once the configuration passes the same test.
-    fn solve_first(&self, t: f64, block: &mut [f64]) -> Option<StepWork> {
-        let model = &*self.system.model;
+    /// taken from here: its solution, once the configuration passes the same test;
+    /// `None` where it declines (the general solver then takes it).
+    pub fn solve_first(&mut self, t: f64, block: &mut [f64]) -> Option<StepWork> {
+        let model = &*self.equations.system.model;
         let n = model.n();
-        let mut work = self.work.lock().ok()?;
-        if !self.regularity.regular(model, &block[..n], &mut work.gram) {
+        if !self
+            .equations
+            .regularity
+            .regular(model, &block[..n], &mut self.work.gram)
+        {
             return None;
         }
         let q = DVector::from_column_slice(&block[..n]);
@@ -414,23 +515,26 @@ impl ExactStep for SquareStep {
             return None;
         }
         block[2 * n..3 * n].copy_from_slice(ddq.as_slice());
-        self.system.fill_independent(block);
+        self.equations.system.fill_independent(block);
         Some(StepWork {
             iterations: 1,
             factorizations: 1,
         })
     }
 
-    fn solve(
-        &self,
+    /// Solves step `block` (guess in, solution out) at time `t`, given the step
+    /// before (`before`); the work taken, or `None` where it declines or does not
+    /// converge (`block` is then unspecified). `watch` sees every iteration.
+    pub fn solve(
+        &mut self,
         t: f64,
         before: &[f64],
         block: &mut [f64],
         limits: StepLimits,
         watch: Option<&mut dyn FnMut(&StepIteration)>,
     ) -> Option<StepWork> {
-        let mut work = self.work.lock().ok()?;
-        let solved = self.newton(t, before, block, limits, &mut work, watch);
+        let work = &mut self.work;
+        let solved = self.equations.newton(t, before, block, limits, work, watch);
         if solved.is_none() {
             // The next step starts its multipliers and its Jacobian afresh.
             work.multipliers.fill(0.0);

@@ -1,0 +1,221 @@
+//! A square graph's steps taken one at a time ([`Schedule::Stepwise`]), each given
+//! the step before, held fixed: the square step where it can, else the general
+//! solver's conditional solve, else that solve again from substeps. Every window
+//! and the batch of such a graph have this solution, so this is how the plan runs
+//! them all.
+//!
+//! [`Schedule::Stepwise`]: super::plan::Schedule::Stepwise
+
+use super::graph::ForwardGraph;
+use super::square_step::{SquareStep, StepIteration, StepLimits};
+use crate::convergence::{SolveReport, Termination};
+use crate::error::Result;
+use crate::graph::ChainGraph;
+use crate::solver::{Iteration, Settings, WindowSolver};
+
+/// A better guess of a failed step k of the values, from the step before (given the
+/// run's square step, whose analysis it may reuse); whether one was written.
+pub(super) type Rescue<'a> = dyn FnMut(&mut [f64], usize, Option<&SquareStep>) -> bool + 'a;
+
+/// [`Rescue`] told the step both in the buffer and in the run, (k, j).
+pub(super) type RunRescue<'a> =
+    dyn FnMut(&mut [f64], (usize, usize), Option<&SquareStep>) -> bool + 'a;
+
+/// What a stepwise run does with each step solved: `after((k, j), report, taker,
+/// values)` returns whether to go on.
+pub(super) type After<'a> =
+    dyn FnMut((usize, usize), &SolveReport, Taker, &[f64]) -> Result<bool> + 'a;
+
+/// Which solver took a step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Taker {
+    Square,
+    General,
+}
+
+/// The solvers of one step given the one before.
+pub(super) struct Stepwise {
+    square: Option<SquareStep>,
+    general: WindowSolver,
+}
+
+impl Stepwise {
+    pub(super) fn new(
+        graph: &ChainGraph,
+        square: Option<SquareStep>,
+        settings: Settings,
+    ) -> Result<Stepwise> {
+        Ok(Stepwise {
+            square,
+            general: WindowSolver::new(graph, 2, settings)?,
+        })
+    }
+
+    /// The values moved `by` steps toward the start of their buffer.
+    pub(super) fn shift_steps(&mut self, by: usize) {
+        self.general.shift_steps(by);
+    }
+
+    /// The time of step k of the values.
+    pub(super) fn time(&self, graph: &ChainGraph, k: usize) -> f64 {
+        self.general.time(graph, k)
+    }
+
+    /// Step 0 under the graph's initial factors.
+    pub(super) fn first(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+    ) -> Result<(SolveReport, Taker)> {
+        let s = graph.layout().size();
+        let t = self.time(graph, 0);
+        if let Some(work) = self
+            .square
+            .as_mut()
+            .and_then(|square| square.solve_first(t, &mut values[..s]))
+        {
+            let report = SolveReport {
+                factorizations: work.factorizations,
+                ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
+            };
+            return Ok((report, Taker::Square));
+        }
+        Ok((
+            self.general.solve(graph, values, 0, 1, None)?,
+            Taker::General,
+        ))
+    }
+
+    /// Step k (its guess in `values`) given step k − 1; where neither solver
+    /// converges from the guess, `rescue(values, k)` may write a better one, from
+    /// which the general solver tries again.
+    pub(super) fn step(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        k: usize,
+        rescue: &mut Rescue<'_>,
+    ) -> Result<(SolveReport, Taker)> {
+        let s = graph.layout().size();
+        let guess = values[k * s..(k + 1) * s].to_vec();
+        if let Some(report) = self.square_step(graph, values, k, &guess) {
+            return Ok((report, Taker::Square));
+        }
+        let failed = self.general.solve_conditional(graph, values, k, k + 1)?;
+        if failed.termination == Termination::Converged {
+            return Ok((failed, Taker::General));
+        }
+        // The guess may be too far from the solution (a coarse step through a fast
+        // or stiff stretch): from a better one, if there is one.
+        let failed_values = values[k * s..(k + 1) * s].to_vec();
+        values[k * s..(k + 1) * s].copy_from_slice(&guess);
+        if !rescue(values, k, self.square.as_ref()) {
+            values[k * s..(k + 1) * s].copy_from_slice(&failed_values);
+            return Ok((failed, Taker::General));
+        }
+        let again = self.general.solve_conditional(graph, values, k, k + 1)?;
+        let report = SolveReport {
+            iterations: failed.iterations + again.iterations,
+            factorizations: failed.factorizations + again.factorizations,
+            ..again
+        };
+        Ok((report, Taker::General))
+    }
+
+    /// Step k by the square step, its iterations reported to the general solver's
+    /// observer as the window k..k+1's; `None`, with step k back at `guess`, where
+    /// there is none or it declines.
+    fn square_step(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        k: usize,
+        guess: &[f64],
+    ) -> Option<SolveReport> {
+        let square = self.square.as_mut()?;
+        let s = graph.layout().size();
+        let settings = self.general.settings();
+        let limits = StepLimits {
+            max_iterations: settings.max_iterations,
+            step_tolerance: settings.step_tolerance,
+        };
+        let t = self.general.time(graph, k);
+        let (before, block) = values[(k - 1) * s..(k + 1) * s].split_at_mut(s);
+        let mut watch = self
+            .general
+            .observer()
+            .map(|observer| move |step: &StepIteration| observer.iteration(&as_iteration(k, step)));
+        let watch = watch.as_mut().map(|w| w as &mut dyn FnMut(&StepIteration));
+        match square.solve(t, before, block, limits, watch) {
+            // Its equations hold to round-off: a cost of zero.
+            Some(work) => Some(SolveReport {
+                factorizations: work.factorizations,
+                ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
+            }),
+            None => {
+                block.copy_from_slice(guess);
+                None
+            }
+        }
+    }
+}
+
+/// A square step's iteration as a solve's observer sees the general solver's.
+fn as_iteration(k: usize, step: &StepIteration) -> Iteration {
+    Iteration {
+        k0: k,
+        k1: k + 1,
+        iteration: step.iteration,
+        newton: true,
+        cost: step.cost,
+        trial: None,
+        damping: 0.0,
+        // Newton's model of a square system predicts its residual gone.
+        predicted: step.cost,
+        largest_step: step.update,
+        small: step.settled,
+        restored: false,
+        chord: !step.fresh,
+    }
+}
+
+/// A run of `steps` steps of `fg` one at a time from the state in `values`' step 0,
+/// in a buffer of `values.len()` / s steps (at least 3): each step, once solved,
+/// goes to `after((k, j), report, taker, values)` (k its step in the buffer, j in the
+/// run), which returns whether to go on; a failed step k may be given a better guess
+/// by `rescue(values, (k, j), square step)`.
+pub(super) fn run(
+    fg: &ForwardGraph,
+    stepwise: &mut Stepwise,
+    values: &mut [f64],
+    steps: usize,
+    rescue: &mut RunRescue<'_>,
+    after: &mut After<'_>,
+) -> Result<()> {
+    let graph = &fg.graph;
+    let s = graph.layout().size();
+    let capacity = (values.len() / s).max(3);
+    let mut base = 0;
+    for j in 0..steps {
+        let mut k = j - base;
+        if k >= capacity {
+            // The predictions read the two steps before.
+            values.copy_within((k - 2) * s..k * s, 0);
+            stepwise.shift_steps(k - 2);
+            base += k - 2;
+            k = 2;
+        }
+        let (report, taker) = if k == 0 {
+            stepwise.first(graph, values)?
+        } else {
+            fg.predict(values, k);
+            stepwise.step(graph, values, k, &mut |v, k, square| {
+                rescue(v, (k, j), square)
+            })?
+        };
+        if !after((k, j), &report, taker, values)? {
+            break;
+        }
+    }
+    Ok(())
+}

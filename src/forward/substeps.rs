@@ -1,0 +1,140 @@
+//! The substep rescue of a failed step: a guess for it from the step before,
+//! integrated over the step in [`SUBSTEPS`] substeps by the same graph at the
+//! finer step, one step at a time. Where a step's own solve fails from the Taylor
+//! guess (a coarse step through a fast or stiff stretch, whose implicit equations
+//! Newton's method does not reach from so far), this guess lies within the step's
+//! error of its solution.
+
+use super::graph::ForwardGraph;
+use super::options::NoiseModels;
+use super::plan::{Plan, Schedule};
+use super::square_step::SquareStep;
+use super::stepwise::{self, Stepwise};
+use crate::convergence::{SolveReport, Termination};
+use crate::model::{Model, State};
+use crate::smoother::{self, FixedLag, Hooks, Next};
+use nalgebra::DVector;
+use std::sync::Arc;
+
+/// The substep counts tried, in turn: a few, then finer (at most 74 substep solves
+/// per failed step).
+const SUBSTEPS: [usize; 3] = [2, 8, 64];
+
+/// Iterations a substep's solve gets: a step 8–64 times finer than one that failed
+/// converges in a few, or that count of substeps is given up.
+const SUBSTEP_ITERATIONS: usize = 10;
+
+/// What a failed step's rescue needs of its run.
+pub(super) struct Substeps<'a> {
+    pub(super) model: &'a Arc<Model>,
+    pub(super) plan: &'a Plan,
+    pub(super) noise: &'a NoiseModels,
+    /// The graph's step layout: unknowns a step, and n.
+    pub(super) s: usize,
+}
+
+impl Substeps<'_> {
+    /// Writes a guess for step k of `values` (run step `step`) from step k − 1 and
+    /// returns true, or false where no substep count converged. `square`: the
+    /// run's square step, whose analysis the substeps reuse.
+    pub(super) fn guess(
+        &self,
+        square: Option<&SquareStep>,
+        step: usize,
+        values: &mut [f64],
+        k: usize,
+    ) -> bool {
+        let (n, s) = (self.model.n(), self.s);
+        let before = &values[(k - 1) * s..k * s];
+        let mut start = (**self.model).clone();
+        start.initial = State {
+            q: DVector::from_column_slice(&before[..n]),
+            dq: DVector::from_column_slice(&before[n..2 * n]),
+        };
+        let start = Arc::new(start);
+        for substeps in SUBSTEPS {
+            let mut fine = self.plan.clone();
+            fine.dt = self.plan.dt / substeps as f64;
+            fine.steps = substeps + 1;
+            fine.settings.max_iterations = fine.settings.max_iterations.min(SUBSTEP_ITERATIONS);
+            let Ok(mut graph) = ForwardGraph::planned(start.clone(), &fine, self.noise) else {
+                return false;
+            };
+            graph.graph.set_t0((step - 1) as f64 * self.plan.dt);
+            let Ok(first) = graph.initial_block(&start) else {
+                return false;
+            };
+            let mut fine_values = vec![0.0; (substeps + 1) * s];
+            fine_values[..s].copy_from_slice(&first);
+            let converged = if fine.schedule == Schedule::Stepwise {
+                let square = square.and_then(|q| q.at_dt(fine.dt));
+                run_stepwise(&graph, square, &fine, &mut fine_values)
+            } else {
+                run_window(&graph, &fine, &mut fine_values)
+            };
+            if converged {
+                values[k * s..(k + 1) * s].copy_from_slice(&fine_values[substeps * s..]);
+                return true;
+            }
+        }
+        false
+    }
+}
+
+/// Whether every substep converged, one at a time.
+fn run_stepwise(
+    graph: &ForwardGraph,
+    square: Option<SquareStep>,
+    fine: &Plan,
+    values: &mut [f64],
+) -> bool {
+    let Ok(mut solver) = Stepwise::new(&graph.graph, square, fine.settings) else {
+        return false;
+    };
+    let mut converged = true;
+    let solved = stepwise::run(
+        graph,
+        &mut solver,
+        values,
+        fine.steps,
+        &mut |_, _, _| false,
+        &mut |_, report, _, _| {
+            converged &= report.termination == Termination::Converged;
+            Ok(converged)
+        },
+    );
+    solved.is_ok() && converged
+}
+
+/// Whether every substep converged, in the one-step window of the general smoother.
+fn run_window(graph: &ForwardGraph, fine: &Plan, values: &mut [f64]) -> bool {
+    struct Fine<'a> {
+        graph: &'a ForwardGraph,
+        converged: bool,
+    }
+    impl Hooks for Fine<'_> {
+        fn predict(&mut self, values: &mut [f64], k: usize) {
+            self.graph.predict(values, k);
+        }
+        fn on_step(&mut self, _: usize, _: usize, report: &SolveReport, _: &[f64]) -> Next {
+            self.converged &= report.termination == Termination::Converged;
+            if self.converged {
+                Next::Continue
+            } else {
+                Next::Stop
+            }
+        }
+    }
+    let mut hooks = Fine {
+        graph,
+        converged: true,
+    };
+    let run = FixedLag {
+        steps: fine.steps,
+        window: 1,
+        settings: fine.settings,
+        capacity: None,
+    };
+    let solved = smoother::fixed_lag(&graph.graph, values, &run, &mut hooks);
+    solved.is_ok() && hooks.converged
+}
