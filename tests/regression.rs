@@ -1,20 +1,29 @@
 //! RMSE regression thresholds against the committed references.
 //!
 //! `tests/data/rmse-bounds.csv` lists scene × coordinates × window × dt with an RMSE
-//! bound in metres over the x, y of every moving point (coordinates `dc` and `ic` at
-//! the defaults, `dc-full` DC with the paper's integrator factors): the value measured when the
+//! bound in metres over the x, y of every moving point: the value measured when the
 //! row was added, with a small margin. A run above its bound fails; tightening a bound
 //! is how an improvement is locked in (`python -m harness.regression` measures every
-//! row and rewrites the file with fresh values and the margin).
+//! row and rewrites the file with fresh values and the margin). Lines starting with
+//! `#` are comments (the harness notes there the rows whose run failed).
+//!
+//! The coordinates column is `dc` or `ic`, at the defaults, optionally followed by
+//! variants, each after a `-`:
+//! - `full`: DC with the paper's integrator factors ([`DcIntegrators::Full`]);
+//! - `general`: every step through the general solver
+//!   ([`ForwardOptions::exact_steps`] off), where the default takes a step as a
+//!   sparse square system, so that the windows and the batch really run theirs;
+//! - `hs`: the Hermite–Simpson integrator ([`Integrator::HermiteSimpson`]).
 
 mod common;
 
 use common::reference_rmse;
-use mbfg::forward::{simulate, Coordinates, DcIntegrators, ForwardOptions};
+use mbfg::forward::{simulate, Coordinates, DcIntegrators, ForwardOptions, Integrator};
 use mbfg::smoother::Mode;
 use mbfg::{Model, Scene};
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::time::Instant;
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -26,6 +35,8 @@ struct Row {
     reference: String,
     coords: Coordinates,
     integrators: DcIntegrators,
+    integrator: Integrator,
+    exact_steps: bool,
     mode: Mode,
     dt: f64,
     t_end: f64,
@@ -40,20 +51,30 @@ fn bounds() -> Vec<Row> {
         .map(|l| {
             let f: Vec<&str> = l.split(',').map(str::trim).collect();
             assert_eq!(f.len(), 7, "rmse-bounds.csv: {l}");
+            let mut parts = f[2].split('-');
+            let coords = match parts.next() {
+                Some("dc") => Coordinates::Dependent,
+                Some("ic") => Coordinates::Independent,
+                _ => panic!("rmse-bounds.csv: coords '{}'", f[2]),
+            };
+            let (mut integrators, mut integrator, mut exact_steps) =
+                (DcIntegrators::Auto, Integrator::Trapezoidal, true);
+            for variant in parts {
+                match variant {
+                    "full" if coords == Coordinates::Dependent => integrators = DcIntegrators::Full,
+                    "general" => exact_steps = false,
+                    "hs" => integrator = Integrator::HermiteSimpson,
+                    _ => panic!("rmse-bounds.csv: coords '{}'", f[2]),
+                }
+            }
             Row {
                 line: l.to_string(),
                 scene: f[0].into(),
                 reference: f[1].into(),
-                coords: match f[2] {
-                    "dc" | "dc-full" => Coordinates::Dependent,
-                    "ic" => Coordinates::Independent,
-                    other => panic!("rmse-bounds.csv: coords '{other}'"),
-                },
-                integrators: if f[2] == "dc-full" {
-                    DcIntegrators::Full
-                } else {
-                    DcIntegrators::Auto
-                },
+                coords,
+                integrators,
+                integrator,
+                exact_steps,
                 mode: match f[3] {
                     "batch" => Mode::Batch,
                     n => Mode::FixedLag(n.parse().unwrap()),
@@ -76,13 +97,17 @@ fn rmse_stays_within_the_checked_in_bounds() {
         let model = Arc::new(Model::new(&scene).unwrap());
         let mut options = ForwardOptions::new(row.coords, row.dt, row.t_end, row.mode);
         options.dc_integrators = row.integrators;
+        options.integrator = row.integrator;
+        options.exact_steps = row.exact_steps;
+        let start = Instant::now();
         let (run, summary) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
+        let seconds = start.elapsed().as_secs_f64();
         let measured = if summary.failures.is_empty() {
             reference_rmse(&model, &run, &row.reference)
         } else {
             f64::INFINITY
         };
-        println!("{:<60} measured {measured:.4e}", row.line);
+        println!("{:<64} measured {measured:.4e} ({seconds:.2} s)", row.line);
         if measured > row.bound {
             failures.push(format!(
                 "{}: measured {measured:.4e} > bound {:.4e}",

@@ -73,6 +73,18 @@ def test_simulate_returns_the_csv_contract():
     np.testing.assert_array_equal(r.column("q:P2.y"), r.q[:, 3])
 
 
+@pytest.mark.parametrize("scene, coords", [("fourbar", "dc"), ("fourbar-theta", "ic")])
+def test_the_general_solver_takes_the_square_steps_to_their_solution(scene, coords):
+    # square_steps=False solves the window's graph where the default solves each step
+    # as a square system: the same trajectory, to the step tolerance.
+    path = ROOT / "scenes" / f"{scene}.yaml"
+    square = mbfg.simulate(path, coords=coords, dt=1e-3, t_end=0.2, window=5)
+    general = mbfg.simulate(path, coords=coords, dt=1e-3, t_end=0.2, window=5,
+                            square_steps=False)
+    assert general.summary["complete"] and general.q.shape == square.q.shape
+    np.testing.assert_allclose(general.q, square.q, atol=1e-9)
+
+
 def test_inverse_from_a_mapping_matches_the_file():
     scene = ROOT / "scenes" / "fourbar-theta.yaml"
     csv = ROOT / "scenes" / "trajectories" / "fourbar-theta.csv"

@@ -58,6 +58,7 @@ BAD = {
     "batch int": (_short(batch=1), "batch"),
     "batch None": (_short(batch=None), "batch"),
     "continue_on_failure int": (_short(continue_on_failure=0), "continue_on_failure"),
+    "square_steps int": (_short(square_steps=1), "square_steps"),
     "max_iterations float": (_short(max_iterations=2.5), "max_iterations"),
     "max_iterations zero": (_short(max_iterations=0), "max_iterations"),
     "dt nan": (lambda: mbfg.simulate(FOURBAR, dt=math.nan), "dt"),

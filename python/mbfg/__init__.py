@@ -173,7 +173,8 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
              continue_on_failure: bool = False, past: str = "adaptive",
              dc_integrators: str = "auto", params: Mapping[str, float] | None = None, q0: Mapping[str, float] | None = None,
              dq0: Mapping[str, float] | None = None, refine: bool = True,
-             effects: Mapping[str, Callable] | None = None) -> Result:
+             effects: Mapping[str, Callable] | None = None,
+             square_steps: bool = True) -> Result:
     """Forward dynamics, as `mbfg simulate` runs it, of a scene file or a loaded Model.
     For studies without writing files: `params` overrides the scene's parameters (as
     `load` does), `q0` the initial values of coordinates of q by name (the position
@@ -186,6 +187,10 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
     over half a radian a step), the run is integrated again at dt/K (K ≤ 1024) and every
     K-th state returned, on the grid of `dt`: `summary["refinement"]` then gives K, the
     finer step and the failure that asked for it; `refine=False` fails there instead.
+    `square_steps=False` sends every step through the general solver where the default
+    takes an IC step, or a DC step with tangent integrators and the trapezoidal rule or
+    Euler, as the sparse square system it is (the same solution to the step tolerance;
+    windows and the batch then solve their graphs rather than the N_w = 1 answer).
     Ctrl-C stops the run within ~0.1 s
     with KeyboardInterrupt; that and SolveError carry the steps solved as `.result`.
 
@@ -201,7 +206,7 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
         result = _run(_native.simulate, native, coords, dt, t_end, window, batch,
                       max_iterations, integrator, noise, continue_on_failure, past,
                       dc_integrators, refine, _dict(params), _dict(q0), _dict(dq0),
-                      _effects(effects))
+                      _effects(effects), square_steps)
     except BaseException as e:
         if isinstance(getattr(e, "result", None), Result):
             e.result.scene = scene

@@ -152,6 +152,7 @@ pub(super) fn simulate_run<'py>(
     q0: &Bound<'py, PyAny>,
     dq0: &Bound<'py, PyAny>,
     effects: &Bound<'py, PyAny>,
+    square_steps: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
         let loads = arg_effects(effects)?;
@@ -182,6 +183,7 @@ pub(super) fn simulate_run<'py>(
         let noise = arg_choice(noise, "noise", &["default", "paper"])?;
         let continue_on_failure = arg_bool(continue_on_failure, "continue_on_failure")?;
         let refine = arg_bool(refine, "refine")?;
+        let square_steps = arg_bool(square_steps, "square_steps")?;
         let past = arg_choice(past, "past", &["adaptive", "conditioned", "marginalized"])?;
         let dc_integrators = arg_choice(
             dc_integrators,
@@ -217,6 +219,7 @@ pub(super) fn simulate_run<'py>(
         };
         options.continue_on_failure = continue_on_failure;
         options.refine = refine;
+        options.exact_steps = square_steps;
         let model = with_loads(study_model(scene, &params, &q0, &dq0)?, &loads)?;
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
