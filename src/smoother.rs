@@ -4,7 +4,9 @@
 
 use crate::error::{Error, Result};
 use crate::graph::ChainGraph;
-use crate::solver::{LinearPrior, Past, Settings, SolveReport, Termination, WindowSolver};
+use crate::solver::{
+    LinearPrior, Observer, Past, Settings, SolveReport, Termination, WindowSolver,
+};
 
 /// How a horizon is solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -37,6 +39,11 @@ pub trait Hooks {
 
     /// The window ending at step k was solved; the caller may stop the run.
     fn on_step(&mut self, k: usize, run_k: usize, report: &SolveReport, values: &[f64]) -> Next;
+
+    /// An observer of every iteration of the run's solves, asked once.
+    fn observer(&mut self) -> Option<Box<dyn Observer>> {
+        None
+    }
 
     /// With [`Past::Adaptive`], priors are conditioned from step k on.
     fn on_switch(&mut self, _k: usize, _run_k: usize) {}
@@ -101,6 +108,9 @@ pub fn fixed_lag(
     let window = run.window.max(1).min(steps.max(1));
     let s = graph.layout().size();
     let mut solver = WindowSolver::new(graph, window + 1, settings)?;
+    if let Some(observer) = hooks.observer() {
+        solver.observe(observer);
+    }
     let mut adaptive = settings.past == Past::Adaptive;
     let mut prior: Option<LinearPrior> = None;
     // The prior on the step before the window's first, kept to solve the window again

@@ -11,7 +11,7 @@
 //! variants, each after a `-`:
 //! - `full`: DC with the paper's integrator factors ([`DcIntegrators::Full`]);
 //! - `general`: every step through the general solver
-//!   ([`ForwardOptions::exact_steps`] off), where the default takes a step as a
+//!   ([`ForwardOptions::square_steps`] off), where the default takes a step as a
 //!   sparse square system, so that the windows and the batch really run theirs;
 //! - `hs`: the Hermite–Simpson integrator ([`Integrator::HermiteSimpson`]).
 
@@ -36,7 +36,7 @@ struct Row {
     coords: Coordinates,
     integrators: DcIntegrators,
     integrator: Integrator,
-    exact_steps: bool,
+    square_steps: bool,
     mode: Mode,
     dt: f64,
     t_end: f64,
@@ -57,12 +57,12 @@ fn bounds() -> Vec<Row> {
                 Some("ic") => Coordinates::Independent,
                 _ => panic!("rmse-bounds.csv: coords '{}'", f[2]),
             };
-            let (mut integrators, mut integrator, mut exact_steps) =
+            let (mut integrators, mut integrator, mut square_steps) =
                 (DcIntegrators::Auto, Integrator::Trapezoidal, true);
             for variant in parts {
                 match variant {
                     "full" if coords == Coordinates::Dependent => integrators = DcIntegrators::Full,
-                    "general" => exact_steps = false,
+                    "general" => square_steps = false,
                     "hs" => integrator = Integrator::HermiteSimpson,
                     _ => panic!("rmse-bounds.csv: coords '{}'", f[2]),
                 }
@@ -74,7 +74,7 @@ fn bounds() -> Vec<Row> {
                 coords,
                 integrators,
                 integrator,
-                exact_steps,
+                square_steps,
                 mode: match f[3] {
                     "batch" => Mode::Batch,
                     n => Mode::FixedLag(n.parse().unwrap()),
@@ -98,7 +98,7 @@ fn rmse_stays_within_the_checked_in_bounds() {
         let mut options = ForwardOptions::new(row.coords, row.dt, row.t_end, row.mode);
         options.dc_integrators = row.integrators;
         options.integrator = row.integrator;
-        options.exact_steps = row.exact_steps;
+        options.square_steps = row.square_steps;
         let start = Instant::now();
         let (run, summary) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
         let seconds = start.elapsed().as_secs_f64();

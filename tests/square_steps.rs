@@ -5,10 +5,13 @@
 mod common;
 
 use common::scene_path;
-use mbfg::forward::{simulate, Coordinates, ForwardOptions, RunSummary, Trajectory};
+use mbfg::forward::{
+    simulate, Coordinates, ForwardOptions, Observers, RunSummary, Schedule, Trajectory,
+};
 use mbfg::smoother::Mode;
+use mbfg::solver::{self, Observer};
 use mbfg::{Model, Scene};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 fn run(scene: &str, dt: f64, t_end: f64, mode: Mode, exact: bool) -> (Trajectory, RunSummary) {
     let model = Arc::new(Model::new(&Scene::load(scene_path(scene)).unwrap()).unwrap());
@@ -71,11 +74,22 @@ fn every_window_and_the_batch_are_the_one_step_solution() {
     let (one, _) = run(scene, 1e-3, 0.3, Mode::FixedLag(1), true);
     for mode in [Mode::FixedLag(5), Mode::Batch] {
         let (other, s) = run(scene, 1e-3, 0.3, mode, true);
+        // The plan says what ran: one step at a time, every step a square step.
+        assert_eq!(s.plan.asked, mode);
+        assert_eq!(s.plan.schedule, Schedule::Stepwise, "{mode:?}");
+        assert_eq!((s.square_steps, s.general_steps), (other.len(), 0));
         assert_eq!(one.q, other.q, "{mode:?}");
         assert_eq!(one.ddq, other.ddq, "{mode:?}");
         assert!(s.max_iterations >= 1, "{mode:?}: no iterations reported");
         // And the general solver's window of five agrees to its tolerance.
-        let (general, _) = run(scene, 1e-3, 0.3, mode, false);
+        let (general, g) = run(scene, 1e-3, 0.3, mode, false);
+        // With the square step off, the window and the batch asked run.
+        let asked = match mode {
+            Mode::FixedLag(n) => Schedule::FixedLag(n),
+            Mode::Batch => Schedule::Batch,
+        };
+        assert_eq!(g.plan.schedule, asked);
+        assert_eq!(g.square_steps, 0);
         let d = largest_difference(&one.q, &general.q);
         assert!(d <= 1e-9, "{mode:?}: the general solver's is {d:e} m away");
     }
@@ -103,49 +117,46 @@ fn the_sparse_first_accelerations_are_the_augmented_systems() {
     }
 }
 
-/// One iteration of a step, as `--trace-solver` prints it.
+/// One iteration of a step, as an observer of the run sees it.
 struct Iteration {
     update: f64,
     /// Taken with the factors of an earlier Jacobian (`chord`); past a step's
-    /// first iteration, a line without it is a fresh factorization.
+    /// first iteration, one without it is a fresh factorization.
     chord: bool,
 }
 
 /// The iterations of every step of a 32-link pendulum's run over `t_end` (dt = 1
-/// ms), read from `--trace-solver`.
-fn traced_steps(t_end: &str, name: &str) -> Vec<Vec<Iteration>> {
-    let dir = common::scratch("exact", name);
-    let out = dir.join("out.csv");
-    let run = common::simulate(
-        "scenes/scale/n-pendulum-32.yaml",
-        t_end,
-        &out,
-        &["--trace-solver"],
-    );
-    let field = |line: &str, key: &str| -> String {
-        let start = line.find(key).unwrap() + key.len();
-        line[start..].split(' ').next().unwrap().to_string()
-    };
-    let mut steps: Vec<(String, Vec<Iteration>)> = Vec::new();
-    for line in common::stderr(&run)
-        .lines()
-        .filter(|l| l.starts_with("k0="))
-    {
-        let step = field(line, "k1=");
-        let iteration = Iteration {
-            update: field(line, "|d|=").parse().unwrap(),
-            chord: line.ends_with("chord"),
-        };
-        match steps.last_mut() {
-            Some((last, iterations)) if *last == step => iterations.push(iteration),
-            _ => steps.push((step, vec![iteration])),
+/// ms), from an observer of its solves.
+fn traced_steps(t_end: f64) -> Vec<Vec<Iteration>> {
+    let seen: Arc<Mutex<Vec<solver::Iteration>>> = Arc::default();
+    struct Collect(Arc<Mutex<Vec<solver::Iteration>>>);
+    impl Observer for Collect {
+        fn iteration(&mut self, it: &solver::Iteration) {
+            self.0.lock().unwrap().push(*it);
         }
     }
-    std::fs::remove_dir_all(&dir).ok();
+    let sink = seen.clone();
+    let scene = "scale/n-pendulum-32.yaml";
+    let model = Arc::new(Model::new(&Scene::load(scene_path(scene)).unwrap()).unwrap());
+    let mut options = ForwardOptions::new(Coordinates::Dependent, 1e-3, t_end, Mode::FixedLag(1));
+    options.observer = Some(Observers::new(move || Box::new(Collect(sink.clone()))));
+    let (_, summary) = simulate(model, &options, &mut |_, _| {}).unwrap();
+    assert!(summary.failures.is_empty());
+    assert_eq!(summary.general_steps, 0, "every step a square step");
+    let seen = seen.lock().unwrap();
+    // A step's iterations start at 1.
+    let mut steps: Vec<Vec<Iteration>> = Vec::new();
+    for it in seen.iter() {
+        let iteration = Iteration {
+            update: it.largest_step,
+            chord: it.chord,
+        };
+        match steps.last_mut() {
+            Some(iterations) if it.iteration > 1 => iterations.push(iteration),
+            _ => steps.push(vec![iteration]),
+        }
+    }
     steps
-        .into_iter()
-        .map(|(_, iterations)| iterations)
-        .collect()
 }
 
 /// The simplified iteration factors afresh only above the step tolerance (1e-8):
@@ -156,7 +167,7 @@ fn traced_steps(t_end: &str, name: &str) -> Vec<Vec<Iteration>> {
 #[test]
 fn no_fresh_factorization_after_an_update_below_the_tolerance() {
     let mut fresh = 0;
-    for (k, step) in traced_steps("0.3", "refactor").iter().enumerate() {
+    for (k, step) in traced_steps(0.3).iter().enumerate() {
         for pair in step.windows(2).filter(|pair| !pair[1].chord) {
             fresh += 1;
             assert!(
@@ -182,7 +193,7 @@ fn no_fresh_factorization_after_an_update_below_the_tolerance() {
 #[test]
 fn an_alternating_iteration_is_judged_by_its_mean_contraction() {
     let (mut fresh, mut alternating) = (0, 0);
-    for (k, step) in traced_steps("0.6", "alternating").iter().enumerate() {
+    for (k, step) in traced_steps(0.6).iter().enumerate() {
         // The updates taken with the factors held: from the step's first
         // iteration or its last fresh factorization, up to the one rejected.
         let mut held: Vec<f64> = Vec::new();
@@ -225,7 +236,7 @@ fn an_alternating_iteration_is_judged_by_its_mean_contraction() {
 /// after an update below 1e-10 (of 11.5 a step); now few may.
 #[test]
 fn steps_settle_at_the_rounding_an_earlier_step_found() {
-    let steps = traced_steps("0.6", "rounding");
+    let steps = traced_steps(0.6);
     let (mut inside, mut reached) = (0, 0);
     for step in &steps {
         let updates: Vec<f64> = step.iter().map(|i| i.update).collect();

@@ -29,7 +29,7 @@ pub use crate::kinematics::{Determinacy, SingularConfiguration};
 pub use crate::trajectory::{round_time, Trajectory};
 pub use failure::StepFailure;
 pub use graph::ForwardGraph;
-pub use options::{DcIntegrators, ForwardOptions, Integrator, NoiseModels};
+pub use options::{DcIntegrators, ForwardOptions, Integrator, NoiseModels, Observers};
 pub use plan::{Memory, Plan, Rescue, Schedule};
 pub use run::{simulate, simulate_interruptible, simulate_streaming, StepSink};
 pub use summary::{Refinement, Reselection, RunSummary};

@@ -6,7 +6,9 @@ use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::smoother::Mode;
+use crate::solver::Observer;
 use crate::solver::{Past, Settings};
+use std::sync::Arc;
 
 /// The integrator factor between consecutive steps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -126,6 +128,37 @@ pub struct ForwardOptions {
     /// with the window or batch asked, for comparison. The solution is the same to
     /// the step tolerance.
     pub square_steps: bool,
+    /// Makes an observer of every iteration for each solver of the run's steps
+    /// (the square step's, the general solver's windows and batch; not a rescue's
+    /// substeps): how a program or a test watches the solves without parsing
+    /// `--trace-solver`'s lines.
+    pub observer: Option<Observers>,
+}
+
+/// A maker of [`Observer`]s, one per solver a run makes.
+#[derive(Clone)]
+pub struct Observers(pub Arc<dyn Fn() -> Box<dyn Observer> + Send + Sync>);
+
+impl Observers {
+    pub fn new(make: impl Fn() -> Box<dyn Observer> + Send + Sync + 'static) -> Self {
+        Observers(Arc::new(make))
+    }
+
+    pub(super) fn make(&self) -> Box<dyn Observer> {
+        (self.0)()
+    }
+}
+
+impl std::fmt::Debug for Observers {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Observers")
+    }
+}
+
+impl PartialEq for Observers {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
 }
 
 impl ForwardOptions {
@@ -146,6 +179,7 @@ impl ForwardOptions {
             continue_on_failure: false,
             refine: true,
             square_steps: true,
+            observer: None,
         }
     }
 

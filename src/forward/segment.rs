@@ -97,6 +97,9 @@ impl Segment<'_> {
         let s = fg.graph.layout().size();
         let square = super::square_step::for_plan(&self.model, self.plan);
         let mut solver = Stepwise::new(&fg.graph, square, self.plan.settings)?;
+        if let Some(observers) = &self.options.observer {
+            solver.observe(observers.make());
+        }
         let mut values = vec![0.0; STEPWISE_BUFFER.min(self.steps()).max(3) * s];
         values[..s].copy_from_slice(&fg.initial_block(&self.model)?);
         let substeps = self.substeps(fg);

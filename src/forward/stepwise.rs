@@ -51,6 +51,11 @@ impl Stepwise {
         })
     }
 
+    /// Installs an observer of every iteration, the square step's too.
+    pub(super) fn observe(&mut self, observer: Box<dyn crate::solver::Observer>) {
+        self.general.observe(observer);
+    }
+
     /// The values moved `by` steps toward the start of their buffer.
     pub(super) fn shift_steps(&mut self, by: usize) {
         self.general.shift_steps(by);

@@ -4,12 +4,14 @@
 use super::failure::StepFailure;
 use super::graph::ForwardGraph;
 use super::judge::{Judge, Verdict};
+use super::options::Observers;
 use super::plan::Schedule;
 use super::segment::{finish, Emit, Run, Segment};
 use super::substeps::Substeps;
 use crate::convergence::{SolveReport, Termination};
 use crate::error::Result;
 use crate::smoother::{self, FixedLag, Hooks, Next};
+use crate::solver::{Observer, WindowSolver};
 use crate::trajectory::round_time;
 use std::ops::ControlFlow;
 
@@ -24,6 +26,7 @@ struct Windows<'a, 'e> {
     completed: usize,
     reselect: Option<(usize, Vec<usize>)>,
     conditioned_from: Option<(usize, f64)>,
+    observers: Option<Observers>,
 }
 
 impl Hooks for Windows<'_, '_> {
@@ -52,6 +55,10 @@ impl Hooks for Windows<'_, '_> {
     fn on_switch(&mut self, _: usize, j: usize) {
         let t = round_time(self.fg.graph.run_time(j));
         self.conditioned_from = Some((self.first + j, t));
+    }
+
+    fn observer(&mut self) -> Option<Box<dyn Observer>> {
+        self.observers.as_ref().map(Observers::make)
     }
 
     fn on_final(&mut self, j: usize, block: &[f64]) -> Result<()> {
@@ -84,6 +91,7 @@ impl Segment<'_> {
             completed: steps,
             reselect: None,
             conditioned_from: None,
+            observers: self.options.observer.clone(),
         };
         let horizon = FixedLag {
             steps,
@@ -153,7 +161,11 @@ impl Segment<'_> {
             });
             0
         } else {
-            let report = smoother::batch(&fg.graph, &mut values, rows, self.plan.settings)?;
+            let mut solver = WindowSolver::new(&fg.graph, rows, self.plan.settings)?;
+            if let Some(observers) = &self.options.observer {
+                solver.observe(observers.make());
+            }
+            let report = solver.solve(&fg.graph, &mut values, 0, rows, None)?;
             run.iterations.push(&report);
             if report.termination != Termination::Converged {
                 let mut go_on = |_, _| ControlFlow::Continue(());

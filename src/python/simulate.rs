@@ -219,7 +219,7 @@ pub(super) fn simulate_run<'py>(
         };
         options.continue_on_failure = continue_on_failure;
         options.refine = refine;
-        options.exact_steps = square_steps;
+        options.square_steps = square_steps;
         let model = with_loads(study_model(scene, &params, &q0, &dq0)?, &loads)?;
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
