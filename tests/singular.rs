@@ -7,6 +7,7 @@
 //! CLI), never with a NaN.
 
 use mbfg::forward::{simulate, Coordinates, ForwardOptions, RunSummary, Trajectory};
+use mbfg::kinematics::{Watch, Watched};
 use mbfg::smoother::Mode;
 use mbfg::{Model, Scene};
 use std::f64::consts::{FRAC_PI_2, PI};
@@ -361,4 +362,45 @@ fn a_switch_of_independent_coordinates_prefers_an_angle() {
         .map(|(k, i)| (tr.q[k * n + i] - reference.q[k * m + i]).abs())
         .fold(0.0f64, f64::max);
     assert!(worst <= 5e-3, "{worst} m from the run with θ independent");
+}
+
+/// The watch alone, fed the positions of a DC run (which does not watch):
+/// the parallelogram's own coordinate θ stops determining the others at its
+/// flat configuration (t = π/6), where Φ_q loses a rank, so the watch stops
+/// ahead of it; pick-and-place's motor angles stop determining the others at
+/// t ≈ 0.33 s while Φ_q keeps its rank, so it switches sets ahead of that.
+#[test]
+fn a_watch_stops_ahead_of_a_rank_loss_and_switches_ahead_of_a_poor_set() {
+    let watched = |scene: &str, t_end: f64| -> (Watched, f64) {
+        let path = root().join("scenes").join(scene);
+        let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
+        let options = ForwardOptions::new(Coordinates::Dependent, 1e-3, t_end, Mode::FixedLag(1));
+        let (run, _) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
+        let n = model.n();
+        let q = |k: usize| &run.q[k * n..(k + 1) * n];
+        let mut watch = Watch::new(&model);
+        for k in 0..run.len() {
+            let verdict = watch.observe(&model, k, run.t[k], q(k.max(1) - 1), q(k));
+            if verdict != Watched::Continue {
+                return (verdict, run.t[k]);
+            }
+        }
+        (Watched::Continue, t_end)
+    };
+    let (verdict, t) = watched("hard/parallelogram.yaml", 0.6);
+    let flat = std::f64::consts::PI / 6.0;
+    match verdict {
+        Watched::Stop(singular) => {
+            assert!(t < flat && t > flat - 0.05, "stopped at t = {t}");
+            assert!(singular.rank < singular.full_rank, "{singular:?}");
+            assert!((singular.t_singular - flat).abs() < 0.05, "{singular:?}");
+        }
+        other => panic!("{other:?} at t = {t}"),
+    }
+    let (verdict, t) = watched("pick-and-place.yaml", 0.4);
+    assert!(
+        matches!(&verdict, Watched::Reselect(set) if set.len() == 2),
+        "{verdict:?}"
+    );
+    assert!(t < 0.33, "switched at t = {t}");
 }
