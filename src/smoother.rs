@@ -116,9 +116,11 @@ pub fn fixed_lag(
     // The prior on the step before the window's first, kept to solve the window again
     // after a conditioned prior.
     let mut earlier: Option<LinearPrior> = None;
-    // The window's guess, from the step before it (steps `first`..=k): what a window
-    // solved again (after a conditioned prior, or from a rescue) starts from.
-    let mut start = Vec::with_capacity((window + 1) * s);
+    let mut start = Start {
+        values: Vec::with_capacity((window + 1) * s),
+        first: 0,
+        s,
+    };
     let mut k0 = 0;
     // The first run step not handed out.
     let mut handed = 0;
@@ -160,22 +162,12 @@ pub fn fixed_lag(
             // the factors nonlinear in the new step only to first order about its
             // prediction).
             k0 = k;
-            start.clear();
-            start.extend_from_slice(&values[(k - 1) * s..(k + 1) * s]);
+            start.keep(values, k - 1, k);
             let mut report = solver.solve_conditional(graph, values, k, k + 1)?;
             if report.termination != Termination::Converged {
-                report = solve_from_rescue(
-                    values,
-                    s,
-                    &start,
-                    k - 1,
-                    k0,
-                    k,
-                    report,
-                    hooks,
-                    run_k,
-                    |v| solver.solve_conditional(graph, v, k, k + 1),
-                )?;
+                report = start.rescue(values, (k0, k, run_k), report, hooks, |v| {
+                    solver.solve_conditional(graph, v, k, k + 1)
+                })?;
             }
             if let Next::Stop = hooks.on_step(k, run_k, &report, values) {
                 break;
@@ -201,8 +193,7 @@ pub fn fixed_lag(
             k0 += 1;
         }
         let first = k0.max(1) - 1;
-        start.clear();
-        start.extend_from_slice(&values[first * s..(k + 1) * s]);
+        start.keep(values, first, k);
         let mut report = solve_window(&mut solver, graph, values, k0, k, prior.as_ref())?;
         if adaptive && k0 > 0 && report.termination != Termination::Converged {
             // The marginal information along the motion no longer carries the solve:
@@ -210,7 +201,7 @@ pub fn fixed_lag(
             adaptive = false;
             solver.condition_on_past();
             hooks.on_switch(k, run_k);
-            values[first * s..(k + 1) * s].copy_from_slice(&start);
+            values[first * s..(k + 1) * s].copy_from_slice(&start.values);
             prior = Some(leave(
                 &mut solver,
                 graph,
@@ -230,10 +221,9 @@ pub fn fixed_lag(
             // The newest step's guess may be too far from its solution (a coarse
             // step through a fast or stiff stretch): ask for a better one.
             let prior = prior.as_ref();
-            report =
-                solve_from_rescue(values, s, &start, first, k0, k, report, hooks, run_k, |v| {
-                    solve_window(&mut solver, graph, v, k0, k, prior)
-                })?;
+            report = start.rescue(values, (k0, k, run_k), report, hooks, |v| {
+                solve_window(&mut solver, graph, v, k0, k, prior)
+            })?;
         }
         if let Next::Stop = hooks.on_step(k, run_k, &report, values) {
             break;
@@ -245,36 +235,52 @@ pub fn fixed_lag(
     })
 }
 
-/// After the window k0..=k failed to converge (`failed`): the window back at its guess
-/// (`start` holds steps `first`..=k), [`Hooks::rescue`] asked for a new guess of step
-/// k, and `solve` run again from there; without a new guess the failed solve's values
-/// stay.
-#[allow(clippy::too_many_arguments)] // the window's bounds, its guess and two callbacks
-fn solve_from_rescue(
-    values: &mut [f64],
-    s: usize,
-    start: &[f64],
+/// A window's guess, from the step before it: what a window solved again (after a
+/// conditioned prior, or from a rescue) starts from.
+struct Start {
+    /// Steps `first`..=k of the values.
+    values: Vec<f64>,
     first: usize,
-    k0: usize,
-    k: usize,
-    failed: SolveReport,
-    hooks: &mut dyn Hooks,
-    run_k: usize,
-    mut solve: impl FnMut(&mut [f64]) -> Result<SolveReport>,
-) -> Result<SolveReport> {
-    let window = k0 * s..(k + 1) * s;
-    let failed_values = values[window.clone()].to_vec();
-    values[window.clone()].copy_from_slice(&start[(k0 - first) * s..]);
-    if !hooks.rescue(values, k, run_k) {
-        values[window].copy_from_slice(&failed_values);
-        return Ok(failed);
+    /// Unknowns a step.
+    s: usize,
+}
+
+impl Start {
+    /// Keeps steps first..=k of `values`.
+    fn keep(&mut self, values: &[f64], first: usize, k: usize) {
+        self.first = first;
+        self.values.clear();
+        self.values
+            .extend_from_slice(&values[first * self.s..(k + 1) * self.s]);
     }
-    let again = solve(values)?;
-    Ok(SolveReport {
-        iterations: failed.iterations + again.iterations,
-        factorizations: failed.factorizations + again.factorizations,
-        ..again
-    })
+
+    /// After the window k0..=k (run step `run_k`) failed to converge (`failed`): the
+    /// window back at its guess, [`Hooks::rescue`] asked for a new guess of step k,
+    /// and `solve` run again from there; without a new guess the failed solve's
+    /// values stay.
+    fn rescue(
+        &self,
+        values: &mut [f64],
+        (k0, k, run_k): (usize, usize, usize),
+        failed: SolveReport,
+        hooks: &mut dyn Hooks,
+        mut solve: impl FnMut(&mut [f64]) -> Result<SolveReport>,
+    ) -> Result<SolveReport> {
+        let s = self.s;
+        let window = k0 * s..(k + 1) * s;
+        let failed_values = values[window.clone()].to_vec();
+        values[window.clone()].copy_from_slice(&self.values[(k0 - self.first) * s..]);
+        if !hooks.rescue(values, k, run_k) {
+            values[window].copy_from_slice(&failed_values);
+            return Ok(failed);
+        }
+        let again = solve(values)?;
+        Ok(SolveReport {
+            iterations: failed.iterations + again.iterations,
+            factorizations: failed.factorizations + again.factorizations,
+            ..again
+        })
+    }
 }
 
 /// The prior that step k0 leaves on k0 + 1 as it leaves the window.
