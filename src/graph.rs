@@ -552,7 +552,9 @@ impl ChainGraphBuilder {
     /// with process noise σ per step): choose σ well below the uncertainty of the
     /// estimate, but not so small that 1/σ² swamps the other information in double
     /// precision (marginalization subtracts terms of size 1/σ²; their round-off,
-    /// 1e-16/σ², must stay below the parameters' own information).
+    /// 1e-16/σ², must stay below the parameters' own information). Levenberg-Marquardt
+    /// scales its damping by H's diagonal, 1/σ² on the parameters, so a damped step
+    /// barely moves them: Gauss-Newton suits a solve far from its optimum.
     pub fn constant_link(self, sigma: f64) -> Self {
         let dim = self.graph.layout.slot(VarKind::Param).map_or(0, |(_, d)| d);
         self.step_soft(
