@@ -28,6 +28,11 @@ pub enum VarKind {
     Ddz,
     /// Generalized forces Q (inverse dynamics).
     Force,
+    /// Parameters constant over the whole horizon (a length, a stiffness): every
+    /// step holds a copy, and the link [`ChainGraphBuilder::constant_link`] holds
+    /// consecutive copies equal, so that marginalizing a step passes the
+    /// parameters' information on to the next.
+    Param,
 }
 
 impl VarKind {
@@ -40,6 +45,7 @@ impl VarKind {
             VarKind::Dz => "dz",
             VarKind::Ddz => "ddz",
             VarKind::Force => "Q",
+            VarKind::Param => "p",
         }
     }
 
@@ -47,9 +53,11 @@ impl VarKind {
     /// accelerations 2), forces after them (3): hard equations on a step are block
     /// triangular in this order (position constraints touch positions, velocity
     /// constraints positions and velocities, ...), which their reduction exploits.
+    /// Parameters go with positions (0): they enter equations as the configuration
+    /// does, so an equation on positions and parameters stays a position equation.
     pub fn order(self) -> usize {
         match self {
-            VarKind::Q | VarKind::Z => 0,
+            VarKind::Q | VarKind::Z | VarKind::Param => 0,
             VarKind::Dq | VarKind::Dz => 1,
             VarKind::Ddq | VarKind::Ddz => 2,
             VarKind::Force => 3,
@@ -304,6 +312,9 @@ pub struct ChainGraph {
     step: Vec<Term>,
     /// Factors of step 0 only (priors on the initial state).
     initial: Vec<Term>,
+    /// Factors of chosen run steps only (readings that exist at some steps), each
+    /// with its run step, sorted by step (in the order added within a step).
+    at: Vec<(usize, Term)>,
 }
 
 impl ChainGraph {
@@ -316,6 +327,7 @@ impl ChainGraph {
                 t0,
                 step: Vec::new(),
                 initial: Vec::new(),
+                at: Vec::new(),
             },
         }
     }
@@ -350,6 +362,25 @@ impl ChainGraph {
         &self.initial
     }
 
+    /// The factors of chosen run steps, each with its step, sorted by step (see
+    /// [`ChainGraphBuilder::soft_at`]).
+    pub fn sparse_terms(&self) -> &[(usize, Term)] {
+        &self.at
+    }
+
+    /// The factors of run step `step` only, in the order they were added.
+    pub fn terms_at(&self, step: usize) -> &[(usize, Term)] {
+        &self.at[self.sparse_range(step, step + 1)]
+    }
+
+    /// The indices into [`ChainGraph::sparse_terms`] of the factors of run steps
+    /// `first..end`.
+    pub fn sparse_range(&self, first: usize, end: usize) -> std::ops::Range<usize> {
+        let lo = self.at.partition_point(|(k, _)| *k < first);
+        let hi = self.at.partition_point(|(k, _)| *k < end);
+        lo..hi.max(lo)
+    }
+
     /// The time of the run's step `step`, t₀ + step·dt.
     pub fn run_time(&self, step: usize) -> f64 {
         self.t0 + step as f64 * self.dt
@@ -361,6 +392,7 @@ impl ChainGraph {
             .step
             .iter()
             .chain(&self.initial)
+            .chain(self.at.iter().map(|(_, t)| t))
             .fold(StackReq::EMPTY, |req, t| req.or(t.factor().scratch()));
         Workspace::new(req)
     }
@@ -397,57 +429,131 @@ impl ChainGraphBuilder {
         self
     }
 
+    /// A constraint at run step `step` only: held exactly, so it must stay within
+    /// one step.
+    pub fn constraint_at(mut self, step: usize, factor: Box<dyn Factor>) -> Self {
+        self.graph.at.push((step, Term::Constraint(factor)));
+        self
+    }
+
+    /// A soft factor at run step `step` only (a reading that exists there, its datum
+    /// in the factor), weighted by 1/σ of `noise`.
+    pub fn soft_at(mut self, step: usize, factor: Box<dyn Factor>, noise: Noise) -> Self {
+        self.graph.at.push((step, Term::Soft(factor, noise)));
+        self
+    }
+
+    /// Holds the layout's parameters ([`VarKind::Param`]) constant over the horizon:
+    /// a soft link p_k − p_{k−1} = 0 of standard deviation `sigma` at every step. The
+    /// copies then agree to about σ (an augmented-state filter whose parameters walk
+    /// with process noise σ per step): choose σ well below the uncertainty of the
+    /// estimate, but not so small that 1/σ² swamps the other information in double
+    /// precision (marginalization subtracts terms of size 1/σ²; their round-off,
+    /// 1e-16/σ², must stay below the parameters' own information). Levenberg-Marquardt
+    /// scales its damping by H's diagonal, 1/σ² on the parameters, so a damped step
+    /// barely moves them: Gauss-Newton suits a solve far from its optimum.
+    pub fn constant_link(self, sigma: f64) -> Self {
+        let dim = self.graph.layout.slot(VarKind::Param).map_or(0, |(_, d)| d);
+        self.step_soft(
+            Box::new(crate::factors::Equality::new(VarKind::Param, dim)),
+            Noise::Isotropic(sigma),
+        )
+    }
+
     /// The graph, once every factor touches variables the layout holds, at the
-    /// factor's step or the one before (step 0 only for initial factors), with the
-    /// sizes the layout gives them; every constraint stays within one step; every
-    /// noise fits its factor's dimension.
-    pub fn build(self) -> Result<ChainGraph> {
+    /// factor's step or the one before (step 0 only for initial factors, none before
+    /// step 0 for the factors of chosen steps), with the sizes the layout gives them;
+    /// every constraint stays within one step; every noise fits its factor's
+    /// dimension; parameters ([`VarKind::Param`]) come with their link.
+    pub fn build(mut self) -> Result<ChainGraph> {
+        // Stable: the factors of one step keep the order they were added in.
+        self.graph.at.sort_by_key(|(k, _)| *k);
         let g = &self.graph;
-        for (initial, list) in [(false, &g.step), (true, &g.initial)] {
-            for term in list {
-                let f = term.factor();
-                let invalid = |what: String| Err(Error::InvalidArgument(what));
-                if let Some(noise) = term.noise() {
-                    if let Err(e) = noise.validate(f.dim()) {
-                        return invalid(format!("noise of {}: {e}", f.name()));
-                    }
+        let invalid = |what: String| Err(Error::InvalidArgument(what));
+        let every = g.step.iter().map(|t| (Place::Every, t));
+        let initial = g.initial.iter().map(|t| (Place::Initial, t));
+        let at = g.at.iter().map(|(k, t)| (Place::At(*k), t));
+        for (place, term) in every.chain(initial).chain(at) {
+            let f = term.factor();
+            let what = match place {
+                Place::At(k) => format!("factor {} at step {k}", f.name()),
+                _ => format!("factor {}", f.name()),
+            };
+            if let Some(noise) = term.noise() {
+                if let Err(e) = noise.validate(f.dim()) {
+                    return invalid(format!("noise of {}: {e}", f.name()));
                 }
-                for (a, k) in f.keys().iter().enumerate() {
-                    let Some((_, d)) = g.layout.slot(k.kind).filter(|_| k.lag <= 1) else {
-                        return invalid(format!(
-                            "factor {} touches {}(lag {}), which the graph does not hold",
-                            f.name(),
-                            k.kind.symbol(),
-                            k.lag
-                        ));
-                    };
-                    if f.size(a) != d {
-                        return invalid(format!(
-                            "factor {} takes {}(lag {}) of size {}, the graph holds it with size {d}",
-                            f.name(),
-                            k.kind.symbol(),
-                            k.lag,
-                            f.size(a)
-                        ));
-                    }
-                    if initial && k.lag > 0 {
-                        return invalid(format!(
-                            "initial factor {} touches {}(lag {}), before step 0",
-                            f.name(),
-                            k.kind.symbol(),
-                            k.lag
-                        ));
-                    }
-                }
-                if term.is_constraint() && f.keys().iter().any(|k| k.lag > 0) {
+            }
+            for (a, k) in f.keys().iter().enumerate() {
+                let Some((_, d)) = g.layout.slot(k.kind).filter(|_| k.lag <= 1) else {
                     return invalid(format!(
-                        "constraint {} spans two steps; constraints must stay within one",
-                        f.name()
+                        "{what} touches {}(lag {}), which the graph does not hold",
+                        k.kind.symbol(),
+                        k.lag
+                    ));
+                };
+                if f.size(a) != d {
+                    return invalid(format!(
+                        "{what} takes {}(lag {}) of size {}, the graph holds it with size {d}",
+                        k.kind.symbol(),
+                        k.lag,
+                        f.size(a)
+                    ));
+                }
+                if !matches!(place, Place::Every) && k.lag > place.first() {
+                    let role = if let Place::Initial = place {
+                        "initial "
+                    } else {
+                        ""
+                    };
+                    return invalid(format!(
+                        "{role}{what} touches {}(lag {}), before step 0",
+                        k.kind.symbol(),
+                        k.lag
                     ));
                 }
             }
+            if term.is_constraint() && f.keys().iter().any(|k| k.lag > 0) {
+                return invalid(format!(
+                    "constraint {} spans two steps; constraints must stay within one",
+                    f.name()
+                ));
+            }
+        }
+        // Without the link, every step's copy of the parameters would be a free
+        // variable of its own: a graph that says "constant" and means nothing of it.
+        if g.layout.slot(VarKind::Param).is_some()
+            && !g.step.iter().any(|t| {
+                !t.is_constraint()
+                    && t.factor().keys().contains(&Key::before(VarKind::Param))
+                    && t.factor().keys().contains(&Key::now(VarKind::Param))
+            })
+        {
+            return invalid(
+                "the layout holds parameters p but no step factor links p to p(lag 1); \
+                 ChainGraphBuilder::constant_link adds it"
+                    .into(),
+            );
         }
         Ok(self.graph)
+    }
+}
+
+/// Where a factor of a graph being built sits (for `build`'s checks).
+#[derive(Clone, Copy)]
+enum Place {
+    Every,
+    Initial,
+    At(usize),
+}
+
+impl Place {
+    /// The first run step the factor sits at.
+    fn first(self) -> usize {
+        match self {
+            Place::Every | Place::Initial => 0,
+            Place::At(step) => step,
+        }
     }
 }
 
@@ -520,5 +626,67 @@ mod tests {
         assert!(m.contains("noise of f_prior(q)"), "{m}");
         let m = message(builder().initial_soft(prior(), Noise::Diagonal(vec![1.0; 3])));
         assert!(m.contains("3 sigmas for a residual of dimension 2"), "{m}");
+    }
+
+    #[test]
+    fn keeps_factors_of_chosen_steps_sorted_by_step_in_order_within_one() {
+        let prior = |v: f64| Box::new(Prior::new(VarKind::Q, vec![v; 2]));
+        let g = builder()
+            .soft_at(7, prior(7.0), Noise::Isotropic(1.0))
+            .soft_at(2, prior(2.0), Noise::Isotropic(1.0))
+            .constraint_at(7, prior(7.5))
+            .build()
+            .unwrap();
+        let steps: Vec<_> = g.sparse_terms().iter().map(|(k, _)| *k).collect();
+        assert_eq!(steps, [2, 7, 7]);
+        assert_eq!(g.terms_at(7).len(), 2);
+        assert!(!g.terms_at(7)[0].1.is_constraint());
+        assert!(g.terms_at(7)[1].1.is_constraint());
+        assert!(g.terms_at(3).is_empty());
+        assert_eq!(g.sparse_range(3, 8), 1..3);
+        assert_eq!(g.sparse_range(8, 20), 3..3);
+    }
+
+    #[test]
+    fn rejects_factors_of_chosen_steps_that_do_not_fit() {
+        let m = message(builder().soft_at(
+            4,
+            Box::new(Prior::new(VarKind::Z, vec![0.0; 2])),
+            Noise::Isotropic(1.0),
+        ));
+        assert!(m.contains("f_prior(z) at step 4 touches z(lag 0)"), "{m}");
+        let m = message(builder().soft_at(
+            0,
+            Box::new(Equality::new(VarKind::Q, 2)),
+            Noise::Isotropic(1.0),
+        ));
+        assert!(
+            m.contains("f_eq(q) at step 0 touches q(lag 1), before step 0"),
+            "{m}"
+        );
+        let m = message(builder().constraint_at(3, Box::new(Equality::new(VarKind::Q, 2))));
+        assert!(m.contains("constraint f_eq(q) spans two steps"), "{m}");
+        let m = message(builder().soft_at(
+            1,
+            Box::new(Prior::new(VarKind::Q, vec![0.0; 2])),
+            Noise::Diagonal(vec![1.0]),
+        ));
+        assert!(m.contains("1 sigmas for a residual of dimension 2"), "{m}");
+    }
+
+    #[test]
+    fn parameters_need_their_link() {
+        let layout = || Layout::new(&[(VarKind::Q, 2), (VarKind::Param, 1)]);
+        let m = message(ChainGraph::builder(layout(), 0.1, 0.0));
+        assert!(m.contains("no step factor links p to p(lag 1)"), "{m}");
+        let g = ChainGraph::builder(layout(), 0.1, 0.0)
+            .constant_link(1e-6)
+            .build()
+            .unwrap();
+        assert_eq!(g.step_terms()[0].factor().name(), "f_eq(p)");
+        assert_eq!(g.step_terms()[0].noise(), Some(&Noise::Isotropic(1e-6)));
+        // A link without parameters to link is refused, not a panic.
+        let m = message(builder().constant_link(1e-6));
+        assert!(m.contains("f_eq(p) touches p(lag 1)"), "{m}");
     }
 }

@@ -57,6 +57,7 @@ fn size(model: &Model, kind: VarKind) -> usize {
     match kind {
         VarKind::Q | VarKind::Dq | VarKind::Ddq | VarKind::Force => model.n(),
         VarKind::Z | VarKind::Dz | VarKind::Ddz => model.independent.len(),
+        VarKind::Param => panic!("no model factor takes parameters"),
     }
 }
 
@@ -106,6 +107,7 @@ impl Step {
             VarKind::Dz => &self.dz,
             VarKind::Ddz => &self.ddz,
             VarKind::Force => &self.force,
+            VarKind::Param => panic!("no model factor takes parameters"),
         }
     }
 }
@@ -1213,6 +1215,7 @@ fn inputs_from(
             VarKind::Dz => pick(dq),
             VarKind::Ddz => pick(ddq),
             VarKind::Force => panic!("{}: no force at a state", factor.name()),
+            VarKind::Param => panic!("{}: no parameters at a state", factor.name()),
         })
         .collect()
 }

@@ -152,7 +152,7 @@ impl WindowSolver {
         for &i in &self.row_instances {
             let inst = self.instances[i];
             let dim = factor_of(graph, inst).dim();
-            let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+            let buf = self.buffers.of(inst);
             for &r in &buf.r[..dim] {
                 let row = &self.rows[at * (d + 1)..at * (d + 1) + d];
                 for (ga, ja) in g[..d].iter_mut().zip(row) {

@@ -71,16 +71,32 @@ impl FactorBuffers {
     }
 }
 
-/// The buffers of one factor instance.
-pub(super) fn buffers<'a>(
-    initial: &'a mut [FactorBuffers],
-    step: &'a mut [FactorBuffers],
-    inst: Instance,
-) -> &'a mut FactorBuffers {
-    if inst.initial {
-        &mut initial[inst.index]
-    } else {
-        &mut step[inst.index]
+/// The buffers of the factors of each of a graph's lists (see [`Source`]).
+pub(super) struct AllBuffers {
+    pub(super) step: Vec<FactorBuffers>,
+    pub(super) initial: Vec<FactorBuffers>,
+    pub(super) at: Vec<FactorBuffers>,
+}
+
+impl AllBuffers {
+    pub(super) fn new(graph: &ChainGraph) -> Self {
+        let of = |terms: &mut dyn Iterator<Item = &Term>| {
+            terms.map(|t| FactorBuffers::new(graph, t)).collect()
+        };
+        AllBuffers {
+            step: of(&mut graph.step_terms().iter()),
+            initial: of(&mut graph.initial_terms().iter()),
+            at: of(&mut graph.sparse_terms().iter().map(|(_, t)| t)),
+        }
+    }
+
+    /// The buffers of one factor instance.
+    pub(super) fn of(&mut self, inst: Instance) -> &mut FactorBuffers {
+        match inst.source {
+            Source::Step => &mut self.step[inst.index],
+            Source::Initial => &mut self.initial[inst.index],
+            Source::At => &mut self.at[inst.index],
+        }
     }
 }
 
@@ -260,7 +276,7 @@ impl WindowSolver {
     ) -> Result<()> {
         let s = self.s;
         let factor = factor_of(graph, inst);
-        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+        let buf = self.buffers.of(inst);
         let keys = factor.keys();
         let mut xs: [&[f64]; 8] = [&[]; 8];
         for ((slot, k), &(off, d)) in xs.iter_mut().zip(keys).zip(&buf.slots) {
@@ -303,7 +319,7 @@ impl WindowSolver {
             }
             let factor = factor_of(graph, inst);
             self.evaluate_instance(graph, values, inst, linearize)?;
-            let buf = &*buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+            let buf = &*self.buffers.of(inst);
             let w = 1.0 / HARD_SIGMA;
             self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
             let dim = factor.dim();
@@ -419,12 +435,12 @@ impl WindowSolver {
         let inst = self.instances[i];
         let factor = factor_of(graph, inst);
         let along = linearize
-            && buffers(&mut self.initial_buffers, &mut self.step_buffers, inst).along
+            && self.buffers.of(inst).along
             && self.evaluate_along(graph, values, k0, inst)?;
         if !along {
             self.evaluate_instance(graph, values, inst, linearize)?;
         }
-        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+        let buf = self.buffers.of(inst);
         let keys = factor.keys();
         let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
         buf.whiten(factor, linearize && !along);
@@ -532,9 +548,7 @@ impl WindowSolver {
         let mut ranges = [(0, 0); 8];
         let mut at = 0;
         let mut slots = [(0, 0); 8];
-        slots[..keys.len()].copy_from_slice(
-            &buffers(&mut self.initial_buffers, &mut self.step_buffers, inst).slots,
-        );
+        slots[..keys.len()].copy_from_slice(&self.buffers.of(inst).slots);
         for (a, k) in keys.iter().enumerate() {
             let (off, d) = slots[a];
             let base = (inst.step - k.lag) * s + off;
@@ -558,7 +572,7 @@ impl WindowSolver {
         for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
             *d = &self.along_dirs[a..b];
         }
-        let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+        let buf = self.buffers.of(inst);
         let t = graph.run_time(self.base + inst.step);
         along
             .evaluate_along(

@@ -510,21 +510,24 @@ impl WindowSolver {
         let mut cost = self.cost_first;
         let blocked = s >= dense::FAER_PRODUCTS_FROM;
         self.joint.clear();
-        // The factors joining k0 and k0 + 1.
-        for index in 0..graph.step_terms().len() {
-            let term = &graph.step_terms()[index];
+        // The factors joining k0 and k0 + 1: the step factors, then those of run
+        // step k0 + 1 alone.
+        let steps = graph.step_terms().len();
+        let at = graph.sparse_range(self.run_step(k0 + 1), self.run_step(k0 + 2));
+        for i in 0..steps + at.len() {
+            let inst = Instance {
+                source: if i < steps { Source::Step } else { Source::At },
+                index: if i < steps { i } else { at.start + i - steps },
+                step: k0 + 1,
+            };
+            let term = structure::term_of(graph, inst);
             let factor = term.factor();
             let keys = factor.keys();
             if term.is_constraint() || !keys.iter().any(|k| k.lag == 1) {
                 continue;
             }
-            let inst = Instance {
-                initial: false,
-                index,
-                step: k0 + 1,
-            };
             self.evaluate_instance(graph, values, inst, true)?;
-            let buf = &mut self.step_buffers[index];
+            let buf = self.buffers.of(inst);
             let dim = factor.dim();
             buf.whiten(factor, true);
             if !window_holds_next {

@@ -35,10 +35,10 @@ pub use observer::{Iteration, Observer, Trace};
 pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};
 
-use linearize::{buffers, FactorBuffers, HardBlock, HardPass};
+use linearize::{AllBuffers, HardBlock, HardPass};
 use marginal::{JointRows, LastSolve};
 use newton::{NewtonBuffers, PriorRoots};
-use structure::{factor_of, is_hard, Instance, Resolved, Scope};
+use structure::{factor_of, is_hard, Instance, Resolved, Scope, Source};
 
 /// σ by which a hard factor's residual is weighted in the reported cost
 /// ([`SolveReport::cost`]). Hard factors are eliminated, not weighted: this only
@@ -56,8 +56,12 @@ pub struct WindowSolver {
     damping: Vec<f64>,
     saved: Vec<f64>,
     hd: Vec<f64>,
-    step_buffers: Vec<FactorBuffers>,
-    initial_buffers: Vec<FactorBuffers>,
+    /// Each factor's residual and Jacobian buffers.
+    buffers: AllBuffers,
+    /// The run step of the values' step 0 (a streaming run moves its values
+    /// toward the start of their buffer, [`WindowSolver::shift_steps`]): a step's
+    /// time, and the factors of chosen run steps, are placed by it.
+    base: usize,
     hard: Vec<HardBlock>,
     /// A factor's Jacobian in reduced coordinates, per block it touches (lag 0, lag 1).
     reduced: [Vec<f64>; 2],
@@ -130,10 +134,6 @@ pub struct WindowSolver {
     /// The first block's values where the last solve converged (see `LastSolve`).
     last_x: Vec<f64>,
     observer: Option<Box<dyn Observer>>,
-    /// The run step that step 0 of the values stands for: a fixed-lag run keeps only
-    /// its newest steps in a compacted buffer ([`WindowSolver::shift_steps`]), and a
-    /// step's time is the same bits wherever its values sit.
-    base: usize,
     /// Unknowns per step from which a projected prior is kept as N̄CN̄ᵀ
     /// ([`TANGENT_FORM_FROM`]; the tests set it to compare the two forms).
     tangent_form_from: usize,
@@ -158,16 +158,29 @@ impl WindowSolver {
                 }
             }
         }
+        // The factors of chosen steps: the most hard rows one step adds.
+        let (mut hard_at, mut at_step, mut at_rows) = (0, usize::MAX, 0);
+        for (step, term) in graph.sparse_terms() {
+            max_dim = max_dim.max(term.factor().dim());
+            if *step != at_step {
+                (at_step, at_rows) = (*step, 0);
+            }
+            if term.is_constraint() {
+                at_rows += term.factor().dim();
+                hard_at = hard_at.max(at_rows);
+            }
+        }
         let s = graph.layout().size();
         let capacity = capacity.max(2);
         let n = capacity * s;
-        let max_hard = hard_step + hard_initial;
+        let max_hard = hard_step + hard_initial + hard_at;
         // Room for the factors that linearize along directions.
         let (mut along_keys, mut along_dim) = (0, 0);
         for f in graph
             .step_terms()
             .iter()
             .chain(graph.initial_terms())
+            .chain(graph.sparse_terms().iter().map(|(_, t)| t))
             .map(Term::factor)
         {
             if f.along().is_some() {
@@ -187,16 +200,8 @@ impl WindowSolver {
             saved: vec![0.0; n],
             direction: vec![0.0; n],
             hd: vec![0.0; n],
-            step_buffers: graph
-                .step_terms()
-                .iter()
-                .map(|t| FactorBuffers::new(graph, t))
-                .collect(),
-            initial_buffers: graph
-                .initial_terms()
-                .iter()
-                .map(|t| FactorBuffers::new(graph, t))
-                .collect(),
+            buffers: AllBuffers::new(graph),
+            base: 0,
             hard: (0..capacity)
                 .map(|_| HardBlock {
                     rows: 0,
@@ -242,7 +247,6 @@ impl WindowSolver {
             generation: 0,
             last_x: vec![0.0; s],
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
-            base: 0,
             tangent_form_from: TANGENT_FORM_FROM,
             newton: NewtonBuffers {
                 lambda: vec![0.0; capacity * max_hard],
@@ -339,7 +343,7 @@ impl WindowSolver {
 
 impl WindowSolver {
     /// The values moved `by` steps toward the start of their buffer (a fixed-lag run
-    /// that keeps only its newest steps, [`crate::smoother::fixed_lag_streaming`]):
+    /// that keeps only its newest steps, [`crate::smoother::fixed_lag`] with a buffer):
     /// what the solver keeps by step follows them, so that the next solve and
     /// marginalization reuse it as they would have in place.
     pub fn shift_steps(&mut self, by: usize) {

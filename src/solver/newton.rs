@@ -96,7 +96,7 @@ impl WindowSolver {
             let inst = self.instances[i];
             let factor = factor_of(graph, inst);
             self.evaluate_instance(graph, values, inst, true)?;
-            let buf = buffers(&mut self.initial_buffers, &mut self.step_buffers, inst);
+            let buf = self.buffers.of(inst);
             let hard = is_hard(graph, inst);
             let dim = factor.dim();
             // What multiplies each row: its whitened residual, or its multiplier.

@@ -15,10 +15,21 @@ pub(super) enum Scope {
     Oldest,
 }
 
-/// One factor at one step: `initial` factors come from `graph.initial_terms()`.
+/// Which of a graph's lists a factor instance comes from.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub(super) enum Source {
+    /// `graph.step_terms()`.
+    Step,
+    /// `graph.initial_terms()`.
+    Initial,
+    /// `graph.sparse_terms()` (a factor of one chosen run step).
+    At,
+}
+
+/// One factor at one step of the values, `index` into its `source` list.
 #[derive(Clone, Copy)]
 pub(super) struct Instance {
-    pub(super) initial: bool,
+    pub(super) source: Source,
     pub(super) index: usize,
     pub(super) step: usize,
 }
@@ -53,10 +64,10 @@ pub(super) struct Listing {
 const PARKED: usize = 4;
 
 pub(super) fn term_of(graph: &ChainGraph, inst: Instance) -> &Term {
-    if inst.initial {
-        &graph.initial_terms()[inst.index]
-    } else {
-        &graph.step_terms()[inst.index]
+    match inst.source {
+        Source::Step => &graph.step_terms()[inst.index],
+        Source::Initial => &graph.initial_terms()[inst.index],
+        Source::At => &graph.sparse_terms()[inst.index].1,
     }
 }
 
@@ -70,6 +81,18 @@ pub(super) fn is_hard(graph: &ChainGraph, inst: Instance) -> bool {
 }
 
 impl WindowSolver {
+    /// The run step of step `step` of the values: the one place that maps the
+    /// values' steps to the run's (a streaming run moves its values, `base`).
+    pub(super) fn run_step(&self, step: usize) -> usize {
+        self.base + step
+    }
+
+    /// The step of the values that run step `run` sits at, if it is at or after
+    /// the values' step 0.
+    pub(super) fn local_step(&self, run: usize) -> Option<usize> {
+        run.checked_sub(self.base)
+    }
+
     /// Lists the factor instances of a scope, in `instances` and (by step) in
     /// `by_step` and `block_start`: built when the window's shape changes, shifted
     /// to k0 otherwise.
@@ -96,7 +119,8 @@ impl WindowSolver {
             }
         }
         match self.resolved {
-            Some(r) if r.shape == shape => {
+            // Factors of chosen steps are not where a shifted list would put them.
+            Some(r) if r.shape == shape && graph.sparse_terms().is_empty() => {
                 if r.k0 != k0 {
                     for inst in &mut self.instances {
                         inst.step = inst.step - r.k0 + k0;
@@ -131,7 +155,7 @@ impl WindowSolver {
         if k0 == 0 {
             for index in 0..graph.initial_terms().len() {
                 self.instances.push(Instance {
-                    initial: true,
+                    source: Source::Initial,
                     index,
                     step: 0,
                 });
@@ -154,14 +178,17 @@ impl WindowSolver {
                     }
                 }
                 self.instances.push(Instance {
-                    initial: false,
+                    source: Source::Step,
                     index,
                     step,
                 });
             }
         }
-        // Step order, `instances` order within a step (initial factors first): a
-        // counting sort by step.
+        if !graph.sparse_terms().is_empty() {
+            self.sparse_instances(graph, k0, k1, scope);
+        }
+        // Step order, `instances` order within a step (initial factors first, those
+        // of chosen steps last): a counting sort by step.
         let inst = &self.instances;
         let blocks = k1 - k0;
         self.block_start.clear();
@@ -181,6 +208,34 @@ impl WindowSolver {
             let slot = &mut self.next_slot[it.step - k0];
             self.by_step[*slot] = i;
             *slot += 1;
+        }
+    }
+
+    /// Adds the instances of the factors of chosen run steps that fall in the
+    /// window [k0, k1) of the values, under the same rules as the step factors:
+    /// every variable inside the window (or, held, the step before it), and for
+    /// `Oldest` touching step k0.
+    fn sparse_instances(&mut self, graph: &ChainGraph, k0: usize, k1: usize, scope: Scope) {
+        let range = graph.sparse_range(self.run_step(k0), self.run_step(k1));
+        for index in range {
+            let (run, term) = &graph.sparse_terms()[index];
+            let Some(step) = self.local_step(*run) else {
+                continue;
+            };
+            let keys = term.factor().keys();
+            let max_lag = keys.iter().map(|k| k.lag).max().unwrap_or(0);
+            let inside = match scope {
+                Scope::Window { held: true } => step >= max_lag,
+                Scope::Window { held: false } => step >= k0 + max_lag,
+                Scope::Oldest => step >= k0 + max_lag && keys.iter().any(|k| step - k.lag == k0),
+            };
+            if inside {
+                self.instances.push(Instance {
+                    source: Source::At,
+                    index,
+                    step,
+                });
+            }
         }
     }
 }
