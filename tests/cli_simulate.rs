@@ -202,3 +202,37 @@ fn a_solve_that_does_not_converge_exits_1_and_keeps_what_converged_apart() {
         "the initial state at least is written"
     );
 }
+
+/// The summary line says what ran: a window asked of square steps is taken one step
+/// at a time, and says so; without square steps the window runs, and says that; the
+/// steps the square step declines (the parallelogram's flat point) are counted.
+#[test]
+fn the_summary_names_the_schedule_that_ran() {
+    let summary = |extra: &[&str], scene: &str| -> String {
+        let mut args = vec!["simulate", scene, "--dt", "0.001"];
+        if !extra.contains(&"--t-end") {
+            args.extend(["--t-end", "0.3"]);
+        }
+        args.extend(extra);
+        let out = mbfg(&args);
+        assert!(out.status.success(), "{}", stderr(&out));
+        stderr(&out).lines().last().unwrap_or_default().to_string()
+    };
+    let fourbar = "scenes/fourbar.yaml";
+    let line = summary(&["--window", "10"], fourbar);
+    assert!(
+        line.contains("(dt = 0.001 s, window 10 asked, taken one step at a time, square steps)"),
+        "{line}"
+    );
+    let line = summary(&["--window", "10", "--no-square-steps"], fourbar);
+    assert!(line.contains("(dt = 0.001 s, window 10)"), "{line}");
+    let line = summary(&["--batch", "--dc-integrators", "full"], fourbar);
+    assert!(line.contains("(dt = 0.001 s, batch)"), "{line}");
+    assert!(!line.contains("general solver"), "{line}");
+    // The parallelogram's first flat point is at t = π/6.
+    let line = summary(&["--t-end", "0.6"], "scenes/hard/parallelogram.yaml");
+    assert!(
+        line.contains("steps by the general solver (the square step declined them)"),
+        "{line}"
+    );
+}

@@ -73,6 +73,12 @@ pub struct SimulateArgs {
     /// state, on the grid of --dt.
     #[arg(long = "no-refine")]
     no_refine: bool,
+    /// Send every step through the general solver with the window or batch asked,
+    /// instead of taking the steps of IC and tangent DC runs (trapezoidal rule or
+    /// Euler) one at a time as sparse square systems: the same solution to the step
+    /// tolerance, for comparison.
+    #[arg(long = "no-square-steps")]
+    no_square_steps: bool,
     /// Make the plausibility warnings errors: a time step too coarse for the
     /// stiffest spring or damper (refused before the run), and the energy drift
     /// of a conservative scene beyond 1 % of its largest kinetic energy (the
@@ -140,6 +146,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         past,
         continue_on_failure,
         no_refine,
+        no_square_steps,
         strict,
         trace_solver,
     } = args;
@@ -177,6 +184,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
     };
     options.continue_on_failure = continue_on_failure;
     options.refine = !no_refine;
+    options.square_steps = !no_square_steps;
     options.validate(&model).map_err(plain)?;
     if let Mode::FixedLag(w) = options.mode {
         // A window longer than the run is the whole run.

@@ -81,6 +81,9 @@ fn forward_result<'py>(
     summary.set_item("plan", plan)?;
     summary.set_item("square_steps", s.square_steps)?;
     summary.set_item("general_steps", s.general_steps)?;
+    // Kept for scripts that read it: `dc_integrators="auto"` starts with tangent
+    // integrators, so no run is made again with them.
+    summary.set_item("tangent_after", py.None())?;
     summary.set_item("full_after", s.full_after.as_ref().map(|f| (f.step, f.t)))?;
     let refinement = match &s.refinement {
         Some(r) => {
