@@ -28,11 +28,13 @@ pub mod kinematics;
 pub mod limits;
 pub mod linalg;
 pub mod model;
+#[cfg(feature = "testing")]
 pub mod motions;
 pub mod plausibility;
 #[cfg(feature = "python")]
 mod python;
 pub mod reactions;
+#[cfg(feature = "testing")]
 pub mod reference;
 pub mod scene;
 pub mod smoother;
