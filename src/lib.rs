@@ -11,7 +11,6 @@
 // Index loops mirror the math of the small dense kernels.
 #![allow(clippy::needless_range_loop)]
 
-pub mod check;
 pub mod collocation;
 pub mod convergence;
 pub mod coordinates;
