@@ -29,7 +29,6 @@ pub mod linalg;
 pub mod model;
 #[cfg(feature = "testing")]
 pub mod motions;
-pub mod plausibility;
 #[cfg(feature = "python")]
 mod python;
 pub mod reactions;

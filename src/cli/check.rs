@@ -87,9 +87,9 @@ impl CheckReport {
                 .map(|n| format!("note: {n}"))
                 .chain(
                     [
-                        mbfg::plausibility::placement_warning(model),
-                        mbfg::plausibility::idle_warning(model),
-                        mbfg::plausibility::inertia_warning(model),
+                        mbfg::model::plausibility::placement_warning(model),
+                        mbfg::model::plausibility::idle_warning(model),
+                        mbfg::model::plausibility::inertia_warning(model),
                     ]
                     .into_iter()
                     .flatten()

@@ -7,6 +7,7 @@
 pub mod constraints;
 pub mod forces;
 pub mod mass;
+pub mod plausibility;
 
 use crate::error::{Error, Result};
 use crate::scene::{self, ConstraintKind, Effect, RelativeKind, Scene};
