@@ -742,14 +742,6 @@ impl Model {
             .map(|f| f.potential(self, q.as_slice()))
             .fold(0.0, |a, b| a + b)
     }
-
-    /// Whether the scene has gravity.
-    pub fn has_gravity(&self) -> bool {
-        self.scene
-            .effects
-            .iter()
-            .any(|e| matches!(e, Effect::Gravity { .. }))
-    }
 }
 
 /// Refuses points placed beyond [`crate::limits::MAX_COORDINATE`] or masses that are
