@@ -2,7 +2,7 @@
 //! RK4 reference: RMSE, wall time, iterations and constraint residuals for DC (scene
 //! `fourbar`) and IC (scene `fourbar-theta`) over N_w ∈ {1, 2, 5, 10} and batch.
 //!
-//! `cargo run --release --example accuracy -- [dt]`; environment:
+//! `cargo run --release --features testing --example accuracy -- [dt]`; environment:
 //! `TEND` (default 5), `ONLY` (e.g. `DependentFixedLag(1)`),
 //! `GRID="σ_iq,σ_iv,σ_dyn[,σ_eq[,σ_q0]];..."` sweeps noise models at N_w = 1 (or
 //! `WINDOW=n|batch`), DC or, with `IC=1`, IC.

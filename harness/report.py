@@ -2,8 +2,8 @@
 
     python -m harness.report            # everything (forward tables, accuracy against
                                         # time, hard cases, robustness matrix; the inverse
-                                        # page comes from `cargo run --release --example
-                                        # inverse_report`)
+                                        # page comes from `cargo run --release --features
+                                        # testing --example inverse_report`)
     python -m harness.report --ci       # the four-bar table, the fast hard cases and the
                                         # fast robustness matrix's summary line, printed
                                         # (the end of every CI log)

@@ -17,7 +17,6 @@
 //! solve converges in a few iterations.
 
 use crate::coordinates::Coordinates;
-use crate::dynamics;
 use crate::error::{Error, Result};
 use crate::factors::*;
 use crate::graph::{ChainGraph, Layout, Noise, VarKind};
@@ -674,7 +673,8 @@ fn staged_start(
 
 /// The exact classical solution for a prescribed motion given with its derivatives:
 /// `motion(t)` returns (values, first, second derivatives) of the prescribed
-/// coordinates. Used by tests as an independent answer.
+/// coordinates. Used by tests as an independent answer (feature `testing`).
+#[cfg(feature = "testing")]
 pub fn classical(
     model: &Model,
     indices: &[usize],
@@ -695,7 +695,7 @@ pub fn classical(
         kinematics::solve_position(model, &mut q, indices)?;
         let dq = kinematics::solve_velocity(model, &q, indices, &v)?;
         let ddq = kinematics::solve_acceleration(model, &q, &dq, indices, &a)?;
-        let f = dynamics::actuator_forces(model, &q, &dq, &ddq, t, indices)?;
+        let f = crate::dynamics::actuator_forces(model, &q, &dq, &ddq, t, indices)?;
         out.q.extend_from_slice(q.as_slice());
         out.forces.extend_from_slice(f.as_slice());
         debug_assert_eq!(f.len(), n);
@@ -704,6 +704,7 @@ pub fn classical(
 }
 
 /// Positions and actuator forces of [`classical`], row-major samples × n.
+#[cfg(feature = "testing")]
 #[derive(Debug, Clone, PartialEq)]
 pub struct InverseSolutionClassical {
     pub q: Vec<f64>,

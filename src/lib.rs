@@ -11,7 +11,6 @@
 // Index loops mirror the math of the small dense kernels.
 #![allow(clippy::needless_range_loop)]
 
-pub mod check;
 pub mod collocation;
 pub mod convergence;
 pub mod coordinates;
@@ -28,11 +27,12 @@ pub mod kinematics;
 pub mod limits;
 pub mod linalg;
 pub mod model;
+#[cfg(feature = "testing")]
 pub mod motions;
-pub mod plausibility;
 #[cfg(feature = "python")]
 mod python;
 pub mod reactions;
+#[cfg(feature = "testing")]
 pub mod reference;
 pub mod scene;
 pub mod smoother;

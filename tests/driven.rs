@@ -586,6 +586,7 @@ fn millimetre_links_in_dependent_coordinates_follow_their_velocities() {
 /// swing: 2 s on, their RMSE against a minimal-coordinate solution was 1.36e-2 m, 16×
 /// the tangent factors' 8.5e-4 m (IC: 7.5e-4 m). The default takes the tangent ones.
 #[test]
+#[cfg(feature = "testing")]
 fn the_default_dc_integrators_follow_a_fast_swing() {
     let file = "scenes/driven/watt-six-bar.yaml";
     let m = model(file);

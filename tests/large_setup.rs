@@ -3,8 +3,8 @@
 //! give the dense answer, and hand the cases it cannot certify back to it.
 
 use mbfg::kinematics;
+use mbfg::model::plausibility::inertia_warning;
 use mbfg::model::Model;
-use mbfg::plausibility::inertia_warning;
 use mbfg::scene::Scene;
 use nalgebra::DVector;
 use std::path::Path;

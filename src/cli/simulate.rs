@@ -205,13 +205,13 @@ fn simulate(
 ) -> Result<(), Failure> {
     // Open the output first: an unwritable path is bad input, found before the run.
     let output = Output::open(out, &[scene])?;
-    for w in mbfg::plausibility::idle_warning(&model)
+    for w in mbfg::model::plausibility::idle_warning(&model)
         .into_iter()
-        .chain(mbfg::plausibility::inertia_warning(&model))
+        .chain(mbfg::model::plausibility::inertia_warning(&model))
     {
         eprintln!("warning: {w}");
     }
-    if let Some(w) = mbfg::plausibility::step_warning(&model, options.dt) {
+    if let Some(w) = mbfg::model::plausibility::step_warning(&model, options.dt) {
         if strict {
             return Err(Failure::Input(format!("{w} (--strict)")));
         }
@@ -328,7 +328,7 @@ fn simulate(
             .collect();
         let jump_hint;
         let fast_hint;
-        let too_fast = mbfg::plausibility::too_fast(&model, options.dt);
+        let too_fast = mbfg::model::plausibility::too_fast(&model, options.dt);
         let hint = if f.cause.is_some() {
             "an effect must be finite over the whole run"
         } else if f.singular.is_none() && !jumping.is_empty() {
@@ -348,7 +348,7 @@ fn simulate(
             fast_hint = format!(
                 "dt is too coarse for effect {}: dt ≤ {:.2e} s resolves it",
                 fast.name,
-                mbfg::plausibility::MAX_OMEGA_DT / fast.speed()
+                mbfg::model::plausibility::MAX_OMEGA_DT / fast.speed()
             );
             &fast_hint
         } else if f.is_too_coarse() {
@@ -368,13 +368,16 @@ fn simulate(
         return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
     }
     let euler = match &run {
-        Run::Held(trajectory) => {
-            mbfg::plausibility::euler_warning(&model, trajectory, &summary, options.integrator)
-        }
+        Run::Held(trajectory) => mbfg::forward::energy_checks::euler_warning(
+            &model,
+            trajectory,
+            &summary,
+            options.integrator,
+        ),
         // Streamed runs are not explicit Euler ones (see `stream` above).
         Run::Streamed(_) => None,
     };
-    if let Some(w) = mbfg::plausibility::energy_warning(&summary).or(euler) {
+    if let Some(w) = mbfg::forward::energy_checks::energy_warning(&summary).or(euler) {
         if strict {
             output.discard();
             print_summary(to_file, &line);

@@ -11,6 +11,7 @@
 //! (failures, the IC watch) and rescued by `substeps`; `failure` and `summary`
 //! are what it reports.
 
+pub mod energy_checks;
 mod failure;
 mod graph;
 mod judge;

@@ -74,10 +74,6 @@ impl BlockTridiagonal {
         self.summation = how;
     }
 
-    pub fn block_size(&self) -> usize {
-        self.s
-    }
-
     pub fn blocks(&self) -> usize {
         self.blocks
     }

@@ -7,6 +7,7 @@
 pub mod constraints;
 pub mod forces;
 pub mod mass;
+pub mod plausibility;
 
 use crate::error::{Error, Result};
 use crate::scene::{self, ConstraintKind, Effect, RelativeKind, Scene};
@@ -740,14 +741,6 @@ impl Model {
             .iter()
             .map(|f| f.potential(self, q.as_slice()))
             .fold(0.0, |a, b| a + b)
-    }
-
-    /// Whether the scene has gravity.
-    pub fn has_gravity(&self) -> bool {
-        self.scene
-            .effects
-            .iter()
-            .any(|e| matches!(e, Effect::Gravity { .. }))
     }
 }
 

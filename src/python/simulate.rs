@@ -228,10 +228,10 @@ pub(super) fn simulate_run<'py>(
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
         let requested = options.steps();
-        let step_warning: Vec<String> = crate::plausibility::idle_warning(&model)
+        let step_warning: Vec<String> = crate::model::plausibility::idle_warning(&model)
             .into_iter()
-            .chain(crate::plausibility::inertia_warning(&model))
-            .chain(crate::plausibility::step_warning(&model, options.dt))
+            .chain(crate::model::plausibility::inertia_warning(&model))
+            .chain(crate::model::plausibility::step_warning(&model, options.dt))
             .collect();
         let model_for_checks = model.clone();
         let (run, signal) = interruptible(py, |progress| {
@@ -256,12 +256,16 @@ pub(super) fn simulate_run<'py>(
         };
         let out = forward_result(py, &tr, &s, requested)?;
         // What converged but may not be right (mbfg simulate prints these as warnings).
-        let euler =
-            crate::plausibility::euler_warning(&model_for_checks, &tr, &s, options.integrator);
+        let euler = crate::forward::energy_checks::euler_warning(
+            &model_for_checks,
+            &tr,
+            &s,
+            options.integrator,
+        );
         let warnings: Vec<String> = step_warning
             .iter()
             .cloned()
-            .chain(crate::plausibility::energy_warning(&s))
+            .chain(crate::forward::energy_checks::energy_warning(&s))
             .chain(euler)
             .collect();
         out.get_item("summary")?

@@ -162,10 +162,6 @@ impl LoadFunction {
             .eval(&|n| (n == "t").then_some(t))
             .map_err(|e| Error::InvalidArgument(format!("'{text}' at t = {t}: {e}")))
     }
-
-    pub fn is_constant(&self) -> bool {
-        self.expr.as_constant().is_some()
-    }
 }
 
 /// Something that acts on the mechanism. Nothing acts unless the scene names it.

@@ -1,11 +1,10 @@
-//! Whether a run's answer can be trusted beyond convergence: a step too coarse for the
-//! scene's stiffest spring or damper, energy that a conservative scene should keep
-//! but did not, and an explicit Euler run off its energy balance. Each is reported
-//! with its numbers; `mbfg simulate --strict` makes them errors.
+//! Checks on a model before it runs, each reported with its numbers: a time step too
+//! coarse for the scene's stiffest spring or damper (`mbfg simulate --strict` refuses
+//! the run), points that assembly moved from where the scene placed them, motions
+//! without inertia, and a mechanism nothing sets moving (`mbfg check` prints these
+//! three). The checks on a run's result are in [`crate::forward::energy_checks`].
 
-use crate::forward::{Integrator, RunSummary};
 use crate::model::Model;
-use crate::trajectory::Trajectory;
 use nalgebra::{DMatrix, DVector};
 
 /// The largest ω·Δt (ω the fastest natural frequency one effect gives the mechanism,
@@ -13,13 +12,6 @@ use nalgebra::{DMatrix, DVector};
 /// follows the motion: at ω·Δt = 1 a step is a sixth of the period, and the period
 /// comes out about 8 % long; beyond it the motion is not resolved.
 pub const MAX_OMEGA_DT: f64 = 1.0;
-
-/// The largest energy drift of a conservative scene, as a fraction of the largest
-/// kinetic energy along the run, that is still taken as integration error.
-pub const ENERGY_DRIFT_TOLERANCE: f64 = 0.01;
-
-/// The drift, in J, below which no energy warning is given (round-off).
-pub const ENERGY_DRIFT_FLOOR: f64 = 1e-12;
 
 /// The fastest time scale of one effect at the initial state.
 #[derive(Debug, Clone, PartialEq)]
@@ -166,67 +158,6 @@ pub fn step_warning(model: &Model, dt: f64) -> Option<String> {
         fastest.effect,
         short(speed * dt),
         MAX_OMEGA_DT / speed
-    ))
-}
-
-/// A warning when a conservative scene's energy drifted beyond
-/// [`ENERGY_DRIFT_TOLERANCE`] of its largest kinetic energy.
-pub fn energy_warning(summary: &RunSummary) -> Option<String> {
-    let drift = summary.energy_drift?;
-    let scale = summary.peak_kinetic_energy;
-    // Below a picojoule the drift is round-off of a mechanism barely moving.
-    if !(drift > ENERGY_DRIFT_TOLERANCE * scale && drift > ENERGY_DRIFT_FLOOR) {
-        return None;
-    }
-    Some(format!(
-        "the energy of this conservative scene drifted by {drift:.3e} J, {:.1} % of its \
-         largest kinetic energy {scale:.3e} J (tolerance {} %): the step is too coarse \
-         for the motion",
-        100.0 * drift / scale.max(f64::MIN_POSITIVE),
-        100.0 * ENERGY_DRIFT_TOLERANCE
-    ))
-}
-
-/// A warning when a run with the explicit Euler rule (`--integrator euler`, the
-/// paper's f_ei) did not keep its energy balance: kinetic + potential energy against
-/// the work of every non-conservative effect (the `energy_balance` column of
-/// `--columns energy`) off by more than [`ENERGY_DRIFT_TOLERANCE`] of the largest
-/// kinetic energy or work. Every step converges all the same: the equations are
-/// solved, and the first-order rule's are wrong by that much (Andrews' squeezer at
-/// dt = 3 µs ends 14.7 rad off its published angles, its crank turned back, while at
-/// 1 µs it lands within 0.07 rad). Conservative scenes get the energy drift warning.
-pub fn euler_warning(
-    model: &Model,
-    trajectory: &Trajectory,
-    summary: &RunSummary,
-    integrator: Integrator,
-) -> Option<String> {
-    if integrator != Integrator::Euler || summary.energy_drift.is_some() {
-        return None;
-    }
-    let columns = crate::derived::energy(model, trajectory, None).ok()?;
-    let largest = |name: &str| {
-        columns
-            .column(name)
-            .map_or(0.0, |c| c.iter().fold(0.0f64, |m, v| m.max(v.abs())))
-    };
-    let work_scale = columns
-        .names
-        .iter()
-        .filter(|n| n.starts_with("work:"))
-        .map(|n| largest(n))
-        .fold(0.0f64, f64::max);
-    let scale = largest("kinetic").max(work_scale);
-    let off = largest("energy_balance");
-    if !(off > ENERGY_DRIFT_TOLERANCE * scale && off > ENERGY_DRIFT_FLOOR) {
-        return None;
-    }
-    Some(format!(
-        "the explicit Euler rule's energy balance is off by {off:.3e} J, {:.1} % of the \
-         largest kinetic energy or work {scale:.3e} J (tolerance {} %): the motion may be \
-         wrong though every step converged (the trapezoidal rule or a smaller dt keeps it)",
-        100.0 * off / scale.max(f64::MIN_POSITIVE),
-        100.0 * ENERGY_DRIFT_TOLERANCE
     ))
 }
 
