@@ -37,6 +37,8 @@ pub(super) enum Taker {
 pub(super) struct Stepwise {
     square: Option<SquareStep>,
     general: WindowSolver,
+    /// The guess of the step being solved, kept to start again from.
+    guess: Vec<f64>,
 }
 
 impl Stepwise {
@@ -48,6 +50,7 @@ impl Stepwise {
         Ok(Stepwise {
             square,
             general: WindowSolver::new(graph, 2, settings)?,
+            guess: vec![0.0; graph.layout().size()],
         })
     }
 
@@ -102,8 +105,8 @@ impl Stepwise {
         rescue: &mut Rescue<'_>,
     ) -> Result<(SolveReport, Taker)> {
         let s = graph.layout().size();
-        let guess = values[k * s..(k + 1) * s].to_vec();
-        if let Some(report) = self.square_step(graph, values, k, &guess) {
+        self.guess.copy_from_slice(&values[k * s..(k + 1) * s]);
+        if let Some(report) = self.square_step(graph, values, k) {
             return Ok((report, Taker::Square));
         }
         let failed = self.general.solve_conditional(graph, values, k, k + 1)?;
@@ -113,7 +116,7 @@ impl Stepwise {
         // The guess may be too far from the solution (a coarse step through a fast
         // or stiff stretch): from a better one, if there is one.
         let failed_values = values[k * s..(k + 1) * s].to_vec();
-        values[k * s..(k + 1) * s].copy_from_slice(&guess);
+        values[k * s..(k + 1) * s].copy_from_slice(&self.guess);
         if !rescue(values, k, self.square.as_ref()) {
             values[k * s..(k + 1) * s].copy_from_slice(&failed_values);
             return Ok((failed, Taker::General));
@@ -128,14 +131,13 @@ impl Stepwise {
     }
 
     /// Step k by the square step, its iterations reported to the general solver's
-    /// observer as the window k..k+1's; `None`, with step k back at `guess`, where
+    /// observer as the window k..k+1's; `None`, with step k back at its guess, where
     /// there is none or it declines.
     fn square_step(
         &mut self,
         graph: &ChainGraph,
         values: &mut [f64],
         k: usize,
-        guess: &[f64],
     ) -> Option<SolveReport> {
         let square = self.square.as_mut()?;
         let s = graph.layout().size();
@@ -158,7 +160,7 @@ impl Stepwise {
                 ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
             }),
             None => {
-                block.copy_from_slice(guess);
+                block.copy_from_slice(&self.guess);
                 None
             }
         }
