@@ -8,7 +8,7 @@
 //! Adding an integrator: a variant here and its arms below (its order, whether the
 //! square step has its equations, its formula or its factors; a factor family of its
 //! own in `factors/` if it needs one, as Hermite–Simpson has `collocation`), then
-//! its name in the CLI's and Python's lists of integrators.
+//! its name and description (the CLI and Python list [`Integrator::ALL`]).
 
 use super::collocation;
 use super::shared::{identity, key_accessor};
@@ -61,6 +61,31 @@ impl Integrator {
         Integrator::Euler,
         Integrator::HermiteSimpson,
     ];
+
+    /// The name the CLI (`--integrator`) and Python take.
+    pub fn name(self) -> &'static str {
+        match self {
+            Integrator::Trapezoidal => "trapezoidal",
+            Integrator::Euler => "euler",
+            Integrator::HermiteSimpson => "hermite-simpson",
+        }
+    }
+
+    /// One line on the integrator, for a list of them (the CLI's help).
+    pub fn description(self) -> &'static str {
+        match self {
+            Integrator::Trapezoidal => "The paper's trapezoidal rule, second order",
+            Integrator::Euler => "Explicit Euler, first order",
+            Integrator::HermiteSimpson => {
+                "Hermite–Simpson collocation, fourth order (the dynamics also at each step's middle)"
+            }
+        }
+    }
+
+    /// The integrator named `name` ([`Integrator::name`]).
+    pub fn from_name(name: &str) -> Option<Integrator> {
+        Integrator::ALL.into_iter().find(|i| i.name() == name)
+    }
 
     /// The order of the global error in Δt.
     pub fn order(self) -> u32 {
@@ -356,5 +381,9 @@ mod tests {
         assert_eq!(two_point, [Integrator::Trapezoidal, Integrator::Euler]);
         let orders = Integrator::ALL.map(Integrator::order);
         assert_eq!(orders, [2, 1, 4]);
+        for i in Integrator::ALL {
+            assert_eq!(Integrator::from_name(i.name()), Some(i));
+        }
+        assert_eq!(Integrator::from_name("rk4"), None);
     }
 }
