@@ -11,7 +11,6 @@
 // Index loops mirror the math of the small dense kernels.
 #![allow(clippy::needless_range_loop)]
 
-pub mod collocation;
 pub mod convergence;
 pub mod coordinates;
 pub mod derived;
@@ -37,7 +36,6 @@ pub mod reference;
 pub mod scene;
 pub mod smoother;
 pub mod solver;
-pub mod tangent;
 pub mod trajectory;
 
 pub use error::{Error, Result, SceneError};

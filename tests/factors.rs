@@ -4,16 +4,15 @@
 //! exact Jacobians of the dynamics kernel off the constraint manifold; and evaluation
 //! leaving nothing behind in its workspace.
 
-use mbfg::collocation::{HermitePosition, SimpsonVelocity};
 use mbfg::dynamics;
 use mbfg::factors::{
-    ComponentPrior, Dynamics, DynamicsKernel, Equality, Euler, IndependentAcceleration,
-    IndependentDynamics, IndependentPosition, IndependentVelocity, KernelScratch,
-    PositionConstraints, PrescribedMotion, Prior, Trapezoidal, VelocityConstraints,
+    ComponentPrior, Dynamics, DynamicsKernel, Equality, Euler, Form, HermitePosition,
+    IndependentAcceleration, IndependentDynamics, IndependentPosition, IndependentVelocity,
+    Integrator, KernelScratch, PositionConstraints, PrescribedMotion, Prior, Projected,
+    SimpsonVelocity, Trapezoidal, VelocityConstraints,
 };
 use mbfg::graph::{Factor, Key, StackReq, VarKind, Workspace};
 use mbfg::kinematics;
-use mbfg::tangent::{Projected, Rule};
 use mbfg::{Model, Scene};
 use nalgebra::DVector;
 use std::collections::BTreeMap;
@@ -436,10 +435,9 @@ fn tangent_integrators_match_finite_differences() {
     // scenes include a redundant constraint (pick-and-place: the SVD path).
     let errors = check_family("tangent integrators", 7, |m, _| {
         let mut list: Vec<(String, Box<dyn Factor>)> = Vec::new();
-        for (x, dx) in [(VarKind::Q, VarKind::Dq), (VarKind::Dq, VarKind::Ddq)] {
-            for (rule, dt) in [(Rule::Trapezoidal, 0.05), (Rule::Euler, 0.001)] {
-                let f = Projected::integrator(m.clone(), x, dx, rule, dt);
-                list.push((format!("{} dt={dt}", f.name()), Box::new(f)));
+        for (integrator, dt) in [(Integrator::Trapezoidal, 0.05), (Integrator::Euler, 0.001)] {
+            for f in integrator.factors(m, Form::Tangent, dt) {
+                list.push((format!("{} dt={dt}", f.name()), f));
             }
         }
         list

@@ -47,7 +47,7 @@ pub struct SimulateArgs {
     #[command(flatten)]
     written: WrittenArgs,
     /// Integrator factor between steps.
-    #[arg(long, value_enum, default_value_t = IntegratorArg::Trapezoidal)]
+    #[arg(long, value_enum, default_value_t = IntegratorArg(Integrator::Trapezoidal))]
     integrator: IntegratorArg,
     /// In dependent coordinates, what the integrator factors ask: on all n
     /// coordinates as in the paper (`full`: a least-squares compromise), only along
@@ -98,14 +98,29 @@ enum CoordsArg {
     Ic,
 }
 
-#[derive(Clone, Copy, ValueEnum)]
-enum IntegratorArg {
-    /// The paper's trapezoidal rule, second order.
-    Trapezoidal,
-    /// Explicit Euler, first order.
-    Euler,
-    /// Hermite–Simpson collocation, fourth order (the dynamics also at each step's middle).
-    HermiteSimpson,
+/// `--integrator`: every [`Integrator`], by its name and description.
+#[derive(Clone, Copy)]
+struct IntegratorArg(Integrator);
+
+impl IntegratorArg {
+    const ALL: [IntegratorArg; Integrator::ALL.len()] = {
+        let mut all = [IntegratorArg(Integrator::Trapezoidal); Integrator::ALL.len()];
+        let mut i = 0;
+        while i < all.len() {
+            all[i] = IntegratorArg(Integrator::ALL[i]);
+            i += 1;
+        }
+        all
+    };
+}
+
+impl ValueEnum for IntegratorArg {
+    fn value_variants<'a>() -> &'a [Self] {
+        &IntegratorArg::ALL
+    }
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        Some(clap::builder::PossibleValue::new(self.0.name()).help(self.0.description()))
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -161,11 +176,7 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         CoordsArg::Ic => Coordinates::Independent,
     };
     let mut options = ForwardOptions::new(coordinates, dt, t_end, mode);
-    options.integrator = match integrator {
-        IntegratorArg::Trapezoidal => Integrator::Trapezoidal,
-        IntegratorArg::Euler => Integrator::Euler,
-        IntegratorArg::HermiteSimpson => Integrator::HermiteSimpson,
-    };
+    options.integrator = integrator.0;
     options.dc_integrators = match dc_integrators {
         DcIntegratorsArg::Auto => DcIntegrators::Auto,
         DcIntegratorsArg::Tangent => DcIntegrators::Tangent,

@@ -2,16 +2,14 @@
 //! in dependent or independent coordinates, the initial guess and the prediction of
 //! each step, and the conversions between its variables and a [`Trajectory`].
 
-use super::options::{ForwardOptions, Integrator, NoiseModels};
+use super::options::{ForwardOptions, NoiseModels};
 use super::plan::Plan;
-use crate::collocation;
 use crate::coordinates::Coordinates;
 use crate::dynamics;
 use crate::error::Result;
 use crate::factors::*;
-use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
+use crate::graph::{ChainGraph, Layout, Noise, VarKind};
 use crate::model::Model;
-use crate::tangent::{Projected, Rule};
 use crate::trajectory::Trajectory;
 use std::sync::Arc;
 
@@ -36,25 +34,6 @@ impl ForwardGraph {
         let nm = *noise;
         let dt = plan.dt;
         let init = &model.initial;
-        let integrate = |x: VarKind, dx: VarKind, dim: usize| -> Box<dyn Factor> {
-            match plan.integrator {
-                Integrator::Trapezoidal | Integrator::HermiteSimpson => {
-                    Box::new(Trapezoidal::new(x, dx, dim, dt))
-                }
-                Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt)),
-            }
-        };
-        let dc_integrate = |x: VarKind, dx: VarKind| -> Box<dyn Factor> {
-            let rule = match plan.integrator {
-                Integrator::Trapezoidal | Integrator::HermiteSimpson => Rule::Trapezoidal,
-                Integrator::Euler => Rule::Euler,
-            };
-            if plan.tangent_dc() {
-                Box::new(Projected::integrator(model.clone(), x, dx, rule, dt))
-            } else {
-                integrate(x, dx, n)
-            }
-        };
         // The position and velocity integrators of each coordinate set, soft with
         // these σ. Tangent DC integrators leave one soft equation per unknown: the
         // solution has a zero residual and does not depend on the σ's, only the
@@ -70,28 +49,12 @@ impl ForwardGraph {
         } else {
             sigma
         };
-        let hermite = (plan.integrator == Integrator::HermiteSimpson)
-            .then_some(|independent| collocation::factors(&model, independent, dt));
-        let dc_integrators = || -> [Box<dyn Factor>; 2] {
-            match &hermite {
-                Some(factors) if plan.tangent_dc() => factors(false)
-                    .map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>),
-                Some(factors) => factors(false),
-                None => [
-                    dc_integrate(VarKind::Q, VarKind::Dq),
-                    dc_integrate(VarKind::Dq, VarKind::Ddq),
-                ],
-            }
+        let form = match plan.coordinates {
+            Coordinates::Dependent if plan.tangent_dc() => Form::Tangent,
+            Coordinates::Dependent => Form::Full,
+            Coordinates::Independent => Form::Independent,
         };
-        let ic_integrators = || -> [Box<dyn Factor>; 2] {
-            match &hermite {
-                Some(factors) => factors(true),
-                None => [
-                    integrate(VarKind::Z, VarKind::Dz, f),
-                    integrate(VarKind::Dz, VarKind::Ddz, f),
-                ],
-            }
-        };
+        let integrators = plan.integrator.factors(&model, form, dt);
         let graph = match plan.coordinates {
             Coordinates::Dependent => {
                 let layout = Layout::new(&[(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)]);
@@ -102,7 +65,7 @@ impl ForwardGraph {
                         Box::new(Dynamics::new(model.clone())),
                         Noise::Isotropic(nm.dynamics),
                     );
-                for (factor, sigma) in dc_integrators().into_iter().zip(dc_sigma) {
+                for (factor, sigma) in integrators.into_iter().zip(dc_sigma) {
                     builder = builder.step_soft(factor, Noise::Isotropic(sigma));
                 }
                 builder
@@ -140,7 +103,7 @@ impl ForwardGraph {
                         Box::new(IndependentDynamics::new(model.clone())),
                         Noise::Isotropic(nm.dynamics),
                     );
-                for (factor, sigma) in ic_integrators().into_iter().zip(sigma) {
+                for (factor, sigma) in integrators.into_iter().zip(sigma) {
                     builder = builder.step_soft(factor, Noise::Isotropic(sigma));
                 }
                 builder

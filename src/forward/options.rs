@@ -10,14 +10,7 @@ use crate::solver::Observer;
 use crate::solver::{Past, Settings};
 use std::sync::Arc;
 
-/// The integrator factor between consecutive steps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Integrator {
-    Trapezoidal,
-    Euler,
-    /// Hermite–Simpson collocation, fourth order ([`crate::collocation`]).
-    HermiteSimpson,
-}
+pub use crate::factors::Integrator;
 
 /// What the integrator factors ask of a step in dependent coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -27,7 +20,7 @@ pub enum DcIntegrators {
     /// run again with the paper's [`DcIntegrators::Full`], and
     /// [`RunSummary::full_after`](super::summary::RunSummary::full_after) says so.
     Auto,
-    /// Only along the directions the constraints leave free (see [`crate::tangent`]):
+    /// Only along the directions the constraints leave free (see [`crate::factors::tangent`]):
     /// one soft equation per unknown, all of them satisfied, so that every window
     /// length and the batch have the solution of N_w = 1.
     Tangent,

@@ -133,11 +133,11 @@ impl Plan {
             (_, DcIntegrators::Tangent | DcIntegrators::Auto) => Some(DcIntegrators::Tangent),
         };
         let square = dc_integrators != Some(DcIntegrators::Full);
-        // The square step has the trapezoidal rule's and Euler's equations, and needs
-        // as many constraints as rows of Φ_q in IC (no redundant ones).
+        // The square step has the two-point rules' equations, and needs as many
+        // constraints as rows of Φ_q in IC (no redundant ones).
         let square_step = square
             && options.square_steps
-            && options.integrator != Integrator::HermiteSimpson
+            && options.integrator.has_square_step()
             && options.settings.past != Past::Marginalized
             && (options.coordinates == Coordinates::Dependent || model.active.len() == model.m());
         let steps = options.steps();
@@ -171,6 +171,7 @@ impl Plan {
                 Rescue::Substeps => schedule != Schedule::Batch,
                 Rescue::Reselection => options.coordinates == Coordinates::Independent,
                 Rescue::Refinement => options.refine,
+                // Hermite–Simpson's tangent factors are its own; the paper has none.
                 Rescue::PaperIntegrators => {
                     options.dc_integrators == DcIntegrators::Auto
                         && options.coordinates == Coordinates::Dependent

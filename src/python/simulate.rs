@@ -59,10 +59,7 @@ fn forward_result<'py>(
     plan.set_item("description", s.plan.describe())?;
     plan.set_item("square_step", s.plan.square_step)?;
     plan.set_item("dt", s.plan.dt)?;
-    plan.set_item(
-        "integrator",
-        format!("{:?}", s.plan.integrator).to_lowercase(),
-    )?;
+    plan.set_item("integrator", s.plan.integrator.name())?;
     plan.set_item(
         "dc_integrators",
         s.plan
@@ -178,11 +175,8 @@ pub(super) fn simulate_run<'py>(
         let window = arg_count(window, "window", 1)?;
         let batch = arg_bool(batch, "batch")?;
         let max_iterations = arg_count(max_iterations, "max_iterations", 1)?;
-        let integrator = arg_choice(
-            integrator,
-            "integrator",
-            &["trapezoidal", "euler", "hermite-simpson"],
-        )?;
+        let integrators = Integrator::ALL.map(Integrator::name);
+        let integrator = arg_choice(integrator, "integrator", &integrators)?;
         let noise = arg_choice(noise, "noise", &["default", "paper"])?;
         let continue_on_failure = arg_bool(continue_on_failure, "continue_on_failure")?;
         let refine = arg_bool(refine, "refine")?;
@@ -200,11 +194,7 @@ pub(super) fn simulate_run<'py>(
             Mode::FixedLag(window)
         };
         let mut options = ForwardOptions::new(coordinates, dt, t_end, mode);
-        options.integrator = match integrator {
-            "trapezoidal" => Integrator::Trapezoidal,
-            "hermite-simpson" => Integrator::HermiteSimpson,
-            _ => Integrator::Euler,
-        };
+        options.integrator = Integrator::from_name(integrator).expect("a listed name");
         options.dc_integrators = match dc_integrators {
             "auto" => DcIntegrators::Auto,
             "tangent" => DcIntegrators::Tangent,

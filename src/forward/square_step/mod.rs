@@ -3,7 +3,7 @@
 //! Jacobian: per-step cost that grows with the number of bodies, not with its cube.
 //!
 //! With tangent integrators a DC step has as many equations as unknowns and they
-//! hold exactly (see [`crate::tangent`]): Φ(q) = 0, Φ_q q̇ = 0, f_dyn = 0, and the
+//! hold exactly (see [`crate::factors::tangent`]): Φ(q) = 0, Φ_q q̇ = 0, f_dyn = 0, and the
 //! projected integrators P(q) e = 0. Each projection is dense (P couples every
 //! coordinate of a chain), but P e = 0 says e lies in the row space of Φ_q, that is
 //! e = Φ_qᵀμ for a multiplier μ; and f_dyn = 0 is the augmented system with its
@@ -45,7 +45,6 @@ use crate::coordinates::Coordinates;
 use crate::dynamics;
 use crate::linalg::sparse::Pattern;
 use crate::model::Model;
-use crate::tangent::Rule;
 use factors::Factors;
 use nalgebra::DVector;
 use regularity::{GramWork, Regularity};
@@ -154,32 +153,37 @@ struct Equations {
 }
 
 impl SquareStep {
-    /// The step system of a DC graph of `model` with tangent integrators of `rule`
-    /// at `dt`; `None` where its sparse analysis fails (the general solver then
-    /// takes every step).
-    pub fn dependent(model: Arc<Model>, rule: Rule, dt: f64) -> Option<SquareStep> {
+    /// The step system of a DC graph of `model` with tangent integrators of
+    /// `integrator` at `dt`; `None` where the integrator has no square step
+    /// ([`Integrator::has_square_step`]) or its sparse analysis fails (the general
+    /// solver then takes every step).
+    pub fn dependent(model: Arc<Model>, integrator: Integrator, dt: f64) -> Option<SquareStep> {
         let integrated = (0..model.n()).collect();
-        SquareStep::new(model, rule, dt, integrated, true)
+        SquareStep::new(model, integrator, dt, integrated, true)
     }
 
-    /// The step system of an IC graph of `model` (integrators of `rule` on its
-    /// independent coordinates) at `dt`; `None` where it is not square (redundant
-    /// constraints) or its sparse analysis fails.
-    pub fn independent(model: Arc<Model>, rule: Rule, dt: f64) -> Option<SquareStep> {
+    /// The step system of an IC graph of `model` (integrators of `integrator` on
+    /// its independent coordinates) at `dt`; `None` where the integrator has no
+    /// square step, the system is not square (redundant constraints) or its sparse
+    /// analysis fails.
+    pub fn independent(model: Arc<Model>, integrator: Integrator, dt: f64) -> Option<SquareStep> {
         if model.active.len() != model.m() {
             return None;
         }
         let integrated = model.independent.clone();
-        SquareStep::new(model, rule, dt, integrated, false)
+        SquareStep::new(model, integrator, dt, integrated, false)
     }
 
     fn new(
         model: Arc<Model>,
-        rule: Rule,
+        integrator: Integrator,
         dt: f64,
         integrated: Vec<usize>,
         projected: bool,
     ) -> Option<SquareStep> {
+        if !integrator.has_square_step() {
+            return None;
+        }
         let n = model.n();
         let mut force_entries = Vec::new();
         for force in &model.forces {
@@ -197,7 +201,7 @@ impl SquareStep {
         let mass = model.mass_entries();
         let system = System {
             model,
-            rule,
+            integrator,
             dt,
             mass,
             force_entries,
@@ -248,20 +252,17 @@ impl SquareStep {
     }
 }
 
-/// The square step of `plan`'s graph for `model`, where the plan has one (its
-/// integrator is the trapezoidal rule or Euler) and its sparse analysis succeeds.
+/// The square step of `plan`'s graph for `model`, where the plan has one (and its
+/// integrator too: [`Integrator::has_square_step`]) and its sparse analysis
+/// succeeds.
 pub(super) fn for_plan(model: &Arc<Model>, plan: &Plan) -> Option<SquareStep> {
     if !plan.square_step {
         return None;
     }
-    let rule = match plan.integrator {
-        Integrator::Trapezoidal => Rule::Trapezoidal,
-        Integrator::Euler => Rule::Euler,
-        Integrator::HermiteSimpson => return None,
-    };
+    let (integrator, dt) = (plan.integrator, plan.dt);
     match plan.coordinates {
-        Coordinates::Dependent => SquareStep::dependent(model.clone(), rule, plan.dt),
-        Coordinates::Independent => SquareStep::independent(model.clone(), rule, plan.dt),
+        Coordinates::Dependent => SquareStep::dependent(model.clone(), integrator, dt),
+        Coordinates::Independent => SquareStep::independent(model.clone(), integrator, dt),
     }
 }
 

@@ -1,8 +1,8 @@
 //! The equations of a square step (see the module above): their residual and their
 //! Jacobian, emitted entry by entry in a fixed order onto a compressed-column pattern.
 
+use crate::factors::Integrator;
 use crate::model::{Model, MAX_LOCAL};
-use crate::tangent::Rule;
 use std::sync::Arc;
 
 /// Where the emitted entries go: collected as a pattern, or added into the values.
@@ -37,7 +37,9 @@ impl Sink<'_> {
 #[derive(Clone)]
 pub(super) struct System {
     pub(super) model: Arc<Model>,
-    pub(super) rule: Rule,
+    /// A two-point rule ([`Integrator::has_square_step`]), whose per-coordinate
+    /// residual and partials the integrator rows are.
+    pub(super) integrator: Integrator,
     pub(super) dt: f64,
     /// The nonzeros of M: (row, column, value).
     pub(super) mass: Vec<(usize, usize, f64)>,
@@ -93,16 +95,14 @@ impl System {
         let (r_vel, r_acc, r_dyn, r_pos_int, r_vel_int) =
             (ma, 2 * ma, 3 * ma, 3 * ma + n, 3 * ma + n + ni);
         let (c_lambda, c_mu1, c_mu2) = (3 * n, 3 * n + ma, 3 * n + 2 * ma);
-        let half = match self.rule {
-            Rule::Trapezoidal => 0.5 * self.dt,
-            Rule::Euler => 0.0,
-        };
+        // The step before is fixed: ∂e/∂x₁ and ∂e/∂ẋ₁ only.
+        let d = self.integrator.partials(self.dt);
         for (r, &i) in self.integrated.iter().enumerate() {
-            sink.add(r_pos_int + r, i, 1.0);
-            sink.add(r_vel_int + r, n + i, 1.0);
-            if self.rule == Rule::Trapezoidal {
-                sink.add(r_pos_int + r, n + i, -half);
-                sink.add(r_vel_int + r, 2 * n + i, -half);
+            sink.add(r_pos_int + r, i, d.x1);
+            sink.add(r_vel_int + r, n + i, d.x1);
+            if let Some(dx1) = d.dx1 {
+                sink.add(r_pos_int + r, n + i, dx1);
+                sink.add(r_vel_int + r, 2 * n + i, dx1);
             }
         }
         for &(i, j, mass) in &self.mass {
@@ -168,14 +168,10 @@ impl System {
         for (r, force) in out[r_dyn..r_dyn + n].iter_mut().zip(q_force) {
             *r = -force;
         }
+        let rule = self.integrator;
         for (r, &i) in self.integrated.iter().enumerate() {
-            (out[r_pos_int + r], out[r_vel_int + r]) = match self.rule {
-                Rule::Trapezoidal => (
-                    q[i] - qp[i] - 0.5 * dt * (vp[i] + v[i]),
-                    v[i] - vp[i] - 0.5 * dt * (ap[i] + a[i]),
-                ),
-                Rule::Euler => (q[i] - qp[i] - dt * vp[i], v[i] - vp[i] - dt * ap[i]),
-            };
+            out[r_pos_int + r] = rule.residual(qp[i], vp[i], q[i], v[i], dt);
+            out[r_vel_int + r] = rule.residual(vp[i], ap[i], v[i], a[i], dt);
         }
         for &(i, j, mass) in &self.mass {
             out[r_dyn + i] += mass * a[j];

@@ -10,12 +10,12 @@ fn model_of(scene: &str) -> Arc<Model> {
     Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap())
 }
 
-fn step_of(scene: &str, rule: Rule) -> SquareStep {
-    SquareStep::dependent(model_of(scene), rule, 1e-3).unwrap()
+fn step_of(scene: &str, integrator: Integrator) -> SquareStep {
+    SquareStep::dependent(model_of(scene), integrator, 1e-3).unwrap()
 }
 
-fn ic_step_of(scene: &str, rule: Rule) -> SquareStep {
-    SquareStep::independent(model_of(scene), rule, 1e-3).unwrap()
+fn ic_step_of(scene: &str, integrator: Integrator) -> SquareStep {
+    SquareStep::independent(model_of(scene), integrator, 1e-3).unwrap()
 }
 
 /// A deterministic spread of values in (−1, 1).
@@ -80,7 +80,7 @@ fn distance_to_rank_loss_is_the_kernels() {
         "benchmarks/andrews-squeezer.yaml",
         "driven/watt-six-bar.yaml",
     ] {
-        let mut step = step_of(scene, Rule::Trapezoidal);
+        let mut step = step_of(scene, Integrator::Trapezoidal);
         let model = step.equations.system.model.clone();
         for shift in [0.0, 0.05, 0.3] {
             let q: Vec<f64> = (0..model.n())
@@ -106,14 +106,30 @@ fn jacobian_matches_finite_differences() {
     // a controller reading rates; both integration rules; in DC (projected
     // integrators with μ) and in IC (integrators on z alone, no μ).
     for (scene, rule, independent) in [
-        ("benchmarks/andrews-squeezer.yaml", Rule::Trapezoidal, false),
-        ("scale/n-pendulum-4.yaml", Rule::Trapezoidal, false),
-        ("driven/controlled-crank-rocker.yaml", Rule::Euler, false),
-        ("driven/watt-six-bar.yaml", Rule::Trapezoidal, false),
-        ("benchmarks/andrews-squeezer.yaml", Rule::Trapezoidal, true),
-        ("driven/controlled-crank-rocker.yaml", Rule::Euler, true),
-        ("driven/watt-six-bar.yaml", Rule::Trapezoidal, true),
-        ("double-pendulum.yaml", Rule::Trapezoidal, true),
+        (
+            "benchmarks/andrews-squeezer.yaml",
+            Integrator::Trapezoidal,
+            false,
+        ),
+        ("scale/n-pendulum-4.yaml", Integrator::Trapezoidal, false),
+        (
+            "driven/controlled-crank-rocker.yaml",
+            Integrator::Euler,
+            false,
+        ),
+        ("driven/watt-six-bar.yaml", Integrator::Trapezoidal, false),
+        (
+            "benchmarks/andrews-squeezer.yaml",
+            Integrator::Trapezoidal,
+            true,
+        ),
+        (
+            "driven/controlled-crank-rocker.yaml",
+            Integrator::Euler,
+            true,
+        ),
+        ("driven/watt-six-bar.yaml", Integrator::Trapezoidal, true),
+        ("double-pendulum.yaml", Integrator::Trapezoidal, true),
     ] {
         let step = if independent {
             ic_step_of(scene, rule)
@@ -133,9 +149,9 @@ fn independent_steps_need_independent_constraints() {
         model.active.len() < model.m(),
         "the coupler is constrained twice"
     );
-    assert!(SquareStep::independent(model, Rule::Trapezoidal, 1e-3).is_none());
+    assert!(SquareStep::independent(model, Integrator::Trapezoidal, 1e-3).is_none());
     let model = model_of("fourbar-theta.yaml");
-    let step = SquareStep::independent(model.clone(), Rule::Trapezoidal, 1e-3).unwrap();
+    let step = SquareStep::independent(model.clone(), Integrator::Trapezoidal, 1e-3).unwrap();
     assert_eq!(step.equations.system.size(), 3 * model.n() + model.m());
 }
 
@@ -149,7 +165,7 @@ fn factors_of_a_distant_step_do_not_change_the_solution() {
         step_tolerance: 1e-8,
     };
     let scene = "benchmarks/andrews-squeezer.yaml";
-    let mut kept = step_of(scene, Rule::Trapezoidal);
+    let mut kept = step_of(scene, Integrator::Trapezoidal);
     let model = kept.equations.system.model.clone();
     let n = model.n();
     // The squeezer 40 ms into its motion: the crank has turned through a radian.
@@ -183,7 +199,7 @@ fn factors_of_a_distant_step_do_not_change_the_solution() {
         .solve(t, &before, &mut with_kept, limits, None)
         .unwrap();
     assert!(work.factorizations >= 1, "the kept factors were refreshed");
-    let mut fresh = step_of(scene, Rule::Trapezoidal);
+    let mut fresh = step_of(scene, Integrator::Trapezoidal);
     let mut with_fresh = before.clone();
     fresh
         .solve(t, &before, &mut with_fresh, limits, None)

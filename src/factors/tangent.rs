@@ -24,7 +24,6 @@
 //! projector are unchanged) so that rank is judged relative to each row's size.
 
 use crate::error::{Error, Result};
-use crate::factors::{Euler, Trapezoidal};
 use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
 use crate::linalg::dense;
 use crate::model::Model;
@@ -35,15 +34,6 @@ use std::sync::Arc;
 /// Singular values of the row-normalized Φ_q below this (relative to the largest)
 /// count as a lost rank: the direction is not projected out.
 const RANK_TOLERANCE: f64 = 1e-10;
-
-/// The integration rule the projected residual e comes from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Rule {
-    /// e = x_t − x_{t−1} − Δt/2 (ẋ_{t−1} + ẋ_t).
-    Trapezoidal,
-    /// e = x_t − x_{t−1} − Δt ẋ_{t−1}.
-    Euler,
-}
 
 /// The row space of Φ_q at q, from the active rows (redundant constraints left out:
 /// on the manifold they add no direction) normalized, Â = D Φ_q,active: the
@@ -236,9 +226,9 @@ fn subtract_projector_derivative(
 }
 
 /// An integrator factor of dependent coordinates (n rows) projected onto the tangent
-/// space at the step's positions: P(q_t) e, for the trapezoidal rule and Euler
-/// ([`Projected::integrator`]) and for the Hermite–Simpson factors
-/// ([`crate::collocation`]).
+/// space at the step's positions: P(q_t) e, for every integrator's factors (the
+/// `--dc-integrators tangent` ones, made by [`super::Integrator::factors`] with
+/// [`super::Form::Tangent`]).
 pub struct Projected {
     model: Arc<Model>,
     inner: Box<dyn Factor>,
@@ -268,17 +258,6 @@ impl Projected {
             keys,
             q_key,
         }
-    }
-
-    /// The integration of `dx` into `x` (q or q̇) by `rule`, projected: the
-    /// `--dc-integrators tangent` factors.
-    pub fn integrator(model: Arc<Model>, x: VarKind, dx: VarKind, rule: Rule, dt: f64) -> Self {
-        let n = model.n();
-        let inner: Box<dyn Factor> = match rule {
-            Rule::Trapezoidal => Box::new(Trapezoidal::new(x, dx, n, dt)),
-            Rule::Euler => Box::new(Euler::new(x, dx, n, dt)),
-        };
-        Projected::new(model, inner)
     }
 }
 

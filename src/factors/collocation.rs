@@ -27,9 +27,9 @@
 //! offset enters q̈_m smoothly and the step's error stays O(h⁵). The constraints hold
 //! exactly at the nodes, where the hard factors are.
 
+use super::{identity, key_accessor};
 use crate::dynamics::{DynamicsKernel, KernelScratch, KktStructure};
 use crate::error::Result;
-use crate::factors::{identity, key_accessor};
 use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
