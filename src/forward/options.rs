@@ -1,7 +1,6 @@
 //! What a forward run is asked: the coordinates, the step and horizon, the solve's
 //! mode, the integrator and its factors, the noise models ([`ForwardOptions`]).
 
-use super::plan::Plan;
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::model::Model;
@@ -180,33 +179,6 @@ impl ForwardOptions {
     /// (for options that [`validate`](Self::validate) accepts).
     pub fn steps(&self) -> usize {
         crate::limits::step_count(self.dt, self.t_end).unwrap_or(0)
-    }
-
-    /// Bytes a run of `model` with these options holds at its peak, roughly, when it
-    /// returns its trajectory ([`simulate`](super::simulate)); see [`Plan::memory`].
-    pub fn memory_estimate(&self, model: &Model) -> Result<f64> {
-        Ok(Plan::new(model, self)?.memory.held)
-    }
-
-    /// Refuses a run whose estimate does not fit the memory available: with its
-    /// trajectory `held`, or streamed (which [`validate`](Self::validate) checks).
-    pub fn check_memory(&self, model: &Model, held: bool) -> Result<()> {
-        let plan = Plan::new(model, self)?;
-        let bytes = if held {
-            plan.memory.held
-        } else {
-            plan.memory.streamed
-        };
-        crate::limits::ensure_fits(
-            &format!("a run of {} steps of {} coordinates", plan.steps, model.n()),
-            bytes,
-        )
-    }
-
-    /// Refuses options that make no sense, or a run that does not fit the memory
-    /// available (streamed), with the reason.
-    pub fn validate(&self, model: &Model) -> Result<()> {
-        Plan::new(model, self).map(drop)
     }
 
     /// Refuses options that make no sense, with the reason.
