@@ -57,8 +57,9 @@ pub fn simulate(
 
 /// [`simulate`], where `progress` returning `Break` after a step ends the run there
 /// (a user's Ctrl-C): the steps solved so far are returned, and
-/// [`RunSummary::interrupted`] names the last one. A batch solve is interrupted only
-/// during its one-step start, and then returns no step.
+/// [`RunSummary::interrupted`] names the last one. A batch through the general solver
+/// ([`Schedule::Batch`](super::Schedule::Batch)) is interrupted only during its
+/// one-step start, and then returns no step.
 ///
 /// In independent coordinates the run goes in segments: where the coordinates in use
 /// approach a configuration where they stop determining the others while Φ_q keeps
