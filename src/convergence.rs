@@ -25,7 +25,7 @@ pub struct SolveReport {
     /// Linear solves performed.
     pub iterations: usize,
     /// Factorizations performed: one per linear solve for the general solver; a
-    /// sparse step's simplified iterations reuse one.
+    /// square step's simplified iterations reuse one.
     pub factorizations: usize,
     pub termination: Termination,
     /// ½ Σ‖whitened residual‖² at the returned estimate (prior included; hard

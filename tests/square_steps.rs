@@ -39,7 +39,7 @@ fn largest_difference(a: &[f64], b: &[f64]) -> f64 {
 /// coordinates): positions, velocities and accelerations as the general solver
 /// takes them, step by step.
 #[test]
-fn sparse_steps_are_the_general_solvers_steps() {
+fn square_steps_are_the_general_solvers_steps() {
     for (scene, t_end) in [
         ("benchmarks/n-fourbar-10.yaml", 0.8),
         ("scale/n-pendulum-8.yaml", 0.5),
@@ -55,7 +55,7 @@ fn sparse_steps_are_the_general_solvers_steps() {
             "{scene}: q {dq:e}, q̇ {ddq:e}, q̈ {dddq:e} apart"
         );
         assert!(s.worst_phi <= 1e-12, "{scene}: |Φ| {:e}", s.worst_phi);
-        // The sparse steps reuse their factors from step to step: far fewer
+        // The square steps reuse their factors from step to step: far fewer
         // factorizations than the general solver's (one per linear solve).
         assert!(
             s.mean_factorizations <= 0.5 * g.mean_factorizations,
@@ -67,7 +67,7 @@ fn sparse_steps_are_the_general_solvers_steps() {
 }
 
 /// Each step holds all its equations, so every window length and the batch have
-/// the one-step solution; with sparse steps they are that solution.
+/// the one-step solution; with square steps they are that solution.
 #[test]
 fn every_window_and_the_batch_are_the_one_step_solution() {
     let scene = "scale/n-pendulum-8.yaml";

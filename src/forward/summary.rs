@@ -27,7 +27,7 @@ pub struct RunSummary {
     pub mean_iterations: f64,
     pub max_iterations: usize,
     /// Mean factorizations per window solve: as many as the linear solves for the
-    /// general solver, fewer for sparse steps (which reuse one while it carries).
+    /// general solver, fewer for square steps (which reuse one while it carries).
     pub mean_factorizations: f64,
     /// max |Φ| and max |Φ_q q̇| over the trajectory.
     pub worst_phi: f64,

@@ -33,7 +33,7 @@ impl Sink<'_> {
 }
 
 /// The equations of a DC step with tangent integrators or of an IC step (see
-/// the documentation of `forward::exact_step`): residual and Jacobian.
+/// the documentation of `forward::square_step`): residual and Jacobian.
 #[derive(Clone)]
 pub(super) struct System {
     pub(super) model: Arc<Model>,
