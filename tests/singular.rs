@@ -378,7 +378,7 @@ fn a_watch_stops_ahead_of_a_rank_loss_and_switches_ahead_of_a_poor_set() {
         let (run, _) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
         let n = model.n();
         let q = |k: usize| &run.q[k * n..(k + 1) * n];
-        let mut watch = Watch::new(&model);
+        let mut watch = Watch::new(&model, &model.independent, model.initial.q.as_slice());
         for k in 0..run.len() {
             let verdict = watch.observe(&model, k, run.t[k], q(k.max(1) - 1), q(k));
             if verdict != Watched::Continue {

@@ -35,23 +35,16 @@ use crate::model::Model;
 use std::sync::Arc;
 
 /// The position and velocity factors of one coordinate set, in that order: q, q̇, q̈
-/// for dependent coordinates, or z, ż, z̈ with the velocity rule on the independent
-/// rows.
-pub fn factors(model: &Arc<Model>, independent: bool, dt: f64) -> [Box<dyn Factor>; 2] {
-    let (x, dx, ddx, dim) = if independent {
-        (
-            VarKind::Z,
-            VarKind::Dz,
-            VarKind::Ddz,
-            model.independent.len(),
-        )
-    } else {
-        (VarKind::Q, VarKind::Dq, VarKind::Ddq, model.n())
+/// for dependent coordinates (`independent` None), or z, ż, z̈ with the velocity rule
+/// on the rows of the independent coordinates `independent`.
+pub fn factors(model: &Arc<Model>, independent: Option<&[usize]>, dt: f64) -> [Box<dyn Factor>; 2] {
+    let (x, dx, ddx, dim) = match independent {
+        Some(set) => (VarKind::Z, VarKind::Dz, VarKind::Ddz, set.len()),
+        None => (VarKind::Q, VarKind::Dq, VarKind::Ddq, model.n()),
     };
-    let velocity = if independent {
-        SimpsonVelocity::independent(model.clone(), dt)
-    } else {
-        SimpsonVelocity::dependent(model.clone(), dt)
+    let velocity = match independent {
+        Some(set) => SimpsonVelocity::with_rows(model.clone(), dt, set.to_vec()),
+        None => SimpsonVelocity::dependent(model.clone(), dt),
     };
     [
         Box::new(HermitePosition::new(x, dx, ddx, dim, dt)),
@@ -156,10 +149,17 @@ impl SimpsonVelocity {
     }
 
     /// Independent coordinates: the keys of [`SimpsonVelocity::dependent`], the rows
-    /// of the independent coordinates.
+    /// of the scene's independent coordinates.
     pub fn independent(model: Arc<Model>, dt: f64) -> Self {
+        let rows = model.independent.clone();
+        SimpsonVelocity::with_rows(model, dt, rows)
+    }
+
+    /// Independent coordinates: the keys of [`SimpsonVelocity::dependent`], the rows
+    /// `rows` (the independent coordinates in use).
+    pub fn with_rows(model: Arc<Model>, dt: f64, rows: Vec<usize>) -> Self {
         SimpsonVelocity {
-            rows: model.independent.clone(),
+            rows,
             kkt: KktStructure::for_model(&model),
             model,
             name: "f_hs(dz)".into(),

@@ -14,23 +14,39 @@ use std::sync::Arc;
 /// f^i_pc: e = [Φ(q); q[idx] − z].
 pub struct IndependentPosition {
     model: Arc<Model>,
+    /// The independent coordinates z (indices into q), in z's order.
+    independent: Vec<usize>,
     keys: [Key; 2],
 }
 
 impl IndependentPosition {
+    /// The factor on the scene's independent coordinates.
     pub fn new(model: Arc<Model>) -> Self {
+        let independent = model.independent.clone();
+        IndependentPosition::with(model, independent)
+    }
+
+    /// The factor on the independent coordinates `independent` (indices into q).
+    pub fn with(model: Arc<Model>, independent: Vec<usize>) -> Self {
         IndependentPosition {
             model,
+            independent,
             keys: [Key::now(VarKind::Q), Key::now(VarKind::Z)],
         }
     }
 }
 
-/// Writes the selection rows q[idx] − z: I_idx into `jq` rows m.., −I into `jz`.
-fn selection_rows(model: &Model, m: usize, jq: &mut [f64], jz: Option<&mut [f64]>) {
-    let (n, f) = (model.n(), model.independent.len());
+/// Writes the selection rows q[idx] − z (n coordinates, idx = `independent`): I_idx
+/// into `jq` rows m.., −I into `jz`.
+fn selection_rows(
+    (n, independent): (usize, &[usize]),
+    m: usize,
+    jq: &mut [f64],
+    jz: Option<&mut [f64]>,
+) {
+    let f = independent.len();
     jq[m * n..(m + f) * n].fill(0.0);
-    for (k, &i) in model.independent.iter().enumerate() {
+    for (k, &i) in independent.iter().enumerate() {
         jq[(m + k) * n + i] = 1.0;
     }
     if let Some(jz) = jz {
@@ -49,13 +65,13 @@ impl Factor for IndependentPosition {
     fn size(&self, key: usize) -> usize {
         // The last key is z's.
         if key + 1 == self.keys.len() {
-            self.model.independent.len()
+            self.independent.len()
         } else {
             self.model.n()
         }
     }
     fn dim(&self) -> usize {
-        self.model.m() + self.model.independent.len()
+        self.model.m() + self.independent.len()
     }
     fn evaluate(
         &self,
@@ -67,13 +83,13 @@ impl Factor for IndependentPosition {
     ) -> Result<()> {
         let (m, n) = (self.model.m(), self.model.n());
         self.model.phi_into(x[0], &mut r[..m]);
-        for (k, &i) in self.model.independent.iter().enumerate() {
+        for (k, &i) in self.independent.iter().enumerate() {
             r[m + k] = x[0][i] - x[1][k];
         }
         if let Some(j) = jac {
             let (jq, jz) = j.split_at_mut(1);
             self.model.jacobian_into(x[0], &mut jq[0][..m * n]);
-            selection_rows(&self.model, m, &mut jq[0], Some(&mut jz[0]));
+            selection_rows((n, &self.independent), m, &mut jq[0], Some(&mut jz[0]));
         }
         Ok(())
     }
@@ -82,13 +98,23 @@ impl Factor for IndependentPosition {
 /// f^i_vc: e = [Φ_q q̇; q̇[idx] − ż].
 pub struct IndependentVelocity {
     model: Arc<Model>,
+    /// The independent coordinates z (indices into q), in z's order.
+    independent: Vec<usize>,
     keys: [Key; 3],
 }
 
 impl IndependentVelocity {
+    /// The factor on the scene's independent coordinates.
     pub fn new(model: Arc<Model>) -> Self {
+        let independent = model.independent.clone();
+        IndependentVelocity::with(model, independent)
+    }
+
+    /// The factor on the independent coordinates `independent` (indices into q).
+    pub fn with(model: Arc<Model>, independent: Vec<usize>) -> Self {
         IndependentVelocity {
             model,
+            independent,
             keys: [
                 Key::now(VarKind::Q),
                 Key::now(VarKind::Dq),
@@ -106,13 +132,13 @@ impl Factor for IndependentVelocity {
     fn size(&self, key: usize) -> usize {
         // The last key is z's.
         if key + 1 == self.keys.len() {
-            self.model.independent.len()
+            self.independent.len()
         } else {
             self.model.n()
         }
     }
     fn dim(&self) -> usize {
-        self.model.m() + self.model.independent.len()
+        self.model.m() + self.independent.len()
     }
     fn scratch(&self) -> StackReq {
         StackReq::new::<f64>(self.model.m() * self.model.n())
@@ -130,7 +156,7 @@ impl Factor for IndependentVelocity {
         let a = &mut a[..];
         self.model.jacobian_into(x[0], a);
         mat_vec(a, m, n, x[1], &mut r[..m]);
-        for (k, &i) in self.model.independent.iter().enumerate() {
+        for (k, &i) in self.independent.iter().enumerate() {
             r[m + k] = x[1][i] - x[2][k];
         }
         if let Some(j) = jac {
@@ -140,7 +166,7 @@ impl Factor for IndependentVelocity {
                 .jacobian_derivative_into(x[0], x[1], &mut jq[0][..m * n]);
             jq[0][m * n..].fill(0.0);
             jv[0][..m * n].copy_from_slice(a);
-            selection_rows(&self.model, m, &mut jv[0], Some(&mut jz[0]));
+            selection_rows((n, &self.independent), m, &mut jv[0], Some(&mut jz[0]));
         }
         Ok(())
     }
@@ -149,13 +175,23 @@ impl Factor for IndependentVelocity {
 /// f^i_ac: e = [Φ̇_q q̇ + Φ_q q̈; q̈[idx] − z̈].
 pub struct IndependentAcceleration {
     model: Arc<Model>,
+    /// The independent coordinates z (indices into q), in z's order.
+    independent: Vec<usize>,
     keys: [Key; 4],
 }
 
 impl IndependentAcceleration {
+    /// The factor on the scene's independent coordinates.
     pub fn new(model: Arc<Model>) -> Self {
+        let independent = model.independent.clone();
+        IndependentAcceleration::with(model, independent)
+    }
+
+    /// The factor on the independent coordinates `independent` (indices into q).
+    pub fn with(model: Arc<Model>, independent: Vec<usize>) -> Self {
         IndependentAcceleration {
             model,
+            independent,
             keys: [
                 Key::now(VarKind::Q),
                 Key::now(VarKind::Dq),
@@ -174,13 +210,13 @@ impl Factor for IndependentAcceleration {
     fn size(&self, key: usize) -> usize {
         // The last key is z's.
         if key + 1 == self.keys.len() {
-            self.model.independent.len()
+            self.independent.len()
         } else {
             self.model.n()
         }
     }
     fn dim(&self) -> usize {
-        self.model.m() + self.model.independent.len()
+        self.model.m() + self.independent.len()
     }
     fn scratch(&self) -> StackReq {
         let (m, n) = (self.model.m(), self.model.n());
@@ -205,7 +241,7 @@ impl Factor for IndependentAcceleration {
         for k in 0..m {
             r[k] -= c[k]; // Φ_q q̈ + Φ̇_q q̇ with Φ̇_q q̇ = −c
         }
-        for (k, &i) in self.model.independent.iter().enumerate() {
+        for (k, &i) in self.independent.iter().enumerate() {
             r[m + k] = ddq[i] - ddz[k];
         }
         if let Some(j) = jac {
@@ -214,7 +250,7 @@ impl Factor for IndependentAcceleration {
             let (ja, jz) = rest.split_at_mut(1);
             // ∂/∂q = ∂(Φ̇_q q̇)/∂q + Φ_qq q̈; ∂/∂q̇ = 2 Φ̇_q; ∂/∂q̈ = [Φ_q; I_idx].
             ja[0][..m * n].copy_from_slice(a);
-            selection_rows(&self.model, m, &mut ja[0], Some(&mut jz[0]));
+            selection_rows((n, &self.independent), m, &mut ja[0], Some(&mut jz[0]));
             self.model.third_order_into(q, dq, &mut jq[0][..m * n]);
             self.model.jacobian_derivative_into(q, ddq, a);
             for (v, w) in jq[0][..m * n].iter_mut().zip(a.iter()) {
@@ -236,6 +272,8 @@ impl Factor for IndependentAcceleration {
 /// through the augmented system (the two agree to round-off; tested in `tests/model.rs`).
 pub struct IndependentDynamics {
     model: Arc<Model>,
+    /// The independent coordinates z (indices into q), in z's order.
+    independent: Vec<usize>,
     keys: Vec<Key>,
     inverse: bool,
     /// Every coordinate, the columns of ∂q̈/∂Q (forces act on all of them).
@@ -245,8 +283,16 @@ pub struct IndependentDynamics {
 }
 
 impl IndependentDynamics {
+    /// The factor on the scene's independent coordinates.
     pub fn new(model: Arc<Model>) -> Self {
+        let independent = model.independent.clone();
+        IndependentDynamics::with(model, independent)
+    }
+
+    /// The factor on the independent coordinates `independent` (indices into q).
+    pub fn with(model: Arc<Model>, independent: Vec<usize>) -> Self {
         IndependentDynamics {
+            independent,
             all: (0..model.n()).collect(),
             kkt: KktStructure::for_model(&model),
             model,
@@ -281,13 +327,13 @@ impl Factor for IndependentDynamics {
     fn size(&self, key: usize) -> usize {
         // q, q̇, z̈ and (f^i_idyn) Q on every coordinate.
         if key == 2 {
-            self.model.independent.len()
+            self.independent.len()
         } else {
             self.model.n()
         }
     }
     fn dim(&self) -> usize {
-        self.model.independent.len()
+        self.independent.len()
     }
     /// The kernel's, q̈, then ∂q̈/∂q, ∂q̈/∂q̇ and ∂q̈/∂Q or (f^i_idyn along
     /// directions) [`DynamicsKernel::along`]'s.
@@ -315,7 +361,7 @@ impl Factor for IndependentDynamics {
         ws: &mut Workspace,
     ) -> Result<()> {
         let n = self.model.n();
-        let f = self.model.independent.len();
+        let f = self.independent.len();
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
         // Written whole before they are read (q̈ and the Jacobians by the kernel).
         let (ddq, stack) = carve(stack, n);
@@ -335,18 +381,18 @@ impl Factor for IndependentDynamics {
             want.then_some((&mut *jq, &mut *jv)),
             &mut kernel,
         )?;
-        for (k, &i) in self.model.independent.iter().enumerate() {
+        for (k, &i) in self.independent.iter().enumerate() {
             r[k] = ddq[i] - x[2][k];
         }
         if let Some(j) = jac {
-            for (k, &i) in self.model.independent.iter().enumerate() {
+            for (k, &i) in self.independent.iter().enumerate() {
                 j[0][k * n..(k + 1) * n].copy_from_slice(&jq[i * n..(i + 1) * n]);
                 j[1][k * n..(k + 1) * n].copy_from_slice(&jv[i * n..(i + 1) * n]);
             }
             identity(&mut j[2], f, -1.0);
             if self.inverse {
                 DynamicsKernel::force_jacobian(&self.model, &self.all, jf, &mut kernel)?;
-                for (k, &i) in self.model.independent.iter().enumerate() {
+                for (k, &i) in self.independent.iter().enumerate() {
                     j[3][k * n..(k + 1) * n].copy_from_slice(&jf[i * n..(i + 1) * n]);
                 }
             }
@@ -390,7 +436,7 @@ impl AlongDirections for IndependentDynamics {
             return Ok(false);
         }
         let n = self.model.n();
-        let ind = &self.model.independent;
+        let ind = &self.independent;
         let (mut kernel, stack) = KernelScratch::new(&self.model, self.kkt.as_ref(), ws.stack());
         let (ddq, extra) = carve(stack, n);
         let (force, force_dirs, columns): (_, &[f64], &[usize]) = if self.inverse {

@@ -31,14 +31,14 @@ pub enum Integrator {
 
 /// The variables an integrator's factors integrate, and whether they are projected.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Form {
+pub enum Form<'a> {
     /// Dependent coordinates q, q̇, q̈, on all n rows (the paper's factors).
     Full,
     /// Dependent coordinates, projected on the constraints' tangent space at the
     /// step's positions ([`Projected`]).
     Tangent,
-    /// Independent coordinates z, ż, z̈.
-    Independent,
+    /// Independent coordinates z, ż, z̈: those of q at these indices.
+    Independent(&'a [usize]),
 }
 
 /// The partial derivatives of one coordinate's residual e of a two-point rule.
@@ -142,17 +142,14 @@ impl Integrator {
     /// The integrator's two factors between consecutive steps of a graph of `model`
     /// at `dt`, in `form`: the integration of the rates into the values, then of the
     /// accelerations into the rates.
-    pub fn factors(self, model: &Arc<Model>, form: Form, dt: f64) -> [Box<dyn Factor>; 2] {
-        let independent = form == Form::Independent;
-        let (x, dx, ddx, dim) = if independent {
-            (
-                VarKind::Z,
-                VarKind::Dz,
-                VarKind::Ddz,
-                model.independent.len(),
-            )
-        } else {
-            (VarKind::Q, VarKind::Dq, VarKind::Ddq, model.n())
+    pub fn factors(self, model: &Arc<Model>, form: Form<'_>, dt: f64) -> [Box<dyn Factor>; 2] {
+        let independent = match form {
+            Form::Independent(set) => Some(set),
+            Form::Full | Form::Tangent => None,
+        };
+        let (x, dx, ddx, dim) = match independent {
+            Some(set) => (VarKind::Z, VarKind::Dz, VarKind::Ddz, set.len()),
+            None => (VarKind::Q, VarKind::Dq, VarKind::Ddq, model.n()),
         };
         let factors = match self {
             Integrator::HermiteSimpson => collocation::factors(model, independent, dt),
@@ -165,7 +162,7 @@ impl Integrator {
             Form::Tangent => {
                 factors.map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>)
             }
-            Form::Full | Form::Independent => factors,
+            Form::Full | Form::Independent(_) => factors,
         }
     }
 

@@ -4,6 +4,7 @@
 
 use super::options::{ForwardOptions, NoiseModels};
 use super::plan::Plan;
+use super::start::Start;
 use crate::coordinates::Coordinates;
 use crate::dynamics;
 use crate::error::Result;
@@ -19,21 +20,33 @@ pub struct ForwardGraph {
     pub coordinates: Coordinates,
     pub(super) n: usize,
     pub(super) f: usize,
+    /// The state its initial priors hold, and its independent coordinates (IC).
+    pub(super) start: Start,
 }
 
 impl ForwardGraph {
-    /// Builds the DC or IC graph for `model` (initial priors from its initial state).
+    /// Builds the DC or IC graph for `model` from the scene's start ([`Start::of`]:
+    /// initial priors from its initial state, its declared independent coordinates).
     pub fn new(model: Arc<Model>, options: &ForwardOptions) -> Result<Self> {
         let plan = Plan::new(&model, options)?;
-        ForwardGraph::planned(model, &plan, &options.noise)
+        let start = Start::of(&model);
+        ForwardGraph::planned(model, &plan, &options.noise, start)
     }
 
-    /// The graph of `plan` for `model`, with the noise models `noise`.
-    pub fn planned(model: Arc<Model>, plan: &Plan, noise: &NoiseModels) -> Result<Self> {
-        let (n, f) = (model.n(), model.independent.len());
+    /// The graph of `plan` for `model`, with the noise models `noise`, from `start`:
+    /// its initial priors hold `start.state`, and in IC its z are
+    /// `start.independent`.
+    pub fn planned(
+        model: Arc<Model>,
+        plan: &Plan,
+        noise: &NoiseModels,
+        start: Start,
+    ) -> Result<Self> {
+        let independent = &start.independent;
+        let (n, f) = (model.n(), independent.len());
         let nm = *noise;
         let dt = plan.dt;
-        let init = &model.initial;
+        let init = &start.state;
         // The position and velocity integrators of each coordinate set, soft with
         // these σ. Tangent DC integrators leave one soft equation per unknown: the
         // solution has a zero residual and does not depend on the σ's, only the
@@ -52,7 +65,7 @@ impl ForwardGraph {
         let form = match plan.coordinates {
             Coordinates::Dependent if plan.tangent_dc() => Form::Tangent,
             Coordinates::Dependent => Form::Full,
-            Coordinates::Independent => Form::Independent,
+            Coordinates::Independent => Form::Independent(independent),
         };
         let integrators = plan.integrator.factors(&model, form, dt);
         let graph = match plan.coordinates {
@@ -80,11 +93,11 @@ impl ForwardGraph {
                     .build()?
             }
             Coordinates::Independent => {
-                let z0: Vec<f64> = model.independent.iter().map(|&i| init.q[i]).collect();
-                let dz0: Vec<f64> = model.independent.iter().map(|&i| init.dq[i]).collect();
+                let z0: Vec<f64> = independent.iter().map(|&i| init.q[i]).collect();
+                let dz0: Vec<f64> = independent.iter().map(|&i| init.dq[i]).collect();
                 // Table 2: covariance 1 on the dependent entries, 10⁻³ on those in z.
                 let mut sig = vec![nm.initial_q; n];
-                for &i in &model.independent {
+                for &i in independent {
                     sig[i] = 1e-3f64.sqrt() * nm.initial_q;
                 }
                 let layout = Layout::new(&[
@@ -96,11 +109,23 @@ impl ForwardGraph {
                     (VarKind::Ddz, f),
                 ]);
                 let mut builder = ChainGraph::builder(layout, dt, 0.0)
-                    .step_constraint(Box::new(IndependentPosition::new(model.clone())))
-                    .step_constraint(Box::new(IndependentVelocity::new(model.clone())))
-                    .step_constraint(Box::new(IndependentAcceleration::new(model.clone())))
+                    .step_constraint(Box::new(IndependentPosition::with(
+                        model.clone(),
+                        independent.clone(),
+                    )))
+                    .step_constraint(Box::new(IndependentVelocity::with(
+                        model.clone(),
+                        independent.clone(),
+                    )))
+                    .step_constraint(Box::new(IndependentAcceleration::with(
+                        model.clone(),
+                        independent.clone(),
+                    )))
                     .step_soft(
-                        Box::new(IndependentDynamics::new(model.clone())),
+                        Box::new(IndependentDynamics::with(
+                            model.clone(),
+                            independent.clone(),
+                        )),
                         Noise::Isotropic(nm.dynamics),
                     );
                 for (factor, sigma) in integrators.into_iter().zip(sigma) {
@@ -125,12 +150,13 @@ impl ForwardGraph {
             coordinates: plan.coordinates,
             n,
             f,
+            start,
         })
     }
 
-    /// The initial guess of step 0: the model's initial state and its accelerations.
+    /// The initial guess of step 0: the graph's start state and its accelerations.
     pub(super) fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
-        let init = &model.initial;
+        let init = &self.start.state;
         let ddq = dynamics::accelerations_guess(model, &init.q, &init.dq, self.graph.t0())?;
         let mut block = Vec::with_capacity(self.graph.layout().size());
         block.extend_from_slice(init.q.as_slice());
@@ -138,7 +164,7 @@ impl ForwardGraph {
         block.extend_from_slice(ddq.as_slice());
         if self.coordinates == Coordinates::Independent {
             for v in [&init.q, &init.dq, &ddq] {
-                block.extend(model.independent.iter().map(|&i| v[i]));
+                block.extend(self.start.independent.iter().map(|&i| v[i]));
             }
         }
         Ok(block)
@@ -174,13 +200,14 @@ impl ForwardGraph {
 
 impl ForwardGraph {
     /// The graph's variables (step-major) filled from a trajectory of the same model:
-    /// a starting point for a solve, or the state a benchmark linearizes at.
-    pub fn fill_from_trajectory(&self, model: &Model, tr: &Trajectory, values: &mut [f64]) {
+    /// a starting point for a solve, or the state a benchmark linearizes at. (The
+    /// graph knows its own coordinates: `_model` is kept for the callers.)
+    pub fn fill_from_trajectory(&self, _model: &Model, tr: &Trajectory, values: &mut [f64]) {
         let n = self.n;
         for k in 0..tr.len() {
             let row = k * n..(k + 1) * n;
             let (q, dq, ddq) = (&tr.q[row.clone()], &tr.dq[row.clone()], &tr.ddq[row]);
-            self.fill_step(model, q, dq, ddq, k, values);
+            self.fill_step(q, dq, ddq, k, values);
         }
     }
 
@@ -188,7 +215,6 @@ impl ForwardGraph {
     /// the same model, as [`ForwardGraph::fill_from_trajectory`] fills each step.
     pub(super) fn fill_step(
         &self,
-        model: &Model,
         q: &[f64],
         dq: &[f64],
         ddq: &[f64],
@@ -202,7 +228,7 @@ impl ForwardGraph {
         block[2 * n..3 * n].copy_from_slice(ddq);
         if self.coordinates == Coordinates::Independent {
             for (j, src) in [q, dq, ddq].iter().enumerate() {
-                for (i, &c) in model.independent.iter().enumerate() {
+                for (i, &c) in self.start.independent.iter().enumerate() {
                     block[3 * n + j * self.f + i] = src[c];
                 }
             }

@@ -3,6 +3,7 @@
 //! failures it names and the work it counts.
 
 use super::failure::StepFailure;
+use super::start::Start;
 use super::summary::Iterations;
 use crate::convergence::{SolveReport, Termination};
 use crate::kinematics::{constraint_conditioning, Watch, Watched};
@@ -25,6 +26,9 @@ pub(super) enum Verdict {
 /// The judge of a segment's steps.
 pub(super) struct Judge<'a> {
     model: &'a Model,
+    /// The segment's start configuration: the coordinates' scales of the
+    /// conditioning a failure quotes.
+    q0: &'a [f64],
     dt: f64,
     /// The run step of the segment's first step, and the run's steps.
     first: usize,
@@ -41,19 +45,22 @@ pub(super) struct Judge<'a> {
 impl<'a> Judge<'a> {
     pub(super) fn new(
         model: &'a Model,
+        start: &'a Start,
         options: &super::ForwardOptions,
         (first, total): (usize, usize),
         progress: &'a mut dyn FnMut(usize, usize) -> ControlFlow<()>,
     ) -> Self {
         let independent = options.coordinates == crate::coordinates::Coordinates::Independent;
+        let q0 = start.state.q.as_slice();
         Judge {
             model,
+            q0,
             dt: options.dt,
             first,
             total,
             continue_on_failure: options.continue_on_failure,
             progress,
-            watch: independent.then(|| Watch::new(model)),
+            watch: independent.then(|| Watch::new(model, &start.independent, q0)),
             iterations: Iterations::default(),
             failures: Vec::new(),
             interrupted: None,
@@ -143,7 +150,7 @@ impl<'a> Judge<'a> {
             step: self.first + j,
             t,
             report: report.clone(),
-            constraint_conditioning: constraint_conditioning(model, at(k).0),
+            constraint_conditioning: constraint_conditioning(model, self.q0, at(k).0),
             singular: None,
             warm_start: false,
             batch: false,

@@ -7,11 +7,13 @@ use super::failure::StepFailure;
 use super::options::{DcIntegrators, ForwardOptions};
 use super::plan::{Plan, Rescue};
 use super::segment::{Run, Segment};
+use super::start::Start;
 use super::summary::{Refinement, Reselection, RunSummary, Stats};
 use crate::error::Result;
-use crate::model::Model;
+use crate::model::{Model, State};
 use crate::solver::{SolveReport, Termination};
 use crate::trajectory::{round_time, Trajectory};
+use nalgebra::DVector;
 use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::Instant;
@@ -336,12 +338,14 @@ fn simulate_with(
     let start = Instant::now();
     let mut run = Run::default();
     let mut rows = Rows::new(&model, options, sink, every);
-    let mut segment_model = model.clone();
+    // The first segment starts from the scene's start; a later one from the state
+    // the one before ended with, in the coordinates it re-selected.
+    let mut segment_start = Start::of(&model);
     let mut first = 0;
     loop {
-        // A later segment's first step is the state the one before ended with.
         let segment = Segment {
-            model: segment_model.clone(),
+            model: model.clone(),
+            start: segment_start,
             options,
             plan: &plan,
             first,
@@ -360,7 +364,7 @@ fn simulate_with(
         run.reselections.push(Reselection {
             step: k,
             t: round_time(rows.last_t),
-            from: names_of(&model, &segment_model.independent),
+            from: names_of(&model, &segment.start.independent),
             to: names_of(&model, &independent),
         });
         debug_assert_eq!(
@@ -368,13 +372,15 @@ fn simulate_with(
             k + 1,
             "a segment ends at the step it re-selects at"
         );
-        let mut next_model = (*segment_model).clone();
-        next_model.independent = independent;
-        next_model.initial.q = nalgebra::DVector::from_column_slice(&rows.last[..n]);
-        next_model.initial.dq = nalgebra::DVector::from_column_slice(&rows.last[n..2 * n]);
         // The rest of the run continues from step k (its row is kept from this
         // segment; the next segment's first row is the same state).
-        segment_model = Arc::new(next_model);
+        segment_start = Start {
+            state: State {
+                q: DVector::from_column_slice(&rows.last[..n]),
+                dq: DVector::from_column_slice(&rows.last[n..2 * n]),
+            },
+            independent,
+        };
         first = k;
     }
     if let Some(f) = rows.non_finite.take() {

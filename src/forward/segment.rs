@@ -6,6 +6,7 @@ use super::graph::ForwardGraph;
 use super::judge::{Judge, Verdict};
 use super::options::ForwardOptions;
 use super::plan::{Plan, Schedule, STEPWISE_BUFFER};
+use super::start::Start;
 use super::stepwise::{self, Stepwise, Taker};
 use super::substeps::Substeps;
 use super::summary::{Iterations, Reselection};
@@ -35,6 +36,8 @@ pub(super) type Emit<'a> = dyn FnMut(usize, f64, &[f64]) -> Result<()> + 'a;
 /// A segment's part of the run: where it starts, and what it reports to.
 pub(super) struct Segment<'a> {
     pub(super) model: Arc<Model>,
+    /// The state step `first` starts from, and the independent coordinates (IC).
+    pub(super) start: Start,
     pub(super) options: &'a ForwardOptions,
     pub(super) plan: &'a Plan,
     /// Run steps first..total.
@@ -43,7 +46,7 @@ pub(super) struct Segment<'a> {
 }
 
 impl Segment<'_> {
-    /// Steps first..total of the run (the model's initial state is step `first`'s),
+    /// Steps first..total of the run (the segment's start state is step `first`'s),
     /// handed to `emit` in order as they become final. Returns where (run step) and
     /// to which independent coordinates the next segment switches.
     pub(super) fn run(
@@ -52,7 +55,12 @@ impl Segment<'_> {
         run: &mut Run,
         emit: &mut Emit<'_>,
     ) -> Result<Option<(usize, Vec<usize>)>> {
-        let mut fg = ForwardGraph::planned(self.model.clone(), self.plan, &self.options.noise)?;
+        let mut fg = ForwardGraph::planned(
+            self.model.clone(),
+            self.plan,
+            &self.options.noise,
+            self.start.clone(),
+        )?;
         fg.graph.set_t0(self.first as f64 * self.plan.dt);
         match self.plan.schedule {
             Schedule::Stepwise => self.stepwise(&fg, progress, run, emit),
@@ -70,6 +78,7 @@ impl Segment<'_> {
             model: &self.model,
             plan: self.plan,
             noise: &self.options.noise,
+            independent: &self.start.independent,
             s: fg.graph.layout().size(),
         }
     }
@@ -80,6 +89,7 @@ impl Segment<'_> {
     ) -> Judge<'b> {
         Judge::new(
             &self.model,
+            &self.start,
             self.options,
             (self.first, self.total),
             progress,
@@ -95,7 +105,7 @@ impl Segment<'_> {
         emit: &mut Emit<'_>,
     ) -> Result<Option<(usize, Vec<usize>)>> {
         let s = fg.graph.layout().size();
-        let square = super::square_step::for_plan(&self.model, self.plan);
+        let square = super::square_step::for_plan(&self.model, self.plan, &self.start.independent);
         let mut solver = Stepwise::new(&fg.graph, square, self.plan.settings)?;
         if let Some(observers) = &self.options.observer {
             solver.observe(observers.make());

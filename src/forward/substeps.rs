@@ -9,6 +9,7 @@ use super::graph::ForwardGraph;
 use super::options::NoiseModels;
 use super::plan::{Plan, Schedule};
 use super::square_step::SquareStep;
+use super::start::Start;
 use super::stepwise::{self, Stepwise};
 use crate::convergence::{SolveReport, Termination};
 use crate::model::{Model, State};
@@ -29,6 +30,8 @@ pub(super) struct Substeps<'a> {
     pub(super) model: &'a Arc<Model>,
     pub(super) plan: &'a Plan,
     pub(super) noise: &'a NoiseModels,
+    /// The segment's independent coordinates (IC).
+    pub(super) independent: &'a [usize],
     /// The graph's step layout: unknowns a step, and n.
     pub(super) s: usize,
 }
@@ -46,22 +49,24 @@ impl Substeps<'_> {
     ) -> bool {
         let (n, s) = (self.model.n(), self.s);
         let before = &values[(k - 1) * s..k * s];
-        let mut start = (**self.model).clone();
-        start.initial = State {
-            q: DVector::from_column_slice(&before[..n]),
-            dq: DVector::from_column_slice(&before[n..2 * n]),
+        let start = Start {
+            state: State {
+                q: DVector::from_column_slice(&before[..n]),
+                dq: DVector::from_column_slice(&before[n..2 * n]),
+            },
+            independent: self.independent.to_vec(),
         };
-        let start = Arc::new(start);
         for substeps in SUBSTEPS {
             let mut fine = self.plan.clone();
             fine.dt = self.plan.dt / substeps as f64;
             fine.steps = substeps + 1;
             fine.settings.max_iterations = fine.settings.max_iterations.min(SUBSTEP_ITERATIONS);
-            let Ok(mut graph) = ForwardGraph::planned(start.clone(), &fine, self.noise) else {
+            let graph = ForwardGraph::planned(self.model.clone(), &fine, self.noise, start.clone());
+            let Ok(mut graph) = graph else {
                 return false;
             };
             graph.graph.set_t0((step - 1) as f64 * self.plan.dt);
-            let Ok(first) = graph.initial_block(&start) else {
+            let Ok(first) = graph.initial_block(self.model) else {
                 return false;
             };
             let mut fine_values = vec![0.0; (substeps + 1) * s];

@@ -131,6 +131,7 @@ impl Segment<'_> {
         let warm_segment = Segment {
             plan: &warm_plan,
             model: self.model.clone(),
+            start: self.start.clone(),
             ..*self
         };
         let mut warm = Run::default();
@@ -140,7 +141,7 @@ impl Segment<'_> {
         let reselect = warm_segment.run(progress, &mut warm, &mut |j, _, block| {
             let (q, rest) = block.split_at(n);
             let (dq, rest) = rest.split_at(n);
-            fg.fill_step(&self.model, q, dq, &rest[..n], j - self.first, &mut values);
+            fg.fill_step(q, dq, &rest[..n], j - self.first, &mut values);
             rows = j - self.first + 1;
             Ok(())
         })?;

@@ -41,6 +41,8 @@ pub struct SingularConfiguration {
 /// √(λ_min(G)/m) ≤ s ≤ √λ_min(G): s is the smallest singular value of D̂ to within a
 /// factor √m, and 0 where a rank is lost.
 pub struct Determinacy {
+    /// The independent coordinates in use, and the others.
+    independent: Vec<usize>,
     dependent: Vec<usize>,
     jac: Vec<f64>,
     column_norms: Vec<f64>,
@@ -102,10 +104,11 @@ impl Determinacy {
     /// its linear extrapolation crosses 0 within the next step.
     pub const STOP_BELOW: f64 = 2.5e-3;
 
-    pub fn new(model: &Model) -> Self {
-        let dependent: Vec<usize> = (0..model.n())
-            .filter(|i| !model.independent.contains(i))
-            .collect();
+    /// How well `independent` (indices into q) determines the other coordinates,
+    /// with the coordinates' scales taken at the configuration `q0` (the start of
+    /// the run or segment that uses them).
+    pub fn new(model: &Model, independent: &[usize], q0: &[f64]) -> Self {
+        let dependent = complement(model.n(), independent);
         let ma = model.active.len();
         let mut det = Determinacy {
             jac: vec![0.0; model.m() * model.n()],
@@ -120,9 +123,10 @@ impl Determinacy {
             trace: None,
             mask: vec![false; model.n()],
             incidence: vec![Vec::new(); model.n()],
+            independent: independent.to_vec(),
             dependent,
         };
-        det.set_column_scales(model, model.initial.q.as_slice());
+        det.set_column_scales(model, q0);
         det
     }
 
@@ -166,7 +170,7 @@ impl Determinacy {
     /// runs out). Where even the best s is small, Φ_q itself is close to losing a
     /// rank.
     pub fn best(&mut self, model: &Model, q: &[f64]) -> (f64, Vec<usize>) {
-        let (n, f) = (model.n(), model.independent.len());
+        let (n, f) = (model.n(), self.independent.len());
         // Each set's s by the sparse route from SPARSE_DISTANCE_FROM rows (the same
         // sets within the same budget: only faster), else from the dense Φ_q.
         let sparse = model.active.len() >= SPARSE_DISTANCE_FROM;
@@ -180,10 +184,8 @@ impl Determinacy {
                 det.distance_over(model, dependent)
             }
         };
-        let mut best = (
-            distance_of(self, &complement(n, &model.independent)),
-            model.independent.clone(),
-        );
+        let current = self.independent.clone();
+        let mut best = (distance_of(self, &complement(n, &current)), current);
         let ma = model.active.len() as f64;
         let affordable = (Self::SEARCH_WORK / (0.5 * ma * ma * ma).max(1.0)) as usize;
         let mut budget = Self::SEARCH_SETS.min(affordable.max(1));
@@ -487,7 +489,7 @@ impl Determinacy {
             distance: s,
             rank,
             full_rank: d,
-            independent: names(&mut model.independent.iter().copied()),
+            independent: names(&mut self.independent.iter().copied()),
             dependent: names(&mut self.dependent.iter().copied()),
         }
     }
@@ -504,10 +506,10 @@ fn binomial(n: usize, k: usize) -> usize {
 }
 
 /// σ_r/σ₁ of Φ_q(q), r = the number of independent constraints at the start, scale-free:
-/// its active rows, columns scaled by their norms at the initial configuration (the
+/// its active rows, columns scaled by their norms at the start configuration q0 (the
 /// coordinates' scales: mm-size links and angles in radians weigh alike), each row
 /// then normalized. Raw, a well-conditioned mechanism with a 7 mm crank reads 1e-4.
-pub(crate) fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
+pub(crate) fn constraint_conditioning(model: &Model, q0: &[f64], q: &[f64]) -> f64 {
     let r = model.active.len();
     if r == 0 {
         return 1.0;
@@ -516,7 +518,7 @@ pub(crate) fn constraint_conditioning(model: &Model, q: &[f64]) -> f64 {
         let jac = model.jacobian(&nalgebra::DVector::from_column_slice(q));
         nalgebra::DMatrix::from_fn(r, model.n(), |i, c| jac[(model.active[i], c)])
     };
-    let initial = active(model.initial.q.as_slice());
+    let initial = active(q0);
     let mut a = active(q);
     for (c, scale) in initial.column_iter().map(|col| col.norm()).enumerate() {
         if scale > 0.0 {
@@ -571,10 +573,12 @@ pub struct Watch {
 }
 
 impl Watch {
-    pub fn new(model: &Model) -> Watch {
+    /// The watch of a run or segment in the independent coordinates `independent`
+    /// that starts at the configuration `q0` (see [`Determinacy::new`]).
+    pub fn new(model: &Model, independent: &[usize], q0: &[f64]) -> Watch {
         let far = (0.0, f64::INFINITY);
         Watch {
-            determinacy: Determinacy::new(model),
+            determinacy: Determinacy::new(model, independent, q0),
             before: far,
             older: far,
             origin: f64::INFINITY,
@@ -671,7 +675,7 @@ mod tests {
             let path = format!("{}/scenes/{scene}", env!("CARGO_MANIFEST_DIR"));
             let model = Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap());
             assert!(model.active.len() >= SPARSE_DISTANCE_FROM);
-            let mut det = Determinacy::new(&model);
+            let mut det = Determinacy::new(&model, &model.independent, model.initial.q.as_slice());
             let dependent = complement(model.n(), &model.independent);
             for shift in [0.0, 0.02, 0.2] {
                 let q: Vec<f64> = (0..model.n())

@@ -131,13 +131,15 @@ pub struct Model {
     /// Constant mass matrix (zero on relative coordinates).
     pub mass: DMatrix<f64>,
     pub forces: Vec<Force>,
-    /// Indices in q of the independent coordinates the scene declares.
+    /// Indices in q of the independent coordinates the scene declares (a run in IC
+    /// starts with them; a later segment's are its `forward::Start`'s).
     pub independent: Vec<usize>,
     /// Constraints kept in the dynamics: all but the redundant ones.
     pub active: Vec<usize>,
     /// Constraints that are linear combinations of earlier ones at the initial state.
     pub redundant: Vec<usize>,
-    /// The consistent initial state.
+    /// The scene's consistent initial state (a run's segments and substeps start
+    /// from their own `forward::Start`).
     pub initial: State,
 }
 

@@ -163,14 +163,19 @@ impl SquareStep {
     }
 
     /// The step system of an IC graph of `model` (integrators of `integrator` on
-    /// its independent coordinates) at `dt`; `None` where the integrator has no
+    /// the independent coordinates `independent`) at `dt`; `None` where the integrator has no
     /// square step, the system is not square (redundant constraints) or its sparse
     /// analysis fails.
-    pub fn independent(model: Arc<Model>, integrator: Integrator, dt: f64) -> Option<SquareStep> {
+    pub fn independent(
+        model: Arc<Model>,
+        integrator: Integrator,
+        dt: f64,
+        independent: &[usize],
+    ) -> Option<SquareStep> {
         if model.active.len() != model.m() {
             return None;
         }
-        let integrated = model.independent.clone();
+        let integrated = independent.to_vec();
         SquareStep::new(model, integrator, dt, integrated, false)
     }
 
@@ -252,17 +257,24 @@ impl SquareStep {
     }
 }
 
-/// The square step of `plan`'s graph for `model`, where the plan has one (and its
+/// The square step of `plan`'s graph for `model` (in IC, on the independent
+/// coordinates `independent`), where the plan has one (and its
 /// integrator too: [`Integrator::has_square_step`]) and its sparse analysis
 /// succeeds.
-pub(super) fn for_plan(model: &Arc<Model>, plan: &Plan) -> Option<SquareStep> {
+pub(super) fn for_plan(
+    model: &Arc<Model>,
+    plan: &Plan,
+    independent: &[usize],
+) -> Option<SquareStep> {
     if !plan.square_step {
         return None;
     }
     let (integrator, dt) = (plan.integrator, plan.dt);
     match plan.coordinates {
         Coordinates::Dependent => SquareStep::dependent(model.clone(), integrator, dt),
-        Coordinates::Independent => SquareStep::independent(model.clone(), integrator, dt),
+        Coordinates::Independent => {
+            SquareStep::independent(model.clone(), integrator, dt, independent)
+        }
     }
 }
 

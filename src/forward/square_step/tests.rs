@@ -15,7 +15,9 @@ fn step_of(scene: &str, integrator: Integrator) -> SquareStep {
 }
 
 fn ic_step_of(scene: &str, integrator: Integrator) -> SquareStep {
-    SquareStep::independent(model_of(scene), integrator, 1e-3).unwrap()
+    let model = model_of(scene);
+    let independent = model.independent.clone();
+    SquareStep::independent(model, integrator, 1e-3, &independent).unwrap()
 }
 
 /// A deterministic spread of values in (−1, 1).
@@ -149,9 +151,12 @@ fn independent_steps_need_independent_constraints() {
         model.active.len() < model.m(),
         "the coupler is constrained twice"
     );
-    assert!(SquareStep::independent(model, Integrator::Trapezoidal, 1e-3).is_none());
+    let independent = model.independent.clone();
+    assert!(SquareStep::independent(model, Integrator::Trapezoidal, 1e-3, &independent).is_none());
     let model = model_of("fourbar-theta.yaml");
-    let step = SquareStep::independent(model.clone(), Integrator::Trapezoidal, 1e-3).unwrap();
+    let independent = model.independent.clone();
+    let step = SquareStep::independent(model.clone(), Integrator::Trapezoidal, 1e-3, &independent)
+        .unwrap();
     assert_eq!(step.equations.system.size(), 3 * model.n() + model.m());
 }
 
