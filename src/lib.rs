@@ -18,9 +18,7 @@ pub mod dynamics;
 pub mod error;
 pub mod expr;
 pub mod factors;
-pub mod forward;
 pub mod graph;
-pub mod inverse;
 pub mod io;
 pub mod kinematics;
 pub mod limits;
@@ -28,6 +26,7 @@ pub mod linalg;
 pub mod model;
 #[cfg(feature = "testing")]
 pub mod motions;
+pub mod problems;
 #[cfg(feature = "python")]
 mod python;
 pub mod reactions;
@@ -37,6 +36,9 @@ pub mod scene;
 pub mod smoother;
 pub mod solver;
 pub mod trajectory;
+
+// The problems keep their paths at the crate's root: `mbfg::forward`, `mbfg::inverse`.
+pub use problems::{forward, inverse};
 
 pub use error::{Error, Result, SceneError};
 pub use model::forces::ExternalLoad;
