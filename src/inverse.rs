@@ -270,8 +270,68 @@ pub fn solve(
 ) -> Result<InverseSolution> {
     options.settings.validate()?;
     let start = Instant::now();
+    check_prescription(&model, prescription)?;
     let n = model.n();
-    let (dt, steps) = (prescription.dt, prescription.steps);
+    let (steps, idx) = (prescription.steps, &prescription.indices);
+    // One prescribed coordinate per degree of freedom: each step's motion is known from
+    // its samples, the hard constraints and the prescribed derivatives, so the graph
+    // has no integrators. Kept soft beside them, their truncation error pulled q̈ off
+    // the acceleration constraints (2e-6 of the forces' peak on the four-bar, DC).
+    let (rates, accelerations) = prescription.derivatives();
+    let (d1, d2) = (
+        rates[..idx.len()].to_vec(),
+        accelerations[..idx.len()].to_vec(),
+    );
+    let derivatives = (rates.as_slice(), accelerations.as_slice());
+    let graph = match options.coordinates {
+        Coordinates::Dependent => dependent_graph(&model, prescription, derivatives, options)?,
+        Coordinates::Independent => independent_graph(&model, prescription, derivatives, options)?,
+    };
+    let start_blocks = match options.start {
+        Start::Kinematic => kinematic_start(&model, prescription, &rates, &accelerations)?,
+        Start::Staged => staged_start(&model, prescription, &d1, &d2, options)?,
+    };
+    let s = graph.layout().size();
+    let mut values = Vec::with_capacity(steps * s);
+    for k in 0..steps {
+        let b = &start_blocks[k * 4 * n..(k + 1) * 4 * n];
+        push_start_step(&model, idx, options.coordinates, b, &mut values);
+    }
+    debug_assert_eq!(values.len(), steps * s);
+    let mut solver = WindowSolver::new(&graph, steps, options.settings)?;
+    solver.optimize_for_batch();
+    let report = solver.solve(&graph, &mut values, 0, steps, None)?;
+    let wall_time = start.elapsed();
+    let solved = Solved {
+        graph: &graph,
+        values: &values,
+        coordinates: options.coordinates,
+    };
+    let (trajectory, forces, worst_tracking, worst_phi) = solved.read(&model, prescription);
+    if !values.iter().all(|v| v.is_finite()) {
+        return Err(Error::singular(
+            "the inverse solve produced non-finite values",
+        ));
+    }
+    Ok(InverseSolution {
+        trajectory,
+        forces,
+        summary: InverseSummary {
+            steps,
+            wall_time,
+            report,
+            worst_tracking,
+            worst_phi,
+        },
+    })
+}
+
+/// A prescription fits the mechanism: one prescribed coordinate per degree of freedom
+/// (fewer leave a forward problem, more over-prescribe it), and the batch system of
+/// its whole horizon fits in memory.
+fn check_prescription(model: &Model, prescription: &Prescription) -> Result<()> {
+    let n = model.n();
+    let steps = prescription.steps;
     let idx = &prescription.indices;
     if idx.len() > model.dof() {
         return Err(Error::InvalidArgument(format!(
@@ -297,210 +357,238 @@ pub fn solve(
     crate::limits::ensure_fits(
         &format!("an inverse solve of {steps} samples of {n} coordinates"),
         8.0 * steps as f64 * per_step * (3.0 * per_step + 2.0 * model.m() as f64),
-    )?;
-    let unactuated: Vec<usize> = (0..n).filter(|i| !idx.contains(i)).collect();
-    // One prescribed coordinate per degree of freedom: each step's motion is known from
-    // its samples, the hard constraints and the prescribed derivatives, so the graph
-    // has no integrators. Kept soft beside them, their truncation error pulled q̈ off
-    // the acceleration constraints (2e-6 of the forces' peak on the four-bar, DC).
-    let nm = options.noise;
-    let (rates, accelerations) = prescription.derivatives();
-    let (d1, d2) = (
-        rates[..idx.len()].to_vec(),
-        accelerations[..idx.len()].to_vec(),
-    );
+    )
+}
+
+/// A hard factor holding variable `kind` (of `size` entries) at `indices` to the
+/// row-major steps × indices.len() `table` of the prescription's samples.
+fn prescribed(
+    prescription: &Prescription,
+    kind: VarKind,
+    size: usize,
+    indices: Vec<usize>,
+    table: Vec<f64>,
+) -> Box<dyn crate::graph::Factor> {
+    Box::new(PrescribedMotion::on(
+        kind,
+        size,
+        indices,
+        Arc::new(table),
+        prescription.t0,
+        prescription.dt,
+    ))
+}
+
+/// The DC graph: per step q, q̇, q̈ and the forces on the prescribed coordinates (the
+/// forces that act); the constraints and the prescribed motion with its `derivatives`
+/// (rates, accelerations) hard, f^d_idyn soft.
+fn dependent_graph(
+    model: &Arc<Model>,
+    prescription: &Prescription,
+    (rates, accelerations): (&[f64], &[f64]),
+    options: &InverseOptions,
+) -> Result<ChainGraph> {
+    let n = model.n();
+    let (dt, idx) = (prescription.dt, &prescription.indices);
     let table = Arc::new(prescription.values.clone());
-    let prescribe = |kind: VarKind, size: usize, indices: Vec<usize>, table: Vec<f64>| {
-        Box::new(PrescribedMotion::on(
-            kind,
-            size,
-            indices,
-            Arc::new(table),
+    let layout = Layout::new(&[
+        (VarKind::Q, n),
+        (VarKind::Dq, n),
+        (VarKind::Ddq, n),
+        (VarKind::Force, idx.len()),
+    ]);
+    ChainGraph::builder(layout, dt, prescription.t0)
+        .step_constraint(Box::new(PositionConstraints::new(model.clone())))
+        .step_constraint(Box::new(VelocityConstraints::new(model.clone())))
+        .step_constraint(Box::new(PrescribedMotion::new(
+            n,
+            idx.clone(),
+            table,
             prescription.t0,
             dt,
-        )) as Box<dyn crate::graph::Factor>
+        )))
+        .step_constraint(prescribed(
+            prescription,
+            VarKind::Dq,
+            n,
+            idx.clone(),
+            rates.to_vec(),
+        ))
+        .step_constraint(prescribed(
+            prescription,
+            VarKind::Ddq,
+            n,
+            idx.clone(),
+            accelerations.to_vec(),
+        ))
+        .step_soft(
+            Box::new(Dynamics::inverse_on(model.clone(), idx.clone())),
+            Noise::Isotropic(options.noise.dynamics),
+        )
+        .build()
+}
+
+/// The IC graph: per step q, q̇, q̈, the independent z, ż, z̈ (the scene's independent
+/// set, in its order, which the prescription must name exactly) and a force on every
+/// coordinate, zero where nothing is prescribed; the independent constraints and the
+/// prescribed motion with its `derivatives` hard, f^i_idyn and a weak f_eq soft.
+fn independent_graph(
+    model: &Arc<Model>,
+    prescription: &Prescription,
+    (rates, accelerations): (&[f64], &[f64]),
+    options: &InverseOptions,
+) -> Result<ChainGraph> {
+    let n = model.n();
+    let (dt, steps, idx) = (prescription.dt, prescription.steps, &prescription.indices);
+    let nm = options.noise;
+    let ind = &model.independent;
+    let mut sorted_p = idx.clone();
+    sorted_p.sort_unstable();
+    let mut sorted_i = ind.clone();
+    sorted_i.sort_unstable();
+    if sorted_p != sorted_i {
+        return Err(Error::InvalidArgument(format!(
+            "{}: inverse dynamics in independent coordinates needs the prescribed coordinates to be the scene's independent ones ({})",
+            model.scene.file,
+            ind.iter().map(|&i| model.names[i].as_str()).collect::<Vec<_>>().join(", ")
+        )));
+    }
+    let unactuated: Vec<usize> = (0..n).filter(|i| !idx.contains(i)).collect();
+    let f = ind.len();
+    let col: Vec<usize> = ind
+        .iter()
+        .map(|i| idx.iter().position(|j| j == i).expect("same set"))
+        .collect();
+    let ztable: Vec<f64> = (0..steps)
+        .flat_map(|k| col.iter().map(move |&c| prescription.value(k, c)))
+        .collect();
+    let reorder = |d: &[f64]| -> Vec<f64> {
+        (0..steps)
+            .flat_map(|k| col.iter().map(move |&c| d[k * idx.len() + c]))
+            .collect()
     };
-    let force_zero = || -> Box<dyn crate::graph::Factor> {
-        Box::new(ComponentPrior::new(
+    let all: Vec<usize> = (0..f).collect();
+    let layout = Layout::new(&[
+        (VarKind::Q, n),
+        (VarKind::Dq, n),
+        (VarKind::Ddq, n),
+        (VarKind::Z, f),
+        (VarKind::Dz, f),
+        (VarKind::Ddz, f),
+        (VarKind::Force, n),
+    ]);
+    ChainGraph::builder(layout, dt, prescription.t0)
+        .step_constraint(Box::new(IndependentPosition::new(model.clone())))
+        .step_constraint(Box::new(IndependentVelocity::new(model.clone())))
+        .step_constraint(Box::new(IndependentAcceleration::new(model.clone())))
+        .step_constraint(Box::new(PrescribedMotion::on(
+            VarKind::Z,
+            f,
+            all.clone(),
+            Arc::new(ztable),
+            prescription.t0,
+            dt,
+        )))
+        .step_constraint(prescribed(
+            prescription,
+            VarKind::Dz,
+            f,
+            all.clone(),
+            reorder(rates),
+        ))
+        .step_constraint(prescribed(
+            prescription,
+            VarKind::Ddz,
+            f,
+            all.clone(),
+            reorder(accelerations),
+        ))
+        .step_constraint(Box::new(ComponentPrior::new(
             VarKind::Force,
             n,
             unactuated.clone(),
             vec![0.0; unactuated.len()],
-        ))
-    };
-    let graph = match options.coordinates {
-        // Q has one entry per prescribed coordinate: the forces that act.
-        Coordinates::Dependent => {
-            let layout = Layout::new(&[
-                (VarKind::Q, n),
-                (VarKind::Dq, n),
-                (VarKind::Ddq, n),
-                (VarKind::Force, idx.len()),
-            ]);
-            ChainGraph::builder(layout, dt, prescription.t0)
-                .step_constraint(Box::new(PositionConstraints::new(model.clone())))
-                .step_constraint(Box::new(VelocityConstraints::new(model.clone())))
-                .step_constraint(Box::new(PrescribedMotion::new(
-                    n,
-                    idx.clone(),
-                    table,
-                    prescription.t0,
-                    dt,
-                )))
-                .step_constraint(prescribe(VarKind::Dq, n, idx.clone(), rates.clone()))
-                .step_constraint(prescribe(
-                    VarKind::Ddq,
-                    n,
-                    idx.clone(),
-                    accelerations.clone(),
-                ))
-                .step_soft(
-                    Box::new(Dynamics::inverse_on(model.clone(), idx.clone())),
-                    Noise::Isotropic(nm.dynamics),
-                )
-                .build()?
-        }
-        Coordinates::Independent => {
-            // z is the scene's independent set, in its order; the prescription
-            // must name exactly those coordinates.
-            let ind = &model.independent;
-            let mut sorted_p = idx.clone();
-            sorted_p.sort_unstable();
-            let mut sorted_i = ind.clone();
-            sorted_i.sort_unstable();
-            if sorted_p != sorted_i {
-                return Err(Error::InvalidArgument(format!(
-                    "{}: inverse dynamics in independent coordinates needs the prescribed coordinates to be the scene's independent ones ({})",
-                    model.scene.file,
-                    ind.iter().map(|&i| model.names[i].as_str()).collect::<Vec<_>>().join(", ")
-                )));
-            }
-            let f = ind.len();
-            let col: Vec<usize> = ind
-                .iter()
-                .map(|i| idx.iter().position(|j| j == i).expect("same set"))
-                .collect();
-            let ztable: Vec<f64> = (0..steps)
-                .flat_map(|k| col.iter().map(move |&c| prescription.value(k, c)))
-                .collect();
-            let reorder = |d: &[f64]| -> Vec<f64> {
-                (0..steps)
-                    .flat_map(|k| col.iter().map(move |&c| d[k * idx.len() + c]))
-                    .collect()
-            };
-            let all: Vec<usize> = (0..f).collect();
-            let layout = Layout::new(&[
-                (VarKind::Q, n),
-                (VarKind::Dq, n),
-                (VarKind::Ddq, n),
-                (VarKind::Z, f),
-                (VarKind::Dz, f),
-                (VarKind::Ddz, f),
-                (VarKind::Force, n),
-            ]);
-            ChainGraph::builder(layout, dt, prescription.t0)
-                .step_constraint(Box::new(IndependentPosition::new(model.clone())))
-                .step_constraint(Box::new(IndependentVelocity::new(model.clone())))
-                .step_constraint(Box::new(IndependentAcceleration::new(model.clone())))
-                .step_constraint(Box::new(PrescribedMotion::on(
-                    VarKind::Z,
-                    f,
-                    all.clone(),
-                    Arc::new(ztable),
-                    prescription.t0,
-                    dt,
-                )))
-                .step_constraint(prescribe(VarKind::Dz, f, all.clone(), reorder(&rates)))
-                .step_constraint(prescribe(
-                    VarKind::Ddz,
-                    f,
-                    all.clone(),
-                    reorder(&accelerations),
-                ))
-                .step_constraint(force_zero())
-                .step_soft(
-                    Box::new(IndependentDynamics::inverse(model.clone())),
-                    Noise::Isotropic(nm.dynamics),
-                )
-                .step_soft(
-                    Box::new(Equality::new(VarKind::Q, n)),
-                    Noise::Isotropic(nm.equality),
-                )
-                .build()?
-        }
-    };
-    let s = graph.layout().size();
-    let start_blocks = match options.start {
-        Start::Kinematic => kinematic_start(&model, prescription, &rates, &accelerations)?,
-        Start::Staged => staged_start(&model, prescription, &d1, &d2, options)?,
-    };
-    let mut values = Vec::with_capacity(steps * s);
-    for k in 0..steps {
-        let b = &start_blocks[k * 4 * n..(k + 1) * 4 * n];
-        values.extend_from_slice(&b[..3 * n]);
-        if options.coordinates == Coordinates::Independent {
-            for part in 0..3 {
-                values.extend(model.independent.iter().map(|&i| b[part * n + i]));
-            }
-        }
-        match options.coordinates {
-            Coordinates::Dependent => values.extend(idx.iter().map(|&i| b[3 * n + i])),
-            Coordinates::Independent => values.extend_from_slice(&b[3 * n..]),
-        }
-    }
-    debug_assert_eq!(values.len(), steps * s);
-    let mut solver = WindowSolver::new(&graph, steps, options.settings)?;
-    solver.optimize_for_batch();
-    let report = solver.solve(&graph, &mut values, 0, steps, None)?;
-    let wall_time = start.elapsed();
+        )))
+        .step_soft(
+            Box::new(IndependentDynamics::inverse(model.clone())),
+            Noise::Isotropic(nm.dynamics),
+        )
+        .step_soft(
+            Box::new(Equality::new(VarKind::Q, n)),
+            Noise::Isotropic(nm.equality),
+        )
+        .build()
+}
 
-    let mut tr = Trajectory {
-        names: model.names.clone(),
-        t: (0..steps).map(|k| graph.run_time(k)).collect(),
-        q: Vec::with_capacity(steps * n),
-        dq: Vec::with_capacity(steps * n),
-        ddq: Vec::with_capacity(steps * n),
-    };
-    let mut forces = Vec::with_capacity(steps * n);
-    let (mut worst_tracking, mut worst_phi) = (0.0f64, 0.0f64);
-    let mut phi = vec![0.0; model.m()];
-    for k in 0..steps {
-        let b = &values[k * s..(k + 1) * s];
-        tr.q.extend_from_slice(&b[..n]);
-        tr.dq.extend_from_slice(&b[n..2 * n]);
-        tr.ddq.extend_from_slice(&b[2 * n..3 * n]);
-        match options.coordinates {
-            Coordinates::Dependent => {
-                let row = forces.len();
-                forces.resize(row + n, 0.0);
-                for (&i, &v) in idx.iter().zip(&b[3 * n..]) {
-                    forces[row + i] = v;
+/// Appends one step of the solve's starting values from its start block `b` (q, q̇,
+/// q̈, Q of the n coordinates) in the graph's layout: in IC also z, ż, z̈; the forces
+/// on the prescribed coordinates only in DC.
+fn push_start_step(
+    model: &Model,
+    idx: &[usize],
+    coordinates: Coordinates,
+    b: &[f64],
+    values: &mut Vec<f64>,
+) {
+    let n = model.n();
+    values.extend_from_slice(&b[..3 * n]);
+    if coordinates == Coordinates::Independent {
+        for part in 0..3 {
+            values.extend(model.independent.iter().map(|&i| b[part * n + i]));
+        }
+    }
+    match coordinates {
+        Coordinates::Dependent => values.extend(idx.iter().map(|&i| b[3 * n + i])),
+        Coordinates::Independent => values.extend_from_slice(&b[3 * n..]),
+    }
+}
+
+/// The solved values of an inverse graph, step-major.
+struct Solved<'a> {
+    graph: &'a ChainGraph,
+    values: &'a [f64],
+    coordinates: Coordinates,
+}
+
+impl Solved<'_> {
+    /// The motion, the forces on the n coordinates (row-major steps × n), the worst
+    /// tracking error of the prescribed coordinates and the worst |Φ|.
+    fn read(&self, model: &Model, prescription: &Prescription) -> (Trajectory, Vec<f64>, f64, f64) {
+        let (n, s) = (model.n(), self.graph.layout().size());
+        let (steps, idx) = (prescription.steps, &prescription.indices);
+        let mut tr = Trajectory {
+            names: model.names.clone(),
+            t: (0..steps).map(|k| self.graph.run_time(k)).collect(),
+            q: Vec::with_capacity(steps * n),
+            dq: Vec::with_capacity(steps * n),
+            ddq: Vec::with_capacity(steps * n),
+        };
+        let mut forces = Vec::with_capacity(steps * n);
+        let (mut worst_tracking, mut worst_phi) = (0.0f64, 0.0f64);
+        let mut phi = vec![0.0; model.m()];
+        for k in 0..steps {
+            let b = &self.values[k * s..(k + 1) * s];
+            tr.q.extend_from_slice(&b[..n]);
+            tr.dq.extend_from_slice(&b[n..2 * n]);
+            tr.ddq.extend_from_slice(&b[2 * n..3 * n]);
+            match self.coordinates {
+                Coordinates::Dependent => {
+                    let row = forces.len();
+                    forces.resize(row + n, 0.0);
+                    for (&i, &v) in idx.iter().zip(&b[3 * n..]) {
+                        forces[row + i] = v;
+                    }
                 }
+                Coordinates::Independent => forces.extend_from_slice(&b[s - n..]),
             }
-            Coordinates::Independent => forces.extend_from_slice(&b[s - n..]),
+            for (c, &i) in idx.iter().enumerate() {
+                worst_tracking = worst_tracking.max((b[i] - prescription.value(k, c)).abs());
+            }
+            model.phi_into(&b[..n], &mut phi);
+            worst_phi = phi.iter().fold(worst_phi, |w, v| w.max(v.abs()));
         }
-        for (c, &i) in idx.iter().enumerate() {
-            worst_tracking = worst_tracking.max((b[i] - prescription.value(k, c)).abs());
-        }
-        model.phi_into(&b[..n], &mut phi);
-        worst_phi = phi.iter().fold(worst_phi, |w, v| w.max(v.abs()));
+        (tr, forces, worst_tracking, worst_phi)
     }
-    if !values.iter().all(|v| v.is_finite()) {
-        return Err(Error::singular(
-            "the inverse solve produced non-finite values",
-        ));
-    }
-    Ok(InverseSolution {
-        trajectory: tr,
-        forces,
-        summary: InverseSummary {
-            steps,
-            wall_time,
-            report,
-            worst_tracking,
-            worst_phi,
-        },
-    })
 }
 
 /// The classical answer along the samples: positions by the position problem with the

@@ -284,7 +284,6 @@ impl DynamicsKernel {
     /// Adds λₖ ∂εₖ/∂q to the bottom rows' q columns of the right-hand sides `cols`
     /// (row-major, `width` columns): εₖ = w(s) ε_rel ‖aₖ‖²/m̄, ∂‖aₖ‖² = 2 Φᵏ_qq aₖ,
     /// ∂w = w'(s) ∂s/∂q.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn add_regularization_terms(
         model: &Model,
         q: &[f64],

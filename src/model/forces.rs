@@ -172,14 +172,12 @@ impl Load {
         }
     }
 
-    /// Adds ∂value/∂q and ∂value/∂q̇ to row `row` of `kq` and `kv`.
-    #[allow(clippy::too_many_arguments)] // the state, the time and two outputs
+    /// Adds ∂value/∂q and ∂value/∂q̇ at the state (q, q̇, t) to row `row` of `kq` and
+    /// `kv`.
     fn add_gradient(
         &self,
         model: &Model,
-        q: &[f64],
-        dq: &[f64],
-        t: f64,
+        (q, dq, t): (&[f64], &[f64], f64),
         row: usize,
         kq: &mut [f64],
         kv: &mut [f64],
@@ -615,11 +613,11 @@ impl Force {
                 no_load_speed,
             } => kv[index * n + index] -= stall_torque / no_load_speed,
             Force::Torque { index, value } => {
-                value.add_gradient(model, q, dq, t, *index, kq, kv)?;
+                value.add_gradient(model, (q, dq, t), *index, kq, kv)?;
             }
             Force::PointForce { index, value } => {
                 for (axis, v) in value.iter().enumerate() {
-                    v.add_gradient(model, q, dq, t, index + axis, kq, kv)?;
+                    v.add_gradient(model, (q, dq, t), index + axis, kq, kv)?;
                 }
             }
             Force::External { load, .. } => external_jacobians(load.as_ref(), (q, dq, t), kq, kv)?,

@@ -34,29 +34,24 @@ pub(super) struct ChordStep {
 
 impl WindowSolver {
     /// After the undamped step `step` (its record, before the trial's cost is known)
-    /// to `values`, corrected onto the hard equations: the trial's cost without a
+    /// of the window `span` to `values`, corrected onto the hard equations: the trial's cost without a
     /// linearization, and where it is lower the chord step; the solve converges when
     /// that is below the tolerance, else the trial is linearized as usual.
     pub(super) fn chord_test(
         &mut self,
         graph: &ChainGraph,
         values: &mut [f64],
-        prior: Option<&LinearPrior>,
-        held: bool,
+        span: Span,
         step: Iteration,
     ) -> ChordOutcome {
-        let (k0, k1) = (step.k0, step.k1);
-        let scope = Scope::Window { held };
-        let cost = match self.evaluate(graph, values, k0, k1, prior, scope, false) {
+        let Span { k0, k1, prior, .. } = span;
+        let held = span.held();
+        let cost = match self.evaluate(graph, values, span, false) {
             Ok(c) if c <= step.cost => c,
-            _ => {
-                return ChordOutcome::Trial(
-                    self.evaluate(graph, values, k0, k1, prior, scope, true),
-                )
-            }
+            _ => return ChordOutcome::Trial(self.evaluate(graph, values, span, true)),
         };
         let Some(chord) = self.chord_step(graph, values, k0, prior) else {
-            return ChordOutcome::Trial(self.evaluate(graph, values, k0, k1, prior, scope, true));
+            return ChordOutcome::Trial(self.evaluate(graph, values, span, true));
         };
         // Back onto the hard equations to round-off: the chord step's part p comes
         // from the old C.

@@ -3,22 +3,20 @@
 
 use super::chord::ChordOutcome;
 use super::*;
+use std::ops::ControlFlow;
 
 impl WindowSolver {
     /// After a full step from `saved` along `direction` failed to lower the cost:
     /// the first of its halves, quarters, … (down to 1/256) that does, linearized for
     /// the next iteration, or `None` with the window back at `saved`.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn backtrack(
         &mut self,
         graph: &ChainGraph,
         values: &mut [f64],
-        k0: usize,
-        k1: usize,
-        prior: Option<&LinearPrior>,
-        scope: Scope,
+        span: Span,
         cost: f64,
     ) -> Result<Option<f64>> {
+        let Span { k0, k1, .. } = span;
         let s = self.s;
         let n = (k1 - k0) * s;
         let mut t = 1.0;
@@ -32,12 +30,12 @@ impl WindowSolver {
                 *x = x0 + t * d;
             }
             let trial = match self.correct(graph, values, k0, k1) {
-                Ok(()) => self.evaluate(graph, values, k0, k1, prior, scope, false),
+                Ok(()) => self.evaluate(graph, values, span, false),
                 Err(e) => Err(e),
             };
             if let Ok(c) = trial {
                 if c < cost {
-                    return match self.evaluate(graph, values, k0, k1, prior, scope, true) {
+                    return match self.evaluate(graph, values, span, true) {
                         Ok(c) => Ok(Some(c)),
                         Err(_) => break,
                     };
@@ -90,8 +88,12 @@ impl WindowSolver {
         prior: Option<&LinearPrior>,
         held: bool,
     ) -> Result<SolveReport> {
-        let scope = Scope::Window { held };
-        let th = self.settings.thresholds;
+        let span = Span {
+            k0,
+            k1,
+            prior,
+            scope: Scope::Window { held },
+        };
         self.prior_roots = None;
         if k1 <= k0 || k1 - k0 > self.h.capacity() {
             return Err(Error::InvalidArgument(format!(
@@ -99,286 +101,449 @@ impl WindowSolver {
                 self.h.capacity()
             )));
         }
-        let s = self.s;
-        let n = (k1 - k0) * s;
-        let lm = self.settings.method == Method::LevenbergMarquardt;
-        // Start undamped: with a good guess the Gauss-Newton step is accepted; damping
-        // (relative to diag H) is switched on only when a step fails to lower the cost.
-        let mut mu: f64 = 0.0;
-        let mut nu = 2.0;
-        let diverged =
-            |cost: f64, iterations| SolveReport::new(Termination::Diverged, iterations, cost);
-        // An evaluation that fails ends the solve as diverged, its reason kept.
-        let failed = |e: Error, cost: f64, iterations| SolveReport {
-            cause: Some(e.to_string()),
-            ..diverged(cost, iterations)
-        };
-        let mut cost = match self.evaluate(graph, values, k0, k1, prior, scope, true) {
+        let cost = match self.evaluate(graph, values, span, true) {
             Ok(c) => c,
             Err(e) => return Ok(failed(e, f64::INFINITY, 0)),
         };
-        let mut iterations = 0;
-        // Gauss-Newton until it shows the slow linear convergence or the failed step
-        // of a poor model; then the exact reduced Hessian (`exact_hessian`) for the
-        // rest of the solve. `gauss_newton` says H holds a fresh Gauss-Newton matrix.
-        let mut newton = false;
-        let mut gauss_newton = true;
-        let mut previous = f64::INFINITY;
-        let mut slow = false;
-        // The last accepted step was below the tolerance and kept the hard equations:
-        // the point is an optimum as far as a damped model can tell.
-        let mut settled = false;
-        while iterations < self.settings.max_iterations {
-            iterations += 1;
-            if newton && gauss_newton {
-                if let Err(e) = self.exact_hessian(graph, values, k0, k1, prior, scope) {
-                    return Ok(failed(e, cost, iterations));
-                }
-                gauss_newton = false;
-            }
-            let floor = th.damping_floor;
-            for (b, damping) in self.damping[..n].chunks_exact_mut(s).enumerate() {
-                let (diag, d) = (self.h.diag(b), self.h.dim(b));
-                let scale = &self.newton.scale[b * s..(b + 1) * s];
-                for (r, v) in damping[..d].iter_mut().enumerate() {
-                    let x = if newton { scale[r] } else { diag[r * d + r] };
-                    *v = mu * x.max(floor);
-                }
-            }
-            let factored = self
-                .chol
-                .factor(&self.h, if lm { &self.damping[..n] } else { &[] })
-                .is_ok();
-            // Gauss-Newton from J itself where H = JᵀJ is too ill-conditioned for its
-            // Cholesky factor to give the step to more than a few digits.
-            let ill_conditioned = mu == 0.0
-                && !newton
-                && (!factored || self.chol.pivot_ratio() < self.settings.normal_equations_limit);
-            if ill_conditioned && self.rows_width.is_none() && k1 == k0 + 1 {
-                // The rows were not kept (a window a marginal prior is made from keeps
-                // none, see `evaluate`): the same linearization again, keeping them, as
-                // every one-step linearization will from now on (ill-conditioning
-                // persists along a run: the 128-link pendulum's every window).
-                self.keep_rows = true;
-                if let Err(e) = self.evaluate(graph, values, k0, k1, prior, scope, true) {
-                    return Ok(failed(e, cost, iterations));
-                }
-            }
-            let from_rows =
-                ill_conditioned && self.least_squares_step(&values[k0 * s..(k0 + 1) * s], prior);
-            if factored && !from_rows {
-                for i in 0..n {
-                    self.delta[i] = -self.g[i];
-                }
-                self.chol.solve(&mut self.delta[..n]);
-            } else if !from_rows {
-                if mu == 0.0 && settled {
-                    // H is singular to working precision where the damped steps have
-                    // already come to rest: no undamped step can say more (the six-bar
-                    // press's windows in IC, cycling from 1e-4 down to 1e-12 and back).
-                    return Ok(SolveReport::new(Termination::Converged, iterations, cost));
-                }
-                if !lm || mu > th.max_damping {
-                    return Ok(diverged(cost, iterations));
-                }
-                mu = (mu * 10.0).max(self.settings.initial_damping);
-                continue;
-            }
-            // The decrease the linear model predicts for the soft factors in y:
-            // −gᵀy − ½yᵀHy.
-            self.h.multiply(&self.delta[..n], &mut self.hd[..n]);
-            let predicted: f64 = (0..n)
-                .map(|i| -self.g[i] * self.delta[i] - 0.5 * self.delta[i] * self.hd[i])
-                .sum();
-            let window = &mut values[k0 * s..k1 * s];
-            self.saved[..n].copy_from_slice(window);
-            // δ = p + N y per block; `largest` is max |δᵢ| / (1 + |xᵢ|).
-            let (mut largest, mut restored) = (0.0f64, true);
-            for b in 0..k1 - k0 {
-                let red = &self.hard[b].reduction;
-                let at_round_off = self.hard[b].at_round_off;
-                let y = &self.delta[b * s..(b + 1) * s];
-                let x = &mut window[b * s..(b + 1) * s];
-                for i in 0..s {
-                    let p = red.particular[i];
-                    let (start, nrow) = red.row(i);
-                    let step = p + nrow
-                        .iter()
-                        .zip(&y[start..])
-                        .map(|(a, b)| a * b)
-                        .sum::<f64>();
-                    let scale = 1.0 + x[i].abs();
-                    largest = largest.max(step.abs() / scale);
-                    restored &= at_round_off || p.abs() <= self.settings.step_tolerance * scale;
-                    x[i] += step;
-                    self.direction[b * s + i] = step;
-                }
-            }
-            let small = largest <= self.settings.step_tolerance;
-            // This iteration as an observer sees it (the trial's cost once known).
-            let record = Iteration {
-                k0,
-                k1,
-                iteration: iterations,
-                newton,
-                cost,
-                trial: None,
-                damping: mu,
-                predicted,
-                largest_step: largest,
-                small,
-                restored,
-                chord: false,
-            };
-            if small && mu == 0.0 {
-                // Converged: the point moved by less than the tolerance, so the cost
-                // the model predicts is the cost there, to far below its round-off,
-                // and the hard equations, exact to first order along δ, are off by
-                // O(|δ|²) ≤ 1e-16: no correction needed.
-                if let Some(observer) = self.observer.as_mut() {
-                    observer.iteration(&record);
-                }
-                if !held && !newton {
-                    self.keep_for_marginal(values, k0, k1);
-                }
-                return Ok(SolveReport::new(
-                    Termination::Converged,
-                    iterations,
-                    cost - predicted,
-                ));
-            }
-            // The trial is linearized at once: accepted (the usual case), it is the
-            // next iteration's system; rejected, the old point is linearized again.
-            // After an undamped Gauss-Newton step of a one-block window, the chord
-            // step from the trial may show convergence without that linearization.
-            let chord = mu == 0.0
-                && !newton
-                && !from_rows
-                && iterations < self.settings.max_iterations
-                && self.chord_ready(k0, k1, held);
-            let trial = match self.correct(graph, values, k0, k1) {
-                Ok(()) if chord => match self.chord_test(graph, values, prior, held, record) {
-                    ChordOutcome::Converged(report) => return Ok(report),
-                    ChordOutcome::Failed(e, c) => return Ok(failed(e, c, iterations + 1)),
-                    ChordOutcome::Trial(trial) => trial,
-                },
-                Ok(()) => self.evaluate(graph, values, k0, k1, prior, scope, true),
-                Err(e) => Err(e),
-            };
-            gauss_newton = true;
-            // Converged when an undamped step is small; or when it restores the hard
-            // factors and either the model predicts a decrease below `flat_decrease`
-            // of the cost, or the step fails to lower the cost while it is below
-            // `stall` (relative) or predicts less than `stall` of it: then the cost
-            // comparison only sees the
-            // residuals' round-off (their evaluation goes through a factorization),
-            // and what is left is a slow Gauss-Newton tail along a direction with
-            // little information. A small damped step proves nothing: damping alone
-            // can make it small.
-            let no_progress = match &trial {
-                Ok(c) => *c >= cost,
-                Err(_) => true,
-            };
-            // A negative prediction is no "little left to gain": the model itself is
-            // off (H's round-off), and the step may be anything.
-            let little = |fraction: f64| (0.0..=fraction * cost.abs()).contains(&predicted);
-            let flat = restored
-                && (little(th.flat_decrease)
-                    || (no_progress && (largest <= th.stall || little(th.stall))));
-            let converged = (small || flat) && mu == 0.0;
-            if let Some(observer) = self.observer.as_mut() {
-                observer.iteration(&Iteration {
-                    trial: trial.as_ref().ok().copied(),
-                    ..record
-                });
-            }
-
-            match trial {
-                Ok(c) if converged || c <= cost || !lm => {
-                    if converged && c > cost {
-                        // Converged where the step could not lower the cost: the point
-                        // before the step is the answer (within round-off of the trial
-                        // where the comparison is round-off, far better where not).
-                        values[k0 * s..k1 * s].copy_from_slice(&self.saved[..n]);
-                        return Ok(SolveReport::new(Termination::Converged, iterations, cost));
-                    }
-                    if converged {
-                        return Ok(SolveReport::new(Termination::Converged, iterations, c));
-                    }
-                    // Where the model predicted the decrease well (ratio > 3/4), go back
-                    // to Gauss-Newton at once: damping relative to diag H all but
-                    // freezes directions with little information, and easing it off
-                    // by thirds costs a dozen iterations.
-                    // Undamped steps shrinking by less than 4× twice in a row: the
-                    // linear convergence of a model missing its second-order terms.
-                    if mu == 0.0 {
-                        let slower = largest > th.slow_rate * previous;
-                        newton |= slow && slower && self.settings.second_order;
-                        slow = slower;
-                        previous = largest;
-                    }
-                    settled = small && restored;
-                    let ratio = (cost - c) / predicted.max(f64::MIN_POSITIVE);
-                    // A step below the tolerance leaves only round-off to compare, and
-                    // says no more about the model than that the undamped step is due.
-                    mu = if ratio > th.good_ratio || mu < th.negligible_damping || settled {
-                        0.0
-                    } else {
-                        mu / 3.0
-                    };
-                    cost = c;
-                    nu = 2.0;
-                }
-                _ => {
-                    // A failed full step after the first (which starts from a
-                    // prediction off the constraints): the model is wrong at its scale.
-                    newton |= iterations >= 2 && self.settings.second_order;
-                    if lm && mu == 0.0 && !small {
-                        // The full step overshot: try fractions of it before damping,
-                        // which would turn the step away from the directions with
-                        // little information, where it is most needed.
-                        if let Some(c) =
-                            self.backtrack(graph, values, k0, k1, prior, scope, cost)?
-                        {
-                            previous = f64::INFINITY;
-                            slow = false;
-                            settled = false;
-                            cost = c;
-                            continue;
-                        }
-                    }
-                    values[k0 * s..k1 * s].copy_from_slice(&self.saved[..n]);
-                    if !lm {
-                        return Ok(diverged(cost, iterations));
-                    }
-                    if let Err(e) = self.evaluate(graph, values, k0, k1, prior, scope, true) {
-                        return Ok(failed(e, cost, iterations));
-                    }
-                    if small && restored {
-                        // A damped step below the tolerance, along a descent direction,
-                        // failed to lower the cost: the cost's changes are below its
-                        // round-off (the residuals go through factorizations), so no
-                        // step can be judged any more. This is the optimum.
-                        return Ok(SolveReport::new(Termination::Converged, iterations, cost));
-                    }
-                    if small {
-                        // The damped step vanished without lowering the cost: try the
-                        // undamped one again.
-                        mu = 0.0;
-                        continue;
-                    }
-                    mu = (mu * nu).max(self.settings.initial_damping);
-                    nu *= 2.0;
-                    if mu > th.max_damping {
-                        return Ok(diverged(cost, iterations));
-                    }
-                }
+        let mut state = SolveState::new(cost);
+        while state.iterations < self.settings.max_iterations {
+            state.iterations += 1;
+            if let Outcome::Done(report) = self.iteration(graph, values, span, &mut state)? {
+                return Ok(report);
             }
         }
         Ok(SolveReport::new(
             Termination::IterationLimit,
-            iterations,
-            cost,
+            state.iterations,
+            state.cost,
         ))
+    }
+
+    /// One iteration from a point linearized in H and g: the step, its trial point
+    /// (corrected onto the hard equations), the convergence tests, and the step's
+    /// acceptance or rejection.
+    fn iteration(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        span: Span,
+        state: &mut SolveState,
+    ) -> Result<Outcome> {
+        let Span { k0, k1, .. } = span;
+        if state.newton && state.gauss_newton {
+            if let Err(e) = self.exact_hessian(graph, values, span) {
+                return Ok(Outcome::Done(failed(e, state.cost, state.iterations)));
+            }
+            state.gauss_newton = false;
+        }
+        let from_rows = match self.step(graph, values, span, state) {
+            ControlFlow::Continue(from_rows) => from_rows,
+            ControlFlow::Break(outcome) => return Ok(outcome),
+        };
+        let predicted = self.predicted_decrease((k1 - k0) * self.s);
+        let (largest, restored) = self.take_step(values, k0, k1);
+        let small = largest <= self.settings.step_tolerance;
+        // This iteration as an observer sees it (the trial's cost once known).
+        let record = Iteration {
+            k0,
+            k1,
+            iteration: state.iterations,
+            newton: state.newton,
+            cost: state.cost,
+            trial: None,
+            damping: state.mu,
+            predicted,
+            largest_step: largest,
+            small,
+            restored,
+            chord: false,
+        };
+        if small && state.mu == 0.0 {
+            // Converged: the point moved by less than the tolerance, so the cost
+            // the model predicts is the cost there, to far below its round-off,
+            // and the hard equations, exact to first order along δ, are off by
+            // O(|δ|²) ≤ 1e-16: no correction needed.
+            self.report(&record);
+            if !span.held() && !state.newton {
+                self.keep_for_marginal(values, k0, k1);
+            }
+            return Ok(Outcome::Done(SolveReport::new(
+                Termination::Converged,
+                state.iterations,
+                state.cost - predicted,
+            )));
+        }
+        // After an undamped Gauss-Newton step of a one-block window, the chord
+        // step from the trial may show convergence without a linearization there.
+        let chord = state.mu == 0.0
+            && !state.newton
+            && !from_rows
+            && state.iterations < self.settings.max_iterations
+            && self.chord_ready(k0, k1, span.held());
+        let trial = match self.trial(graph, values, span, chord, record) {
+            ControlFlow::Continue(trial) => trial,
+            ControlFlow::Break(report) => return Ok(Outcome::Done(report)),
+        };
+        state.gauss_newton = true;
+        let converged = converges(&self.settings.thresholds, &record, &trial);
+        self.report(&Iteration {
+            trial: trial.as_ref().ok().copied(),
+            ..record
+        });
+        let lm = self.settings.method == Method::LevenbergMarquardt;
+        match trial {
+            Ok(c) if converged || c <= state.cost || !lm => {
+                Ok(self.accept(values, span, state, &record, (c, converged)))
+            }
+            _ => self.reject(graph, values, span, state, &record),
+        }
+    }
+
+    /// The reduced step y into `delta`: from the Cholesky factor of the normal
+    /// equations (damped by `mu` relative to diag H, or to the Gauss-Newton diagonal
+    /// once H is Newton's), or from the rows where H is too ill-conditioned. Continues
+    /// with whether it came from the rows; breaks where no step can be had at this
+    /// damping (the damping raised for the next iteration, or the solve ended).
+    fn step(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        span: Span,
+        state: &mut SolveState,
+    ) -> ControlFlow<Outcome, bool> {
+        let Span { k0, k1, prior, .. } = span;
+        let (s, th) = (self.s, self.settings.thresholds);
+        let n = (k1 - k0) * s;
+        let lm = self.settings.method == Method::LevenbergMarquardt;
+        let mu = state.mu;
+        for (b, damping) in self.damping[..n].chunks_exact_mut(s).enumerate() {
+            let (diag, d) = (self.h.diag(b), self.h.dim(b));
+            let scale = &self.newton.scale[b * s..(b + 1) * s];
+            for (r, v) in damping[..d].iter_mut().enumerate() {
+                let x = if state.newton {
+                    scale[r]
+                } else {
+                    diag[r * d + r]
+                };
+                *v = mu * x.max(th.damping_floor);
+            }
+        }
+        let factored = self
+            .chol
+            .factor(&self.h, if lm { &self.damping[..n] } else { &[] })
+            .is_ok();
+        // Gauss-Newton from J itself where H = JᵀJ is too ill-conditioned for its
+        // Cholesky factor to give the step to more than a few digits.
+        let ill_conditioned = mu == 0.0
+            && !state.newton
+            && (!factored || self.chol.pivot_ratio() < self.settings.normal_equations_limit);
+        if ill_conditioned && self.rows_width.is_none() && k1 == k0 + 1 {
+            // The rows were not kept (a window a marginal prior is made from keeps
+            // none, see `evaluate`): the same linearization again, keeping them, as
+            // every one-step linearization will from now on (ill-conditioning
+            // persists along a run: the 128-link pendulum's every window).
+            self.keep_rows = true;
+            if let Err(e) = self.evaluate(graph, values, span, true) {
+                let report = failed(e, state.cost, state.iterations);
+                return ControlFlow::Break(Outcome::Done(report));
+            }
+        }
+        let from_rows =
+            ill_conditioned && self.least_squares_step(&values[k0 * s..(k0 + 1) * s], prior);
+        if factored && !from_rows {
+            for i in 0..n {
+                self.delta[i] = -self.g[i];
+            }
+            self.chol.solve(&mut self.delta[..n]);
+            return ControlFlow::Continue(false);
+        }
+        if from_rows {
+            return ControlFlow::Continue(true);
+        }
+        if mu == 0.0 && state.settled {
+            // H is singular to working precision where the damped steps have
+            // already come to rest: no undamped step can say more.
+            let report = SolveReport::new(Termination::Converged, state.iterations, state.cost);
+            return ControlFlow::Break(Outcome::Done(report));
+        }
+        if !lm || mu > th.max_damping {
+            return ControlFlow::Break(Outcome::Done(diverged(state.cost, state.iterations)));
+        }
+        state.mu = (mu * 10.0).max(self.settings.initial_damping);
+        ControlFlow::Break(Outcome::Next)
+    }
+
+    /// The decrease the linear model predicts for the soft factors along the reduced
+    /// step y in `delta`: −gᵀy − ½yᵀHy.
+    fn predicted_decrease(&mut self, n: usize) -> f64 {
+        self.h.multiply(&self.delta[..n], &mut self.hd[..n]);
+        (0..n)
+            .map(|i| -self.g[i] * self.delta[i] - 0.5 * self.delta[i] * self.hd[i])
+            .sum()
+    }
+
+    /// Moves steps k0..k1 by δ = p + N y per block (the point before into `saved`,
+    /// δ into `direction`); returns max |δᵢ| / (1 + |xᵢ|) and whether every block's
+    /// particular part p was within the tolerance (or its equations at round-off):
+    /// the step kept the hard equations rather than restoring them.
+    fn take_step(&mut self, values: &mut [f64], k0: usize, k1: usize) -> (f64, bool) {
+        let s = self.s;
+        let n = (k1 - k0) * s;
+        let window = &mut values[k0 * s..k1 * s];
+        self.saved[..n].copy_from_slice(window);
+        let (mut largest, mut restored) = (0.0f64, true);
+        for b in 0..k1 - k0 {
+            let red = &self.hard[b].reduction;
+            let at_round_off = self.hard[b].at_round_off;
+            let y = &self.delta[b * s..(b + 1) * s];
+            let x = &mut window[b * s..(b + 1) * s];
+            for i in 0..s {
+                let p = red.particular[i];
+                let (start, nrow) = red.row(i);
+                let step = p + nrow
+                    .iter()
+                    .zip(&y[start..])
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>();
+                let scale = 1.0 + x[i].abs();
+                largest = largest.max(step.abs() / scale);
+                restored &= at_round_off || p.abs() <= self.settings.step_tolerance * scale;
+                x[i] += step;
+                self.direction[b * s + i] = step;
+            }
+        }
+        (largest, restored)
+    }
+
+    /// The cost at the trial point the step led to, once corrected onto the hard
+    /// equations and linearized there: accepted (the usual case), that is the next
+    /// iteration's system; rejected, the old point is linearized again. With `chord`,
+    /// the chord test first, which may end the solve.
+    fn trial(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        span: Span,
+        chord: bool,
+        record: Iteration,
+    ) -> ControlFlow<SolveReport, Result<f64>> {
+        let Span { k0, k1, .. } = span;
+        ControlFlow::Continue(match self.correct(graph, values, k0, k1) {
+            Ok(()) if chord => match self.chord_test(graph, values, span, record) {
+                ChordOutcome::Converged(report) => return ControlFlow::Break(report),
+                ChordOutcome::Failed(e, c) => {
+                    return ControlFlow::Break(failed(e, c, record.iteration + 1))
+                }
+                ChordOutcome::Trial(trial) => trial,
+            },
+            Ok(()) => self.evaluate(graph, values, span, true),
+            Err(e) => Err(e),
+        })
+    }
+
+    /// Hands an iteration's record to the observer, if any.
+    fn report(&mut self, record: &Iteration) {
+        if let Some(observer) = self.observer.as_mut() {
+            observer.iteration(record);
+        }
+    }
+
+    /// After a step to a trial of cost `c` that lowered the cost, `converged`, or
+    /// that Gauss-Newton takes regardless: the trial is the new point, with the
+    /// damping eased and the switch to Newton decided by how fast the steps shrink.
+    fn accept(
+        &mut self,
+        values: &mut [f64],
+        span: Span,
+        state: &mut SolveState,
+        step: &Iteration,
+        (c, converged): (f64, bool),
+    ) -> Outcome {
+        let Span { k0, k1, .. } = span;
+        let th = self.settings.thresholds;
+        if converged && c > state.cost {
+            // Converged where the step could not lower the cost: the point before
+            // the step is the answer (within round-off of the trial where the
+            // comparison is round-off, far better where not).
+            let (s, n) = (self.s, (k1 - k0) * self.s);
+            values[k0 * s..k1 * s].copy_from_slice(&self.saved[..n]);
+            let report = SolveReport::new(Termination::Converged, state.iterations, state.cost);
+            return Outcome::Done(report);
+        }
+        if converged {
+            return Outcome::Done(SolveReport::new(
+                Termination::Converged,
+                state.iterations,
+                c,
+            ));
+        }
+        // Undamped steps shrinking by less than 4× twice in a row: the linear
+        // convergence of a model missing its second-order terms.
+        if state.mu == 0.0 {
+            let slower = step.largest_step > th.slow_rate * state.previous;
+            state.newton |= state.slow && slower && self.settings.second_order;
+            state.slow = slower;
+            state.previous = step.largest_step;
+        }
+        state.settled = step.small && step.restored;
+        // Where the model predicted the decrease well (ratio > 3/4), back to
+        // Gauss-Newton at once: damping relative to diag H all but freezes the
+        // directions with little information. A step below the tolerance leaves only
+        // round-off to compare, and says only that the undamped step is due.
+        let ratio = (state.cost - c) / step.predicted.max(f64::MIN_POSITIVE);
+        state.mu = if ratio > th.good_ratio || state.mu < th.negligible_damping || state.settled {
+            0.0
+        } else {
+            state.mu / 3.0
+        };
+        state.cost = c;
+        state.nu = 2.0;
+        Outcome::Next
+    }
+
+    /// After a step that failed to lower the cost (or whose trial failed): fractions
+    /// of a full undamped step, else the point before the step, linearized again, with
+    /// more damping; a failed step of a Gauss-Newton solve ends it.
+    fn reject(
+        &mut self,
+        graph: &ChainGraph,
+        values: &mut [f64],
+        span: Span,
+        state: &mut SolveState,
+        step: &Iteration,
+    ) -> Result<Outcome> {
+        let Span { k0, k1, .. } = span;
+        let th = self.settings.thresholds;
+        let lm = self.settings.method == Method::LevenbergMarquardt;
+        let (s, n) = (self.s, (k1 - k0) * self.s);
+        let (small, iterations) = (step.small, state.iterations);
+        // A failed full step after the first (which starts from a prediction off
+        // the constraints): the model is wrong at its scale.
+        state.newton |= iterations >= 2 && self.settings.second_order;
+        if lm && state.mu == 0.0 && !small {
+            // The full step overshot: try fractions of it before damping, which
+            // would turn the step away from the directions with little information,
+            // where it is most needed.
+            if let Some(c) = self.backtrack(graph, values, span, state.cost)? {
+                state.previous = f64::INFINITY;
+                state.slow = false;
+                state.settled = false;
+                state.cost = c;
+                return Ok(Outcome::Next);
+            }
+        }
+        values[k0 * s..k1 * s].copy_from_slice(&self.saved[..n]);
+        if !lm {
+            return Ok(Outcome::Done(diverged(state.cost, iterations)));
+        }
+        if let Err(e) = self.evaluate(graph, values, span, true) {
+            return Ok(Outcome::Done(failed(e, state.cost, iterations)));
+        }
+        if small && step.restored {
+            // A damped step below the tolerance, along a descent direction, failed
+            // to lower the cost: the cost's changes are below its round-off (the
+            // residuals go through factorizations), so no step can be judged any
+            // more. This is the optimum.
+            let report = SolveReport::new(Termination::Converged, iterations, state.cost);
+            return Ok(Outcome::Done(report));
+        }
+        if small {
+            // The damped step vanished without lowering the cost: the undamped one
+            // again.
+            state.mu = 0.0;
+            return Ok(Outcome::Next);
+        }
+        state.mu = (state.mu * state.nu).max(self.settings.initial_damping);
+        state.nu *= 2.0;
+        if state.mu > th.max_damping {
+            return Ok(Outcome::Done(diverged(state.cost, iterations)));
+        }
+        Ok(Outcome::Next)
+    }
+}
+
+/// Where a window solve stands between iterations.
+struct SolveState {
+    /// The cost at the current point, whose linearization H and g hold.
+    cost: f64,
+    iterations: usize,
+    /// Levenberg-Marquardt's damping, relative to diag H, and its growth factor on
+    /// a failed step. It starts at 0: with a good guess the Gauss-Newton step is
+    /// accepted, and damping is switched on only when a step fails.
+    mu: f64,
+    nu: f64,
+    /// Gauss-Newton until it shows the slow linear convergence or the failed step
+    /// of a poor model; then the exact reduced Hessian (`exact_hessian`) for the
+    /// rest of the solve.
+    newton: bool,
+    /// H holds a fresh Gauss-Newton matrix.
+    gauss_newton: bool,
+    /// The last undamped step's size, and whether it shrank slowly from the one
+    /// before.
+    previous: f64,
+    slow: bool,
+    /// The last accepted step was below the tolerance and kept the hard equations:
+    /// the point is an optimum as far as a damped model can tell.
+    settled: bool,
+}
+
+impl SolveState {
+    fn new(cost: f64) -> Self {
+        SolveState {
+            cost,
+            iterations: 0,
+            mu: 0.0,
+            nu: 2.0,
+            newton: false,
+            gauss_newton: true,
+            previous: f64::INFINITY,
+            slow: false,
+            settled: false,
+        }
+    }
+}
+
+/// How an iteration ends.
+enum Outcome {
+    /// On to the next iteration.
+    Next,
+    /// The solve ends with this report.
+    Done(SolveReport),
+}
+
+/// Whether the step of `step` (its trial's cost `trial`) ends the solve: it was
+/// undamped and either small, or restored the hard factors while the model predicts
+/// a decrease below `flat_decrease` of the cost, or failed to lower the cost while
+/// below `stall` (relative) or predicting less than `stall` of it. Then the cost
+/// comparison only sees the residuals' round-off (their evaluation goes through a
+/// factorization), and what is left is a slow Gauss-Newton tail along a direction
+/// with little information. A small damped step proves nothing: damping alone can
+/// make it small.
+fn converges(th: &Thresholds, step: &Iteration, trial: &Result<f64>) -> bool {
+    let cost = step.cost;
+    let predicted = step.predicted;
+    let no_progress = match trial {
+        Ok(c) => *c >= cost,
+        Err(_) => true,
+    };
+    // A negative prediction is no "little left to gain": the model itself is off
+    // (H's round-off), and the step may be anything.
+    let little = |fraction: f64| (0.0..=fraction * cost.abs()).contains(&predicted);
+    let flat = step.restored
+        && (little(th.flat_decrease)
+            || (no_progress && (step.largest_step <= th.stall || little(th.stall))));
+    (step.small || flat) && step.damping == 0.0
+}
+
+/// A solve that ends diverged.
+fn diverged(cost: f64, iterations: usize) -> SolveReport {
+    SolveReport::new(Termination::Diverged, iterations, cost)
+}
+
+/// A solve whose evaluation failed: diverged, its reason kept.
+fn failed(e: Error, cost: f64, iterations: usize) -> SolveReport {
+    SolveReport {
+        cause: Some(e.to_string()),
+        ..diverged(cost, iterations)
     }
 }

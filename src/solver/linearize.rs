@@ -120,6 +120,14 @@ pub(super) fn located(
     }
 }
 
+/// A cost summed factor by factor, and its part from the factors touching the
+/// window's first block (which a marginalization of that block takes along).
+#[derive(Clone, Copy, Default)]
+pub(super) struct CostSum {
+    pub(super) total: f64,
+    pub(super) first: f64,
+}
+
 /// What a pass over the hard factors computes.
 #[derive(Clone, Copy, PartialEq, Eq)]
 pub(super) enum HardPass {
@@ -138,127 +146,158 @@ pub(super) struct HardBlock {
     pub(super) at_round_off: bool,
 }
 
-/// A whitened soft factor in reduced coordinates: per block it touches (lag 0 into
-/// `reduced[0]`, lag 1 into `reduced[1]`) the rows J N (dim × s, padded with zeros
-/// past the block's null-space dimension), and the residual r + J p linearized at the
-/// point the hard equations' particular step leads to.
-#[allow(clippy::too_many_arguments)]
-pub(super) fn reduce_factor(
-    reduced: &mut [Vec<f64>; 2],
-    spans: &mut [Vec<(usize, usize)>; 2],
-    shifted: &mut [f64],
-    hard: &[HardBlock],
-    factor: &dyn Factor,
-    step: usize,
-    buf: &FactorBuffers,
-    s: usize,
-) {
-    let keys = factor.keys();
-    let dim = buf.r.len();
-    // Only the columns of the blocks' null spaces are filled and read.
-    for (lag, part) in reduced.iter_mut().enumerate() {
-        if lag <= step {
-            let width = hard[step - lag].reduction.dim;
-            for r in 0..dim {
-                part[r * s..r * s + width].fill(0.0);
-            }
-        }
-        spans[lag][..dim].fill((usize::MAX, 0));
-    }
-    shifted[..dim].copy_from_slice(&buf.r);
-    for (a, k) in keys.iter().enumerate() {
-        let (off, d) = buf.slots[a];
-        if k.lag > step {
-            continue; // a variable held fixed before the window
-        }
-        let red = &hard[step - k.lag].reduction;
-        let out = &mut reduced[k.lag];
-        let span = &mut spans[k.lag];
-        let jac = &buf.jac[a];
-        let diagonal = factor.diagonal_jacobian(a);
-        for r in 0..dim {
-            let row = &mut out[r * s..r * s + red.dim];
-            let columns = if diagonal { r..r + 1 } else { 0..d };
-            for j in columns {
-                let v = jac[r * d + j];
-                if v == 0.0 {
-                    continue;
-                }
-                shifted[r] += v * red.particular[off + j];
-                let (start, nrow) = red.row(off + j);
-                if !nrow.is_empty() {
-                    let (lo, hi) = &mut span[r];
-                    *lo = (*lo).min(start);
-                    *hi = (*hi).max(start + nrow.len());
-                }
-                for (o, nv) in row[start..].iter_mut().zip(nrow) {
-                    *o += v * nv;
-                }
-            }
-        }
-    }
+/// A whitened soft factor in reduced coordinates, on its way into H and g.
+pub(super) struct ReducedRows {
+    /// Per block it touches (lag 0, lag 1), the rows J N (dim × s, padded with zeros
+    /// past the block's null-space dimension).
+    pub(super) jacobian: [Vec<f64>; 2],
+    /// Per row of `jacobian`, the columns outside which it is 0.
+    pub(super) spans: [Vec<(usize, usize)>; 2],
+    /// The residual r + J p, linearized at the point the hard equations' particular
+    /// step leads to.
+    pub(super) shifted: Vec<f64>,
+    /// The nonzeros of a row, per block it touches (for `accumulate`).
+    nonzeros: [Vec<(usize, f64)>; 2],
 }
 
-/// Adds a reduced factor's JᵀJ and Jᵀr into the block-tridiagonal system: block
-/// `step` from `reduced[0]` and, when `lagged`, block `step − 1` from `reduced[1]`
-/// (only their active columns, H's block sizes). Reduced rows are often sparse (a
-/// scaled identity times a null-space basis with unit rows), so each row's products
-/// run over its nonzeros, gathered into `nonzero`; every entry still sums the rows
-/// in order.
-#[allow(clippy::too_many_arguments)]
-pub(super) fn accumulate(
-    h: &mut BlockTridiagonal,
-    g: &mut [f64],
-    reduced: &[Vec<f64>; 2],
-    spans: &[Vec<(usize, usize)>; 2],
-    r: &[f64],
-    step: usize,
-    lagged: bool,
-    s: usize,
-    nonzero: &mut [Vec<(usize, f64)>; 2],
-) {
-    let parts: &[(usize, usize)] = if lagged {
-        &[(0, step), (1, step - 1)]
-    } else {
-        &[(0, step)]
-    };
-    for (row, &rr) in r.iter().enumerate() {
-        for &(part, block) in parts {
-            let d = h.dim(block);
-            let jr = &reduced[part][row * s..row * s + d];
-            // Past the row's span it is 0.
-            let (lo, hi) = spans[part][row];
-            let nz = &mut nonzero[part];
-            nz.clear();
-            if lo < hi {
-                nz.extend(
-                    jr[lo..hi]
-                        .iter()
-                        .enumerate()
-                        .filter(|(_, v)| **v != 0.0)
-                        .map(|(a, &v)| (lo + a, v)),
-                );
+impl ReducedRows {
+    /// Room for factors of up to `dim` rows over steps of `s` unknowns.
+    pub(super) fn new(dim: usize, s: usize) -> Self {
+        Self {
+            jacobian: [vec![0.0; dim * s], vec![0.0; dim * s]],
+            spans: [vec![(0, 0); dim], vec![(0, 0); dim]],
+            shifted: vec![0.0; dim],
+            nonzeros: [Vec::with_capacity(s), Vec::with_capacity(s)],
+        }
+    }
+
+    /// Reduces soft factor `factor`, evaluated and whitened in `buf`, at window block
+    /// `step` on the blocks' reductions in `hard`.
+    pub(super) fn reduce(
+        &mut self,
+        hard: &[HardBlock],
+        factor: &dyn Factor,
+        step: usize,
+        buf: &FactorBuffers,
+        s: usize,
+    ) {
+        let ReducedRows {
+            jacobian: reduced,
+            spans,
+            shifted,
+            ..
+        } = self;
+        let keys = factor.keys();
+        let dim = buf.r.len();
+        // Only the columns of the blocks' null spaces are filled and read.
+        for (lag, part) in reduced.iter_mut().enumerate() {
+            if lag <= step {
+                let width = hard[step - lag].reduction.dim;
+                for r in 0..dim {
+                    part[r * s..r * s + width].fill(0.0);
+                }
             }
-            let gb = &mut g[block * s..block * s + d];
-            for &(a, va) in nz.iter() {
-                gb[a] += va * rr;
+            spans[lag][..dim].fill((usize::MAX, 0));
+        }
+        shifted[..dim].copy_from_slice(&buf.r);
+        for (a, k) in keys.iter().enumerate() {
+            let (off, d) = buf.slots[a];
+            if k.lag > step {
+                continue; // a variable held fixed before the window
             }
-            let hb = h.diag_mut(block);
-            for &(a, va) in nz.iter() {
-                let out = &mut hb[a * d..(a + 1) * d];
-                for &(b, vb) in nz.iter() {
-                    out[b] += va * vb;
+            let red = &hard[step - k.lag].reduction;
+            let out = &mut reduced[k.lag];
+            let span = &mut spans[k.lag];
+            let jac = &buf.jac[a];
+            let diagonal = factor.diagonal_jacobian(a);
+            for r in 0..dim {
+                let row = &mut out[r * s..r * s + red.dim];
+                let columns = if diagonal { r..r + 1 } else { 0..d };
+                for j in columns {
+                    let v = jac[r * d + j];
+                    if v == 0.0 {
+                        continue;
+                    }
+                    shifted[r] += v * red.particular[off + j];
+                    let (start, nrow) = red.row(off + j);
+                    if !nrow.is_empty() {
+                        let (lo, hi) = &mut span[r];
+                        *lo = (*lo).min(start);
+                        *hi = (*hi).max(start + nrow.len());
+                    }
+                    for (o, nv) in row[start..].iter_mut().zip(nrow) {
+                        *o += v * nv;
+                    }
                 }
             }
         }
-        if lagged {
-            // H[step][step−1] += J₀ᵀ J₁.
-            let dp = h.dim(step - 1);
-            let hl = h.lower_mut(step);
-            for &(a, va) in &nonzero[0] {
-                let out = &mut hl[a * dp..(a + 1) * dp];
-                for &(b, vb) in &nonzero[1] {
-                    out[b] += va * vb;
+    }
+
+    /// Adds the reduced factor's JᵀJ and Jᵀr (its first `dim` rows) into the
+    /// block-tridiagonal system: block `step` from `jacobian[0]` and, when `lagged`,
+    /// block `step − 1` from `jacobian[1]` (only their active columns, H's block
+    /// sizes). Reduced rows are often sparse (a scaled identity times a null-space
+    /// basis with unit rows), so each row's products run over its nonzeros, gathered
+    /// into `nonzeros`; every entry still sums the rows in order.
+    pub(super) fn accumulate(
+        &mut self,
+        h: &mut BlockTridiagonal,
+        g: &mut [f64],
+        dim: usize,
+        step: usize,
+        lagged: bool,
+        s: usize,
+    ) {
+        let ReducedRows {
+            jacobian: reduced,
+            spans,
+            shifted,
+            nonzeros: nonzero,
+        } = self;
+        let r = &shifted[..dim];
+        let parts: &[(usize, usize)] = if lagged {
+            &[(0, step), (1, step - 1)]
+        } else {
+            &[(0, step)]
+        };
+        for (row, &rr) in r.iter().enumerate() {
+            for &(part, block) in parts {
+                let d = h.dim(block);
+                let jr = &reduced[part][row * s..row * s + d];
+                // Past the row's span it is 0.
+                let (lo, hi) = spans[part][row];
+                let nz = &mut nonzero[part];
+                nz.clear();
+                if lo < hi {
+                    nz.extend(
+                        jr[lo..hi]
+                            .iter()
+                            .enumerate()
+                            .filter(|(_, v)| **v != 0.0)
+                            .map(|(a, &v)| (lo + a, v)),
+                    );
+                }
+                let gb = &mut g[block * s..block * s + d];
+                for &(a, va) in nz.iter() {
+                    gb[a] += va * rr;
+                }
+                let hb = h.diag_mut(block);
+                for &(a, va) in nz.iter() {
+                    let out = &mut hb[a * d..(a + 1) * d];
+                    for &(b, vb) in nz.iter() {
+                        out[b] += va * vb;
+                    }
+                }
+            }
+            if lagged {
+                // H[step][step−1] += J₀ᵀ J₁.
+                let dp = h.dim(step - 1);
+                let hl = h.lower_mut(step);
+                for &(a, va) in &nonzero[0] {
+                    let out = &mut hl[a * dp..(a + 1) * dp];
+                    for &(b, vb) in &nonzero[1] {
+                        out[b] += va * vb;
+                    }
                 }
             }
         }
@@ -417,19 +456,15 @@ impl WindowSolver {
         Ok(())
     }
 
-    /// Evaluates soft factor instance `i` at `values` and adds its cost (and to
-    /// `cost_first` when it touches block k0); with `linearize` also adds its
-    /// reduced JᵀJ and Jᵀr to H and g.
-    #[allow(clippy::too_many_arguments)]
+    /// Evaluates soft factor instance `i` at `values` and adds its cost to `cost`;
+    /// with `linearize` also adds its reduced JᵀJ and Jᵀr to H and g.
     pub(super) fn soft_instance(
         &mut self,
         graph: &ChainGraph,
         values: &[f64],
-        k0: usize,
-        i: usize,
+        (k0, i): (usize, usize),
         linearize: bool,
-        cost: &mut f64,
-        cost_first: &mut f64,
+        cost: &mut CostSum,
     ) -> Result<()> {
         let s = self.s;
         let inst = self.instances[i];
@@ -446,9 +481,9 @@ impl WindowSolver {
         buf.whiten(factor, linearize && !along);
         for r in &buf.r {
             let c = 0.5 * r * r;
-            *cost += c;
+            cost.total += c;
             if touches_first {
-                *cost_first += c;
+                cost.first += c;
             }
         }
         if linearize {
@@ -463,18 +498,18 @@ impl WindowSolver {
                     0
                 };
                 let c = 1 + d0 + d1;
-                self.reduced_spans[0][..buf.r.len()].fill((0, d0));
-                self.reduced_spans[1][..buf.r.len()].fill((0, d1));
+                self.reduced.spans[0][..buf.r.len()].fill((0, d0));
+                self.reduced.spans[1][..buf.r.len()].fill((0, d1));
                 for (row, (&w, &r)) in buf.weights.iter().zip(&buf.r).enumerate() {
                     let out = &self.along_out[row * c..(row + 1) * c];
-                    self.shifted[row] = r + w * out[0];
-                    for (o, v) in self.reduced[0][row * s..row * s + d0]
+                    self.reduced.shifted[row] = r + w * out[0];
+                    for (o, v) in self.reduced.jacobian[0][row * s..row * s + d0]
                         .iter_mut()
                         .zip(&out[1..1 + d0])
                     {
                         *o = w * v;
                     }
-                    for (o, v) in self.reduced[1][row * s..row * s + d1]
+                    for (o, v) in self.reduced.jacobian[1][row * s..row * s + d1]
                         .iter_mut()
                         .zip(&out[1 + d0..])
                     {
@@ -482,38 +517,20 @@ impl WindowSolver {
                     }
                 }
             } else {
-                reduce_factor(
-                    &mut self.reduced,
-                    &mut self.reduced_spans,
-                    &mut self.shifted,
-                    &self.hard,
-                    factor,
-                    step,
-                    buf,
-                    s,
-                );
+                self.reduced.reduce(&self.hard, factor, step, buf, s);
             }
             if let Some(d) = self.rows_width.filter(|_| step == 0 && !lagged) {
-                for (row, &rr) in self.shifted[..factor.dim()].iter().enumerate() {
-                    let (lo, hi) = self.reduced_spans[0][row];
-                    let jr = &self.reduced[0][row * s..row * s + d];
+                for (row, &rr) in self.reduced.shifted[..factor.dim()].iter().enumerate() {
+                    let (lo, hi) = self.reduced.spans[0][row];
+                    let jr = &self.reduced.jacobian[0][row * s..row * s + d];
                     self.rows
                         .extend((0..d).map(|a| if a >= lo && a < hi { jr[a] } else { 0.0 }));
                     self.rows.push(rr);
                 }
                 self.row_instances.push(i);
             }
-            accumulate(
-                &mut self.h,
-                &mut self.g,
-                &self.reduced,
-                &self.reduced_spans,
-                &self.shifted[..factor.dim()],
-                step,
-                lagged,
-                s,
-                &mut self.nonzeros,
-            );
+            self.reduced
+                .accumulate(&mut self.h, &mut self.g, factor.dim(), step, lagged, s);
         }
         Ok(())
     }
@@ -590,17 +607,19 @@ impl WindowSolver {
     /// Evaluates the factors of a scope at `values` (the whole trajectory, step-major)
     /// and returns the cost; with `linearize`, also reduces each block's hard
     /// equations and fills H and g of the soft factors in reduced coordinates.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn evaluate(
         &mut self,
         graph: &ChainGraph,
         values: &[f64],
-        k0: usize,
-        k1: usize,
-        prior: Option<&LinearPrior>,
-        scope: Scope,
+        span: Span,
         linearize: bool,
     ) -> Result<f64> {
+        let Span {
+            k0,
+            k1,
+            prior,
+            scope,
+        } = span;
         let s = self.s;
         let blocks = k1 - k0;
         self.last = None;
@@ -621,7 +640,7 @@ impl WindowSolver {
         } else {
             HardPass::Residuals
         };
-        let (mut soft, mut soft_first) = (0.0, 0.0);
+        let mut soft = CostSum::default();
         // The rows describe the last linearization (as H and g do): an evaluation
         // without one leaves them for a chord step from it.
         if linearize {
@@ -655,7 +674,7 @@ impl WindowSolver {
                 for at in self.block_start[b]..self.block_start[b + 1] {
                     let i = self.by_step[at];
                     if !is_hard(graph, self.instances[i]) {
-                        self.soft_instance(graph, values, k0, i, true, &mut soft, &mut soft_first)?;
+                        self.soft_instance(graph, values, (k0, i), true, &mut soft)?;
                     }
                 }
             }
@@ -680,22 +699,19 @@ impl WindowSolver {
         }
         let (mut cost, mut cost_first) = self.hard_cost_sum(graph, k0);
         if self.step_major && linearize {
-            cost += soft;
-            cost_first += soft_first;
+            cost += soft.total;
+            cost_first += soft.first;
         } else {
+            let mut sum = CostSum {
+                total: cost,
+                first: cost_first,
+            };
             for i in 0..self.instances.len() {
                 if !is_hard(graph, self.instances[i]) {
-                    self.soft_instance(
-                        graph,
-                        values,
-                        k0,
-                        i,
-                        linearize,
-                        &mut cost,
-                        &mut cost_first,
-                    )?;
+                    self.soft_instance(graph, values, (k0, i), linearize, &mut sum)?;
                 }
             }
+            (cost, cost_first) = (sum.total, sum.first);
         }
         if let Some(p) = prior {
             let x = &values[k0 * s..(k0 + 1) * s];

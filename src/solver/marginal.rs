@@ -353,7 +353,13 @@ impl WindowSolver {
                 return self.marginalize_last(graph, values, k0, last.k1, project);
             }
         }
-        let cost = self.evaluate(graph, values, k0, k0 + 2, prior, Scope::Oldest, true)?;
+        let oldest = Span {
+            k0,
+            k1: k0 + 2,
+            prior,
+            scope: Scope::Oldest,
+        };
+        let cost = self.evaluate(graph, values, oldest, true)?;
         let d0 = self.h.dim(0);
         debug_assert_eq!(self.h.dim(1), s);
         // H₀₀, H₁₀ (block 1 rows × block 0 columns), H₁₁, g₀, g₁ into the scratch.
@@ -537,7 +543,7 @@ impl WindowSolver {
             }
             // Rows: J₀N₀ (dim × d0, row stride s) into reduced[1]; J₁ row by row below.
             let red = &self.hard[0].reduction;
-            for row in self.reduced[1].chunks_exact_mut(s).take(dim) {
+            for row in self.reduced.jacobian[1].chunks_exact_mut(s).take(dim) {
                 row[..d0].fill(0.0);
             }
             for (a, k) in keys.iter().enumerate() {
@@ -554,7 +560,7 @@ impl WindowSolver {
                             continue;
                         }
                         let (start, nrow) = red.row(off + j);
-                        let out = &mut self.reduced[1][r * s + start..r * s + d0];
+                        let out = &mut self.reduced.jacobian[1][r * s + start..r * s + d0];
                         for (o, nv) in out.iter_mut().zip(nrow) {
                             *o += v * nv;
                         }
@@ -566,7 +572,7 @@ impl WindowSolver {
             let (_, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
             for r in 0..dim {
-                let j0 = &self.reduced[1][r * s..r * s + d0];
+                let j0 = &self.reduced.jacobian[1][r * s..r * s + d0];
                 let rr = buf.r[r];
                 // J₁'s row: its nonzeros (integrators: two) by ascending column, the
                 // keys' entries on one column summed in key order.
@@ -608,7 +614,7 @@ impl WindowSolver {
             }
             if blocked && !window_holds_next {
                 // H₀₀ += (J₀N₀)ᵀ(J₀N₀) over the factor's rows at once.
-                let j0 = dense::rows(&self.reduced[1], dim, d0, s);
+                let j0 = dense::rows(&self.reduced.jacobian[1], dim, d0, s);
                 dense::multiply(dense::rows_mut(h00, d0, d0, s), true, j0.transpose(), j0);
             }
         }

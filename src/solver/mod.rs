@@ -35,10 +35,10 @@ pub use observer::{Iteration, Observer, Trace};
 pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};
 
-use linearize::{AllBuffers, HardBlock, HardPass};
+use linearize::{AllBuffers, HardBlock, HardPass, ReducedRows};
 use marginal::{JointRows, LastSolve};
 use newton::{NewtonBuffers, PriorRoots};
-use structure::{factor_of, is_hard, Instance, Resolved, Scope, Source};
+use structure::{factor_of, is_hard, Instance, Resolved, Scope, Source, Span};
 
 /// σ by which a hard factor's residual is weighted in the reported cost
 /// ([`SolveReport::cost`]). Hard factors are eliminated, not weighted: this only
@@ -63,12 +63,8 @@ pub struct WindowSolver {
     /// time, and the factors of chosen run steps, are placed by it.
     base: usize,
     hard: Vec<HardBlock>,
-    /// A factor's Jacobian in reduced coordinates, per block it touches (lag 0, lag 1).
-    reduced: [Vec<f64>; 2],
-    /// A factor's residual linearized at x + p.
-    shifted: Vec<f64>,
-    /// Per row of `reduced`, the columns outside which it is 0.
-    reduced_spans: [Vec<(usize, usize)>; 2],
+    /// A soft factor's rows in reduced coordinates.
+    reduced: ReducedRows,
     instances: Vec<Instance>,
     /// What `instances` was built for, and the lists of other shapes.
     resolved: Option<Resolved>,
@@ -115,9 +111,8 @@ pub struct WindowSolver {
     /// Cost of the factors touching the first block, from the last evaluation.
     cost_first: f64,
     correction: Vec<f64>,
-    /// The nonzeros of a Jacobian row (per block it touches, for `accumulate`).
+    /// The nonzeros of a row joining a marginalized step to the next.
     nonzero: Vec<(usize, f64)>,
-    nonzeros: [Vec<(usize, f64)>; 2],
     /// The rows of the factors joining a marginalized step to the next, on the
     /// next step's unknowns (`marginalize_last`): their nonzeros one row after
     /// another, each row's end, and each row's whitened residual.
@@ -223,9 +218,7 @@ impl WindowSolver {
             step_major: false,
             along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
             along_out: vec![0.0; along_dim * (1 + 2 * s)],
-            reduced: [vec![0.0; max_dim.max(s) * s], vec![0.0; max_dim.max(s) * s]],
-            shifted: vec![0.0; max_dim.max(s)],
-            reduced_spans: [vec![(0, 0); max_dim.max(s)], vec![(0, 0); max_dim.max(s)]],
+            reduced: ReducedRows::new(max_dim.max(s), s),
             instances: Vec::with_capacity(
                 capacity * graph.step_terms().len() + graph.initial_terms().len(),
             ),
@@ -240,7 +233,6 @@ impl WindowSolver {
             cost_first: 0.0,
             correction: vec![0.0; s],
             nonzero: Vec::with_capacity(s),
-            nonzeros: [Vec::with_capacity(s), Vec::with_capacity(s)],
             joint: JointRows::default(),
             ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],

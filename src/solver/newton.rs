@@ -78,16 +78,14 @@ impl WindowSolver {
     /// Σ Jᵢᵀrᵢ over the soft factors (whitened), the prior's Λ(x − x̄) + η, and
     /// Σ C_bᵀλ_b over each block's hard equations (rows in `hard_block` order) with the
     /// multipliers in `self.newton.lambda`; into `out` (blocks × s).
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn lagrangian_gradient(
         &mut self,
         graph: &ChainGraph,
         values: &[f64],
-        k0: usize,
-        k1: usize,
-        prior: Option<&LinearPrior>,
+        span: Span,
         out: &mut [f64],
     ) -> Result<()> {
+        let Span { k0, k1, prior, .. } = span;
         let s = self.s;
         let blocks = k1 - k0;
         out[..blocks * s].fill(0.0);
@@ -154,11 +152,9 @@ impl WindowSolver {
         &mut self,
         graph: &ChainGraph,
         values: &mut [f64],
-        k0: usize,
-        k1: usize,
-        prior: Option<&LinearPrior>,
-        scope: Scope,
+        span: Span,
     ) -> Result<()> {
+        let Span { k0, k1, scope, .. } = span;
         let s = self.s;
         let blocks = k1 - k0;
         let n = blocks * s;
@@ -166,7 +162,7 @@ impl WindowSolver {
         // Multipliers from the soft gradient at the point.
         let mut grad = std::mem::take(&mut self.newton.grad);
         self.newton.lambda.fill(0.0);
-        let result = self.lagrangian_gradient(graph, values, k0, k1, prior, &mut grad);
+        let result = self.lagrangian_gradient(graph, values, span, &mut grad);
         if let Err(e) = result {
             self.newton.grad = grad;
             return Err(e);
@@ -235,7 +231,7 @@ impl WindowSolver {
                             }
                         }
                     }
-                    result = self.lagrangian_gradient(graph, values, k0, k1, prior, out);
+                    result = self.lagrangian_gradient(graph, values, span, out);
                     if result.is_err() {
                         break 'columns;
                     }

@@ -15,6 +15,23 @@ pub(super) enum Scope {
     Oldest,
 }
 
+/// What one evaluation of a window reads: its steps k0..k1, the prior on step k0 and
+/// the factors it takes. The solve's linearizations, trials and Hessians all share it.
+#[derive(Clone, Copy)]
+pub(super) struct Span<'a> {
+    pub(super) k0: usize,
+    pub(super) k1: usize,
+    pub(super) prior: Option<&'a LinearPrior>,
+    pub(super) scope: Scope,
+}
+
+impl Span<'_> {
+    /// Whether the step before the window is held at its value (a conditional solve).
+    pub(super) fn held(&self) -> bool {
+        self.scope == Scope::Window { held: true }
+    }
+}
+
 /// Which of a graph's lists a factor instance comes from.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 pub(super) enum Source {

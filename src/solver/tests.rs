@@ -27,6 +27,16 @@ mod unit {
         (fg, values, prior, solver, k)
     }
 
+    /// The one-step window on step `k`, with `prior` on it.
+    fn span(k: usize, prior: Option<&LinearPrior>) -> Span<'_> {
+        Span {
+            k0: k,
+            k1: k + 1,
+            prior,
+            scope: Scope::Window { held: false },
+        }
+    }
+
     fn cost_on_manifold(
         solver: &mut WindowSolver,
         fg: &ForwardGraph,
@@ -39,15 +49,7 @@ mod unit {
             solver.correct(&fg.graph, values, k, k + 1).unwrap();
         }
         solver
-            .evaluate(
-                &fg.graph,
-                values,
-                k,
-                k + 1,
-                Some(prior),
-                Scope::Window { held: false },
-                false,
-            )
+            .evaluate(&fg.graph, values, span(k, Some(prior)), false)
             .unwrap()
     }
 
@@ -57,15 +59,7 @@ mod unit {
         let s = solver.s;
         let linearize = |solver: &mut WindowSolver, values: &[f64]| {
             solver
-                .evaluate(
-                    &fg.graph,
-                    values,
-                    k,
-                    k + 1,
-                    Some(&prior),
-                    Scope::Window { held: false },
-                    true,
-                )
+                .evaluate(&fg.graph, values, span(k, Some(&prior)), true)
                 .unwrap();
         };
         // Away from the optimum (large residuals): a step along the manifold.
@@ -78,14 +72,7 @@ mod unit {
         linearize(&mut solver, &values);
         let gauss_newton = solver.h.diag(0).to_vec();
         solver
-            .exact_hessian(
-                &fg.graph,
-                &mut values,
-                k,
-                k + 1,
-                Some(&prior),
-                Scope::Window { held: false },
-            )
+            .exact_hessian(&fg.graph, &mut values, span(k, Some(&prior)))
             .unwrap();
         let red = solver.hard[0].reduction.clone();
         let d = red.dim;
@@ -350,9 +337,8 @@ mod unit {
         let mut moved = values.clone();
         moved[k * s..(k + 1) * s].copy_from_slice(&x);
         let mut normal = |p: &LinearPrior| {
-            let scope = Scope::Window { held: false };
             let cost = solver
-                .evaluate(&fg.graph, &moved, k, k + 1, Some(p), scope, true)
+                .evaluate(&fg.graph, &moved, span(k, Some(p)), true)
                 .unwrap();
             let d = solver.h.dim(0);
             (
