@@ -2,9 +2,14 @@
 //! space, the soft factors whitened, reduced and accumulated into the
 //! block-tridiagonal normal equations.
 
-use super::*;
+use super::structure::{factor_of, is_hard, Instance, Scope, Source, Span};
+use super::{WindowSolver, HARD_SIGMA};
+use crate::error::{Error, Result};
 #[cfg(doc)]
 use crate::graph::AlongDirections;
+use crate::graph::{ChainGraph, Factor, Term};
+use crate::linalg::banded::BlockTridiagonal;
+use crate::linalg::nullspace::NullSpace;
 
 /// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
 pub(super) struct FactorBuffers {
@@ -322,7 +327,7 @@ impl WindowSolver {
             let base = (inst.step - k.lag) * s + off;
             *slot = &values[base..base + d];
         }
-        let t = graph.run_time(self.base + inst.step);
+        let t = graph.run_time(self.structure.base + inst.step);
         factor
             .evaluate(
                 t,
@@ -350,9 +355,9 @@ impl WindowSolver {
         self.generation += 1;
         let mut rows = 0;
         let mut at_round_off = true;
-        for at in self.block_start[b]..self.block_start[b + 1] {
-            let i = self.by_step[at];
-            let inst = self.instances[i];
+        for at in self.structure.block_start[b]..self.structure.block_start[b + 1] {
+            let i = self.structure.by_step[at];
+            let inst = self.structure.instances[i];
             if !is_hard(graph, inst) {
                 continue;
             }
@@ -414,7 +419,7 @@ impl WindowSolver {
     /// of it at the first block.
     pub(super) fn hard_cost_sum(&self, graph: &ChainGraph, k0: usize) -> (f64, f64) {
         let (mut cost, mut first) = (0.0, 0.0);
-        for (inst, &c) in self.instances.iter().zip(&self.hard_cost) {
+        for (inst, &c) in self.structure.instances.iter().zip(&self.hard_cost) {
             if !is_hard(graph, *inst) {
                 continue;
             }
@@ -467,7 +472,7 @@ impl WindowSolver {
         cost: &mut CostSum,
     ) -> Result<()> {
         let s = self.s;
-        let inst = self.instances[i];
+        let inst = self.structure.instances[i];
         let factor = factor_of(graph, inst);
         let along = linearize
             && self.buffers.of(inst).along
@@ -529,8 +534,14 @@ impl WindowSolver {
                 }
                 self.row_instances.push(i);
             }
-            self.reduced
-                .accumulate(&mut self.h, &mut self.g, factor.dim(), step, lagged, s);
+            self.reduced.accumulate(
+                &mut self.normal.h,
+                &mut self.normal.g,
+                factor.dim(),
+                step,
+                lagged,
+                s,
+            );
         }
         Ok(())
     }
@@ -590,7 +601,7 @@ impl WindowSolver {
             *d = &self.along_dirs[a..b];
         }
         let buf = self.buffers.of(inst);
-        let t = graph.run_time(self.base + inst.step);
+        let t = graph.run_time(self.structure.base + inst.step);
         along
             .evaluate_along(
                 t,
@@ -660,20 +671,20 @@ impl WindowSolver {
             // Step by step: each step's hard equations, then its factors into its
             // blocks of H (and the lagged ones into the previous step's) while they
             // are in cache.
-            self.h.set_blocks(blocks);
+            self.normal.h.set_blocks(blocks);
             let cached = projected;
             for b in 0..blocks {
                 if !cached {
                     self.hard_block(graph, values, b, mode)?;
                 }
-                self.h.reset_block(b, self.hard[b].reduction.dim);
-                self.g[b * s..(b + 1) * s].fill(0.0);
+                self.normal.h.reset_block(b, self.hard[b].reduction.dim);
+                self.normal.g[b * s..(b + 1) * s].fill(0.0);
                 if record {
                     self.rows_width = Some(self.hard[0].reduction.dim);
                 }
-                for at in self.block_start[b]..self.block_start[b + 1] {
-                    let i = self.by_step[at];
-                    if !is_hard(graph, self.instances[i]) {
+                for at in self.structure.block_start[b]..self.structure.block_start[b + 1] {
+                    let i = self.structure.by_step[at];
+                    if !is_hard(graph, self.structure.instances[i]) {
                         self.soft_instance(graph, values, (k0, i), true, &mut soft)?;
                     }
                 }
@@ -690,8 +701,10 @@ impl WindowSolver {
             if linearize {
                 // Directions the hard equations fix carry no unknown.
                 let hard = &self.hard;
-                self.h.reset_active(blocks, |b| hard[b].reduction.dim);
-                self.g[..blocks * s].fill(0.0);
+                self.normal
+                    .h
+                    .reset_active(blocks, |b| hard[b].reduction.dim);
+                self.normal.g[..blocks * s].fill(0.0);
                 if record {
                     self.rows_width = Some(self.hard[0].reduction.dim);
                 }
@@ -706,8 +719,8 @@ impl WindowSolver {
                 total: cost,
                 first: cost_first,
             };
-            for i in 0..self.instances.len() {
-                if !is_hard(graph, self.instances[i]) {
+            for i in 0..self.structure.instances.len() {
+                if !is_hard(graph, self.structure.instances[i]) {
                     self.soft_instance(graph, values, (k0, i), linearize, &mut sum)?;
                 }
             }
@@ -725,7 +738,13 @@ impl WindowSolver {
                 // In reduced coordinates δ₀ = p₀ + N₀y: H += N₀ᵀΛN₀, g += N₀ᵀ(grad + Λp₀).
                 let red = &self.hard[0].reduction;
                 p.add_information_times(&red.particular, grad, rest);
-                p.add_reduced(red, grad, self.h.diag_mut(0), &mut self.g, rest);
+                p.add_reduced(
+                    red,
+                    grad,
+                    self.normal.h.diag_mut(0),
+                    &mut self.normal.g,
+                    rest,
+                );
             }
         }
 

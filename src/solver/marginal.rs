@@ -1,8 +1,13 @@
 //! What a step leaves as it leaves a fixed-lag window: the marginal (Schur) or
 //! conditional prior on the next step, and its projection on the tangent space.
 
+use super::linearize::HardPass;
 use super::prior::{Information, TangentInformation};
-use super::*;
+use super::prior::{LinearPrior, Projection};
+use super::structure::{Instance, Scope, Source, Span};
+use super::{structure, WindowSolver};
+use crate::error::{Error, Result};
+use crate::graph::ChainGraph;
 use crate::linalg::dense;
 
 /// What a window solve that converged on a small step leaves for marginalizing its
@@ -360,19 +365,19 @@ impl WindowSolver {
             scope: Scope::Oldest,
         };
         let cost = self.evaluate(graph, values, oldest, true)?;
-        let d0 = self.h.dim(0);
-        debug_assert_eq!(self.h.dim(1), s);
+        let d0 = self.normal.h.dim(0);
+        debug_assert_eq!(self.normal.h.dim(1), s);
         // H₀₀, H₁₀ (block 1 rows × block 0 columns), H₁₁, g₀, g₁ into the scratch.
         let ss = s * s;
         let (h00, rest) = self.scratch.split_at_mut(ss);
         let (h10, rest) = rest.split_at_mut(ss);
         let (h11, rest) = rest.split_at_mut(ss);
         let (g01, _) = rest.split_at_mut(2 * s);
-        restride(self.h.diag(0), d0, d0, h00, s);
-        restride(self.h.lower(1), s, d0, h10, s);
-        restride(self.h.diag(1), s, s, h11, s);
-        g01[..s].copy_from_slice(&self.g[..s]);
-        g01[s..].copy_from_slice(&self.g[s..2 * s]);
+        restride(self.normal.h.diag(0), d0, d0, h00, s);
+        restride(self.normal.h.lower(1), s, d0, h10, s);
+        restride(self.normal.h.diag(1), s, s, h11, s);
+        g01[..s].copy_from_slice(&self.normal.g[..s]);
+        g01[s..].copy_from_slice(&self.normal.g[s..2 * s]);
         self.schur(k0, d0, cost, values)
     }
 
@@ -495,7 +500,7 @@ impl WindowSolver {
     ) -> Result<LinearPrior> {
         let s = self.s;
         let ss = s * s;
-        let d0 = self.h.dim(0);
+        let d0 = self.normal.h.dim(0);
         let window_holds_next = k1 > k0 + 1;
         // H₀₀ and g₀ at the optimum: the gradient moves by H δ with the last step.
         {
@@ -503,14 +508,14 @@ impl WindowSolver {
             let (h10, rest) = rest.split_at_mut(ss);
             let (_, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
-            restride(self.h.diag(0), d0, d0, h00, s);
+            restride(self.normal.h.diag(0), d0, d0, h00, s);
             // H₁₀ is read only in its first d0 columns.
             for row in h10.chunks_exact_mut(s) {
                 row[..d0].fill(0.0);
             }
             g01.fill(0.0);
             for a in 0..d0 {
-                g01[a] = self.g[a] + self.hd[a];
+                g01[a] = self.normal.g[a] + self.normal.hd[a];
             }
         }
         let mut cost = self.cost_first;
@@ -519,7 +524,10 @@ impl WindowSolver {
         // The factors joining k0 and k0 + 1: the step factors, then those of run
         // step k0 + 1 alone.
         let steps = graph.step_terms().len();
-        let at = graph.sparse_range(self.run_step(k0 + 1), self.run_step(k0 + 2));
+        let at = graph.sparse_range(
+            self.structure.run_step(k0 + 1),
+            self.structure.run_step(k0 + 2),
+        );
         for i in 0..steps + at.len() {
             let inst = Instance {
                 source: if i < steps { Source::Step } else { Source::At },

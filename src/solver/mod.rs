@@ -13,8 +13,7 @@
 use crate::error::{Error, Result};
 #[cfg(doc)]
 use crate::graph::AlongDirections;
-use crate::graph::{ChainGraph, Factor, Term, Workspace};
-use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
+use crate::graph::{ChainGraph, Term, Workspace};
 use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
 
@@ -23,6 +22,7 @@ mod iterate;
 mod linearize;
 mod marginal;
 mod newton;
+mod normal;
 mod observer;
 mod prior;
 mod settings;
@@ -35,10 +35,11 @@ pub use observer::{Iteration, Observer, Trace};
 pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};
 
-use linearize::{AllBuffers, HardBlock, HardPass, ReducedRows};
+use linearize::{AllBuffers, HardBlock, ReducedRows};
 use marginal::{JointRows, LastSolve};
 use newton::{NewtonBuffers, PriorRoots};
-use structure::{factor_of, is_hard, Instance, Resolved, Scope, Source, Span};
+use normal::NormalEquations;
+use structure::{Scope, Structure};
 
 /// σ by which a hard factor's residual is weighted in the reported cost
 /// ([`SolveReport::cost`]). Hard factors are eliminated, not weighted: this only
@@ -49,33 +50,18 @@ pub const HARD_SIGMA: f64 = 1e-6;
 pub struct WindowSolver {
     settings: Settings,
     s: usize,
-    h: BlockTridiagonal,
-    chol: BandedCholesky,
-    g: Vec<f64>,
-    delta: Vec<f64>,
-    damping: Vec<f64>,
+    /// Which factor instances the current window holds (the structure stage).
+    structure: Structure,
+    /// H y = −g in the window's reduced unknowns, and its step.
+    normal: NormalEquations,
     saved: Vec<f64>,
-    hd: Vec<f64>,
     /// Each factor's residual and Jacobian buffers.
     buffers: AllBuffers,
-    /// The run step of the values' step 0 (a streaming run moves its values
-    /// toward the start of their buffer, [`WindowSolver::shift_steps`]): a step's
-    /// time, and the factors of chosen run steps, are placed by it.
-    base: usize,
     hard: Vec<HardBlock>,
     /// A soft factor's rows in reduced coordinates.
     reduced: ReducedRows,
-    instances: Vec<Instance>,
-    /// What `instances` was built for, and the lists of other shapes.
-    resolved: Option<Resolved>,
-    parked: Vec<structure::Listing>,
     /// The last full step δ = p + N y of the window (for `backtrack`).
     direction: Vec<f64>,
-    /// The instances in step order (indices into `instances`), and where each block's
-    /// begin in it (one more entry than blocks).
-    by_step: Vec<usize>,
-    block_start: Vec<usize>,
-    next_slot: Vec<usize>,
     /// Per instance, the cost of a hard one (summed in `instances` order).
     hard_cost: Vec<f64>,
     /// One step's hard equations: C row-major rows × s, and −c.
@@ -187,16 +173,11 @@ impl WindowSolver {
         let mut solver = WindowSolver {
             settings,
             s,
-            h: BlockTridiagonal::new(capacity, s),
-            chol: BandedCholesky::new(capacity, s),
-            g: vec![0.0; n],
-            delta: vec![0.0; n],
-            damping: vec![0.0; n],
+            normal: NormalEquations::new(capacity, s),
             saved: vec![0.0; n],
             direction: vec![0.0; n],
-            hd: vec![0.0; n],
             buffers: AllBuffers::new(graph),
-            base: 0,
+            structure: Structure::new(graph, capacity),
             hard: (0..capacity)
                 .map(|_| HardBlock {
                     rows: 0,
@@ -204,11 +185,6 @@ impl WindowSolver {
                     reduction: NullSpace::new(s, max_hard),
                 })
                 .collect(),
-            by_step: Vec::with_capacity(
-                capacity * graph.step_terms().len() + graph.initial_terms().len(),
-            ),
-            block_start: Vec::with_capacity(capacity + 1),
-            next_slot: Vec::with_capacity(capacity),
             hard_cost: Vec::with_capacity(
                 capacity * graph.step_terms().len() + graph.initial_terms().len(),
             ),
@@ -219,11 +195,6 @@ impl WindowSolver {
             along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
             along_out: vec![0.0; along_dim * (1 + 2 * s)],
             reduced: ReducedRows::new(max_dim.max(s), s),
-            instances: Vec::with_capacity(
-                capacity * graph.step_terms().len() + graph.initial_terms().len(),
-            ),
-            resolved: None,
-            parked: Vec::new(),
             rows: Vec::new(),
             rows_width: None,
             row_instances: Vec::new(),
@@ -269,8 +240,7 @@ impl WindowSolver {
         for block in &mut self.hard {
             block.reduction.set_summation(Summation::Lanes);
         }
-        self.h.set_summation(Summation::Lanes);
-        self.chol.set_summation(Summation::Lanes);
+        self.normal.set_summation(Summation::Lanes);
         self.step_major = true;
     }
 
@@ -324,22 +294,30 @@ impl WindowSolver {
 
     /// The run step that step 0 of the values stands for.
     pub fn base(&self) -> usize {
-        self.base
+        self.structure.base
     }
 
     /// The time of step `step` of the values.
     pub fn time(&self, graph: &ChainGraph, step: usize) -> f64 {
-        graph.run_time(self.base + step)
+        graph.run_time(self.structure.base + step)
     }
 }
 
 impl WindowSolver {
+    /// Lists the factor instances of a scope ([`Structure::collect_instances`]) and
+    /// makes room for the costs of its hard ones.
+    fn collect_instances(&mut self, graph: &ChainGraph, k0: usize, k1: usize, scope: Scope) {
+        self.structure.collect_instances(graph, k0, k1, scope);
+        self.hard_cost.clear();
+        self.hard_cost.resize(self.structure.instances.len(), 0.0);
+    }
+
     /// The values moved `by` steps toward the start of their buffer (a fixed-lag run
     /// that keeps only its newest steps, [`crate::smoother::fixed_lag`] with a buffer):
     /// what the solver keeps by step follows them, so that the next solve and
     /// marginalization reuse it as they would have in place.
     pub fn shift_steps(&mut self, by: usize) {
-        self.base += by;
+        self.structure.base += by;
         if let Some(last) = self.last.as_mut() {
             last.k0 -= by;
             last.k1 -= by;

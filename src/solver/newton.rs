@@ -1,7 +1,12 @@
 //! The exact (Newton) model: the Lagrangian's gradient, its reduced Hessian by
 //! central differences, and the least-squares step of a one-block window.
 
-use super::*;
+use super::prior::{Information, LinearPrior};
+use super::structure::{factor_of, is_hard, Span};
+use super::WindowSolver;
+use crate::error::Result;
+use crate::graph::ChainGraph;
+use crate::linalg::nullspace::NullSpace;
 
 /// Buffers of the exact (Newton) model: the Lagrangian's gradient in full
 /// coordinates at the point and at its perturbations, each block's multipliers, and
@@ -90,8 +95,8 @@ impl WindowSolver {
         let blocks = k1 - k0;
         out[..blocks * s].fill(0.0);
         self.newton.rows[..blocks].fill(0);
-        for i in 0..self.instances.len() {
-            let inst = self.instances[i];
+        for i in 0..self.structure.instances.len() {
+            let inst = self.structure.instances[i];
             let factor = factor_of(graph, inst);
             self.evaluate_instance(graph, values, inst, true)?;
             let buf = self.buffers.of(inst);
@@ -177,7 +182,7 @@ impl WindowSolver {
         }
         self.newton.grad = grad;
         for b in 0..blocks {
-            let (diag, d) = (self.h.diag(b), self.h.dim(b));
+            let (diag, d) = (self.normal.h.diag(b), self.normal.h.dim(b));
             for r in 0..d {
                 self.newton.scale[b * s + r] = diag[r * d + r];
             }
@@ -260,9 +265,9 @@ impl WindowSolver {
                             }
                         }
                         let block = if target == b {
-                            self.h.diag_mut(target)
+                            self.normal.h.diag_mut(target)
                         } else {
-                            self.h.lower_mut(target)
+                            self.normal.h.lower_mut(target)
                         };
                         for (a, v) in col.iter().enumerate() {
                             block[a * db + j] = *v;
@@ -279,7 +284,7 @@ impl WindowSolver {
         // The differences are symmetric only to their error: symmetrize.
         for b in 0..blocks {
             let d = self.hard[b].reduction.dim;
-            let diag = self.h.diag_mut(b);
+            let diag = self.normal.h.diag_mut(b);
             for i in 0..d {
                 for j in 0..i {
                     let v = 0.5 * (diag[i * d + j] + diag[j * d + i]);
@@ -374,8 +379,8 @@ impl WindowSolver {
         if !y.iter().all(|v| v.is_finite()) {
             return false;
         }
-        self.delta[..self.s].fill(0.0);
-        self.delta[..d].copy_from_slice(&y);
+        self.normal.delta[..self.s].fill(0.0);
+        self.normal.delta[..d].copy_from_slice(&y);
         true
     }
 }

@@ -1,5 +1,6 @@
 #[cfg(test)]
 mod unit {
+    use super::super::structure::Span;
     use super::super::*;
     use crate::forward::{simulate, Coordinates, DcIntegrators, ForwardGraph, ForwardOptions};
     use crate::smoother::Mode;
@@ -70,14 +71,14 @@ mod unit {
         }
         cost_on_manifold(&mut solver, &fg, &mut values, k, &prior);
         linearize(&mut solver, &values);
-        let gauss_newton = solver.h.diag(0).to_vec();
+        let gauss_newton = solver.normal.h.diag(0).to_vec();
         solver
             .exact_hessian(&fg.graph, &mut values, span(k, Some(&prior)))
             .unwrap();
         let red = solver.hard[0].reduction.clone();
         let d = red.dim;
         let mut missed = 0.0f64;
-        let h: Vec<f64> = solver.h.diag(0)[..d * d].to_vec();
+        let h: Vec<f64> = solver.normal.h.diag(0)[..d * d].to_vec();
         let x0 = values.clone();
         let mut checked = 0;
         for seed in 0..4 {
@@ -340,11 +341,11 @@ mod unit {
             let cost = solver
                 .evaluate(&fg.graph, &moved, span(k, Some(p)), true)
                 .unwrap();
-            let d = solver.h.dim(0);
+            let d = solver.normal.h.dim(0);
             (
                 cost,
-                solver.h.diag(0)[..d * d].to_vec(),
-                solver.g[..d].to_vec(),
+                solver.normal.h.diag(0)[..d * d].to_vec(),
+                solver.normal.g[..d].to_vec(),
             )
         };
         let (ca, ha, gna) = normal(&dense);
