@@ -129,16 +129,16 @@ impl WindowSolver {
         let d = self.rows_width?;
         let tolerance = self.settings.step_tolerance;
         // p: the least-norm step onto the hard equations with the last C.
-        let hard_rows = self.hard[0].rows;
+        let hard_rows = self.lin.hard[0].rows;
         if hard_rows > 0 {
-            self.hard[0]
+            self.lin.hard[0]
                 .reduction
-                .solve(&self.hard_rhs[..hard_rows], &mut self.correction);
+                .solve(&self.lin.hard_rhs[..hard_rows], &mut self.correction);
         } else {
             self.correction.fill(0.0);
         }
         let x = &values[k0 * s..(k0 + 1) * s];
-        let at_round_off = self.hard[0].at_round_off;
+        let at_round_off = self.lin.hard[0].at_round_off;
         let restored = x
             .iter()
             .zip(&self.correction)
@@ -153,7 +153,7 @@ impl WindowSolver {
         for &i in &self.row_instances {
             let inst = self.structure.instances[i];
             let dim = factor_of(graph, inst).dim();
-            let buf = self.buffers.of(inst);
+            let buf = self.lin.buffers.of(inst);
             for &r in &buf.r[..dim] {
                 let row = &self.rows[at * (d + 1)..at * (d + 1) + d];
                 for (ga, ja) in g[..d].iter_mut().zip(row) {
@@ -164,7 +164,7 @@ impl WindowSolver {
         }
         if let Some(p) = prior {
             // The prior's gradient Λ(x − x̄) + η, reduced by N₀ᵀ.
-            let red = &self.hard[0].reduction;
+            let red = &self.lin.hard[0].reduction;
             let (diff, rest) = self.scratch.split_at_mut(s);
             let (grad, work) = rest.split_at_mut(s);
             p.gradient(x, diff, grad, work);
@@ -180,7 +180,7 @@ impl WindowSolver {
         }
         self.normal.solve(s);
         // δ = p + N y, into `correction` (which held p); tested before it is applied.
-        let red = &self.hard[0].reduction;
+        let red = &self.lin.hard[0].reduction;
         let y = &self.normal.delta[..s];
         let mut largest = 0.0f64;
         for (i, xi) in x.iter().enumerate() {

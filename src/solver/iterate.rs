@@ -292,8 +292,8 @@ impl WindowSolver {
         self.saved[..n].copy_from_slice(window);
         let (mut largest, mut restored) = (0.0f64, true);
         for b in 0..k1 - k0 {
-            let red = &self.hard[b].reduction;
-            let at_round_off = self.hard[b].at_round_off;
+            let red = &self.lin.hard[b].reduction;
+            let at_round_off = self.lin.hard[b].at_round_off;
             let y = &self.normal.delta[b * s..(b + 1) * s];
             let x = &mut window[b * s..(b + 1) * s];
             for i in 0..s {

@@ -148,13 +148,14 @@ impl WindowSolver {
     ) -> Result<()> {
         let s = self.s;
         self.collect_instances(graph, k, k + 1, Scope::Window { held: false });
-        self.hard_block(graph, values, 0, HardPass::Linearize)?;
+        self.lin
+            .hard_block(graph, &self.structure, values, 0, HardPass::Linearize)?;
         // A one-step window solve of step k that follows finds it reduced.
         prior.projection = Some(Projection {
             step: k,
-            generation: self.generation,
+            generation: self.lin.generation,
         });
-        let block = &mut self.hard[0];
+        let block = &mut self.lin.hard[0];
         if block.rows == 0 {
             return Ok(());
         }
@@ -349,7 +350,7 @@ impl WindowSolver {
         if let Some(last) = self.last.take() {
             let x = &values[k0 * s..(k0 + 1) * s];
             if last.k0 == k0
-                && last.generation == self.generation
+                && last.generation == self.lin.generation
                 && x.iter()
                     .zip(&self.last_x)
                     .all(|(a, b)| a.to_bits() == b.to_bits())
@@ -479,7 +480,7 @@ impl WindowSolver {
         self.last = Some(LastSolve {
             k0,
             k1,
-            generation: self.generation,
+            generation: self.lin.generation,
         });
         self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
     }
@@ -540,8 +541,9 @@ impl WindowSolver {
             if term.is_constraint() || !keys.iter().any(|k| k.lag == 1) {
                 continue;
             }
-            self.evaluate_instance(graph, values, inst, true)?;
-            let buf = self.buffers.of(inst);
+            self.lin
+                .evaluate_instance(graph, self.structure.base, values, inst, true)?;
+            let buf = self.lin.buffers.of(inst);
             let dim = factor.dim();
             buf.whiten(factor, true);
             if !window_holds_next {
@@ -550,8 +552,8 @@ impl WindowSolver {
                 }
             }
             // Rows: J₀N₀ (dim × d0, row stride s) into reduced[1]; J₁ row by row below.
-            let red = &self.hard[0].reduction;
-            for row in self.reduced.jacobian[1].chunks_exact_mut(s).take(dim) {
+            let red = &self.lin.hard[0].reduction;
+            for row in self.lin.reduced.jacobian[1].chunks_exact_mut(s).take(dim) {
                 row[..d0].fill(0.0);
             }
             for (a, k) in keys.iter().enumerate() {
@@ -568,7 +570,7 @@ impl WindowSolver {
                             continue;
                         }
                         let (start, nrow) = red.row(off + j);
-                        let out = &mut self.reduced.jacobian[1][r * s + start..r * s + d0];
+                        let out = &mut self.lin.reduced.jacobian[1][r * s + start..r * s + d0];
                         for (o, nv) in out.iter_mut().zip(nrow) {
                             *o += v * nv;
                         }
@@ -580,7 +582,7 @@ impl WindowSolver {
             let (_, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
             for r in 0..dim {
-                let j0 = &self.reduced.jacobian[1][r * s..r * s + d0];
+                let j0 = &self.lin.reduced.jacobian[1][r * s..r * s + d0];
                 let rr = buf.r[r];
                 // J₁'s row: its nonzeros (integrators: two) by ascending column, the
                 // keys' entries on one column summed in key order.
@@ -622,7 +624,7 @@ impl WindowSolver {
             }
             if blocked && !window_holds_next {
                 // H₀₀ += (J₀N₀)ᵀ(J₀N₀) over the factor's rows at once.
-                let j0 = dense::rows(&self.reduced.jacobian[1], dim, d0, s);
+                let j0 = dense::rows(&self.lin.reduced.jacobian[1], dim, d0, s);
                 dense::multiply(dense::rows_mut(h00, d0, d0, s), true, j0.transpose(), j0);
             }
         }
@@ -670,19 +672,20 @@ impl WindowSolver {
         let ss = s * s;
         let k = k0 + 1;
         self.collect_instances(graph, k, k + 1, Scope::Window { held: false });
-        self.hard_block(graph, values, 0, HardPass::Linearize)?;
+        self.lin
+            .hard_block(graph, &self.structure, values, 0, HardPass::Linearize)?;
         let projection = Some(Projection {
             step: k,
-            generation: self.generation,
+            generation: self.lin.generation,
         });
-        if self.hard[0].rows == 0 {
+        if self.lin.hard[0].rows == 0 {
             // No tangent space to project on: the prior as it is.
             self.joint_into_scratch();
             let mut p = self.schur(k0, d0, cost, values)?;
             p.projection = projection;
             return Ok(p);
         }
-        let red = &self.hard[0].reduction;
+        let red = &self.lin.hard[0].reduction;
         let d = red.dim;
         let (h00, rest) = self.scratch.split_at_mut(ss);
         let (h10, rest) = rest.split_at_mut(ss);

@@ -13,7 +13,7 @@
 use crate::error::{Error, Result};
 #[cfg(doc)]
 use crate::graph::AlongDirections;
-use crate::graph::{ChainGraph, Term, Workspace};
+use crate::graph::{ChainGraph, Term};
 use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
 
@@ -35,7 +35,7 @@ pub use observer::{Iteration, Observer, Trace};
 pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};
 
-use linearize::{AllBuffers, HardBlock, ReducedRows};
+use linearize::{AllBuffers, HardBlock, Linearization, ReducedRows};
 use marginal::{JointRows, LastSolve};
 use newton::{NewtonBuffers, PriorRoots};
 use normal::NormalEquations;
@@ -55,27 +55,10 @@ pub struct WindowSolver {
     /// H y = −g in the window's reduced unknowns, and its step.
     normal: NormalEquations,
     saved: Vec<f64>,
-    /// Each factor's residual and Jacobian buffers.
-    buffers: AllBuffers,
-    hard: Vec<HardBlock>,
-    /// A soft factor's rows in reduced coordinates.
-    reduced: ReducedRows,
+    /// Each step's hard equations reduced, and the buffers a linearization works in.
+    lin: Linearization,
     /// The last full step δ = p + N y of the window (for `backtrack`).
     direction: Vec<f64>,
-    /// Per instance, the cost of a hard one (summed in `instances` order).
-    hard_cost: Vec<f64>,
-    /// One step's hard equations: C row-major rows × s, and −c.
-    hard_jac: Vec<f64>,
-    hard_rhs: Vec<f64>,
-    /// Round-off in each hard residual (see [`NullSpace::set_noise`]).
-    hard_noise: Vec<f64>,
-    /// Evaluate step by step (see `optimize_for_batch`).
-    step_major: bool,
-    /// Directions and products of [`AlongDirections::evaluate_along`]: per key
-    /// size × c, and dim × c (c ≤ 1 + 2s); empty when no factor evaluates along
-    /// directions.
-    along_dirs: Vec<f64>,
-    along_out: Vec<f64>,
     /// The whitened, reduced rows [J N | r + J p] of a one-block window's soft
     /// factors (a prior's are not among them), kept beside H: for the least-squares
     /// step where H cannot be factored or is conditioned past
@@ -103,15 +86,8 @@ pub struct WindowSolver {
     /// next step's unknowns (`marginalize_last`): their nonzeros one row after
     /// another, each row's end, and each row's whitened residual.
     joint: JointRows,
-    ws: Workspace,
     scratch: Vec<f64>,
     newton: NewtonBuffers,
-    /// Step whose hard equations `project_prior` linearized and reduced in block 0 at
-    /// the current values (their costs in `hard_cost`).
-    /// Counts linearizations, so that what one stage hands to the next (a solve's
-    /// linearization to marginalization, a projected prior's reduction to a solve)
-    /// is used only while it is current.
-    generation: u64,
     /// The first block's values where the last solve converged (see `LastSolve`).
     last_x: Vec<f64>,
     observer: Option<Box<dyn Observer>>,
@@ -176,25 +152,30 @@ impl WindowSolver {
             normal: NormalEquations::new(capacity, s),
             saved: vec![0.0; n],
             direction: vec![0.0; n],
-            buffers: AllBuffers::new(graph),
             structure: Structure::new(graph, capacity),
-            hard: (0..capacity)
-                .map(|_| HardBlock {
-                    rows: 0,
-                    at_round_off: false,
-                    reduction: NullSpace::new(s, max_hard),
-                })
-                .collect(),
-            hard_cost: Vec::with_capacity(
-                capacity * graph.step_terms().len() + graph.initial_terms().len(),
-            ),
-            hard_jac: vec![0.0; max_hard * s],
-            hard_rhs: vec![0.0; max_hard],
-            hard_noise: vec![0.0; max_hard],
-            step_major: false,
-            along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
-            along_out: vec![0.0; along_dim * (1 + 2 * s)],
-            reduced: ReducedRows::new(max_dim.max(s), s),
+            lin: Linearization {
+                s,
+                buffers: AllBuffers::new(graph),
+                hard: (0..capacity)
+                    .map(|_| HardBlock {
+                        rows: 0,
+                        at_round_off: false,
+                        reduction: NullSpace::new(s, max_hard),
+                    })
+                    .collect(),
+                hard_cost: Vec::with_capacity(
+                    capacity * graph.step_terms().len() + graph.initial_terms().len(),
+                ),
+                hard_jac: vec![0.0; max_hard * s],
+                hard_rhs: vec![0.0; max_hard],
+                hard_noise: vec![0.0; max_hard],
+                step_major: false,
+                along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
+                along_out: vec![0.0; along_dim * (1 + 2 * s)],
+                reduced: ReducedRows::new(max_dim.max(s), s),
+                ws: graph.workspace(),
+                generation: 0,
+            },
             rows: Vec::new(),
             rows_width: None,
             row_instances: Vec::new(),
@@ -205,9 +186,7 @@ impl WindowSolver {
             correction: vec![0.0; s],
             nonzero: Vec::with_capacity(s),
             joint: JointRows::default(),
-            ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
-            generation: 0,
             last_x: vec![0.0; s],
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
             tangent_form_from: TANGENT_FORM_FROM,
@@ -237,11 +216,11 @@ impl WindowSolver {
     /// solve's tolerance, not to the bit. Off by default, so that forward runs keep
     /// theirs.
     pub fn optimize_for_batch(&mut self) {
-        for block in &mut self.hard {
+        for block in &mut self.lin.hard {
             block.reduction.set_summation(Summation::Lanes);
         }
         self.normal.set_summation(Summation::Lanes);
-        self.step_major = true;
+        self.lin.step_major = true;
     }
 
     /// Reduces each step's hard equations segment by segment, positions first, then
@@ -259,7 +238,7 @@ impl WindowSolver {
             let (off, _) = graph.layout().slot(kind).expect("a kind of the layout");
             segment[off..off + d].fill(kind.order());
         }
-        for block in &mut self.hard {
+        for block in &mut self.lin.hard {
             block.reduction.set_segments(&segment);
         }
     }
@@ -308,8 +287,7 @@ impl WindowSolver {
     /// makes room for the costs of its hard ones.
     fn collect_instances(&mut self, graph: &ChainGraph, k0: usize, k1: usize, scope: Scope) {
         self.structure.collect_instances(graph, k0, k1, scope);
-        self.hard_cost.clear();
-        self.hard_cost.resize(self.structure.instances.len(), 0.0);
+        self.lin.clear_costs(&self.structure);
     }
 
     /// The values moved `by` steps toward the start of their buffer (a fixed-lag run

@@ -66,7 +66,7 @@ mod unit {
         // Away from the optimum (large residuals): a step along the manifold.
         linearize(&mut solver, &values);
         for i in 0..s {
-            let (_, row) = solver.hard[0].reduction.row(i);
+            let (_, row) = solver.lin.hard[0].reduction.row(i);
             values[k * s + i] += 0.2 * row.iter().sum::<f64>();
         }
         cost_on_manifold(&mut solver, &fg, &mut values, k, &prior);
@@ -75,7 +75,7 @@ mod unit {
         solver
             .exact_hessian(&fg.graph, &mut values, span(k, Some(&prior)))
             .unwrap();
-        let red = solver.hard[0].reduction.clone();
+        let red = solver.lin.hard[0].reduction.clone();
         let d = red.dim;
         let mut missed = 0.0f64;
         let h: Vec<f64> = solver.normal.h.diag(0)[..d * d].to_vec();
@@ -126,7 +126,7 @@ mod unit {
         solver
             .project_prior(&fg.graph, &values, k, &mut tangent)
             .unwrap();
-        let red = solver.hard[0].reduction.clone();
+        let red = solver.lin.hard[0].reduction.clone();
         let value = |p: &LinearPrior, x: &[f64]| {
             let dx: Vec<f64> = (0..s).map(|i| x[i] - p.xbar[i]).collect();
             let quad: f64 = (0..s)
