@@ -323,8 +323,11 @@ mod tests {
             .unwrap()
     }
 
-    /// The instance list, and the instances block by block (as (source, index, step)).
-    fn listing(st: &Structure) -> (Vec<(Source, usize, usize)>, Vec<Vec<usize>>) {
+    /// An instance as (source, index, step).
+    type Listed = (Source, usize, usize);
+
+    /// The instance list, and the instances block by block.
+    fn listing(st: &Structure) -> (Vec<Listed>, Vec<Vec<usize>>) {
         let list = st
             .instances
             .iter()
