@@ -11,7 +11,13 @@
 //! tolerance the solve has converged; where it is not, the solve linearizes and goes
 //! on as if the test had not been made.
 
-use super::*;
+use super::observer::Iteration;
+use super::prior::LinearPrior;
+use super::structure::{factor_of, Span};
+use super::WindowSolver;
+use crate::convergence::{SolveReport, Termination};
+use crate::error::{Error, Result};
+use crate::graph::ChainGraph;
 
 /// What the chord test made of an undamped step.
 pub(super) enum ChordOutcome {
@@ -123,16 +129,16 @@ impl WindowSolver {
         let d = self.rows_width?;
         let tolerance = self.settings.step_tolerance;
         // p: the least-norm step onto the hard equations with the last C.
-        let hard_rows = self.hard[0].rows;
+        let hard_rows = self.lin.hard[0].rows;
         if hard_rows > 0 {
-            self.hard[0]
+            self.lin.hard[0]
                 .reduction
-                .solve(&self.hard_rhs[..hard_rows], &mut self.correction);
+                .solve(&self.lin.hard_rhs[..hard_rows], &mut self.correction);
         } else {
             self.correction.fill(0.0);
         }
         let x = &values[k0 * s..(k0 + 1) * s];
-        let at_round_off = self.hard[0].at_round_off;
+        let at_round_off = self.lin.hard[0].at_round_off;
         let restored = x
             .iter()
             .zip(&self.correction)
@@ -141,13 +147,13 @@ impl WindowSolver {
             return None;
         }
         // g = Σ (JN)ᵀ r over the recorded rows, in the order they were recorded.
-        let g = &mut self.g[..s];
+        let g = &mut self.normal.g[..s];
         g.fill(0.0);
         let mut at = 0;
         for &i in &self.row_instances {
-            let inst = self.instances[i];
+            let inst = self.structure.instances[i];
             let dim = factor_of(graph, inst).dim();
-            let buf = self.buffers.of(inst);
+            let buf = self.lin.buffers.of(inst);
             for &r in &buf.r[..dim] {
                 let row = &self.rows[at * (d + 1)..at * (d + 1) + d];
                 for (ga, ja) in g[..d].iter_mut().zip(row) {
@@ -158,7 +164,7 @@ impl WindowSolver {
         }
         if let Some(p) = prior {
             // The prior's gradient Λ(x − x̄) + η, reduced by N₀ᵀ.
-            let red = &self.hard[0].reduction;
+            let red = &self.lin.hard[0].reduction;
             let (diff, rest) = self.scratch.split_at_mut(s);
             let (grad, work) = rest.split_at_mut(s);
             p.gradient(x, diff, grad, work);
@@ -172,13 +178,10 @@ impl WindowSolver {
         if !g[..d].iter().all(|v| v.is_finite()) {
             return None;
         }
-        for i in 0..s {
-            self.delta[i] = -self.g[i];
-        }
-        self.chol.solve(&mut self.delta[..s]);
+        self.normal.solve(s);
         // δ = p + N y, into `correction` (which held p); tested before it is applied.
-        let red = &self.hard[0].reduction;
-        let y = &self.delta[..s];
+        let red = &self.lin.hard[0].reduction;
+        let y = &self.normal.delta[..s];
         let mut largest = 0.0f64;
         for (i, xi) in x.iter().enumerate() {
             let (start, nrow) = red.row(i);
@@ -201,10 +204,7 @@ impl WindowSolver {
             *xi += step;
         }
         // The gradient at the new point is g + H y (`marginalize_last` reads both).
-        self.h.multiply(&self.delta[..s], &mut self.hd[..s]);
-        let predicted: f64 = (0..s)
-            .map(|i| -self.g[i] * self.delta[i] - 0.5 * self.delta[i] * self.hd[i])
-            .sum();
+        let predicted = self.normal.predicted_decrease(s);
         Some(ChordStep { predicted, largest })
     }
 }

@@ -2,7 +2,14 @@
 //! second-order correction and the switch to the exact Hessian.
 
 use super::chord::ChordOutcome;
-use super::*;
+use super::observer::Iteration;
+use super::prior::LinearPrior;
+use super::settings::{Method, Thresholds};
+use super::structure::{Scope, Span};
+use super::WindowSolver;
+use crate::convergence::{SolveReport, Termination};
+use crate::error::{Error, Result};
+use crate::graph::ChainGraph;
 use std::ops::ControlFlow;
 
 impl WindowSolver {
@@ -95,10 +102,10 @@ impl WindowSolver {
             scope: Scope::Window { held },
         };
         self.prior_roots = None;
-        if k1 <= k0 || k1 - k0 > self.h.capacity() {
+        if k1 <= k0 || k1 - k0 > self.normal.h.capacity() {
             return Err(Error::InvalidArgument(format!(
                 "window {k0}..{k1} is empty or larger than the solver's capacity {}",
-                self.h.capacity()
+                self.normal.h.capacity()
             )));
         }
         let cost = match self.evaluate(graph, values, span, true) {
@@ -140,7 +147,7 @@ impl WindowSolver {
             ControlFlow::Continue(from_rows) => from_rows,
             ControlFlow::Break(outcome) => return Ok(outcome),
         };
-        let predicted = self.predicted_decrease((k1 - k0) * self.s);
+        let predicted = self.normal.predicted_decrease((k1 - k0) * self.s);
         let (largest, restored) = self.take_step(values, k0, k1);
         let small = largest <= self.settings.step_tolerance;
         // This iteration as an observer sees it (the trial's cost once known).
@@ -216,8 +223,8 @@ impl WindowSolver {
         let n = (k1 - k0) * s;
         let lm = self.settings.method == Method::LevenbergMarquardt;
         let mu = state.mu;
-        for (b, damping) in self.damping[..n].chunks_exact_mut(s).enumerate() {
-            let (diag, d) = (self.h.diag(b), self.h.dim(b));
+        for (b, damping) in self.normal.damping[..n].chunks_exact_mut(s).enumerate() {
+            let (diag, d) = (self.normal.h.diag(b), self.normal.h.dim(b));
             let scale = &self.newton.scale[b * s..(b + 1) * s];
             for (r, v) in damping[..d].iter_mut().enumerate() {
                 let x = if state.newton {
@@ -229,14 +236,18 @@ impl WindowSolver {
             }
         }
         let factored = self
+            .normal
             .chol
-            .factor(&self.h, if lm { &self.damping[..n] } else { &[] })
+            .factor(
+                &self.normal.h,
+                if lm { &self.normal.damping[..n] } else { &[] },
+            )
             .is_ok();
         // Gauss-Newton from J itself where H = JᵀJ is too ill-conditioned for its
         // Cholesky factor to give the step to more than a few digits.
         let ill_conditioned = mu == 0.0
             && !state.newton
-            && (!factored || self.chol.pivot_ratio() < self.settings.normal_equations_limit);
+            && (!factored || self.normal.chol.pivot_ratio() < self.settings.normal_equations_limit);
         if ill_conditioned && self.rows_width.is_none() && k1 == k0 + 1 {
             // The rows were not kept (a window a marginal prior is made from keeps
             // none, see `evaluate`): the same linearization again, keeping them, as
@@ -251,10 +262,7 @@ impl WindowSolver {
         let from_rows =
             ill_conditioned && self.least_squares_step(&values[k0 * s..(k0 + 1) * s], prior);
         if factored && !from_rows {
-            for i in 0..n {
-                self.delta[i] = -self.g[i];
-            }
-            self.chol.solve(&mut self.delta[..n]);
+            self.normal.solve(n);
             return ControlFlow::Continue(false);
         }
         if from_rows {
@@ -273,15 +281,6 @@ impl WindowSolver {
         ControlFlow::Break(Outcome::Next)
     }
 
-    /// The decrease the linear model predicts for the soft factors along the reduced
-    /// step y in `delta`: −gᵀy − ½yᵀHy.
-    fn predicted_decrease(&mut self, n: usize) -> f64 {
-        self.h.multiply(&self.delta[..n], &mut self.hd[..n]);
-        (0..n)
-            .map(|i| -self.g[i] * self.delta[i] - 0.5 * self.delta[i] * self.hd[i])
-            .sum()
-    }
-
     /// Moves steps k0..k1 by δ = p + N y per block (the point before into `saved`,
     /// δ into `direction`); returns max |δᵢ| / (1 + |xᵢ|) and whether every block's
     /// particular part p was within the tolerance (or its equations at round-off):
@@ -293,9 +292,9 @@ impl WindowSolver {
         self.saved[..n].copy_from_slice(window);
         let (mut largest, mut restored) = (0.0f64, true);
         for b in 0..k1 - k0 {
-            let red = &self.hard[b].reduction;
-            let at_round_off = self.hard[b].at_round_off;
-            let y = &self.delta[b * s..(b + 1) * s];
+            let red = &self.lin.hard[b].reduction;
+            let at_round_off = self.lin.hard[b].at_round_off;
+            let y = &self.normal.delta[b * s..(b + 1) * s];
             let x = &mut window[b * s..(b + 1) * s];
             for i in 0..s {
                 let p = red.particular[i];

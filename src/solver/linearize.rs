@@ -2,9 +2,14 @@
 //! space, the soft factors whitened, reduced and accumulated into the
 //! block-tridiagonal normal equations.
 
-use super::*;
+use super::structure::{factor_of, is_hard, Instance, Scope, Source, Span, Structure};
+use super::{WindowSolver, HARD_SIGMA};
+use crate::error::{Error, Result};
 #[cfg(doc)]
 use crate::graph::AlongDirections;
+use crate::graph::{ChainGraph, Factor, Term, Workspace};
+use crate::linalg::banded::BlockTridiagonal;
+use crate::linalg::nullspace::NullSpace;
 
 /// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
 pub(super) struct FactorBuffers {
@@ -304,11 +309,50 @@ impl ReducedRows {
     }
 }
 
-impl WindowSolver {
+/// The linearization stage's state: each step's hard equations and their
+/// reduction, the factors' buffers and the room they are evaluated in.
+pub(super) struct Linearization {
+    /// Unknowns per step.
+    pub(super) s: usize,
+    /// Each factor's residual and Jacobian buffers.
+    pub(super) buffers: AllBuffers,
+    /// Per block of the window, its hard equations reduced.
+    pub(super) hard: Vec<HardBlock>,
+    /// A soft factor's rows in reduced coordinates.
+    pub(super) reduced: ReducedRows,
+    /// Per instance, the cost of a hard one (summed in `instances` order).
+    pub(super) hard_cost: Vec<f64>,
+    /// One step's hard equations: C row-major rows × s, and −c.
+    pub(super) hard_jac: Vec<f64>,
+    pub(super) hard_rhs: Vec<f64>,
+    /// Round-off in each hard residual (see [`NullSpace::set_noise`]).
+    pub(super) hard_noise: Vec<f64>,
+    /// Evaluate step by step (see `optimize_for_batch`).
+    pub(super) step_major: bool,
+    /// Directions and products of [`AlongDirections::evaluate_along`]: per key
+    /// size × c, and dim × c (c ≤ 1 + 2s); empty when no factor evaluates along
+    /// directions.
+    pub(super) along_dirs: Vec<f64>,
+    pub(super) along_out: Vec<f64>,
+    pub(super) ws: Workspace,
+    /// Counts linearizations, so that what one stage hands to the next (a solve's
+    /// linearization to marginalization, a projected prior's reduction to a solve)
+    /// is used only while it is current.
+    pub(super) generation: u64,
+}
+
+impl Linearization {
+    /// Makes room for the costs of the hard instances of `structure`.
+    pub(super) fn clear_costs(&mut self, structure: &Structure) {
+        self.hard_cost.clear();
+        self.hard_cost.resize(structure.instances.len(), 0.0);
+    }
+
     /// Evaluates one factor instance into its buffers (residual not yet whitened).
     pub(super) fn evaluate_instance(
         &mut self,
         graph: &ChainGraph,
+        base: usize,
         values: &[f64],
         inst: Instance,
         linearize: bool,
@@ -322,7 +366,7 @@ impl WindowSolver {
             let base = (inst.step - k.lag) * s + off;
             *slot = &values[base..base + d];
         }
-        let t = graph.run_time(self.base + inst.step);
+        let t = graph.run_time(base + inst.step);
         factor
             .evaluate(
                 t,
@@ -334,13 +378,14 @@ impl WindowSolver {
             .map_err(located(factor, inst.step, t))
     }
 
-    /// Evaluates the hard factors of block `b` (step k0 + b) of the listed instances,
+    /// Evaluates the hard factors of block `b` (step k0 + b) of `structure`'s instances,
     /// records their costs in `hard_cost`, and with `Linearize` reduces the block's
     /// equations C δ = −c; with `Residuals` leaves −c (in the same row order) in
     /// `hard_rhs` for a correction (or a chord step) with the current C.
     pub(super) fn hard_block(
         &mut self,
         graph: &ChainGraph,
+        structure: &Structure,
         values: &[f64],
         b: usize,
         mode: HardPass,
@@ -350,14 +395,14 @@ impl WindowSolver {
         self.generation += 1;
         let mut rows = 0;
         let mut at_round_off = true;
-        for at in self.block_start[b]..self.block_start[b + 1] {
-            let i = self.by_step[at];
-            let inst = self.instances[i];
+        for at in structure.block_start[b]..structure.block_start[b + 1] {
+            let i = structure.by_step[at];
+            let inst = structure.instances[i];
             if !is_hard(graph, inst) {
                 continue;
             }
             let factor = factor_of(graph, inst);
-            self.evaluate_instance(graph, values, inst, linearize)?;
+            self.evaluate_instance(graph, structure.base, values, inst, linearize)?;
             let buf = &*self.buffers.of(inst);
             let w = 1.0 / HARD_SIGMA;
             self.hard_cost[i] = buf.r.iter().map(|r| 0.5 * (w * r) * (w * r)).sum();
@@ -412,9 +457,14 @@ impl WindowSolver {
 
     /// The hard factors' share of the cost, summed in `instances` order, and the part
     /// of it at the first block.
-    pub(super) fn hard_cost_sum(&self, graph: &ChainGraph, k0: usize) -> (f64, f64) {
+    pub(super) fn hard_cost_sum(
+        &self,
+        graph: &ChainGraph,
+        structure: &Structure,
+        k0: usize,
+    ) -> (f64, f64) {
         let (mut cost, mut first) = (0.0, 0.0);
-        for (inst, &c) in self.instances.iter().zip(&self.hard_cost) {
+        for (inst, &c) in structure.instances.iter().zip(&self.hard_cost) {
             if !is_hard(graph, *inst) {
                 continue;
             }
@@ -425,7 +475,9 @@ impl WindowSolver {
         }
         (cost, first)
     }
+}
 
+impl WindowSolver {
     /// Second-order correction after a step: moves each block of the window back onto
     /// its hard equations with the least-norm step of the current C. Without it a step
     /// along the linearized constraints leaves an O(|δ|²) violation that the cost's
@@ -440,14 +492,15 @@ impl WindowSolver {
         let s = self.s;
         for b in 0..k1 - k0 {
             // A block's hard factors read that block only.
-            self.hard_block(graph, values, b, HardPass::Residuals)?;
-            let block = &mut self.hard[b];
+            self.lin
+                .hard_block(graph, &self.structure, values, b, HardPass::Residuals)?;
+            let block = &mut self.lin.hard[b];
             if block.rows == 0 {
                 continue;
             }
             block
                 .reduction
-                .solve(&self.hard_rhs[..block.rows], &mut self.correction);
+                .solve(&self.lin.hard_rhs[..block.rows], &mut self.correction);
             let x = &mut values[(k0 + b) * s..(k0 + b + 1) * s];
             for (xi, c) in x.iter_mut().zip(&self.correction) {
                 *xi += c;
@@ -467,15 +520,16 @@ impl WindowSolver {
         cost: &mut CostSum,
     ) -> Result<()> {
         let s = self.s;
-        let inst = self.instances[i];
+        let inst = self.structure.instances[i];
         let factor = factor_of(graph, inst);
         let along = linearize
-            && self.buffers.of(inst).along
+            && self.lin.buffers.of(inst).along
             && self.evaluate_along(graph, values, k0, inst)?;
         if !along {
-            self.evaluate_instance(graph, values, inst, linearize)?;
+            self.lin
+                .evaluate_instance(graph, self.structure.base, values, inst, linearize)?;
         }
-        let buf = self.buffers.of(inst);
+        let buf = self.lin.buffers.of(inst);
         let keys = factor.keys();
         let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
         buf.whiten(factor, linearize && !along);
@@ -491,25 +545,25 @@ impl WindowSolver {
             let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
             if along {
                 // The rows J [p N] came back unwhitened: [p | N(step) | N(step − 1)].
-                let d0 = self.hard[step].reduction.dim;
+                let d0 = self.lin.hard[step].reduction.dim;
                 let d1 = if lagged {
-                    self.hard[step - 1].reduction.dim
+                    self.lin.hard[step - 1].reduction.dim
                 } else {
                     0
                 };
                 let c = 1 + d0 + d1;
-                self.reduced.spans[0][..buf.r.len()].fill((0, d0));
-                self.reduced.spans[1][..buf.r.len()].fill((0, d1));
+                self.lin.reduced.spans[0][..buf.r.len()].fill((0, d0));
+                self.lin.reduced.spans[1][..buf.r.len()].fill((0, d1));
                 for (row, (&w, &r)) in buf.weights.iter().zip(&buf.r).enumerate() {
-                    let out = &self.along_out[row * c..(row + 1) * c];
-                    self.reduced.shifted[row] = r + w * out[0];
-                    for (o, v) in self.reduced.jacobian[0][row * s..row * s + d0]
+                    let out = &self.lin.along_out[row * c..(row + 1) * c];
+                    self.lin.reduced.shifted[row] = r + w * out[0];
+                    for (o, v) in self.lin.reduced.jacobian[0][row * s..row * s + d0]
                         .iter_mut()
                         .zip(&out[1..1 + d0])
                     {
                         *o = w * v;
                     }
-                    for (o, v) in self.reduced.jacobian[1][row * s..row * s + d1]
+                    for (o, v) in self.lin.reduced.jacobian[1][row * s..row * s + d1]
                         .iter_mut()
                         .zip(&out[1 + d0..])
                     {
@@ -517,20 +571,28 @@ impl WindowSolver {
                     }
                 }
             } else {
-                self.reduced.reduce(&self.hard, factor, step, buf, s);
+                self.lin
+                    .reduced
+                    .reduce(&self.lin.hard, factor, step, buf, s);
             }
             if let Some(d) = self.rows_width.filter(|_| step == 0 && !lagged) {
-                for (row, &rr) in self.reduced.shifted[..factor.dim()].iter().enumerate() {
-                    let (lo, hi) = self.reduced.spans[0][row];
-                    let jr = &self.reduced.jacobian[0][row * s..row * s + d];
+                for (row, &rr) in self.lin.reduced.shifted[..factor.dim()].iter().enumerate() {
+                    let (lo, hi) = self.lin.reduced.spans[0][row];
+                    let jr = &self.lin.reduced.jacobian[0][row * s..row * s + d];
                     self.rows
                         .extend((0..d).map(|a| if a >= lo && a < hi { jr[a] } else { 0.0 }));
                     self.rows.push(rr);
                 }
                 self.row_instances.push(i);
             }
-            self.reduced
-                .accumulate(&mut self.h, &mut self.g, factor.dim(), step, lagged, s);
+            self.lin.reduced.accumulate(
+                &mut self.normal.h,
+                &mut self.normal.g,
+                factor.dim(),
+                step,
+                lagged,
+                s,
+            );
         }
         Ok(())
     }
@@ -554,9 +616,9 @@ impl WindowSolver {
         let keys = factor.keys();
         let step = inst.step - k0;
         let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);
-        let d0 = self.hard[step].reduction.dim;
+        let d0 = self.lin.hard[step].reduction.dim;
         let d1 = if lagged {
-            self.hard[step - 1].reduction.dim
+            self.lin.hard[step - 1].reduction.dim
         } else {
             0
         };
@@ -565,16 +627,16 @@ impl WindowSolver {
         let mut ranges = [(0, 0); 8];
         let mut at = 0;
         let mut slots = [(0, 0); 8];
-        slots[..keys.len()].copy_from_slice(&self.buffers.of(inst).slots);
+        slots[..keys.len()].copy_from_slice(&self.lin.buffers.of(inst).slots);
         for (a, k) in keys.iter().enumerate() {
             let (off, d) = slots[a];
             let base = (inst.step - k.lag) * s + off;
             xs[a] = &values[base..base + d];
-            let v = &mut self.along_dirs[at..at + d * c];
+            let v = &mut self.lin.along_dirs[at..at + d * c];
             v.fill(0.0);
             // A variable held fixed before the window (k.lag > step) moves not.
             if k.lag <= step {
-                let red = &self.hard[step - k.lag].reduction;
+                let red = &self.lin.hard[step - k.lag].reduction;
                 let col0 = if k.lag == 0 { 1 } else { 1 + d0 };
                 for (i, row) in v.chunks_exact_mut(c).enumerate() {
                     row[0] = red.particular[off + i];
@@ -587,10 +649,10 @@ impl WindowSolver {
         }
         let mut dirs: [&[f64]; 8] = [&[]; 8];
         for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
-            *d = &self.along_dirs[a..b];
+            *d = &self.lin.along_dirs[a..b];
         }
-        let buf = self.buffers.of(inst);
-        let t = graph.run_time(self.base + inst.step);
+        let buf = self.lin.buffers.of(inst);
+        let t = graph.run_time(self.structure.base + inst.step);
         along
             .evaluate_along(
                 t,
@@ -598,8 +660,8 @@ impl WindowSolver {
                 &mut buf.r,
                 &dirs[..keys.len()],
                 c,
-                &mut self.along_out[..factor.dim() * c],
-                &mut self.ws,
+                &mut self.lin.along_out[..factor.dim() * c],
+                &mut self.lin.ws,
             )
             .map_err(located(factor, inst.step, t))
     }
@@ -628,12 +690,12 @@ impl WindowSolver {
         let projected = blocks == 1
             && prior.is_some_and(|p| {
                 let x = &values[k0 * s..(k0 + 1) * s];
-                let red = &self.hard[0].reduction;
+                let red = &self.lin.hard[0].reduction;
                 p.projection
-                    .is_some_and(|pr| pr.step == k0 && pr.generation == self.generation)
+                    .is_some_and(|pr| pr.step == k0 && pr.generation == self.lin.generation)
                     && (0..s).all(|i| (x[i] + red.particular[i]).to_bits() == p.xbar[i].to_bits())
             });
-        self.generation += 1;
+        self.lin.generation += 1;
         self.collect_instances(graph, k0, k1, scope);
         let mode = if linearize {
             HardPass::Linearize
@@ -656,24 +718,25 @@ impl WindowSolver {
                 || self.past_conditioned()
                 || scope == (Scope::Window { held: true })
                 || self.keep_rows);
-        if self.step_major && linearize {
+        if self.lin.step_major && linearize {
             // Step by step: each step's hard equations, then its factors into its
             // blocks of H (and the lagged ones into the previous step's) while they
             // are in cache.
-            self.h.set_blocks(blocks);
+            self.normal.h.set_blocks(blocks);
             let cached = projected;
             for b in 0..blocks {
                 if !cached {
-                    self.hard_block(graph, values, b, mode)?;
+                    self.lin
+                        .hard_block(graph, &self.structure, values, b, mode)?;
                 }
-                self.h.reset_block(b, self.hard[b].reduction.dim);
-                self.g[b * s..(b + 1) * s].fill(0.0);
+                self.normal.h.reset_block(b, self.lin.hard[b].reduction.dim);
+                self.normal.g[b * s..(b + 1) * s].fill(0.0);
                 if record {
-                    self.rows_width = Some(self.hard[0].reduction.dim);
+                    self.rows_width = Some(self.lin.hard[0].reduction.dim);
                 }
-                for at in self.block_start[b]..self.block_start[b + 1] {
-                    let i = self.by_step[at];
-                    if !is_hard(graph, self.instances[i]) {
+                for at in self.structure.block_start[b]..self.structure.block_start[b + 1] {
+                    let i = self.structure.by_step[at];
+                    if !is_hard(graph, self.structure.instances[i]) {
                         self.soft_instance(graph, values, (k0, i), true, &mut soft)?;
                     }
                 }
@@ -684,21 +747,24 @@ impl WindowSolver {
             let cached = projected && linearize;
             for b in 0..blocks {
                 if !cached {
-                    self.hard_block(graph, values, b, mode)?;
+                    self.lin
+                        .hard_block(graph, &self.structure, values, b, mode)?;
                 }
             }
             if linearize {
                 // Directions the hard equations fix carry no unknown.
-                let hard = &self.hard;
-                self.h.reset_active(blocks, |b| hard[b].reduction.dim);
-                self.g[..blocks * s].fill(0.0);
+                let hard = &self.lin.hard;
+                self.normal
+                    .h
+                    .reset_active(blocks, |b| hard[b].reduction.dim);
+                self.normal.g[..blocks * s].fill(0.0);
                 if record {
-                    self.rows_width = Some(self.hard[0].reduction.dim);
+                    self.rows_width = Some(self.lin.hard[0].reduction.dim);
                 }
             }
         }
-        let (mut cost, mut cost_first) = self.hard_cost_sum(graph, k0);
-        if self.step_major && linearize {
+        let (mut cost, mut cost_first) = self.lin.hard_cost_sum(graph, &self.structure, k0);
+        if self.lin.step_major && linearize {
             cost += soft.total;
             cost_first += soft.first;
         } else {
@@ -706,8 +772,8 @@ impl WindowSolver {
                 total: cost,
                 first: cost_first,
             };
-            for i in 0..self.instances.len() {
-                if !is_hard(graph, self.instances[i]) {
+            for i in 0..self.structure.instances.len() {
+                if !is_hard(graph, self.structure.instances[i]) {
                     self.soft_instance(graph, values, (k0, i), linearize, &mut sum)?;
                 }
             }
@@ -723,9 +789,15 @@ impl WindowSolver {
             cost_first += value;
             if linearize {
                 // In reduced coordinates δ₀ = p₀ + N₀y: H += N₀ᵀΛN₀, g += N₀ᵀ(grad + Λp₀).
-                let red = &self.hard[0].reduction;
+                let red = &self.lin.hard[0].reduction;
                 p.add_information_times(&red.particular, grad, rest);
-                p.add_reduced(red, grad, self.h.diag_mut(0), &mut self.g, rest);
+                p.add_reduced(
+                    red,
+                    grad,
+                    self.normal.h.diag_mut(0),
+                    &mut self.normal.g,
+                    rest,
+                );
             }
         }
 

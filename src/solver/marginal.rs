@@ -1,8 +1,13 @@
 //! What a step leaves as it leaves a fixed-lag window: the marginal (Schur) or
 //! conditional prior on the next step, and its projection on the tangent space.
 
+use super::linearize::HardPass;
 use super::prior::{Information, TangentInformation};
-use super::*;
+use super::prior::{LinearPrior, Projection};
+use super::structure::{Instance, Scope, Source, Span};
+use super::{structure, WindowSolver};
+use crate::error::{Error, Result};
+use crate::graph::ChainGraph;
 use crate::linalg::dense;
 
 /// What a window solve that converged on a small step leaves for marginalizing its
@@ -143,13 +148,14 @@ impl WindowSolver {
     ) -> Result<()> {
         let s = self.s;
         self.collect_instances(graph, k, k + 1, Scope::Window { held: false });
-        self.hard_block(graph, values, 0, HardPass::Linearize)?;
+        self.lin
+            .hard_block(graph, &self.structure, values, 0, HardPass::Linearize)?;
         // A one-step window solve of step k that follows finds it reduced.
         prior.projection = Some(Projection {
             step: k,
-            generation: self.generation,
+            generation: self.lin.generation,
         });
-        let block = &mut self.hard[0];
+        let block = &mut self.lin.hard[0];
         if block.rows == 0 {
             return Ok(());
         }
@@ -344,7 +350,7 @@ impl WindowSolver {
         if let Some(last) = self.last.take() {
             let x = &values[k0 * s..(k0 + 1) * s];
             if last.k0 == k0
-                && last.generation == self.generation
+                && last.generation == self.lin.generation
                 && x.iter()
                     .zip(&self.last_x)
                     .all(|(a, b)| a.to_bits() == b.to_bits())
@@ -360,19 +366,19 @@ impl WindowSolver {
             scope: Scope::Oldest,
         };
         let cost = self.evaluate(graph, values, oldest, true)?;
-        let d0 = self.h.dim(0);
-        debug_assert_eq!(self.h.dim(1), s);
+        let d0 = self.normal.h.dim(0);
+        debug_assert_eq!(self.normal.h.dim(1), s);
         // H₀₀, H₁₀ (block 1 rows × block 0 columns), H₁₁, g₀, g₁ into the scratch.
         let ss = s * s;
         let (h00, rest) = self.scratch.split_at_mut(ss);
         let (h10, rest) = rest.split_at_mut(ss);
         let (h11, rest) = rest.split_at_mut(ss);
         let (g01, _) = rest.split_at_mut(2 * s);
-        restride(self.h.diag(0), d0, d0, h00, s);
-        restride(self.h.lower(1), s, d0, h10, s);
-        restride(self.h.diag(1), s, s, h11, s);
-        g01[..s].copy_from_slice(&self.g[..s]);
-        g01[s..].copy_from_slice(&self.g[s..2 * s]);
+        restride(self.normal.h.diag(0), d0, d0, h00, s);
+        restride(self.normal.h.lower(1), s, d0, h10, s);
+        restride(self.normal.h.diag(1), s, s, h11, s);
+        g01[..s].copy_from_slice(&self.normal.g[..s]);
+        g01[s..].copy_from_slice(&self.normal.g[s..2 * s]);
         self.schur(k0, d0, cost, values)
     }
 
@@ -474,7 +480,7 @@ impl WindowSolver {
         self.last = Some(LastSolve {
             k0,
             k1,
-            generation: self.generation,
+            generation: self.lin.generation,
         });
         self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
     }
@@ -495,7 +501,7 @@ impl WindowSolver {
     ) -> Result<LinearPrior> {
         let s = self.s;
         let ss = s * s;
-        let d0 = self.h.dim(0);
+        let d0 = self.normal.h.dim(0);
         let window_holds_next = k1 > k0 + 1;
         // H₀₀ and g₀ at the optimum: the gradient moves by H δ with the last step.
         {
@@ -503,14 +509,14 @@ impl WindowSolver {
             let (h10, rest) = rest.split_at_mut(ss);
             let (_, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
-            restride(self.h.diag(0), d0, d0, h00, s);
+            restride(self.normal.h.diag(0), d0, d0, h00, s);
             // H₁₀ is read only in its first d0 columns.
             for row in h10.chunks_exact_mut(s) {
                 row[..d0].fill(0.0);
             }
             g01.fill(0.0);
             for a in 0..d0 {
-                g01[a] = self.g[a] + self.hd[a];
+                g01[a] = self.normal.g[a] + self.normal.hd[a];
             }
         }
         let mut cost = self.cost_first;
@@ -519,7 +525,10 @@ impl WindowSolver {
         // The factors joining k0 and k0 + 1: the step factors, then those of run
         // step k0 + 1 alone.
         let steps = graph.step_terms().len();
-        let at = graph.sparse_range(self.run_step(k0 + 1), self.run_step(k0 + 2));
+        let at = graph.sparse_range(
+            self.structure.run_step(k0 + 1),
+            self.structure.run_step(k0 + 2),
+        );
         for i in 0..steps + at.len() {
             let inst = Instance {
                 source: if i < steps { Source::Step } else { Source::At },
@@ -532,8 +541,9 @@ impl WindowSolver {
             if term.is_constraint() || !keys.iter().any(|k| k.lag == 1) {
                 continue;
             }
-            self.evaluate_instance(graph, values, inst, true)?;
-            let buf = self.buffers.of(inst);
+            self.lin
+                .evaluate_instance(graph, self.structure.base, values, inst, true)?;
+            let buf = self.lin.buffers.of(inst);
             let dim = factor.dim();
             buf.whiten(factor, true);
             if !window_holds_next {
@@ -542,8 +552,8 @@ impl WindowSolver {
                 }
             }
             // Rows: J₀N₀ (dim × d0, row stride s) into reduced[1]; J₁ row by row below.
-            let red = &self.hard[0].reduction;
-            for row in self.reduced.jacobian[1].chunks_exact_mut(s).take(dim) {
+            let red = &self.lin.hard[0].reduction;
+            for row in self.lin.reduced.jacobian[1].chunks_exact_mut(s).take(dim) {
                 row[..d0].fill(0.0);
             }
             for (a, k) in keys.iter().enumerate() {
@@ -560,7 +570,7 @@ impl WindowSolver {
                             continue;
                         }
                         let (start, nrow) = red.row(off + j);
-                        let out = &mut self.reduced.jacobian[1][r * s + start..r * s + d0];
+                        let out = &mut self.lin.reduced.jacobian[1][r * s + start..r * s + d0];
                         for (o, nv) in out.iter_mut().zip(nrow) {
                             *o += v * nv;
                         }
@@ -572,7 +582,7 @@ impl WindowSolver {
             let (_, rest) = rest.split_at_mut(ss);
             let g01 = &mut rest[..2 * s];
             for r in 0..dim {
-                let j0 = &self.reduced.jacobian[1][r * s..r * s + d0];
+                let j0 = &self.lin.reduced.jacobian[1][r * s..r * s + d0];
                 let rr = buf.r[r];
                 // J₁'s row: its nonzeros (integrators: two) by ascending column, the
                 // keys' entries on one column summed in key order.
@@ -614,7 +624,7 @@ impl WindowSolver {
             }
             if blocked && !window_holds_next {
                 // H₀₀ += (J₀N₀)ᵀ(J₀N₀) over the factor's rows at once.
-                let j0 = dense::rows(&self.reduced.jacobian[1], dim, d0, s);
+                let j0 = dense::rows(&self.lin.reduced.jacobian[1], dim, d0, s);
                 dense::multiply(dense::rows_mut(h00, d0, d0, s), true, j0.transpose(), j0);
             }
         }
@@ -662,19 +672,20 @@ impl WindowSolver {
         let ss = s * s;
         let k = k0 + 1;
         self.collect_instances(graph, k, k + 1, Scope::Window { held: false });
-        self.hard_block(graph, values, 0, HardPass::Linearize)?;
+        self.lin
+            .hard_block(graph, &self.structure, values, 0, HardPass::Linearize)?;
         let projection = Some(Projection {
             step: k,
-            generation: self.generation,
+            generation: self.lin.generation,
         });
-        if self.hard[0].rows == 0 {
+        if self.lin.hard[0].rows == 0 {
             // No tangent space to project on: the prior as it is.
             self.joint_into_scratch();
             let mut p = self.schur(k0, d0, cost, values)?;
             p.projection = projection;
             return Ok(p);
         }
-        let red = &self.hard[0].reduction;
+        let red = &self.lin.hard[0].reduction;
         let d = red.dim;
         let (h00, rest) = self.scratch.split_at_mut(ss);
         let (h10, rest) = rest.split_at_mut(ss);

@@ -13,8 +13,7 @@
 use crate::error::{Error, Result};
 #[cfg(doc)]
 use crate::graph::AlongDirections;
-use crate::graph::{ChainGraph, Factor, Term, Workspace};
-use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
+use crate::graph::{ChainGraph, Term};
 use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
 
@@ -23,6 +22,7 @@ mod iterate;
 mod linearize;
 mod marginal;
 mod newton;
+mod normal;
 mod observer;
 mod prior;
 mod settings;
@@ -35,10 +35,11 @@ pub use observer::{Iteration, Observer, Trace};
 pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};
 
-use linearize::{AllBuffers, HardBlock, HardPass, ReducedRows};
+use linearize::{AllBuffers, HardBlock, Linearization, ReducedRows};
 use marginal::{JointRows, LastSolve};
 use newton::{NewtonBuffers, PriorRoots};
-use structure::{factor_of, is_hard, Instance, Resolved, Scope, Source, Span};
+use normal::NormalEquations;
+use structure::{Scope, Structure};
 
 /// σ by which a hard factor's residual is weighted in the reported cost
 /// ([`SolveReport::cost`]). Hard factors are eliminated, not weighted: this only
@@ -49,47 +50,15 @@ pub const HARD_SIGMA: f64 = 1e-6;
 pub struct WindowSolver {
     settings: Settings,
     s: usize,
-    h: BlockTridiagonal,
-    chol: BandedCholesky,
-    g: Vec<f64>,
-    delta: Vec<f64>,
-    damping: Vec<f64>,
+    /// Which factor instances the current window holds (the structure stage).
+    structure: Structure,
+    /// H y = −g in the window's reduced unknowns, and its step.
+    normal: NormalEquations,
     saved: Vec<f64>,
-    hd: Vec<f64>,
-    /// Each factor's residual and Jacobian buffers.
-    buffers: AllBuffers,
-    /// The run step of the values' step 0 (a streaming run moves its values
-    /// toward the start of their buffer, [`WindowSolver::shift_steps`]): a step's
-    /// time, and the factors of chosen run steps, are placed by it.
-    base: usize,
-    hard: Vec<HardBlock>,
-    /// A soft factor's rows in reduced coordinates.
-    reduced: ReducedRows,
-    instances: Vec<Instance>,
-    /// What `instances` was built for, and the lists of other shapes.
-    resolved: Option<Resolved>,
-    parked: Vec<structure::Listing>,
+    /// Each step's hard equations reduced, and the buffers a linearization works in.
+    lin: Linearization,
     /// The last full step δ = p + N y of the window (for `backtrack`).
     direction: Vec<f64>,
-    /// The instances in step order (indices into `instances`), and where each block's
-    /// begin in it (one more entry than blocks).
-    by_step: Vec<usize>,
-    block_start: Vec<usize>,
-    next_slot: Vec<usize>,
-    /// Per instance, the cost of a hard one (summed in `instances` order).
-    hard_cost: Vec<f64>,
-    /// One step's hard equations: C row-major rows × s, and −c.
-    hard_jac: Vec<f64>,
-    hard_rhs: Vec<f64>,
-    /// Round-off in each hard residual (see [`NullSpace::set_noise`]).
-    hard_noise: Vec<f64>,
-    /// Evaluate step by step (see `optimize_for_batch`).
-    step_major: bool,
-    /// Directions and products of [`AlongDirections::evaluate_along`]: per key
-    /// size × c, and dim × c (c ≤ 1 + 2s); empty when no factor evaluates along
-    /// directions.
-    along_dirs: Vec<f64>,
-    along_out: Vec<f64>,
     /// The whitened, reduced rows [J N | r + J p] of a one-block window's soft
     /// factors (a prior's are not among them), kept beside H: for the least-squares
     /// step where H cannot be factored or is conditioned past
@@ -117,15 +86,8 @@ pub struct WindowSolver {
     /// next step's unknowns (`marginalize_last`): their nonzeros one row after
     /// another, each row's end, and each row's whitened residual.
     joint: JointRows,
-    ws: Workspace,
     scratch: Vec<f64>,
     newton: NewtonBuffers,
-    /// Step whose hard equations `project_prior` linearized and reduced in block 0 at
-    /// the current values (their costs in `hard_cost`).
-    /// Counts linearizations, so that what one stage hands to the next (a solve's
-    /// linearization to marginalization, a projected prior's reduction to a solve)
-    /// is used only while it is current.
-    generation: u64,
     /// The first block's values where the last solve converged (see `LastSolve`).
     last_x: Vec<f64>,
     observer: Option<Box<dyn Observer>>,
@@ -187,43 +149,33 @@ impl WindowSolver {
         let mut solver = WindowSolver {
             settings,
             s,
-            h: BlockTridiagonal::new(capacity, s),
-            chol: BandedCholesky::new(capacity, s),
-            g: vec![0.0; n],
-            delta: vec![0.0; n],
-            damping: vec![0.0; n],
+            normal: NormalEquations::new(capacity, s),
             saved: vec![0.0; n],
             direction: vec![0.0; n],
-            hd: vec![0.0; n],
-            buffers: AllBuffers::new(graph),
-            base: 0,
-            hard: (0..capacity)
-                .map(|_| HardBlock {
-                    rows: 0,
-                    at_round_off: false,
-                    reduction: NullSpace::new(s, max_hard),
-                })
-                .collect(),
-            by_step: Vec::with_capacity(
-                capacity * graph.step_terms().len() + graph.initial_terms().len(),
-            ),
-            block_start: Vec::with_capacity(capacity + 1),
-            next_slot: Vec::with_capacity(capacity),
-            hard_cost: Vec::with_capacity(
-                capacity * graph.step_terms().len() + graph.initial_terms().len(),
-            ),
-            hard_jac: vec![0.0; max_hard * s],
-            hard_rhs: vec![0.0; max_hard],
-            hard_noise: vec![0.0; max_hard],
-            step_major: false,
-            along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
-            along_out: vec![0.0; along_dim * (1 + 2 * s)],
-            reduced: ReducedRows::new(max_dim.max(s), s),
-            instances: Vec::with_capacity(
-                capacity * graph.step_terms().len() + graph.initial_terms().len(),
-            ),
-            resolved: None,
-            parked: Vec::new(),
+            structure: Structure::new(graph, capacity),
+            lin: Linearization {
+                s,
+                buffers: AllBuffers::new(graph),
+                hard: (0..capacity)
+                    .map(|_| HardBlock {
+                        rows: 0,
+                        at_round_off: false,
+                        reduction: NullSpace::new(s, max_hard),
+                    })
+                    .collect(),
+                hard_cost: Vec::with_capacity(
+                    capacity * graph.step_terms().len() + graph.initial_terms().len(),
+                ),
+                hard_jac: vec![0.0; max_hard * s],
+                hard_rhs: vec![0.0; max_hard],
+                hard_noise: vec![0.0; max_hard],
+                step_major: false,
+                along_dirs: vec![0.0; along_keys * (1 + 2 * s)],
+                along_out: vec![0.0; along_dim * (1 + 2 * s)],
+                reduced: ReducedRows::new(max_dim.max(s), s),
+                ws: graph.workspace(),
+                generation: 0,
+            },
             rows: Vec::new(),
             rows_width: None,
             row_instances: Vec::new(),
@@ -234,9 +186,7 @@ impl WindowSolver {
             correction: vec![0.0; s],
             nonzero: Vec::with_capacity(s),
             joint: JointRows::default(),
-            ws: graph.workspace(),
             scratch: vec![0.0; 4 * s * s + 4 * s],
-            generation: 0,
             last_x: vec![0.0; s],
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
             tangent_form_from: TANGENT_FORM_FROM,
@@ -266,12 +216,11 @@ impl WindowSolver {
     /// solve's tolerance, not to the bit. Off by default, so that forward runs keep
     /// theirs.
     pub fn optimize_for_batch(&mut self) {
-        for block in &mut self.hard {
+        for block in &mut self.lin.hard {
             block.reduction.set_summation(Summation::Lanes);
         }
-        self.h.set_summation(Summation::Lanes);
-        self.chol.set_summation(Summation::Lanes);
-        self.step_major = true;
+        self.normal.set_summation(Summation::Lanes);
+        self.lin.step_major = true;
     }
 
     /// Reduces each step's hard equations segment by segment, positions first, then
@@ -289,7 +238,7 @@ impl WindowSolver {
             let (off, _) = graph.layout().slot(kind).expect("a kind of the layout");
             segment[off..off + d].fill(kind.order());
         }
-        for block in &mut self.hard {
+        for block in &mut self.lin.hard {
             block.reduction.set_segments(&segment);
         }
     }
@@ -324,22 +273,29 @@ impl WindowSolver {
 
     /// The run step that step 0 of the values stands for.
     pub fn base(&self) -> usize {
-        self.base
+        self.structure.base
     }
 
     /// The time of step `step` of the values.
     pub fn time(&self, graph: &ChainGraph, step: usize) -> f64 {
-        graph.run_time(self.base + step)
+        graph.run_time(self.structure.base + step)
     }
 }
 
 impl WindowSolver {
+    /// Lists the factor instances of a scope ([`Structure::collect_instances`]) and
+    /// makes room for the costs of its hard ones.
+    fn collect_instances(&mut self, graph: &ChainGraph, k0: usize, k1: usize, scope: Scope) {
+        self.structure.collect_instances(graph, k0, k1, scope);
+        self.lin.clear_costs(&self.structure);
+    }
+
     /// The values moved `by` steps toward the start of their buffer (a fixed-lag run
     /// that keeps only its newest steps, [`crate::smoother::fixed_lag`] with a buffer):
     /// what the solver keeps by step follows them, so that the next solve and
     /// marginalization reuse it as they would have in place.
     pub fn shift_steps(&mut self, by: usize) {
-        self.base += by;
+        self.structure.base += by;
         if let Some(last) = self.last.as_mut() {
             last.k0 -= by;
             last.k1 -= by;

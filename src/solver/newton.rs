@@ -1,7 +1,12 @@
 //! The exact (Newton) model: the Lagrangian's gradient, its reduced Hessian by
 //! central differences, and the least-squares step of a one-block window.
 
-use super::*;
+use super::prior::{Information, LinearPrior};
+use super::structure::{factor_of, is_hard, Span};
+use super::WindowSolver;
+use crate::error::Result;
+use crate::graph::ChainGraph;
+use crate::linalg::nullspace::NullSpace;
 
 /// Buffers of the exact (Newton) model: the Lagrangian's gradient in full
 /// coordinates at the point and at its perturbations, each block's multipliers, and
@@ -90,11 +95,12 @@ impl WindowSolver {
         let blocks = k1 - k0;
         out[..blocks * s].fill(0.0);
         self.newton.rows[..blocks].fill(0);
-        for i in 0..self.instances.len() {
-            let inst = self.instances[i];
+        for i in 0..self.structure.instances.len() {
+            let inst = self.structure.instances[i];
             let factor = factor_of(graph, inst);
-            self.evaluate_instance(graph, values, inst, true)?;
-            let buf = self.buffers.of(inst);
+            self.lin
+                .evaluate_instance(graph, self.structure.base, values, inst, true)?;
+            let buf = self.lin.buffers.of(inst);
             let hard = is_hard(graph, inst);
             let dim = factor.dim();
             // What multiplies each row: its whitened residual, or its multiplier.
@@ -169,7 +175,7 @@ impl WindowSolver {
         }
         let mh = self.newton.max_hard;
         for b in 0..blocks {
-            let red = &mut self.hard[b].reduction;
+            let red = &mut self.lin.hard[b].reduction;
             red.multipliers(
                 &grad[b * s..(b + 1) * s],
                 &mut self.newton.lambda[b * mh..(b + 1) * mh],
@@ -177,14 +183,14 @@ impl WindowSolver {
         }
         self.newton.grad = grad;
         for b in 0..blocks {
-            let (diag, d) = (self.h.diag(b), self.h.dim(b));
+            let (diag, d) = (self.normal.h.diag(b), self.normal.h.dim(b));
             for r in 0..d {
                 self.newton.scale[b * s + r] = diag[r * d + r];
             }
         }
         let colors = blocks.min(3);
         let dmax = (0..blocks)
-            .map(|b| self.hard[b].reduction.dim)
+            .map(|b| self.lin.hard[b].reduction.dim)
             .max()
             .unwrap_or(0);
         self.saved[..n].copy_from_slice(&values[k0 * s..k1 * s]);
@@ -218,7 +224,7 @@ impl WindowSolver {
                     let window = &mut values[k0 * s..k1 * s];
                     window.copy_from_slice(&self.saved[..n]);
                     for b in (color..blocks).step_by(3) {
-                        let red = &self.hard[b].reduction;
+                        let red = &self.lin.hard[b].reduction;
                         if j >= red.dim {
                             continue;
                         }
@@ -239,17 +245,22 @@ impl WindowSolver {
                 // Column j of H_bb and H_{b+1,b} in reduced coordinates for every
                 // perturbed block b.
                 for b in (color..blocks).step_by(3) {
-                    if j >= self.hard[b].reduction.dim {
+                    if j >= self.lin.hard[b].reduction.dim {
                         continue;
                     }
-                    let h = 2.0 * step(&self.hard[b].reduction, j, &self.saved[b * s..(b + 1) * s]);
+                    let h = 2.0
+                        * step(
+                            &self.lin.hard[b].reduction,
+                            j,
+                            &self.saved[b * s..(b + 1) * s],
+                        );
                     // H_bb and H_{b+1,b} both have d_b columns (packed, stride d_b).
-                    let db = self.hard[b].reduction.dim;
+                    let db = self.lin.hard[b].reduction.dim;
                     for target in [b, b + 1] {
                         if target >= blocks {
                             continue;
                         }
-                        let red = &self.hard[target].reduction;
+                        let red = &self.lin.hard[target].reduction;
                         let col = &mut column[..red.dim];
                         col.fill(0.0);
                         for i in 0..s {
@@ -260,9 +271,9 @@ impl WindowSolver {
                             }
                         }
                         let block = if target == b {
-                            self.h.diag_mut(target)
+                            self.normal.h.diag_mut(target)
                         } else {
-                            self.h.lower_mut(target)
+                            self.normal.h.lower_mut(target)
                         };
                         for (a, v) in col.iter().enumerate() {
                             block[a * db + j] = *v;
@@ -278,8 +289,8 @@ impl WindowSolver {
         result?;
         // The differences are symmetric only to their error: symmetrize.
         for b in 0..blocks {
-            let d = self.hard[b].reduction.dim;
-            let diag = self.h.diag_mut(b);
+            let d = self.lin.hard[b].reduction.dim;
+            let diag = self.normal.h.diag_mut(b);
             for i in 0..d {
                 for j in 0..i {
                     let v = 0.5 * (diag[i * d + j] + diag[j * d + i]);
@@ -329,7 +340,7 @@ impl WindowSolver {
             b[i] = -row[d];
         }
         if let (Some(p), Some(roots)) = (prior, self.prior_roots.as_ref()) {
-            let red = &self.hard[0].reduction;
+            let red = &self.lin.hard[0].reduction;
             let basis = &mut self.scratch[..s * d];
             red.basis_into(basis);
             faer::linalg::matmul::matmul(
@@ -374,8 +385,8 @@ impl WindowSolver {
         if !y.iter().all(|v| v.is_finite()) {
             return false;
         }
-        self.delta[..self.s].fill(0.0);
-        self.delta[..d].copy_from_slice(&y);
+        self.normal.delta[..self.s].fill(0.0);
+        self.normal.delta[..d].copy_from_slice(&y);
         true
     }
 }

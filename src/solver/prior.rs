@@ -7,8 +7,8 @@
 //! s × s it costs O(s²) memory passes to form and O(s²) per product; kept as N̄
 //! (sparse rows) and C (d × d) every product goes through the basis' nonzeros.
 
-use super::*;
 use crate::linalg::dense;
+use crate::linalg::nullspace::NullSpace;
 
 /// Unknowns per step from which a projected prior is kept as N̄CN̄ᵀ rather than
 /// written out s × s. Below it the written-out form is as cheap, and the results

@@ -2,7 +2,9 @@
 //! It depends on the window's shape only (its length, its scope, whether it starts
 //! at step 0), so it is resolved once per shape and shifted along the run.
 
-use super::*;
+use crate::graph::{ChainGraph, Factor, Term};
+
+use super::LinearPrior;
 
 /// Which factors a linearization takes.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
@@ -97,7 +99,40 @@ pub(super) fn is_hard(graph: &ChainGraph, inst: Instance) -> bool {
     term_of(graph, inst).is_constraint()
 }
 
-impl WindowSolver {
+/// The structure stage's state: the factor instances of the current window, in
+/// `instances` order and by step, the lists of other shapes parked beside them, and
+/// where the values' step 0 sits in the run.
+pub(super) struct Structure {
+    /// The run step of the values' step 0 (a streaming run moves its values
+    /// toward the start of their buffer, [`super::WindowSolver::shift_steps`]): a step's
+    /// time, and the factors of chosen run steps, are placed by it.
+    pub(super) base: usize,
+    pub(super) instances: Vec<Instance>,
+    /// What `instances` was built for, and the lists of other shapes.
+    resolved: Option<Resolved>,
+    parked: Vec<Listing>,
+    /// The instances in step order (indices into `instances`), and where each block's
+    /// begin in it (one more entry than blocks).
+    pub(super) by_step: Vec<usize>,
+    pub(super) block_start: Vec<usize>,
+    next_slot: Vec<usize>,
+}
+
+impl Structure {
+    /// Room for the instances of a window of up to `capacity` steps of `graph`.
+    pub(super) fn new(graph: &ChainGraph, capacity: usize) -> Self {
+        let per_window = capacity * graph.step_terms().len() + graph.initial_terms().len();
+        Structure {
+            base: 0,
+            instances: Vec::with_capacity(per_window),
+            resolved: None,
+            parked: Vec::new(),
+            by_step: Vec::with_capacity(per_window),
+            block_start: Vec::with_capacity(capacity + 1),
+            next_slot: Vec::with_capacity(capacity),
+        }
+    }
+
     /// The run step of step `step` of the values: the one place that maps the
     /// values' steps to the run's (a streaming run moves its values, `base`).
     pub(super) fn run_step(&self, step: usize) -> usize {
@@ -147,8 +182,6 @@ impl WindowSolver {
             _ => self.build_instances(graph, k0, k1, scope),
         }
         self.resolved = Some(Resolved { shape, k0 });
-        self.hard_cost.clear();
-        self.hard_cost.resize(self.instances.len(), 0.0);
     }
 
     /// Parks the current instance list (the oldest parked one goes when full).
@@ -253,6 +286,122 @@ impl WindowSolver {
                     step,
                 });
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::{Prior, Trapezoidal};
+    use crate::graph::{Layout, Noise, VarKind};
+
+    /// q, q̇ of size 1: a trapezoidal integrator at every step (reaching back one
+    /// step), a prior on q at every step, one on step 0, and one at run step 3.
+    fn graph() -> ChainGraph {
+        let layout = Layout::new(&[(VarKind::Q, 1), (VarKind::Dq, 1)]);
+        let dt = 0.1;
+        ChainGraph::builder(layout, dt, 0.0)
+            .step_soft(
+                Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, 1, dt)),
+                Noise::Isotropic(0.1),
+            )
+            .step_soft(
+                Box::new(Prior::new(VarKind::Q, vec![0.0])),
+                Noise::Isotropic(1.0),
+            )
+            .initial_soft(
+                Box::new(Prior::new(VarKind::Q, vec![0.0])),
+                Noise::Isotropic(1.0),
+            )
+            .soft_at(
+                3,
+                Box::new(Prior::new(VarKind::Q, vec![1.0])),
+                Noise::Isotropic(1.0),
+            )
+            .build()
+            .unwrap()
+    }
+
+    /// An instance as (source, index, step).
+    type Listed = (Source, usize, usize);
+
+    /// The instance list, and the instances block by block.
+    fn listing(st: &Structure) -> (Vec<Listed>, Vec<Vec<usize>>) {
+        let list = st
+            .instances
+            .iter()
+            .map(|i| (i.source, i.index, i.step))
+            .collect();
+        let blocks = st
+            .block_start
+            .windows(2)
+            .map(|w| st.by_step[w[0]..w[1]].to_vec())
+            .collect();
+        (list, blocks)
+    }
+
+    #[test]
+    fn a_window_lists_its_factors_in_step_order() {
+        use Source::{At, Initial, Step};
+        let graph = graph();
+        let mut st = Structure::new(&graph, 4);
+        // From step 0: the initial factor, no integrator into step 0; the factor of
+        // run step 3 is outside.
+        st.collect_instances(&graph, 0, 3, Scope::Window { held: false });
+        let (list, blocks) = listing(&st);
+        let want = [(Initial, 0, 0), (Step, 0, 1), (Step, 0, 2)];
+        assert_eq!(list[..3], want);
+        assert_eq!(list[3..], [(Step, 1, 0), (Step, 1, 1), (Step, 1, 2)]);
+        assert_eq!(blocks, [vec![0, 3], vec![1, 4], vec![2, 5]]);
+
+        // Steps 1..4: the integrator into step 1 reaches outside, run step 3's factor
+        // is in, last in its block.
+        st.collect_instances(&graph, 1, 4, Scope::Window { held: false });
+        let (list, blocks) = listing(&st);
+        let want = [(Step, 0, 2), (Step, 0, 3), (Step, 1, 1), (Step, 1, 2)];
+        assert_eq!(list[..4], want);
+        assert_eq!(list[4..], [(Step, 1, 3), (At, 0, 3)]);
+        assert_eq!(blocks, [vec![2], vec![0, 3], vec![1, 4, 5]]);
+        // Held: the integrator into step 1 stays.
+        st.collect_instances(&graph, 1, 4, Scope::Window { held: true });
+        assert_eq!(listing(&st).0[0], (Step, 0, 1));
+
+        // The values moved one step: run step 3 is their step 2.
+        st.base = 1;
+        st.collect_instances(&graph, 1, 3, Scope::Window { held: false });
+        let (list, blocks) = listing(&st);
+        assert_eq!(list, [(Step, 0, 2), (Step, 1, 1), (Step, 1, 2), (At, 0, 2)]);
+        assert_eq!(blocks, [vec![1], vec![0, 2, 3]]);
+
+        // The oldest step's factors: those touching step 1.
+        st.collect_instances(&graph, 1, 3, Scope::Oldest);
+        assert_eq!(listing(&st).0, [(Step, 0, 2), (Step, 1, 1)]);
+    }
+
+    #[test]
+    fn a_shape_seen_before_is_shifted_not_rebuilt() {
+        // Without factors of chosen steps a list of a known shape is shifted.
+        let layout = Layout::new(&[(VarKind::Q, 1), (VarKind::Dq, 1)]);
+        let graph = ChainGraph::builder(layout, 0.1, 0.0)
+            .step_soft(
+                Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, 1, 0.1)),
+                Noise::Isotropic(0.1),
+            )
+            .build()
+            .unwrap();
+        let mut st = Structure::new(&graph, 4);
+        let mut fresh = Structure::new(&graph, 4);
+        for (k0, scope) in [
+            (1, Scope::Window { held: false }),
+            (1, Scope::Oldest),
+            (2, Scope::Window { held: false }),
+            (4, Scope::Oldest),
+            (5, Scope::Window { held: true }),
+        ] {
+            st.collect_instances(&graph, k0, k0 + 2, scope);
+            fresh.build_instances(&graph, k0, k0 + 2, scope);
+            assert_eq!(listing(&st), listing(&fresh), "k0 = {k0}, {scope:?}");
         }
     }
 }

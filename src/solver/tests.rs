@@ -1,5 +1,6 @@
 #[cfg(test)]
 mod unit {
+    use super::super::structure::Span;
     use super::super::*;
     use crate::forward::{simulate, Coordinates, DcIntegrators, ForwardGraph, ForwardOptions};
     use crate::smoother::Mode;
@@ -65,19 +66,19 @@ mod unit {
         // Away from the optimum (large residuals): a step along the manifold.
         linearize(&mut solver, &values);
         for i in 0..s {
-            let (_, row) = solver.hard[0].reduction.row(i);
+            let (_, row) = solver.lin.hard[0].reduction.row(i);
             values[k * s + i] += 0.2 * row.iter().sum::<f64>();
         }
         cost_on_manifold(&mut solver, &fg, &mut values, k, &prior);
         linearize(&mut solver, &values);
-        let gauss_newton = solver.h.diag(0).to_vec();
+        let gauss_newton = solver.normal.h.diag(0).to_vec();
         solver
             .exact_hessian(&fg.graph, &mut values, span(k, Some(&prior)))
             .unwrap();
-        let red = solver.hard[0].reduction.clone();
+        let red = solver.lin.hard[0].reduction.clone();
         let d = red.dim;
         let mut missed = 0.0f64;
-        let h: Vec<f64> = solver.h.diag(0)[..d * d].to_vec();
+        let h: Vec<f64> = solver.normal.h.diag(0)[..d * d].to_vec();
         let x0 = values.clone();
         let mut checked = 0;
         for seed in 0..4 {
@@ -125,7 +126,7 @@ mod unit {
         solver
             .project_prior(&fg.graph, &values, k, &mut tangent)
             .unwrap();
-        let red = solver.hard[0].reduction.clone();
+        let red = solver.lin.hard[0].reduction.clone();
         let value = |p: &LinearPrior, x: &[f64]| {
             let dx: Vec<f64> = (0..s).map(|i| x[i] - p.xbar[i]).collect();
             let quad: f64 = (0..s)
@@ -340,11 +341,11 @@ mod unit {
             let cost = solver
                 .evaluate(&fg.graph, &moved, span(k, Some(p)), true)
                 .unwrap();
-            let d = solver.h.dim(0);
+            let d = solver.normal.h.dim(0);
             (
                 cost,
-                solver.h.diag(0)[..d * d].to_vec(),
-                solver.g[..d].to_vec(),
+                solver.normal.h.diag(0)[..d * d].to_vec(),
+                solver.normal.g[..d].to_vec(),
             )
         };
         let (ca, ha, gna) = normal(&dense);
