@@ -258,7 +258,7 @@ fn write_number(out: &mut String, v: f64) {
     let a = v.abs();
     if a == 0.0 || (1e-4..1e7).contains(&a) {
         // The same shortest round-trip digits as `{v}` (tested), written by ryu at a
-        // third of the cost (the CSV text was a tenth of a four-bar run). ryu spells
+        // third of the cost (writing the CSV is a visible part of a small run). ryu spells
         // this range in plain decimals too, whole numbers with a trailing ".0".
         let mut digits = ryu::Buffer::new();
         let text = digits.format_finite(v);

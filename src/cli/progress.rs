@@ -6,8 +6,7 @@ use std::time::{Duration, Instant};
 /// A progress bar on stderr, shown only when stderr is a terminal and the run has
 /// lasted over a second. Its clock runs from the start of the run, and its ETA is
 /// the mean time per step of the current attempt times the steps left ([`eta`]):
-/// indicatif's own estimator, first fed at the bar's creation with every step done
-/// in the first second at once, saw a near-infinite rate and said 0 s.
+/// indicatif's own estimator, fed the first second's steps at once, reads 0 s.
 ///
 /// A run made again (with tangent integrators, or at a finer step: more steps)
 /// starts a new attempt: the bar's length becomes the new count and the pace is

@@ -70,8 +70,8 @@ impl<'a> KernelScratch<'a> {
         let big = model.n() + model.active.len();
         let [kkt, sol, tmp, mat, kq, kv, cols, c] = Self::lens(model);
         // Every array is written before it is read (K by `fill_kkt`, the others as
-        // `evaluate` and the solves fill them): carved as they were left, not zeroed,
-        // which for a large mechanism was most of an evaluation. A sparse K has no
+        // `evaluate` and the solves fill them): carved as they were left, not zeroed
+        // (zeroing is most of a large mechanism's evaluation). A sparse K has no
         // dense copy.
         let (kkt, stack) = carve(stack, if sparse.is_some() { 0 } else { kkt });
         let (perm, stack) = stack.make_with(big, |_| 0usize);

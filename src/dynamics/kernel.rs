@@ -14,7 +14,7 @@
 /// E_q λ is λₖ ∂εₖ/∂q).
 ///
 /// **Singular configurations.** Where Φ_q is regular, E = 0: the KKT system of the
-/// paper (eq. "qDynSys"), computed exactly as before. Where Φ_q loses a rank (the
+/// paper (eq. "qDynSys"), computed exactly. Where Φ_q loses a rank (the
 /// parallelogram's flat configurations) K is singular, and near it the KKT q̈
 /// answers a velocity off the constraint manifold by round-off with an acceleration
 /// 1/σ larger (σ the smallest singular value of Φ_q); the hard constraints cannot
@@ -32,17 +32,16 @@
 pub struct DynamicsKernel;
 
 impl DynamicsKernel {
-    /// ε_rel: εₖ = w ε_rel ‖aₖ‖²/m̄. With the ramp below, ε_rel from 5e-8 to 5e-5
-    /// lets DC pass the parallelogram's five flat points at Δt = 1e-3 to 1e-5 s and
-    /// seven phases of the motion; 5e-9 does not. 1e-6 sits in the middle.
+    /// ε_rel: εₖ = w ε_rel ‖aₖ‖²/m̄, in the middle of the range that passes the
+    /// parallelogram's flat points (`docs/dc-stall.md`, "9. How much regularization,
+    /// and from where").
     pub const REGULARIZATION: f64 = 1e-6;
     /// Below this s the regularization is full (w = 1).
     pub const SINGULAR_BELOW: f64 = 1e-4;
     /// At or above this s the system is the plain KKT system (w = 0). With the
     /// damped corrections of [`crate::linalg::nullspace::NullSpace`] the KKT system
-    /// serves down to s ≈ 1e-4: ramps from (1e-5, 1e-4) to (1e-3, 1e-2) all pass the
-    /// parallelogram, (1e-7, 1e-6) does not. The top stays below the regular motion
-    /// of every scene: pick-and-place comes closest (s = 4.5e-3 at t = 0.39 s; a
-    /// ramp up to 1e-2 changed its run), the four-bar stays above 0.37.
+    /// serves down to s ≈ 1e-4; the top stays below the regular motion of every
+    /// scene, so that regularization never changes a regular run (`docs/dc-stall.md`,
+    /// "9. How much regularization, and from where").
     pub const REGULAR_ABOVE: f64 = 1e-3;
 }

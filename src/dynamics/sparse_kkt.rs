@@ -2,10 +2,10 @@
 //! matrix: its pattern and faer's symbolic LU (fill-reducing column order) computed
 //! once per mechanism, the numeric LU with partial pivoting at every evaluation.
 //!
-//! A chain's K has a few nonzeros per row, and the dense LU costs (n + m)³: at the
-//! 100 four-bar loops (405 unknowns) it and the 2n right-hand sides of the dynamics'
-//! Jacobians were most of a step. The sparse factors cost about as many operations
-//! as they have nonzeros, and each right-hand side as many again.
+//! A chain's K has a few nonzeros per row, and the dense LU costs (n + m)³, with
+//! the 2n right-hand sides of the dynamics' Jacobians most of a large mechanism's
+//! step. The sparse factors cost about as many operations as they have nonzeros,
+//! and each right-hand side as many again.
 
 use crate::error::{Error, Result};
 use crate::model::Model;

@@ -10,8 +10,7 @@ use crate::model::{Model, PointSlot, MAX_LOCAL};
 
 /// Active constraints from which s is taken from G's sparse Cholesky factor by
 /// selected inversion (linear in a chain's length) instead of the dense factor and
-/// inverse (cubic): the 40-loop N four-bar's 80 rows spent a third of its IC step
-/// there. The trace is the same to rounding.
+/// inverse (cubic). The trace is the same to rounding.
 const SPARSE_DISTANCE_FROM: usize = 48;
 
 /// A configuration ahead where the independent coordinates z stop determining the
@@ -69,10 +68,8 @@ pub struct Determinacy {
 impl Determinacy {
     /// Where the coordinates in use determine the others less well than this and
     /// worse from step to step (or will at the next step, extrapolated), a run in
-    /// independent coordinates looks for a better set. The pick-and-place robot's
-    /// motor angles start just above it and head for s = 0 at t ≈ 0.33 s, while
-    /// Φ_q's smallest row-normalized singular value only dips from 2.5e-2 to 4.6e-3
-    /// at 0.4 s and recovers: the run switches three times and passes.
+    /// independent coordinates looks for a better set (`docs/accuracy.md`,
+    /// "Independent coordinates that re-select themselves").
     pub const SEARCH_BELOW: f64 = 5e-3;
 
     /// A run switches to the best set where it determines the others this many times
@@ -82,26 +79,23 @@ impl Determinacy {
     /// A solve in independent coordinates that fails while s, falling, extrapolates
     /// to 0 within this many steps, and no set of coordinates does materially better
     /// ([`Determinacy::SWITCH_GAIN`]), is reported as the singular configuration
-    /// ahead: the N four-bar under gravity fails 13 steps (1 ms) before its flat
-    /// point, at s = 0.034, above [`Determinacy::STOP_BELOW`]. A failure where s is
-    /// already below [`Determinacy::SEARCH_BELOW`] is attributed whatever the number
-    /// of steps: at fine steps (the parallelogram at 0.01 ms fails 140 steps, 1.4 ms,
-    /// before its flat point, at s = 4.2e-3) steps are no measure of the distance.
+    /// ahead: solves fail some steps before the flat point, above
+    /// [`Determinacy::STOP_BELOW`]. A failure where s is already below
+    /// [`Determinacy::SEARCH_BELOW`] is attributed whatever the number of steps: at
+    /// fine steps, steps are no measure of the distance (`docs/dc-stall.md`,
+    /// "8. Independent coordinates that stop determining the others").
     pub const ATTRIBUTE_WITHIN: f64 = 20.0;
 
-    /// ... and only where s is below this: a violent transient at a coarse step
-    /// (a six-bar press whose crank reaches 350 rad/s within 20 ms, at 1 ms) makes s
-    /// fall fast from 0.08 in a mechanism that has no singular configuration, and the
+    /// ... and only where s is below this: a violent transient at a coarse step makes
+    /// s fall fast in a mechanism that has no singular configuration, and the
     /// extrapolation alone would name one.
     pub const ATTRIBUTE_BELOW: f64 = 0.05;
 
     /// A run in independent coordinates stops where even the best set's s falls
     /// below this: Φ_q itself is about to lose a rank, and no choice of coordinates
-    /// helps. Approaching the parallelogram's flat configuration the solves in
-    /// independent coordinates fail a step or two before the flat point; the run
-    /// stops 0.6 ms (at 3 rad/s, Δt = 1 ms) ahead of it with its steps sound, and
-    /// at coarse steps (5–20 ms), where s falls past the threshold in one step, where
-    /// its linear extrapolation crosses 0 within the next step.
+    /// helps. It is crossed before the solves start to fail, a step or two ahead of
+    /// the flat point; at coarse steps, where s falls past it in one step, the run
+    /// stops where s's linear extrapolation crosses 0 within the next step.
     pub const STOP_BELOW: f64 = 2.5e-3;
 
     /// How well `independent` (indices into q) determines the other coordinates,
@@ -157,9 +151,8 @@ impl Determinacy {
     pub const SEARCH_SETS: usize = 2000;
 
     /// What [`Determinacy::best`] may spend in one search, in multiply-adds (each set
-    /// costs about ma³/2): a few seconds. A 128-link pendulum (ma = 256) has 32768
-    /// one-coordinate swaps per round, each 8e6 multiply-adds: unbounded, its search
-    /// ran for hours.
+    /// costs about ma³/2): a few seconds. Unbounded, a long chain's search of
+    /// one-coordinate swaps runs for hours.
     pub const SEARCH_WORK: f64 = 5e9;
 
     /// The set of independent coordinates that determines the others best at q, and
@@ -241,9 +234,8 @@ impl Determinacy {
         }
         // Among the sets within PREFER_ANGLES_WITHIN of the best, the one with the most
         // angles: a body's angle follows it through whole turns, where a point's x or
-        // y loses rank twice a turn (a crank-rocker whose rocker angle ran out switched
-        // between P1.x and P2.y 29 times in 3 s, 30-230× less accurate than its crank
-        // angle, which never loses rank).
+        // y loses rank twice a turn (docs/dc-stall.md, "8. Independent coordinates
+        // that stop determining the others").
         let angles = |set: &[usize]| set.iter().filter(|&&i| Self::is_angle(model, i)).count();
         let floor = Self::PREFER_ANGLES_WITHIN * best.0;
         seen.into_iter()
@@ -276,8 +268,8 @@ impl Determinacy {
     /// A point's x and y columns are scaled by no less than the root mean square of
     /// the two: a point placed level with its neighbour has an x column as small as
     /// that link (2·length from its distance equation alone) and a y column of 1 (its
-    /// angle equation's), and scaling them apart made a 1 cm link that turned by
-    /// 0.2 rad read as a rank loss three times closer than it was.
+    /// angle equation's): scaled apart, a small link's turn reads as a rank loss
+    /// closer than it is.
     fn set_column_scales(&mut self, model: &Model, q: &[f64]) {
         self.jacobian(model, q);
         let n = model.n();
@@ -439,8 +431,8 @@ impl Determinacy {
     /// The rank is what is left where the scaled dependent block's singular values,
     /// each extrapolated linearly from q0 and q to that time, have not fallen to a
     /// tenth of their value at q: a chain of N loops loses N ranks together at its
-    /// flat configuration, whose singular values fall at different rates, and a
-    /// count of those already small at the stop saw 5 of 40. Where s is not falling
+    /// flat configuration, whose singular values fall at different rates, so a count
+    /// of those already small at the stop sees too few. Where s is not falling
     /// (no time to extrapolate to), those below 10 s at q are counted as lost.
     pub(crate) fn singular_configuration(
         &mut self,
@@ -508,7 +500,7 @@ fn binomial(n: usize, k: usize) -> usize {
 /// σ_r/σ₁ of Φ_q(q), r = the number of independent constraints at the start, scale-free:
 /// its active rows, columns scaled by their norms at the start configuration q0 (the
 /// coordinates' scales: mm-size links and angles in radians weigh alike), each row
-/// then normalized. Raw, a well-conditioned mechanism with a 7 mm crank reads 1e-4.
+/// then normalized, so that a well-conditioned mechanism with a small crank reads so.
 pub(crate) fn constraint_conditioning(model: &Model, q0: &[f64], q: &[f64]) -> f64 {
     let r = model.active.len();
     if r == 0 {

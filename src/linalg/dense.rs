@@ -404,11 +404,9 @@ pub fn lu_solve_many_by_hand(
 /// complement's YᵀY, s × s × dim each) go through faer's blocked kernels
 /// ([`multiply`], [`solve_lower_rows`], [`gram_lower`]) instead of the loops beside
 /// them: the 10 four-bar loops (69 unknowns a step in DC) and beyond. faer is the
-/// faster at every size `benches/linalg.rs` measures (group `gram`: faer/hand 0.57
-/// at s = 15, 0.10 at 69, 0.078 at 129, 0.063 at 249), but it sums in another order:
-/// below this size the loops are kept, operation for operation, so that the results
-/// of the scenes the reports and the regression table pin stay the same to the bit;
-/// at the four-bar's size the whole Schur complement is 4 % of a step.
+/// faster at every size (`docs/benchmarks.md`), but it sums in another order: below
+/// this size the loops are kept, operation for operation, so that the results the
+/// reports and the regression table pin stay the same to the bit.
 pub const FAER_PRODUCTS_FROM: usize = 64;
 
 /// Dense columns of a null-space basis from which its products with an s × s

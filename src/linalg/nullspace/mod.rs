@@ -158,11 +158,9 @@ impl NullSpace {
     /// divides the round-off in the residual by the pivot and, in the parallelogram,
     /// moves the state along the anti-parallelogram velocity every iteration, so the
     /// window solves stall on that noise. The residual a damped correction leaves
-    /// in that equation is of the order of its round-off. μ = 5e-5 lets the
-    /// parallelogram pass its flat configurations in dependent coordinates at
-    /// Δt = 1, 0.1 and 0.01 ms, and the N four-bars (N up to 40) at every Δt and
-    /// window of the robustness matrix; the range that does is narrow: at 3e-5 the
-    /// parallelogram diverges at 0.01 ms, at 1e-4 the 10 four-bar at 20 ms.
+    /// in that equation is of the order of its round-off. The range of μ that passes
+    /// the parallelogram's and the N four-bars' flat configurations is narrow
+    /// (`docs/dc-stall.md`, "6. Equations of very different sizes").
     pub const CORRECTION_TOLERANCE: f64 = 5e-5;
 
     pub fn new(s: usize, max_rows: usize) -> Self {

@@ -140,10 +140,10 @@ mod unit {
     }
 
     /// The damping is for round-off only: a nearly dependent equation whose residual
-    /// stands far above the round-off its noise declares is corrected exactly (the
-    /// velocity constraints of a 10-loop chain a few 1e-6 from its flat configuration,
-    /// left 4e-8 off by the damping, stalled its solves), one at its round-off is still
-    /// damped, and without declared noise every one is.
+    /// stands far above the round-off its noise declares is corrected exactly (damped,
+    /// it stalls the solves: `docs/dc-stall.md`, "6. Equations of very different
+    /// sizes"), one at its round-off is still damped, and without declared noise every
+    /// one is.
     #[test]
     fn a_residual_above_its_round_off_is_corrected_exactly() {
         let delta = 1e-7;

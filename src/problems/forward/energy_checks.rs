@@ -37,9 +37,8 @@ pub fn energy_warning(summary: &RunSummary) -> Option<String> {
 /// the work of every non-conservative effect (the `energy_balance` column of
 /// `--columns energy`) off by more than [`ENERGY_DRIFT_TOLERANCE`] of the largest
 /// kinetic energy or work. Every step converges all the same: the equations are
-/// solved, and the first-order rule's are wrong by that much (Andrews' squeezer at
-/// dt = 3 µs ends 14.7 rad off its published angles, its crank turned back, while at
-/// 1 µs it lands within 0.07 rad). Conservative scenes get the energy drift warning.
+/// solved, and the first-order rule's are wrong by that much (`docs/cli.md` shows
+/// Andrews' squeezer). Conservative scenes get the energy drift warning.
 pub fn euler_warning(
     model: &Model,
     trajectory: &Trajectory,

@@ -52,10 +52,8 @@ impl ForwardGraph {
         // solution has a zero residual and does not depend on the σ's, only the
         // conditioning of its normal equations does. Their σ are scaled by Δt (their
         // residuals over Δt are a velocity and an acceleration), so that f_dyn's rows
-        // do not swamp them at a small Δt or on small links: with absolute σ, a 2 mm
-        // crank against a stiff spring at Δt = 1 µs gave the window's H a condition
-        // of 1e60 and a solution whose θ moved against θ̇. (Scaled by Δt² and Δt,
-        // into f_dyn's units, the six-bar press's batch at 5 ms no longer converged.)
+        // do not swamp them at a small Δt or on small links (docs/accuracy.md,
+        // "Tangent integrators are weighted per unit of time").
         let sigma = [nm.integrator_position, nm.integrator_velocity];
         let dc_sigma = if plan.tangent_dc() {
             [sigma[0] * dt, sigma[1] * dt]

@@ -79,10 +79,9 @@ impl NoiseModels {
 impl Default for NoiseModels {
     /// The defaults that give the best accuracy (see `docs/accuracy.md`): the paper's
     /// values but for f_eq, which pulls every q_k towards q_{k−1} and so brakes the
-    /// motion; at σ = 10 it costs the IC four-bar four orders of magnitude of
-    /// accuracy (RMSE 3.7e-2 m, the paper's 1.7e-2 m, against 2.6e-6 m). The branch
-    /// is kept by the Newton iteration on the hard constraints, which starts every
-    /// step from the previous one.
+    /// motion, so it is all but switched off here (σ = 1e6). The branch is kept by the
+    /// Newton iteration on the hard constraints, which starts every step from the
+    /// previous one.
     fn default() -> Self {
         NoiseModels {
             integrator_position: 0.01,

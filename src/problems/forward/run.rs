@@ -123,10 +123,9 @@ pub fn simulate_streaming(
             Some(f) if f.singular.is_none() => f.clone(),
             Some(_) => break,
             // A run that converged while a body turned more than LARGE_TURN a step
-            // converged to a poor answer (Andrews' squeezer at 1 ms, 0.9-1.3 rad a
-            // step, ended 7e-4 m off where its failed 5 ms run, refined, ended 5e-5
-            // m off); so does a finer run whose motion sped up after the step the
-            // first failure measured: both are refined from that step.
+            // converged to a poor answer, and so did a finer run whose motion sped up
+            // after the step the first failure measured: both are refined from that
+            // step (docs/robustness.md, "Refinement of a step too coarse").
             None => match coarse.take() {
                 Some(f) => f,
                 None => break,
@@ -306,9 +305,8 @@ fn simulate_integrators(
         return Ok((summary, coarse));
     };
     // A failure on a step too coarse for the motion is refined first, with the same
-    // factors (a 1 m arm with a tail of 2 mm links at 10 ms: its tangent run, refined
-    // to 5 ms, failed at step 18; the paper's factors then failed at step 1, and that
-    // failure, on a slow step, ended the refinement).
+    // factors: the other factors' failure, perhaps on a slow step, would end the
+    // refinement.
     let factor = every.map_or(1, |(factor, _)| factor);
     if plan.tries(Rescue::Refinement) && refinement_factor(failure, factor).is_some() {
         return Ok((summary, coarse));

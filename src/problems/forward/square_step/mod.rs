@@ -426,9 +426,8 @@ impl Equations {
             // Updates that stop shrinking below the tolerance are the residual's
             // rounding, as far as any iteration gets; an error estimated below the
             // rounding an earlier step reached is settled too (a large mechanism's
-            // rounding, 1e-12 to 1e-10, is above SETTLED's target: each step
-            // spent two or three iterations finding it again). (None: no update
-            // taken with these factors yet.)
+            // rounding can lie above SETTLED's target). (None: no update taken with
+            // these factors yet.)
             let contraction = (!fresh && last.is_finite()).then(|| {
                 let one = update / last;
                 let two = if before_last.is_finite() {
@@ -463,8 +462,7 @@ impl Equations {
             }
             // Below the tolerance the updates approach the residual's rounding and
             // their contraction is noise: a fresh factorization buys nothing the
-            // iteration does not reach anyway (a 256-link pendulum spent 0.2 of its
-            // 0.9 factorizations a step there).
+            // iteration does not reach anyway.
             if !settled
                 && update > limits.step_tolerance
                 && contraction.is_some_and(|(one, two)| one >= 1.0 || two > MAX_CONTRACTION)
