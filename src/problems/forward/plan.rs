@@ -110,9 +110,9 @@ pub struct Plan {
     pub rescues: Vec<Rescue>,
 }
 
-/// Steps a stepwise run holds: the two its predictions read, and room to move
-/// them to the buffer's start only now and then.
-pub(super) const STEPWISE_BUFFER: usize = 64;
+/// Steps a stepwise run holds: the two its predictions read, and room to hand the
+/// final ones out together, now and then, not one by one between the solves.
+pub(super) const STEPWISE_BUFFER: usize = 4096;
 
 impl Plan {
     /// The plan of a run of `model` with `options`, once they are valid.

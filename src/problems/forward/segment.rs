@@ -6,10 +6,12 @@ use super::graph::ForwardGraph;
 use super::judge::{Judge, Verdict};
 use super::options::ForwardOptions;
 use super::plan::{Plan, Schedule, STEPWISE_BUFFER};
+use super::square_step::SquareStep;
 use super::start::Start;
-use super::stepwise::{self, Stepwise, Taker};
+use super::stepwise::{self, StepHooks, Stepwise, Taker};
 use super::substeps::Substeps;
 use super::summary::{Iterations, Reselection};
+use crate::convergence::SolveReport;
 use crate::error::Result;
 use crate::model::Model;
 use std::ops::ControlFlow;
@@ -112,38 +114,22 @@ impl Segment<'_> {
         }
         let mut values = vec![0.0; STEPWISE_BUFFER.min(self.steps()).max(3) * s];
         values[..s].copy_from_slice(&fg.initial_block(&self.model)?);
-        let substeps = self.substeps(fg);
-        let mut judge = self.judge(progress);
-        let mut reselect = None;
-        let (mut square_steps, mut general_steps) = (0, 0);
-        stepwise::run(
+        let mut hooks = Steps {
+            segment: self,
             fg,
-            &mut solver,
-            &mut values,
-            self.steps(),
-            &mut |v, (k, j), square| substeps.guess(square, self.first + j, v, k),
-            &mut |(k, j), report, taker, v| {
-                match taker {
-                    Taker::Square => square_steps += 1,
-                    Taker::General => general_steps += 1,
-                }
-                let t = fg.graph.run_time(j);
-                let block = &v[k * s..(k + 1) * s];
-                match judge.after((k, j, t), report, v, s) {
-                    Verdict::Continue => emit(self.first + j, t, block).map(|_| true),
-                    Verdict::Stop { keep } => {
-                        if keep > j {
-                            emit(self.first + j, t, block)?;
-                        }
-                        Ok(false)
-                    }
-                    Verdict::Reselect(set) => {
-                        reselect = Some((self.first + j, set));
-                        emit(self.first + j, t, block).map(|_| false)
-                    }
-                }
-            },
-        )?;
+            substeps: self.substeps(fg),
+            judge: self.judge(progress),
+            emit,
+            reselect: None,
+            taken: (0, 0),
+        };
+        stepwise::run(fg, &mut solver, &mut values, self.steps(), &mut hooks)?;
+        let Steps {
+            judge,
+            reselect,
+            taken: (square_steps, general_steps),
+            ..
+        } = hooks;
         run.square_steps += square_steps;
         run.general_steps += general_steps;
         finish(run, judge, None);
@@ -158,5 +144,56 @@ pub(super) fn finish(run: &mut Run, judge: Judge<'_>, conditioned_from: Option<(
     run.interrupted = run.interrupted.or(judge.interrupted);
     if run.conditioned_from.is_none() {
         run.conditioned_from = conditioned_from;
+    }
+}
+
+/// The hooks of a segment's stepwise run.
+struct Steps<'a, 'e> {
+    segment: &'a Segment<'a>,
+    fg: &'a ForwardGraph,
+    substeps: Substeps<'a>,
+    judge: Judge<'a>,
+    emit: &'a mut Emit<'e>,
+    reselect: Option<(usize, Vec<usize>)>,
+    /// Steps the square step and the general solver took.
+    taken: (usize, usize),
+}
+
+impl StepHooks for Steps<'_, '_> {
+    fn rescue(
+        &mut self,
+        values: &mut [f64],
+        (k, j): (usize, usize),
+        square: Option<&SquareStep>,
+    ) -> bool {
+        self.substeps
+            .guess(square, self.segment.first + j, values, k)
+    }
+
+    fn after(
+        &mut self,
+        (k, j): (usize, usize),
+        report: &SolveReport,
+        taker: Taker,
+        values: &[f64],
+    ) -> Option<usize> {
+        match taker {
+            Taker::Square => self.taken.0 += 1,
+            Taker::General => self.taken.1 += 1,
+        }
+        let s = self.fg.graph.layout().size();
+        let t = self.fg.graph.run_time(j);
+        match self.judge.after((k, j, t), report, values, s) {
+            Verdict::Continue => None,
+            Verdict::Stop { keep } => Some(keep),
+            Verdict::Reselect(set) => {
+                self.reselect = Some((self.segment.first + j, set));
+                Some(j + 1)
+            }
+        }
+    }
+
+    fn on_final(&mut self, j: usize, block: &[f64]) -> Result<()> {
+        (self.emit)(self.segment.first + j, self.fg.graph.run_time(j), block)
     }
 }

@@ -17,15 +17,6 @@ use crate::solver::{Iteration, Settings, WindowSolver};
 /// run's square step, whose analysis it may reuse); whether one was written.
 pub(super) type Rescue<'a> = dyn FnMut(&mut [f64], usize, Option<&SquareStep>) -> bool + 'a;
 
-/// [`Rescue`] told the step both in the buffer and in the run, (k, j).
-pub(super) type RunRescue<'a> =
-    dyn FnMut(&mut [f64], (usize, usize), Option<&SquareStep>) -> bool + 'a;
-
-/// What a stepwise run does with each step solved: `after((k, j), report, taker,
-/// values)` returns whether to go on.
-pub(super) type After<'a> =
-    dyn FnMut((usize, usize), &SolveReport, Taker, &[f64]) -> Result<bool> + 'a;
-
 /// Which solver took a step.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Taker {
@@ -186,27 +177,57 @@ fn as_iteration(k: usize, step: &StepIteration) -> Iteration {
     }
 }
 
+/// What a stepwise run asks of its caller.
+pub(super) trait StepHooks {
+    /// A better guess of the failed step k of the buffer (run step j) from the step
+    /// before, given the run's square step (whose analysis it may reuse); whether
+    /// one was written.
+    fn rescue(
+        &mut self,
+        _values: &mut [f64],
+        _at: (usize, usize),
+        _square: Option<&SquareStep>,
+    ) -> bool {
+        false
+    }
+
+    /// Step k of the buffer (run step j) was solved: `None` to go on, `Some(keep)` to
+    /// end the run with its steps before `keep`.
+    fn after(
+        &mut self,
+        at: (usize, usize),
+        report: &SolveReport,
+        taker: Taker,
+        values: &[f64],
+    ) -> Option<usize>;
+
+    /// Run step j's values, final; in step order, each kept step once.
+    fn on_final(&mut self, _j: usize, _block: &[f64]) -> Result<()> {
+        Ok(())
+    }
+}
+
 /// A run of `steps` steps of `fg` one at a time from the state in `values`' step 0,
-/// in a buffer of `values.len()` / s steps (at least 3): each step, once solved,
-/// goes to `after((k, j), report, taker, values)` (k its step in the buffer, j in the
-/// run), which returns whether to go on; a failed step k may be given a better guess
-/// by `rescue(values, (k, j), square step)`.
+/// in a buffer of `values.len()` / s steps (at least 3): when it is full, the two
+/// steps the predictions read move to its start and the steps before leave through
+/// [`StepHooks::on_final`] (handed out together, not one by one between solves).
 pub(super) fn run(
     fg: &ForwardGraph,
     stepwise: &mut Stepwise,
     values: &mut [f64],
     steps: usize,
-    rescue: &mut RunRescue<'_>,
-    after: &mut After<'_>,
+    hooks: &mut dyn StepHooks,
 ) -> Result<()> {
     let graph = &fg.graph;
     let s = graph.layout().size();
     let capacity = (values.len() / s).max(3);
-    let mut base = 0;
+    let (mut base, mut completed) = (0, steps);
     for j in 0..steps {
         let mut k = j - base;
         if k >= capacity {
-            // The predictions read the two steps before.
+            for i in base..j - 2 {
+                hooks.on_final(i, &values[(i - base) * s..(i - base + 1) * s])?;
+            }
             values.copy_within((k - 2) * s..k * s, 0);
             stepwise.shift_steps(k - 2);
             base += k - 2;
@@ -217,12 +238,16 @@ pub(super) fn run(
         } else {
             fg.predict(values, k);
             stepwise.step(graph, values, k, &mut |v, k, square| {
-                rescue(v, (k, j), square)
+                hooks.rescue(v, (k, j), square)
             })?
         };
-        if !after((k, j), &report, taker, values)? {
+        if let Some(keep) = hooks.after((k, j), &report, taker, values) {
+            completed = keep;
             break;
         }
+    }
+    for i in base..completed {
+        hooks.on_final(i, &values[(i - base) * s..(i - base + 1) * s])?;
     }
     Ok(())
 }

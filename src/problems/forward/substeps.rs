@@ -10,7 +10,7 @@ use super::options::NoiseModels;
 use super::plan::{Plan, Schedule};
 use super::square_step::SquareStep;
 use super::start::Start;
-use super::stepwise::{self, Stepwise};
+use super::stepwise::{self, StepHooks, Stepwise, Taker};
 use crate::convergence::{SolveReport, Termination};
 use crate::model::{Model, State};
 use crate::smoother::{self, FixedLag, Hooks, Next};
@@ -96,18 +96,22 @@ fn run_stepwise(
     let Ok(mut solver) = Stepwise::new(&graph.graph, square, fine.settings) else {
         return false;
     };
-    let mut converged = true;
-    let solved = stepwise::run(
-        graph,
-        &mut solver,
-        values,
-        fine.steps,
-        &mut |_, _, _| false,
-        &mut |_, report, _, _| {
-            converged &= report.termination == Termination::Converged;
-            Ok(converged)
-        },
-    );
+    struct Converged(bool);
+    impl StepHooks for Converged {
+        fn after(
+            &mut self,
+            _: (usize, usize),
+            report: &SolveReport,
+            _: Taker,
+            _: &[f64],
+        ) -> Option<usize> {
+            self.0 &= report.termination == Termination::Converged;
+            (!self.0).then_some(0)
+        }
+    }
+    let mut converged = Converged(true);
+    let solved = stepwise::run(graph, &mut solver, values, fine.steps, &mut converged);
+    let converged = converged.0;
     solved.is_ok() && converged
 }
 
