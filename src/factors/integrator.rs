@@ -231,81 +231,59 @@ impl Factor for Equality {
     }
 }
 
-/// f_ei: e = x_t − x_{t−1} − Δt ẋ_{t−1}.
-pub struct Euler {
+/// A two-point integrator factor of `rule` (its residual and partials,
+/// [`Integrator::residual`]): f_ei, e = x_t − x_{t−1} − Δt ẋ_{t−1} (Euler: no ẋ_t
+/// key), or f_ti, e = x_t − x_{t−1} − Δt/2 (ẋ_{t−1} + ẋ_t) (trapezoidal).
+pub struct TwoPoint {
+    rule: Integrator,
     name: String,
-    keys: [Key; 3],
+    /// x_{t−1}, x_t, ẋ_{t−1}, and ẋ_t where the rule reads it.
+    keys: Vec<Key>,
     dim: usize,
     dt: f64,
 }
+
+/// f_ei, the explicit Euler factor ([`TwoPoint`]).
+pub struct Euler;
 
 impl Euler {
-    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64) -> Self {
-        Euler {
-            name: format!("f_ei({})", x.symbol()),
-            keys: [Key::before(x), Key::now(x), Key::before(dx)],
-            dim,
-            dt,
-        }
+    #[allow(clippy::new_ret_no_self)] // the factor is the Euler rule's TwoPoint
+    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64) -> TwoPoint {
+        TwoPoint::new(Integrator::Euler, x, dx, dim, dt)
     }
 }
 
-impl Factor for Euler {
-    fn name(&self) -> &str {
-        &self.name
-    }
-    key_accessor!();
-    fn size(&self, _key: usize) -> usize {
-        self.dim
-    }
-    fn dim(&self) -> usize {
-        self.dim
-    }
-    fn diagonal_jacobian(&self, _key: usize) -> bool {
-        true
-    }
-    fn evaluate(
-        &self,
-        _t: f64,
-        x: &[&[f64]],
-        r: &mut [f64],
-        jac: Option<&mut [Vec<f64>]>,
-        _ws: &mut Workspace,
-    ) -> Result<()> {
-        let rule = Integrator::Euler;
-        for (i, ri) in r.iter_mut().enumerate() {
-            *ri = rule.residual(x[0][i], x[2][i], x[1][i], 0.0, self.dt);
-        }
-        if let Some(j) = jac {
-            let d = rule.partials(self.dt);
-            identity(&mut j[0], self.dim, d.x0);
-            identity(&mut j[1], self.dim, d.x1);
-            identity(&mut j[2], self.dim, d.dx0);
-        }
-        Ok(())
-    }
-}
-
-/// f_ti: e = x_t − x_{t−1} − Δt/2 (ẋ_{t−1} + ẋ_t).
-pub struct Trapezoidal {
-    name: String,
-    keys: [Key; 4],
-    dim: usize,
-    dt: f64,
-}
+/// f_ti, the paper's trapezoidal factor ([`TwoPoint`]).
+pub struct Trapezoidal;
 
 impl Trapezoidal {
-    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64) -> Self {
-        Trapezoidal {
-            name: format!("f_ti({})", x.symbol()),
-            keys: [Key::before(x), Key::now(x), Key::before(dx), Key::now(dx)],
+    #[allow(clippy::new_ret_no_self)] // the factor is the trapezoidal rule's TwoPoint
+    pub fn new(x: VarKind, dx: VarKind, dim: usize, dt: f64) -> TwoPoint {
+        TwoPoint::new(Integrator::Trapezoidal, x, dx, dim, dt)
+    }
+}
+
+impl TwoPoint {
+    /// The factor of `rule` (the trapezoidal rule or Euler) between x and its rate dx.
+    fn new(rule: Integrator, x: VarKind, dx: VarKind, dim: usize, dt: f64) -> Self {
+        let (symbol, keys) = match rule {
+            Integrator::Euler => ("ei", vec![Key::before(x), Key::now(x), Key::before(dx)]),
+            _ => (
+                "ti",
+                vec![Key::before(x), Key::now(x), Key::before(dx), Key::now(dx)],
+            ),
+        };
+        TwoPoint {
+            rule,
+            name: format!("f_{symbol}({})", x.symbol()),
+            keys,
             dim,
             dt,
         }
     }
 }
 
-impl Factor for Trapezoidal {
+impl Factor for TwoPoint {
     fn name(&self) -> &str {
         &self.name
     }
@@ -327,16 +305,20 @@ impl Factor for Trapezoidal {
         jac: Option<&mut [Vec<f64>]>,
         _ws: &mut Workspace,
     ) -> Result<()> {
-        let rule = Integrator::Trapezoidal;
+        // ẋ_t's slot is absent for Euler, whose residual does not read it.
+        let dx1 = x.get(3);
         for (i, ri) in r.iter_mut().enumerate() {
-            *ri = rule.residual(x[0][i], x[2][i], x[1][i], x[3][i], self.dt);
+            let rate = dx1.map_or(0.0, |v| v[i]);
+            *ri = self.rule.residual(x[0][i], x[2][i], x[1][i], rate, self.dt);
         }
         if let Some(j) = jac {
-            let d = rule.partials(self.dt);
+            let d = self.rule.partials(self.dt);
             identity(&mut j[0], self.dim, d.x0);
             identity(&mut j[1], self.dim, d.x1);
             identity(&mut j[2], self.dim, d.dx0);
-            identity(&mut j[3], self.dim, d.dx1.unwrap_or(0.0));
+            if let Some(dx1) = d.dx1 {
+                identity(&mut j[3], self.dim, dx1);
+            }
         }
         Ok(())
     }

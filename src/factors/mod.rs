@@ -35,7 +35,7 @@ pub use dynamics::{Dynamics, ALONG_FROM};
 pub use independent::{
     IndependentAcceleration, IndependentDynamics, IndependentPosition, IndependentVelocity,
 };
-pub use integrator::{Equality, Euler, Form, Integrator, Partials, Trapezoidal};
+pub use integrator::{Equality, Euler, Form, Integrator, Partials, Trapezoidal, TwoPoint};
 pub use prescribed::PrescribedMotion;
 pub use priors::{ComponentPrior, Prior};
 pub(crate) use shared::{identity, key_accessor};
