@@ -104,7 +104,7 @@ impl WindowSolver {
     pub(super) fn chord_ready(&self, k0: usize, k1: usize, held: bool) -> bool {
         self.settings.chord_test
             && k1 == k0 + 1
-            && self.rows_width.is_some()
+            && self.kept.width.is_some()
             && (held || self.past_conditioned())
     }
 
@@ -126,7 +126,7 @@ impl WindowSolver {
         prior: Option<&LinearPrior>,
     ) -> Option<ChordStep> {
         let s = self.s;
-        let d = self.rows_width?;
+        let d = self.kept.width?;
         let tolerance = self.settings.step_tolerance;
         // p: the least-norm step onto the hard equations with the last C.
         let hard_rows = self.lin.hard[0].rows;
@@ -150,12 +150,12 @@ impl WindowSolver {
         let g = &mut self.normal.g[..s];
         g.fill(0.0);
         let mut at = 0;
-        for &i in &self.row_instances {
+        for &i in &self.kept.instances {
             let inst = self.structure.instances[i];
             let dim = factor_of(graph, inst).dim();
             let buf = self.lin.buffers.of(inst);
             for &r in &buf.r[..dim] {
-                let row = &self.rows[at * (d + 1)..at * (d + 1) + d];
+                let row = &self.kept.rows[at * (d + 1)..at * (d + 1) + d];
                 for (ga, ja) in g[..d].iter_mut().zip(row) {
                     *ga += ja * r;
                 }

@@ -248,12 +248,12 @@ impl WindowSolver {
         let ill_conditioned = mu == 0.0
             && !state.newton
             && (!factored || self.normal.chol.pivot_ratio() < self.settings.normal_equations_limit);
-        if ill_conditioned && self.rows_width.is_none() && k1 == k0 + 1 {
+        if ill_conditioned && self.kept.width.is_none() && k1 == k0 + 1 {
             // The rows were not kept (a window a marginal prior is made from keeps
             // none, see `evaluate`): the same linearization again, keeping them, as
             // every one-step linearization will from now on (ill-conditioning
             // persists along a run: the 128-link pendulum's every window).
-            self.keep_rows = true;
+            self.kept.keep = true;
             if let Err(e) = self.evaluate(graph, values, span, true) {
                 let report = failed(e, state.cost, state.iterations);
                 return ControlFlow::Break(Outcome::Done(report));

@@ -11,6 +11,22 @@ use crate::graph::{ChainGraph, Factor, Term, Workspace};
 use crate::linalg::banded::BlockTridiagonal;
 use crate::linalg::nullspace::NullSpace;
 
+/// The whitened, reduced rows [J N | r + J p] of a one-block window's soft factors
+/// (a prior's are not among them), kept beside H: for the least-squares step where H
+/// cannot be factored or is conditioned past `Settings::normal_equations_limit`
+/// (`least_squares_step`), and for the chord step (`chord_step`).
+#[derive(Default)]
+pub(super) struct KeptRows {
+    /// Row-major, `width` columns (d + 1), one factor after another as `instances`
+    /// lists them.
+    pub(super) rows: Vec<f64>,
+    pub(super) width: Option<usize>,
+    pub(super) instances: Vec<usize>,
+    /// Every one-step linearization keeps its rows, whatever its window: set once a
+    /// window's normal equations proved too ill-conditioned to factor (`evaluate`).
+    pub(super) keep: bool,
+}
+
 /// Buffers of one factor: residual and Jacobian blocks, and its rows' 1/σ.
 pub(super) struct FactorBuffers {
     pub(super) r: Vec<f64>,
@@ -575,15 +591,16 @@ impl WindowSolver {
                     .reduced
                     .reduce(&self.lin.hard, factor, step, buf, s);
             }
-            if let Some(d) = self.rows_width.filter(|_| step == 0 && !lagged) {
+            if let Some(d) = self.kept.width.filter(|_| step == 0 && !lagged) {
                 for (row, &rr) in self.lin.reduced.shifted[..factor.dim()].iter().enumerate() {
                     let (lo, hi) = self.lin.reduced.spans[0][row];
                     let jr = &self.lin.reduced.jacobian[0][row * s..row * s + d];
-                    self.rows
+                    self.kept
+                        .rows
                         .extend((0..d).map(|a| if a >= lo && a < hi { jr[a] } else { 0.0 }));
-                    self.rows.push(rr);
+                    self.kept.rows.push(rr);
                 }
-                self.row_instances.push(i);
+                self.kept.instances.push(i);
             }
             self.lin.reduced.accumulate(
                 &mut self.normal.h,
@@ -706,9 +723,9 @@ impl WindowSolver {
         // The rows describe the last linearization (as H and g do): an evaluation
         // without one leaves them for a chord step from it.
         if linearize {
-            self.rows.clear();
-            self.row_instances.clear();
-            self.rows_width = None;
+            self.kept.rows.clear();
+            self.kept.instances.clear();
+            self.kept.width = None;
         }
         // Rows for the chord test (whose solves make no marginal prior) and the
         // least-squares step; the other one-step windows keep them only on demand.
@@ -717,7 +734,7 @@ impl WindowSolver {
             && (prior.is_none()
                 || self.past_conditioned()
                 || scope == (Scope::Window { held: true })
-                || self.keep_rows);
+                || self.kept.keep);
         if self.lin.step_major && linearize {
             // Step by step: each step's hard equations, then its factors into its
             // blocks of H (and the lagged ones into the previous step's) while they
@@ -732,7 +749,7 @@ impl WindowSolver {
                 self.normal.h.reset_block(b, self.lin.hard[b].reduction.dim);
                 self.normal.g[b * s..(b + 1) * s].fill(0.0);
                 if record {
-                    self.rows_width = Some(self.lin.hard[0].reduction.dim);
+                    self.kept.width = Some(self.lin.hard[0].reduction.dim);
                 }
                 for at in self.structure.block_start[b]..self.structure.block_start[b + 1] {
                     let i = self.structure.by_step[at];
@@ -759,7 +776,7 @@ impl WindowSolver {
                     .reset_active(blocks, |b| hard[b].reduction.dim);
                 self.normal.g[..blocks * s].fill(0.0);
                 if record {
-                    self.rows_width = Some(self.lin.hard[0].reduction.dim);
+                    self.kept.width = Some(self.lin.hard[0].reduction.dim);
                 }
             }
         }

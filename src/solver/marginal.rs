@@ -13,7 +13,7 @@ use crate::linalg::dense;
 /// What a window solve that converged on a small step leaves for marginalizing its
 /// first block: valid while the solver has linearized nothing since
 /// (`generation`) and the first block's values are those it converged at (kept in
-/// the solver's `last_x`).
+/// [`Marginalization::last_x`]).
 #[derive(Clone, Copy)]
 pub(super) struct LastSolve {
     pub(super) k0: usize,
@@ -21,8 +21,31 @@ pub(super) struct LastSolve {
     pub(super) generation: u64,
 }
 
-/// Sparse rows on one step's unknowns with their residuals (see
-/// `WindowSolver::joint`).
+/// What marginalization works in: the rows joining a leaving step to the next, and
+/// the first block's values where the last solve converged.
+pub(super) struct Marginalization {
+    /// The nonzeros of a row joining a marginalized step to the next.
+    pub(super) nonzero: Vec<(usize, f64)>,
+    /// The rows of the factors joining a marginalized step to the next, on the
+    /// next step's unknowns (`marginalize_last`): their nonzeros one row after
+    /// another, each row's end, and each row's whitened residual.
+    pub(super) joint: JointRows,
+    /// The first block's values where the last solve converged (see [`LastSolve`]).
+    pub(super) last_x: Vec<f64>,
+}
+
+impl Marginalization {
+    /// For steps of `s` unknowns.
+    pub(super) fn new(s: usize) -> Self {
+        Marginalization {
+            nonzero: Vec::with_capacity(s),
+            joint: JointRows::default(),
+            last_x: vec![0.0; s],
+        }
+    }
+}
+
+/// Sparse rows on one step's unknowns with their residuals.
 #[derive(Default)]
 pub(super) struct JointRows {
     nonzeros: Vec<(usize, f64)>,
@@ -352,7 +375,7 @@ impl WindowSolver {
             if last.k0 == k0
                 && last.generation == self.lin.generation
                 && x.iter()
-                    .zip(&self.last_x)
+                    .zip(&self.marginal.last_x)
                     .all(|(a, b)| a.to_bits() == b.to_bits())
             {
                 let project = project && s >= self.tangent_form_from && !self.past_conditioned();
@@ -482,7 +505,9 @@ impl WindowSolver {
             k1,
             generation: self.lin.generation,
         });
-        self.last_x.copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
+        self.marginal
+            .last_x
+            .copy_from_slice(&values[k0 * s..(k0 + 1) * s]);
     }
 
     /// Marginalization from the last window solve's linearization of its first block
@@ -521,7 +546,7 @@ impl WindowSolver {
         }
         let mut cost = self.cost_first;
         let blocked = s >= dense::FAER_PRODUCTS_FROM;
-        self.joint.clear();
+        self.marginal.joint.clear();
         // The factors joining k0 and k0 + 1: the step factors, then those of run
         // step k0 + 1 alone.
         let steps = graph.step_terms().len();
@@ -586,7 +611,7 @@ impl WindowSolver {
                 let rr = buf.r[r];
                 // J₁'s row: its nonzeros (integrators: two) by ascending column, the
                 // keys' entries on one column summed in key order.
-                self.nonzero.clear();
+                self.marginal.nonzero.clear();
                 for (a, k) in keys.iter().enumerate() {
                     if k.lag != 0 {
                         continue;
@@ -600,17 +625,17 @@ impl WindowSolver {
                     for j in columns {
                         let v = buf.jac[a][r * d + j];
                         if v != 0.0 {
-                            self.nonzero.push((off + j, v));
+                            self.marginal.nonzero.push((off + j, v));
                         }
                     }
                 }
-                merge_columns(&mut self.nonzero);
-                for &(i, vi) in &self.nonzero {
+                merge_columns(&mut self.marginal.nonzero);
+                for &(i, vi) in &self.marginal.nonzero {
                     for (o, v) in h10[i * s..i * s + d0].iter_mut().zip(j0) {
                         *o += vi * v;
                     }
                 }
-                self.joint.push(&self.nonzero, rr);
+                self.marginal.joint.push(&self.marginal.nonzero, rr);
                 if !window_holds_next {
                     for (a, &va) in j0.iter().enumerate() {
                         if !blocked {
@@ -643,7 +668,7 @@ impl WindowSolver {
         let (h11, rest) = self.scratch[2 * ss..].split_at_mut(ss);
         let g1 = &mut rest[s..2 * s];
         h11.fill(0.0);
-        for (row, r) in self.joint.rows() {
+        for (row, r) in self.marginal.joint.rows() {
             for &(i, vi) in row {
                 let out = &mut h11[i * s..(i + 1) * s];
                 for &(j, vj) in row {
@@ -702,7 +727,7 @@ impl WindowSolver {
         yn.fill(0.0);
         let mut yp = vec![0.0; d0];
         // H₁₀'s rows are 0 but on the columns the joining rows touch.
-        let mut touched: Vec<usize> = self.joint.nonzeros.iter().map(|e| e.0).collect();
+        let mut touched: Vec<usize> = self.marginal.joint.nonzeros.iter().map(|e| e.0).collect();
         touched.sort_unstable();
         touched.dedup();
         for &i in &touched {
@@ -730,7 +755,7 @@ impl WindowSolver {
         let mut gamma = vec![0.0; d];
         let (mut nj, mut seen, mut touched) = (vec![0.0; d], vec![false; d], Vec::new());
         let (mut g1p, mut php) = (0.0, 0.0);
-        for (row, r) in self.joint.rows() {
+        for (row, r) in self.marginal.joint.rows() {
             let mut jp = 0.0;
             for &(i, v) in row {
                 jp += v * red.particular[i];

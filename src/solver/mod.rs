@@ -35,8 +35,8 @@ pub use observer::{Iteration, Observer, Trace};
 pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};
 
-use linearize::{AllBuffers, HardBlock, Linearization, ReducedRows};
-use marginal::{JointRows, LastSolve};
+use linearize::{AllBuffers, HardBlock, KeptRows, Linearization, ReducedRows};
+use marginal::{LastSolve, Marginalization};
 use newton::{NewtonBuffers, PriorRoots};
 use normal::NormalEquations;
 use structure::{Scope, Structure};
@@ -59,18 +59,8 @@ pub struct WindowSolver {
     lin: Linearization,
     /// The last full step δ = p + N y of the window (for `backtrack`).
     direction: Vec<f64>,
-    /// The whitened, reduced rows [J N | r + J p] of a one-block window's soft
-    /// factors (a prior's are not among them), kept beside H: for the least-squares
-    /// step where H cannot be factored or is conditioned past
-    /// `Settings::normal_equations_limit` (see `least_squares_step`), and for the
-    /// chord step (`chord_step`); row-major, `d + 1` columns, one factor after
-    /// another as `row_instances` lists them.
-    rows: Vec<f64>,
-    rows_width: Option<usize>,
-    row_instances: Vec<usize>,
-    /// Every one-step linearization keeps its rows, whatever its window: set once a
-    /// window's normal equations proved too ill-conditioned to factor (`evaluate`).
-    keep_rows: bool,
+    /// The rows a one-block linearization keeps beside H.
+    kept: KeptRows,
     /// The current solve's prior as rows, made when a least-squares step first
     /// needs them.
     prior_roots: Option<PriorRoots>,
@@ -80,16 +70,10 @@ pub struct WindowSolver {
     /// Cost of the factors touching the first block, from the last evaluation.
     cost_first: f64,
     correction: Vec<f64>,
-    /// The nonzeros of a row joining a marginalized step to the next.
-    nonzero: Vec<(usize, f64)>,
-    /// The rows of the factors joining a marginalized step to the next, on the
-    /// next step's unknowns (`marginalize_last`): their nonzeros one row after
-    /// another, each row's end, and each row's whitened residual.
-    joint: JointRows,
+    /// What marginalization works in.
+    marginal: Marginalization,
     scratch: Vec<f64>,
     newton: NewtonBuffers,
-    /// The first block's values where the last solve converged (see `LastSolve`).
-    last_x: Vec<f64>,
     observer: Option<Box<dyn Observer>>,
     /// Unknowns per step from which a projected prior is kept as N̄CN̄ᵀ
     /// ([`TANGENT_FORM_FROM`]; the tests set it to compare the two forms).
@@ -176,18 +160,13 @@ impl WindowSolver {
                 ws: graph.workspace(),
                 generation: 0,
             },
-            rows: Vec::new(),
-            rows_width: None,
-            row_instances: Vec::new(),
-            keep_rows: false,
+            kept: KeptRows::default(),
             prior_roots: None,
             last: None,
             cost_first: 0.0,
             correction: vec![0.0; s],
-            nonzero: Vec::with_capacity(s),
-            joint: JointRows::default(),
+            marginal: Marginalization::new(s),
             scratch: vec![0.0; 4 * s * s + 4 * s],
-            last_x: vec![0.0; s],
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
             tangent_form_from: TANGENT_FORM_FROM,
             newton: NewtonBuffers {

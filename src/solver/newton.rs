@@ -317,11 +317,11 @@ impl WindowSolver {
     /// δ = x + p + N y − x̄. Λ's own condition is that of its factors' rows squared
     /// only, not that of the window's.
     pub(super) fn least_squares_step(&mut self, x: &[f64], prior: Option<&LinearPrior>) -> bool {
-        let Some(d) = self.rows_width else {
+        let Some(d) = self.kept.width else {
             return false;
         };
         let s = self.s;
-        let window_rows = self.rows.len() / (d + 1);
+        let window_rows = self.kept.rows.len() / (d + 1);
         if let Some(p) = prior {
             // The prior is the same for the whole solve: its roots are made once.
             self.prior_roots.get_or_insert_with(|| PriorRoots::of(p, s));
@@ -335,7 +335,7 @@ impl WindowSolver {
         // R (x + p − x̄) + c), b their residuals negated.
         let mut a = faer::Mat::<f64>::zeros(m, d);
         let mut b = vec![0.0; m];
-        for (i, row) in self.rows.chunks_exact(d + 1).enumerate() {
+        for (i, row) in self.kept.rows.chunks_exact(d + 1).enumerate() {
             a.row_mut(i).iter_mut().zip(row).for_each(|(o, v)| *o = *v);
             b[i] = -row[d];
         }
