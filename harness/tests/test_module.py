@@ -83,6 +83,17 @@ def test_the_general_solver_takes_the_square_steps_to_their_solution(scene, coor
                             square_steps=False)
     assert general.summary["complete"] and general.q.shape == square.q.shape
     np.testing.assert_allclose(general.q, square.q, atol=1e-9)
+    # The summary says what ran: the window of five taken one step at a time by the
+    # square step, or run as asked through the general solver.
+    ran = square.summary["plan"]
+    assert (ran["schedule"], ran["window"], ran["asked"]) == ("stepwise", 1, "window 5")
+    assert ran["square_step"] and square.summary["square_steps"] == 201
+    assert square.summary["general_steps"] == 0
+    assert ran["description"] == "window 5 asked, taken one step at a time, square steps"
+    ran = general.summary["plan"]
+    assert (ran["schedule"], ran["window"], ran["square_step"]) == ("fixed_lag", 5, False)
+    assert general.summary["square_steps"] == 0
+    assert ran["integrator"] == "trapezoidal" and ran["rescues"][0] != "GeneralSolver"
 
 
 def test_inverse_from_a_mapping_matches_the_file():
