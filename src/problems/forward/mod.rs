@@ -6,10 +6,10 @@
 //! once: the schedule that runs, the solver of a step, the rescues in their order.
 //! `graph` is the factor graph; `run` makes the run over the horizon (again at a
 //! finer step or with other integrator factors where the plan's rescues say so) in
-//! `segment`s, whose steps `stepwise` takes one at a time (`square_step` where it
-//! can) or `windows` hands to the general smoother, each step judged by `judge`
-//! (failures, the IC watch) and rescued by `substeps`; `failure` and `summary`
-//! are what it reports.
+//! `segment`s, whose steps `steps` takes one at a time (through `stepwise`, with
+//! `square_step` where it can) or `windows` hands to the general smoother, each
+//! step judged by `judge` (failures, the IC watch) and rescued by `substeps`;
+//! `failure` and `summary` are what it reports.
 
 pub mod energy_checks;
 mod failure;
@@ -21,6 +21,7 @@ mod run;
 mod segment;
 mod square_step;
 mod start;
+mod steps;
 mod stepwise;
 mod substeps;
 mod summary;
