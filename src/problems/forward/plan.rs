@@ -100,9 +100,6 @@ pub struct Plan {
     pub schedule: Schedule,
     /// Whether the square step takes the steps it can ([`Schedule::Stepwise`] only).
     pub square_step: bool,
-    /// Whether every step has as many equations as unknowns, all of which hold at
-    /// the solution (IC, and DC with tangent integrators).
-    pub square: bool,
     /// The settings of the solves, as the schedule runs them.
     pub settings: Settings,
     pub memory: Memory,
@@ -191,7 +188,6 @@ impl Plan {
             asked: options.mode,
             schedule,
             square_step,
-            square,
             settings,
             memory: Memory {
                 streamed: 0.0,
@@ -201,6 +197,12 @@ impl Plan {
         };
         plan.memory = plan.memory_estimate(model);
         plan
+    }
+
+    /// Whether every step has as many equations as unknowns, all of which hold at
+    /// the solution (IC, and DC with tangent integrators).
+    pub fn square(&self) -> bool {
+        self.dc_integrators != Some(DcIntegrators::Full)
     }
 
     /// Whether DC integrator factors are projected on the tangent space.
