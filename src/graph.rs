@@ -315,6 +315,10 @@ pub struct ChainGraph {
     /// Factors of chosen run steps only (readings that exist at some steps), each
     /// with its run step, sorted by step (in the order added within a step).
     at: Vec<(usize, Term)>,
+    /// How many factors of chosen steps [`ChainGraph::drop_at_before`] has dropped
+    /// from the front of `at` over the graph's life (a solver's buffers per factor
+    /// follow the list by it).
+    dropped_at: usize,
 }
 
 impl ChainGraph {
@@ -328,6 +332,7 @@ impl ChainGraph {
                 step: Vec::new(),
                 initial: Vec::new(),
                 at: Vec::new(),
+                dropped_at: 0,
             },
         }
     }
@@ -384,6 +389,44 @@ impl ChainGraph {
     /// The time of the run's step `step`, t₀ + step·dt.
     pub fn run_time(&self, step: usize) -> f64 {
         self.t0 + step as f64 * self.dt
+    }
+
+    /// Adds a soft factor at run step `step`, after the graph was built: a reading
+    /// that arrives while the graph is being solved (an online estimator). Steps
+    /// come in order: `step` is at or after every step already holding one. The
+    /// factor is checked as [`ChainGraphBuilder::build`] checks the others; the
+    /// solver lists the factors of chosen steps afresh for every window, so it sees
+    /// the new one at its next solve.
+    pub fn add_soft_at(
+        &mut self,
+        step: usize,
+        factor: Box<dyn Factor>,
+        noise: Noise,
+    ) -> Result<()> {
+        if self.at.last().is_some_and(|(k, _)| *k > step) {
+            return Err(Error::InvalidArgument(format!(
+                "factor {} added at step {step}, before a later step's",
+                factor.name()
+            )));
+        }
+        let term = Term::Soft(factor, noise);
+        check_term(&self.layout, Place::At(step), &term)?;
+        self.at.push((step, term));
+        Ok(())
+    }
+
+    /// Drops the factors of chosen run steps before `step` (steps no window will
+    /// hold again), so that a long online run keeps a bounded graph.
+    pub fn drop_at_before(&mut self, step: usize) {
+        let end = self.at.partition_point(|(k, _)| *k < step);
+        self.at.drain(..end);
+        self.dropped_at += end;
+    }
+
+    /// How many factors of chosen steps have been dropped from the front of
+    /// [`ChainGraph::sparse_terms`] since the graph was built.
+    pub fn dropped_at(&self) -> usize {
+        self.dropped_at
     }
 
     /// Workspace large enough for every factor (one evaluates at a time).
@@ -474,51 +517,7 @@ impl ChainGraphBuilder {
         let initial = g.initial.iter().map(|t| (Place::Initial, t));
         let at = g.at.iter().map(|(k, t)| (Place::At(*k), t));
         for (place, term) in every.chain(initial).chain(at) {
-            let f = term.factor();
-            let what = match place {
-                Place::At(k) => format!("factor {} at step {k}", f.name()),
-                _ => format!("factor {}", f.name()),
-            };
-            if let Some(noise) = term.noise() {
-                if let Err(e) = noise.validate(f.dim()) {
-                    return invalid(format!("noise of {}: {e}", f.name()));
-                }
-            }
-            for (a, k) in f.keys().iter().enumerate() {
-                let Some((_, d)) = g.layout.slot(k.kind).filter(|_| k.lag <= 1) else {
-                    return invalid(format!(
-                        "{what} touches {}(lag {}), which the graph does not hold",
-                        k.kind.symbol(),
-                        k.lag
-                    ));
-                };
-                if f.size(a) != d {
-                    return invalid(format!(
-                        "{what} takes {}(lag {}) of size {}, the graph holds it with size {d}",
-                        k.kind.symbol(),
-                        k.lag,
-                        f.size(a)
-                    ));
-                }
-                if !matches!(place, Place::Every) && k.lag > place.first() {
-                    let role = if let Place::Initial = place {
-                        "initial "
-                    } else {
-                        ""
-                    };
-                    return invalid(format!(
-                        "{role}{what} touches {}(lag {}), before step 0",
-                        k.kind.symbol(),
-                        k.lag
-                    ));
-                }
-            }
-            if term.is_constraint() && f.keys().iter().any(|k| k.lag > 0) {
-                return invalid(format!(
-                    "constraint {} spans two steps; constraints must stay within one",
-                    f.name()
-                ));
-            }
+            check_term(&g.layout, place, term)?;
         }
         // Without the link, every step's copy of the parameters would be a free
         // variable of its own: a graph that says "constant" and means nothing of it.
@@ -537,6 +536,58 @@ impl ChainGraphBuilder {
         }
         Ok(self.graph)
     }
+}
+
+/// Checks one factor of a graph against its layout where it sits (see
+/// [`ChainGraphBuilder::build`]).
+fn check_term(layout: &Layout, place: Place, term: &Term) -> Result<()> {
+    let invalid = |what: String| Err(Error::InvalidArgument(what));
+    let f = term.factor();
+    let what = match place {
+        Place::At(k) => format!("factor {} at step {k}", f.name()),
+        _ => format!("factor {}", f.name()),
+    };
+    if let Some(noise) = term.noise() {
+        if let Err(e) = noise.validate(f.dim()) {
+            return invalid(format!("noise of {}: {e}", f.name()));
+        }
+    }
+    for (a, k) in f.keys().iter().enumerate() {
+        let Some((_, d)) = layout.slot(k.kind).filter(|_| k.lag <= 1) else {
+            return invalid(format!(
+                "{what} touches {}(lag {}), which the graph does not hold",
+                k.kind.symbol(),
+                k.lag
+            ));
+        };
+        if f.size(a) != d {
+            return invalid(format!(
+                "{what} takes {}(lag {}) of size {}, the graph holds it with size {d}",
+                k.kind.symbol(),
+                k.lag,
+                f.size(a)
+            ));
+        }
+        if !matches!(place, Place::Every) && k.lag > place.first() {
+            let role = if let Place::Initial = place {
+                "initial "
+            } else {
+                ""
+            };
+            return invalid(format!(
+                "{role}{what} touches {}(lag {}), before step 0",
+                k.kind.symbol(),
+                k.lag
+            ));
+        }
+    }
+    if term.is_constraint() && f.keys().iter().any(|k| k.lag > 0) {
+        return invalid(format!(
+            "constraint {} spans two steps; constraints must stay within one",
+            f.name()
+        ));
+    }
+    Ok(())
 }
 
 /// Where a factor of a graph being built sits (for `build`'s checks).

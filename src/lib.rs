@@ -38,7 +38,7 @@ pub mod solver;
 pub mod trajectory;
 
 // The problems keep their paths at the crate's root: `mbfg::forward`, `mbfg::inverse`.
-pub use problems::{forward, inverse};
+pub use problems::{estimate, forward, inverse};
 
 pub use error::{Error, Result, SceneError};
 pub use model::forces::ExternalLoad;

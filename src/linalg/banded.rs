@@ -391,6 +391,88 @@ impl BandedCholesky {
     }
 }
 
+impl BandedCholesky {
+    /// The diagonal blocks of H⁻¹ from the factor H = LLᵀ, by the recursion along
+    /// the band (selected inversion): Σ_T = L_T⁻ᵀL_T⁻¹ for the last block and
+    /// Σ_k = L_k⁻ᵀ(I + C_{k+1}ᵀ Σ_{k+1} C_{k+1})L_k⁻¹ before it, C_{k+1} = L[k+1][k].
+    /// A marginal covariance per block in O(Σ d_k³), never the whole inverse.
+    /// `out[k]` is row-major d_k × d_k.
+    pub fn inverse_diagonal_blocks(&self, out: &mut Vec<Vec<f64>>) {
+        out.resize_with(self.blocks, Vec::new);
+        for k in (0..self.blocks).rev() {
+            let dk = self.dims[k];
+            // M = I + C_{k+1}ᵀ Σ_{k+1} C_{k+1} (d_k × d_k).
+            let mut m = vec![0.0; dk * dk];
+            for i in 0..dk {
+                m[i * dk + i] = 1.0;
+            }
+            if k + 1 < self.blocks {
+                let dn = self.dims[k + 1];
+                let ca = self.lower_at[k + 1];
+                let c = &self.c[ca..ca + dn * dk];
+                let next = &out[k + 1];
+                // SC = Σ_{k+1} C (dn × dk), then M += Cᵀ SC.
+                let mut sc = vec![0.0; dn * dk];
+                for i in 0..dn {
+                    for l in 0..dn {
+                        let a = next[i * dn + l];
+                        if a != 0.0 {
+                            for j in 0..dk {
+                                sc[i * dk + j] += a * c[l * dk + j];
+                            }
+                        }
+                    }
+                }
+                for l in 0..dn {
+                    for i in 0..dk {
+                        let a = c[l * dk + i];
+                        if a != 0.0 {
+                            for j in 0..dk {
+                                m[i * dk + j] += a * sc[l * dk + j];
+                            }
+                        }
+                    }
+                }
+            }
+            // Σ_k = L⁻ᵀ M L⁻¹: columns of X = M L⁻¹ ... as L⁻ᵀ (L⁻ᵀ M)ᵀ, M symmetric.
+            let at = self.diag_at[k];
+            let l = &self.l[at..at + dk * dk];
+            // Y = L⁻ᵀ M, column by column (M's columns are its rows).
+            let mut y = vec![0.0; dk * dk];
+            let mut col = vec![0.0; dk];
+            for j in 0..dk {
+                for i in 0..dk {
+                    col[i] = m[i * dk + j];
+                }
+                dense::solve_lower_transpose_strided(l, dk, dk, &mut col);
+                for i in 0..dk {
+                    y[i * dk + j] = col[i];
+                }
+            }
+            // Σ = L⁻ᵀ Yᵀ (Y Mᵀ-symmetric: Σ = Y L⁻¹ = (L⁻ᵀ Yᵀ)ᵀ).
+            let mut sigma = vec![0.0; dk * dk];
+            for j in 0..dk {
+                for i in 0..dk {
+                    col[i] = y[j * dk + i];
+                }
+                dense::solve_lower_transpose_strided(l, dk, dk, &mut col);
+                for i in 0..dk {
+                    sigma[i * dk + j] = col[i];
+                }
+            }
+            // Symmetric up to round-off: keep it exactly so.
+            for i in 0..dk {
+                for j in 0..i {
+                    let v = 0.5 * (sigma[i * dk + j] + sigma[j * dk + i]);
+                    sigma[i * dk + j] = v;
+                    sigma[j * dk + i] = v;
+                }
+            }
+            out[k] = sigma;
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -497,6 +579,72 @@ mod tests {
             h.multiply(&x, &mut y);
             for &i in &active {
                 assert!((y[i] - b[i]).abs() < 1e-12, "{how:?}: H x = b");
+            }
+        }
+    }
+
+    #[test]
+    fn inverse_diagonal_blocks_are_those_of_the_dense_inverse() {
+        // Active sizes that differ from block to block (as reduced unknowns do).
+        let dims = [3, 5, 2, 4, 4, 1];
+        let s = 5;
+        let offsets: Vec<usize> = dims
+            .iter()
+            .scan(0, |o, &d| {
+                let at = *o;
+                *o += d;
+                Some(at)
+            })
+            .collect();
+        let n: usize = dims.iter().sum();
+        let mut seed = 11u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        };
+        let mut j = DMatrix::zeros(3 * n, n);
+        for (k, (&d, &o)) in dims.iter().zip(&offsets).enumerate() {
+            let lo = if k > 0 { offsets[k - 1] } else { o };
+            for r in 0..3 * d {
+                for c in lo..o + d {
+                    j[(3 * o + r, c)] = rnd();
+                }
+            }
+        }
+        let dense = j.transpose() * &j + DMatrix::identity(n, n) * 0.1;
+        let mut h = BlockTridiagonal::new(8, s);
+        h.set_blocks(dims.len());
+        for (k, (&d, &o)) in dims.iter().zip(&offsets).enumerate() {
+            h.reset_block(k, d);
+            for a in 0..d {
+                for b in 0..d {
+                    h.diag_mut(k)[a * d + b] = dense[(o + a, o + b)];
+                }
+                if k > 0 {
+                    let (dp, op) = (dims[k - 1], offsets[k - 1]);
+                    for b in 0..dp {
+                        h.lower_mut(k)[a * dp + b] = dense[(o + a, op + b)];
+                    }
+                }
+            }
+        }
+        let mut f = BandedCholesky::new(8, s);
+        f.factor(&h, &[]).unwrap();
+        let mut blocks = Vec::new();
+        f.inverse_diagonal_blocks(&mut blocks);
+        let inverse = dense.try_inverse().unwrap();
+        assert_eq!(blocks.len(), dims.len());
+        for (k, (&d, &o)) in dims.iter().zip(&offsets).enumerate() {
+            for a in 0..d {
+                for b in 0..d {
+                    let (got, want) = (blocks[k][a * d + b], inverse[(o + a, o + b)]);
+                    assert!(
+                        (got - want).abs() < 1e-10 * (1.0 + want.abs()),
+                        "block {k} ({a}, {b}): {got} vs {want}"
+                    );
+                }
             }
         }
     }

@@ -2,5 +2,6 @@
 //! the forces, [`forward`]) and inverse dynamics (the forces from a prescribed
 //! motion, [`inverse`]).
 
+pub mod estimate;
 pub mod forward;
 pub mod inverse;

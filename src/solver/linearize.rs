@@ -97,6 +97,8 @@ pub(super) struct AllBuffers {
     pub(super) step: Vec<FactorBuffers>,
     pub(super) initial: Vec<FactorBuffers>,
     pub(super) at: Vec<FactorBuffers>,
+    /// `graph.dropped_at()` when `at` last followed the graph's list.
+    pub(super) at_dropped: usize,
 }
 
 impl AllBuffers {
@@ -108,6 +110,24 @@ impl AllBuffers {
             step: of(&mut graph.step_terms().iter()),
             initial: of(&mut graph.initial_terms().iter()),
             at: of(&mut graph.sparse_terms().iter().map(|(_, t)| t)),
+            at_dropped: graph.dropped_at(),
+        }
+    }
+
+    /// The buffers of the factors of chosen steps brought in line with a graph
+    /// that has gained or dropped some since ([`ChainGraph::add_soft_at`]).
+    pub(super) fn follow(&mut self, graph: &ChainGraph) {
+        let terms = graph.sparse_terms();
+        let dropped = graph.dropped_at() - self.at_dropped;
+        if dropped == 0 && self.at.len() == terms.len() {
+            return;
+        }
+        self.at.drain(..dropped.min(self.at.len()));
+        self.at_dropped = graph.dropped_at();
+        let have = self.at.len().min(terms.len());
+        self.at.truncate(have);
+        for (_, t) in &terms[have..] {
+            self.at.push(FactorBuffers::new(graph, t));
         }
     }
 
@@ -510,16 +530,29 @@ impl WindowSolver {
             // A block's hard factors read that block only.
             self.lin
                 .hard_block(graph, &self.structure, values, b, HardPass::Residuals)?;
-            let block = &mut self.lin.hard[b];
-            if block.rows == 0 {
-                continue;
-            }
-            block
-                .reduction
-                .solve(&self.lin.hard_rhs[..block.rows], &mut self.correction);
-            let x = &mut values[(k0 + b) * s..(k0 + b + 1) * s];
-            for (xi, c) in x.iter_mut().zip(&self.correction) {
-                *xi += c;
+            for pass in 0..self.settings.corrections.max(1) {
+                if pass > 0 {
+                    self.lin
+                        .hard_block(graph, &self.structure, values, b, HardPass::Residuals)?;
+                    let rows = self.lin.hard[b].rows;
+                    let left = self.lin.hard_rhs[..rows]
+                        .iter()
+                        .fold(0.0f64, |m, r| m.max(r.abs()));
+                    if left <= 1e-10 {
+                        break;
+                    }
+                }
+                let block = &mut self.lin.hard[b];
+                if block.rows == 0 {
+                    break;
+                }
+                block
+                    .reduction
+                    .solve(&self.lin.hard_rhs[..block.rows], &mut self.correction);
+                let x = &mut values[(k0 + b) * s..(k0 + b + 1) * s];
+                for (xi, c) in x.iter_mut().zip(&self.correction) {
+                    *xi += c;
+                }
             }
         }
         Ok(())

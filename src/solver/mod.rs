@@ -18,6 +18,7 @@ use crate::linalg::dense::Summation;
 use crate::linalg::nullspace::NullSpace;
 
 mod chord;
+mod covariance;
 mod iterate;
 mod linearize;
 mod marginal;
@@ -265,6 +266,7 @@ impl WindowSolver {
     /// Lists the factor instances of a scope ([`Structure::collect_instances`]) and
     /// makes room for the costs of its hard ones.
     fn collect_instances(&mut self, graph: &ChainGraph, k0: usize, k1: usize, scope: Scope) {
+        self.lin.buffers.follow(graph);
         self.structure.collect_instances(graph, k0, k1, scope);
         self.lin.clear_costs(&self.structure);
     }

@@ -41,6 +41,12 @@ pub struct Settings {
     /// finite-difference Hessian only adds its error (the six-bar press in IC at
     /// 0.1 ms crawled from t = 0.021 s with it, and reaches 0.116 s without).
     pub second_order: bool,
+    /// Corrections onto the hard equations after a step, each the least-norm step
+    /// of the step's C from the residuals left, until they are below 10⁻¹⁰: one
+    /// undoes the O(|δ|²) violation of a short step; a step of a few tenths of a
+    /// unit along curved constraints (an estimate pulled toward a reading far from
+    /// its guess) needs several.
+    pub corrections: usize,
     /// Smallest 1/cond(H) (as the Cholesky factor's pivots bound it) at which a
     /// one-block window's Gauss-Newton step still comes from the normal equations;
     /// below it the step is the least-squares solution of J itself, whose condition
@@ -150,6 +156,7 @@ impl Default for Settings {
             tangent_priors: false,
             past: Past::Marginalized,
             second_order: true,
+            corrections: 1,
             normal_equations_limit: 1e-10,
             chord_test: true,
             thresholds: Thresholds::default(),

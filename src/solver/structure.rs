@@ -67,6 +67,10 @@ pub(super) struct Shape {
 pub(super) struct Resolved {
     shape: Shape,
     k0: usize,
+    /// Whether the list holds factors of chosen steps: such a list is never
+    /// shifted (the graph may have gained or dropped some since, see
+    /// `ChainGraph::add_soft_at`).
+    sparse: bool,
 }
 
 /// An instance list of another shape, parked while the solver uses its current one
@@ -172,7 +176,7 @@ impl Structure {
         }
         match self.resolved {
             // Factors of chosen steps are not where a shifted list would put them.
-            Some(r) if r.shape == shape && graph.sparse_terms().is_empty() => {
+            Some(r) if r.shape == shape && !r.sparse && graph.sparse_terms().is_empty() => {
                 if r.k0 != k0 {
                     for inst in &mut self.instances {
                         inst.step = inst.step - r.k0 + k0;
@@ -181,7 +185,9 @@ impl Structure {
             }
             _ => self.build_instances(graph, k0, k1, scope),
         }
-        self.resolved = Some(Resolved { shape, k0 });
+        let sparse = !graph.sparse_terms().is_empty()
+            && self.instances.iter().any(|i| i.source == Source::At);
+        self.resolved = Some(Resolved { shape, k0, sparse });
     }
 
     /// Parks the current instance list (the oldest parked one goes when full).

@@ -1,0 +1,14 @@
+//! State estimation: the motion of a mechanism from its model and noisy sensor
+//! readings, by the fixed-lag smoother (online, [`Estimator`]) or a batch solve of
+//! the whole record, with the marginal covariance of every estimate and the
+//! normalized innovations that show whether it is honest.
+
+pub mod consistency;
+pub mod graph;
+pub mod online;
+pub mod options;
+
+pub use consistency::Nis;
+pub use graph::EstimationGraph;
+pub use online::{Estimator, StepEstimate, Update};
+pub use options::{EstimateOptions, Smoothing, Uncertainty};

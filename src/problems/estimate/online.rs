@@ -1,0 +1,266 @@
+//! The fixed-lag smoother as an online estimator ([`Estimator`]): each call adds a
+//! step with its readings, solves the window of the newest steps, and hands out the
+//! newest step's filtered estimate and the oldest's final one, each with its
+//! marginal covariance. Its cost per step does not grow with the record: the
+//! values are kept in a buffer that moves, and the readings that left the window
+//! leave the graph.
+
+use super::consistency::Nis;
+use super::graph::EstimationGraph;
+use crate::error::{Error, Result};
+use crate::graph::{Factor, Noise, Workspace};
+use crate::model::Model;
+use crate::solver::{LinearPrior, Settings, SolveReport, Termination, WindowSolver};
+use crate::trajectory::round_time;
+use std::sync::Arc;
+
+/// One step's estimate: its variables (the graph's block: q, q̇, q̈, inputs) and
+/// their marginal covariance.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepEstimate {
+    /// The run step.
+    pub step: usize,
+    pub t: f64,
+    pub x: Vec<f64>,
+    /// Row-major s × s.
+    pub covariance: Vec<f64>,
+}
+
+impl StepEstimate {
+    /// The standard deviation of every variable.
+    pub fn sd(&self) -> Vec<f64> {
+        let s = self.x.len();
+        (0..s)
+            .map(|i| self.covariance[i * s + i].max(0.0).sqrt())
+            .collect()
+    }
+}
+
+/// What one step of the estimator gives.
+#[derive(Debug, Clone)]
+pub struct Update {
+    /// The newest step, given the readings up to it (filtered).
+    pub newest: StepEstimate,
+    /// The step that leaves the window with this update, final (a window of one
+    /// step: the newest itself).
+    pub finals: Vec<StepEstimate>,
+    /// The normalized innovation squared of this step's readings, if it had any.
+    pub nis: Option<f64>,
+    pub report: SolveReport,
+}
+
+/// Steps the buffer holds before it moves, past the window.
+const BUFFER: usize = 1024;
+
+/// The fixed-lag estimator over a growing record.
+pub struct Estimator {
+    model: Arc<Model>,
+    eg: EstimationGraph,
+    solver: WindowSolver,
+    window: usize,
+    /// Values of the buffer's steps (step-major); its step 0 is run step `solver.base()`.
+    values: Vec<f64>,
+    /// Steps the buffer holds (`None`: every step, for a batch solve after).
+    capacity: Option<usize>,
+    prior: Option<LinearPrior>,
+    /// The buffer step of the window's oldest step.
+    k0: usize,
+    /// The run step the next update makes.
+    next: usize,
+    /// The first run step not yet handed out as final.
+    finalized: usize,
+    covariances: Vec<Vec<f64>>,
+    ws: Workspace,
+    pub nis: Nis,
+    pub iterations: usize,
+}
+
+impl Estimator {
+    /// An estimator of the model in `eg` over windows of `window` steps; with
+    /// `keep_all`, every step stays in the buffer (and every reading in the graph).
+    pub fn new(
+        model: Arc<Model>,
+        eg: EstimationGraph,
+        window: usize,
+        settings: Settings,
+        keep_all: bool,
+    ) -> Result<Self> {
+        let window = window.max(1);
+        let solver = WindowSolver::new(&eg.graph, window + 1, settings)?;
+        let s = eg.size();
+        let capacity = (!keep_all).then_some(window + BUFFER);
+        let ws = eg.graph.workspace();
+        Ok(Estimator {
+            model,
+            solver,
+            window,
+            values: Vec::with_capacity(capacity.unwrap_or(window + BUFFER) * s),
+            capacity,
+            prior: None,
+            k0: 0,
+            next: 0,
+            finalized: 0,
+            covariances: Vec::new(),
+            ws,
+            eg,
+            nis: Nis::default(),
+            iterations: 0,
+        })
+    }
+
+    pub fn graph(&self) -> &EstimationGraph {
+        &self.eg
+    }
+
+    /// The run step the next update makes.
+    pub fn next_step(&self) -> usize {
+        self.next
+    }
+
+    /// The time of run step `step`.
+    pub fn time(&self, step: usize) -> f64 {
+        round_time(self.eg.graph.run_time(step))
+    }
+
+    /// The buffer's values from run step `solver.base()` on (every step with `keep_all`).
+    pub fn values(&self) -> &[f64] {
+        &self.values
+    }
+
+    /// Adds the next step with its readings (factors whose datum is the reading, each
+    /// with its noise) and solves the window ending there.
+    pub fn update(&mut self, readings: Vec<(Box<dyn Factor>, Noise)>) -> Result<Update> {
+        let run_k = self.next;
+        let s = self.eg.size();
+        let mut k = run_k - self.solver.base();
+        if self.capacity.is_some_and(|c| k >= c) {
+            // Keep the window and the two steps before it (the prediction reads them).
+            let lo = self.k0.min(k).saturating_sub(2);
+            self.values.copy_within(lo * s..k * s, 0);
+            self.values.truncate((k - lo) * s);
+            self.k0 -= lo;
+            k -= lo;
+            self.solver.shift_steps(lo);
+            if let Some(p) = self.prior.as_mut() {
+                p.shift_steps(lo);
+            }
+            // The readings of the steps that left the window no solve reads again.
+            self.eg.graph.drop_at_before(self.solver.base() + self.k0);
+        }
+        for (factor, noise) in readings {
+            self.eg.graph.add_soft_at(run_k, factor, noise)?;
+        }
+        if k == 0 {
+            let block = self.eg.initial_block(&self.model)?;
+            self.values.extend_from_slice(&block);
+        } else {
+            self.values.resize((k + 1) * s, 0.0);
+            self.eg.predict(&mut self.values, k);
+        }
+        if k + 1 - self.k0 > self.window {
+            let earlier = self.prior.take();
+            let prior = self
+                .solver
+                .marginalize(&self.eg.graph, &self.values, self.k0, earlier.as_ref())
+                .map_err(|e| self.located(e, run_k - (k - self.k0)))?;
+            self.prior = Some(prior);
+            self.k0 += 1;
+        }
+        // The newest step first brought to its optimum given the one before, then
+        // the window from there.
+        let mut warm = 0;
+        if k > self.k0 {
+            let guess = self.values[k * s..].to_vec();
+            let first =
+                self.solver
+                    .solve_conditional(&self.eg.graph, &mut self.values, k, k + 1)?;
+            warm = first.iterations;
+            if first.termination != Termination::Converged {
+                self.values[k * s..].copy_from_slice(&guess);
+            }
+        }
+        let mut report = self.solver.solve(
+            &self.eg.graph,
+            &mut self.values,
+            self.k0,
+            k + 1,
+            self.prior.as_ref(),
+        )?;
+        report.iterations += warm;
+        self.iterations += report.iterations;
+        if report.termination != Termination::Converged {
+            return Err(Error::NotConverged {
+                what: format!("the estimate at step {run_k} (t = {} s)", self.time(run_k)),
+                report,
+            });
+        }
+        self.solver
+            .covariances(
+                &self.eg.graph,
+                &self.values,
+                self.k0,
+                k + 1,
+                self.prior.as_ref(),
+                &mut self.covariances,
+            )
+            .map_err(|e| self.located(e, run_k))?;
+        let newest = self.estimate_of(k);
+        let nis = {
+            let layout = self.eg.graph.layout().clone();
+            let t = self.eg.graph.run_time(run_k);
+            self.nis.add(
+                &layout,
+                self.eg.graph.terms_at(run_k),
+                &newest.x,
+                &newest.covariance,
+                t,
+                &mut self.ws,
+            )
+        };
+        let mut finals = Vec::new();
+        if k + 1 - self.k0 == self.window {
+            // The oldest step leaves the window with the next update: this is its
+            // final estimate.
+            finals.push(self.estimate_of(self.k0));
+            self.finalized = run_k + 2 - self.window;
+        }
+        self.next += 1;
+        Ok(Update {
+            newest,
+            finals,
+            nis,
+            report,
+        })
+    }
+
+    /// The steps still in the window, final: the record has ended.
+    pub fn finish(&mut self) -> Vec<StepEstimate> {
+        let base = self.solver.base();
+        (self.finalized.max(base + self.k0)..self.next)
+            .map(|run| self.estimate_of(run - base))
+            .collect()
+    }
+
+    /// The estimate of buffer step k of the last solve.
+    fn estimate_of(&self, k: usize) -> StepEstimate {
+        let s = self.eg.size();
+        let run = self.solver.base() + k;
+        StepEstimate {
+            step: run,
+            t: self.time(run),
+            x: self.values[k * s..(k + 1) * s].to_vec(),
+            covariance: self.covariances[k - self.k0].clone(),
+        }
+    }
+
+    fn located(&self, e: Error, run_step: usize) -> Error {
+        match e {
+            Error::Singular { what, .. } => Error::Singular {
+                what,
+                step: Some(run_step),
+                t: Some(self.time(run_step)),
+            },
+            other => other,
+        }
+    }
+}

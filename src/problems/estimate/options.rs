@@ -1,0 +1,104 @@
+//! What an estimation run is asked to do ([`EstimateOptions`]) and the model's
+//! uncertainty it weighs the readings against ([`Uncertainty`]).
+
+use crate::error::{Error, Result};
+use crate::solver::Settings;
+
+/// How the record is solved.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Smoothing {
+    /// The fixed-lag smoother over the N newest steps: a step's estimate is final
+    /// when it leaves the window.
+    Window(usize),
+    /// The whole record at once (started from a fixed-lag pass).
+    Batch,
+}
+
+/// The window an estimate uses when none is asked.
+pub const DEFAULT_WINDOW: usize = 20;
+
+/// The window of the fixed-lag pass that starts a batch estimate.
+pub const BATCH_START_WINDOW: usize = 10;
+
+/// An estimation run's settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EstimateOptions {
+    pub smoothing: Smoothing,
+    /// The step; `None`: the readings' period.
+    pub dt: Option<f64>,
+    pub settings: Settings,
+}
+
+impl Default for EstimateOptions {
+    fn default() -> Self {
+        EstimateOptions {
+            smoothing: Smoothing::Window(DEFAULT_WINDOW),
+            dt: None,
+            settings: Settings::default(),
+        }
+    }
+}
+
+impl EstimateOptions {
+    pub fn validate(&self) -> Result<()> {
+        if let Smoothing::Window(0) = self.smoothing {
+            return Err(Error::InvalidArgument(
+                "the window must hold at least 1 step".into(),
+            ));
+        }
+        if let Some(dt) = self.dt {
+            if !(dt > 0.0 && dt.is_finite()) {
+                return Err(Error::InvalidArgument(format!(
+                    "dt must be positive and finite, got {dt}"
+                )));
+            }
+        }
+        self.settings.validate()
+    }
+}
+
+/// σ of the dynamics factor when the scene gives no `process_sigma`, in the
+/// coordinates' acceleration units (m/s², rad/s²): a model believed to a tenth of
+/// gravity's effect.
+pub const DEFAULT_PROCESS_SIGMA: f64 = 1.0;
+/// σ of the prior on an initial position the scene does not name (m or rad): a start
+/// known only roughly.
+pub const DEFAULT_INITIAL_SIGMA: f64 = 1.0;
+/// σ of the prior on an initial velocity the scene does not name (m/s or rad/s).
+pub const DEFAULT_INITIAL_VELOCITY_SIGMA: f64 = 1.0;
+/// σ of the prior on an unknown input's initial value (N or N·m): free.
+pub const INPUT_INITIAL_SIGMA: f64 = 1e3;
+/// The integrators hold the motion model to this fraction of one step's process
+/// noise: the process noise, not the integration rule, is what lets the estimate
+/// leave the model.
+pub const INTEGRATOR_FRACTION: f64 = 1.0;
+
+/// The model's uncertainty, resolved against a model: every σ the graph weighs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Uncertainty {
+    /// σ of f_dyn (per coordinate of q̈).
+    pub process: f64,
+    /// σ of the prior on each q₀ and q̇₀ entry.
+    pub initial_q: Vec<f64>,
+    pub initial_dq: Vec<f64>,
+    /// The unknown inputs: (coordinate of q, σ of their rate, per √s).
+    pub inputs: Vec<(usize, f64)>,
+}
+
+impl Uncertainty {
+    /// The defaults for a model of `n` coordinates.
+    pub fn defaults(n: usize) -> Self {
+        Uncertainty {
+            process: DEFAULT_PROCESS_SIGMA,
+            initial_q: vec![DEFAULT_INITIAL_SIGMA; n],
+            initial_dq: vec![DEFAULT_INITIAL_VELOCITY_SIGMA; n],
+            inputs: Vec::new(),
+        }
+    }
+
+    /// σ of the position and velocity integrators at step `dt`.
+    pub fn integrators(&self, dt: f64) -> [f64; 2] {
+        let v = INTEGRATOR_FRACTION * self.process * dt;
+        [0.5 * v * dt, v]
+    }
+}

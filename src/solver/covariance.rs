@@ -1,0 +1,84 @@
+//! The uncertainty of a window's estimate: the marginal covariance of each step,
+//! from the normal equations at the estimate (the inverse of the Gauss–Newton
+//! Hessian, its diagonal blocks only).
+
+use super::structure::{Scope, Span};
+use super::{LinearPrior, WindowSolver};
+use crate::error::{Error, Result};
+use crate::graph::ChainGraph;
+
+impl WindowSolver {
+    /// The marginal covariance of every step k0..k1 of the estimate in `values`, with
+    /// `prior` on step k0: the factors are linearized at `values`, H is factored
+    /// undamped, and H⁻¹'s diagonal block of each step (in its reduced unknowns y,
+    /// δx = p + N y) is mapped to the step's variables, Σ_x = N Σ_y Nᵀ: the hard
+    /// equations hold exactly, so the covariance lies in their null space.
+    /// `out[b]` is row-major s × s for step k0 + b.
+    pub fn covariances(
+        &mut self,
+        graph: &ChainGraph,
+        values: &[f64],
+        k0: usize,
+        k1: usize,
+        prior: Option<&LinearPrior>,
+        out: &mut Vec<Vec<f64>>,
+    ) -> Result<()> {
+        if k1 <= k0 || k1 - k0 > self.normal.h.capacity() {
+            return Err(Error::InvalidArgument(format!(
+                "window {k0}..{k1} is empty or larger than the solver's capacity {}",
+                self.normal.h.capacity()
+            )));
+        }
+        let span = Span {
+            k0,
+            k1,
+            prior,
+            scope: Scope::Window { held: false },
+        };
+        self.evaluate(graph, values, span, true)?;
+        self.normal
+            .chol
+            .factor(&self.normal.h, &[])
+            .map_err(|(block, _)| Error::Singular {
+                what: "the estimate's information matrix is not positive definite: \
+                       the readings and the model leave a direction of the motion \
+                       undetermined"
+                    .into(),
+                step: Some(self.structure.run_step(k0 + block)),
+                t: Some(crate::trajectory::round_time(self.time(graph, k0 + block))),
+            })?;
+        let mut reduced = Vec::new();
+        self.normal.chol.inverse_diagonal_blocks(&mut reduced);
+        let s = self.s;
+        out.resize_with(k1 - k0, Vec::new);
+        let mut basis = vec![0.0; s * s];
+        for (b, sigma_y) in reduced.iter().enumerate() {
+            let red = &self.lin.hard[b].reduction;
+            let d = red.dim;
+            red.basis_into(&mut basis);
+            // NΣ (s × d), then (NΣ)Nᵀ.
+            let mut ns = vec![0.0; s * d];
+            for i in 0..s {
+                for l in 0..d {
+                    let a = basis[i * d + l];
+                    if a != 0.0 {
+                        for j in 0..d {
+                            ns[i * d + j] += a * sigma_y[l * d + j];
+                        }
+                    }
+                }
+            }
+            let cov = &mut out[b];
+            cov.clear();
+            cov.resize(s * s, 0.0);
+            for i in 0..s {
+                for j in 0..=i {
+                    let v: f64 = (0..d).map(|l| ns[i * d + l] * basis[j * d + l]).sum();
+                    cov[i * s + j] = v;
+                    cov[j * s + i] = v;
+                }
+            }
+        }
+        Ok(())
+    }
+}
