@@ -1,4 +1,5 @@
-"""Peer state estimators for the three-simulation benchmark (docs: /work/shared/ESTIMATION.md).
+"""Peer state estimators for the three-simulation benchmark of Sanjurjo et al.
+(Nonlinear Dynamics, 2017): the bad model corrected by noisy readings of the true one.
 
 The filters run a (possibly wrong) scene's model in its independent coordinates z, the
 scene's `independent:` list, corrected by sensor readings:
