@@ -79,9 +79,12 @@ class Independent:
         redundant = set(model.redundant)
         self.rows = np.array([i for i, e in enumerate(model.equations) if e not in redundant],
                              dtype=int)
+        self.square = len(self.rows) == len(self.id)
+        if len(self.rows) == model.m:
+            self.rows = slice(None)
+        self._rd = (self.rows, self.id) if isinstance(self.rows, slice) else np.ix_(self.rows, self.id)
         self.f = len(self.iz)
         self.M = model.mass_matrix()
-        self.square = len(self.rows) == len(self.id)
 
     def _solve(self, A, b):
         return np.linalg.solve(A, b) if self.square else np.linalg.lstsq(A, b, rcond=None)[0]
@@ -95,7 +98,7 @@ class Independent:
             phi = m.phi(q)[self.rows]
             if np.max(np.abs(phi)) < tol:
                 return q
-            q[self.id] -= self._solve(m.phi_q(q)[np.ix_(self.rows, self.id)], phi)
+            q[self.id] -= self._solve(m.phi_q(q)[self._rd], phi)
         if np.max(np.abs(m.phi(q)[self.rows])) > 1e-8:
             raise RuntimeError(f"position problem did not converge at z = {z}")
         return q
