@@ -346,6 +346,33 @@ pub fn read_table_from<R: std::io::Read>(
     limits: &TableLimits,
     check_header: &mut dyn FnMut(&[String]) -> Result<()>,
 ) -> Result<Table> {
+    read_table_impl(input, file, limits, check_header, false)
+}
+
+/// [`read_table_with`] of a table whose cells may be empty (a measurement file,
+/// where an empty cell is a time without a reading): an empty cell reads as NaN.
+pub fn read_table_with_gaps(
+    path: &Path,
+    limits: &TableLimits,
+    check_header: &mut dyn FnMut(&[String]) -> Result<()>,
+) -> Result<Table> {
+    let file = path.display().to_string();
+    let raw = std::fs::File::open(path).map_err(|e| Error::data_in(&file, None, e.to_string()))?;
+    let input: Box<dyn std::io::Read> = if path.extension().is_some_and(|e| e == "gz") {
+        Box::new(flate2::read::GzDecoder::new(raw))
+    } else {
+        Box::new(raw)
+    };
+    read_table_impl(input, &file, limits, check_header, true)
+}
+
+fn read_table_impl<R: std::io::Read>(
+    input: R,
+    file: &str,
+    limits: &TableLimits,
+    check_header: &mut dyn FnMut(&[String]) -> Result<()>,
+    gaps: bool,
+) -> Result<Table> {
     let mut r = csv::ReaderBuilder::new()
         .trim(csv::Trim::All)
         .from_reader(Bounded {
@@ -429,6 +456,10 @@ pub fn read_table_from<R: std::io::Read>(
             ));
         }
         for (j, field) in record.iter().enumerate() {
+            if gaps && field.is_empty() {
+                values.push(f64::NAN);
+                continue;
+            }
             let v: f64 = field.parse().map_err(|_| {
                 Error::data_in(
                     file,
@@ -459,6 +490,69 @@ pub fn read_table_from<R: std::io::Read>(
         columns,
         values,
         rows,
+    })
+}
+
+/// Reads a trajectory CSV (the columns `t`, `q:<c>`, `dq:<c>`, `ddq:<c>` of the
+/// coordinates `names`, matched by name, in any order, among any others) into a
+/// [`Trajectory`]. Only the groups `needed` (q, q̇, q̈) must be present; a group
+/// not needed and absent is zeros. A missing column is an error naming it; the
+/// times must increase.
+pub fn read_trajectory(path: &Path, names: &[String], needed: [bool; 3]) -> Result<Trajectory> {
+    let file = path.display().to_string();
+    let prefixes = ["q", "dq", "ddq"];
+    let table = read_table_with(path, &TableLimits::default(), &mut |columns| {
+        let has = |c: &str| columns.iter().any(|h| h == c);
+        if !has("t") {
+            return Err(Error::data_in(&file, Some(1), "no column `t`"));
+        }
+        for (p, _) in prefixes.iter().zip(needed).filter(|(_, need)| *need) {
+            if let Some(c) = names.iter().find(|c| !has(&format!("{p}:{c}"))) {
+                return Err(Error::data_in(
+                    &file,
+                    Some(1),
+                    format!(
+                        "no column `{p}:{}` (a trajectory has t, q:<c>, dq:<c> and ddq:<c> for every coordinate c)",
+                        excerpt(c, QUOTE)
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    })?;
+    if table.rows == 0 {
+        return Err(Error::data_in(&file, None, "no rows"));
+    }
+    let t = table.column("t").unwrap_or_default();
+    if let Some(k) = (1..t.len()).find(|&k| !(t[k] > t[k - 1])) {
+        return Err(Error::data_in(
+            &file,
+            Some(k as u64 + 2),
+            format!("t = {} does not come after t = {}", t[k], t[k - 1]),
+        ));
+    }
+    let (rows, n) = (table.rows, names.len());
+    let mut groups = [
+        vec![0.0; rows * n],
+        vec![0.0; rows * n],
+        vec![0.0; rows * n],
+    ];
+    for (g, p) in groups.iter_mut().zip(prefixes) {
+        for (i, c) in names.iter().enumerate() {
+            if let Some(col) = table.column(&format!("{p}:{c}")) {
+                for (k, v) in col.into_iter().enumerate() {
+                    g[k * n + i] = v;
+                }
+            }
+        }
+    }
+    let [q, dq, ddq] = groups;
+    Ok(Trajectory {
+        names: names.to_vec(),
+        t,
+        q,
+        dq,
+        ddq,
     })
 }
 

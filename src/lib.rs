@@ -32,7 +32,9 @@ mod python;
 pub mod reactions;
 #[cfg(feature = "testing")]
 pub mod reference;
+pub mod rng;
 pub mod scene;
+pub mod sensors;
 pub mod smoother;
 pub mod solver;
 pub mod trajectory;

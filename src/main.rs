@@ -36,6 +36,10 @@ enum Command {
     /// Inverse dynamics: the forces on the prescribed coordinates that produce their
     /// motion, and the motion of all the others, solved over the whole horizon.
     Inverse(cli::inverse::InverseArgs),
+    /// Simulated sensor readings: the scene's sensors read along a trajectory CSV,
+    /// with seeded Gaussian noise and quantization, written as CSV (to --out, or
+    /// to standard output).
+    Measure(cli::measure::MeasureArgs),
 }
 
 fn main() -> ExitCode {
@@ -100,5 +104,6 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Simulate(args) => cli::simulate::run(args),
         Command::Animate(args) => cli::animate::run(args),
         Command::Inverse(args) => cli::inverse::run(args),
+        Command::Measure(args) => cli::measure::run(args),
     }
 }

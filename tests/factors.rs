@@ -8,7 +8,7 @@ use mbfg::dynamics;
 use mbfg::factors::{
     ComponentPrior, Dynamics, DynamicsKernel, Equality, Euler, Form, HermitePosition,
     IndependentAcceleration, IndependentDynamics, IndependentPosition, IndependentVelocity,
-    Integrator, KernelScratch, PositionConstraints, PrescribedMotion, Prior, Projected,
+    Integrator, KernelScratch, PositionConstraints, PrescribedMotion, Prior, Projected, Reading,
     SimpsonVelocity, Trapezoidal, VelocityConstraints,
 };
 use mbfg::graph::{Factor, Key, StackReq, VarKind, Workspace};
@@ -1505,4 +1505,47 @@ fn regularized_kernel_jacobians_match_finite_differences_near_a_flat_configurati
         "every regime visited: {regimes:?}"
     );
     errors.print("regularized dynamics kernel near a flat configuration");
+}
+
+/// f_sensor of every sensor of a four-bar with one of each kind, at generic states
+/// (off the constraints, random rates and accelerations), through the `Factor` trait.
+#[test]
+fn sensor_readings_match_finite_differences() {
+    let scene =
+        Scene::from_str(common::SENSOR_SCENE, std::path::Path::new("sensors.yaml")).unwrap();
+    let model = Arc::new(Model::new(&scene).unwrap());
+    let mut rng = Rng(3);
+    let mut errors = Errors::default();
+    for _ in 0..TRIALS {
+        let now = Step::random(&model, &mut rng);
+        for (k, sensor) in model.sensors.iter().enumerate() {
+            let datum = rng.values(sensor.dim(), 1.0);
+            let factor = Reading::new(model.clone(), k, datum.clone());
+            assert_eq!(factor.name(), format!("f_sensor({})", sensor.name));
+            let xs = inputs(&factor, &now, &now);
+            errors.record(factor.name(), check_factor(factor.name(), &factor, &xs, T));
+            // r = h − datum.
+            let mut h = vec![0.0; sensor.dim()];
+            sensor
+                .value(&model, T, &now.q, &now.dq, &now.ddq, &mut h)
+                .unwrap();
+            let r = evaluate(&factor, T, &xs, false, &mut workspace_for(&factor)).r;
+            for i in 0..h.len() {
+                assert_eq!(r[i], h[i] - datum[i]);
+            }
+        }
+    }
+    // A datum of the wrong size or a sensor the model lacks: an error, not a panic.
+    let mut ws = Workspace::new(StackReq::EMPTY);
+    let now = Step::random(&model, &mut rng);
+    for factor in [
+        Reading::new(model.clone(), 0, vec![1.0, 2.0]),
+        Reading::new(model.clone(), 99, vec![1.0]),
+    ] {
+        let xs = inputs(&factor, &now, &now);
+        let slices: Vec<&[f64]> = xs.iter().map(Vec::as_slice).collect();
+        let mut r = vec![0.0; factor.dim()];
+        assert!(factor.evaluate(T, &slices, &mut r, None, &mut ws).is_err());
+    }
+    errors.print("sensors");
 }

@@ -7,6 +7,7 @@ pub mod check;
 pub mod failure;
 pub mod interrupt;
 pub mod inverse;
+pub mod measure;
 pub mod memory;
 pub mod output;
 pub mod panic;

@@ -80,10 +80,19 @@ impl Output {
 
     /// Writes the complete result: to the temporary file, then renamed over the
     /// target in one step.
-    pub fn commit(mut self, trajectory: &Trajectory, csv: &CsvOptions) -> Result<(), String> {
+    pub fn commit(self, trajectory: &Trajectory, csv: &CsvOptions) -> Result<(), String> {
+        self.commit_with(&|w| mbfg::io::write_trajectory_with(w, trajectory, csv))
+    }
+
+    /// [`Output::commit`] of any CSV: `body` writes it (into the temporary file, a
+    /// device or standard output).
+    pub fn commit_with(
+        mut self,
+        body: &dyn Fn(&mut dyn Write) -> mbfg::Result<()>,
+    ) -> Result<(), String> {
         match (self.target.clone(), self.temp.take()) {
             (Some(target), Some(temp)) => {
-                let written = write_file(&temp, is_gzip(&target), trajectory, csv)
+                let written = write_file(&temp, is_gzip(&target), body)
                     .and_then(|()| std::fs::rename(&temp, &target).map_err(|e| e.to_string()));
                 if let Err(e) = written {
                     std::fs::remove_file(&temp).ok();
@@ -99,13 +108,13 @@ impl Output {
                     .open(&target)
                     .map_err(|e| format!("cannot write {}: {e}", target.display()))?;
                 let w = std::io::BufWriter::new(file);
-                encode(w, is_gzip(&target), trajectory, csv)
+                encode(w, is_gzip(&target), body)
                     .map(drop)
                     .map_err(|e| format!("cannot write {}: {e}", target.display()))
             }
             _ => {
                 let mut out = std::io::stdout().lock();
-                mbfg::io::write_trajectory_with(&mut out, trajectory, csv).map_err(|e| {
+                body(&mut out).map_err(|e| {
                     // Rows may have gone out before the error: mark them.
                     writeln!(out, "# incomplete: {}", one_line(&e.to_string())).ok();
                     format!("cannot write the CSV to standard output: {e}")
@@ -126,7 +135,8 @@ impl Output {
         match (self.target.clone(), self.temp.take()) {
             (Some(target), Some(temp)) => {
                 let partial = partial_path(&target);
-                let written = write_file(&temp, is_gzip(&target), trajectory, csv)
+                let body = |w: &mut dyn Write| mbfg::io::write_trajectory_with(w, trajectory, csv);
+                let written = write_file(&temp, is_gzip(&target), &body)
                     .and_then(|()| std::fs::rename(&temp, &partial).map_err(|e| e.to_string()));
                 if let Err(e) = written {
                     std::fs::remove_file(&temp).ok();
@@ -354,34 +364,32 @@ fn temp_beside(target: &Path) -> PathBuf {
 fn write_file(
     path: &Path,
     gzip: bool,
-    trajectory: &Trajectory,
-    csv: &CsvOptions,
+    body: &dyn Fn(&mut dyn Write) -> mbfg::Result<()>,
 ) -> Result<(), String> {
     let file = File::options()
         .write(true)
         .truncate(true)
         .open(path)
         .map_err(|e| e.to_string())?;
-    let w = encode(std::io::BufWriter::new(file), gzip, trajectory, csv)?;
+    let w = encode(std::io::BufWriter::new(file), gzip, body)?;
     let file = w.into_inner().map_err(|e| e.error().to_string())?;
     // On disk before the rename, so that a crash cannot leave a renamed empty file.
     file.sync_all().map_err(|e| e.to_string())
 }
 
-/// Writes the CSV into `w`, through a gzip encoder if asked (finished, so that the
-/// stream is complete), and gives `w` back flushed.
+/// Writes the CSV `body` makes into `w`, through a gzip encoder if asked (finished,
+/// so that the stream is complete), and gives `w` back flushed.
 fn encode<W: Write>(
     mut w: W,
     gzip: bool,
-    trajectory: &Trajectory,
-    csv: &CsvOptions,
+    body: &dyn Fn(&mut dyn Write) -> mbfg::Result<()>,
 ) -> Result<W, String> {
     if gzip {
         let mut z = flate2::write::GzEncoder::new(w, flate2::Compression::default());
-        mbfg::io::write_trajectory_with(&mut z, trajectory, csv).map_err(|e| e.to_string())?;
+        body(&mut z).map_err(|e| e.to_string())?;
         w = z.finish().map_err(|e| e.to_string())?;
     } else {
-        mbfg::io::write_trajectory_with(&mut w, trajectory, csv).map_err(|e| e.to_string())?;
+        body(&mut w).map_err(|e| e.to_string())?;
     }
     w.flush().map_err(|e| e.to_string())?;
     Ok(w)

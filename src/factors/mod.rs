@@ -4,7 +4,8 @@
 //! [`Trapezoidal`] (f_ti), the [`Integrator`] that picks its factors. Dependent coordinates: [`PositionConstraints`] (f^d_pc),
 //! [`VelocityConstraints`] (f^d_vc), [`Dynamics`] (f^d_dyn). Independent coordinates:
 //! [`IndependentPosition`] (f^i_pc), [`IndependentVelocity`] (f^i_vc),
-//! [`IndependentAcceleration`] (f^i_ac), [`IndependentDynamics`] (f^i_dyn).
+//! [`IndependentAcceleration`] (f^i_ac), [`IndependentDynamics`] (f^i_dyn). Sensors:
+//! [`Reading`] (f_sensor).
 //!
 //! The dynamics factors need ∂q̈/∂q and ∂q̈/∂q̇, which the paper took numerically. We
 //! differentiate the augmented system [M Φ_qᵀ; Φ_q 0][q̈; λ] = [Q; c] instead: with
@@ -25,6 +26,7 @@ mod independent;
 mod integrator;
 mod prescribed;
 mod priors;
+mod reading;
 mod shared;
 pub mod tangent;
 
@@ -38,5 +40,6 @@ pub use independent::{
 pub use integrator::{Equality, Euler, Form, Integrator, Partials, Trapezoidal, TwoPoint};
 pub use prescribed::PrescribedMotion;
 pub use priors::{ComponentPrior, Prior};
+pub use reading::Reading;
 pub(crate) use shared::{identity, key_accessor};
 pub use tangent::Projected;

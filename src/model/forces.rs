@@ -92,7 +92,7 @@ pub struct Load {
 const STACK_SLOTS: usize = 16;
 
 impl Load {
-    fn compile(model: &Model, function: &LoadFunction) -> Result<Load> {
+    pub(crate) fn compile(model: &Model, function: &LoadFunction) -> Result<Load> {
         let scene = &model.scene;
         let names = function.state_names();
         let quantities = names
@@ -151,7 +151,7 @@ impl Load {
         }
     }
 
-    fn value(&self, model: &Model, q: &[f64], dq: &[f64], t: f64) -> Result<f64> {
+    pub(crate) fn value(&self, model: &Model, q: &[f64], dq: &[f64], t: f64) -> Result<f64> {
         if self.quantities.is_empty() {
             if let Some(c) = self.value.as_constant() {
                 return Ok(c);
@@ -174,7 +174,7 @@ impl Load {
 
     /// Adds ∂value/∂q and ∂value/∂q̇ at the state (q, q̇, t) to row `row` of `kq` and
     /// `kv`.
-    fn add_gradient(
+    pub(crate) fn add_gradient(
         &self,
         model: &Model,
         (q, dq, t): (&[f64], &[f64], f64),
@@ -203,6 +203,26 @@ impl Load {
 
     pub fn is_state_dependent(&self) -> bool {
         !self.quantities.is_empty()
+    }
+
+    /// Whether the value depends on q, and on q̇.
+    pub fn reads(&self) -> [bool; 2] {
+        let mut reads = [false; 2];
+        for quantity in &self.quantities {
+            match quantity {
+                Quantity::Coordinate(_) | Quantity::Position { .. } | Quantity::Angle(_) => {
+                    reads[0] = true
+                }
+                Quantity::Rate(_) | Quantity::Velocity { .. } => reads[1] = true,
+                Quantity::Omega(_) => reads = [true, true],
+            }
+        }
+        reads
+    }
+
+    /// The expression as the scene wrote it.
+    pub fn text(&self) -> &str {
+        &self.text
     }
 }
 

@@ -141,6 +141,10 @@ pub struct Model {
     /// The scene's consistent initial state (a run's segments and substeps start
     /// from their own `forward::Start`).
     pub initial: State,
+    /// The scene's sensors, located in q.
+    pub sensors: Vec<crate::sensors::Sensor>,
+    /// The scene's `estimation:` section, located in q.
+    pub estimation: crate::sensors::EstimationSpec,
 }
 
 /// Positions and velocities.
@@ -192,6 +196,8 @@ impl Model {
                 q: DVector::zeros(n),
                 dq: DVector::zeros(n),
             },
+            sensors: Vec::new(),
+            estimation: Default::default(),
         };
         model.build_constraints();
         model.build_mass();
@@ -202,6 +208,8 @@ impl Model {
             .map(|name| model.index_of(name))
             .collect::<Option<Vec<_>>>()
             .ok_or_else(|| Error::InvalidArgument("independent coordinate not in q".into()))?;
+        model.sensors = crate::sensors::resolve(&model, &scene.sensors)?;
+        model.estimation = crate::sensors::resolve_estimation(&model, &scene.estimation)?;
         Ok(model)
     }
 

@@ -36,6 +36,8 @@ pub fn empty(file: &str) -> Scene {
         initial_positions: Vec::new(),
         initial_velocities: Vec::new(),
         notes: Vec::new(),
+        sensors: Vec::new(),
+        estimation: Default::default(),
     }
 }
 

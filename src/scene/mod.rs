@@ -12,6 +12,7 @@ mod build;
 mod fields;
 mod mbse;
 mod native;
+mod sensors;
 pub mod yaml;
 
 use crate::error::{Error, SceneError};
@@ -248,6 +249,66 @@ pub struct Scene {
     /// What the reader accepted but does not use (an MBSE body's `visual` drawing
     /// hints), for `mbfg check` to mention.
     pub notes: Vec<String>,
+    /// The sensors the scene declares (`sensors:`), in file order.
+    pub sensors: Vec<SensorDef>,
+    /// What an estimator assumes beyond the sensors (`estimation:`); empty when not
+    /// given.
+    pub estimation: EstimationDef,
+}
+
+/// A sensor as the scene declares it: what it reads, its noise, its quantization
+/// and its rate. Names of q are resolved by the model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensorDef {
+    pub name: String,
+    pub kind: SensorDefKind,
+    /// Standard deviation of the reading's noise, in the reading's unit.
+    pub sigma: f64,
+    /// Counts per turn of an encoder.
+    pub resolution: Option<u64>,
+    /// Readings per second; None: the rate of the run or of the trajectory.
+    pub rate: Option<f64>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum SensorDefKind {
+    /// A coordinate of q, by name.
+    Encoder { coordinate: String },
+    /// A body's angular velocity (index into [`Scene::bodies`]).
+    Gyroscope { body: usize },
+    /// A point's specific force in the body's frame.
+    Accelerometer { body: usize, point: usize },
+    /// A point's position.
+    Marker { point: usize },
+    /// An expression of the state, as an effect's value.
+    Expression { value: LoadFunction },
+}
+
+impl SensorDefKind {
+    /// The `type` of the scene file.
+    pub fn type_name(&self) -> &'static str {
+        match self {
+            SensorDefKind::Encoder { .. } => "encoder",
+            SensorDefKind::Gyroscope { .. } => "gyroscope",
+            SensorDefKind::Accelerometer { .. } => "accelerometer",
+            SensorDefKind::Marker { .. } => "marker",
+            SensorDefKind::Expression { .. } => "expression",
+        }
+    }
+}
+
+/// The `estimation:` section: noise of the dynamics, priors on the initial state and
+/// unknown inputs, with coordinates of q by name. Default: nothing given.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct EstimationDef {
+    /// σ of the dynamics factor.
+    pub process_sigma: Option<f64>,
+    /// σ of the prior on the initial positions of named coordinates.
+    pub initial_sigma: Vec<(String, f64)>,
+    /// σ of the prior on the initial velocities of named coordinates.
+    pub initial_velocity_sigma: Vec<(String, f64)>,
+    /// Unknown generalized forces on named coordinates, random walks of σ per √s.
+    pub inputs: Vec<(String, f64)>,
 }
 
 impl Scene {

@@ -23,6 +23,8 @@ const TOP_KEYS: &[&str] = &[
     "effects",
     "independent",
     "initial",
+    "sensors",
+    "estimation",
 ];
 
 pub fn read(
@@ -127,6 +129,12 @@ pub fn read(
     if let Some(n) = top.get("initial") {
         read_initial(&ctx, &mut scene, n)?;
     }
+    if let Some(n) = top.get("sensors") {
+        super::sensors::read_sensors(&ctx, &mut scene, n)?;
+    }
+    if let Some(n) = top.get("estimation") {
+        super::sensors::read_estimation(&ctx, &mut scene, n)?;
+    }
     top.finish(&ctx, TOP_KEYS)?;
     if scene.bodies.is_empty() && scene.points.iter().all(|p| p.mass == 0.0) {
         return Err(ctx
@@ -173,7 +181,7 @@ fn point_pair(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<[usize
     ])
 }
 
-fn check_unique(
+pub(super) fn check_unique(
     ctx: &Ctx,
     taken: &[&str],
     name: &str,
@@ -316,7 +324,7 @@ fn read_constraints(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
 }
 
 /// The `type` of an entry and the line it is on.
-fn type_of(ctx: &Ctx, f: &mut Fields) -> Result<(String, u64), SceneError> {
+pub(super) fn type_of(ctx: &Ctx, f: &mut Fields) -> Result<(String, u64), SceneError> {
     let n = f.req(ctx, "type")?;
     let ty = n.as_text().ok_or_else(|| {
         ctx.err(
@@ -525,7 +533,12 @@ fn opt_non_negative(ctx: &Ctx, f: &mut Fields, key: &str) -> Result<f64, SceneEr
 }
 
 /// Checks that `name` is a coordinate of q.
-fn q_name(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<String, SceneError> {
+pub(super) fn q_name(
+    ctx: &Ctx,
+    scene: &Scene,
+    node: &Node,
+    key: &str,
+) -> Result<String, SceneError> {
     let name = node.as_text().ok_or_else(|| {
         ctx.err(
             node.line,

@@ -3,6 +3,41 @@
 
 use std::path::{Path, PathBuf};
 
+/// A four-bar with a declared crank angle, gravity and one sensor of every kind (a
+/// gyroscope and an accelerometer on a body whose first point is fixed too).
+pub const SENSOR_SCENE: &str = "
+points:
+  - {name: A, x: 0, y: 0, fixed: true}
+  - {name: P1, x: 1, y: 0}
+  - {name: P2, x: 1, y: 2}
+  - {name: B, x: 4, y: 0, fixed: true}
+bodies:
+  - {name: crank, points: [A, P1], mass: 1}
+  - {name: coupler, points: [P1, P2], mass: 2}
+  - {name: rocker, points: [B, P2], mass: 4, length: sqrt(13)}
+coordinates:
+  - {name: theta, type: angle, points: [A, P1]}
+independent: [theta]
+initial:
+  velocities: {theta: 2}
+effects:
+  - {type: gravity, vector: [0.5, -9.81]}
+sensors:
+  - {name: enc, type: encoder, coordinate: theta, sigma: 0.0174533, resolution: 4096, rate: 200}
+  - {name: gyro, type: gyroscope, body: coupler, sigma: 9.84e-4}
+  - {name: gyro0, type: gyroscope, body: crank, sigma: 1e-3}
+  - {name: acc, type: accelerometer, body: coupler, point: P2, sigma: 0.056}
+  - {name: acc0, type: accelerometer, body: rocker, point: B, sigma: 0.056}
+  - {name: cam, type: marker, point: P2, sigma: 0.001, rate: 50}
+  - {name: gap, type: expression, value: \"x(P2) - x(P1)^2 + rate(theta)*omega(rocker) + sin(angle(coupler)) + t*vy(P2)\", sigma: 0.01}
+estimation:
+  process_sigma: 0.5
+  initial_sigma: {theta: 0.3}
+  initial_velocity_sigma: {theta: 1}
+  inputs:
+    - {coordinate: theta, sigma_rate: 20}
+";
+
 /// A scene of the suite by file name.
 pub fn scene_path(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
