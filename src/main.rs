@@ -40,6 +40,8 @@ enum Command {
     /// with seeded Gaussian noise and quantization, written as CSV (to --out, or
     /// to standard output).
     Measure(cli::measure::MeasureArgs),
+    /// State estimation: the motion from the scene's model and noisy sensor readings, with the standard deviation of every estimate
+    Estimate(cli::estimate::EstimateArgs),
 }
 
 fn main() -> ExitCode {
@@ -105,5 +107,6 @@ fn run(cli: Cli) -> Result<(), Failure> {
         Command::Animate(args) => cli::animate::run(args),
         Command::Inverse(args) => cli::inverse::run(args),
         Command::Measure(args) => cli::measure::run(args),
+        Command::Estimate(args) => cli::estimate::run(args),
     }
 }

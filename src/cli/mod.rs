@@ -4,6 +4,7 @@
 
 pub mod animate;
 pub mod check;
+pub mod estimate;
 pub mod failure;
 pub mod interrupt;
 pub mod inverse;

@@ -161,6 +161,39 @@ impl Output {
         }
     }
 
+    /// [`Output::keep_partial`] of any CSV: `body` writes the `steps` rows kept.
+    pub fn keep_partial_with(
+        mut self,
+        body: &dyn Fn(&mut dyn Write) -> mbfg::Result<()>,
+        steps: usize,
+        why: &str,
+    ) -> Result<String, String> {
+        match (self.target.clone(), self.temp.take()) {
+            (Some(target), Some(temp)) => {
+                let partial = partial_path(&target);
+                let written = write_file(&temp, is_gzip(&target), body)
+                    .and_then(|()| std::fs::rename(&temp, &partial).map_err(|e| e.to_string()));
+                if let Err(e) = written {
+                    std::fs::remove_file(&temp).ok();
+                    return Err(format!("cannot write {}: {e}", partial.display()));
+                }
+                Ok(format!("{steps} steps kept in {}", partial.display()))
+            }
+            (Some(target), None) => Err(format!(
+                "the {steps} steps before it were not written to {}, which is not a regular file",
+                target.display()
+            )),
+            _ => {
+                let mut out = std::io::stdout().lock();
+                let written = body(&mut out).map_err(|e| e.to_string()).and_then(|()| {
+                    writeln!(out, "# incomplete: {}", one_line(why)).map_err(|e| e.to_string())
+                });
+                written.map_err(|e| format!("cannot write the CSV to standard output: {e}"))?;
+                Ok(format!("{steps} steps written, then `# incomplete`"))
+            }
+        }
+    }
+
     /// A writer of the rows into the temporary file as they come (the standard
     /// columns, every `stride`-th row and the last), or None where the output is
     /// not a file written under a temporary name (standard output, a device).

@@ -14,6 +14,9 @@ impl WindowSolver {
     /// δx = p + N y) is mapped to the step's variables, Σ_x = N Σ_y Nᵀ: the hard
     /// equations hold exactly, so the covariance lies in their null space.
     /// `out[b]` is row-major s × s for step k0 + b.
+    ///
+    /// [`WindowSolver::covariances_after_solve`] reads the last solve's
+    /// linearization instead, when the solve has just ended on this window.
     pub fn covariances(
         &mut self,
         graph: &ChainGraph,
@@ -36,6 +39,35 @@ impl WindowSolver {
             scope: Scope::Window { held: false },
         };
         self.evaluate(graph, values, span, true)?;
+        self.covariances_of_linearization(graph, k0, k1, out)
+    }
+
+    /// [`WindowSolver::covariances`] from the linearization the last solve of the
+    /// window k0..k1 ended on (at its estimate, or at the point of its last step, a
+    /// step below the solve's tolerance away): one linearization of the window
+    /// fewer. Only right directly after a converged `solve` of that window.
+    pub fn covariances_after_solve(
+        &mut self,
+        graph: &ChainGraph,
+        k0: usize,
+        k1: usize,
+        out: &mut Vec<Vec<f64>>,
+    ) -> Result<()> {
+        if self.normal.h.blocks() != k1 - k0 {
+            return Err(Error::InvalidArgument(format!(
+                "the last solve was not of the window {k0}..{k1}"
+            )));
+        }
+        self.covariances_of_linearization(graph, k0, k1, out)
+    }
+
+    fn covariances_of_linearization(
+        &mut self,
+        graph: &ChainGraph,
+        k0: usize,
+        k1: usize,
+        out: &mut Vec<Vec<f64>>,
+    ) -> Result<()> {
         self.normal
             .chol
             .factor(&self.normal.h, &[])

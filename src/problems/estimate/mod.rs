@@ -7,8 +7,14 @@ pub mod consistency;
 pub mod graph;
 pub mod online;
 pub mod options;
+pub mod record;
+pub mod run;
+pub mod table;
 
 pub use consistency::Nis;
 pub use graph::EstimationGraph;
 pub use online::{Estimator, StepEstimate, Update};
 pub use options::{EstimateOptions, Smoothing, Uncertainty};
+pub use record::Record;
+pub use run::{estimate, EstimateSummary};
+pub use table::Estimates;

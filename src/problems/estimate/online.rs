@@ -195,14 +195,7 @@ impl Estimator {
             });
         }
         self.solver
-            .covariances(
-                &self.eg.graph,
-                &self.values,
-                self.k0,
-                k + 1,
-                self.prior.as_ref(),
-                &mut self.covariances,
-            )
+            .covariances_after_solve(&self.eg.graph, self.k0, k + 1, &mut self.covariances)
             .map_err(|e| self.located(e, run_k))?;
         let newest = self.estimate_of(k);
         let nis = {

@@ -14,6 +14,20 @@ pub enum Smoothing {
     Batch,
 }
 
+/// The solver's settings for an estimate: a step toward a reading far from the
+/// guess moves along curved constraints (several corrections back onto them), and
+/// the solve stops once what is left to gain is far below one unit of χ²
+/// (a change of the estimate well inside its σ), not at the round-off a
+/// simulation's step is solved to.
+pub fn estimation_settings() -> Settings {
+    let mut s = Settings {
+        corrections: 20,
+        ..Settings::default()
+    };
+    s.thresholds.flat_decrease = 1e-5;
+    s
+}
+
 /// The window an estimate uses when none is asked.
 pub const DEFAULT_WINDOW: usize = 20;
 
@@ -34,7 +48,7 @@ impl Default for EstimateOptions {
         EstimateOptions {
             smoothing: Smoothing::Window(DEFAULT_WINDOW),
             dt: None,
-            settings: Settings::default(),
+            settings: estimation_settings(),
         }
     }
 }
@@ -86,6 +100,23 @@ pub struct Uncertainty {
 }
 
 impl Uncertainty {
+    /// The scene's `estimation:` section over the defaults.
+    pub fn of(model: &crate::model::Model) -> Self {
+        let spec = &model.estimation;
+        let mut u = Uncertainty::defaults(model.n());
+        if let Some(p) = spec.process_sigma {
+            u.process = p;
+        }
+        for &(i, s) in &spec.initial_sigma {
+            u.initial_q[i] = s;
+        }
+        for &(i, s) in &spec.initial_velocity_sigma {
+            u.initial_dq[i] = s;
+        }
+        u.inputs = spec.inputs.clone();
+        u
+    }
+
     /// The defaults for a model of `n` coordinates.
     pub fn defaults(n: usize) -> Self {
         Uncertainty {

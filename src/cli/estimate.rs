@@ -1,0 +1,170 @@
+//! `mbfg estimate`: the motion of a mechanism from its scene's model and a record of
+//! noisy sensor readings, by the fixed-lag smoother or a batch solve, with the
+//! standard deviation of every estimate and the consistency of the readings.
+
+use super::failure::{plain, Failure};
+use super::output::Output;
+use super::{load, print_summary, seconds};
+use mbfg::estimate::{estimate, EstimateOptions, EstimateSummary, Estimates, Record, Smoothing};
+use std::cell::RefCell;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// The arguments of `mbfg estimate`.
+#[derive(clap::Args)]
+pub struct EstimateArgs {
+    /// Scene file (YAML) with a `sensors:` section (and optionally `estimation:`).
+    scene: PathBuf,
+    /// The readings: CSV with `t`, then one column per sensor reading (as `mbfg
+    /// measure` writes it); an empty cell is no reading at that time.
+    #[arg(long, value_name = "FILE.csv")]
+    measurements: PathBuf,
+    /// Fixed-lag smoother over the N newest steps: a step's estimate is final when it
+    /// leaves the window [default: 20].
+    #[arg(long, value_name = "N", conflicts_with = "batch")]
+    window: Option<usize>,
+    /// Estimate every step at once from the whole record (started from a fixed-lag
+    /// pass).
+    #[arg(long)]
+    batch: bool,
+    /// Coordinates of the estimate's graph (dependent only, for now).
+    #[arg(long, default_value = "dc", value_parser = ["dc"])]
+    coords: String,
+    /// The step, in seconds; every reading must fall on one [default: the readings'
+    /// period].
+    #[arg(long, value_name = "S")]
+    dt: Option<f64>,
+    /// Linear solves allowed per window solve.
+    #[arg(long, value_name = "K", default_value_t = 50)]
+    max_iterations: usize,
+    /// Output CSV (gzip-compressed when it ends in `.gz`); the summary then goes to
+    /// standard output.
+    #[arg(long, value_name = "FILE.csv")]
+    out: Option<PathBuf>,
+}
+
+pub fn run(args: EstimateArgs) -> Result<(), Failure> {
+    let (_, model) = load(&args.scene)?;
+    let model = Arc::new(model);
+    if model.sensors.is_empty() {
+        return Err(Failure::Input(format!(
+            "scene {} has no sensors: declare them in a `sensors:` section (docs/scene-format.md)",
+            args.scene.display()
+        )));
+    }
+    if let Some(dt) = args.dt {
+        if !(dt > 0.0 && dt.is_finite()) {
+            return Err(Failure::Input(format!(
+                "--dt must be a positive number of seconds, got {dt}"
+            )));
+        }
+    }
+    if args.window == Some(0) {
+        return Err(Failure::Input("--window must be at least 1".into()));
+    }
+    let mut options = EstimateOptions {
+        smoothing: match (args.batch, args.window) {
+            (true, _) => Smoothing::Batch,
+            (false, Some(w)) => Smoothing::Window(w),
+            (false, None) => EstimateOptions::default().smoothing,
+        },
+        dt: args.dt,
+        ..EstimateOptions::default()
+    };
+    if args.max_iterations == 0 {
+        return Err(Failure::Input("--max-iterations must be at least 1".into()));
+    }
+    options.settings.max_iterations = args.max_iterations;
+    let output = Output::open(args.out.as_deref(), &[&args.scene, &args.measurements])?;
+    let record =
+        Record::read(&model, &args.measurements, args.dt).map_err(|e| Failure::Input(plain(e)))?;
+    let inputs: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+    let table = RefCell::new(Estimates::new(&model, &inputs));
+    let started = std::time::Instant::now();
+    let result = estimate(model.clone(), &record, &options, &mut |e| {
+        table.borrow_mut().push(e);
+        Ok(())
+    });
+    let elapsed = started.elapsed().as_secs_f64();
+    let table = table.into_inner();
+    let to_file = output.to_file();
+    match result {
+        Ok(summary) => {
+            output
+                .commit_with(&|w| table.write_csv(w))
+                .map_err(Failure::Run)?;
+            print_summary(to_file, &summary_line(&summary, elapsed));
+            if let Some(w) = consistency_warning(&summary) {
+                eprintln!("warning: {w}");
+            }
+            Ok(())
+        }
+        Err(e) => {
+            let why = plain(e);
+            let kept = if table.rows == 0 || options.smoothing == Smoothing::Batch {
+                output.discard();
+                "nothing was written".to_string()
+            } else {
+                output
+                    .keep_partial_with(&|w| table.write_csv(w), table.rows, &why)
+                    .map_err(Failure::Run)?
+            };
+            Err(Failure::Run(format!("{why}; {kept}")))
+        }
+    }
+}
+
+/// What ran, in one line.
+pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
+    let how = match s.smoothing {
+        Smoothing::Window(w) => format!("window {w}"),
+        Smoothing::Batch => "batch".to_string(),
+    };
+    let nis = &s.nis;
+    let (lo, hi) = nis.bounds();
+    let verdict = if nis.consistent() {
+        "consistent"
+    } else {
+        "NOT consistent"
+    };
+    format!(
+        "{} steps (dt = {} s, {how}) from {} readings in {:.3} s ({:.0} µs a step); \
+         linear solves per step: mean {:.2}; mean NIS {:.3} against {:.0} expected, \
+         95 % bounds [{lo:.3}, {hi:.3}]: {verdict}; process σ {}",
+        s.steps,
+        seconds(s.dt),
+        s.readings,
+        elapsed,
+        elapsed / s.steps.max(1) as f64 * 1e6,
+        s.iterations as f64 / s.steps.max(1) as f64,
+        nis.mean(),
+        nis.expected(),
+        s.process_sigma
+    )
+}
+
+/// What a mean NIS outside its bounds says, and what to change.
+pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
+    let nis = &s.nis;
+    if nis.count == 0 || nis.consistent() {
+        return None;
+    }
+    let (lo, hi) = nis.bounds();
+    Some(if nis.mean() > hi {
+        format!(
+            "the mean NIS {:.3} is above its 95 % bound {hi:.3}: the readings disagree with \
+             the model more than the σ's allow; the reported σ's are too small. Raise \
+             `estimation: process_sigma` (now {}) or the sensors' `sigma`",
+            nis.mean(),
+            s.process_sigma
+        )
+    } else {
+        format!(
+            "the mean NIS {:.3} is below its 95 % bound {lo:.3}: the readings agree with the \
+             model better than the σ's say; the reported σ's are too large. Lower \
+             `estimation: process_sigma` (now {}) or the sensors' `sigma`",
+            nis.mean(),
+            s.process_sigma
+        )
+    })
+}

@@ -1,0 +1,173 @@
+//! A record of sensor readings on the estimate's time grid ([`Record`]): read from
+//! the measurements CSV (`t`, then one column per reading, an empty cell where a
+//! sensor did not read) and checked against the model's sensors.
+
+use crate::error::{Error, Result};
+use crate::io::{read_table_with_gaps, TableLimits};
+use crate::model::Model;
+use std::path::Path;
+
+/// The readings of one step: (sensor, its values).
+pub type StepReadings = Vec<(usize, Vec<f64>)>;
+
+/// Readings on a uniform grid t₀ + k·dt.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Record {
+    pub t0: f64,
+    pub dt: f64,
+    /// The readings of every step, steps without any included (empty).
+    pub steps: Vec<StepReadings>,
+}
+
+/// How far from a step a reading's time may be, as a fraction of dt.
+const ON_STEP: f64 = 1e-6;
+
+impl Record {
+    /// The record of a measurements CSV for `model`'s sensors, on the grid of step
+    /// `dt` (by default the smallest interval between rows) from the first row's time.
+    pub fn read(model: &Model, path: &Path, dt: Option<f64>) -> Result<Record> {
+        let file = path.display().to_string();
+        let table = read_table_with_gaps(path, &TableLimits::default(), &mut |columns| {
+            check_columns(model, columns).map_err(|m| Error::data_in(&file, Some(1), m))
+        })?;
+        let w = table.columns.len();
+        let rows: Vec<(f64, Vec<f64>)> = (0..table.rows)
+            .map(|i| {
+                let row = &table.values[i * w..(i + 1) * w];
+                (row[0], row.to_vec())
+            })
+            .collect();
+        let columns = table.columns.clone();
+        Record::from_rows(model, &columns, &rows, dt)
+            .map_err(|(line, m)| Error::data_in(&file, line.map(|l| l as u64 + 2), m))
+    }
+
+    /// The record of rows (t, then the cells of `columns`, `columns[0]` = "t", NaN
+    /// where no reading); errors carry the row (from 0) they are about.
+    pub fn from_rows(
+        model: &Model,
+        columns: &[String],
+        rows: &[(f64, Vec<f64>)],
+        dt: Option<f64>,
+    ) -> std::result::Result<Record, (Option<usize>, String)> {
+        check_columns(model, columns).map_err(|m| (None, m))?;
+        if rows.is_empty() {
+            return Err((None, "no readings: the file has no rows".into()));
+        }
+        for (i, (t, _)) in rows.iter().enumerate() {
+            if !t.is_finite() {
+                return Err((Some(i), "t is empty or not finite".into()));
+            }
+            if i > 0 && *t <= rows[i - 1].0 {
+                return Err((Some(i), format!("t = {t} does not increase")));
+            }
+        }
+        let t0 = rows[0].0;
+        let dt = match dt {
+            Some(dt) => dt,
+            None if rows.len() >= 2 => {
+                // The shortest interval, then the span divided into whole steps of
+                // about it: 10 s of 5 ms rows is 0.005, not the 0.004999… of one
+                // difference of rounded times.
+                let shortest = rows
+                    .windows(2)
+                    .map(|w| w[1].0 - w[0].0)
+                    .fold(f64::INFINITY, f64::min);
+                let span = rows[rows.len() - 1].0 - rows[0].0;
+                span / (span / shortest).round()
+            }
+            None => {
+                return Err((
+                    None,
+                    "one row of readings gives no period; give the step (--dt)".into(),
+                ))
+            }
+        };
+        let last = rows[rows.len() - 1].0;
+        let count = ((last - t0) / dt).round();
+        if count > 1e8 {
+            return Err((None, format!("{count} steps of {dt} s: too many")));
+        }
+        let mut steps: Vec<StepReadings> = vec![Vec::new(); count as usize + 1];
+        // Each column's sensor and its place among the sensor's values.
+        let slots: Vec<Option<(usize, usize)>> =
+            columns.iter().map(|c| column_slot(model, c)).collect();
+        for (i, (t, cells)) in rows.iter().enumerate() {
+            let k = (t - t0) / dt;
+            if (k - k.round()).abs() > ON_STEP * k.max(1.0) {
+                return Err((
+                    Some(i),
+                    format!("t = {t} is not on a step of {dt} s from t = {t0}: readings must fall on steps"),
+                ));
+            }
+            let k = k.round() as usize;
+            for (s, sensor) in model.sensors.iter().enumerate() {
+                let mut values = vec![f64::NAN; sensor.dim()];
+                for (j, slot) in slots.iter().enumerate() {
+                    if let Some((si, at)) = slot {
+                        if *si == s {
+                            values[*at] = cells[j];
+                        }
+                    }
+                }
+                let given = values.iter().filter(|v| !v.is_nan()).count();
+                if given == 0 {
+                    continue;
+                }
+                if given < values.len() {
+                    return Err((
+                        Some(i),
+                        format!(
+                            "sensor {}: some of its columns ({}) are empty and some not",
+                            sensor.name,
+                            sensor.columns().join(", ")
+                        ),
+                    ));
+                }
+                steps[k].push((s, values));
+            }
+        }
+        Ok(Record { t0, dt, steps })
+    }
+
+    /// Readings in the record.
+    pub fn readings(&self) -> usize {
+        self.steps.iter().map(Vec::len).sum()
+    }
+}
+
+/// Which sensor a column belongs to, and which of its values it is.
+fn column_slot(model: &Model, column: &str) -> Option<(usize, usize)> {
+    model.sensors.iter().enumerate().find_map(|(s, sensor)| {
+        sensor
+            .columns()
+            .iter()
+            .position(|c| c == column)
+            .map(|at| (s, at))
+    })
+}
+
+/// The columns must be `t` then readings of the model's sensors, each once.
+fn check_columns(model: &Model, columns: &[String]) -> std::result::Result<(), String> {
+    if columns.first().map(String::as_str) != Some("t") {
+        return Err("the first column must be `t`".into());
+    }
+    if model.sensors.is_empty() {
+        return Err(
+            "the scene has no sensors: a `sensors:` section says what the columns read".into(),
+        );
+    }
+    for (j, c) in columns.iter().enumerate().skip(1) {
+        if column_slot(model, c).is_none() {
+            let known: Vec<String> = model.sensors.iter().flat_map(|s| s.columns()).collect();
+            return Err(format!(
+                "column `{c}` is no sensor of the scene (its sensors read: {})",
+                known.join(", ")
+            ));
+        }
+        if columns[..j].contains(c) {
+            return Err(format!("column `{c}` appears twice"));
+        }
+    }
+    Ok(())
+}

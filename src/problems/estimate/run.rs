@@ -1,0 +1,148 @@
+//! An estimate of a whole record: the fixed-lag smoother over it, or the batch
+//! solve of every step started from a fixed-lag pass, each step handed out final
+//! with its covariance.
+
+use super::consistency::Nis;
+use super::graph::EstimationGraph;
+use super::online::{Estimator, StepEstimate};
+use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW};
+use super::record::Record;
+use crate::error::{Error, Result};
+use crate::factors::Reading;
+use crate::graph::{Factor, Noise};
+use crate::model::Model;
+use crate::solver::{Termination, WindowSolver};
+use std::sync::Arc;
+
+/// What a run did, for its summary.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EstimateSummary {
+    pub steps: usize,
+    pub dt: f64,
+    pub smoothing: Smoothing,
+    pub readings: usize,
+    /// Linear solves of the fixed-lag pass (and the batch solve).
+    pub iterations: usize,
+    /// The normalized innovations of the fixed-lag pass (filtered estimates).
+    pub nis: Nis,
+    pub process_sigma: f64,
+}
+
+/// The factors of one step's readings, each with its noise.
+pub fn reading_factors(
+    model: &Arc<Model>,
+    readings: &[(usize, Vec<f64>)],
+) -> Vec<(Box<dyn Factor>, Noise)> {
+    readings
+        .iter()
+        .map(|(s, v)| {
+            let sigma = model.sensors[*s].effective_sigma();
+            (
+                Box::new(Reading::new(model.clone(), *s, v.clone())) as Box<dyn Factor>,
+                Noise::Isotropic(sigma),
+            )
+        })
+        .collect()
+}
+
+/// The graph an estimate of `record` starts from: the scene's model, its start and
+/// its uncertainty.
+pub fn graph_for(model: &Arc<Model>, record: &Record) -> Result<EstimationGraph> {
+    let mut eg = EstimationGraph::new(
+        model.clone(),
+        &Uncertainty::of(model),
+        record.dt,
+        model.initial.clone(),
+    )?;
+    eg.graph.set_t0(record.t0);
+    Ok(eg)
+}
+
+/// Estimates the motion over `record`, handing every step to `sink` once final, in
+/// step order. A failure ends the run with its error; the steps handed out before
+/// stay final.
+pub fn estimate(
+    model: Arc<Model>,
+    record: &Record,
+    options: &EstimateOptions,
+    sink: &mut dyn FnMut(&StepEstimate) -> Result<()>,
+) -> Result<EstimateSummary> {
+    options.validate()?;
+    if model.sensors.is_empty() {
+        return Err(Error::InvalidArgument(
+            "the scene has no sensors: an estimate needs a `sensors:` section".into(),
+        ));
+    }
+    let eg = graph_for(&model, record)?;
+    let process_sigma = Uncertainty::of(&model).process;
+    let (window, keep_all) = match options.smoothing {
+        Smoothing::Window(w) => (w, false),
+        Smoothing::Batch => (BATCH_START_WINDOW, true),
+    };
+    let settings = options.settings;
+    let mut est = Estimator::new(model.clone(), eg, window, settings, keep_all)?;
+    for readings in &record.steps {
+        let update = est.update(reading_factors(&model, readings))?;
+        if !keep_all {
+            for f in &update.finals {
+                sink(f)?;
+            }
+        }
+    }
+    let rest = est.finish();
+    let steps = record.steps.len();
+    let mut iterations = est.iterations;
+    match options.smoothing {
+        Smoothing::Window(_) => {
+            for f in &rest {
+                sink(f)?;
+            }
+        }
+        Smoothing::Batch => {
+            iterations += smooth_all(&model, &mut est, steps, settings, sink)?;
+        }
+    }
+    Ok(EstimateSummary {
+        steps,
+        dt: record.dt,
+        smoothing: options.smoothing,
+        readings: record.readings(),
+        iterations,
+        nis: est.nis.clone(),
+        process_sigma,
+    })
+}
+
+/// The batch solve of every step from the fixed-lag pass's estimate, and each
+/// step's marginal covariance from it.
+fn smooth_all(
+    _model: &Arc<Model>,
+    est: &mut Estimator,
+    steps: usize,
+    settings: crate::solver::Settings,
+    sink: &mut dyn FnMut(&StepEstimate) -> Result<()>,
+) -> Result<usize> {
+    let graph = &est.graph().graph;
+    let mut values = est.values().to_vec();
+    let s = est.graph().size();
+    let mut solver = WindowSolver::new(graph, steps, settings)?;
+    solver.optimize_for_batch();
+    let report = solver.solve(graph, &mut values, 0, steps, None)?;
+    if report.termination != Termination::Converged {
+        return Err(Error::NotConverged {
+            what: "the batch estimate".into(),
+            report,
+        });
+    }
+    let mut covariances = Vec::new();
+    solver.covariances_after_solve(graph, 0, steps, &mut covariances)?;
+    for (k, covariance) in covariances.into_iter().enumerate() {
+        sink(&StepEstimate {
+            step: k,
+            t: est.time(k),
+            x: values[k * s..(k + 1) * s].to_vec(),
+            covariance,
+        })?;
+    }
+    Ok(report.iterations)
+}
