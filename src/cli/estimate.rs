@@ -139,8 +139,17 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
         s.iterations as f64 / s.steps.max(1) as f64,
         nis.mean(),
         nis.expected(),
-        s.process_sigma
+        process(s)
     )
+}
+
+/// The process σ and where it came from.
+fn process(s: &EstimateSummary) -> String {
+    if s.scene_process_sigma {
+        format!("{} (the scene's)", s.process_sigma)
+    } else {
+        format!("{} (the default)", s.process_sigma)
+    }
 }
 
 /// What a mean NIS outside its bounds says, and what to change.
@@ -156,7 +165,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              the model more than the σ's allow; the reported σ's are too small. Raise \
              `estimation: process_sigma` (now {}) or the sensors' `sigma`",
             nis.mean(),
-            s.process_sigma
+            process(s)
         )
     } else {
         format!(
@@ -164,7 +173,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              model better than the σ's say; the reported σ's are too large. Lower \
              `estimation: process_sigma` (now {}) or the sensors' `sigma`",
             nis.mean(),
-            s.process_sigma
+            process(s)
         )
     })
 }

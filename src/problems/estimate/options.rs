@@ -72,9 +72,9 @@ impl EstimateOptions {
 }
 
 /// σ of the dynamics factor when the scene gives no `process_sigma`, in the
-/// coordinates' acceleration units (m/s², rad/s²): a model believed to a tenth of
-/// gravity's effect.
-pub const DEFAULT_PROCESS_SIGMA: f64 = 1.0;
+/// coordinates' acceleration units (m/s², rad/s²): a model believed to about a
+/// third of gravity's effect. The summary's NIS says whether it suits the record.
+pub const DEFAULT_PROCESS_SIGMA: f64 = 3.0;
 /// σ of the prior on an initial position the scene does not name (m or rad): a start
 /// known only roughly.
 pub const DEFAULT_INITIAL_SIGMA: f64 = 1.0;

@@ -26,6 +26,8 @@ pub struct EstimateSummary {
     /// The normalized innovations of the fixed-lag pass (filtered estimates).
     pub nis: Nis,
     pub process_sigma: f64,
+    /// Whether the process σ is the scene's (else the default).
+    pub scene_process_sigma: bool,
 }
 
 /// The factors of one step's readings, each with its noise.
@@ -45,15 +47,15 @@ pub fn reading_factors(
         .collect()
 }
 
-/// The graph an estimate of `record` starts from: the scene's model, its start and
-/// its uncertainty.
-pub fn graph_for(model: &Arc<Model>, record: &Record) -> Result<EstimationGraph> {
-    let mut eg = EstimationGraph::new(
-        model.clone(),
-        &Uncertainty::of(model),
-        record.dt,
-        model.initial.clone(),
-    )?;
+/// The graph an estimate of `record` starts from: the scene's model and its start,
+/// with `uncertainty`.
+pub fn graph_with(
+    model: &Arc<Model>,
+    record: &Record,
+    uncertainty: &Uncertainty,
+) -> Result<EstimationGraph> {
+    let mut eg =
+        EstimationGraph::new(model.clone(), uncertainty, record.dt, model.initial.clone())?;
     eg.graph.set_t0(record.t0);
     Ok(eg)
 }
@@ -73,8 +75,9 @@ pub fn estimate(
             "the scene has no sensors: an estimate needs a `sensors:` section".into(),
         ));
     }
-    let eg = graph_for(&model, record)?;
-    let process_sigma = Uncertainty::of(&model).process;
+    let uncertainty = Uncertainty::of(&model);
+    let process_sigma = uncertainty.process;
+    let eg = graph_with(&model, record, &uncertainty)?;
     let (window, keep_all) = match options.smoothing {
         Smoothing::Window(w) => (w, false),
         Smoothing::Batch => (BATCH_START_WINDOW, true),
@@ -110,6 +113,7 @@ pub fn estimate(
         iterations,
         nis: est.nis.clone(),
         process_sigma,
+        scene_process_sigma: model.estimation.process_sigma.is_some(),
     })
 }
 
