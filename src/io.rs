@@ -500,33 +500,55 @@ fn read_table_impl<R: std::io::Read>(
 /// times must increase.
 pub fn read_trajectory(path: &Path, names: &[String], needed: [bool; 3]) -> Result<Trajectory> {
     let file = path.display().to_string();
-    let prefixes = ["q", "dq", "ddq"];
     let table = read_table_with(path, &TableLimits::default(), &mut |columns| {
-        let has = |c: &str| columns.iter().any(|h| h == c);
-        if !has("t") {
-            return Err(Error::data_in(&file, Some(1), "no column `t`"));
-        }
-        for (p, _) in prefixes.iter().zip(needed).filter(|(_, need)| *need) {
-            if let Some(c) = names.iter().find(|c| !has(&format!("{p}:{c}"))) {
-                return Err(Error::data_in(
-                    &file,
-                    Some(1),
-                    format!(
-                        "no column `{p}:{}` (a trajectory has t, q:<c>, dq:<c> and ddq:<c> for every coordinate c)",
-                        excerpt(c, QUOTE)
-                    ),
-                ));
-            }
-        }
-        Ok(())
+        check_trajectory_header(names, columns, &file, needed)
     })?;
+    trajectory_from_table(names, &table, &file, needed)
+}
+
+const GROUPS: [&str; 3] = ["q", "dq", "ddq"];
+
+/// That `columns` hold `t` and the groups `needed` of the coordinates `names`.
+fn check_trajectory_header(
+    names: &[String],
+    columns: &[String],
+    file: &str,
+    needed: [bool; 3],
+) -> Result<()> {
+    let has = |c: &str| columns.iter().any(|h| h == c);
+    if !has("t") {
+        return Err(Error::data_in(file, Some(1), "no column `t`"));
+    }
+    for (p, _) in GROUPS.iter().zip(needed).filter(|(_, need)| *need) {
+        if let Some(c) = names.iter().find(|c| !has(&format!("{p}:{c}"))) {
+            return Err(Error::data_in(
+                file,
+                Some(1),
+                format!(
+                    "no column `{p}:{}` (a trajectory has t, q:<c>, dq:<c> and ddq:<c> for every coordinate c)",
+                    excerpt(c, QUOTE)
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// [`read_trajectory`] of a table already read; `file` names it in messages.
+pub fn trajectory_from_table(
+    names: &[String],
+    table: &Table,
+    file: &str,
+    needed: [bool; 3],
+) -> Result<Trajectory> {
+    check_trajectory_header(names, &table.columns, file, needed)?;
     if table.rows == 0 {
-        return Err(Error::data_in(&file, None, "no rows"));
+        return Err(Error::data_in(file, None, "no rows"));
     }
     let t = table.column("t").unwrap_or_default();
     if let Some(k) = (1..t.len()).find(|&k| !(t[k] > t[k - 1])) {
         return Err(Error::data_in(
-            &file,
+            file,
             Some(k as u64 + 2),
             format!("t = {} does not come after t = {}", t[k], t[k - 1]),
         ));
@@ -537,7 +559,7 @@ pub fn read_trajectory(path: &Path, names: &[String], needed: [bool; 3]) -> Resu
         vec![0.0; rows * n],
         vec![0.0; rows * n],
     ];
-    for (g, p) in groups.iter_mut().zip(prefixes) {
+    for (g, p) in groups.iter_mut().zip(GROUPS) {
         for (i, c) in names.iter().enumerate() {
             if let Some(col) = table.column(&format!("{p}:{c}")) {
                 for (k, v) in col.into_iter().enumerate() {

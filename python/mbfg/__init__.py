@@ -20,7 +20,7 @@ from . import _native
 from ._native import InternalError, InvalidArgument, SceneError, SolveError, __version__
 
 __all__ = ["InternalError", "InvalidArgument", "Model", "PlausibilityWarning", "Result", "SceneError", "SolveError",
-           "animate", "inverse", "load", "simulate"]
+           "animate", "inverse", "load", "measure", "simulate"]
 
 
 class Model:
@@ -122,6 +122,19 @@ class Model:
     def potential_energy(self, q) -> float:
         """Potential energy of gravity and the springs at q, in J (0 without them)."""
         return self._m.potential_energy(q)
+
+    def sensors(self) -> list[dict]:
+        """The scene's sensors, one dict each: name, type, columns (the reading's
+        columns in a measurement file), sigma, rate (None: every sample), resolution
+        (counts per turn or None), effective_sigma (√(σ² + quantum²/12)) and reads
+        ([q, q̇, q̈]: which the reading depends on)."""
+        return self._m.sensors()
+
+    def sensor_value(self, name: str, q, dq, ddq, t: float = 0.0):
+        """The reading h(q, q̇, q̈, t) of sensor `name`, without noise, and its
+        Jacobians: (h, ∂h/∂q, ∂h/∂q̇, ∂h/∂q̈), h of 1 or 2 entries, each Jacobian
+        dim × n."""
+        return self._m.sensor_value(name, q, dq, ddq, t)
 
 
 class PlausibilityWarning(UserWarning):
@@ -253,6 +266,29 @@ def inverse(scene: str | os.PathLike, trajectory: str | os.PathLike | Mapping[st
                                     f"({type(trajectory).__name__})"))
     return _run(_native.inverse, scene, trajectory, None, None, coords, start, max_iterations,
                 loads)
+
+
+def measure(scene: str | os.PathLike | Model,
+            trajectory: "str | os.PathLike | Result | Mapping[str, Sequence[float]]",
+            seed: int, rate: float | None = None) -> dict[str, np.ndarray]:
+    """Noisy readings of the scene's sensors along a known motion, as `mbfg measure`
+    makes them: `trajectory` is a trajectory CSV path, a `Result`, or a mapping
+    {"t": times, "q:<c>": values, "dq:<c>": ..., "ddq:<c>": ...}. Returns {"t": times,
+    "<column>": readings, ...}, NaN where a sensor does not read at that time."""
+    if isinstance(scene, Model):
+        scene = scene._m
+    if isinstance(trajectory, Result):
+        trajectory = {c: trajectory.column(c) for c in trajectory.columns}
+    if isinstance(trajectory, Mapping):
+        columns, values = _table(trajectory)
+        raw = _native.measure(scene, None, columns, values, seed, rate)
+    else:
+        raw = _native.measure(scene, trajectory, None, None, seed, rate)
+    out = {"t": np.asarray(raw["t"])}
+    values = np.asarray(raw["values"])
+    for j, c in enumerate(raw["columns"]):
+        out[c] = values[:, j]
+    return out
 
 
 def _effects(effects):

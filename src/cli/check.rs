@@ -50,6 +50,7 @@ struct CheckReport {
     redundant: Vec<String>,
     bodies: usize,
     effects: Vec<String>,
+    sensors: Vec<String>,
     /// max |Φ| at the assembled initial state.
     initial_residual: f64,
     kinetic_energy: f64,
@@ -78,6 +79,7 @@ impl CheckReport {
                 .collect(),
             bodies: scene.bodies.len(),
             effects: scene.effects.iter().map(|e| e.describe(scene)).collect(),
+            sensors: model.sensors.iter().map(|s| s.describe(model)).collect(),
             initial_residual: model.phi(&init.q).amax(),
             kinetic_energy: model.kinetic_energy(&init.dq),
             potential_energy: model.potential_energy(&init.q),
@@ -146,6 +148,13 @@ impl fmt::Display for CheckReport {
             writeln!(f, "effects:")?;
             for e in &self.effects {
                 writeln!(f, "  {e}")?;
+            }
+        }
+        // Only a scene with sensors says so: the others' report is as it was.
+        if !self.sensors.is_empty() {
+            writeln!(f, "sensors:")?;
+            for s in &self.sensors {
+                writeln!(f, "  {s}")?;
             }
         }
         writeln!(

@@ -38,7 +38,7 @@ fn inverse_result<'py>(py: Python<'py>, sol: &InverseSolution) -> PyResult<Bound
 }
 
 /// The prescribed motion given as columns and row-major values.
-fn table_from(columns: &Bound<'_, PyAny>, values: &Bound<'_, PyAny>) -> PyResult<Table> {
+pub(super) fn table_from(columns: &Bound<'_, PyAny>, values: &Bound<'_, PyAny>) -> PyResult<Table> {
     let bad_columns = || {
         invalid(format!(
             "columns must be a list of strings, got {}",

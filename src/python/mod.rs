@@ -13,7 +13,7 @@
 //!
 //! `errors` holds the exceptions and the panic guard, `args` the argument checks,
 //! `model` the `Model` class, `effects` Python callables as effects, `run` what the
-//! runs share, and `simulate` and `inverse` the two runs.
+//! runs share, `sensors` the sensors and `mbfg.measure`, and `simulate` and `inverse` the two runs.
 
 mod args;
 mod effects;
@@ -22,6 +22,7 @@ mod failure;
 mod inverse;
 mod model;
 mod run;
+mod sensors;
 mod simulate;
 
 use errors::{InternalError, InvalidArgument, SceneError, SolveError};
@@ -34,6 +35,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(model::load, m)?)?;
     m.add_function(wrap_pyfunction!(simulate::simulate_run, m)?)?;
     m.add_function(wrap_pyfunction!(inverse::inverse_run, m)?)?;
+    m.add_function(wrap_pyfunction!(sensors::measure_run, m)?)?;
     m.add("SceneError", py.get_type::<SceneError>())?;
     // Every SolveError has `.result`: None where nothing was solved.
     py.get_type::<SolveError>().setattr("result", py.None())?;

@@ -493,6 +493,48 @@ impl PyModel {
     fn potential_energy(&self, q: &Bound<'_, PyAny>) -> PyResult<f64> {
         guard(|| Ok(self.model.potential_energy(&self.vector(q, "q")?)))
     }
+    /// One dict per sensor: name, type, columns, sigma, rate, resolution,
+    /// effective_sigma, reads.
+    fn sensors<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
+        guard(|| super::sensors::sensor_list(py, &self.model))
+    }
+    /// The reading of sensor `name` at (q, q̇, q̈, t) and its Jacobians.
+    #[pyo3(signature = (name, q, dq, ddq, t=None))]
+    #[allow(clippy::type_complexity)] // four arrays
+    fn sensor_value<'py>(
+        &self,
+        py: Python<'py>,
+        name: &Bound<'py, PyAny>,
+        q: &Bound<'py, PyAny>,
+        dq: &Bound<'py, PyAny>,
+        ddq: &Bound<'py, PyAny>,
+        t: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<(
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, PyArray2<f64>>,
+        Bound<'py, PyArray2<f64>>,
+        Bound<'py, PyArray2<f64>>,
+    )> {
+        guard(|| {
+            let name = arg_str(name, "name")?;
+            let (q, dq, ddq) = (
+                self.vector(q, "q")?,
+                self.vector(dq, "dq")?,
+                self.vector(ddq, "ddq")?,
+            );
+            let t = match t {
+                Some(t) => arg_real(t, "t")?,
+                None => 0.0,
+            };
+            super::sensors::sensor_value(
+                py,
+                &self.model,
+                &name,
+                [q.as_slice(), dq.as_slice(), ddq.as_slice()],
+                t,
+            )
+        })
+    }
     fn __repr__(&self) -> PyResult<String> {
         guard(|| {
             Ok(format!(

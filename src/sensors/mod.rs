@@ -88,6 +88,46 @@ impl Sensor {
         }
     }
 
+    /// A one-line description for `mbfg check`.
+    pub fn describe(&self, model: &Model) -> String {
+        let v = crate::io::number;
+        let point = |p: usize| model.scene.points[p].name.as_str();
+        let body = |b: usize| model.scene.bodies[b].name.as_str();
+        let (what, unit) = match &self.kind {
+            SensorKind::Encoder { coordinate } => (
+                format!("encoder on {}", model.names[*coordinate]),
+                if *coordinate >= model.relative_offset
+                    && model.scene.coordinates[coordinate - model.relative_offset]
+                        .kind
+                        .is_angle()
+                {
+                    "rad"
+                } else {
+                    "m"
+                },
+            ),
+            SensorKind::Gyroscope { body: b } => (format!("gyroscope on {}", body(*b)), "rad/s"),
+            SensorKind::Accelerometer { body: b, point: p } => (
+                format!("accelerometer at {} of {}", point(*p), body(*b)),
+                "m/s²",
+            ),
+            SensorKind::Marker { point: p } => (format!("marker at {}", point(*p)), "m"),
+            SensorKind::Expression { value } => (format!("expression {}", value.text()), ""),
+        };
+        let mut line = format!("{}: {what}, σ = {}", self.name, v(self.sigma));
+        if !unit.is_empty() {
+            line.push(' ');
+            line.push_str(unit);
+        }
+        if let Some(r) = self.resolution {
+            line.push_str(&format!(", {r} counts per turn"));
+        }
+        if let Some(r) = self.rate {
+            line.push_str(&format!(", {} Hz", v(r)));
+        }
+        line
+    }
+
     /// Which of q, q̇, q̈ the reading depends on.
     pub fn reads(&self) -> [bool; 3] {
         match &self.kind {
