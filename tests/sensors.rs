@@ -379,3 +379,26 @@ fn measure_adds_seeded_noise_of_sigma_at_each_rate() {
     let e = measure(&m, &tr, 5, Some(300.0)).unwrap_err().to_string();
     assert!(e.contains("sensor 'gyro' reads at 300 Hz"), "{e}");
 }
+
+#[test]
+fn measurements_round_trip_through_csv() {
+    use mbfg::sensors::measure::Measurements;
+    let m = model();
+    let tr = trajectory(&m, 41, 0.005);
+    let a = measure(&m, &tr, 9, Some(100.0)).unwrap();
+    let dir = common::scratch("sensors", "roundtrip");
+    let path = dir.join("m.csv");
+    a.write_csv(std::fs::File::create(&path).unwrap()).unwrap();
+    let b = Measurements::read(&path, Some(&m)).unwrap();
+    assert_eq!(a.columns, b.columns);
+    assert_eq!(a.t, b.t);
+    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    // NaN reads back as the same NaN.
+    assert_eq!(bits(&a.values), bits(&b.values));
+    assert!(a.values.iter().any(|v| v.is_nan()));
+    // A column no sensor has.
+    std::fs::write(&path, "t,enc,lidar\n0,1,2\n").unwrap();
+    let e = Measurements::read(&path, Some(&m)).unwrap_err().to_string();
+    assert!(e.contains("column `lidar` is not a reading"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}
