@@ -20,7 +20,7 @@ from . import _native
 from ._native import InternalError, InvalidArgument, SceneError, SolveError, __version__
 
 __all__ = ["InternalError", "InvalidArgument", "Model", "PlausibilityWarning", "Result", "SceneError", "SolveError",
-           "animate", "inverse", "load", "measure", "simulate"]
+           "Estimator", "animate", "estimate", "inverse", "load", "measure", "simulate"]
 
 
 class Model:
@@ -289,6 +289,36 @@ def measure(scene: str | os.PathLike | Model,
     for j, c in enumerate(raw["columns"]):
         out[c] = values[:, j]
     return out
+
+
+def estimate(scene: str | os.PathLike | Model,
+             measurements: "str | os.PathLike | Mapping[str, Sequence[float]]",
+             window: int | None = None, batch: bool = False, dt: float | None = None,
+             max_iterations: int = 50) -> dict:
+    """State estimation, as `mbfg estimate` runs it: the motion from the scene's model
+    and its sensors' readings. `measurements` is a CSV path (as `mbfg measure` writes
+    it) or a mapping {"t": times, "<column>": readings, ...} with NaN where a sensor
+    did not read. `window` is the fixed-lag smoother's (default 20); `batch=True`
+    estimates every step at once. Returns {"t": times, "q:<c>": ..., "dq:<c>": ...,
+    "ddq:<c>": ..., "Q:<c>": (unknown inputs), "sd:q:<c>": σ, ..., "summary": {...}}:
+    arrays of the final estimates and the run's summary (steps, window, readings, NIS
+    mean, its expected value and 95 % bounds, whether it is consistent, process σ)."""
+    if isinstance(scene, Model):
+        scene = scene._m
+    if isinstance(measurements, Mapping):
+        columns = list(measurements.keys())
+        arrays = [np.asarray(measurements[c], dtype=float) for c in columns]
+        values = np.column_stack(arrays).ravel().tolist() if arrays else []
+        raw = _native.estimate(scene, None, columns, values, window, batch, dt, max_iterations)
+    else:
+        raw = _native.estimate(scene, measurements, None, None, window, batch, dt, max_iterations)
+    values = np.asarray(raw["values"])
+    out = {c: values[:, j] for j, c in enumerate(raw["columns"])}
+    out["summary"] = raw["summary"]
+    return out
+
+
+Estimator = _native.Estimator
 
 
 def _effects(effects):

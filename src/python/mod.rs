@@ -18,6 +18,7 @@
 mod args;
 mod effects;
 mod errors;
+mod estimate;
 mod failure;
 mod inverse;
 mod model;
@@ -36,6 +37,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(simulate::simulate_run, m)?)?;
     m.add_function(wrap_pyfunction!(inverse::inverse_run, m)?)?;
     m.add_function(wrap_pyfunction!(sensors::measure_run, m)?)?;
+    m.add_function(wrap_pyfunction!(estimate::estimate_run, m)?)?;
+    m.add_class::<estimate::PyEstimator>()?;
     m.add("SceneError", py.get_type::<SceneError>())?;
     // Every SolveError has `.result`: None where nothing was solved.
     py.get_type::<SolveError>().setattr("result", py.None())?;

@@ -1,0 +1,269 @@
+//! State estimation from Python: `mbfg.estimate` over a record of readings, and the
+//! online `Estimator`, one step at a time.
+
+use super::args::{arg_count, arg_numbers, arg_path, arg_real, describe};
+use super::errors::{arg_error, guard, invalid};
+use super::model::study_model;
+use crate::estimate::run::{graph_with, reading_factors};
+use crate::estimate::{
+    estimate, EstimateOptions, Estimates, Estimator, Record, Smoothing, Uncertainty,
+};
+use crate::Model;
+use numpy::{PyArray1, PyArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyString};
+use std::sync::Arc;
+
+/// The smoothing a window and batch flag ask for.
+fn smoothing(window: Option<&Bound<'_, PyAny>>, batch: bool) -> PyResult<Smoothing> {
+    match (window, batch) {
+        (Some(w), true) if !w.is_none() => Err(invalid("give a window or batch=True, not both")),
+        (_, true) => Ok(Smoothing::Batch),
+        (Some(w), false) if !w.is_none() => Ok(Smoothing::Window(arg_count(w, "window", 1)?)),
+        _ => Ok(EstimateOptions::default().smoothing),
+    }
+}
+
+/// `mbfg.estimate`: {"columns", "values" (rows × columns), "summary"}.
+#[pyfunction]
+#[pyo3(signature = (scene, measurements, columns, values, window, batch, dt, max_iterations))]
+#[pyo3(name = "estimate")]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn estimate_run<'py>(
+    py: Python<'py>,
+    scene: &Bound<'py, PyAny>,
+    measurements: Option<&Bound<'py, PyAny>>,
+    columns: Option<&Bound<'py, PyAny>>,
+    values: Option<&Bound<'py, PyAny>>,
+    window: Option<&Bound<'py, PyAny>>,
+    batch: bool,
+    dt: Option<&Bound<'py, PyAny>>,
+    max_iterations: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    guard(|| {
+        let model = study_model(scene, &[], &[], &[])?;
+        let dt = match dt {
+            Some(d) if !d.is_none() => Some(arg_real(d, "dt")?),
+            _ => None,
+        };
+        let mut options = EstimateOptions {
+            smoothing: smoothing(window, batch)?,
+            dt,
+            ..EstimateOptions::default()
+        };
+        options.settings.max_iterations = arg_count(max_iterations, "max_iterations", 1)?;
+        let record = match (measurements, columns, values) {
+            (Some(path), None, None) => {
+                Record::read(&model, &arg_path(path, "measurements")?, dt).map_err(arg_error)?
+            }
+            (None, Some(columns), Some(values)) => record_from(&model, columns, values, dt)?,
+            (m, _, _) => {
+                return Err(invalid(format!(
+                    "measurements: give a CSV path or a mapping of columns, got {}",
+                    m.map_or("neither".to_string(), describe)
+                )))
+            }
+        };
+        let inputs: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+        let mut table = Estimates::new(&model, &inputs);
+        let summary = py
+            .detach(|| {
+                estimate(model.clone(), &record, &options, &mut |e| {
+                    table.push(e);
+                    Ok(())
+                })
+            })
+            .map_err(arg_error)?;
+        let out = PyDict::new(py);
+        let (rows, w) = (table.rows, table.columns.len());
+        out.set_item("columns", table.columns.clone())?;
+        out.set_item(
+            "values",
+            PyArray1::from_vec(py, table.values).reshape([rows, w])?,
+        )?;
+        let s = PyDict::new(py);
+        s.set_item("steps", summary.steps)?;
+        s.set_item("dt", summary.dt)?;
+        match summary.smoothing {
+            Smoothing::Window(w) => s.set_item("window", w)?,
+            Smoothing::Batch => s.set_item("window", "batch")?,
+        }
+        s.set_item("readings", summary.readings)?;
+        s.set_item("iterations", summary.iterations)?;
+        s.set_item("nis_mean", summary.nis.mean())?;
+        s.set_item("nis_expected", summary.nis.expected())?;
+        s.set_item("nis_bounds", summary.nis.bounds())?;
+        s.set_item("nis_consistent", summary.nis.consistent())?;
+        s.set_item("process_sigma", summary.process_sigma)?;
+        out.set_item("summary", s)?;
+        Ok(out)
+    })
+}
+
+/// A record from columns ("t" first) and row-major values, NaN where no reading.
+fn record_from(
+    model: &Model,
+    columns: &Bound<'_, PyAny>,
+    values: &Bound<'_, PyAny>,
+    dt: Option<f64>,
+) -> PyResult<Record> {
+    if columns.is_instance_of::<PyString>() {
+        return Err(invalid("columns must be a list of strings"));
+    }
+    let columns: Vec<String> = columns.extract().map_err(|_| {
+        invalid(format!(
+            "columns must be a list of strings, got {}",
+            describe(columns)
+        ))
+    })?;
+    let values = arg_numbers(values, "values")?;
+    let w = columns.len().max(1);
+    if values.len() % w != 0 {
+        return Err(invalid(format!(
+            "values: {} numbers do not fill whole rows of the {w} columns",
+            values.len()
+        )));
+    }
+    if values.iter().any(|v| v.is_infinite()) {
+        return Err(invalid("measurements: a reading is infinite"));
+    }
+    let rows: Vec<(f64, Vec<f64>)> = values.chunks_exact(w).map(|r| (r[0], r.to_vec())).collect();
+    Record::from_rows(model, &columns, &rows, dt).map_err(|(row, m)| match row {
+        Some(i) => invalid(format!("measurements, row {i}: {m}")),
+        None => invalid(format!("measurements: {m}")),
+    })
+}
+
+/// `mbfg.Estimator`: the fixed-lag smoother online. Each `update(t, readings)` adds
+/// the steps up to t (the readings at t, none before) and returns the newest step's
+/// estimate; its cost does not grow with the record.
+#[pyclass(name = "Estimator", module = "mbfg", unsendable)]
+pub struct PyEstimator {
+    model: Arc<Model>,
+    est: Estimator,
+    t0: f64,
+    dt: f64,
+}
+
+#[pymethods]
+impl PyEstimator {
+    #[new]
+    #[pyo3(signature = (scene, dt, window=None, t0=None))]
+    fn new(
+        scene: &Bound<'_, PyAny>,
+        dt: &Bound<'_, PyAny>,
+        window: Option<&Bound<'_, PyAny>>,
+        t0: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
+        guard(|| {
+            let model = study_model(scene, &[], &[], &[])?;
+            let dt = arg_real(dt, "dt")?;
+            if !(dt > 0.0) {
+                return Err(invalid(format!("dt must be positive, got {dt}")));
+            }
+            let t0 = match t0 {
+                Some(t) if !t.is_none() => arg_real(t, "t0")?,
+                _ => 0.0,
+            };
+            let window = match window {
+                Some(w) if !w.is_none() => arg_count(w, "window", 1)?,
+                _ => crate::estimate::options::DEFAULT_WINDOW,
+            };
+            if model.sensors.is_empty() {
+                return Err(invalid(
+                    "the scene has no sensors: declare them in `sensors:`",
+                ));
+            }
+            let record = Record {
+                t0,
+                dt,
+                steps: Vec::new(),
+            };
+            let eg = graph_with(&model, &record, &Uncertainty::of(&model)).map_err(arg_error)?;
+            let options = EstimateOptions::default();
+            let est = Estimator::new(model.clone(), eg, window, options.settings, false)
+                .map_err(arg_error)?;
+            Ok(PyEstimator { model, est, t0, dt })
+        })
+    }
+
+    /// Adds the readings at time t ({column: value}; NaN or absent: no reading) and
+    /// returns the newest step's estimate: {"t", "q", "dq", "ddq", "sd_q", "sd_dq",
+    /// "sd_ddq", "Q", "sd_Q", "nis"}.
+    fn update<'py>(
+        &mut self,
+        py: Python<'py>,
+        t: &Bound<'py, PyAny>,
+        readings: &Bound<'py, PyDict>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        guard(|| {
+            let t = arg_real(t, "t")?;
+            let k = (t - self.t0) / self.dt;
+            let step = k.round();
+            if (k - step).abs() > 1e-6 * step.abs().max(1.0) || step < 0.0 {
+                return Err(invalid(format!(
+                    "t = {t} is not on a step of {} s from t0 = {}",
+                    self.dt, self.t0
+                )));
+            }
+            let step = step as usize;
+            let next = self.est.next_step();
+            if step < next {
+                return Err(invalid(format!(
+                    "t = {t} is before the last update's time {}",
+                    self.est.time(next.saturating_sub(1))
+                )));
+            }
+            let mut columns = vec!["t".to_string()];
+            let mut row = vec![t];
+            for (key, value) in readings.iter() {
+                let name: String = key
+                    .extract()
+                    .map_err(|_| invalid("readings: keys must be column names (strings)"))?;
+                columns.push(name);
+                let v: f64 = value.extract().map_err(|_| {
+                    invalid(format!(
+                        "readings: {} must be a number",
+                        columns[columns.len() - 1]
+                    ))
+                })?;
+                if v.is_infinite() {
+                    return Err(invalid(format!(
+                        "readings: {} is infinite",
+                        columns[columns.len() - 1]
+                    )));
+                }
+                row.push(v);
+            }
+            let record = Record::from_rows(&self.model, &columns, &[(t, row)], Some(self.dt))
+                .map_err(|(_, m)| invalid(format!("readings: {m}")))?;
+            for _ in next..step {
+                self.est.update(Vec::new()).map_err(arg_error)?;
+            }
+            let factors = reading_factors(&self.model, &record.steps[0]);
+            let u = self.est.update(factors).map_err(arg_error)?;
+            let e = &u.newest;
+            let n = self.model.n();
+            let sd = e.sd();
+            let out = PyDict::new(py);
+            out.set_item("t", e.t)?;
+            let arr = |v: &[f64]| PyArray1::from_vec(py, v.to_vec());
+            out.set_item("q", arr(&e.x[..n]))?;
+            out.set_item("dq", arr(&e.x[n..2 * n]))?;
+            out.set_item("ddq", arr(&e.x[2 * n..3 * n]))?;
+            out.set_item("Q", arr(&e.x[3 * n..]))?;
+            out.set_item("sd_q", arr(&sd[..n]))?;
+            out.set_item("sd_dq", arr(&sd[n..2 * n]))?;
+            out.set_item("sd_ddq", arr(&sd[2 * n..3 * n]))?;
+            out.set_item("sd_Q", arr(&sd[3 * n..]))?;
+            out.set_item("nis", u.nis)?;
+            Ok(out)
+        })
+    }
+
+    /// The coordinates' names (the order of q).
+    #[getter]
+    fn names(&self) -> Vec<String> {
+        self.model.names.clone()
+    }
+}
