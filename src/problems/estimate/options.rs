@@ -81,7 +81,7 @@ pub const DEFAULT_INITIAL_SIGMA: f64 = 1.0;
 /// σ of the prior on an initial velocity the scene does not name (m/s or rad/s).
 pub const DEFAULT_INITIAL_VELOCITY_SIGMA: f64 = 1.0;
 /// σ of the prior on an unknown input's initial value (N or N·m): free.
-pub const INPUT_INITIAL_SIGMA: f64 = 1e3;
+pub const INPUT_INITIAL_SIGMA: f64 = 30.0;
 /// The integrators hold the motion model to this fraction of one step's process
 /// noise: the process noise, not the integration rule, is what lets the estimate
 /// leave the model.
