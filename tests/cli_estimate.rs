@@ -1,0 +1,126 @@
+//! `mbfg estimate` end to end: readings of the benchmark four-bar's crank encoder
+//! made by `mbfg measure`, estimated on the bad scene (the columns of the output
+//! contract, σ's that hold the truth, the summary line), and bad input (exit 2, one
+//! line naming what is wrong).
+
+mod common;
+use common::{mbfg, one_error_line, scratch, stderr};
+use std::path::{Path, PathBuf};
+
+fn scene(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes/estimation")
+        .join(name)
+}
+
+fn run(args: &[&str]) -> std::process::Output {
+    mbfg(args)
+}
+
+/// The true motion over 2 s at 5 ms and the encoder's readings of it (seed 3).
+fn readings(dir: &Path) -> PathBuf {
+    let truth = dir.join("truth.csv");
+    let out = run(&[
+        "simulate",
+        scene("fourbar.yaml").to_str().unwrap(),
+        "--dt",
+        "0.005",
+        "--t-end",
+        "2",
+        "--out",
+        truth.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let all = dir.join("all.csv");
+    let out = run(&[
+        "measure",
+        scene("fourbar.yaml").to_str().unwrap(),
+        "--trajectory",
+        truth.to_str().unwrap(),
+        "--seed",
+        "3",
+        "--out",
+        all.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    // The encoder's column alone.
+    let text = std::fs::read_to_string(&all).unwrap();
+    let enc: String = text
+        .lines()
+        .map(|l| l.split(',').take(2).collect::<Vec<_>>().join(",") + "\n")
+        .collect();
+    let path = dir.join("enc.csv");
+    std::fs::write(&path, enc).unwrap();
+    path
+}
+
+fn column(text: &str, name: &str) -> Vec<f64> {
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let j = header.iter().position(|c| *c == name).unwrap_or_else(|| panic!("no column {name}"));
+    lines.map(|l| l.split(',').nth(j).unwrap().parse().unwrap()).collect()
+}
+
+#[test]
+fn estimates_the_bad_model_with_honest_sigmas() {
+    let dir = scratch("cli-estimate", "run");
+    let enc = readings(&dir);
+    let out_path = dir.join("est.csv");
+    let out = run(&[
+        "estimate",
+        scene("fourbar-bad.yaml").to_str().unwrap(),
+        "--measurements",
+        enc.to_str().unwrap(),
+        "--window",
+        "20",
+        "--out",
+        out_path.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(summary.contains("401 steps (dt = 0.005 s, window 20) from 401 readings"), "{summary}");
+    assert!(summary.contains("mean NIS"), "{summary}");
+    assert!(summary.contains("process σ 3 (the default)"), "{summary}");
+    let est = std::fs::read_to_string(&out_path).unwrap();
+    let header = est.lines().next().unwrap();
+    for c in ["t", "q:theta", "dq:theta", "ddq:theta", "sd:q:theta", "sd:dq:theta", "sd:q:P2.y"] {
+        assert!(header.split(',').any(|h| h == c), "no column {c} in {header}");
+    }
+    let truth = std::fs::read_to_string(dir.join("truth.csv")).unwrap();
+    let (z, sd, zt) = (column(&est, "q:theta"), column(&est, "sd:q:theta"), column(&truth, "q:theta"));
+    assert_eq!(z.len(), 401);
+    // The bad model starts π/16 ≈ 0.196 rad off; the estimate follows the truth.
+    let rms = (z.iter().zip(&zt).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / z.len() as f64).sqrt();
+    assert!(rms < 1e-2, "θ RMSE {rms}");
+    let inside = z.iter().zip(&zt).zip(&sd).filter(|((a, b), s)| (*a - *b).abs() <= 2.0 * **s).count();
+    assert!(inside as f64 >= 0.9 * z.len() as f64, "{inside} of {} within 2σ", z.len());
+}
+
+#[test]
+fn bad_readings_are_refused_naming_what_is_wrong() {
+    let dir = scratch("cli-estimate", "errors");
+    let bad = scene("fourbar-bad.yaml");
+    let check = |name: &str, text: &str, expect: &str| {
+        let path = dir.join(name);
+        std::fs::write(&path, text).unwrap();
+        let out = run(&["estimate", bad.to_str().unwrap(), "--measurements", path.to_str().unwrap()]);
+        let line = one_error_line(&out, 2);
+        assert!(line.contains(expect), "{name}: {line}");
+    };
+    check("nan.csv", "t,enc\n0,1.0\n0.005,NaN\n", "nan.csv:3: column `enc`: NaN is not finite");
+    check("unknown.csv", "t,enc,lidar\n0,1.0,2\n", "column `lidar` is no sensor of the scene");
+    check("offgrid.csv", "t,enc\n0,1.0\n0.005,1.0\n0.01,1.0\n0.013,1.0\n", "not on a step");
+    check("order.csv", "t,enc\n0,1.0\n0.01,1.0\n0.005,1.0\n", "does not increase");
+    check("half.csv", "t,enc\n", "no rows");
+    // A scene without sensors.
+    let plain = dir.join("plain.csv");
+    std::fs::write(&plain, "t,enc\n0,1\n").unwrap();
+    let out = run(&[
+        "estimate",
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/fourbar.yaml").to_str().unwrap(),
+        "--measurements",
+        plain.to_str().unwrap(),
+    ]);
+    let line = one_error_line(&out, 2);
+    assert!(line.contains("has no sensors"), "{line}");
+}
