@@ -57,8 +57,13 @@ fn readings(dir: &Path) -> PathBuf {
 fn column(text: &str, name: &str) -> Vec<f64> {
     let mut lines = text.lines();
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-    let j = header.iter().position(|c| *c == name).unwrap_or_else(|| panic!("no column {name}"));
-    lines.map(|l| l.split(',').nth(j).unwrap().parse().unwrap()).collect()
+    let j = header
+        .iter()
+        .position(|c| *c == name)
+        .unwrap_or_else(|| panic!("no column {name}"));
+    lines
+        .map(|l| l.split(',').nth(j).unwrap().parse().unwrap())
+        .collect()
 }
 
 #[test]
@@ -78,22 +83,50 @@ fn estimates_the_bad_model_with_honest_sigmas() {
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let summary = String::from_utf8_lossy(&out.stdout);
-    assert!(summary.contains("401 steps (dt = 0.005 s, window 20) from 401 readings"), "{summary}");
+    assert!(
+        summary.contains("401 steps (dt = 0.005 s, window 20) from 401 readings"),
+        "{summary}"
+    );
     assert!(summary.contains("mean NIS"), "{summary}");
     assert!(summary.contains("process σ 3 (the default)"), "{summary}");
     let est = std::fs::read_to_string(&out_path).unwrap();
     let header = est.lines().next().unwrap();
-    for c in ["t", "q:theta", "dq:theta", "ddq:theta", "sd:q:theta", "sd:dq:theta", "sd:q:P2.y"] {
-        assert!(header.split(',').any(|h| h == c), "no column {c} in {header}");
+    for c in [
+        "t",
+        "q:theta",
+        "dq:theta",
+        "ddq:theta",
+        "sd:q:theta",
+        "sd:dq:theta",
+        "sd:q:P2.y",
+    ] {
+        assert!(
+            header.split(',').any(|h| h == c),
+            "no column {c} in {header}"
+        );
     }
     let truth = std::fs::read_to_string(dir.join("truth.csv")).unwrap();
-    let (z, sd, zt) = (column(&est, "q:theta"), column(&est, "sd:q:theta"), column(&truth, "q:theta"));
+    let (z, sd, zt) = (
+        column(&est, "q:theta"),
+        column(&est, "sd:q:theta"),
+        column(&truth, "q:theta"),
+    );
     assert_eq!(z.len(), 401);
     // The bad model starts π/16 ≈ 0.196 rad off; the estimate follows the truth.
-    let rms = (z.iter().zip(&zt).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / z.len() as f64).sqrt();
+    let rms =
+        (z.iter().zip(&zt).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / z.len() as f64).sqrt();
     assert!(rms < 1e-2, "θ RMSE {rms}");
-    let inside = z.iter().zip(&zt).zip(&sd).filter(|((a, b), s)| (*a - *b).abs() <= 2.0 * **s).count();
-    assert!(inside as f64 >= 0.9 * z.len() as f64, "{inside} of {} within 2σ", z.len());
+    let inside = z
+        .iter()
+        .zip(&zt)
+        .zip(&sd)
+        .filter(|((a, b), s)| (*a - *b).abs() <= 2.0 * **s)
+        .count();
+    assert!(
+        inside as f64 >= 0.9 * z.len() as f64,
+        "{inside} of {} within 2σ",
+        z.len()
+    );
 }
 
 #[test]
@@ -103,21 +136,45 @@ fn bad_readings_are_refused_naming_what_is_wrong() {
     let check = |name: &str, text: &str, expect: &str| {
         let path = dir.join(name);
         std::fs::write(&path, text).unwrap();
-        let out = run(&["estimate", bad.to_str().unwrap(), "--measurements", path.to_str().unwrap()]);
+        let out = run(&[
+            "estimate",
+            bad.to_str().unwrap(),
+            "--measurements",
+            path.to_str().unwrap(),
+        ]);
         let line = one_error_line(&out, 2);
         assert!(line.contains(expect), "{name}: {line}");
     };
-    check("nan.csv", "t,enc\n0,1.0\n0.005,NaN\n", "nan.csv:3: column `enc`: NaN is not finite");
-    check("unknown.csv", "t,enc,lidar\n0,1.0,2\n", "column `lidar` is no sensor of the scene");
-    check("offgrid.csv", "t,enc\n0,1.0\n0.005,1.0\n0.01,1.0\n0.013,1.0\n", "not on a step");
-    check("order.csv", "t,enc\n0,1.0\n0.01,1.0\n0.005,1.0\n", "does not increase");
+    check(
+        "nan.csv",
+        "t,enc\n0,1.0\n0.005,NaN\n",
+        "nan.csv:3: column `enc`: NaN is not finite",
+    );
+    check(
+        "unknown.csv",
+        "t,enc,lidar\n0,1.0,2\n",
+        "column `lidar` is no sensor of the scene",
+    );
+    check(
+        "offgrid.csv",
+        "t,enc\n0,1.0\n0.005,1.0\n0.01,1.0\n0.013,1.0\n",
+        "not on a step",
+    );
+    check(
+        "order.csv",
+        "t,enc\n0,1.0\n0.01,1.0\n0.005,1.0\n",
+        "does not increase",
+    );
     check("half.csv", "t,enc\n", "no rows");
     // A scene without sensors.
     let plain = dir.join("plain.csv");
     std::fs::write(&plain, "t,enc\n0,1\n").unwrap();
     let out = run(&[
         "estimate",
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/fourbar.yaml").to_str().unwrap(),
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scenes/fourbar.yaml")
+            .to_str()
+            .unwrap(),
         "--measurements",
         plain.to_str().unwrap(),
     ]);

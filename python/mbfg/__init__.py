@@ -305,15 +305,24 @@ def estimate(scene: str | os.PathLike | Model,
     mean, its expected value and 95 % bounds, whether it is consistent, process σ)."""
     if isinstance(scene, Model):
         scene = scene._m
-    if isinstance(measurements, Mapping):
-        columns = list(measurements.keys())
-        arrays = [np.asarray(measurements[c], dtype=float) for c in columns]
-        values = np.column_stack(arrays).ravel().tolist() if arrays else []
-        raw = _native.estimate(scene, None, columns, values, window, batch, dt, max_iterations)
-    else:
-        raw = _native.estimate(scene, measurements, None, None, window, batch, dt, max_iterations)
-    values = np.asarray(raw["values"])
-    out = {c: values[:, j] for j, c in enumerate(raw["columns"])}
+    def arrays(raw):
+        values = np.asarray(raw["values"])
+        return {c: values[:, j] for j, c in enumerate(raw["columns"])}
+
+    try:
+        if isinstance(measurements, Mapping):
+            columns = list(measurements.keys())
+            cols = [np.asarray(measurements[c], dtype=float) for c in columns]
+            values = np.column_stack(cols).ravel().tolist() if cols else []
+            raw = _native.estimate(scene, None, columns, values, window, batch, dt, max_iterations)
+        else:
+            raw = _native.estimate(scene, measurements, None, None, window, batch, dt, max_iterations)
+    except SolveError as e:
+        # The steps final before the failure.
+        if isinstance(getattr(e, "result", None), dict):
+            e.result = arrays(e.result)
+        raise
+    out = arrays(raw)
     out["summary"] = raw["summary"]
     return out
 

@@ -129,7 +129,7 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
     };
     format!(
         "{} steps (dt = {} s, {how}) from {} readings in {:.3} s ({:.0} µs a step); \
-         linear solves per step: mean {:.2}; mean NIS {:.3} against {:.0} expected, \
+         linear solves per step: mean {:.2}; mean NIS {:.3} against {:.3} expected, \
          95 % bounds [{lo:.3}, {hi:.3}]: {verdict}; process σ {}",
         s.steps,
         seconds(s.dt),

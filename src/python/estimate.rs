@@ -2,7 +2,7 @@
 //! online `Estimator`, one step at a time.
 
 use super::args::{arg_count, arg_numbers, arg_path, arg_real, describe};
-use super::errors::{arg_error, guard, invalid};
+use super::errors::{arg_error, guard, invalid, one_line, SolveError};
 use super::model::study_model;
 use crate::estimate::run::{graph_with, reading_factors};
 use crate::estimate::{
@@ -66,14 +66,12 @@ pub(super) fn estimate_run<'py>(
         };
         let inputs: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
         let mut table = Estimates::new(&model, &inputs);
-        let summary = py
-            .detach(|| {
-                estimate(model.clone(), &record, &options, &mut |e| {
-                    table.push(e);
-                    Ok(())
-                })
+        let result = py.detach(|| {
+            estimate(model.clone(), &record, &options, &mut |e| {
+                table.push(e);
+                Ok(())
             })
-            .map_err(arg_error)?;
+        });
         let out = PyDict::new(py);
         let (rows, w) = (table.rows, table.columns.len());
         out.set_item("columns", table.columns.clone())?;
@@ -81,6 +79,10 @@ pub(super) fn estimate_run<'py>(
             "values",
             PyArray1::from_vec(py, table.values).reshape([rows, w])?,
         )?;
+        let summary = match result {
+            Ok(summary) => summary,
+            Err(e) => return Err(run_error(py, e, Some(out))),
+        };
         let s = PyDict::new(py);
         s.set_item("steps", summary.steps)?;
         s.set_item("dt", summary.dt)?;
@@ -98,6 +100,22 @@ pub(super) fn estimate_run<'py>(
         out.set_item("summary", s)?;
         Ok(out)
     })
+}
+
+/// A run's error: a solve that did not converge, or an estimate left undetermined,
+/// as `SolveError` with the final steps so far as `.result`; anything else as the
+/// input error it is.
+fn run_error(py: Python<'_>, e: crate::Error, partial: Option<Bound<'_, PyDict>>) -> PyErr {
+    match e {
+        e @ (crate::Error::NotConverged { .. } | crate::Error::Singular { .. }) => {
+            let err = SolveError::new_err(one_line(&e.to_string()));
+            if let Some(p) = partial {
+                let _ = err.value(py).setattr("result", p);
+            }
+            err
+        }
+        other => arg_error(other),
+    }
 }
 
 /// A record from columns ("t" first) and row-major values, NaN where no reading.
@@ -238,10 +256,15 @@ impl PyEstimator {
             let record = Record::from_rows(&self.model, &columns, &[(t, row)], Some(self.dt))
                 .map_err(|(_, m)| invalid(format!("readings: {m}")))?;
             for _ in next..step {
-                self.est.update(Vec::new()).map_err(arg_error)?;
+                self.est
+                    .update(Vec::new())
+                    .map_err(|e| run_error(py, e, None))?;
             }
             let factors = reading_factors(&self.model, &record.steps[0]);
-            let u = self.est.update(factors).map_err(arg_error)?;
+            let u = self
+                .est
+                .update(factors)
+                .map_err(|e| run_error(py, e, None))?;
             let e = &u.newest;
             let n = self.model.n();
             let sd = e.sd();

@@ -45,7 +45,10 @@ impl EstimationGraph {
             .step_constraint(Box::new(PositionConstraints::new(model.clone())))
             .step_constraint(Box::new(VelocityConstraints::new(model.clone())))
             .step_soft(dynamics, Noise::Isotropic(uncertainty.process));
-        let integrators = Integrator::Trapezoidal.factors(&model, Form::Full, dt);
+        // Projected on the constraints' tangent space: the full integrators ask 2m more
+        // equations a step than the motion has free directions, a compromise whose
+        // minimum is ill-determined along slow directions (see `factors::tangent`).
+        let integrators = Integrator::Trapezoidal.factors(&model, Form::Tangent, dt);
         for (factor, sigma) in integrators.into_iter().zip(uncertainty.integrators(dt)) {
             builder = builder.step_soft(factor, Noise::Isotropic(sigma));
         }
