@@ -180,10 +180,24 @@ def truth(path: str) -> tj.Trajectory:
     return tj.read(pathlib.Path(path))
 
 
-def cli(*args) -> str:
-    """Runs the mbfg CLI; its stdout. Retries a failure a few times (the binary may be
-    rebuilt under us), then raises RuntimeError with its stderr."""
+def snapshot() -> pathlib.Path:
+    """A copy of the binary for one page's runs, target/estimation/bin/mbfg-<sha256>: a
+    rebuild while the page runs does not mix two builds in its tables."""
     exe = binary()
+    if not exe.exists():
+        raise FileNotFoundError(f"no mbfg binary at {exe} (`make build`, or set MBFG)")
+    data = exe.read_bytes()
+    path = CACHE / "bin" / f"mbfg-{hashlib.sha256(data).hexdigest()[:12]}"
+    if not path.exists():
+        atomic_write(path, data)
+        path.chmod(0o755)
+    return path
+
+
+def cli(*args, exe=None) -> str:
+    """Runs the mbfg CLI (`exe`, default `binary()`); its stdout. Retries a failure a few
+    times (the binary may be rebuilt under us), then raises RuntimeError with its stderr."""
+    exe = pathlib.Path(exe) if exe else binary()
     if not exe.exists():
         raise FileNotFoundError(f"no mbfg binary at {exe} (`make build`, or set MBFG)")
     for attempt in range(RETRIES):
@@ -195,7 +209,8 @@ def cli(*args) -> str:
     raise RuntimeError(f"mbfg {args[0]} failed ({r.returncode}): {' '.join(r.stderr.split())[:400]}")
 
 
-def readings_path(case: Case, seed: int, t_end: float = T_END, folder: pathlib.Path = CACHE) -> pathlib.Path:
+def readings_path(case: Case, seed: int, t_end: float = T_END, folder: pathlib.Path = CACHE,
+                  exe=None) -> pathlib.Path:
     """The case's readings for a seed: `mbfg measure` on the TRUE scene, then the case's
     columns."""
     tpath = truth_path(case.true_scene, t_end)
@@ -205,7 +220,7 @@ def readings_path(case: Case, seed: int, t_end: float = T_END, folder: pathlib.P
         full.parent.mkdir(parents=True, exist_ok=True)
         tmp = full.with_name(f".{full.name}.{os.getpid()}.csv")
         cli("measure", SCENES / case.true_scene, "--trajectory", tpath, "--seed", seed,
-            "--out", tmp)
+            "--out", tmp, exe=exe)
         os.replace(tmp, full)
     out = folder / "readings" / f"{tag}-seed{seed}-{'+'.join(case.columns)}.csv"
     if not out.exists():
@@ -278,8 +293,9 @@ def parse_summary(line: str) -> dict:
 
 def run_task(task: tuple) -> dict:
     """One estimate and its scores: (case key, seed, estimator, t_end, readings path,
-    truth path, keep the series for the plots)."""
-    key, seed, est, t_end, rpath, tpath, keep = task
+    truth path, keep the series for the plots[, the mbfg binary])."""
+    key, seed, est, t_end, rpath, tpath, keep, *exe = task
+    exe = exe[0] if exe else None
     case = CASE[key]
     tr = truth(tpath)
     names = independent(case.bad_scene)
@@ -292,7 +308,7 @@ def run_task(task: tuple) -> dict:
             out.parent.mkdir(parents=True, exist_ok=True)
             args = ["--batch"] if est == "mbfg batch" else ["--window", est.split("=")[1]]
             line = cli("estimate", SCENES / case.bad_scene, "--measurements", rpath, *args,
-                       "--out", out)
+                       "--out", out, exe=exe)
             row.update(parse_summary(line))
             d = read_table(out)
             out.unlink()
@@ -375,26 +391,27 @@ def run(cases=CASES, seeds=SEEDS, sweep_seeds=SWEEP_SEEDS, sweep_windows=SWEEP_W
     """Every (case, seed, estimator) run, the N_w sweep on the crank encoder, the open
     loops. `sweep`: harness/sweep.py's Sweep (None: in this process)."""
     began = time.perf_counter()
+    exe = str(snapshot())
     tasks, rpaths = [], {}
     for case in cases:
         tpath = str(truth_path(case.true_scene, t_end))
         for seed in seeds:
-            rpath = str(readings_path(case, seed, t_end))
+            rpath = str(readings_path(case, seed, t_end, exe=exe))
             rpaths[(case.key, seed)] = rpath
             for est in estimators(case):
                 if est == "UKF" and ukf_seeds and seed not in seeds[:ukf_seeds]:
                     continue
-                tasks.append((case.key, seed, est, t_end, rpath, tpath, seed == PLOT_SEED))
+                tasks.append((case.key, seed, est, t_end, rpath, tpath, seed == PLOT_SEED, exe))
     enc = next((c for c in cases if c.key == "encoder"), None)
     done = {(t[0], t[1], t[2]) for t in tasks}
     if enc is not None and sweep_windows:
         tpath = str(truth_path(enc.true_scene, t_end))
         for seed in sweep_seeds:
-            rpath = rpaths.get((enc.key, seed)) or str(readings_path(enc, seed, t_end))
+            rpath = rpaths.get((enc.key, seed)) or str(readings_path(enc, seed, t_end, exe=exe))
             for w in sweep_windows:
                 est = "mbfg batch" if w == "batch" else f"mbfg N_w={w}"
                 if ("encoder", seed, est) not in done:
-                    tasks.append(("encoder", seed, est, t_end, rpath, tpath, False))
+                    tasks.append(("encoder", seed, est, t_end, rpath, tpath, False, exe))
     progress(f"estimation: {len(tasks)} runs "
              f"({sweep.describe() if sweep is not None else 'in this process'})")
     rows = (sweep.map(run_task, tasks, "estimation runs", cost=task_cost) if sweep is not None
@@ -404,7 +421,8 @@ def run(cases=CASES, seeds=SEEDS, sweep_seeds=SWEEP_SEEDS, sweep_windows=SWEEP_W
             "sweep_seeds": list(sweep_seeds), "sweep_windows": list(sweep_windows),
             "t_end": t_end, "cases": [c.key for c in cases],
             "ukf_seeds": list(seeds[:ukf_seeds]) if ukf_seeds else list(seeds),
-            "seconds": time.perf_counter() - began}
+            "seconds": time.perf_counter() - began,
+            "binary": str(binary()), "binary_sha256": pathlib.Path(exe).name.removeprefix("mbfg-")}
 
 
 # ---------------------------------------------------------------- scores and targets
@@ -568,8 +586,9 @@ def case_table(res, case: Case, loop: dict) -> str:
         pub = case.published.get(est, ())
         pub_txt = " / ".join(p for p in pub if p) if pub else "—"
         if not rs:
-            why = failed[0]["status"] if failed else "not run"
-            lines.append(f"| {label(est)} | failed: {why} |" + " |" * (head.count("|") - 3))
+            why = f"failed: {failed[0]['status']}" if failed else "not run"
+            lines.append(f"| {label(est)} | {why} |" + " |" * (head.count("|") - 4)
+                         + f" {pub_txt} |")
             continue
         line = f"| {label(est)} | {coords(rs, 'z')} | {coords(rs, 'dz')} | {coords(rs, 'ddz')} |"
         if case.force:
@@ -612,7 +631,9 @@ def sweep_table(res) -> str:
     head = ("| N_w | DC z (rad) | DC ż (rad/s) | DC z̈ (rad/s²) | DC µs/step | IC |")
     lines = [head, "|---|---|---|---|---|---|"]
     ic = "not available: `--coords ic` is not supported by mbfg estimate yet"
-    for w in res["sweep_windows"]:
+    for k, w in enumerate(res["sweep_windows"]):
+        if k:
+            ic = "not available"
         est = "mbfg batch" if w == "batch" else f"mbfg N_w={w}"
         rs = ok_rows(rows, "encoder", est, seeds)
         if not rs:
@@ -645,7 +666,8 @@ def write_page(res, out_dir: pathlib.Path = REPORTS, plots: bool = True) -> str:
               + (f" (the UKF, the slowest peer, on the first {len(ukf)} only: its median and "
                  f"worst are over those)" if len(ukf) < len(seeds) else "")
               + f"; the page took {res['seconds']:.0f} s (runs in parallel, one per core). "
-              f"mbfg: `{display(binary())}`.\n")
+              f"mbfg: `{display(res.get('binary', binary()))}` (sha256 "
+              f"{res.get('binary_sha256', '?')}…, copied for the page's runs).\n")
     md.append("## Targets for mbfg\n")
     md.append("On the medians over the seeds; the published batch MAP numbers are the "
               "batch's targets, the published errorEKF's set the others.\n")
