@@ -551,10 +551,12 @@ the module docstring of `harness/kalman.py`), not tuned on this truth.
   summary line (the solve, without the process start), the peers' measured around
   `run()` in Python. Runs share the machine's cores with each other, so compare orders of
   magnitude, not percent.
-- **published**: the numbers for the same configuration from the authors' toolbox
-  (MBDS/mbde-matlab, the state of the paper; run once with GNU Octave, one noise draw,
-  `/work/shared/ESTIMATION.md`): they rank the methods, they are not the paper's own table.
-  "batch MAP smoother" is beside mbfg batch (a factor graph in all but name).
+- **published**: the numbers of Sanjurjo et al. 2017's benchmark for the same
+  configuration, from the authors' toolbox (GitHub MBDS/mbde-matlab at commit 9072204,
+  "State used for the paper of Nonlinear Dynamics", run with GNU Octave on one noise
+  draw): they rank the methods; they are not the paper's own table, and one draw is not
+  our median. The toolbox's "batch MAP smoother" is beside mbfg batch (a factor graph in
+  all but name); the gyroscope has the later, realistic σ of 9.84e-4 rad/s.
 
 Reproduce: `make build`, then `.venv/bin/python -m harness.estimation` (or
 `.venv/bin/python -m harness.report --only estimation`); `--seeds N`, `--sweep-seeds N`,
