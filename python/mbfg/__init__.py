@@ -294,7 +294,7 @@ def measure(scene: str | os.PathLike | Model,
 def estimate(scene: str | os.PathLike | Model,
              measurements: "str | os.PathLike | Mapping[str, Sequence[float]]",
              window: int | None = None, batch: bool = False, dt: float | None = None,
-             max_iterations: int = 50) -> dict:
+             max_iterations: int = 200) -> dict:
     """State estimation, as `mbfg estimate` runs it: the motion from the scene's model
     and its sensors' readings. `measurements` is a CSV path (as `mbfg measure` writes
     it) or a mapping {"t": times, "<column>": readings, ...} with NaN where a sensor

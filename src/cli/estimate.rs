@@ -35,7 +35,7 @@ pub struct EstimateArgs {
     #[arg(long, value_name = "S")]
     dt: Option<f64>,
     /// Linear solves allowed per window solve.
-    #[arg(long, value_name = "K", default_value_t = 50)]
+    #[arg(long, value_name = "K", default_value_t = 200)]
     max_iterations: usize,
     /// Output CSV (gzip-compressed when it ends in `.gz`); the summary then goes to
     /// standard output.

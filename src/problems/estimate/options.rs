@@ -22,6 +22,10 @@ pub enum Smoothing {
 pub fn estimation_settings() -> Settings {
     let mut s = Settings {
         corrections: 20,
+        // The first steps of a record may start far from the readings along a
+        // direction they barely determine (the velocity from a rough start), where
+        // the solve crawls before it converges.
+        max_iterations: 200,
         ..Settings::default()
     };
     s.thresholds.flat_decrease = 1e-5;
