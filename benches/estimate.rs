@@ -84,7 +84,13 @@ fn online_steps(c: &mut Criterion) {
     for steps in [1_000usize, 16_000] {
         group.bench_with_input(BenchmarkId::from_parameter(steps), &steps, |b, &steps| {
             b.iter(|| {
-                let eg = run::graph_with(&bad, &record, &Uncertainty::of(&bad)).unwrap();
+                let eg = run::graph_with(
+                    &bad,
+                    Coordinates::Dependent,
+                    &record,
+                    &Uncertainty::of(&bad),
+                )
+                .unwrap();
                 let settings = EstimateOptions::default().settings;
                 let mut est = Estimator::new(bad.clone(), eg, 20, settings, false).unwrap();
                 for k in 0..steps {

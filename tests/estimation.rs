@@ -108,14 +108,7 @@ fn run(
         smoothing,
         ..EstimateOptions::default()
     };
-    let mut table = Estimates::new(
-        &m,
-        &m.estimation
-            .inputs
-            .iter()
-            .map(|&(c, _)| c)
-            .collect::<Vec<_>>(),
-    );
+    let mut table = Estimates::for_model(&m);
     let summary = estimate(m, &record, &options, &mut |e| {
         table.push(e);
         Ok(())
@@ -202,8 +195,13 @@ fn the_online_estimator_keeps_a_bounded_buffer_and_graph() {
     let truth = truth(7.0);
     let (columns, rows) = readings(&truth, 5, &["enc"]);
     let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
-    let eg =
-        mbfg::estimate::run::graph_with(&m, &record, &mbfg::estimate::Uncertainty::of(&m)).unwrap();
+    let eg = mbfg::estimate::run::graph_with(
+        &m,
+        Coordinates::Dependent,
+        &record,
+        &mbfg::estimate::Uncertainty::of(&m),
+    )
+    .unwrap();
     let mut est = Estimator::new(
         m.clone(),
         eg,

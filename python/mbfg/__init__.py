@@ -294,7 +294,7 @@ def measure(scene: str | os.PathLike | Model,
 def estimate(scene: str | os.PathLike | Model,
              measurements: "str | os.PathLike | Mapping[str, Sequence[float]]",
              window: int | None = None, batch: bool = False, dt: float | None = None,
-             max_iterations: int = 200) -> dict:
+             max_iterations: int = 200, coords: str = "dc") -> dict:
     """State estimation, as `mbfg estimate` runs it: the motion from the scene's model
     and its sensors' readings. `measurements` is a CSV path (as `mbfg measure` writes
     it) or a mapping {"t": times, "<column>": readings, ...} with NaN where a sensor
@@ -314,9 +314,9 @@ def estimate(scene: str | os.PathLike | Model,
             columns = list(measurements.keys())
             cols = [np.asarray(measurements[c], dtype=float) for c in columns]
             values = np.column_stack(cols).ravel().tolist() if cols else []
-            raw = _native.estimate(scene, None, columns, values, window, batch, dt, max_iterations)
+            raw = _native.estimate(scene, None, columns, values, window, batch, dt, max_iterations, coords)
         else:
-            raw = _native.estimate(scene, measurements, None, None, window, batch, dt, max_iterations)
+            raw = _native.estimate(scene, measurements, None, None, window, batch, dt, max_iterations, coords)
     except SolveError as e:
         # The steps final before the failure.
         if isinstance(getattr(e, "result", None), dict):

@@ -5,6 +5,7 @@
 use super::failure::{plain, Failure};
 use super::output::Output;
 use super::{load, print_summary, seconds};
+use mbfg::coordinates::Coordinates;
 use mbfg::estimate::{estimate, EstimateOptions, EstimateSummary, Estimates, Record, Smoothing};
 use std::cell::RefCell;
 use std::path::PathBuf;
@@ -27,8 +28,10 @@ pub struct EstimateArgs {
     /// pass).
     #[arg(long)]
     batch: bool,
-    /// Coordinates of the estimate's graph (dependent only, for now).
-    #[arg(long, default_value = "dc", value_parser = ["dc"])]
+    /// Coordinates of the estimate's graph: dependent (natural; the process noise on
+    /// every q̈) or independent (the scene's `independent:`; the process noise on
+    /// their z̈).
+    #[arg(long, default_value = "dc", value_parser = ["dc", "ic"])]
     coords: String,
     /// The step, in seconds; every reading must fall on one [default: the readings'
     /// period].
@@ -63,6 +66,11 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
         return Err(Failure::Input("--window must be at least 1".into()));
     }
     let mut options = EstimateOptions {
+        coordinates: if args.coords == "ic" {
+            Coordinates::Independent
+        } else {
+            Coordinates::Dependent
+        },
         smoothing: match (args.batch, args.window) {
             (true, _) => Smoothing::Batch,
             (false, Some(w)) => Smoothing::Window(w),
@@ -78,8 +86,7 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
     let output = Output::open(args.out.as_deref(), &[&args.scene, &args.measurements])?;
     let record =
         Record::read(&model, &args.measurements, args.dt).map_err(|e| Failure::Input(plain(e)))?;
-    let inputs: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
-    let table = RefCell::new(Estimates::new(&model, &inputs));
+    let table = RefCell::new(Estimates::for_model(&model));
     let started = std::time::Instant::now();
     let result = estimate(model.clone(), &record, &options, &mut |e| {
         table.borrow_mut().push(e);
@@ -119,6 +126,10 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
     let how = match s.smoothing {
         Smoothing::Window(w) => format!("window {w}"),
         Smoothing::Batch => "batch".to_string(),
+    };
+    let how = match s.coordinates {
+        Coordinates::Dependent => format!("DC, {how}"),
+        Coordinates::Independent => format!("IC, {how}"),
     };
     let nis = &s.nis;
     let (lo, hi) = nis.bounds();

@@ -1,9 +1,10 @@
 //! State estimation from Python: `mbfg.estimate` over a record of readings, and the
 //! online `Estimator`, one step at a time.
 
-use super::args::{arg_count, arg_numbers, arg_path, arg_real, describe};
+use super::args::{arg_count, arg_numbers, arg_path, arg_real, arg_str, describe};
 use super::errors::{arg_error, guard, invalid, one_line, SolveError};
 use super::model::study_model;
+use crate::coordinates::Coordinates;
 use crate::estimate::run::{graph_with, reading_factors};
 use crate::estimate::{
     estimate, EstimateOptions, Estimates, Estimator, Record, Smoothing, Uncertainty,
@@ -24,9 +25,20 @@ fn smoothing(window: Option<&Bound<'_, PyAny>>, batch: bool) -> PyResult<Smoothi
     }
 }
 
+/// "dc" or "ic".
+fn coordinates(coords: &Bound<'_, PyAny>) -> PyResult<Coordinates> {
+    match arg_str(coords, "coords")?.as_str() {
+        "dc" => Ok(Coordinates::Dependent),
+        "ic" => Ok(Coordinates::Independent),
+        other => Err(invalid(format!(
+            "coords must be \"dc\" or \"ic\", got {other:?}"
+        ))),
+    }
+}
+
 /// `mbfg.estimate`: {"columns", "values" (rows × columns), "summary"}.
 #[pyfunction]
-#[pyo3(signature = (scene, measurements, columns, values, window, batch, dt, max_iterations))]
+#[pyo3(signature = (scene, measurements, columns, values, window, batch, dt, max_iterations, coords))]
 #[pyo3(name = "estimate")]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn estimate_run<'py>(
@@ -39,6 +51,7 @@ pub(super) fn estimate_run<'py>(
     batch: bool,
     dt: Option<&Bound<'py, PyAny>>,
     max_iterations: &Bound<'py, PyAny>,
+    coords: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
         let model = study_model(scene, &[], &[], &[])?;
@@ -47,6 +60,7 @@ pub(super) fn estimate_run<'py>(
             _ => None,
         };
         let mut options = EstimateOptions {
+            coordinates: coordinates(coords)?,
             smoothing: smoothing(window, batch)?,
             dt,
             ..EstimateOptions::default()
@@ -64,8 +78,7 @@ pub(super) fn estimate_run<'py>(
                 )))
             }
         };
-        let inputs: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
-        let mut table = Estimates::new(&model, &inputs);
+        let mut table = Estimates::for_model(&model);
         let result = py.detach(|| {
             estimate(model.clone(), &record, &options, &mut |e| {
                 table.push(e);
@@ -85,6 +98,13 @@ pub(super) fn estimate_run<'py>(
         };
         let s = PyDict::new(py);
         s.set_item("steps", summary.steps)?;
+        s.set_item(
+            "coords",
+            match summary.coordinates {
+                Coordinates::Dependent => "dc",
+                Coordinates::Independent => "ic",
+            },
+        )?;
         s.set_item("dt", summary.dt)?;
         match summary.smoothing {
             Smoothing::Window(w) => s.set_item("window", w)?,
@@ -166,12 +186,13 @@ pub struct PyEstimator {
 #[pymethods]
 impl PyEstimator {
     #[new]
-    #[pyo3(signature = (scene, dt, window=None, t0=None))]
+    #[pyo3(signature = (scene, dt, window=None, t0=None, coords=None))]
     fn new(
         scene: &Bound<'_, PyAny>,
         dt: &Bound<'_, PyAny>,
         window: Option<&Bound<'_, PyAny>>,
         t0: Option<&Bound<'_, PyAny>>,
+        coords: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         guard(|| {
             let model = study_model(scene, &[], &[], &[])?;
@@ -182,6 +203,10 @@ impl PyEstimator {
             let t0 = match t0 {
                 Some(t) if !t.is_none() => arg_real(t, "t0")?,
                 _ => 0.0,
+            };
+            let coordinates = match coords {
+                Some(c) if !c.is_none() => coordinates(c)?,
+                _ => Coordinates::Dependent,
             };
             let window = match window {
                 Some(w) if !w.is_none() => arg_count(w, "window", 1)?,
@@ -197,7 +222,8 @@ impl PyEstimator {
                 dt,
                 steps: Vec::new(),
             };
-            let eg = graph_with(&model, &record, &Uncertainty::of(&model)).map_err(arg_error)?;
+            let eg = graph_with(&model, coordinates, &record, &Uncertainty::of(&model))
+                .map_err(arg_error)?;
             let options = EstimateOptions::default();
             let est = Estimator::new(model.clone(), eg, window, options.settings, false)
                 .map_err(arg_error)?;

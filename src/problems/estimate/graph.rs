@@ -1,30 +1,41 @@
 //! The factor graph of an estimate ([`EstimationGraph`]): the forward graph's
 //! motion model with the dynamics soft at the process noise, soft priors on a
 //! start known roughly, the unknown inputs as random walks, and the readings at
-//! the steps they were taken.
+//! the steps they were taken. In dependent coordinates (DC) the process noise acts
+//! on every q̈; in independent ones (IC) on z̈, the motion's own degrees of freedom.
 
 use super::options::{Uncertainty, INPUT_INITIAL_SIGMA};
+use crate::coordinates::Coordinates;
 use crate::dynamics;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::factors::*;
-use crate::graph::{ChainGraph, Factor, Layout, Noise, VarKind};
+use crate::graph::{ChainGraph, ChainGraphBuilder, Factor, Layout, Noise, VarKind};
 use crate::model::{Model, State};
 use std::sync::Arc;
+
+/// σ of the weak link between consecutive steps' q in IC: it only keeps the
+/// assembly branch the motion is on (as in a forward IC graph).
+const BRANCH_LINK_SIGMA: f64 = 10.0;
 
 /// The graph, its layout's sizes and the start its priors hold.
 pub struct EstimationGraph {
     pub graph: ChainGraph,
+    pub coordinates: Coordinates,
     pub n: usize,
+    /// The independent coordinates (IC; indices into q), empty in DC.
+    pub independent: Vec<usize>,
     /// Unknown inputs (generalized forces on chosen coordinates).
     pub inputs: Vec<usize>,
     pub start: State,
 }
 
 impl EstimationGraph {
-    /// The graph of `model` at step `dt` from `start`, with `uncertainty`; the readings
-    /// are added as they come ([`ChainGraph::add_soft_at`]).
+    /// The graph of `model` in `coordinates` at step `dt` from `start`, with
+    /// `uncertainty`; the readings are added as they come
+    /// ([`ChainGraph::add_soft_at`]).
     pub fn new(
         model: Arc<Model>,
+        coordinates: Coordinates,
         uncertainty: &Uncertainty,
         dt: f64,
         start: State,
@@ -32,43 +43,39 @@ impl EstimationGraph {
         let n = model.n();
         let inputs: Vec<usize> = uncertainty.inputs.iter().map(|&(c, _)| c).collect();
         let f = inputs.len();
+        let independent = match coordinates {
+            Coordinates::Dependent => Vec::new(),
+            Coordinates::Independent if model.independent.is_empty() => {
+                return Err(Error::InvalidArgument(
+                    "an estimate in independent coordinates needs the scene to declare them \
+                     (`independent:`)"
+                        .into(),
+                ))
+            }
+            Coordinates::Independent if f > 0 => {
+                return Err(Error::InvalidArgument(
+                    "unknown inputs (`estimation: inputs:`) are estimated in dependent \
+                     coordinates only: use --coords dc"
+                        .into(),
+                ))
+            }
+            Coordinates::Independent => model.independent.clone(),
+        };
+        let z = independent.len();
         let mut vars = vec![(VarKind::Q, n), (VarKind::Dq, n), (VarKind::Ddq, n)];
+        if z > 0 {
+            vars.extend([(VarKind::Z, z), (VarKind::Dz, z), (VarKind::Ddz, z)]);
+        }
         if f > 0 {
             vars.push((VarKind::Force, f));
         }
-        let dynamics: Box<dyn Factor> = if f > 0 {
-            Box::new(Dynamics::inverse_on(model.clone(), inputs.clone()))
-        } else {
-            Box::new(Dynamics::new(model.clone()))
+        let builder = ChainGraph::builder(Layout::new(&vars), dt, 0.0);
+        let builder = match coordinates {
+            Coordinates::Dependent => dependent(builder, &model, uncertainty, &inputs, dt, &start),
+            Coordinates::Independent => {
+                independent_graph(builder, &model, uncertainty, &independent, dt, &start)
+            }
         };
-        let mut builder = ChainGraph::builder(Layout::new(&vars), dt, 0.0)
-            .step_constraint(Box::new(PositionConstraints::new(model.clone())))
-            .step_constraint(Box::new(VelocityConstraints::new(model.clone())))
-            .step_soft(dynamics, Noise::Isotropic(uncertainty.process));
-        // Projected on the constraints' tangent space: the full integrators ask 2m more
-        // equations a step than the motion has free directions, a compromise whose
-        // minimum is ill-determined along slow directions (see `factors::tangent`).
-        let integrators = Integrator::Trapezoidal.factors(&model, Form::Tangent, dt);
-        for (factor, sigma) in integrators.into_iter().zip(uncertainty.integrators(dt)) {
-            builder = builder.step_soft(factor, Noise::Isotropic(sigma));
-        }
-        if f > 0 {
-            // A random walk: Q_k − Q_{k−1} ~ N(0, σ_rate² Δt).
-            let walk = uncertainty
-                .inputs
-                .iter()
-                .map(|&(_, rate)| rate * dt.sqrt())
-                .collect();
-            builder = builder
-                .step_soft(
-                    Box::new(Equality::new(VarKind::Force, f)),
-                    Noise::Diagonal(walk),
-                )
-                .initial_soft(
-                    Box::new(Prior::new(VarKind::Force, vec![0.0; f])),
-                    Noise::Isotropic(INPUT_INITIAL_SIGMA),
-                );
-        }
         let graph = builder
             .initial_soft(
                 Box::new(Prior::new(VarKind::Q, start.q.as_slice().to_vec())),
@@ -81,7 +88,9 @@ impl EstimationGraph {
             .build()?;
         Ok(EstimationGraph {
             graph,
+            coordinates,
             n,
+            independent,
             inputs,
             start,
         })
@@ -92,6 +101,14 @@ impl EstimationGraph {
         self.graph.layout().size()
     }
 
+    /// Where the unknown inputs sit in a step's block.
+    pub fn inputs_at(&self) -> usize {
+        self.graph
+            .layout()
+            .slot(VarKind::Force)
+            .map_or(self.size(), |(o, _)| o)
+    }
+
     /// The guess of step 0: the start and its accelerations, no input.
     pub fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
         let s = &self.start;
@@ -100,12 +117,15 @@ impl EstimationGraph {
         block.extend_from_slice(s.q.as_slice());
         block.extend_from_slice(s.dq.as_slice());
         block.extend_from_slice(ddq.as_slice());
+        for v in [s.q.as_slice(), s.dq.as_slice(), ddq.as_slice()] {
+            block.extend(self.independent.iter().map(|&i| v[i]));
+        }
         block.resize(self.size(), 0.0);
         Ok(block)
     }
 
-    /// The guess of step k from the two before: a Taylor step of q, q̇, q̈ with the
-    /// jerk of the last two accelerations; the inputs held.
+    /// The guess of step k from the two before: a Taylor step of (q, q̇, q̈) and
+    /// (z, ż, z̈) with the jerk of the last two accelerations; the inputs held.
     pub fn predict(&self, values: &mut [f64], k: usize) {
         let (n, s) = (self.n, self.size());
         let dt = self.graph.dt();
@@ -113,13 +133,103 @@ impl EstimationGraph {
         let older = (k >= 2).then(|| &prev[(k - 2) * s..(k - 1) * s]);
         let prev = &prev[(k - 1) * s..];
         let next = &mut next[..s];
-        for i in 0..n {
-            let (x, v, a) = (prev[i], prev[n + i], prev[2 * n + i]);
-            let j = older.map_or(0.0, |o| (a - o[2 * n + i]) / dt);
-            next[i] = x + dt * v + 0.5 * dt * dt * a + dt * dt * dt / 6.0 * j;
-            next[n + i] = v + dt * a + 0.5 * dt * dt * j;
-            next[2 * n + i] = a + dt * j;
+        let z = self.independent.len();
+        for (off, d) in [(0, n), (3 * n, z)] {
+            for i in 0..d {
+                let (x, v, a) = (prev[off + i], prev[off + d + i], prev[off + 2 * d + i]);
+                let j = older.map_or(0.0, |o| (a - o[off + 2 * d + i]) / dt);
+                next[off + i] = x + dt * v + 0.5 * dt * dt * a + dt * dt * dt / 6.0 * j;
+                next[off + d + i] = v + dt * a + 0.5 * dt * dt * j;
+                next[off + 2 * d + i] = a + dt * j;
+            }
         }
-        next[3 * n..].copy_from_slice(&prev[3 * n..s]);
+        let held = 3 * (n + z);
+        next[held..].copy_from_slice(&prev[held..s]);
     }
+}
+
+/// The DC graph's step factors: the constraints held, f_dyn soft at the process
+/// noise (with the inputs a variable), the integrators, the inputs' random walk.
+fn dependent(
+    builder: ChainGraphBuilder,
+    model: &Arc<Model>,
+    uncertainty: &Uncertainty,
+    inputs: &[usize],
+    dt: f64,
+    _start: &State,
+) -> ChainGraphBuilder {
+    let f = inputs.len();
+    let dynamics: Box<dyn Factor> = if f > 0 {
+        Box::new(Dynamics::inverse_on(model.clone(), inputs.to_vec()))
+    } else {
+        Box::new(Dynamics::new(model.clone()))
+    };
+    let mut builder = builder
+        .step_constraint(Box::new(PositionConstraints::new(model.clone())))
+        .step_constraint(Box::new(VelocityConstraints::new(model.clone())))
+        .step_soft(dynamics, Noise::Isotropic(uncertainty.process));
+    // Projected on the constraints' tangent space: the full integrators ask 2m more
+    // equations a step than the motion has free directions, a compromise whose
+    // minimum is ill-determined along slow directions (see `factors::tangent`).
+    let integrators = Integrator::Trapezoidal.factors(model, Form::Tangent, dt);
+    for (factor, sigma) in integrators.into_iter().zip(uncertainty.integrators(dt)) {
+        builder = builder.step_soft(factor, Noise::Isotropic(sigma));
+    }
+    if f > 0 {
+        // A random walk: Q_k − Q_{k−1} ~ N(0, σ_rate² Δt).
+        let walk = uncertainty
+            .inputs
+            .iter()
+            .map(|&(_, rate)| rate * dt.sqrt())
+            .collect();
+        builder = builder
+            .step_soft(
+                Box::new(Equality::new(VarKind::Force, f)),
+                Noise::Diagonal(walk),
+            )
+            .initial_soft(
+                Box::new(Prior::new(VarKind::Force, vec![0.0; f])),
+                Noise::Isotropic(INPUT_INITIAL_SIGMA),
+            );
+    }
+    builder
+}
+
+/// The IC graph's step factors: q, q̇, q̈ held to z, ż, z̈ by the constraints, f^i_dyn
+/// soft at the process noise on z̈, the integrators of z, the weak link that keeps
+/// the assembly branch.
+fn independent_graph(
+    builder: ChainGraphBuilder,
+    model: &Arc<Model>,
+    uncertainty: &Uncertainty,
+    independent: &[usize],
+    dt: f64,
+    _start: &State,
+) -> ChainGraphBuilder {
+    let set = independent.to_vec();
+    let mut builder = builder
+        .step_constraint(Box::new(IndependentPosition::with(
+            model.clone(),
+            set.clone(),
+        )))
+        .step_constraint(Box::new(IndependentVelocity::with(
+            model.clone(),
+            set.clone(),
+        )))
+        .step_constraint(Box::new(IndependentAcceleration::with(
+            model.clone(),
+            set.clone(),
+        )))
+        .step_soft(
+            Box::new(IndependentDynamics::with(model.clone(), set.clone())),
+            Noise::Isotropic(uncertainty.process),
+        );
+    let integrators = Integrator::Trapezoidal.factors(model, Form::Independent(independent), dt);
+    for (factor, sigma) in integrators.into_iter().zip(uncertainty.integrators(dt)) {
+        builder = builder.step_soft(factor, Noise::Isotropic(sigma));
+    }
+    builder.step_soft(
+        Box::new(Equality::new(VarKind::Q, model.n())),
+        Noise::Isotropic(BRANCH_LINK_SIGMA),
+    )
 }

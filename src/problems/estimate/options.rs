@@ -1,6 +1,7 @@
 //! What an estimation run is asked to do ([`EstimateOptions`]) and the model's
 //! uncertainty it weighs the readings against ([`Uncertainty`]).
 
+use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::solver::Settings;
 
@@ -41,6 +42,7 @@ pub const BATCH_START_WINDOW: usize = 10;
 /// An estimation run's settings.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EstimateOptions {
+    pub coordinates: Coordinates,
     pub smoothing: Smoothing,
     /// The step; `None`: the readings' period.
     pub dt: Option<f64>,
@@ -50,6 +52,7 @@ pub struct EstimateOptions {
 impl Default for EstimateOptions {
     fn default() -> Self {
         EstimateOptions {
+            coordinates: Coordinates::Dependent,
             smoothing: Smoothing::Window(DEFAULT_WINDOW),
             dt: None,
             settings: estimation_settings(),

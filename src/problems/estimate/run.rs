@@ -7,6 +7,7 @@ use super::graph::EstimationGraph;
 use super::online::{Estimator, StepEstimate};
 use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW};
 use super::record::Record;
+use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::factors::Reading;
 use crate::graph::{Factor, Noise};
@@ -17,6 +18,7 @@ use std::sync::Arc;
 /// What a run did, for its summary.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EstimateSummary {
+    pub coordinates: Coordinates,
     pub steps: usize,
     pub dt: f64,
     pub smoothing: Smoothing,
@@ -51,11 +53,17 @@ pub fn reading_factors(
 /// with `uncertainty`.
 pub fn graph_with(
     model: &Arc<Model>,
+    coordinates: Coordinates,
     record: &Record,
     uncertainty: &Uncertainty,
 ) -> Result<EstimationGraph> {
-    let mut eg =
-        EstimationGraph::new(model.clone(), uncertainty, record.dt, model.initial.clone())?;
+    let mut eg = EstimationGraph::new(
+        model.clone(),
+        coordinates,
+        uncertainty,
+        record.dt,
+        model.initial.clone(),
+    )?;
     eg.graph.set_t0(record.t0);
     Ok(eg)
 }
@@ -77,7 +85,7 @@ pub fn estimate(
     }
     let uncertainty = Uncertainty::of(&model);
     let process_sigma = uncertainty.process;
-    let eg = graph_with(&model, record, &uncertainty)?;
+    let eg = graph_with(&model, options.coordinates, record, &uncertainty)?;
     let (window, keep_all) = match options.smoothing {
         Smoothing::Window(w) => (w, false),
         Smoothing::Batch => (BATCH_START_WINDOW, true),
@@ -106,6 +114,7 @@ pub fn estimate(
         }
     }
     Ok(EstimateSummary {
+        coordinates: options.coordinates,
         steps,
         dt: record.dt,
         smoothing: options.smoothing,

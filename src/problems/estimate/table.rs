@@ -14,12 +14,15 @@ pub struct Estimates {
     /// Row-major rows × columns (t first).
     pub values: Vec<f64>,
     pub rows: usize,
+    /// Where each estimate column's value sits in a step's block.
+    picks: Vec<usize>,
 }
 
 impl Estimates {
     /// An empty table of `model`'s coordinates and the unknown inputs on the
-    /// coordinates `inputs`.
-    pub fn new(model: &Model, inputs: &[usize]) -> Self {
+    /// coordinates `inputs`, whose values sit in each step's block from `inputs_at`
+    /// on (after q, q̇, q̈ in DC; after z, ż, z̈ too in IC).
+    pub fn new(model: &Model, inputs: &[usize], inputs_at: usize) -> Self {
         let mut columns = vec!["t".to_string()];
         for p in ["q", "dq", "ddq"] {
             columns.extend(model.names.iter().map(|c| format!("{p}:{c}")));
@@ -29,18 +32,31 @@ impl Estimates {
             columns.extend(model.names.iter().map(|c| format!("sd:{p}:{c}")));
         }
         columns.extend(inputs.iter().map(|&i| format!("sd:Q:{}", model.names[i])));
+        let n = model.n();
+        let picks = (0..3 * n)
+            .chain(inputs_at..inputs_at + inputs.len())
+            .collect();
         Estimates {
             columns,
             values: Vec::new(),
             rows: 0,
+            picks,
         }
+    }
+
+    /// The table of an estimate of `model`: its coordinates and its scene's unknown
+    /// inputs (estimated in DC, where they follow q, q̇, q̈ in the block).
+    pub fn for_model(model: &Model) -> Self {
+        let inputs: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+        Estimates::new(model, &inputs, 3 * model.n())
     }
 
     /// Appends a step's estimate (its block: q, q̇, q̈, inputs) and its σ's.
     pub fn push(&mut self, e: &StepEstimate) {
         self.values.push(e.t);
-        self.values.extend_from_slice(&e.x);
-        self.values.extend(e.sd());
+        self.values.extend(self.picks.iter().map(|&i| e.x[i]));
+        let sd = e.sd();
+        self.values.extend(self.picks.iter().map(|&i| sd[i]));
         self.rows += 1;
     }
 
