@@ -84,7 +84,7 @@ fn estimates_the_bad_model_with_honest_sigmas() {
     assert!(out.status.success(), "{}", stderr(&out));
     let summary = String::from_utf8_lossy(&out.stdout);
     assert!(
-        summary.contains("401 steps (dt = 0.005 s, window 20) from 401 readings"),
+        summary.contains("401 steps (dt = 0.005 s, DC, window 20) from 401 readings"),
         "{summary}"
     );
     assert!(summary.contains("mean NIS"), "{summary}");

@@ -228,3 +228,55 @@ fn the_online_estimator_keeps_a_bounded_buffer_and_graph() {
         "the graph held {most_terms} readings"
     );
 }
+
+#[test]
+fn independent_coordinates_estimate_as_well_as_dependent_ones() {
+    // The crank encoder over 3 s, window 10, in IC (the process noise on z̈) and DC
+    // (on every q̈): the same readings, σ's that hold the truth in both.
+    let truth = truth(3.0);
+    let m = model("fourbar-bad.yaml");
+    let (columns, rows) = readings(&truth, 4, &["enc"]);
+    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
+    let score_in = |coordinates| {
+        let options = EstimateOptions {
+            coordinates,
+            smoothing: Smoothing::Window(10),
+            ..EstimateOptions::default()
+        };
+        let mut table = Estimates::for_model(&m);
+        let summary = estimate(m.clone(), &record, &options, &mut |e| {
+            table.push(e);
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(summary.coordinates, coordinates);
+        score(&truth, &table)
+    };
+    let (ic, dc) = (
+        score_in(Coordinates::Independent),
+        score_in(Coordinates::Dependent),
+    );
+    assert!(ic.z < 1.5 * dc.z, "IC z RMSE {} against DC {}", ic.z, dc.z);
+    assert!(ic.z < 1e-2, "IC z RMSE {}", ic.z);
+    assert!(ic.inside >= 0.9, "IC: truth within ±2σ at {}", ic.inside);
+}
+
+#[test]
+fn unknown_inputs_in_independent_coordinates_are_refused() {
+    let path = Path::new(SCENES).join("fourbar-bad-input.yaml");
+    let m = Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap());
+    let record = Record {
+        t0: 0.0,
+        dt: 0.005,
+        steps: vec![Vec::new(); 3],
+    };
+    let options = EstimateOptions {
+        coordinates: Coordinates::Independent,
+        ..EstimateOptions::default()
+    };
+    let err = estimate(m, &record, &options, &mut |_| Ok(())).unwrap_err();
+    assert!(
+        err.to_string().contains("dependent coordinates only"),
+        "{err}"
+    );
+}
