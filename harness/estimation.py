@@ -753,7 +753,7 @@ def write_page(res, out_dir: pathlib.Path = REPORTS, plots: bool = True) -> str:
                   "the dependent-coordinate graph (DC, the default) beside `--coords ic` (IC)"
                   + (f"; IC not run at N_w = "
                      f"{', '.join(str(w) for w in res['sweep_windows'] if w not in res.get('sweep_windows_ic', []))}"
-                     f", to keep the page short" if any(w not in res.get("sweep_windows_ic", [])
+                     f" (the costliest runs)" if any(w not in res.get("sweep_windows_ic", [])
                                                          for w in res["sweep_windows"]) else "")
                   + ".\n")
         md.append(sweep_table(res) + "\n")
