@@ -4,9 +4,12 @@
 
 use super::failure::{plain, Failure};
 use super::output::Output;
+use super::progress::Progress;
 use super::{load, print_summary, seconds};
 use mbfg::coordinates::Coordinates;
-use mbfg::estimate::{estimate, EstimateOptions, EstimateSummary, Estimates, Record, Smoothing};
+use mbfg::estimate::{
+    estimate_with_progress, EstimateOptions, EstimateSummary, Estimates, Record, Smoothing,
+};
 use std::cell::RefCell;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -88,10 +91,18 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
         Record::read(&model, &args.measurements, args.dt).map_err(|e| Failure::Input(plain(e)))?;
     let table = RefCell::new(Estimates::for_model(&model));
     let started = std::time::Instant::now();
-    let result = estimate(model.clone(), &record, &options, &mut |e| {
-        table.borrow_mut().push(e);
-        Ok(())
-    });
+    let mut bar = Progress::new(options.smoothing == Smoothing::Batch);
+    let result = estimate_with_progress(
+        model.clone(),
+        &record,
+        &options,
+        &mut |e| {
+            table.borrow_mut().push(e);
+            Ok(())
+        },
+        &mut |done, total| bar.update(done, total),
+    );
+    bar.finish();
     let elapsed = started.elapsed().as_secs_f64();
     let table = table.into_inner();
     let to_file = output.to_file();

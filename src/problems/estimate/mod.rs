@@ -16,5 +16,5 @@ pub use graph::EstimationGraph;
 pub use online::{Estimator, StepEstimate, Update};
 pub use options::{EstimateOptions, Smoothing, Uncertainty};
 pub use record::Record;
-pub use run::{estimate, EstimateSummary};
+pub use run::{estimate, estimate_with_progress, EstimateSummary};
 pub use table::Estimates;

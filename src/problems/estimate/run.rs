@@ -77,6 +77,18 @@ pub fn estimate(
     options: &EstimateOptions,
     sink: &mut dyn FnMut(&StepEstimate) -> Result<()>,
 ) -> Result<EstimateSummary> {
+    estimate_with_progress(model, record, options, sink, &mut |_, _| {})
+}
+
+/// [`estimate`], telling `progress` (steps done, steps in all) after each step of
+/// the fixed-lag pass.
+pub fn estimate_with_progress(
+    model: Arc<Model>,
+    record: &Record,
+    options: &EstimateOptions,
+    sink: &mut dyn FnMut(&StepEstimate) -> Result<()>,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<EstimateSummary> {
     options.validate()?;
     if model.sensors.is_empty() {
         return Err(Error::InvalidArgument(
@@ -92,8 +104,10 @@ pub fn estimate(
     };
     let settings = options.settings;
     let mut est = Estimator::new(model.clone(), eg, window, settings, keep_all)?;
-    for readings in &record.steps {
+    let total = record.steps.len();
+    for (k, readings) in record.steps.iter().enumerate() {
         let update = est.update(reading_factors(&model, readings))?;
+        progress(k + 1, total);
         if !keep_all {
             for f in &update.finals {
                 sink(f)?;
