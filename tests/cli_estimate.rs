@@ -181,3 +181,50 @@ fn bad_readings_are_refused_naming_what_is_wrong() {
     let line = one_error_line(&out, 2);
     assert!(line.contains("has no sensors"), "{line}");
 }
+
+#[test]
+fn a_failed_estimate_names_its_step_and_keeps_the_final_steps() {
+    let dir = scratch("cli-estimate", "partial");
+    let enc = readings(&dir);
+    // A corrupted reading at step 100 (10⁶ rad): no estimate explains it.
+    let text = std::fs::read_to_string(&enc).unwrap();
+    let corrupt: String = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| match i {
+            101 => format!("{},1000000\n", l.split(',').next().unwrap()),
+            _ => format!("{l}\n"),
+        })
+        .collect();
+    let bad_readings = dir.join("corrupt.csv");
+    std::fs::write(&bad_readings, corrupt).unwrap();
+    let out_path = dir.join("est.csv");
+    let out = run(&[
+        "estimate",
+        scene("fourbar-bad.yaml").to_str().unwrap(),
+        "--measurements",
+        bad_readings.to_str().unwrap(),
+        "--window",
+        "5",
+        "--out",
+        out_path.to_str().unwrap(),
+    ]);
+    let line = one_error_line(&out, 1);
+    assert!(
+        line.contains("the estimate at step 100 (t = 0.5 s) did not converge"),
+        "{line}"
+    );
+    // Steps 0..=95 had left the window of five, final.
+    assert!(line.contains("96 steps kept in"), "{line}");
+    assert!(
+        !out_path.exists(),
+        "the target holds only complete estimates"
+    );
+    let partial = std::fs::read_to_string(dir.join("est.partial.csv")).unwrap();
+    assert_eq!(partial.lines().count(), 97, "a header and 96 rows");
+    assert!(
+        partial.lines().last().unwrap().starts_with("0.475,"),
+        "{}",
+        partial.lines().last().unwrap()
+    );
+}
