@@ -112,6 +112,14 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
                 .commit_with(&|w| table.write_csv(w))
                 .map_err(Failure::Run)?;
             print_summary(to_file, &summary_line(&summary, elapsed));
+            if summary.unsettled > 0 {
+                eprintln!(
+                    "warning: {} window solves reached the iteration limit ({}) still improving \
+                     and were kept, the next step's solve going on from them; \
+                     --max-iterations raises the limit",
+                    summary.unsettled, options.settings.max_iterations
+                );
+            }
             if let Some(w) = consistency_warning(&summary) {
                 eprintln!("warning: {w}");
             }

@@ -112,6 +112,7 @@ pub(super) fn estimate_run<'py>(
         }
         s.set_item("readings", summary.readings)?;
         s.set_item("iterations", summary.iterations)?;
+        s.set_item("unsettled", summary.unsettled)?;
         s.set_item("nis_mean", summary.nis.mean())?;
         s.set_item("nis_expected", summary.nis.expected())?;
         s.set_item("nis_bounds", summary.nis.bounds())?;

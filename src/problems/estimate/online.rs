@@ -49,6 +49,13 @@ pub struct Update {
     pub report: SolveReport,
 }
 
+/// A window solve that reaches the iteration limit is kept when its cost is below
+/// this many times its residual count: a fit still improving (a rough start whose
+/// error the window's readings only slowly reveal), not one no estimate explains (a
+/// corrupted reading), which stops the run. An online estimator has a budget of
+/// solves per step; the next step's solve goes on from where this one stopped.
+pub const PLAUSIBLE_COST: f64 = 10.0;
+
 /// Steps the buffer holds before it moves, past the window.
 const BUFFER: usize = 1024;
 
@@ -73,6 +80,9 @@ pub struct Estimator {
     ws: Workspace,
     pub nis: Nis,
     pub iterations: usize,
+    /// Window solves that reached the iteration limit and were kept (see
+    /// [`PLAUSIBLE_COST`]).
+    pub unsettled: usize,
 }
 
 impl Estimator {
@@ -105,6 +115,7 @@ impl Estimator {
             eg,
             nis: Nis::default(),
             iterations: 0,
+            unsettled: 0,
         })
     }
 
@@ -188,15 +199,38 @@ impl Estimator {
         )?;
         report.iterations += warm;
         self.iterations += report.iterations;
-        if report.termination != Termination::Converged {
+        let plausible = report.termination == Termination::IterationLimit
+            && report.cost <= PLAUSIBLE_COST * self.residuals(k + 1 - self.k0) as f64;
+        if plausible {
+            // Still improving at the limit, its cost that of a fit: kept, and the
+            // next step's solve goes on from it.
+            self.unsettled += 1;
+        } else if report.termination != Termination::Converged {
             return Err(Error::NotConverged {
                 what: format!("the estimate at step {run_k} (t = {} s)", self.time(run_k)),
                 report,
             });
         }
-        self.solver
-            .covariances_after_solve(&self.eg.graph, self.k0, k + 1, &mut self.covariances)
-            .map_err(|e| self.located(e, run_k))?;
+        // The last solve's normal equations, unless they hold the exact Hessian of
+        // a solve that switched to Newton's method (not positive definite away from
+        // the optimum): then the Gauss–Newton matrix at the estimate.
+        let reused = !plausible
+            && self
+                .solver
+                .covariances_after_solve(&self.eg.graph, self.k0, k + 1, &mut self.covariances)
+                .is_ok();
+        if !reused {
+            self.solver
+                .covariances(
+                    &self.eg.graph,
+                    &self.values,
+                    self.k0,
+                    k + 1,
+                    self.prior.as_ref(),
+                    &mut self.covariances,
+                )
+                .map_err(|e| self.located(e, run_k))?;
+        }
         let newest = self.estimate_of(k);
         let nis = {
             let layout = self.eg.graph.layout().clone();
@@ -232,6 +266,25 @@ impl Estimator {
         (self.finalized.max(base + self.k0)..self.next)
             .map(|run| self.estimate_of(run - base))
             .collect()
+    }
+
+    /// The soft residuals of a window of `steps` steps ending at the newest: every
+    /// step's factors and the readings in it.
+    fn residuals(&self, steps: usize) -> usize {
+        let graph = &self.eg.graph;
+        let per_step: usize = graph
+            .step_terms()
+            .iter()
+            .filter(|t| !t.is_constraint())
+            .map(|t| t.factor().dim())
+            .sum();
+        let last = self.next;
+        let first = (last + 1).saturating_sub(steps);
+        let readings: usize = graph.sparse_terms()[graph.sparse_range(first, last + 1)]
+            .iter()
+            .map(|(_, t)| t.factor().dim())
+            .sum();
+        per_step * steps + readings
     }
 
     /// The estimate of buffer step k of the last solve.

@@ -83,6 +83,11 @@ impl EstimateOptions {
 /// coordinates' acceleration units (m/s², rad/s²): a model believed to about a
 /// third of gravity's effect. The summary's NIS says whether it suits the record.
 pub const DEFAULT_PROCESS_SIGMA: f64 = 3.0;
+/// σ of the dynamics factor when the scene declares unknown inputs and no
+/// `process_sigma`: the inputs carry the model's error, the process noise only
+/// what they cannot (a tenth of [`DEFAULT_PROCESS_SIGMA`]); with the default's σ
+/// the process noise would explain much of what the inputs should.
+pub const DEFAULT_PROCESS_SIGMA_WITH_INPUTS: f64 = 0.3;
 /// σ of the prior on an initial position the scene does not name (m or rad): a start
 /// known only roughly.
 pub const DEFAULT_INITIAL_SIGMA: f64 = 1.0;
@@ -112,9 +117,11 @@ impl Uncertainty {
     pub fn of(model: &crate::model::Model) -> Self {
         let spec = &model.estimation;
         let mut u = Uncertainty::defaults(model.n());
-        if let Some(p) = spec.process_sigma {
-            u.process = p;
-        }
+        u.process = match (spec.process_sigma, spec.inputs.is_empty()) {
+            (Some(p), _) => p,
+            (None, true) => DEFAULT_PROCESS_SIGMA,
+            (None, false) => DEFAULT_PROCESS_SIGMA_WITH_INPUTS,
+        };
         for &(i, s) in &spec.initial_sigma {
             u.initial_q[i] = s;
         }

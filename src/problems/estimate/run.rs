@@ -27,6 +27,8 @@ pub struct EstimateSummary {
     pub iterations: usize,
     /// The normalized innovations of the fixed-lag pass (filtered estimates).
     pub nis: Nis,
+    /// Window solves of the fixed-lag pass kept at the iteration limit.
+    pub unsettled: usize,
     pub process_sigma: f64,
     /// Whether the process σ is the scene's (else the default).
     pub scene_process_sigma: bool,
@@ -135,6 +137,7 @@ pub fn estimate_with_progress(
         readings: record.readings(),
         iterations,
         nis: est.nis.clone(),
+        unsettled: est.unsettled,
         process_sigma,
         scene_process_sigma: model.estimation.process_sigma.is_some(),
     })
