@@ -166,6 +166,11 @@ fn bad_readings_are_refused_naming_what_is_wrong() {
         "does not increase",
     );
     check("half.csv", "t,enc\n", "no rows");
+    check(
+        "empty.csv",
+        "t,enc\n0,\n0.005,\n",
+        "no readings: every sensor cell is empty",
+    );
     // A scene without sensors.
     let plain = dir.join("plain.csv");
     std::fs::write(&plain, "t,enc\n0,1\n").unwrap();

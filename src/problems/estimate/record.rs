@@ -19,6 +19,10 @@ pub struct Record {
     pub steps: Vec<StepReadings>,
 }
 
+/// Why a record without a single reading is refused.
+pub const NO_READINGS: &str =
+    "no readings: every sensor cell is empty, and an estimate without readings is the model's own simulation";
+
 /// How far from a step a reading's time may be, as a fraction of dt.
 const ON_STEP: f64 = 1e-6;
 
@@ -38,8 +42,12 @@ impl Record {
             })
             .collect();
         let columns = table.columns.clone();
-        Record::from_rows(model, &columns, &rows, dt)
-            .map_err(|(line, m)| Error::data_in(&file, line.map(|l| l as u64 + 2), m))
+        let record = Record::from_rows(model, &columns, &rows, dt)
+            .map_err(|(line, m)| Error::data_in(&file, line.map(|l| l as u64 + 2), m))?;
+        if record.readings() == 0 {
+            return Err(Error::data_in(&file, None, NO_READINGS));
+        }
+        Ok(record)
     }
 
     /// The record of rows (t, then the cells of `columns`, `columns[0]` = "t", NaN

@@ -97,6 +97,9 @@ pub fn estimate_with_progress(
             "the scene has no sensors: an estimate needs a `sensors:` section".into(),
         ));
     }
+    if record.readings() == 0 {
+        return Err(Error::InvalidArgument(super::record::NO_READINGS.into()));
+    }
     let uncertainty = Uncertainty::of(&model);
     let process_sigma = uncertainty.process;
     let eg = graph_with(&model, options.coordinates, record, &uncertainty)?;
