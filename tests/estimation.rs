@@ -268,7 +268,7 @@ fn unknown_inputs_in_independent_coordinates_are_refused() {
     let record = Record {
         t0: 0.0,
         dt: 0.005,
-        steps: vec![Vec::new(); 3],
+        steps: vec![vec![(0, vec![1.2])], Vec::new(), Vec::new()],
     };
     let options = EstimateOptions {
         coordinates: Coordinates::Independent,
