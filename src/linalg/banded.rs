@@ -185,6 +185,8 @@ pub struct BandedCholesky {
     summation: Summation,
     /// One block's Cᵀ (s × s), for the factorization in lanes.
     scratch: Vec<f64>,
+    /// What [`BandedCholesky::inverse_diagonal_blocks`] works in.
+    inverse_scratch: Vec<f64>,
 }
 
 impl BandedCholesky {
@@ -199,6 +201,7 @@ impl BandedCholesky {
             c: Vec::with_capacity(capacity * s * s),
             summation: Summation::Sequential,
             scratch: vec![0.0; s * s],
+            inverse_scratch: Vec::new(),
         }
     }
 
@@ -397,22 +400,32 @@ impl BandedCholesky {
     /// Σ_k = L_k⁻ᵀ(I + C_{k+1}ᵀ Σ_{k+1} C_{k+1})L_k⁻¹ before it, C_{k+1} = L[k+1][k].
     /// A marginal covariance per block in O(Σ d_k³), never the whole inverse.
     /// `out[k]` is row-major d_k × d_k.
-    pub fn inverse_diagonal_blocks(&self, out: &mut Vec<Vec<f64>>) {
+    pub fn inverse_diagonal_blocks(&mut self, out: &mut Vec<Vec<f64>>) {
         out.resize_with(self.blocks, Vec::new);
+        let s = self.s;
+        // M (d_k²), SC (d_{k+1} × d_k), Y (d_k²), one column (d_k): reused, as the
+        // blocks are (an estimator asks for them every step).
+        self.inverse_scratch.resize(3 * s * s + s, 0.0);
         for k in (0..self.blocks).rev() {
             let dk = self.dims[k];
+            let (m, rest) = self.inverse_scratch.split_at_mut(s * s);
+            let (sc, rest) = rest.split_at_mut(s * s);
+            let (y, col) = rest.split_at_mut(s * s);
+            let (m, y, col) = (&mut m[..dk * dk], &mut y[..dk * dk], &mut col[..dk]);
             // M = I + C_{k+1}ᵀ Σ_{k+1} C_{k+1} (d_k × d_k).
-            let mut m = vec![0.0; dk * dk];
+            m.fill(0.0);
             for i in 0..dk {
                 m[i * dk + i] = 1.0;
             }
+            let (done, later) = out.split_at_mut(k + 1);
             if k + 1 < self.blocks {
                 let dn = self.dims[k + 1];
                 let ca = self.lower_at[k + 1];
                 let c = &self.c[ca..ca + dn * dk];
-                let next = &out[k + 1];
+                let next = &later[0];
                 // SC = Σ_{k+1} C (dn × dk), then M += Cᵀ SC.
-                let mut sc = vec![0.0; dn * dk];
+                let sc = &mut sc[..dn * dk];
+                sc.fill(0.0);
                 for i in 0..dn {
                     for l in 0..dn {
                         let a = next[i * dn + l];
@@ -434,28 +447,25 @@ impl BandedCholesky {
                     }
                 }
             }
-            // Σ_k = L⁻ᵀ M L⁻¹: columns of X = M L⁻¹ ... as L⁻ᵀ (L⁻ᵀ M)ᵀ, M symmetric.
+            // Σ_k = L⁻ᵀ M L⁻¹: Y = L⁻ᵀ M column by column (M is symmetric), then
+            // Σ = Y L⁻¹ = (L⁻ᵀ Yᵀ)ᵀ, written by its columns.
             let at = self.diag_at[k];
             let l = &self.l[at..at + dk * dk];
-            // Y = L⁻ᵀ M, column by column (M's columns are its rows).
-            let mut y = vec![0.0; dk * dk];
-            let mut col = vec![0.0; dk];
             for j in 0..dk {
                 for i in 0..dk {
                     col[i] = m[i * dk + j];
                 }
-                dense::solve_lower_transpose_strided(l, dk, dk, &mut col);
+                dense::solve_lower_transpose_strided(l, dk, dk, col);
                 for i in 0..dk {
                     y[i * dk + j] = col[i];
                 }
             }
-            // Σ = L⁻ᵀ Yᵀ (Y Mᵀ-symmetric: Σ = Y L⁻¹ = (L⁻ᵀ Yᵀ)ᵀ).
-            let mut sigma = vec![0.0; dk * dk];
+            let sigma = &mut done[k];
+            sigma.clear();
+            sigma.resize(dk * dk, 0.0);
             for j in 0..dk {
-                for i in 0..dk {
-                    col[i] = y[j * dk + i];
-                }
-                dense::solve_lower_transpose_strided(l, dk, dk, &mut col);
+                col.copy_from_slice(&y[j * dk..(j + 1) * dk]);
+                dense::solve_lower_transpose_strided(l, dk, dk, col);
                 for i in 0..dk {
                     sigma[i * dk + j] = col[i];
                 }
@@ -468,7 +478,6 @@ impl BandedCholesky {
                     sigma[j * dk + i] = v;
                 }
             }
-            out[k] = sigma;
         }
     }
 }

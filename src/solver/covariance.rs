@@ -79,17 +79,19 @@ impl WindowSolver {
                 step: Some(self.structure.run_step(k0 + block)),
                 t: Some(crate::trajectory::round_time(self.time(graph, k0 + block))),
             })?;
-        let mut reduced = Vec::new();
-        self.normal.chol.inverse_diagonal_blocks(&mut reduced);
+        // Σ_y of every block, in `out` (its buffers reused from call to call), then
+        // each mapped in place: Σ_x = N Σ_y Nᵀ, with Σ_y, N and NΣ_y in `scratch`.
+        self.normal.chol.inverse_diagonal_blocks(out);
         let s = self.s;
-        out.resize_with(k1 - k0, Vec::new);
-        let mut basis = vec![0.0; s * s];
-        for (b, sigma_y) in reduced.iter().enumerate() {
+        for (b, cov) in out.iter_mut().enumerate() {
             let red = &self.lin.hard[b].reduction;
             let d = red.dim;
-            red.basis_into(&mut basis);
-            // NΣ (s × d), then (NΣ)Nᵀ.
-            let mut ns = vec![0.0; s * d];
+            let (sigma_y, rest) = self.scratch.split_at_mut(s * s);
+            let (basis, rest) = rest.split_at_mut(s * s);
+            let ns = &mut rest[..s * d];
+            sigma_y[..d * d].copy_from_slice(&cov[..d * d]);
+            red.basis_into(basis);
+            ns.fill(0.0);
             for i in 0..s {
                 for l in 0..d {
                     let a = basis[i * d + l];
@@ -100,7 +102,6 @@ impl WindowSolver {
                     }
                 }
             }
-            let cov = &mut out[b];
             cov.clear();
             cov.resize(s * s, 0.0);
             for i in 0..s {
