@@ -39,7 +39,7 @@ impl WindowSolver {
             scope: Scope::Window { held: false },
         };
         self.evaluate(graph, values, span, true)?;
-        self.covariances_of_linearization(graph, k0, k1, out)
+        self.covariances_of_linearization(graph, k0, out)
     }
 
     /// [`WindowSolver::covariances`] from the linearization the last solve of the
@@ -58,14 +58,13 @@ impl WindowSolver {
                 "the last solve was not of the window {k0}..{k1}"
             )));
         }
-        self.covariances_of_linearization(graph, k0, k1, out)
+        self.covariances_of_linearization(graph, k0, out)
     }
 
     fn covariances_of_linearization(
         &mut self,
         graph: &ChainGraph,
         k0: usize,
-        k1: usize,
         out: &mut Vec<Vec<f64>>,
     ) -> Result<()> {
         self.normal
