@@ -5,3 +5,4 @@
 pub mod estimate;
 pub mod forward;
 pub mod inverse;
+mod prediction;

@@ -11,6 +11,7 @@ use crate::error::{Error, Result};
 use crate::factors::*;
 use crate::graph::{ChainGraph, ChainGraphBuilder, Factor, Layout, Noise, VarKind};
 use crate::model::{Model, State};
+use crate::problems::prediction::taylor_step;
 use std::sync::Arc;
 
 /// σ of the weak link between consecutive steps' q in IC: it only keeps the
@@ -125,26 +126,13 @@ impl EstimationGraph {
     }
 
     /// The guess of step k from the two before: a Taylor step of (q, q̇, q̈) and
-    /// (z, ż, z̈) with the jerk of the last two accelerations; the inputs held.
+    /// (z, ż, z̈) ([`crate::problems::prediction::taylor_step`]); the inputs held.
     pub fn predict(&self, values: &mut [f64], k: usize) {
         let (n, s) = (self.n, self.size());
-        let dt = self.graph.dt();
-        let (prev, next) = values.split_at_mut(k * s);
-        let older = (k >= 2).then(|| &prev[(k - 2) * s..(k - 1) * s]);
-        let prev = &prev[(k - 1) * s..];
-        let next = &mut next[..s];
         let z = self.independent.len();
-        for (off, d) in [(0, n), (3 * n, z)] {
-            for i in 0..d {
-                let (x, v, a) = (prev[off + i], prev[off + d + i], prev[off + 2 * d + i]);
-                let j = older.map_or(0.0, |o| (a - o[off + 2 * d + i]) / dt);
-                next[off + i] = x + dt * v + 0.5 * dt * dt * a + dt * dt * dt / 6.0 * j;
-                next[off + d + i] = v + dt * a + 0.5 * dt * dt * j;
-                next[off + 2 * d + i] = a + dt * j;
-            }
-        }
+        taylor_step(values, k, s, self.graph.dt(), &[(0, n), (3 * n, z)]);
         let held = 3 * (n + z);
-        next[held..].copy_from_slice(&prev[held..s]);
+        values.copy_within((k - 1) * s + held..k * s, k * s + held);
     }
 }
 

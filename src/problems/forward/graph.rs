@@ -11,6 +11,7 @@ use crate::error::Result;
 use crate::factors::*;
 use crate::graph::{ChainGraph, Layout, Noise, VarKind};
 use crate::model::Model;
+use crate::problems::prediction::taylor_step;
 use crate::trajectory::Trajectory;
 use std::sync::Arc;
 
@@ -168,31 +169,16 @@ impl ForwardGraph {
         Ok(block)
     }
 
-    /// Guess of step k from the steps before by a Taylor step,
-    /// x + Δt ẋ + Δt²/2 ẍ + Δt³/6 j, ẋ + Δt ẍ + Δt²/2 j, ẍ + Δt j, with the jerk j
-    /// from the last two accelerations (0 at step 1). A cubic guess lands the first
-    /// Newton step within the tolerance more often than a quadratic one.
+    /// Guess of step k from the steps before: a Taylor step of (q, q̇, q̈) and, in IC,
+    /// of (z, ż, z̈) ([`crate::problems::prediction::taylor_step`]).
     pub(super) fn predict(&self, values: &mut [f64], k: usize) {
         let s = self.graph.layout().size();
-        let dt = self.graph.dt();
-        let (prev, next) = values.split_at_mut(k * s);
-        let older = (k >= 2).then(|| &prev[(k - 2) * s..(k - 1) * s]);
-        let prev = &prev[(k - 1) * s..];
-        let next = &mut next[..s];
         let triples: &[(usize, usize)] = if self.coordinates == Coordinates::Independent {
             &[(0, self.n), (3 * self.n, self.f)]
         } else {
             &[(0, self.n)]
         };
-        for &(off, d) in triples {
-            for i in 0..d {
-                let (x, v, a) = (prev[off + i], prev[off + d + i], prev[off + 2 * d + i]);
-                let j = older.map_or(0.0, |o| (a - o[off + 2 * d + i]) / dt);
-                next[off + i] = x + dt * v + 0.5 * dt * dt * a + dt * dt * dt / 6.0 * j;
-                next[off + d + i] = v + dt * a + 0.5 * dt * dt * j;
-                next[off + 2 * d + i] = a + dt * j;
-            }
-        }
+        taylor_step(values, k, s, self.graph.dt(), triples);
     }
 }
 
