@@ -77,6 +77,8 @@ pub struct Estimator {
     /// The first run step not yet handed out as final.
     finalized: usize,
     covariances: Vec<Vec<f64>>,
+    /// The newest step's prediction, kept while its conditional solve runs.
+    guess: Vec<f64>,
     ws: Workspace,
     pub nis: Nis,
     pub iterations: usize,
@@ -111,6 +113,7 @@ impl Estimator {
             next: 0,
             finalized: 0,
             covariances: Vec::new(),
+            guess: Vec::new(),
             ws,
             eg,
             nis: Nis::default(),
@@ -181,13 +184,14 @@ impl Estimator {
         // the window from there.
         let mut warm = 0;
         if k > self.k0 {
-            let guess = self.values[k * s..].to_vec();
+            self.guess.clear();
+            self.guess.extend_from_slice(&self.values[k * s..]);
             let first =
                 self.solver
                     .solve_conditional(&self.eg.graph, &mut self.values, k, k + 1)?;
             warm = first.iterations;
             if first.termination != Termination::Converged {
-                self.values[k * s..].copy_from_slice(&guess);
+                self.values[k * s..].copy_from_slice(&self.guess);
             }
         }
         let mut report = self.solver.solve(
@@ -233,10 +237,9 @@ impl Estimator {
         }
         let newest = self.estimate_of(k);
         let nis = {
-            let layout = self.eg.graph.layout().clone();
             let t = self.eg.graph.run_time(run_k);
             self.nis.add(
-                &layout,
+                self.eg.graph.layout(),
                 self.eg.graph.terms_at(run_k),
                 &newest.x,
                 &newest.covariance,
