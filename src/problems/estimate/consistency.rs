@@ -13,9 +13,6 @@ pub struct Nis {
     pub count: usize,
     /// Σ of the readings' dimensions (the χ² degrees of freedom of `sum`).
     pub dof: usize,
-    /// Σ log det S of the innovations' covariances: with `sum`, the innovations'
-    /// log-likelihood, −½(Σ log det S + Σ NIS) up to a constant.
-    pub log_det: f64,
 }
 
 impl Nis {
@@ -45,11 +42,6 @@ impl Nis {
             k * (1.0 - a + z * a.sqrt()).powi(3).max(0.0)
         };
         (q(-1.959964) / c, q(1.959964) / c)
-    }
-
-    /// The innovations' log-likelihood, −½(Σ log det S + Σ NIS), up to a constant.
-    pub fn log_likelihood(&self) -> f64 {
-        -0.5 * (self.log_det + self.sum)
     }
 
     /// Whether the mean NIS is within its 95 % bounds.
@@ -124,14 +116,9 @@ impl Nis {
         let r = DVector::from_fn(m, |i, _| rows[i].0);
         let chol = post.cholesky()?;
         let nis = r.dot(&chol.solve(&r));
-        // S = R (R − HPHᵀ)⁻¹ R: log det S = 2 log det R − log det(R − HPHᵀ).
-        let log_det_post: f64 = 2.0 * chol.l().diagonal().iter().map(|d| d.ln()).sum::<f64>();
-        let log_det_r: f64 = rows.iter().map(|row| 2.0 * row.1.ln()).sum();
-        let log_det = 2.0 * log_det_r - log_det_post;
-        if !nis.is_finite() || !log_det.is_finite() {
+        if !nis.is_finite() {
             return None;
         }
-        self.log_det += log_det;
         self.sum += nis;
         self.count += 1;
         self.dof += m;
@@ -155,7 +142,6 @@ mod tests {
             sum: 1000.0,
             count: 1000,
             dof: 1000,
-            log_det: 0.0,
         };
         let (lo, hi) = nis.bounds();
         assert!((lo - 0.91426).abs() < 1e-3, "{lo}");
