@@ -408,3 +408,49 @@ fn another_mechanism_at_the_defaults_and_a_wrong_sensor_model_flagged() {
     assert!(nis.mean() > hi, "IC NIS {} within its bounds", nis.mean());
     assert!(ic.z.is_finite());
 }
+
+/// A window solve that ends on its flat step without linearizing there gives the
+/// estimate and its σ's of the solve that linearizes at its end, to well inside
+/// the σ's: the step it skips the linearization of is to gain less than 10⁻³ of
+/// the cost.
+#[test]
+fn ending_on_the_flat_step_keeps_the_estimate_and_its_sigmas() {
+    let truth = truth(3.0);
+    let m = model("fourbar-bad.yaml");
+    let (columns, rows) = readings(&truth, 4, &["enc"]);
+    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
+    let table_with = |end_on_flat_step: bool| {
+        let mut options = EstimateOptions {
+            smoothing: Smoothing::Window(30),
+            ..EstimateOptions::default()
+        };
+        options.settings.end_on_flat_step = end_on_flat_step;
+        let mut table = Estimates::for_model(&m);
+        estimate(m.clone(), &record, &options, &mut |e| {
+            table.push(e);
+            Ok(())
+        })
+        .unwrap();
+        table
+    };
+    let (ended, linearized) = (table_with(true), table_with(false));
+    let sd = linearized.column("sd:q:theta").unwrap();
+    for c in ["q:theta", "dq:theta", "ddq:theta", "sd:q:theta", "sd:dq:theta"] {
+        let (a, b) = (ended.column(c).unwrap(), linearized.column(c).unwrap());
+        let sd_c = linearized
+            .column(&format!("sd:{}", c.trim_start_matches("sd:")))
+            .unwrap();
+        for k in 0..a.len() {
+            let off = (a[k] - b[k]).abs();
+            // The estimates within 1 % of their σ, the σ's within 1 % of themselves.
+            let allowed = 0.01 * sd_c[k];
+            assert!(
+                off <= allowed,
+                "{c} at step {k}: {} against {} (σ of θ {})",
+                a[k],
+                b[k],
+                sd[k]
+            );
+        }
+    }
+}

@@ -43,6 +43,11 @@ pub struct EstimateArgs {
     /// Linear solves allowed per window solve.
     #[arg(long, value_name = "K", default_value_t = 200)]
     max_iterations: usize,
+    /// Print every iteration of every window solve to standard error: the window,
+    /// the cost before and after the step, LM's damping, the predicted decrease and
+    /// the step's size (for diagnosing an estimate that crawls or stops).
+    #[arg(long = "trace-solver")]
+    trace_solver: bool,
     /// Output CSV (gzip-compressed when it ends in `.gz`); the summary then goes to
     /// standard output.
     #[arg(long, value_name = "FILE.csv")]
@@ -86,6 +91,7 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
         return Err(Failure::Input("--max-iterations must be at least 1".into()));
     }
     options.settings.max_iterations = args.max_iterations;
+    options.settings.trace = args.trace_solver;
     let output = Output::open(args.out.as_deref(), &[&args.scene, &args.measurements])?;
     let record =
         Record::read(&model, &args.measurements, args.dt).map_err(|e| Failure::Input(plain(e)))?;

@@ -67,17 +67,20 @@ impl WindowSolver {
         k0: usize,
         out: &mut Vec<Vec<f64>>,
     ) -> Result<()> {
-        self.normal
-            .chol
-            .factor(&self.normal.h, &[])
-            .map_err(|(block, _)| Error::Singular {
-                what: "the estimate's information matrix is not positive definite: \
+        let factored = self.normal.undamped_factor == Some(self.lin.generation);
+        if !factored {
+            self.normal
+                .chol
+                .factor(&self.normal.h, &[])
+                .map_err(|(block, _)| Error::Singular {
+                    what: "the estimate's information matrix is not positive definite: \
                        the readings and the model leave a direction of the motion \
                        undetermined"
-                    .into(),
-                step: Some(self.structure.run_step(k0 + block)),
-                t: Some(crate::trajectory::round_time(self.time(graph, k0 + block))),
-            })?;
+                        .into(),
+                    step: Some(self.structure.run_step(k0 + block)),
+                    t: Some(crate::trajectory::round_time(self.time(graph, k0 + block))),
+                })?;
+        }
         // Σ_y of every block, in `out` (its buffers reused from call to call), then
         // each mapped in place: Σ_x = N Σ_y Nᵀ, with Σ_y, N and NΣ_y in `scratch`.
         self.normal.chol.inverse_diagonal_blocks(out);

@@ -180,6 +180,27 @@ impl WindowSolver {
                 state.cost - predicted,
             )));
         }
+        let th = &self.settings.thresholds;
+        let flat = (0.0..=th.flat_decrease * state.cost.abs()).contains(&predicted);
+        if self.settings.end_on_flat_step
+            && flat
+            && restored
+            && state.mu == 0.0
+            && !state.newton
+            && !from_rows
+        {
+            // `converges` would pass on any trial cost: only the hard equations are
+            // restored, and the cost is the model's.
+            self.report(&record);
+            if let Err(e) = self.correct(graph, values, k0, k1) {
+                return Ok(Outcome::Done(failed(e, state.cost, state.iterations)));
+            }
+            return Ok(Outcome::Done(SolveReport::new(
+                Termination::Converged,
+                state.iterations,
+                state.cost - predicted,
+            )));
+        }
         // After an undamped Gauss-Newton step of a one-block window, the chord
         // step from the trial may show convergence without a linearization there.
         let chord = state.mu == 0.0
@@ -243,6 +264,8 @@ impl WindowSolver {
                 if lm { &self.normal.damping[..n] } else { &[] },
             )
             .is_ok();
+        self.normal.undamped_factor =
+            (factored && mu == 0.0 && !state.newton).then_some(self.lin.generation);
         // Gauss-Newton from J itself where H = JᵀJ is too ill-conditioned for its
         // Cholesky factor to give the step to more than a few digits.
         let ill_conditioned = mu == 0.0

@@ -18,6 +18,9 @@ pub(super) struct NormalEquations {
     pub(super) damping: Vec<f64>,
     /// H y (`predicted_decrease`), or the gradient's change along a chord step.
     pub(super) hd: Vec<f64>,
+    /// The linearization whose undamped Gauss–Newton H `chol` holds the factor of,
+    /// if it does (so that covariances need not factor it again).
+    pub(super) undamped_factor: Option<u64>,
 }
 
 impl NormalEquations {
@@ -30,6 +33,7 @@ impl NormalEquations {
             delta: vec![0.0; n],
             damping: vec![0.0; n],
             hd: vec![0.0; n],
+            undamped_factor: None,
         }
     }
 

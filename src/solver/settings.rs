@@ -63,6 +63,14 @@ pub struct Settings {
     /// and every solve of a conditioned past (independent coordinates). Off: every
     /// convergence is decided on a fresh linearization.
     pub chord_test: bool,
+    /// Whether a solve ends right after an undamped Gauss–Newton step that kept the
+    /// hard equations and was to gain less than [`Thresholds::flat_decrease`] of the
+    /// cost, without linearizing at its end: the convergence test passes there
+    /// whatever the trial's cost, so that linearization would only report it. The
+    /// point is corrected onto the hard equations; H and g stay those of the point
+    /// before the step (an estimate's covariances come from them). Off: every
+    /// solve ends on a linearization of its answer.
+    pub end_on_flat_step: bool,
     /// The iteration's finer thresholds.
     pub thresholds: Thresholds,
     /// Prints every iteration to standard error ([`Trace`]).
@@ -159,6 +167,7 @@ impl Default for Settings {
             corrections: 1,
             normal_equations_limit: 1e-10,
             chord_test: true,
+            end_on_flat_step: false,
             thresholds: Thresholds::default(),
             trace: false,
         }

@@ -28,6 +28,7 @@ pub fn estimation_settings() -> Settings {
         // direction they barely determine (the velocity from a rough start), where
         // the solve crawls before it converges.
         max_iterations: 200,
+        end_on_flat_step: true,
         ..Settings::default()
     };
     s.thresholds.flat_decrease = 1e-3;
