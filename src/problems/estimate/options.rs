@@ -29,6 +29,11 @@ pub fn estimation_settings() -> Settings {
         // the solve crawls before it converges.
         max_iterations: 200,
         end_on_flat_step: true,
+        // Levenberg–Marquardt on the Gauss–Newton matrix throughout: where the
+        // readings barely determine a direction (a start the gyroscope cannot yet
+        // tell from an unknown torque), the exact Hessian is not positive definite
+        // and its damped steps crawl along the valley the Gauss–Newton steps cross.
+        second_order: false,
         ..Settings::default()
     };
     s.thresholds.flat_decrease = 1e-3;
