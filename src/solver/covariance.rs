@@ -7,13 +7,25 @@ use super::{LinearPrior, WindowSolver};
 use crate::error::{Error, Result};
 use crate::graph::ChainGraph;
 
+/// Which steps of a window a covariance call maps to their variables (the selected
+/// inversion gives every step's reduced block either way).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Marginals {
+    /// Every step's.
+    Every,
+    /// The window's first and last steps' (a fixed-lag estimator's final and newest
+    /// estimates); the others are left empty.
+    Ends,
+}
+
 impl WindowSolver {
     /// The marginal covariance of every step k0..k1 of the estimate in `values`, with
     /// `prior` on step k0: the factors are linearized at `values`, H is factored
     /// undamped, and H⁻¹'s diagonal block of each step (in its reduced unknowns y,
     /// δx = p + N y) is mapped to the step's variables, Σ_x = N Σ_y Nᵀ: the hard
     /// equations hold exactly, so the covariance lies in their null space.
-    /// `out[b]` is row-major s × s for step k0 + b.
+    /// `out[b]` is row-major s × s for step k0 + b (empty for a step `marginals`
+    /// leaves out).
     ///
     /// [`WindowSolver::covariances_after_solve`] reads the last solve's
     /// linearization instead, when the solve has just ended on this window.
@@ -24,6 +36,7 @@ impl WindowSolver {
         k0: usize,
         k1: usize,
         prior: Option<&LinearPrior>,
+        marginals: Marginals,
         out: &mut Vec<Vec<f64>>,
     ) -> Result<()> {
         if k1 <= k0 || k1 - k0 > self.normal.h.capacity() {
@@ -39,7 +52,7 @@ impl WindowSolver {
             scope: Scope::Window { held: false },
         };
         self.evaluate(graph, values, span, true)?;
-        self.covariances_of_linearization(graph, k0, out)
+        self.covariances_of_linearization(graph, k0, marginals, out)
     }
 
     /// [`WindowSolver::covariances`] from the linearization the last solve of the
@@ -51,6 +64,7 @@ impl WindowSolver {
         graph: &ChainGraph,
         k0: usize,
         k1: usize,
+        marginals: Marginals,
         out: &mut Vec<Vec<f64>>,
     ) -> Result<()> {
         if self.normal.h.blocks() != k1 - k0 {
@@ -58,13 +72,14 @@ impl WindowSolver {
                 "the last solve was not of the window {k0}..{k1}"
             )));
         }
-        self.covariances_of_linearization(graph, k0, out)
+        self.covariances_of_linearization(graph, k0, marginals, out)
     }
 
     fn covariances_of_linearization(
         &mut self,
         graph: &ChainGraph,
         k0: usize,
+        marginals: Marginals,
         out: &mut Vec<Vec<f64>>,
     ) -> Result<()> {
         let factored = self.normal.undamped_factor == Some(self.lin.generation);
@@ -85,7 +100,12 @@ impl WindowSolver {
         // each mapped in place: Σ_x = N Σ_y Nᵀ, with Σ_y, N and NΣ_y in `scratch`.
         self.normal.chol.inverse_diagonal_blocks(out);
         let s = self.s;
+        let last = out.len().saturating_sub(1);
         for (b, cov) in out.iter_mut().enumerate() {
+            if marginals == Marginals::Ends && b != 0 && b != last {
+                cov.clear();
+                continue;
+            }
             let red = &self.lin.hard[b].reduction;
             let d = red.dim;
             let (sigma_y, rest) = self.scratch.split_at_mut(s * s);

@@ -32,6 +32,7 @@ mod structure;
 mod tests;
 
 pub use crate::convergence::{SolveReport, Termination};
+pub use covariance::Marginals;
 pub use observer::{Iteration, Observer, Trace};
 pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};

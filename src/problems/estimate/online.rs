@@ -10,7 +10,7 @@ use super::graph::EstimationGraph;
 use crate::error::{Error, Result};
 use crate::graph::{Factor, Noise, Workspace};
 use crate::model::Model;
-use crate::solver::{LinearPrior, Settings, SolveReport, Termination, WindowSolver};
+use crate::solver::{LinearPrior, Marginals, Settings, SolveReport, Termination, WindowSolver};
 use crate::trajectory::round_time;
 use std::sync::Arc;
 
@@ -221,7 +221,13 @@ impl Estimator {
         let reused = !plausible
             && self
                 .solver
-                .covariances_after_solve(&self.eg.graph, self.k0, k + 1, &mut self.covariances)
+                .covariances_after_solve(
+                    &self.eg.graph,
+                    self.k0,
+                    k + 1,
+                    Marginals::Ends,
+                    &mut self.covariances,
+                )
                 .is_ok();
         if !reused {
             self.solver
@@ -231,6 +237,7 @@ impl Estimator {
                     self.k0,
                     k + 1,
                     self.prior.as_ref(),
+                    Marginals::Ends,
                     &mut self.covariances,
                 )
                 .map_err(|e| self.located(e, run_k))?;
@@ -263,12 +270,23 @@ impl Estimator {
         })
     }
 
-    /// The steps still in the window, final: the record has ended.
-    pub fn finish(&mut self) -> Vec<StepEstimate> {
+    /// The steps still in the window, final: the record has ended. Their
+    /// covariances, left out step by step, come from the last update's
+    /// linearization.
+    pub fn finish(&mut self) -> Result<Vec<StepEstimate>> {
         let base = self.solver.base();
-        (self.finalized.max(base + self.k0)..self.next)
+        if self.next > base + self.k0 {
+            self.solver.covariances_after_solve(
+                &self.eg.graph,
+                self.k0,
+                self.next - base,
+                Marginals::Every,
+                &mut self.covariances,
+            )?;
+        }
+        Ok((self.finalized.max(base + self.k0)..self.next)
             .map(|run| self.estimate_of(run - base))
-            .collect()
+            .collect())
     }
 
     /// The soft residuals of a window of `steps` steps ending at the newest: every

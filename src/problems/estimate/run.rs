@@ -12,6 +12,7 @@ use crate::error::{Error, Result};
 use crate::factors::Reading;
 use crate::graph::{Factor, Noise};
 use crate::model::Model;
+use crate::solver::Marginals;
 use crate::solver::{Termination, WindowSolver};
 use std::sync::Arc;
 
@@ -119,7 +120,7 @@ pub fn estimate_with_progress(
             }
         }
     }
-    let rest = est.finish();
+    let rest = est.finish()?;
     let steps = record.steps.len();
     let mut iterations = est.iterations;
     match options.smoothing {
@@ -168,7 +169,7 @@ fn smooth_all(
         });
     }
     let mut covariances = Vec::new();
-    solver.covariances_after_solve(graph, 0, steps, &mut covariances)?;
+    solver.covariances_after_solve(graph, 0, steps, Marginals::Every, &mut covariances)?;
     for (k, covariance) in covariances.into_iter().enumerate() {
         sink(&StepEstimate {
             step: k,
