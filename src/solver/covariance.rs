@@ -19,7 +19,7 @@ pub enum Marginals {
 }
 
 impl WindowSolver {
-    /// The marginal covariance of every step k0..k1 of the estimate in `values`, with
+    /// The marginal covariance of every step k0..k1 (`window`) of the estimate in `values`, with
     /// `prior` on step k0: the factors are linearized at `values`, H is factored
     /// undamped, and H⁻¹'s diagonal block of each step (in its reduced unknowns y,
     /// δx = p + N y) is mapped to the step's variables, Σ_x = N Σ_y Nᵀ: the hard
@@ -33,12 +33,12 @@ impl WindowSolver {
         &mut self,
         graph: &ChainGraph,
         values: &[f64],
-        k0: usize,
-        k1: usize,
+        window: std::ops::Range<usize>,
         prior: Option<&LinearPrior>,
         marginals: Marginals,
         out: &mut Vec<Vec<f64>>,
     ) -> Result<()> {
+        let (k0, k1) = (window.start, window.end);
         if k1 <= k0 || k1 - k0 > self.normal.h.capacity() {
             return Err(Error::InvalidArgument(format!(
                 "window {k0}..{k1} is empty or larger than the solver's capacity {}",

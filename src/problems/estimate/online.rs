@@ -234,8 +234,7 @@ impl Estimator {
                 .covariances(
                     &self.eg.graph,
                     &self.values,
-                    self.k0,
-                    k + 1,
+                    self.k0..k + 1,
                     self.prior.as_ref(),
                     Marginals::Ends,
                     &mut self.covariances,
