@@ -89,6 +89,8 @@ fn estimates_the_bad_model_with_honest_sigmas() {
     );
     assert!(summary.contains("mean NIS"), "{summary}");
     assert!(summary.contains("process σ 3 (the default)"), "{summary}");
+    // The encoder reads θ itself: nothing is left undetermined.
+    assert!(!stderr(&out).contains("undetermined"), "{}", stderr(&out));
     let est = std::fs::read_to_string(&out_path).unwrap();
     let header = est.lines().next().unwrap();
     for c in [
@@ -231,5 +233,63 @@ fn a_failed_estimate_names_its_step_and_keeps_the_final_steps() {
         partial.lines().last().unwrap().starts_with("0.475,"),
         "{}",
         partial.lines().last().unwrap()
+    );
+}
+
+/// A bar spinning freely, without gravity, read by a gyroscope alone: its angle
+/// enters neither the readings nor the dynamics. The estimate still runs (the start's
+/// prior holds the angle), and the summary names the angle as undetermined.
+#[test]
+fn an_angle_no_sensor_observes_is_named_undetermined() {
+    let dir = scratch("estimate", "undetermined");
+    let scene = dir.join("spin.yaml");
+    std::fs::write(
+        &scene,
+        "name: spin\n\
+         points:\n  - {name: O, x: 0, y: 0, fixed: true}\n  - {name: P, x: 1, y: 0}\n\
+         bodies:\n  - {name: bar, points: [O, P], mass: 1}\n\
+         coordinates:\n  - {name: th, type: angle, points: [O, P]}\n\
+         independent: [th]\n\
+         initial:\n  positions: {th: 0}\n  velocities: {th: 1}\n\
+         sensors:\n  - {name: gyro, type: gyroscope, body: bar, sigma: 1e-3}\n",
+    )
+    .unwrap();
+    let (truth, readings, est) = (dir.join("t.csv"), dir.join("m.csv"), dir.join("e.csv"));
+    let s = scene.to_str().unwrap();
+    let out = run(&[
+        "simulate",
+        s,
+        "--dt",
+        "0.01",
+        "--t-end",
+        "2",
+        "--out",
+        truth.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let out = run(&[
+        "measure",
+        s,
+        "--trajectory",
+        truth.to_str().unwrap(),
+        "--seed",
+        "1",
+        "--out",
+        readings.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let out = run(&[
+        "estimate",
+        s,
+        "--measurements",
+        readings.to_str().unwrap(),
+        "--out",
+        est.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let err = stderr(&out);
+    assert!(
+        err.contains("warning: the readings leave 'th' undetermined"),
+        "{err}"
     );
 }

@@ -129,6 +129,9 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
             if let Some(w) = consistency_warning(&summary) {
                 eprintln!("warning: {w}");
             }
+            for u in &summary.undetermined {
+                eprintln!("warning: {}", undetermined_warning(&model, u));
+            }
             Ok(())
         }
         Err(e) => {
@@ -212,4 +215,15 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
             process(s)
         )
     })
+}
+
+/// A coordinate the readings leave undetermined, named with what to do.
+pub fn undetermined_warning(model: &mbfg::Model, u: &mbfg::estimate::Undetermined) -> String {
+    format!(
+        "the readings leave '{}' undetermined: its σ averages {:.3} over the run against \
+         {} for the prior on its start, so its estimate is that prior's guess carried by \
+         the model; add a sensor that observes it (directly or through the dynamics), or \
+         give its start in `estimation: initial_sigma` if it is known",
+        model.names[u.coordinate], u.mean_sd, u.prior
+    )
 }

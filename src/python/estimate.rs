@@ -118,6 +118,14 @@ pub(super) fn estimate_run<'py>(
         s.set_item("nis_bounds", summary.nis.bounds())?;
         s.set_item("nis_consistent", summary.nis.consistent())?;
         s.set_item("process_sigma", summary.process_sigma)?;
+        s.set_item(
+            "undetermined",
+            summary
+                .undetermined
+                .iter()
+                .map(|u| model.names[u.coordinate].clone())
+                .collect::<Vec<_>>(),
+        )?;
         out.set_item("summary", s)?;
         Ok(out)
     })

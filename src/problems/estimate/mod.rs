@@ -4,6 +4,7 @@
 //! normalized innovations that show whether it is honest.
 
 pub mod consistency;
+pub mod determination;
 pub mod graph;
 pub mod online;
 pub mod options;
@@ -12,6 +13,7 @@ pub mod run;
 pub mod table;
 
 pub use consistency::Nis;
+pub use determination::{Determination, Undetermined};
 pub use graph::EstimationGraph;
 pub use online::{Estimator, StepEstimate, Update};
 pub use options::{EstimateOptions, Smoothing, Uncertainty};

@@ -3,6 +3,7 @@
 //! with its covariance.
 
 use super::consistency::Nis;
+use super::determination::{Determination, Undetermined};
 use super::graph::EstimationGraph;
 use super::online::{Estimator, StepEstimate};
 use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW};
@@ -33,6 +34,9 @@ pub struct EstimateSummary {
     pub process_sigma: f64,
     /// Whether the process σ is the scene's (else the default).
     pub scene_process_sigma: bool,
+    /// The watched coordinates (the scene's independent ones, else every q) whose
+    /// σ stayed of the order of their start prior's: no reading determines them.
+    pub undetermined: Vec<Undetermined>,
 }
 
 /// The factors of one step's readings, each with its noise.
@@ -109,6 +113,18 @@ pub fn estimate_with_progress(
         Smoothing::Batch => (BATCH_START_WINDOW, true),
     };
     let settings = options.settings;
+    let size = eg.size();
+    // The motion's own degrees of freedom where the scene names them, else every q.
+    let watched: Vec<usize> = if model.independent.is_empty() {
+        (0..model.n()).collect()
+    } else {
+        model.independent.clone()
+    };
+    let mut determination = Determination::new(&watched, &uncertainty.initial_q);
+    let sink = &mut |e: &StepEstimate| {
+        determination.add(&e.covariance, size);
+        sink(e)
+    };
     let mut est = Estimator::new(model.clone(), eg, window, settings, keep_all)?;
     let total = record.steps.len();
     for (k, readings) in record.steps.iter().enumerate() {
@@ -144,6 +160,7 @@ pub fn estimate_with_progress(
         unsettled: est.unsettled,
         process_sigma,
         scene_process_sigma: model.estimation.process_sigma.is_some(),
+        undetermined: determination.undetermined(),
     })
 }
 

@@ -1,0 +1,46 @@
+"""mbfg.estimate from Python: the summary names the coordinates the readings leave
+undetermined (a freely spinning bar read by a gyroscope alone, without gravity),
+and none where the dynamics carry the angle into the reading (the same bar under
+gravity)."""
+
+import numpy as np
+import pytest
+
+mbfg = pytest.importorskip("mbfg")
+
+SPIN = """
+name: spin
+points:
+  - {name: O, x: 0, y: 0, fixed: true}
+  - {name: P, x: 1, y: 0}
+bodies:
+  - {name: bar, points: [O, P], mass: 1}
+coordinates:
+  - {name: th, type: angle, points: [O, P]}
+independent: [th]
+initial:
+  positions: {th: 0}
+  velocities: {th: 1}
+sensors:
+  - {name: gyro, type: gyroscope, body: bar, sigma: 1e-3}
+"""
+
+
+def _summary(tmp_path, gravity):
+    text = SPIN + ("effects:\n  - {type: gravity, vector: [0, -9.81]}\n" if gravity else "")
+    scene = tmp_path / "spin.yaml"
+    scene.write_text(text)
+    run = mbfg.simulate(str(scene), dt=0.01, t_end=3.0)
+    # The gyroscope reads the bar's rate, with its σ of noise (seeded).
+    rng = np.random.default_rng(1)
+    rate = run.column("dq:th")
+    readings = {"t": list(run.column("t")), "gyro": list(rate + 1e-3 * rng.standard_normal(len(rate)))}
+    return mbfg.estimate(str(scene), readings)["summary"]
+
+
+def test_an_angle_no_sensor_observes_is_named(tmp_path):
+    assert _summary(tmp_path, gravity=False)["undetermined"] == ["th"]
+
+
+def test_gravity_carries_the_angle_into_the_gyroscope(tmp_path):
+    assert _summary(tmp_path, gravity=True)["undetermined"] == []
