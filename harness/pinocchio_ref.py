@@ -14,8 +14,10 @@ velocities and accelerations of frames placed at the scene's points; relative
 coordinates from the joint angles or the points). Inverse: `inverse(scene, csv)`
 gives the generalized forces on the prescribed coordinates by RNEA.
 
-Anything this generator cannot model (free-floating bodies, massless links,
-unknown effects) raises `trajectory.Unsupported`; nothing is dropped silently.
+Sliders are carriages on prismatic joints, a free particle or a body joined to nothing
+hangs from x and y prismatic joints; distance ties between bodies and a point's second
+slider are equations of a constrained solve of Pinocchio's CRBA and RNEA. Anything this
+generator cannot model raises `trajectory.Unsupported`; nothing is dropped silently.
 
     python -m harness.pinocchio_ref scenes/double-pendulum.yaml --t-end 5 --dt 1e-3 \\
         --h 1e-5 --out /tmp/dp.csv.gz        # writes /tmp/dp.json too
@@ -80,6 +82,7 @@ class PinocchioModel:
         self.coords = {c["name"]: dict(c, index=names.index(c["name"])) for c in sf.coordinates}
         self.p0 = sf.positions(mb.initial_q)
         self._last: dict[str, float] = {}
+        self.notes: list[str] = []
         self._check_constraints()
         self._build_tree()
         self._add_point_frames()
@@ -95,24 +98,28 @@ class PinocchioModel:
 
     def _check_constraints(self):
         """Sliders become carriages (prismatic joints); a distance between points of one
-        body is implied; any other distance is a massless link, which joint-space
-        dynamics cannot hold (every joint needs inertia behind it)."""
+        body is implied; any other distance is a tie, held with the loop closures by a
+        constraint-dynamics solve of Pinocchio's M and bias forces (`_tied_acceleration`)."""
         body_points = [set(b.points) for b in self.bodies]
         self.carriages = {}        # slider point -> (constraint name, line points, kind)
+        self.ties = []             # (name, a, b, length)
+        self.slots = []            # (name, point, line start, line end): second sliders
         for c in self.sf.constraints:
             if c["type"] == "distance":
                 a, b = c["points"]
                 implied = any({a, b} <= s for s in body_points)
                 if implied and abs(np.linalg.norm(self.p0[a] - self.p0[b]) - c["length"]) < 1e-9:
                     continue  # a rigid body already keeps this distance
-                raise tj.Unsupported(
-                    f"constraint {c['name']!r}: a distance between points of different "
-                    "bodies is a massless link, which Pinocchio's joint-space dynamics "
-                    "cannot hold (every joint needs inertia behind it)")
+                if implied:
+                    raise tj.Unsupported(f"constraint {c['name']!r}: a distance between two "
+                                         "points of one body that differs from the body's own")
+                self.ties.append((c["name"], a, b, c["length"]))
+                continue
             p, l0, l1 = c["points"]
             if p in self.carriages:
-                raise tj.Unsupported(f"constraint {c['name']!r}: point {p!r} is on a second "
-                                     "slider (two prismatic joints on one point)")
+                # A second slider on the point: an equation of the constrained solve.
+                self.slots.append((c["name"], p, l0, l1))
+                continue
             if c["type"] == "mobile_slider" and not any({l0, l1} <= s for s in body_points):
                 raise tj.Unsupported(f"constraint {c['name']!r}: its line {l0}–{l1} is on no "
                                      "single body, so no body carries the guide")
@@ -121,7 +128,10 @@ class PinocchioModel:
             self.carriages[p] = (c["name"], (l0, l1), c["type"])
 
     def _carriage_parent(self, p: str):
-        _, (l0, l1), kind = self.carriages[p]
+        _, line, kind = self.carriages[p]
+        if kind == "particle":
+            return "ground"
+        l0, l1 = line
         if self.points[l0]["fixed"] and self.points[l1]["fixed"]:
             return "ground"
         return next(i for i, b in enumerate(self.bodies) if {l0, l1} <= set(b.points))
@@ -136,8 +146,11 @@ class PinocchioModel:
         on_body = {n for b in bodies for n in b.points}
         for n, p in self.points.items():
             if not p["fixed"] and n not in on_body and n not in self.carriages:
-                raise tj.Unsupported(f"point {n!r} is on no body and no slider (a free "
-                                     "particle): not modelled by the Pinocchio generator")
+                if p["mass"] <= 0:
+                    raise tj.Unsupported(f"point {n!r} is on no body and no slider, and "
+                                         "carries no mass")
+                # A free particle: two prismatic joints, along x then y.
+                self.carriages[n] = (f"particle {n}", None, "particle")
             if n in self.carriages and n not in on_body and p["mass"] <= 0:
                 raise tj.Unsupported(f"slider point {n!r} carries no mass and no body")
         # Entities: "ground", a body's index, ("carriage", point).
@@ -176,9 +189,15 @@ class PinocchioModel:
                 if not relaxed:
                     relaxed = True
                     continue
-                free = [bodies[i].name for i in range(len(bodies)) if i not in parent]
-                raise tj.Unsupported(f"bodies {free} are not connected to the ground through "
-                                     "shared points (free-floating bodies are not modelled)")
+                # A body joined to nothing placed floats: it hangs from a massless
+                # particle at its first point (x and y joints), turning about it.
+                i = next(i for i in range(len(bodies)) if i not in parent)
+                n = bodies[i].points[0]
+                if n in self.carriages or self.points[n]["fixed"]:
+                    raise tj.Unsupported(f"body {bodies[i].name!r} is joined to nothing the "
+                                         "generator can place")
+                self.carriages[n] = (f"float {bodies[i].name}", None, "particle")
+                self.notes.append(f"body {bodies[i].name} floats: x, y joints at {n}")
         # ... joints added depth-first: Pinocchio's CRBA and constraint Cholesky assume
         # every subtree has contiguous velocity indices.
         model = pin.Model()
@@ -187,6 +206,7 @@ class PinocchioModel:
         self.pivot = {0: np.zeros(2)}  # joint id -> world position of its axis at q = 0
         self.revolute = set()  # joint ids that turn
         self.axis = {}         # carriage joint id -> its unit direction
+        self.particle_x = {}   # a free particle's entity -> its x joint (its y joint: joint[])
         self.tree_edges = []   # (point, child entity, parent entity)
         order = []
 
@@ -198,7 +218,15 @@ class PinocchioModel:
                 pjoint = 0 if pent == "ground" else self.joint[pent]
                 at = self.p0[n]
                 placement = pin.SE3(np.eye(3), np.r_[at - self.pivot[pjoint], 0.0])
-                if isinstance(child, tuple):
+                if isinstance(child, tuple) and self.carriages[n][2] == "particle":
+                    jx = model.addJoint(pjoint, pin.JointModelPrismaticUnaligned(np.array([1.0, 0, 0])),
+                                        placement, f"particle@{n}.x")
+                    jid = model.addJoint(jx, pin.JointModelPrismaticUnaligned(np.array([0, 1.0, 0])),
+                                         pin.SE3.Identity(), f"particle@{n}.y")
+                    self.pivot[jx] = at
+                    self.axis[jx], self.axis[jid] = np.array([1.0, 0]), np.array([0, 1.0])
+                    self.particle_x[child] = jx
+                elif isinstance(child, tuple):
                     l0, l1 = self.carriages[n][1]
                     e = self.p0[l1] - self.p0[l0]
                     e = e / np.linalg.norm(e)
@@ -254,6 +282,7 @@ class PinocchioModel:
         """A point joining entities the tree does not join at that point is a loop closure."""
         self.cmodels = []
         self.loops = []
+        self.loop_frames = []      # (frame on the first entity, on the second) per loop
         for n in self.points:
             ents = self._holders(n)
             comp = {e: e for e in ents}
@@ -276,6 +305,9 @@ class PinocchioModel:
                 pl2 = pin.SE3(np.eye(3), np.r_[self.p0[n] - self.pivot[j2], 0.0])
                 if j1 == 0:  # Pinocchio wants the moving joint first
                     j1, j2, pl1, pl2 = j2, j1, pl2, pl1
+                self.loop_frames.append(tuple(
+                    self.model.addFrame(pin.Frame(f"loop {n} {k}", j, pl, pin.FrameType.OP_FRAME))
+                    for k, (j, pl) in enumerate(((j1, pl1), (j2, pl2)))))
                 cm = pin.RigidConstraintModel(pin.ContactType.CONTACT_3D, self.model,
                                               j1, pl1, j2, pl2, pin.ReferenceFrame.LOCAL)
                 cm.name = f"loop@{n}"
@@ -443,6 +475,8 @@ class PinocchioModel:
 
     def acceleration(self, t, q, v):
         tau = self.applied_torques(t, q, v)
+        if self.ties or self.slots:
+            return self._tied_acceleration(q, v, tau)
         if self.loops:
             a = pin.constraintDynamics(self.model, self.data, q, v, tau,
                                        self.cmodels, self.cdatas, self.prox)
@@ -450,12 +484,71 @@ class PinocchioModel:
             a = pin.aba(self.model, self.data, q, v, tau)
         return np.array(a)  # a copy: Pinocchio may reuse its buffer
 
+    def _frame_state(self, fid):
+        """(position, velocity, classical acceleration at q̈ = 0, 2×nv Jacobian) of a frame;
+        after forwardKinematics(q, v, 0), computeJointJacobians and updateFramePlacements."""
+        m, d = self.model, self.data
+        return (d.oMf[fid].translation[:2].copy(),
+                pin.getFrameVelocity(m, d, fid, LWA).linear[:2].copy(),
+                pin.getFrameClassicalAcceleration(m, d, fid, LWA).linear[:2].copy(),
+                np.reshape(pin.getFrameJacobian(m, d, fid, LWA), (6, m.nv))[:2])
+
+    def _tied_acceleration(self, q, v, tau):
+        """q̈ of the tree held by its loop closures (the point's x, y on both sides) and its
+        distance ties (|r_b − r_a|² = L²), each stabilized as the loops are (Baumgarte):
+        [M Jᵀ; J 0] [q̈; −λ] = [τ − b(q, q̇); −J̇q̇ − K_d φ̇ − K_p φ], with Pinocchio's M (CRBA),
+        bias forces b (RNEA at q̈ = 0, gravity included) and frame Jacobians."""
+        m, d = self.model, self.data
+        nv = m.nv
+        M = pin.crba(m, d, q)
+        M = np.triu(M) + np.triu(M, 1).T
+        b = pin.rnea(m, d, q, v, np.zeros(nv))
+        pin.forwardKinematics(m, d, q, v, np.zeros(nv))
+        pin.computeJointJacobians(m, d, q)
+        pin.updateFramePlacements(m, d)
+        rows, rhs = [], []
+        for f1, f2 in self.loop_frames:
+            (p1, v1, a1, J1), (p2, v2, a2, J2) = self._frame_state(f1), self._frame_state(f2)
+            rows.append(J1 - J2)
+            rhs.append(-(a1 - a2) - BAUMGARTE_KD * (v1 - v2) - BAUMGARTE_KP * (p1 - p2))
+        for _, a, bb, length in self.ties:
+            (pa, va, aa, Ja), (pb, vb, ab, Jb) = (self._frame_state(self.frame[n]) for n in (a, bb))
+            dd, dv = pb - pa, vb - va
+            rows.append((2 * dd @ (Jb - Ja))[None, :])
+            phi = dd @ dd - length ** 2
+            rhs.append(np.array([-(2 * dd @ (ab - aa) + 2 * dv @ dv)
+                                 - BAUMGARTE_KD * 2 * (dd @ dv) - BAUMGARTE_KP * phi]))
+        for _, p, l0, l1 in self.slots:
+            # φ = e × w, e = r_l1 − r_l0, w = r_p − r_l0 (× the planar cross product).
+            (p0, v0, a0, J0), (p1, v1, a1, J1), (pp, vp, ap, Jp) = (
+                self._frame_state(self.frame[n]) for n in (l0, l1, p))
+            e, de, ae, Je = p1 - p0, v1 - v0, a1 - a0, J1 - J0
+            w, dw, aw, Jw = pp - p0, vp - v0, ap - a0, Jp - J0
+            cr = lambda a, b: a[0] * b[1] - a[1] * b[0]  # noqa: E731
+            rows.append((Je[0] * w[1] - Je[1] * w[0] + e[0] * Jw[1] - e[1] * Jw[0])[None, :])
+            rhs.append(np.array([-(cr(ae, w) + 2 * cr(de, dw) + cr(e, aw))
+                                 - BAUMGARTE_KD * (cr(de, w) + cr(e, dw))
+                                 - BAUMGARTE_KP * cr(e, w)]))
+        J = np.vstack(rows)
+        k = J.shape[0]
+        K = np.block([[M, J.T], [J, np.zeros((k, k))]])
+        sol = np.linalg.lstsq(K, np.concatenate([tau - b, *rhs]), rcond=1e-13)[0]
+        return sol[:nv]
+
     def loop_error(self, q) -> float:
-        """Largest loop-closure gap (m) at q."""
-        if not self.loops:
+        """Largest loop-closure gap or distance tie error (m) at q."""
+        if not self.loops and not self.ties and not self.slots:
             return 0.0
         pin.framesForwardKinematics(self.model, self.data, q)
         worst = 0.0
+        for _, p, l0, l1 in self.slots:
+            r = {n: self.data.oMf[self.frame[n]].translation[:2] for n in (p, l0, l1)}
+            e, w = r[l1] - r[l0], r[p] - r[l0]
+            worst = max(worst, abs(float(e[0] * w[1] - e[1] * w[0])) / np.linalg.norm(e))
+        for _, a, b, length in self.ties:
+            gap = np.linalg.norm(self.data.oMf[self.frame[b]].translation[:2]
+                                 - self.data.oMf[self.frame[a]].translation[:2]) - length
+            worst = max(worst, abs(float(gap)))
         for (n, a, b) in self.loops:
             pos = []
             for ent in (a, b):
@@ -489,6 +582,9 @@ class PinocchioModel:
                     v_guide = vel(a) + omega[pent] * np.array([-r[1], r[0]])
                 omega[ent] = omega[pent]
                 v[self.model.idx_vs[jid]] = (vel(n) - v_guide) @ self.axis[jid]
+                if ent in self.particle_x:
+                    jx = self.particle_x[ent]
+                    v[self.model.idx_vs[jx]] = (vel(n) - v_guide) @ self.axis[jx]
             else:
                 a, b = self.bodies[ent].points[:2]
                 d = self.p0[b] - self.p0[a]
@@ -660,7 +756,14 @@ def generate(scene, t_end: float, sample_dt: float, h: float = 2e-4,
         e = np.array([mb.kinetic_energy(v) + mb.potential_energy(q)
                       for q, v in zip(traj.q, traj.dq)])
         extra["max_energy_drift_J"] = float(np.max(np.abs(e - e[0])))
-    if pm.loops:
+    if pm.ties or pm.slots:
+        formulation = (f"KKT of CRBA/RNEA with loop closures, distance ties and second "
+                       f"sliders (Baumgarte) + {integrator}")
+        settings = {**step, "baumgarte": {"Kp": BAUMGARTE_KP, "Kd": BAUMGARTE_KD},
+                    "loops": [f"{n}: {a}-{b}" for n, a, b in pm.loops],
+                    "ties": [f"{name}: {a}-{b}" for name, a, b, _ in pm.ties],
+                    "sliders": [f"{name}: {p} on {a}-{b}" for name, p, a, b in pm.slots]}
+    elif pm.loops:
         formulation = f"constraintDynamics (CONTACT_3D loop closures) + {integrator}"
         settings = {**step, "mu": PROX_MU, "prox_accuracy": PROX_ACCURACY,
                     "prox_max_iter": PROX_MAX_ITER,
@@ -672,6 +775,7 @@ def generate(scene, t_end: float, sample_dt: float, h: float = 2e-4,
     prov = tj.provenance("pinocchio", scene, formulation, settings, wall, packages=("pin",),
                          joints=[pm.model.names[j] for j in range(1, pm.model.njoints)],
                          max_abs_phi=max_phi, max_loop_gap_m=loop_gap[0],
+                         modelling_notes=pm.notes,
                          sample_dt=sample_dt, t_end=t_end, **extra)
     return traj, prov
 
@@ -737,7 +841,7 @@ def inverse(scene, trajectory_csv, with_method: bool = False):
     Returns (t, {coordinate: Q}) and, with with_method, the derivative method too.
     """
     pm = PinocchioModel(scene)
-    if pm.loops:
+    if pm.loops or pm.ties or pm.slots:
         raise tj.Unsupported("inverse dynamics of closed loops is not modelled by the "
                              "Pinocchio generator (RNEA needs a tree)")
     names, t, c, dc, ddc, method = prescribed_motion(trajectory_csv)

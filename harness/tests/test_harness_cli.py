@@ -81,34 +81,13 @@ def test_compare_on_a_users_scene(tmp_path):
         assert json.loads(text)["scene"] == str(scene)
 
 
-TIED = """points:
-  - {name: A, x: 0, y: 0, fixed: true}
-  - {name: B, x: 2, y: 0, fixed: true}
-  - {name: P, x: 0, y: -1}
-  - {name: Q, x: 2, y: -1}
-bodies:
-  - {name: left, points: [A, P], mass: 1}
-  - {name: right, points: [B, Q], mass: 1}
-constraints:
-  - {name: tie, type: distance, points: [P, Q]}
-coordinates:
-  - {name: theta, type: angle, points: [A, P]}
-independent: [theta]
-initial:
-  velocities: {theta: 1}
-effects:
-  - {type: gravity, vector: [0, -9.81]}
-"""
-
-
 def test_compare_reports_refusals_and_failures_in_the_table(tmp_path):
-    scene = tmp_path / "tied.yaml"           # a massless link: Pinocchio cannot hold it
-    scene.write_text(TIED)
+    scene = users_scene(tmp_path, "fourbar")     # declares no independent coordinates
     out = tmp_path / "out"
-    assert compare.main([str(scene), "--tools", "mbfg,mbfg-ic,pinocchio", "--t-end", "0.2",
+    assert compare.main([str(scene), "--tools", "mbfg,mbfg-ic", "--t-end", "0.2",
                          "--out", str(out), "--set", "ida.max_num_steps=3"]) == 0
     rows = read_rows(out / "compare.csv")
-    assert rows["pinocchio"]["status"] == "refused" and "massless link" in rows["pinocchio"]["note"]
+    assert rows["mbfg-ic"]["status"] == "refused" and "independent" in rows["mbfg-ic"]["note"]
     # The reference tool runs even when not asked for; it fails here (3 steps), and the
     # remaining reference tools are not in the run: no errors, said so.
     assert rows["ida"]["status"] == "failed" and "max_num_steps" in rows["ida"]["note"]
