@@ -52,6 +52,17 @@ class ConstantLoad:
         return self.value
 
 
+class _EnvLoad:
+    """A load of the state computed by the generator (not a scene expression)."""
+    names = {"state"}
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    def __call__(self, env) -> float:
+        return self.fn(env)
+
+
 class SolveError(RuntimeError):
     """exudyn's solve failed (a step's Newton iteration, a singular Jacobian)."""
 
@@ -378,6 +389,14 @@ class Mechanism:
             fx, fy = spec["value"]
             mbs.AddLoad(ei.LoadForceVector(markerNumber=self.marker(p), **self._load(
                 (fx, fy), lambda env: [fx(env), fy(env), 0.0])))
+        elif kind in ("torque", "dc_motor") and spec["coordinate"] not in self._terms:
+            name = spec["coordinate"]
+            if kind == "torque":
+                (tau,) = spec["value"]
+            else:
+                stall, w0 = spec["stall_torque"], spec["no_load_speed"]
+                tau = _EnvLoad(lambda env: stall * (1.0 - env[f"rate({name})"] / w0))
+            self._segment_forces(name, tau)
         elif kind in ("torque", "dc_motor"):
             name = spec["coordinate"]
             if kind == "torque":
@@ -392,11 +411,35 @@ class Mechanism:
                     continue             # the ground takes it
                 mbs.AddLoad(ei.LoadTorqueVector(markerNumber=self.rigid_marker(k), **self._load(
                     (tau,), lambda env, s=sign, tau=tau: [0.0, 0.0, s * tau(env)])))
+        elif kind == "rotational_spring_damper" and spec["coordinate"] not in self._terms:
+            name, k, c, rest = (spec[x] for x in ("coordinate", "stiffness", "damping", "rest_angle"))
+            self._segment_forces(name, _EnvLoad(
+                lambda env: -k * (env[name] - rest) - c * env[f"rate({name})"]))
         elif kind == "rotational_spring_damper":
             self._rotational(spec["coordinate"], spec["stiffness"], spec["damping"],
                              spec["rest_angle"])
         else:
             raise Unsupported(f"effect {e.name!r} of type {kind}")
+
+    def _segment_forces(self, name: str, tau):
+        """A generalized force τ on an angle whose segment no single body carries (its
+        points tied by a distance): the forces at the segment's ends that do its work,
+        τ ∂θ/∂r, with ∂θ/∂r_b = (−d_y, d_x)/|d|² for d = r_b − r_a."""
+        c = self.coords[name]
+        pts = c["points"]
+        segs = ([(pts[0], pts[1], 1.0)] if c["type"] == "angle"
+                else [(pts[0], pts[1], -1.0), (pts[2], pts[3], 1.0)])
+        for a, b, sign in segs:
+            for end, side in ((a, -1.0), (b, 1.0)):
+                if end in self.fixed:
+                    continue
+
+                def force(env, a=a, b=b, k=sign * side):
+                    dx, dy = env[f"x({b})"] - env[f"x({a})"], env[f"y({b})"] - env[f"y({a})"]
+                    f = k * tau(env) / (dx * dx + dy * dy)
+                    return [-f * dy, f * dx, 0.0]
+                self.mbs.AddLoad(ei.LoadForceVector(markerNumber=self.marker(end), **self._load(
+                    (_EnvLoad(None),), force)))
 
     def _rotational(self, name: str, stiffness: float, damping: float, rest: float):
         terms = self.coordinate_segments(name)

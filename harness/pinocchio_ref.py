@@ -120,12 +120,23 @@ class PinocchioModel:
                 # A second slider on the point: an equation of the constrained solve.
                 self.slots.append((c["name"], p, l0, l1))
                 continue
-            if c["type"] == "mobile_slider" and not any({l0, l1} <= s for s in body_points):
-                raise tj.Unsupported(f"constraint {c['name']!r}: its line {l0}–{l1} is on no "
-                                     "single body, so no body carries the guide")
             if any({p, l0, l1} <= s for s in body_points):
                 raise tj.Unsupported(f"constraint {c['name']!r}: point and line on one body")
+            fixed_line = self.points[l0]["fixed"] and self.points[l1]["fixed"]
+            if not fixed_line and not any({l0, l1} <= s for s in body_points):
+                # No body carries the guide (its points are tied by a distance): an
+                # equation of the constrained solve.
+                self.slots.append((c["name"], p, l0, l1))
+                continue
             self.carriages[p] = (c["name"], (l0, l1), c["type"])
+        # A body hangs from one carriage; a second slider point of the body (a block
+        # with two points in a slot) is an equation of the constrained solve, or its
+        # carriage would be a massless leaf.
+        for b in self.bodies:
+            on = [n for n in b.points if n in self.carriages]
+            for n in on[1:]:
+                name, (l0, l1), _ = self.carriages.pop(n)
+                self.slots.append((name, n, l0, l1))
 
     def _carriage_parent(self, p: str):
         _, line, kind = self.carriages[p]

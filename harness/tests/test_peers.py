@@ -51,3 +51,17 @@ def test_a_planted_mistake_is_caught_and_the_scene_named(tmp_path, mistake):
     assert "disagrees with mbfg" in str(info.value)
     # The unaltered scene passes the same check.
     cc.require_agreement(EVERYDAY / scene, t_end=0.3, dt=5e-4, settings=FAST)
+
+
+PEER_SCENES = sorted((pathlib.Path(__file__).resolve().parent / "scenes" / "peers").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("scene", PEER_SCENES, ids=lambda p: p.stem)
+def test_scenes_like_a_users_are_taken_by_both_peers_and_agree_with_mbfg(scene):
+    # A block of two points in a slot, torques and a motor on the angle of a distance
+    # tie, a tie rod between two wipers, a free particle, a plank on a spring, a pin in
+    # two slots, a bead on a rotating rod, a motor on a relative angle.
+    checks = cc.check(scene, t_end=0.1, dt=1e-3, settings={**FAST, "exudyn": {"h": 2e-4}})
+    assert [c.tool for c in checks] == ["exudyn", "pinocchio"]
+    for c in checks:
+        assert c.status == "agrees", c.line()
