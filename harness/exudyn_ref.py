@@ -186,6 +186,7 @@ class Mechanism:
         self.mbs = self.SC.AddSystem()
         self._markers: dict = {}
         self.sensors: list[tuple[int, int, int]] = []
+        self.joints: dict[str, int] = {}  # a scene constraint -> its exudyn object
         self._build()
 
     # -- bodies --------------------------------------------------------------------
@@ -332,10 +333,10 @@ class Mechanism:
                 continue
             if c["type"] == "distance":
                 a, b = c["points"]
-                mbs.AddObject(ei.ObjectConnectorDistance(
+                self.joints[c["name"]] = mbs.AddObject(ei.ObjectConnectorDistance(
                     markerNumbers=[self.marker(a), self.marker(b)], distance=c["length"]))
             elif c["type"] in ("fixed_slider", "mobile_slider"):
-                self._slider(c)
+                self.joints[c["name"]] = self._slider(c)
             else:
                 raise Unsupported(f"constraint {c['name']} of type {c['type']}")
         for e in self.scene.effects:
@@ -364,7 +365,7 @@ class Mechanism:
             line = self._body_marker(k, self.pos[l0], rigid=True)
         else:
             line = self._ground_marker(self.pos[l0], rigid=True)
-        self.mbs.AddObject(ei.ObjectJointPrismatic2D(
+        return self.mbs.AddObject(ei.ObjectJointPrismatic2D(
             markerNumbers=[self.marker(p, rigid=True), line],
             axisMarker0=[1.0, 0.0, 0.0], normalMarker1=[n[0], n[1], 0.0],
             constrainRotation=False))
@@ -530,6 +531,31 @@ class Mechanism:
         self._env_key, self._env = key, env
         return env
 
+    def reaction(self, name: str, raw: np.ndarray, traj: tj.Trajectory) -> np.ndarray:
+        """A constraint's force over the samples, from exudyn's joint output, in the
+        terms of `--columns constraints`: a distance's tension (exudyn's connector force,
+        as it is); a slider's normal force on its point along the guide's left normal
+        (the prismatic joint's force, given in the frame of the point's body, turned to
+        global axes and projected on that normal)."""
+        c = next(c for c in self.scene.constraints if c["name"] == name)
+        if c["type"] == "distance":
+            return raw[:, 0].copy()
+        p, l0, l1 = c["points"]
+        k = self.carrier[p]
+        data = self.mbs.GetSensorStoredData(self.sensors[3 * k])
+        psi = self.bodies[k].psi0 + data[:, 3]
+        cs, sn = np.cos(psi), np.sin(psi)
+        fx, fy = cs * raw[:, 0] - sn * raw[:, 1], sn * raw[:, 0] + cs * raw[:, 1]
+
+        def at(n):
+            if n in self.fixed:
+                return np.broadcast_to(self.pos[n], (len(traj.t), 2))
+            i = traj.names.index(f"{n}.x")
+            return traj.q[:, i:i + 2]
+        e = at(l1) - at(l0)
+        e = e / np.hypot(e[:, 0], e[:, 1])[:, None]
+        return -e[:, 1] * fx + e[:, 0] * fy
+
     # -- the motion in the scene's coordinates ------------------------------------
 
     def trajectory(self, t_expected: np.ndarray) -> tj.Trajectory:
@@ -591,9 +617,11 @@ class Mechanism:
 
 
 def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_alpha",
-             h: float = 1e-4, newton_rtol: float = 1e-12, newton_atol: float = 1e-12,
+             h: float = 1e-4, newton_rtol: float | None = None,
+             newton_atol: float | None = None,
              spectral_radius: float = 0.8, modified_newton: bool = True,
-             ignore_singular_jacobian: bool = False) -> tuple[tj.Trajectory, dict]:
+             ignore_singular_jacobian: bool = False,
+             reactions: dict | None = None) -> tuple[tj.Trajectory, dict]:
     """Integrates the scene with exudyn at the fixed step h; returns the trajectory at the
     multiples of sample_dt up to t_end and its provenance.
 
@@ -618,6 +646,17 @@ def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_a
     sf = SceneFile(scene)
     sf.check(model)
     mech = Mechanism(model, sf)
+    # exudyn's own constraint forces, sampled with the motion: a distance connector's
+    # Force, a prismatic joint's ForceLocal.
+    joint_sensors = {} if reactions is None else {
+        name: mech.mbs.AddSensor(ei.SensorObject(
+            objectNumber=obj, storeInternal=True, writeToFile=False,
+            outputVariableType=(exu.OutputVariableType.Force
+                                if "Distance" in mech.mbs.GetObject(obj)["objectType"]
+                                else exu.OutputVariableType.ForceLocal)))
+        for name, obj in mech.joints.items()}
+    if joint_sensors:
+        mech.mbs.Assemble()
 
     s = exu.SimulationSettings()
     ti = s.timeIntegration
@@ -627,11 +666,14 @@ def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_a
     # configuration then land on the wrong branch while reporting success).
     ti.adaptiveStep = False
     ti.automaticStepSize = False
-    if mech.state_loads and (newton_rtol < STATE_LOAD_RTOL or newton_atol < STATE_LOAD_ATOL):
+    if newton_rtol is None and newton_atol is None and mech.state_loads:
         # A load exudyn calls back for is not in its Newton matrix: the iteration
-        # converges linearly and stalls short of 1e-12; exudyn's own defaults it reaches.
-        newton_rtol, newton_atol = max(newton_rtol, STATE_LOAD_RTOL), max(newton_atol, STATE_LOAD_ATOL)
+        # converges linearly and, at h = 1e-4, stalls short of 1e-12; exudyn's own
+        # defaults it reaches.
+        newton_rtol, newton_atol = STATE_LOAD_RTOL, STATE_LOAD_ATOL
         mech.notes.append(f"Newton tolerances {newton_rtol:g}/{newton_atol:g} (state-dependent loads)")
+    newton_rtol = 1e-12 if newton_rtol is None else newton_rtol
+    newton_atol = 1e-12 if newton_atol is None else newton_atol
     ti.newton.relativeTolerance = newton_rtol
     ti.newton.absoluteTolerance = newton_atol
     ti.newton.useModifiedNewton = modified_newton
@@ -670,6 +712,8 @@ def generate(scene, t_end: float, sample_dt: float, solver: str = "generalized_a
                            f"{samples * per_sample} fixed steps to {t_end}")
 
     traj = mech.trajectory(np.arange(samples + 1) * sample_dt)
+    for name, sensor in joint_sensors.items():
+        reactions[name] = mech.reaction(name, mech.mbs.GetSensorStoredData(sensor)[:, 1:], traj)
     phi = max(float(np.max(np.abs(model.phi(q)))) for q in traj.q) if model.m else 0.0
     settings = {"solver": solver, "h": h, "sample_dt": sample_dt, "t_end": t_end,
                 "newton_relative_tolerance": newton_rtol,
@@ -699,8 +743,10 @@ def main(argv=None) -> int:
                     help="integration step, divides --dt (default: %(default)s; the "
                     "references use 1e-5)")
     ap.add_argument("--solver", choices=sorted(SOLVERS), default="generalized_alpha")
-    ap.add_argument("--newton-rtol", type=float, default=1e-12)
-    ap.add_argument("--newton-atol", type=float, default=1e-12)
+    ap.add_argument("--newton-rtol", type=float, default=None,
+                    help="default 1e-12; 1e-8 with a load of the state")
+    ap.add_argument("--newton-atol", type=float, default=None,
+                    help="default 1e-12; 1e-10 with a load of the state")
     ap.add_argument("--spectral-radius", type=float, default=0.8)
     ap.add_argument("--ignore-singular-jacobian", action="store_true",
                     help="pass singular configurations (with --newton-rtol 1e-8: the tight "
