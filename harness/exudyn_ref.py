@@ -514,7 +514,7 @@ class Mechanism:
                 p, a, b = pts
                 e, de, _ = seg(a, b)
                 w, dw, _ = seg(a, p)
-                L = self.scene.segment_length(a, b, e)
+                L = self.scene.segment_length(a, b)
                 env[name] = (w[0] * e[0] + w[1] * e[1]) / L
                 env[f"rate({name})"] = (dw[0] * e[0] + dw[1] * e[1] + w[0] * de[0] + w[1] * de[1]) / L
             elif name in self._terms:     # a sum of body rotations: continuous, exact

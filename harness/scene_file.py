@@ -118,7 +118,9 @@ class SceneFile:
         self.initial_positions = {k: self.num(v) for k, v in (init.get("positions") or {}).items()}
         self.initial_velocities = {k: self.num(v) for k, v in (init.get("velocities") or {}).items()}
 
-    read = classmethod(lambda cls, path: cls(path))
+    @classmethod
+    def read(cls, path) -> "SceneFile":
+        return cls(path)
 
     # -- numbers ----------------------------------------------------------------------
 
@@ -132,7 +134,7 @@ class SceneFile:
     def _parameters(self, spec: dict) -> dict:
         out: dict[str, float] = {}
         for k, v in spec.items():
-            out[str(k)] = ex.value(v, out) if not isinstance(v, str) else ex.parse(v)(out)
+            out[str(k)] = ex.value(v, out)
         return out
 
     # -- the scene format -------------------------------------------------------------
@@ -259,7 +261,7 @@ class SceneFile:
 
     def _load_expression(self, v, effect: str) -> ex.Expression:
         """A load's value with the parameters substituted; t and the state stay names."""
-        e = ex.parse(str(v) if not isinstance(v, str) else v)
+        e = ex.parse(str(v))
         known = dict(self.params)
         for n in e.names:
             if n in self.coordinate:
@@ -402,7 +404,7 @@ class SceneFile:
         if c["type"] == "distance":
             p, a, b = pts
             e = r[b] - r[a]
-            return float((r[p] - r[a]) @ e) / self.segment_length(a, b, e)
+            return float((r[p] - r[a]) @ e) / self.segment_length(a, b)
         if c["type"] == "angle":
             d = r[pts[1]] - r[pts[0]]
             v = math.atan2(d[1], d[0])
@@ -411,7 +413,7 @@ class SceneFile:
             v = math.atan2(a[0] * b[1] - a[1] * b[0], a @ b)
         return v + 2 * math.pi * round((near - v) / (2 * math.pi))
 
-    def segment_length(self, a: str, b: str, e) -> float:
+    def segment_length(self, a: str, b: str) -> float:
         """L of a distance coordinate's guide: the length its body or distance constraint
         keeps, else the distance as placed (docs/scene-format.md, section 6)."""
         for body in self.bodies:
