@@ -72,8 +72,11 @@ def rows_of(model, outcomes, ref_name, overrides) -> list[dict]:
             # What was asked for; the full settings are in trajectories/TOOL.json.
             row["settings"] = ", ".join(f"{k} {v}" for k, v in
                                         {**gen.defaults, **overrides.get(name, {})}.items())
+            # What the tool decided on its own (exudyn's Newton tolerances with loads of
+            # the state, a merged point mass, a floating body's joints).
+            row["note"] = "; ".join(o.provenance.get("modelling_notes") or [])
             if name == ref_name:
-                row["note"] = "the reference"
+                row["note"] = "the reference" + (f"; {row['note']}" if row["note"] else "")
             elif truth is not None:
                 row["rmse_m"], row["max_m"] = refs.point_errors(model, traj.t, traj.q, truth)
         rows.append(row)
