@@ -62,20 +62,42 @@ def rows_of(model, outcomes, ref_name, overrides) -> list[dict]:
         gen = generators.get(name)
         row = {"tool": name, "label": gen.label, "status": o.status, "rmse_m": None,
                "max_m": None, "max_abs_phi": None, "wall_time_s": o.wall_time_s,
-               "samples": None, "settings": "", "note": o.reason}
+               "samples": None, "settings": "", "note": o.reason, "step": "", "warnings": ""}
         if o.status == "ok":
             traj = o.trajectory
+            row["step"] = integrated_step(name, o.provenance)
+            row["warnings"] = " / ".join(o.provenance.get("warnings", []))
             row["samples"] = len(traj.t)
             row["max_abs_phi"] = max_phi(model, traj.q)
             # What was asked for; the full settings are in trajectories/TOOL.json.
             row["settings"] = ", ".join(f"{k} {v}" for k, v in
                                         {**gen.defaults, **overrides.get(name, {})}.items())
+            # What the tool decided on its own (exudyn's Newton tolerances with loads of
+            # the state, a merged point mass, a floating body's joints).
+            row["note"] = "; ".join(o.provenance.get("modelling_notes") or [])
             if name == ref_name:
-                row["note"] = "the reference"
+                row["note"] = "the reference" + (f"; {row['note']}" if row["note"] else "")
             elif truth is not None:
                 row["rmse_m"], row["max_m"] = refs.point_errors(model, traj.t, traj.q, truth)
         rows.append(row)
     return rows
+
+
+def integrated_step(name: str, prov: dict) -> str:
+    """The step the tool actually integrated at: for mbfg its dt, or the finer step a
+    refinement took from where it began; a fixed-step peer's h; IDA's is adaptive."""
+    settings = prov.get("settings", {})
+    if name.startswith("mbfg"):
+        dt = settings.get("dt")
+        ref = (prov.get("summary") or {}).get("refinement")
+        if ref:
+            step, t = ref.get("after") or (None, None)
+            return (f"{ref['dt']:.3g} (refined ×{ref['factor']} from t = {t:.4g} s; asked "
+                    f"{dt:g})" if t is not None else f"{ref['dt']:.3g} (refined ×{ref['factor']})")
+        return f"{dt:g}"
+    if "h" in settings:
+        return f"{settings['h']:g}"
+    return "adaptive"
 
 
 def fmt(v, spec: str) -> str:
@@ -90,14 +112,17 @@ def markdown(scene_label: str, model, rows, t_end, dt, ref_name, ref_note) -> st
              "included), one run.\n"]
     if ref_note:
         lines.append(ref_note + "\n")
-    lines += ["| tool | status | RMSE (m) | max error (m) | max \\|Φ\\| | wall time (s) | settings or reason |",
-              "|---|---|---|---|---|---|---|"]
+    lines += ["| tool | status | step integrated (s) | RMSE (m) | max error (m) | max \\|Φ\\| | "
+              "wall time (s) | settings or reason | warnings |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         why = r["note"] if r["status"] != "ok" else (
             r["settings"] + (f" ({r['note']})" if r["note"] else ""))
-        lines.append(f"| {r['tool']} | {r['status']} | {fmt(r['rmse_m'], '.3e')} | "
+        lines.append(f"| {r['tool']} | {r['status']} | {r['step'] or '—'} | "
+                     f"{fmt(r['rmse_m'], '.3e')} | "
                      f"{fmt(r['max_m'], '.3e')} | {fmt(r['max_abs_phi'], '.1e')} | "
-                     f"{fmt(r['wall_time_s'], '.3f')} | {why.replace('|', '/')} |")
+                     f"{fmt(r['wall_time_s'], '.3f')} | {why.replace('|', '/')} | "
+                     f"{(r['warnings'] or '—').replace('|', '/')} |")
     return "\n".join(lines) + "\n"
 
 
@@ -116,6 +141,17 @@ def default_coordinates(model: mbfg.Model) -> list[str]:
     if model.n <= 6:
         return list(model.names)
     return [model.names[i] for i in refs.point_columns(model)[:2]]
+
+
+def plot_series(model, name: str, *trajs) -> tuple[str, list[np.ndarray]]:
+    """What the plot shows of coordinate `name` in each trajectory, and its label: the
+    coordinate, or for an angle that turns a full turn or more (a straight line of
+    growing radians) its rate, which the eye can compare."""
+    k = model.names.index(name)
+    angles = {c["name"] for c in model.coordinates if c["type"] in ("angle", "relative_angle")}
+    if name in angles and any(np.ptp(t.q[:, k]) >= 2 * np.pi for t in trajs):
+        return f"rate({name}) (it turns)", [t.dq[:, k] for t in trajs]
+    return name, [t.q[:, k] for t in trajs]
 
 
 def plot(path: pathlib.Path, title: str, model, outcomes, ref_name, coords: list[str]) -> None:
@@ -138,16 +174,17 @@ def _plot(path, title, model, outcomes, ref_name, coords) -> None:
     for row, name in enumerate(coords):
         k = model.names.index(name)
         left, right = axes[row]
-        for tool in ran:
+        label, series = plot_series(model, name, *(outcomes[tool].trajectory for tool in ran))
+        for tool, shown in zip(ran, series):
             traj = outcomes[tool].trajectory
             is_ref = tool == ref_name
-            left.plot(traj.t, traj.q[:, k], "--" if is_ref else "-", color="k" if is_ref else color[tool],
+            left.plot(traj.t, shown, "--" if is_ref else "-", color="k" if is_ref else color[tool],
                       lw=1.0 if is_ref else 1.4, label=f"{tool} (reference)" if is_ref else tool,
                       zorder=3 if is_ref else 2)
             if truth is not None and not is_ref and len(traj.t) == len(truth.t):
                 err = np.maximum(np.abs(traj.q[:, k] - truth.q[:, k]), 1e-17)
                 right.semilogy(traj.t, err, lw=1.0, color=color[tool], label=tool)
-        left.set_ylabel(name)
+        left.set_ylabel(label)
         right.set_ylabel(f"|{name} − reference|")
         for ax in (left, right):
             ax.grid(True, which="both", alpha=0.3)
@@ -264,9 +301,12 @@ def main(argv=None) -> int:
               "reference": ref_name, "tools": rows,
               "wall_time_s": time.perf_counter() - start}
     tj.write_provenance(out / "compare.json", record)
-    print((out / "compare.md").read_text())
+    # Every progress line before the table, and the table in one piece.
     progress(f"wrote {out}/compare.md, compare.csv, compare.png, compare.json, trajectories/ "
              f"in {time.perf_counter() - start:.1f} s")
+    sys.stderr.flush()
+    sys.stdout.write((out / "compare.md").read_text() + "\n")
+    sys.stdout.flush()
     return 0 if any(o.status == "ok" for o in outcomes.values()) else 1
 
 

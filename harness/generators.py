@@ -191,8 +191,8 @@ register(Generator(
     sweeps=(("GGL index-2", "rtol", (1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12),
              {"formulation": "ggl"}),)))
 register(Generator(
-    "pinocchio", "Pinocchio", "Pinocchio: joint coordinates of a revolute tree (+ loop "
-    "closures), RK4", run_pinocchio,
+    "pinocchio", "Pinocchio", "Pinocchio: joint coordinates of a tree of revolute and "
+    "prismatic joints (+ loop closures), RK4", run_pinocchio,
     defaults={"h": 2e-4}, reference={"h": 1e-5}, packages=("pinocchio",), accuracy=2,
     sweeps=(("RK4", "h", (1e-3, 5e-4, 1e-4), {}),
             ("DOP853 adaptive", "rtol", (1e-6, 1e-8, 1e-10, 1e-12), {"method": "dop853"}))))

@@ -14,8 +14,10 @@ velocities and accelerations of frames placed at the scene's points; relative
 coordinates from the joint angles or the points). Inverse: `inverse(scene, csv)`
 gives the generalized forces on the prescribed coordinates by RNEA.
 
-Anything this generator cannot model (sliders, free-floating bodies, massless chains,
-unknown effects) raises `trajectory.Unsupported`; nothing is dropped silently.
+Sliders are carriages on prismatic joints, a free particle or a body joined to nothing
+hangs from x and y prismatic joints; distance ties between bodies and a point's second
+slider are equations of a constrained solve of Pinocchio's CRBA and RNEA. Anything this
+generator cannot model raises `trajectory.Unsupported`; nothing is dropped silently.
 
     python -m harness.pinocchio_ref scenes/double-pendulum.yaml --t-end 5 --dt 1e-3 \\
         --h 1e-5 --out /tmp/dp.csv.gz        # writes /tmp/dp.json too
@@ -35,6 +37,7 @@ import pinocchio as pin
 
 import mbfg
 from harness import trajectory as tj
+from harness.scene_file import SceneFile
 
 LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 # A 3D point contact closing a planar loop has an identically zero z row, so the
@@ -60,14 +63,26 @@ def _angle_of(d) -> float:
 
 
 class PinocchioModel:
-    """The Pinocchio counterpart of an `mbfg.Model`, built at its initial configuration."""
+    """The Pinocchio counterpart of an `mbfg.Model`, built at its initial configuration.
+
+    The numbers of the mechanism (masses, centres, inertias, effect constants, load
+    expressions) come from the harness's own reading of the file (scene_file.py), checked
+    against mbfg's; from mbfg only the assembled initial state."""
 
     def __init__(self, scene: str | pathlib.Path):
         self.scene = pathlib.Path(scene)
         self.mb = mb = mbfg.load(scene)
-        self.points = {p["name"]: p for p in mb.points}
-        q0 = mb.initial_q
-        self.p0 = {n: np.array(mb.point_position(q0, n)) for n in self.points}
+        self.sf = sf = SceneFile(scene)
+        sf.check(mb)
+        names = list(mb.names)
+        self.points = {n: {"name": n, "fixed": p.fixed, "mass": p.mass,
+                           "index": None if p.fixed else names.index(f"{n}.x")}
+                       for n, p in sf.points.items()}
+        self.bodies = sf.bodies
+        self.coords = {c["name"]: dict(c, index=names.index(c["name"])) for c in sf.coordinates}
+        self.p0 = sf.positions(mb.initial_q)
+        self._last: dict[str, float] = {}
+        self.notes: list[str] = []
         self._check_constraints()
         self._build_tree()
         self._add_point_frames()
@@ -82,118 +97,205 @@ class PinocchioModel:
     # ---- building -------------------------------------------------------------------
 
     def _check_constraints(self):
-        body_points = [set(b["points"]) for b in self.mb.bodies]
-        for c in self.mb.constraints:
+        """Sliders become carriages (prismatic joints); a distance between points of one
+        body is implied; any other distance is a tie, held with the loop closures by a
+        constraint-dynamics solve of Pinocchio's M and bias forces (`_tied_acceleration`)."""
+        body_points = [set(b.points) for b in self.bodies]
+        self.carriages = {}        # slider point -> (constraint name, line points, kind)
+        self.ties = []             # (name, a, b, length)
+        self.slots = []            # (name, point, line start, line end): second sliders
+        for c in self.sf.constraints:
             if c["type"] == "distance":
                 a, b = c["points"]
                 implied = any({a, b} <= s for s in body_points)
                 if implied and abs(np.linalg.norm(self.p0[a] - self.p0[b]) - c["length"]) < 1e-9:
                     continue  # a rigid body already keeps this distance
-                raise tj.Unsupported(
-                    f"constraint {c['name']!r}: a distance between points of different "
-                    "bodies (a massless link) is not modelled by the Pinocchio generator")
-            raise tj.Unsupported(
-                f"constraint {c['name']!r} of type {c['type']}: sliders have no "
-                "counterpart among the Pinocchio generator's revolute joints")
+                if implied:
+                    raise tj.Unsupported(f"constraint {c['name']!r}: a distance between two "
+                                         "points of one body that differs from the body's own")
+                self.ties.append((c["name"], a, b, c["length"]))
+                continue
+            p, l0, l1 = c["points"]
+            if p in self.carriages:
+                # A second slider on the point: an equation of the constrained solve.
+                self.slots.append((c["name"], p, l0, l1))
+                continue
+            if any({p, l0, l1} <= s for s in body_points):
+                raise tj.Unsupported(f"constraint {c['name']!r}: point and line on one body")
+            fixed_line = self.points[l0]["fixed"] and self.points[l1]["fixed"]
+            if not fixed_line and not any({l0, l1} <= s for s in body_points):
+                # No body carries the guide (its points are tied by a distance): an
+                # equation of the constrained solve.
+                self.slots.append((c["name"], p, l0, l1))
+                continue
+            self.carriages[p] = (c["name"], (l0, l1), c["type"])
+        # A body hangs from one carriage; a second slider point of the body (a block
+        # with two points in a slot) is an equation of the constrained solve, or its
+        # carriage would be a massless leaf.
+        for b in self.bodies:
+            on = [n for n in b.points if n in self.carriages]
+            for n in on[1:]:
+                name, (l0, l1), _ = self.carriages.pop(n)
+                self.slots.append((name, n, l0, l1))
+
+    def _carriage_parent(self, p: str):
+        _, line, kind = self.carriages[p]
+        if kind == "particle":
+            return "ground"
+        l0, l1 = line
+        if self.points[l0]["fixed"] and self.points[l1]["fixed"]:
+            return "ground"
+        return next(i for i, b in enumerate(self.bodies) if {l0, l1} <= set(b.points))
 
     def _build_tree(self):
-        """Revolute joints from the ground outwards; loop closures."""
-        bodies = self.mb.bodies
-        for b in bodies:
-            if len(b["points"]) < 2:
-                raise tj.Unsupported(f"body {b['name']!r} has fewer than two points")
+        """Joints from the ground outwards: a carriage (prismatic along its guide) hangs
+        from the guide's body or the ground; a body hangs from a carriage at its point
+        first, then from a fixed point, then from a body it shares a point with. Points
+        the tree does not join become loop closures."""
+        bodies = self.bodies
         fixed = {n for n, p in self.points.items() if p["fixed"]}
-        on_body = {n for b in bodies for n in b["points"]}
+        on_body = {n for b in bodies for n in b.points}
         for n, p in self.points.items():
-            if not p["fixed"] and n not in on_body:
-                raise tj.Unsupported(f"point {n!r} is on no body (a free particle or a "
-                                     "slider block): not modelled by the Pinocchio generator")
-        # Parents breadth-first from the ground (short paths to the ground) ...
-        parent = {}            # body index -> (point, parent entity); entity = "ground" | index
-        placed = []
-        while len(placed) < len(bodies):
+            if not p["fixed"] and n not in on_body and n not in self.carriages:
+                if p["mass"] <= 0:
+                    raise tj.Unsupported(f"point {n!r} is on no body and no slider, and "
+                                         "carries no mass")
+                # A free particle: two prismatic joints, along x then y.
+                self.carriages[n] = (f"particle {n}", None, "particle")
+            if n in self.carriages and n not in on_body and p["mass"] <= 0:
+                raise tj.Unsupported(f"slider point {n!r} carries no mass and no body")
+        # Entities: "ground", a body's index, ("carriage", point).
+        parent = {}            # entity -> (point, parent entity)
+        placed = ["ground"]
+        relaxed = False
+        while len(parent) < len(bodies) + len(self.carriages):
             progress = False
+            for p in self.carriages:
+                ent = ("carriage", p)
+                if ent not in parent and self._carriage_parent(p) in placed:
+                    parent[ent] = (p, self._carriage_parent(p))
+                    placed.append(ent)
+                    progress = True
             for i, b in enumerate(bodies):
                 if i in parent:
                     continue
-                hinge = next(((n, "ground") for n in b["points"] if n in fixed), None)
-                if hinge is None:
-                    for j in placed:  # the earliest placed neighbour
-                        shared = [n for n in b["points"] if n in bodies[j]["points"]]
-                        if shared:
-                            hinge = (shared[0], j)
-                            break
+                hinge = next(((n, ("carriage", n)) for n in b.points
+                              if ("carriage", n) in placed), None)
+                waiting = any(n in self.carriages and ("carriage", n) not in placed
+                              for n in b.points)
+                if hinge is None and (not waiting or relaxed):
+                    hinge = next(((n, "ground") for n in b.points if n in fixed), None)
+                    if hinge is None:
+                        for j in placed:  # the earliest placed neighbour
+                            if isinstance(j, int):
+                                shared = [n for n in b.points if n in bodies[j].points]
+                                if shared:
+                                    hinge = (shared[0], j)
+                                    break
                 if hinge is not None:
                     parent[i] = hinge
                     placed.append(i)
                     progress = True
             if not progress:
-                free = [bodies[i]["name"] for i in range(len(bodies)) if i not in parent]
-                raise tj.Unsupported(f"bodies {free} are not connected to the ground through "
-                                     "shared points (free-floating bodies are not modelled)")
-        # ... but joints added depth-first: Pinocchio's CRBA and constraint Cholesky
-        # assume every subtree has contiguous velocity indices.
+                if not relaxed:
+                    relaxed = True
+                    continue
+                # A body joined to nothing placed floats: it hangs from a massless
+                # particle at its first point (x and y joints), turning about it.
+                i = next(i for i in range(len(bodies)) if i not in parent)
+                n = bodies[i].points[0]
+                if n in self.carriages or self.points[n]["fixed"]:
+                    raise tj.Unsupported(f"body {bodies[i].name!r} is joined to nothing the "
+                                         "generator can place")
+                self.carriages[n] = (f"float {bodies[i].name}", None, "particle")
+                self.notes.append(f"body {bodies[i].name} floats: x, y joints at {n}")
+        # ... joints added depth-first: Pinocchio's CRBA and constraint Cholesky assume
+        # every subtree has contiguous velocity indices.
         model = pin.Model()
         model.name = self.mb.file
-        self.joint = {}        # body index -> joint id
+        self.joint = {}        # entity -> joint id
         self.pivot = {0: np.zeros(2)}  # joint id -> world position of its axis at q = 0
+        self.revolute = set()  # joint ids that turn
+        self.axis = {}         # carriage joint id -> its unit direction
+        self.particle_x = {}   # a free particle's entity -> its x joint (its y joint: joint[])
         self.tree_edges = []   # (point, child entity, parent entity)
         order = []
 
         def add(entity):
-            for i in placed:
-                n, pent = parent[i]
+            for child in placed[1:]:
+                n, pent = parent[child]
                 if pent != entity:
                     continue
                 pjoint = 0 if pent == "ground" else self.joint[pent]
                 at = self.p0[n]
                 placement = pin.SE3(np.eye(3), np.r_[at - self.pivot[pjoint], 0.0])
-                jid = model.addJoint(pjoint, pin.JointModelRZ(), placement,
-                                     f"{bodies[i]['name']}@{n}")
-                self.joint[i] = jid
+                if isinstance(child, tuple) and self.carriages[n][2] == "particle":
+                    jx = model.addJoint(pjoint, pin.JointModelPrismaticUnaligned(np.array([1.0, 0, 0])),
+                                        placement, f"particle@{n}.x")
+                    jid = model.addJoint(jx, pin.JointModelPrismaticUnaligned(np.array([0, 1.0, 0])),
+                                         pin.SE3.Identity(), f"particle@{n}.y")
+                    self.pivot[jx] = at
+                    self.axis[jx], self.axis[jid] = np.array([1.0, 0]), np.array([0, 1.0])
+                    self.particle_x[child] = jx
+                elif isinstance(child, tuple):
+                    l0, l1 = self.carriages[n][1]
+                    e = self.p0[l1] - self.p0[l0]
+                    e = e / np.linalg.norm(e)
+                    jid = model.addJoint(pjoint, pin.JointModelPrismaticUnaligned(np.r_[e, 0.0]),
+                                         placement, f"{self.carriages[n][0]}@{n}")
+                    self.axis[jid] = e
+                else:
+                    jid = model.addJoint(pjoint, pin.JointModelRZ(), placement,
+                                         f"{bodies[child].name}@{n}")
+                    self.revolute.add(jid)
+                self.joint[child] = jid
                 self.pivot[jid] = at
-                self.tree_edges.append((n, i, pent))
-                order.append(i)
-                add(i)
+                self.tree_edges.append((n, child, pent))
+                order.append(child)
+                add(child)
         add("ground")
-        placed = order
-        self.order = placed
-        # Inertias: each body's mass, centre of mass and inertia about it; point masses
-        # go to the first body (in tree order) that carries the point.
-        for i in placed:
+        self.order = order
+        self.body_order = [e for e in order if isinstance(e, int)]
+        # Inertias: each body's mass, centre of mass and inertia about it; a point mass
+        # goes to its carriage, else to the first body (in tree order) that carries it.
+        for i in self.body_order:
             b = bodies[i]
             jid = self.joint[i]
-            origin, x_to = self.p0[b["points"][0]], self.p0[b["points"][1]]
+            origin, x_to = self.p0[b.points[0]], self.p0[b.points[1]]
             th = _angle_of(x_to - origin)
             c, s = math.cos(th), math.sin(th)
-            cog = origin + np.array([c * b["cog"][0] - s * b["cog"][1],
-                                     s * b["cog"][0] + c * b["cog"][1]])
-            izz = b["inertia_cog"]
+            cog = origin + np.array([c * b.cog[0] - s * b.cog[1], s * b.cog[0] + c * b.cog[1]])
             # Planar motion only sees Izz; Ixx = Iyy = Izz keeps the inertia physical.
-            inertia = pin.Inertia(b["mass"], np.r_[cog - self.pivot[jid], 0.0], np.eye(3) * izz)
+            inertia = pin.Inertia(b.mass, np.r_[cog - self.pivot[jid], 0.0], np.eye(3) * b.inertia)
             model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
         for n, p in self.points.items():
             if p["mass"] > 0 and not p["fixed"]:
-                i = next(i for i in placed if n in bodies[i]["points"])
-                jid = self.joint[i]
+                if n in self.carriages:
+                    jid = self.joint[("carriage", n)]
+                else:
+                    jid = self.joint[next(i for i in self.body_order if n in bodies[i].points)]
                 lever = np.r_[self.p0[n] - self.pivot[jid], 0.0]
                 model.appendBodyToJoint(jid, pin.Inertia(p["mass"], lever, np.zeros((3, 3))),
                                         pin.SE3.Identity())
-        for i in placed:
+        for i in self.body_order:
             jid = self.joint[i]
             if model.inertias[jid].mass <= 0 and model.inertias[jid].inertia[2, 2] <= 0:
-                raise tj.Unsupported(f"body {bodies[i]['name']!r} has no mass and no inertia")
+                raise tj.Unsupported(f"body {bodies[i].name!r} has no mass and no inertia")
         self.model = model
         self._loop_closures()
 
+    def _holders(self, n: str) -> list:
+        return ((["ground"] if self.points[n]["fixed"] else [])
+                + ([("carriage", n)] if n in self.carriages else [])
+                + [i for i in self.body_order if n in self.bodies[i].points])
+
     def _loop_closures(self):
         """A point joining entities the tree does not join at that point is a loop closure."""
-        bodies = self.mb.bodies
         self.cmodels = []
         self.loops = []
-        for n, p in self.points.items():
-            ents = (["ground"] if p["fixed"] else []) + [i for i in self.order
-                                                        if n in bodies[i]["points"]]
+        self.loop_frames = []      # (frame on the first entity, on the second) per loop
+        for n in self.points:
+            ents = self._holders(n)
             comp = {e: e for e in ents}
 
             def root(e):
@@ -201,7 +303,7 @@ class PinocchioModel:
                     e = comp[e]
                 return e
             for pt, child, parent in self.tree_edges:
-                if pt == n:
+                if pt == n and not isinstance(child, tuple):  # a carriage slides, not pins
                     comp[root(child)] = root(parent)
             roots = []
             for e in ents:
@@ -214,6 +316,9 @@ class PinocchioModel:
                 pl2 = pin.SE3(np.eye(3), np.r_[self.p0[n] - self.pivot[j2], 0.0])
                 if j1 == 0:  # Pinocchio wants the moving joint first
                     j1, j2, pl1, pl2 = j2, j1, pl2, pl1
+                self.loop_frames.append(tuple(
+                    self.model.addFrame(pin.Frame(f"loop {n} {k}", j, pl, pin.FrameType.OP_FRAME))
+                    for k, (j, pl) in enumerate(((j1, pl1), (j2, pl2)))))
                 cm = pin.RigidConstraintModel(pin.ContactType.CONTACT_3D, self.model,
                                               j1, pl1, j2, pl2, pin.ReferenceFrame.LOCAL)
                 cm.name = f"loop@{n}"
@@ -226,11 +331,12 @@ class PinocchioModel:
         return 0 if entity == "ground" else self.joint[entity]
 
     def _add_point_frames(self):
-        """An operational frame at every scene point, on the first body carrying it."""
+        """An operational frame at every scene point, on its carriage or the first body
+        carrying it."""
         self.frame = {}
         for n, p in self.points.items():
-            owner = next((i for i in self.order if n in self.mb.bodies[i]["points"]), None)
-            jid = 0 if p["fixed"] or owner is None else self.joint[owner]
+            holders = [e for e in self._holders(n) if e != "ground"]
+            jid = 0 if p["fixed"] or not holders else self.joint[holders[0]]
             placement = pin.SE3(np.eye(3), np.r_[self.p0[n] - self.pivot[jid], 0.0])
             self.frame[n] = self.model.addFrame(
                 pin.Frame(f"point {n}", jid, placement, pin.FrameType.OP_FRAME))
@@ -238,11 +344,12 @@ class PinocchioModel:
     def _body_rows(self) -> dict[int, np.ndarray]:
         """Body index -> row r with (body angle - its initial angle) = r · q."""
         rows = {}
-        for i in self.order:
+        for i in self.body_order:
             r = np.zeros(self.model.nv)
             jid = self.joint[i]
             while jid != 0:
-                r[self.model.idx_vs[jid]] = 1.0
+                if jid in self.revolute:
+                    r[self.model.idx_vs[jid]] = 1.0
                 jid = self.model.parents[jid]
             rows[i] = r
         return rows
@@ -250,8 +357,8 @@ class PinocchioModel:
     def _segment_row(self, a: str, b: str):
         """Row r with (angle of a→b - its initial angle) = r · q, if one body carries a, b."""
         body_rows = self._body_rows()
-        for i in self.order:
-            if {a, b} <= set(self.mb.bodies[i]["points"]):
+        for i in self.body_order:
+            if {a, b} <= set(self.bodies[i].points):
                 return body_rows[i]
         if self.points[a]["fixed"] and self.points[b]["fixed"]:
             return np.zeros(self.model.nv)
@@ -261,7 +368,7 @@ class PinocchioModel:
         """Relative coordinates linear in the joint angles: c = c0 + row · q."""
         self.rows = {}
         q0 = self.mb.initial_q
-        for c in self.mb.coordinates:
+        for c in self.coords.values():
             row = None
             if c["type"] == "angle":
                 row = self._segment_row(*c["points"])
@@ -270,8 +377,6 @@ class PinocchioModel:
                 rb = self._segment_row(*c["points"][2:])
                 if ra is not None and rb is not None:
                     row = rb - ra
-            elif c["type"] != "distance":
-                raise tj.Unsupported(f"coordinate {c['name']!r} of type {c['type']}")
             if row is not None:
                 self.rows[c["name"]] = (q0[c["index"]], row)
 
@@ -279,44 +384,17 @@ class PinocchioModel:
         """Sorts the scene's effects; gravity goes into the model."""
         self.model.gravity.linear = np.zeros(3)
         self.loads = []
-        coords = {c["name"]: c for c in self.mb.coordinates}
-        for i, e in enumerate(self.mb.effects):
-            kind = e["type"]
-            if e.get("state_dependent"):
-                raise tj.Unsupported(f"effect {e['name']!r}: a load that depends on the state "
-                                     f"({e.get('value', 'a Python callable')})")
-            if kind == "gravity":
-                self.model.gravity.linear = self.model.gravity.linear + np.r_[e["vector"], 0.0]
-            elif kind in ("torque", "rotational_spring_damper"):
-                e = dict(e, coordinate=self._effect_coordinate(e))
-                if e["coordinate"] not in self.rows:
-                    c = coords.get(e["coordinate"], {})
-                    raise tj.Unsupported(
-                        f"effect {e['name']!r} acts on coordinate {e['coordinate']!r} "
-                        f"({c.get('type')}), which is not an angle of a single body")
-                self.loads.append((i, e))
-            elif kind in ("spring_damper", "force"):
-                self.loads.append((i, e))
+        for e in self.sf.effects:
+            if e.type == "gravity":
+                self.model.gravity.linear = self.model.gravity.linear + np.r_[e.spec["vector"], 0.0]
             else:
-                raise tj.Unsupported(f"effect {e.get('name')!r} of type {kind}")
-        self.needs_points = any(e["type"] in ("spring_damper", "force") for _, e in self.loads)
-
-    def _effect_coordinate(self, e) -> str:
-        """The relative coordinate an effect acts on.
-
-        Works around an mbfg module bug (src/python/model.rs `effects`): it names the k-th
-        relative coordinate by `names[k]` (a point coordinate) instead of
-        `names[relative_offset + k]`. The accelerations test against mbfg's KKT checks
-        this mapping.
-        """
-        name = e["coordinate"]
-        coords = self.mb.coordinates
-        if any(c["name"] == name for c in coords):
-            return name
-        k = list(self.mb.names).index(name)
-        if k < len(coords):
-            return coords[k]["name"]
-        raise ValueError(f"effect {e['name']!r}: unknown coordinate {name!r}")
+                self.loads.append(e)
+        self.needs_state = any(e.type in ("torque", "force") and
+                               any(v.state_names for v in e.spec["value"]) for e in self.loads)
+        self.needs_points = self.needs_state or any(
+            e.type in ("spring_damper", "force") or
+            (e.spec.get("coordinate") is not None and e.spec["coordinate"] not in self.rows)
+            for e in self.loads)
 
     # ---- dynamics -------------------------------------------------------------------
 
@@ -334,40 +412,82 @@ class PinocchioModel:
             out[n] = (pos, J)
         return out
 
+    def _angle_row(self, name, q, pts):
+        """(value continued from its last, d value / d joint q) of an angle coordinate."""
+        if name in self.rows:
+            c0, row = self.rows[name]
+            return c0 + row @ q, row
+        c = self.coords[name]
+        segs = [c["points"][:2]] if c["type"] == "angle" else [c["points"][:2], c["points"][2:]]
+        rows = []
+        for a, b in segs:
+            (pa, Ja), (pb, Jb) = pts[a], pts[b]
+            d, dJ = pb - pa, Jb - Ja
+            rows.append((d[0] * dJ[1] - d[1] * dJ[0]) / (d @ d))
+        row = rows[0] if len(rows) == 1 else rows[1] - rows[0]
+        r = {n: p for n, (p, _) in pts.items()}
+        value = self.sf.coordinate_value(c, r, self._last.get(name, self.mb.initial_q[c["index"]]))
+        self._last[name] = value
+        return value, row
+
+    def state_env(self, t, q, v) -> dict:
+        """The load expressions' variables (docs/scene-format.md, section 8) at (q, v)."""
+        Q, dQ, _ = self.scene_state(q, v, np.zeros(self.model.nv))
+        env = {"t": t}
+        for name, c in self.coords.items():
+            env[name], env[f"rate({name})"] = Q[c["index"]], dQ[c["index"]]
+            if c["type"] != "distance":
+                near = self._last.get(name, self.mb.initial_q[c["index"]])
+                env[name] += 2 * math.pi * round((near - env[name]) / (2 * math.pi))
+                self._last[name] = env[name]
+        for n in self.points:
+            env[f"x({n})"], env[f"y({n})"] = self._pos[n]
+            env[f"vx({n})"], env[f"vy({n})"] = self._vel[n]
+        for b in self.bodies:
+            a0, a1 = b.points[:2]
+            d, dv = self._pos[a1] - self._pos[a0], self._vel[a1] - self._vel[a0]
+            env[f"angle({b.name})"] = math.atan2(d[1], d[0])
+            env[f"omega({b.name})"] = (d[0] * dv[1] - d[1] * dv[0]) / (d @ d)
+        return env
+
     def applied_torques(self, t, q, v):
         """Joint torques of every effect but gravity (that one is in the model)."""
         tau = np.zeros(self.model.nv)
         if not self.loads:
             return tau
-        if self.needs_points:
-            names = [n for _, e in self.loads if e["type"] in ("spring_damper", "force")
-                     for n in ([e["point"]] if e["type"] == "force" else e["points"])]
-            pts = self._point_jacobians(q, names)
-        for i, e in self.loads:
-            kind = e["type"]
-            if kind == "torque":
-                tau += self.mb.effect_value(i, t) * self.rows[e["coordinate"]][1]
-            elif kind == "rotational_spring_damper":
-                c0, row = self.rows[e["coordinate"]]
-                angle, rate = c0 + row @ q, row @ v
-                tau += (-e["stiffness"] * (angle - e["rest_angle"]) - e["damping"] * rate) * row
+        env = self.state_env(t, q, v) if self.needs_state else {"t": t}
+        pts = self._point_jacobians(q, list(self.points)) if self.needs_points else {}
+        for e in self.loads:
+            kind, s = e.type, e.spec
+            if kind in ("torque", "rotational_spring_damper", "dc_motor"):
+                angle, row = self._angle_row(s["coordinate"], q, pts)
+                rate = row @ v
+                if kind == "torque":
+                    value = s["value"][0]({**env, s["coordinate"]: angle})
+                elif kind == "dc_motor":
+                    value = s["stall_torque"] * (1.0 - rate / s["no_load_speed"])
+                else:
+                    value = -s["stiffness"] * (angle - s["rest_angle"]) - s["damping"] * rate
+                tau += value * row
             elif kind == "force":
-                pos, J = pts[e["point"]]
-                tau += J.T @ np.asarray(self.mb.effect_value(i, t), dtype=float)
+                pos, J = pts[s["point"]]
+                tau += J.T @ np.array([f(env) for f in s["value"]])
             else:  # spring_damper
-                (pa, Ja), (pb, Jb) = pts[e["points"][0]], pts[e["points"][1]]
+                (pa, Ja), (pb, Jb) = pts[s["points"][0]], pts[s["points"][1]]
                 d = pb - pa
                 length = math.hypot(*d)
                 if length < 1e-12:
-                    raise ValueError(f"spring {e['name']!r}: its ends coincide, direction undefined")
+                    raise ValueError(f"spring {e.name!r}: its ends coincide, direction undefined")
                 u = d / length
                 rate = u @ ((Jb - Ja) @ v)
-                tension = e["stiffness"] * (length - e["rest_length"]) + e["damping"] * rate
+                tension = s["stiffness"] * (length - s["rest_length"]) + s["damping"] * rate
                 tau += (Ja - Jb).T @ (tension * u)  # pulls b towards a and a towards b
         return tau
 
     def acceleration(self, t, q, v):
         tau = self.applied_torques(t, q, v)
+        if self.ties or self.slots:
+            return self._tied_acceleration(q, v, tau)
         if self.loops:
             a = pin.constraintDynamics(self.model, self.data, q, v, tau,
                                        self.cmodels, self.cdatas, self.prox)
@@ -375,12 +495,71 @@ class PinocchioModel:
             a = pin.aba(self.model, self.data, q, v, tau)
         return np.array(a)  # a copy: Pinocchio may reuse its buffer
 
+    def _frame_state(self, fid):
+        """(position, velocity, classical acceleration at q̈ = 0, 2×nv Jacobian) of a frame;
+        after forwardKinematics(q, v, 0), computeJointJacobians and updateFramePlacements."""
+        m, d = self.model, self.data
+        return (d.oMf[fid].translation[:2].copy(),
+                pin.getFrameVelocity(m, d, fid, LWA).linear[:2].copy(),
+                pin.getFrameClassicalAcceleration(m, d, fid, LWA).linear[:2].copy(),
+                np.reshape(pin.getFrameJacobian(m, d, fid, LWA), (6, m.nv))[:2])
+
+    def _tied_acceleration(self, q, v, tau):
+        """q̈ of the tree held by its loop closures (the point's x, y on both sides) and its
+        distance ties (|r_b − r_a|² = L²), each stabilized as the loops are (Baumgarte):
+        [M Jᵀ; J 0] [q̈; −λ] = [τ − b(q, q̇); −J̇q̇ − K_d φ̇ − K_p φ], with Pinocchio's M (CRBA),
+        bias forces b (RNEA at q̈ = 0, gravity included) and frame Jacobians."""
+        m, d = self.model, self.data
+        nv = m.nv
+        M = pin.crba(m, d, q)
+        M = np.triu(M) + np.triu(M, 1).T
+        b = pin.rnea(m, d, q, v, np.zeros(nv))
+        pin.forwardKinematics(m, d, q, v, np.zeros(nv))
+        pin.computeJointJacobians(m, d, q)
+        pin.updateFramePlacements(m, d)
+        rows, rhs = [], []
+        for f1, f2 in self.loop_frames:
+            (p1, v1, a1, J1), (p2, v2, a2, J2) = self._frame_state(f1), self._frame_state(f2)
+            rows.append(J1 - J2)
+            rhs.append(-(a1 - a2) - BAUMGARTE_KD * (v1 - v2) - BAUMGARTE_KP * (p1 - p2))
+        for _, a, bb, length in self.ties:
+            (pa, va, aa, Ja), (pb, vb, ab, Jb) = (self._frame_state(self.frame[n]) for n in (a, bb))
+            dd, dv = pb - pa, vb - va
+            rows.append((2 * dd @ (Jb - Ja))[None, :])
+            phi = dd @ dd - length ** 2
+            rhs.append(np.array([-(2 * dd @ (ab - aa) + 2 * dv @ dv)
+                                 - BAUMGARTE_KD * 2 * (dd @ dv) - BAUMGARTE_KP * phi]))
+        for _, p, l0, l1 in self.slots:
+            # φ = e × w, e = r_l1 − r_l0, w = r_p − r_l0 (× the planar cross product).
+            (p0, v0, a0, J0), (p1, v1, a1, J1), (pp, vp, ap, Jp) = (
+                self._frame_state(self.frame[n]) for n in (l0, l1, p))
+            e, de, ae, Je = p1 - p0, v1 - v0, a1 - a0, J1 - J0
+            w, dw, aw, Jw = pp - p0, vp - v0, ap - a0, Jp - J0
+            cr = lambda a, b: a[0] * b[1] - a[1] * b[0]  # noqa: E731
+            rows.append((Je[0] * w[1] - Je[1] * w[0] + e[0] * Jw[1] - e[1] * Jw[0])[None, :])
+            rhs.append(np.array([-(cr(ae, w) + 2 * cr(de, dw) + cr(e, aw))
+                                 - BAUMGARTE_KD * (cr(de, w) + cr(e, dw))
+                                 - BAUMGARTE_KP * cr(e, w)]))
+        J = np.vstack(rows)
+        k = J.shape[0]
+        K = np.block([[M, J.T], [J, np.zeros((k, k))]])
+        sol = np.linalg.lstsq(K, np.concatenate([tau - b, *rhs]), rcond=1e-13)[0]
+        return sol[:nv]
+
     def loop_error(self, q) -> float:
-        """Largest loop-closure gap (m) at q."""
-        if not self.loops:
+        """Largest loop-closure gap or distance tie error (m) at q."""
+        if not self.loops and not self.ties and not self.slots:
             return 0.0
         pin.framesForwardKinematics(self.model, self.data, q)
         worst = 0.0
+        for _, p, l0, l1 in self.slots:
+            r = {n: self.data.oMf[self.frame[n]].translation[:2] for n in (p, l0, l1)}
+            e, w = r[l1] - r[l0], r[p] - r[l0]
+            worst = max(worst, abs(float(e[0] * w[1] - e[1] * w[0])) / np.linalg.norm(e))
+        for _, a, b, length in self.ties:
+            gap = np.linalg.norm(self.data.oMf[self.frame[b]].translation[:2]
+                                 - self.data.oMf[self.frame[a]].translation[:2]) - length
+            worst = max(worst, abs(float(gap)))
         for (n, a, b) in self.loops:
             pos = []
             for ent in (a, b):
@@ -392,21 +571,37 @@ class PinocchioModel:
     # ---- states ---------------------------------------------------------------------
 
     def initial_state(self):
-        """Joint angles (zero by construction) and rates from mbfg's initial q̇."""
+        """Joint coordinates (zero by construction) and rates from mbfg's initial q̇."""
         mb = self.mb
-        dq0 = mb.initial_dq
+        v0 = self.sf.positions(mb.initial_dq)
 
         def vel(n):
-            return np.zeros(2) if self.points[n]["fixed"] else np.array(mb.point_velocity(dq0, n))
-        omega = {0: 0.0}
+            return np.zeros(2) if self.points[n]["fixed"] else v0[n]
+        omega = {"ground": 0.0}
         v = np.zeros(self.model.nv)
-        for i in self.order:
-            a, b = self.mb.bodies[i]["points"][:2]
-            d = self.p0[b] - self.p0[a]
-            dv = vel(b) - vel(a)
-            jid = self.joint[i]
-            omega[jid] = (d[0] * dv[1] - d[1] * dv[0]) / (d @ d)
-            v[self.model.idx_vs[jid]] = omega[jid] - omega[self.model.parents[jid]]
+        for ent in self.order:
+            n, pent = next((p, par) for p, c, par in self.tree_edges if c == ent)
+            jid = self.joint[ent]
+            if isinstance(ent, tuple):
+                # The guide's material point under n moves with the parent body.
+                if pent == "ground":
+                    v_guide = np.zeros(2)
+                else:
+                    b = self.bodies[pent]
+                    a = b.points[0]
+                    r = self.p0[n] - self.p0[a]
+                    v_guide = vel(a) + omega[pent] * np.array([-r[1], r[0]])
+                omega[ent] = omega[pent]
+                v[self.model.idx_vs[jid]] = (vel(n) - v_guide) @ self.axis[jid]
+                if ent in self.particle_x:
+                    jx = self.particle_x[ent]
+                    v[self.model.idx_vs[jx]] = (vel(n) - v_guide) @ self.axis[jx]
+            else:
+                a, b = self.bodies[ent].points[:2]
+                d = self.p0[b] - self.p0[a]
+                dv = vel(b) - vel(a)
+                omega[ent] = (d[0] * dv[1] - d[1] * dv[0]) / (d @ d)
+                v[self.model.idx_vs[jid]] = omega[ent] - omega[pent]
         return np.zeros(self.model.nq), v
 
     def scene_state(self, q, v, a):
@@ -425,7 +620,8 @@ class PinocchioModel:
             k = p["index"]
             if k is not None:
                 Q[k:k + 2], dQ[k:k + 2], ddQ[k:k + 2] = pos[name], vel[name], acc[name]
-        for c in self.mb.coordinates:
+        self._pos, self._vel = pos, vel
+        for c in self.coords.values():
             k = c["index"]
             if c["name"] in self.rows:
                 c0, row = self.rows[c["name"]]
@@ -571,7 +767,14 @@ def generate(scene, t_end: float, sample_dt: float, h: float = 2e-4,
         e = np.array([mb.kinetic_energy(v) + mb.potential_energy(q)
                       for q, v in zip(traj.q, traj.dq)])
         extra["max_energy_drift_J"] = float(np.max(np.abs(e - e[0])))
-    if pm.loops:
+    if pm.ties or pm.slots:
+        formulation = (f"KKT of CRBA/RNEA with loop closures, distance ties and second "
+                       f"sliders (Baumgarte) + {integrator}")
+        settings = {**step, "baumgarte": {"Kp": BAUMGARTE_KP, "Kd": BAUMGARTE_KD},
+                    "loops": [f"{n}: {a}-{b}" for n, a, b in pm.loops],
+                    "ties": [f"{name}: {a}-{b}" for name, a, b, _ in pm.ties],
+                    "sliders": [f"{name}: {p} on {a}-{b}" for name, p, a, b in pm.slots]}
+    elif pm.loops:
         formulation = f"constraintDynamics (CONTACT_3D loop closures) + {integrator}"
         settings = {**step, "mu": PROX_MU, "prox_accuracy": PROX_ACCURACY,
                     "prox_max_iter": PROX_MAX_ITER,
@@ -583,6 +786,7 @@ def generate(scene, t_end: float, sample_dt: float, h: float = 2e-4,
     prov = tj.provenance("pinocchio", scene, formulation, settings, wall, packages=("pin",),
                          joints=[pm.model.names[j] for j in range(1, pm.model.njoints)],
                          max_abs_phi=max_phi, max_loop_gap_m=loop_gap[0],
+                         modelling_notes=pm.notes,
                          sample_dt=sample_dt, t_end=t_end, **extra)
     return traj, prov
 
@@ -648,7 +852,7 @@ def inverse(scene, trajectory_csv, with_method: bool = False):
     Returns (t, {coordinate: Q}) and, with with_method, the derivative method too.
     """
     pm = PinocchioModel(scene)
-    if pm.loops:
+    if pm.loops or pm.ties or pm.slots:
         raise tj.Unsupported("inverse dynamics of closed loops is not modelled by the "
                              "Pinocchio generator (RNEA needs a tree)")
     names, t, c, dc, ddc, method = prescribed_motion(trajectory_csv)

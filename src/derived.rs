@@ -21,17 +21,24 @@ pub enum Group {
     Bodies,
     Energy,
     Joints,
+    Constraints,
 }
 
 impl Group {
     /// Every group, in the order their columns are written.
-    pub const ALL: [Group; 3] = [Group::Bodies, Group::Energy, Group::Joints];
+    pub const ALL: [Group; 4] = [
+        Group::Bodies,
+        Group::Energy,
+        Group::Joints,
+        Group::Constraints,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
             Group::Bodies => "bodies",
             Group::Energy => "energy",
             Group::Joints => "joints",
+            Group::Constraints => "constraints",
         }
     }
 
@@ -114,6 +121,7 @@ pub fn columns(
             Group::Bodies => bodies(model, trajectory),
             Group::Energy => energy(model, trajectory, actuators)?,
             Group::Joints => joints(model, trajectory, actuators)?,
+            Group::Constraints => constraints(model, trajectory, actuators)?,
         };
         out = out.beside(next, trajectory.len());
     }
@@ -148,6 +156,34 @@ pub fn joints(
             actuators.map(|a| &a[k * n..(k + 1) * n]),
         )?;
         values.extend(forces.iter().flatten().flatten());
+    }
+    Ok(Columns { names, values })
+}
+
+/// `R:<constraint>` for every constraint of the scene's `constraints`: a distance's
+/// tension, a slider's normal force on its point, N (`reactions::constraint_forces`).
+pub fn constraints(
+    model: &Model,
+    trajectory: &Trajectory,
+    actuators: Option<&[f64]>,
+) -> Result<Columns> {
+    let names: Vec<String> = model
+        .scene
+        .constraints
+        .iter()
+        .map(|c| format!("R:{}", c.name))
+        .collect();
+    let n = model.n();
+    let mut values = Vec::with_capacity(trajectory.len() * names.len());
+    for k in 0..trajectory.len() {
+        values.extend(crate::reactions::constraint_forces(
+            model,
+            trajectory.q_at(k),
+            trajectory.dq_at(k),
+            &trajectory.ddq[k * n..(k + 1) * n],
+            trajectory.t[k],
+            actuators.map(|a| &a[k * n..(k + 1) * n]),
+        )?);
     }
     Ok(Columns { names, values })
 }

@@ -13,7 +13,7 @@
 
 use crate::error::{Error, Result};
 use crate::model::{mass, Model, MAX_LOCAL};
-use crate::scene::{Effect, RelativeKind};
+use crate::scene::{ConstraintKind, Effect, RelativeKind};
 use nalgebra::{DMatrix, DVector};
 
 /// For every body, in scene order, the force on it at each of its points, in the order
@@ -77,6 +77,59 @@ pub fn joint_forces(
     if out.iter().flatten().flatten().any(|v| !v.is_finite()) {
         return Err(Error::singular(format!(
             "joint forces at t = {t} s are not finite"
+        )));
+    }
+    Ok(out)
+}
+
+/// The force each of the scene's `constraints` carries at the state (q, q̇, q̈) at time
+/// t, in the order listed, N. With the equations' multipliers λ (M q̈ + Φ_qᵀ λ = Q):
+///
+/// - a `distance` between A and B: its tension T = 2 |r_B − r_A| λ, positive when it
+///   pulls A and B together (the force on B is −T (r_B − r_A)/|r_B − r_A|);
+/// - a `fixed_slider` or `mobile_slider` of P on the line A→B: the normal force N on P
+///   along the line's left normal n (A→B turned 90° counter-clockwise), N = −|r_B − r_A| λ;
+///   the guide takes −N n at P (on a moving guide, that force and its moment about A,
+///   −N s with s the distance of P from A along the line, act on the guide's body).
+///
+/// A redundant constraint is left out of the dynamics: it carries none (0).
+pub fn constraint_forces(
+    model: &Model,
+    q: &[f64],
+    dq: &[f64],
+    ddq: &[f64],
+    t: f64,
+    extra: Option<&[f64]>,
+) -> Result<Vec<f64>> {
+    let lambda = multipliers(model, q, dq, ddq, t, extra)?;
+    let length = |a: usize, b: usize| {
+        let (ra, rb) = (model.point_position(q, a), model.point_position(q, b));
+        (rb[0] - ra[0]).hypot(rb[1] - ra[1])
+    };
+    let out: Vec<f64> = model
+        .scene
+        .constraints
+        .iter()
+        .map(|c| {
+            let row = model
+                .active
+                .iter()
+                .position(|&k| model.constraints[k].name == c.name);
+            let Some(r) = row else { return 0.0 };
+            match c.kind {
+                ConstraintKind::Distance { points, .. } => {
+                    2.0 * length(points[0], points[1]) * lambda[r]
+                }
+                ConstraintKind::FixedSlider { line, .. }
+                | ConstraintKind::MobileSlider { line, .. } => {
+                    -length(line[0], line[1]) * lambda[r]
+                }
+            }
+        })
+        .collect();
+    if out.iter().any(|v| !v.is_finite()) {
+        return Err(Error::singular(format!(
+            "constraint forces at t = {t} s are not finite"
         )));
     }
     Ok(out)

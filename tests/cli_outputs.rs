@@ -319,3 +319,42 @@ fn joint_force_columns_balance_at_the_pins() {
     }
     assert_eq!(rows, 501);
 }
+
+/// `--columns constraints`: one `R:<name>` per scene constraint. The slider-crank's
+/// guide holds the 0.5 kg block up against gravity and the rod: with the rod's force on
+/// the block (`joints`), m_S a_S = m_S g + R n − F:rod@S along the guide's normal
+/// n = (0, 1). A redundant constraint carries nothing.
+#[test]
+fn constraint_force_columns_hold_the_block_on_its_guide() {
+    let dir = scratch("constraints");
+    let table = simulate(
+        "scenes/slider-crank.yaml",
+        "0.5",
+        &dir.join("slider-crank.csv"),
+        &["--columns", "joints,constraints"],
+    );
+    assert_eq!(table.columns.last().map(String::as_str), Some("R:guide"));
+    let col = |name: &str| table.column(name).unwrap_or_else(|| panic!("{name}"));
+    let (r, ay, fy) = (col("R:guide"), col("ddq:S.y"), col("F:rod@S.y"));
+    let largest = max_abs(&r);
+    assert!(largest > 1.0, "{largest}");
+    for k in 0..r.len() {
+        let normal = 0.5 * (ay[k] + 9.81) + fy[k];
+        assert!(
+            (r[k] - normal).abs() <= 1e-6 * largest,
+            "{k}: {} {normal}",
+            r[k]
+        );
+    }
+    let table = simulate(
+        "scenes/hard/redundant-fourbar.yaml",
+        "0.1",
+        &dir.join("redundant.csv"),
+        &["--columns", "constraints"],
+    );
+    assert!(col_all_zero(&table, "R:coupler-again"));
+}
+
+fn col_all_zero(table: &Table, name: &str) -> bool {
+    table.column(name).unwrap().iter().all(|v| *v == 0.0)
+}

@@ -12,11 +12,13 @@ import time
 import numpy as np
 import pytest
 
+import mbfg
 from harness import compare, exudyn_ref, generators, reference, timing
 from harness import trajectory as tj
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-ENTRY_POINTS = ["reference", "report", "timing", "robustness", "hard_cases", "compare", "ida",
+ENTRY_POINTS = ["reference", "report", "timing", "robustness", "hard_cases", "compare",
+                "crosscheck", "coverage", "ida",
                 "exudyn_ref", "pinocchio_ref", "prescribed_motions", "regression", "trajectory",
                 "generators", "scaling", "scale_scenes"]
 # What a runaway entry point would write into the repository.
@@ -80,12 +82,12 @@ def test_compare_on_a_users_scene(tmp_path):
 
 
 def test_compare_reports_refusals_and_failures_in_the_table(tmp_path):
-    scene = users_scene(tmp_path, "slider-crank")
+    scene = users_scene(tmp_path, "fourbar")     # declares no independent coordinates
     out = tmp_path / "out"
-    assert compare.main([str(scene), "--tools", "mbfg,mbfg-ic,pinocchio", "--t-end", "0.2",
+    assert compare.main([str(scene), "--tools", "mbfg,mbfg-ic", "--t-end", "0.2",
                          "--out", str(out), "--set", "ida.max_num_steps=3"]) == 0
     rows = read_rows(out / "compare.csv")
-    assert rows["pinocchio"]["status"] == "refused" and "slider" in rows["pinocchio"]["note"]
+    assert rows["mbfg-ic"]["status"] == "refused" and "independent" in rows["mbfg-ic"]["note"]
     # The reference tool runs even when not asked for; it fails here (3 steps), and the
     # remaining reference tools are not in the run: no errors, said so.
     assert rows["ida"]["status"] == "failed" and "max_num_steps" in rows["ida"]["note"]
@@ -172,3 +174,27 @@ def test_exudyn_failure_is_one_line_and_nonzero(tmp_path, capfd):
     assert err.count("\n") == 1 and err.startswith("exudyn_ref: exudyn: the generalized_alpha "
                                                    "solve of") and "failed at t = 0.52" in err
     assert out == "" and "Traceback" not in err
+
+
+def test_compare_shows_the_step_mbfg_integrated_at_its_warnings_and_a_turning_crank(tmp_path):
+    # At dt = 0.05 s the fast crank turns 1.5 rad a step: mbfg refines to dt/6 from the
+    # first step, and says the energy drifted; the table says both.
+    scene = ROOT / "scenes" / "driven" / "fast-crank.yaml"
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "harness.compare", str(scene), "--tools", "mbfg",
+                        "--t-end", "1", "--dt", "0.05", "--out", str(out)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    rows = read_rows(out / "compare.csv")
+    assert rows["mbfg"]["step"].startswith("0.00833 (refined ×6 from t = 0.05 s; asked 0.05)")
+    assert rows["ida"]["step"] == "adaptive"
+    md = (out / "compare.md").read_text()
+    assert "| mbfg | ok | 0.00833 (refined ×6" in md
+    assert p.stdout.startswith("# ") and md in p.stdout     # the table in one piece
+    assert "wrote" not in p.stdout and "wrote" in p.stderr
+    # The crank turns: its plot shows the speed, not an angle climbing to 20 rad.
+    model = mbfg.load(scene)
+    ida = tj.read(out / "trajectories/ida.csv.gz")
+    label, (shown,) = compare.plot_series(model, "theta", ida)
+    assert label == "rate(theta) (it turns)"
+    assert np.array_equal(shown, ida.dq[:, model.names.index("theta")])

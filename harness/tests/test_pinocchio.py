@@ -50,13 +50,62 @@ def test_rotational_spring_has_the_exact_frequency():
     np.testing.assert_allclose(traj.q[:, x + 1], 2 * np.sin(theta), atol=1e-12)
 
 
-def test_refuses_a_slider_clearly():
-    with pytest.raises(tj.Unsupported, match="guide.*fixed_slider"):
-        pr.generate(SCENES / "slider-crank.yaml", 0.1, 0.01)
-    with pytest.raises(tj.Unsupported, match="slider"):
-        pr.inverse(SCENES / "slider-crank.yaml", SCENES / "trajectories" / "fourbar-theta.csv")
-    # The CLI says so and exits with status 2, writing nothing.
-    assert pr.main([str(SCENES / "slider-crank.yaml"), "--out", "/nonexistent/x.csv"]) == 2
+@pytest.mark.parametrize("scene", ["slider-crank.yaml", "slotted-lever.yaml",
+                                   "driven/compressor-slider-crank.yaml"])
+def test_sliders_are_prismatic_joints_whose_motion_solves_mbfg_equations(scene):
+    # Fixed and mobile sliders as carriages on prismatic joints, a state-dependent gas
+    # force: the accelerations at the start, mapped to natural coordinates, are mbfg's.
+    traj, prov = pr.generate(SCENES / scene, 0.01, 0.01, h=1e-3)
+    model = mbfg.load(SCENES / scene)
+    want = model.accelerations(traj.q[0], traj.dq[0], 0.0)
+    np.testing.assert_allclose(traj.ddq[0], want, atol=1e-6 * max(1.0, np.abs(want).max()))
+    assert len(prov["joints"]) == len(model.bodies) + len(model.constraints)  # + carriages
+
+
+TIED = """points:
+  - {name: A, x: 0, y: 0, fixed: true}
+  - {name: B, x: 2, y: 0, fixed: true}
+  - {name: C, x: 1, y: 1, fixed: true}
+  - {name: R1, x: -1, y: -0.5, fixed: true}
+  - {name: R2, x: 3, y: -0.5, fixed: true}
+  - {name: P, x: 1, y: -1}
+  - {name: Q, x: 2, y: -1}
+  - {name: F, x: 0.5, y: -0.5, mass: 0.3}
+  - {name: K, x: 3, y: 1}
+  - {name: L, x: 3, y: 2}
+bodies:
+  - {name: left, points: [A, P], mass: 1}
+  - {name: right, points: [B, Q], mass: 1}
+  - {name: plank, points: [K, L], mass: 0.5}
+constraints:
+  - {name: tie, type: distance, points: [P, Q]}
+  - {name: rail, type: fixed_slider, point: F, line: [R1, R2]}
+  - {name: slot, type: mobile_slider, point: F, line: [A, P]}
+coordinates:
+  - {name: theta, type: angle, points: [A, P]}
+  - {name: phi, type: angle, points: [K, L]}
+independent: [theta, K.x, K.y, phi]
+initial:
+  velocities: {theta: 1, phi: -0.5}
+effects:
+  - {type: gravity, vector: [0, -9.81]}
+  - {name: hang, type: spring_damper, points: [C, K], stiffness: 30}
+"""
+
+
+def test_ties_second_sliders_and_floating_bodies_solve_mbfg_equations(tmp_path):
+    # A distance tie between two bodies, a point on two sliders (a massive block in a
+    # rail and in the slot of a pendulum), a body held by a spring alone: the
+    # accelerations at the start are mbfg's.
+    scene = tmp_path / "tied.yaml"
+    scene.write_text(TIED)
+    traj, prov = pr.generate(scene, 0.01, 0.01, h=1e-3)
+    model = mbfg.load(str(scene))
+    want = model.accelerations(traj.q[0], traj.dq[0], 0.0)
+    np.testing.assert_allclose(traj.ddq[0], want, atol=1e-6 * max(1.0, np.abs(want).max()))
+    assert "distance ties" in prov["formulation"]
+    assert prov["settings"]["ties"] == ["tie: P-Q"] and prov["settings"]["sliders"] == ["slot: F on A-P"]
+    assert prov["modelling_notes"] == ["body plank floats: x, y joints at K"]
 
 
 def test_loads_match_the_mbfg_equations_at_random_states():

@@ -1,6 +1,6 @@
 """Loads that depend on the state, from Python: scene expressions (`rate(theta)`,
-`vx(P2)`, …) that IDA follows, generators that cannot take them refusing by name, and
-controllers written as Python callables (`effects=`)."""
+`vx(P2)`, …) that IDA follows, and controllers written as Python callables (`effects=`).
+exudyn and Pinocchio on such scenes: test_peers.py."""
 
 import json
 import pathlib
@@ -17,7 +17,7 @@ CONTROLLED = ROOT / "scenes/driven/controlled-crank-rocker.yaml"
 COMPRESSOR = ROOT / "scenes/driven/compressor-slider-crank.yaml"
 
 
-def compare(tmp_path, scene, dt, tools="mbfg,mbfg-ic,ida,exudyn,pinocchio"):
+def compare(tmp_path, scene, dt, tools="mbfg,mbfg-ic,ida"):
     out = tmp_path / f"{scene.stem}-{dt:g}"
     r = subprocess.run([sys.executable, "-m", "harness.compare", str(scene), "--tools", tools,
                         "--t-end", "2", "--dt", str(dt), "--out", str(out)],
@@ -36,9 +36,6 @@ def test_state_dependent_scenes_match_ida_at_second_order(tmp_path, scene):
         assert fine[tool]["max_abs_phi"] <= 1e-9
         ratio = coarse[tool]["rmse_m"] / fine[tool]["rmse_m"]
         assert 50 <= ratio <= 200, (tool, ratio)
-    # exudyn takes its loads as functions of time only: refused, naming the effect.
-    assert fine["exudyn"]["status"] == "refused"
-    assert "depends on the state" in fine["exudyn"]["note"]
 
 
 def test_effects_say_which_depend_on_the_state():

@@ -461,6 +461,35 @@ impl PyModel {
             Ok(out)
         })
     }
+    /// The force each of the scene's `constraints` carries: (name, N) in their order
+    /// (`reactions::constraint_forces`: a distance's tension, a slider's normal force).
+    fn constraint_forces(
+        &self,
+        q: &Bound<'_, PyAny>,
+        dq: &Bound<'_, PyAny>,
+        ddq: &Bound<'_, PyAny>,
+        t: &Bound<'_, PyAny>,
+    ) -> PyResult<Vec<(String, f64)>> {
+        guard(|| {
+            let (q, dq, ddq) = (
+                self.vector(q, "q")?,
+                self.vector(dq, "dq")?,
+                self.vector(ddq, "ddq")?,
+            );
+            let t = arg_real(t, "t")?;
+            let forces = crate::reactions::constraint_forces(
+                &self.model,
+                q.as_slice(),
+                dq.as_slice(),
+                ddq.as_slice(),
+                t,
+                None,
+            )
+            .map_err(arg_error)?;
+            let names = self.model.scene.constraints.iter().map(|c| c.name.clone());
+            Ok(names.zip(forces).collect())
+        })
+    }
     fn point_position(
         &self,
         q: &Bound<'_, PyAny>,
