@@ -152,6 +152,11 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
 /// What ran, in one line.
 pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
     let how = match s.smoothing {
+        Smoothing::Window(w) if s.longest_window > w => format!(
+            "window {w}, grown to {} where its oldest step was less certain than its newest \
+             (mean {:.0})",
+            s.longest_window, s.mean_window
+        ),
         Smoothing::Window(w) => format!("window {w}"),
         Smoothing::Batch => "batch".to_string(),
     };

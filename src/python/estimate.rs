@@ -111,6 +111,8 @@ pub(super) fn estimate_run<'py>(
             Smoothing::Batch => s.set_item("window", "batch")?,
         }
         s.set_item("readings", summary.readings)?;
+        s.set_item("window_longest", summary.longest_window)?;
+        s.set_item("window_mean", summary.mean_window)?;
         s.set_item("iterations", summary.iterations)?;
         s.set_item("unsettled", summary.unsettled)?;
         s.set_item("nis_mean", summary.nis.mean())?;

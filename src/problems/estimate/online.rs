@@ -56,6 +56,13 @@ pub struct Update {
 /// solves per step; the next step's solve goes on from where this one stopped.
 pub const PLAUSIBLE_COST: f64 = 10.0;
 
+/// A window grows up to this many times its length while its oldest step is less
+/// certain (a larger σ of a watched coordinate) than its newest: where the readings
+/// determine the motion only slowly (a gyroscope that cannot yet tell the start
+/// angle from an unknown torque), a step leaves the window once the readings have
+/// caught up with it, not while its estimate is still mostly the prior's.
+pub const LONGEST_FACTOR: usize = 4;
+
 /// Steps the buffer holds before it moves, past the window.
 const BUFFER: usize = 1024;
 
@@ -65,6 +72,17 @@ pub struct Estimator {
     eg: EstimationGraph,
     solver: WindowSolver,
     window: usize,
+    /// The most steps the window grows to while its oldest step is unsettled.
+    longest: usize,
+    /// The oldest steps the next update marginalizes (handed out final by this one).
+    leaving: usize,
+    /// The coordinates whose σ decide when the oldest step leaves: the scene's
+    /// independent ones, else every q.
+    watched: Vec<usize>,
+    /// Steps the windows held, summed over the updates.
+    held_sum: usize,
+    /// The most steps a window held.
+    pub held_most: usize,
     /// Values of the buffer's steps (step-major); its step 0 is run step `solver.base()`.
     values: Vec<f64>,
     /// Steps the buffer holds (`None`: every step, for a batch solve after).
@@ -98,7 +116,13 @@ impl Estimator {
         keep_all: bool,
     ) -> Result<Self> {
         let window = window.max(1);
-        let solver = WindowSolver::new(&eg.graph, window + 1, settings)?;
+        let longest = LONGEST_FACTOR * window;
+        let watched = if model.independent.is_empty() {
+            (0..model.n()).collect()
+        } else {
+            model.independent.clone()
+        };
+        let solver = WindowSolver::new(&eg.graph, longest + 1, settings)?;
         let s = eg.size();
         let capacity = (!keep_all).then_some(window + BUFFER);
         let ws = eg.graph.workspace();
@@ -106,6 +130,11 @@ impl Estimator {
             model,
             solver,
             window,
+            longest,
+            leaving: 0,
+            watched,
+            held_sum: 0,
+            held_most: 0,
             values: Vec::with_capacity(capacity.unwrap_or(window + BUFFER) * s),
             capacity,
             prior: None,
@@ -120,6 +149,11 @@ impl Estimator {
             iterations: 0,
             unsettled: 0,
         })
+    }
+
+    /// The mean number of steps the windows held, over the updates so far.
+    pub fn mean_window(&self) -> f64 {
+        self.held_sum as f64 / self.next.max(1) as f64
     }
 
     pub fn graph(&self) -> &EstimationGraph {
@@ -171,7 +205,7 @@ impl Estimator {
             self.values.resize((k + 1) * s, 0.0);
             self.eg.predict(&mut self.values, k);
         }
-        if k + 1 - self.k0 > self.window {
+        for _ in 0..self.leaving {
             let earlier = self.prior.take();
             let prior = self
                 .solver
@@ -180,6 +214,8 @@ impl Estimator {
             self.prior = Some(prior);
             self.k0 += 1;
         }
+        self.held_most = self.held_most.max(k + 1 - self.k0);
+        self.held_sum += k + 1 - self.k0;
         // The newest step first brought to its optimum given the one before, then
         // the window from there.
         let mut warm = 0;
@@ -253,13 +289,33 @@ impl Estimator {
                 &mut self.ws,
             )
         };
-        let mut finals = Vec::new();
-        if k + 1 - self.k0 == self.window {
-            // The oldest step leaves the window with the next update: this is its
-            // final estimate.
-            finals.push(self.estimate_of(self.k0));
-            self.finalized = run_k + 2 - self.window;
+        // How many of the oldest steps leave with the next update: none while the
+        // window fills, or while the oldest knows less than the newest (the readings
+        // have not yet caught up with it: a start the sensors determine only slowly)
+        // and the window may grow; two while a grown window shrinks back; else one.
+        let held = k + 1 - self.k0;
+        let unsettled = self.oldest_less_certain(k);
+        self.leaving = if held < self.window || (unsettled && held < self.longest) {
+            0
+        } else if held > self.window && !unsettled {
+            2
+        } else {
+            1
+        };
+        if self.leaving == 2 {
+            self.solver.covariances_after_solve(
+                &self.eg.graph,
+                self.k0,
+                k + 1,
+                Marginals::Every,
+                &mut self.covariances,
+            )?;
         }
+        // The steps that leave with the next update: these are their final estimates.
+        let finals: Vec<StepEstimate> = (self.k0..self.k0 + self.leaving)
+            .map(|b| self.estimate_of(b))
+            .collect();
+        self.finalized = self.solver.base() + self.k0 + self.leaving;
         self.next += 1;
         Ok(Update {
             newest,
@@ -267,6 +323,16 @@ impl Estimator {
             nis,
             report,
         })
+    }
+
+    /// Whether the oldest step's σ of a watched coordinate is above the newest's:
+    /// its smoothed estimate knows less than the filtered one at the window's end.
+    fn oldest_less_certain(&self, k: usize) -> bool {
+        let s = self.eg.size();
+        let (old, new) = (&self.covariances[0], &self.covariances[k - self.k0]);
+        self.watched
+            .iter()
+            .any(|&i| old[i * s + i] > new[i * s + i])
     }
 
     /// The steps still in the window, final: the record has ended. Their

@@ -34,6 +34,10 @@ pub struct EstimateSummary {
     pub process_sigma: f64,
     /// Whether the process σ is the scene's (else the default).
     pub scene_process_sigma: bool,
+    /// The most steps a window held (the window asked, or more where its oldest
+    /// step was less certain than its newest), and the mean over the updates.
+    pub longest_window: usize,
+    pub mean_window: f64,
     /// The watched coordinates (the scene's independent ones, else every q) whose
     /// σ stayed of the order of their start prior's: no reading determines them.
     pub undetermined: Vec<Undetermined>,
@@ -161,6 +165,8 @@ pub fn estimate_with_progress(
         process_sigma,
         scene_process_sigma: model.estimation.process_sigma.is_some(),
         undetermined: determination.undetermined(),
+        longest_window: est.held_most,
+        mean_window: est.mean_window(),
     })
 }
 
