@@ -153,8 +153,8 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
 pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
     let how = match s.smoothing {
         Smoothing::Window(w) if s.longest_window > w => format!(
-            "window {w}, grown to {} where its oldest step was less certain than its newest \
-             (mean {:.0})",
+            "window {w}, grown to {} at most and {:.0} on average while its oldest step was \
+             less certain than its newest",
             s.longest_window, s.mean_window
         ),
         Smoothing::Window(w) => format!("window {w}"),
