@@ -4,12 +4,18 @@ CARGO ?= cargo
 MBFG := target/release/mbfg
 SCENES := $(sort $(wildcard scenes/*.yaml))
 
-.PHONY: all build report reference test bench fmt lint clean venv python
+.PHONY: all build install report reference test bench fmt lint clean venv python
 
 all: build
 
 build:
 	$(CARGO) build --release
+
+# The mbfg command on the PATH: copied to $(PREFIX)/bin (default ~/.local/bin).
+PREFIX ?= $(HOME)/.local
+install: build
+	install -D -m 755 $(MBFG) $(PREFIX)/bin/mbfg
+	@case ":$$PATH:" in *":$(PREFIX)/bin:"*) ;; *) echo "add $(PREFIX)/bin to PATH: export PATH=\"$(PREFIX)/bin:\$$PATH\"";; esac
 
 # The validation pages (reports/index.md): scene summaries, RMSE over window sizes
 # against the committed references, accuracy against time, hard cases, inverse dynamics.

@@ -49,12 +49,11 @@ pub struct SimulateArgs {
     /// Integrator factor between steps.
     #[arg(long, value_enum, default_value_t = IntegratorArg(Integrator::Trapezoidal))]
     integrator: IntegratorArg,
-    /// In dependent coordinates, what the integrator factors ask: on all n
-    /// coordinates as in the paper (`full`: a least-squares compromise), only along
-    /// the directions the constraints leave free (`tangent`: one equation per
-    /// unknown, all satisfied, every window and the batch give N_w = 1's
-    /// solution), or `full` with the run made again with `tangent` where a solve
-    /// fails (`auto`)
+    /// In dependent coordinates, what the integrator factors ask: only along the
+    /// directions the constraints leave free (`tangent`: one equation per unknown,
+    /// all satisfied, every window and the batch give N_w = 1's solution), on all n
+    /// coordinates as in the paper (`full`: a least-squares compromise), or
+    /// `tangent` with the run made again with `full` where a solve fails (`auto`).
     #[arg(long = "dc-integrators", value_enum, default_value_t = DcIntegratorsArg::Auto)]
     dc_integrators: DcIntegratorsArg,
     /// Noise models: mbfg's defaults, or the paper's Table 2.
@@ -431,6 +430,13 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
         s.worst_phi,
         s.worst_velocity_constraint
     );
+    if let Some(t_last) = mbfg::limits::t_end_unmet(options.dt, options.t_end) {
+        line += &format!(
+            "; ends at t = {} s, the whole step nearest t_end = {} s",
+            super::seconds(t_last),
+            super::seconds(options.t_end)
+        );
+    }
     if let Some(d) = s.energy_drift {
         line += &format!("; energy drift {d:.2e} J");
     }

@@ -14,7 +14,8 @@ pub struct WrittenArgs {
     sample_dt: Option<f64>,
     /// Optional columns after the standard ones, comma-separated: `bodies` (angle,
     /// centre of mass position and velocity of every body), `energy` (kinetic,
-    /// potential, work of every non-conservative effect, energy_balance).
+    /// potential, work of every non-conservative effect, energy_balance), `joints`
+    /// (the force every joint and slider transmits, on each body at each point).
     #[arg(long, value_name = "LIST")]
     columns: Option<String>,
 }
