@@ -217,7 +217,9 @@ fn simulate(
     let output = Output::open(out, &[scene])?;
     for w in mbfg::model::plausibility::idle_warning(&model)
         .into_iter()
+        .chain(mbfg::model::plausibility::locked_warning(&model))
         .chain(mbfg::model::plausibility::inertia_warning(&model))
+        .chain(mbfg::model::plausibility::units_warnings(&model))
     {
         eprintln!("warning: {w}");
     }

@@ -220,8 +220,18 @@ pub(super) fn simulate_run<'py>(
         let requested = options.steps();
         let step_warning: Vec<String> = crate::model::plausibility::idle_warning(&model)
             .into_iter()
+            .chain(crate::model::plausibility::locked_warning(&model))
             .chain(crate::model::plausibility::inertia_warning(&model))
+            .chain(crate::model::plausibility::units_warnings(&model))
             .chain(crate::model::plausibility::step_warning(&model, options.dt))
+            .chain(
+                crate::limits::t_end_unmet(options.dt, options.t_end).map(|last| {
+                    format!(
+                        "t_end = {} s is not a whole number of steps: the run ends at t = {last} s,                          the whole step nearest it",
+                        options.t_end
+                    )
+                }),
+            )
             .collect();
         let model_for_checks = model.clone();
         let (run, signal) = interruptible(py, |progress| {
