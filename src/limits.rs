@@ -69,7 +69,9 @@ pub fn t_end_unmet(dt: f64, t_end: f64) -> Option<f64> {
         true => crate::trajectory::round_time(last),
         false => last,
     };
-    ((last - t_end).abs() > 1e-9 * dt).then_some(printed)
+    // A millionth of a step: t_end given in single precision (0.01 as 0.0099999998)
+    // is on the grid.
+    ((last - t_end).abs() > 1e-6 * dt).then_some(printed)
 }
 
 /// A byte count for messages.
@@ -98,6 +100,7 @@ mod tests {
         assert_eq!(super::t_end_unmet(3e-3, 1.0), Some(0.999));
         assert_eq!(super::t_end_unmet(1e-3, 5.0), None);
         assert_eq!(super::t_end_unmet(0.1, 0.3), None);
+        assert_eq!(super::t_end_unmet(1e-3, 0.01f32 as f64), None);
     }
 
     #[test]

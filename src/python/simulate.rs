@@ -13,6 +13,7 @@ use crate::forward::{
 use crate::smoother::Mode;
 use crate::solver::Past;
 use crate::Error;
+use numpy::PyArray1;
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
@@ -153,8 +154,20 @@ pub(super) fn simulate_run<'py>(
     dq0: &Bound<'py, PyAny>,
     effects: &Bound<'py, PyAny>,
     square_steps: &Bound<'py, PyAny>,
+    columns: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
+        // The CLI's optional column groups (`--columns`), as a list of names.
+        let groups = match columns.is_none() {
+            true => Vec::new(),
+            false => {
+                let names: Vec<String> = columns.extract().map_err(|_| {
+                    invalid("columns must be a list of group names (bodies, energy, joints)")
+                })?;
+                crate::derived::Group::parse_list(&names.join(","))
+                    .map_err(|e| invalid(e.replace("--columns", "columns")))?
+            }
+        };
         let loads = arg_effects(effects)?;
         let params = arg_values(Some(params), "params")?;
         let q0 = arg_values(Some(q0), "q0")?;
@@ -227,7 +240,8 @@ pub(super) fn simulate_run<'py>(
             .chain(
                 crate::limits::t_end_unmet(options.dt, options.t_end).map(|last| {
                     format!(
-                        "t_end = {} s is not a whole number of steps: the run ends at t = {last} s,                          the whole step nearest it",
+                        "t_end = {} s is not a whole number of steps: the run ends at t = {last} s, \
+                         the whole step nearest it",
                         options.t_end
                     )
                 }),
@@ -255,6 +269,12 @@ pub(super) fn simulate_run<'py>(
             }
         };
         let out = forward_result(py, &tr, &s, requested)?;
+        if !groups.is_empty() && s.failures.is_empty() && signal.is_none() {
+            let extra = crate::derived::columns(&model_for_checks, &tr, &groups, None)
+                .map_err(arg_error)?;
+            out.set_item("extra_columns", extra.names)?;
+            out.set_item("extra", PyArray1::from_vec(py, extra.values))?;
+        }
         // What converged but may not be right (mbfg simulate prints these as warnings).
         let euler = crate::forward::energy_checks::euler_warning(
             &model_for_checks,
