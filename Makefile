@@ -63,9 +63,13 @@ clean:
 
 venv: .venv/.installed
 
-# The mbfg Python module (PyO3), built in release mode into .venv.
+# The mbfg Python module (PyO3), built in release mode into .venv, and the same build
+# as a wheel in target/wheels/ (from the same compilation: seconds), which the packaging
+# test installs into a fresh venv.
 python: .venv/.installed
 	VIRTUAL_ENV=$(CURDIR)/.venv .venv/bin/maturin develop --release --quiet
+	@rm -f target/wheels/mbfg-*.whl
+	VIRTUAL_ENV=$(CURDIR)/.venv .venv/bin/maturin build --release --quiet --out target/wheels
 
 # Fuzzing the parsers (docs/fuzzing.md) on the stable toolchain: libFuzzer comes with
 # libfuzzer-sys, the coverage instrumentation from these flags. FUZZ_SECONDS is the

@@ -22,7 +22,12 @@ def animate(result, model=None, out: str | os.PathLike = "mbfg.gif", fps: int = 
     ends in .mp4 (that needs ffmpeg). `fps` frames per second of video, `speed` seconds
     of motion per second of video, `trail` the name of a point whose path is drawn.
     `model` defaults to the scene the result was run on. Returns the path written."""
-    import matplotlib
+    try:
+        import matplotlib
+    except ModuleNotFoundError:
+        raise ModuleNotFoundError('mbfg.animate draws with matplotlib, which is not installed: '
+                                  'pip install "mbfg[plot]" (or pip install matplotlib)',
+                                  name="matplotlib") from None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib import animation
