@@ -364,15 +364,19 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
 
 
 def animate(result: "Result", model: "Model | None" = None, out: str | os.PathLike = "mbfg.gif",
-            fps: int = 25, speed: float = 1.0, trail: str | None = None) -> str:
+            fps: int = 25, speed: float = 1.0, trail: str | None = None,
+            forces: bool = False) -> str:
     """Writes the mechanism's motion in `result` to a GIF (or an MP4 when `out` ends in
     .mp4; that needs ffmpeg): bodies as lines, fixed points as triangles, point masses
     as squares, the time in a corner. `model` defaults to the scene of a result from
     `simulate`. `fps` is the frames per second of the file, `speed` how much faster than
-    real time it plays (2.0: twice), `trail` a point whose path is drawn behind it.
+    real time it plays (2.0: twice), `trail` a point whose path is drawn behind it,
+    `forces=True` the ground's reaction at every fixed point as an arrow. Slider guides
+    and slots are drawn; the label gives the time and the independent angles (the speed
+    of one that turns full turns).
     Returns the path written. Needs matplotlib (`pip install "mbfg[plot]"`)."""
     from .animation import animate as draw
-    return draw(result, model, out, fps=fps, speed=speed, trail=trail)
+    return draw(result, model, out, fps=fps, speed=speed, trail=trail, forces=forces)
 
 
 def _dict(values):
