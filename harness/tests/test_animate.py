@@ -70,3 +70,16 @@ def test_animate_forces_need_velocities_and_accelerations():
         t, q = r.t, r.q
     with pytest.raises(mbfg.InvalidArgument, match="forces: the result needs dq and ddq"):
         mbfg.animate(Positions(), model=mbfg.load(ROOT / "scenes/pendulum.yaml"), forces=True)
+
+
+def test_animate_forces_from_the_command_line(tmp_path):
+    csv = tmp_path / "run.csv"
+    scene = ROOT / "scenes/pendulum.yaml"
+    subprocess.run([MBFG, "simulate", scene, "--dt", "0.01", "--t-end", "0.3", "--out", csv],
+                   check=True, capture_output=True)
+    env = {**os.environ, "MBFG_PYTHON": sys.executable}
+    r = subprocess.run([MBFG, "animate", csv, "--scene", scene, "--fps", "10", "--forces"],
+                       env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    with Image.open(tmp_path / "run.gif") as im:
+        assert im.n_frames == 4

@@ -23,6 +23,9 @@ pub struct AnimateArgs {
     /// Draw the path of this point.
     #[arg(long, value_name = "POINT")]
     trail: Option<String>,
+    /// Draw the ground's reaction at every fixed point as an arrow.
+    #[arg(long)]
+    forces: bool,
 }
 
 /// `mbfg animate`: the arguments passed on.
@@ -34,8 +37,17 @@ pub fn run(args: AnimateArgs) -> Result<(), Failure> {
         fps,
         speed,
         trail,
+        forces,
     } = args;
-    animate(&run, &scene, out.as_deref(), fps, speed, trail.as_deref())
+    animate(
+        &run,
+        &scene,
+        out.as_deref(),
+        fps,
+        speed,
+        trail.as_deref(),
+        forces,
+    )
 }
 
 /// The Python that draws: `MBFG_PYTHON`; else the active virtual environment's;
@@ -65,6 +77,7 @@ fn animate(
     fps: u32,
     speed: f64,
     trail: Option<&str>,
+    forces: bool,
 ) -> Result<(), Failure> {
     let python = interpreter();
     let mut cmd = std::process::Command::new(&python);
@@ -78,6 +91,9 @@ fn animate(
     }
     if let Some(p) = trail {
         cmd.args(["--trail", p]);
+    }
+    if forces {
+        cmd.arg("--forces");
     }
     let done = cmd
         .stderr(std::process::Stdio::piped())
