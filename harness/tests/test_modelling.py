@@ -64,6 +64,11 @@ def test_errors_in_built_scenes_name_their_line_and_suggest_names():
         s.model()
     with pytest.raises(mbfg.SceneError, match="the file is empty"):
         mbfg.load("\n")
+    model = fourbar_in_code().model()
+    with pytest.raises(mbfg.InvalidArgument, match=r"no coordinate named 'P1.z'; did you mean 'P1.y' or 'P1.x'"):
+        model.index("P1.z")
+    with pytest.raises(mbfg.InvalidArgument, match=r"no body named 'rocer'; did you mean 'rocker'"):
+        model.body_point_position(model.initial_q, "rocer")
 
 
 SUITE = sorted(p for p in SCENES.rglob("*.yaml")

@@ -64,8 +64,8 @@ class Model:
         try:
             return self.names.index(name)
         except ValueError:
-            raise InvalidArgument(_clip(f"no coordinate named {name!r:.60} (coordinates: "
-                                        f"{', '.join(self.names)})")) from None
+            raise InvalidArgument(_clip(f"no coordinate named {name!r:.60}{_did_you_mean(name, self.names)} "
+                                        f"(coordinates: {', '.join(self.names)})")) from None
 
     def mass_matrix(self) -> np.ndarray:
         """M (n × n), constant in natural coordinates: the bodies' masses and inertias
@@ -533,6 +533,13 @@ def _table(trajectory: Mapping) -> tuple[list[str], list[float]]:
         counts = ", ".join(f"{c}: {len(a)}" for c, a in zip(columns, arrays))
         raise InvalidArgument(_clip(f"trajectory: the columns differ in length ({counts})"))
     return columns, np.column_stack(arrays).ravel().tolist()
+
+
+def _did_you_mean(name, known) -> str:
+    """`; did you mean 'psi'?` for a name close to a known one, else empty."""
+    import difflib
+    near = difflib.get_close_matches(str(name), list(known), n=3, cutoff=0.6)
+    return "; did you mean " + " or ".join(repr(k) for k in near) + "?" if near else ""
 
 
 def _clip(message: str, limit: int = 300) -> str:

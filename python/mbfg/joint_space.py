@@ -88,8 +88,9 @@ def body_frame(model, body: str):
     position, L) of a body by name."""
     bodies = {b["name"]: b for b in model.bodies}
     if body not in bodies:
-        raise model._invalid(f"no body named {body!r:.60} (bodies: "
-                             f"{', '.join(bodies) or 'none'})")
+        from . import _did_you_mean
+        raise model._invalid(f"no body named {body!r:.60}{_did_you_mean(body, bodies)} "
+                             f"(bodies: {', '.join(bodies) or 'none'})")
     b = bodies[body]
     points = {p["name"]: p for p in model.points}
     p0, p1 = (points[n] for n in b["points"][:2])
@@ -134,7 +135,9 @@ def point_jacobian(model, point: str) -> np.ndarray:
     """∂(x, y)/∂q (2 × n) of a named point (zero for a fixed one)."""
     points = {p["name"]: p for p in model.points}
     if point not in points:
-        raise model._invalid(f"no point named {point!r:.60} (points: {', '.join(points)})")
+        from . import _did_you_mean
+        raise model._invalid(f"no point named {point!r:.60}{_did_you_mean(point, points)} "
+                             f"(points: {', '.join(points)})")
     j = np.zeros((2, model.n))
     i = points[point]["index"]
     if i is not None:
