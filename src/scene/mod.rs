@@ -21,6 +21,7 @@ use crate::expr::Expr;
 use std::path::Path;
 
 pub use build::{coordinate_names, relative_value};
+pub use suggest::did_you_mean;
 
 /// A named point of the mechanism, fixed or free.
 #[derive(Debug, Clone, PartialEq)]
