@@ -206,3 +206,17 @@ def test_the_public_surface_is_listed_and_documented():
     doc = inspect.getdoc(mbfg.Result)
     for field in vars(run):
         assert field in doc, f"Result.{field} is not explained"
+
+
+def test_until_ends_the_run_at_the_zero_as_the_cli_does():
+    scene = str(ROOT / "examples/tutorial/swinging-bar.yaml")
+    run = mbfg.simulate(scene, dt=1e-3, t_end=5.0, until="theta - 0.2")
+    stop = run.summary["until"]
+    assert run.summary["complete"] and len(run.t) == stop["step"] + 1 == 351
+    theta = run.column("q:theta")
+    assert theta[-2] < 0.2 <= theta[-1] and run.t[-2] < stop["t"] <= run.t[-1]
+    r = subprocess.run([str(MBFG), "simulate", scene, "--dt", "1e-3", "--t-end", "5", "--until",
+                        "theta - 0.2"], capture_output=True, text=True)
+    assert f"at t = {round(stop['t'], 9)} s" in r.stderr, r.stderr
+    with pytest.raises(mbfg.InvalidArgument, match="did you mean 'theta'"):
+        mbfg.simulate(scene, dt=1e-3, t_end=1.0, until="thetta")

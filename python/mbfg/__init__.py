@@ -295,7 +295,8 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
              dc_integrators: str = "auto", params: Mapping[str, float] | None = None, q0: Mapping[str, float] | None = None,
              dq0: Mapping[str, float] | None = None, refine: bool = True,
              effects: Mapping[str, Callable] | None = None,
-             square_steps: bool = True, columns: Sequence[str] | None = None) -> Result:
+             square_steps: bool = True, columns: Sequence[str] | None = None,
+             until: str | None = None) -> Result:
     """Forward dynamics, as `mbfg simulate` runs it, of a scene (a path, text, dict or
     `mbfg.Scene`, as `load` takes) or a loaded Model, from t = 0 to `t_end` in steps of
     `dt` (s; a t_end off the step grid ends at the nearest step, and
@@ -314,6 +315,10 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
     `mbfg simulate --columns`: "bodies" (angle, centre of mass position and velocity
     of every body), "energy" (kinetic, potential, work of every non-conservative
     effect, energy_balance), "joints" (the force on each body at each of its points).
+    `until` ends the run where an expression of the time and the state crosses zero
+    ("x(ram) - 0.3", "theta - 1.5"; names as in effects' values), as `mbfg simulate
+    --until`: the rows end with the step after it, and `summary["until"]` gives the
+    time `t` of the zero, located within that step, and the `step`.
 
     For studies without writing files: `params` overrides the scene's parameters (as
     `load` does), `q0` the initial values of coordinates of q by name (the position
@@ -353,7 +358,7 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
                       max_iterations, integrator, noise, continue_on_failure, past,
                       dc_integrators, refine, _dict(params), _dict(q0), _dict(dq0),
                       _effects(effects), square_steps,
-                      None if columns is None else [str(c).strip() for c in columns])
+                      None if columns is None else [str(c).strip() for c in columns], until)
     except BaseException as e:
         if isinstance(getattr(e, "result", None), Result):
             e.result.scene = scene

@@ -1,7 +1,7 @@
 //! `mbfg.simulate`: forward dynamics, its arguments checked, and its result (the
 //! table, the summary, the failures and the warnings) as a dict.
 
-use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_values};
+use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_str, arg_values};
 use super::effects::{arg_effects, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, SolveError};
 use super::failure::{error_failure, step_failure, with_failure};
@@ -17,6 +17,9 @@ use numpy::PyArray1;
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
+use std::ops::ControlFlow;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 
 /// A forward run's result, complete or not: `requested` is the number of steps asked
 /// for, so that a partial one says so in its summary.
@@ -155,8 +158,13 @@ pub(super) fn simulate_run<'py>(
     effects: &Bound<'py, PyAny>,
     square_steps: &Bound<'py, PyAny>,
     columns: &Bound<'py, PyAny>,
+    until: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
+        let until = match until.is_none() {
+            true => None,
+            false => Some(arg_str(until, "until")?),
+        };
         // The CLI's optional column groups (`--columns`), as a list of names.
         let groups = match columns.is_none() {
             true => Vec::new(),
@@ -230,7 +238,11 @@ pub(super) fn simulate_run<'py>(
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
-        let requested = options.steps();
+        let mut requested = options.steps();
+        let until = until
+            .map(|text| crate::stop::StopCondition::new(&model, &text))
+            .transpose()
+            .map_err(|e| invalid(e.to_string().replace("--until", "until")))?;
         let step_warning: Vec<String> = crate::model::plausibility::idle_warning(&model)
             .into_iter()
             .chain(crate::model::plausibility::locked_warning(&model))
@@ -248,10 +260,31 @@ pub(super) fn simulate_run<'py>(
             )
             .collect();
         let model_for_checks = model.clone();
-        let (run, signal) = interruptible(py, |progress| {
-            forward::simulate_interruptible(model, &options, progress)
+        let hit = Arc::new(AtomicBool::new(false));
+        let (run, signal) = interruptible(py, |progress| match &until {
+            None => forward::simulate_interruptible(model, &options, progress)
+                .map(|(tr, s)| (tr, s, None)),
+            Some(condition) => {
+                options.check_memory(&model, true)?;
+                let mut tr = Trajectory {
+                    names: model.names.clone(),
+                    t: Vec::new(),
+                    q: Vec::new(),
+                    dq: Vec::new(),
+                    ddq: Vec::new(),
+                };
+                let mut watch = crate::stop::Watch::new(&model, condition, &mut tr, hit.clone());
+                let mut watched = |done, total| match hit.load(Ordering::Relaxed) {
+                    true => ControlFlow::Break(()),
+                    false => progress(done, total),
+                };
+                let s =
+                    forward::simulate_streaming(model.clone(), &options, &mut watched, &mut watch)?;
+                let stopped = watch.stopped;
+                Ok((tr, s, stopped))
+            }
         });
-        let (tr, s) = match run {
+        let (tr, mut s, stopped) = match run {
             Ok(run) => run,
             // No trajectory comes back from a library error; an interrupt came first.
             Err(e) => {
@@ -268,7 +301,21 @@ pub(super) fn simulate_run<'py>(
                 return Err(with_result(py, err, None));
             }
         };
+        if let Some((k, _)) = stopped {
+            // The steps solved past the stop are not kept; the run is whole up to it.
+            s.steps = s.steps.min(k + 1);
+            s.interrupted = None;
+            requested = tr.len();
+        }
         let out = forward_result(py, &tr, &s, requested)?;
+        if let Some((k, at)) = stopped {
+            let d = PyDict::new(py);
+            d.set_item("t", at)?;
+            d.set_item("step", k)?;
+            out.get_item("summary")?
+                .ok_or_else(|| PyRuntimeError::new_err("a result without a summary"))?
+                .set_item("until", d)?;
+        }
         if !groups.is_empty() && s.failures.is_empty() && signal.is_none() {
             let extra = crate::derived::columns(&model_for_checks, &tr, &groups, None)
                 .map_err(arg_error)?;
