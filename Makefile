@@ -4,12 +4,18 @@ CARGO ?= cargo
 MBFG := target/release/mbfg
 SCENES := $(sort $(wildcard scenes/*.yaml))
 
-.PHONY: all build report reference test bench fmt lint clean venv python
+.PHONY: all build install report reference test bench fmt lint clean venv python
 
 all: build
 
 build:
 	$(CARGO) build --release
+
+# The mbfg command on the PATH: copied to $(PREFIX)/bin (default ~/.local/bin).
+PREFIX ?= $(HOME)/.local
+install: build
+	install -D -m 755 $(MBFG) $(PREFIX)/bin/mbfg
+	@case ":$$PATH:" in *":$(PREFIX)/bin:"*) ;; *) echo "add $(PREFIX)/bin to PATH: export PATH=\"$(PREFIX)/bin:\$$PATH\"";; esac
 
 # The validation pages (reports/index.md): scene summaries, RMSE over window sizes
 # against the committed references, accuracy against time, hard cases, inverse dynamics.
@@ -57,9 +63,13 @@ clean:
 
 venv: .venv/.installed
 
-# The mbfg Python module (PyO3), built in release mode into .venv.
+# The mbfg Python module (PyO3), built in release mode into .venv, and the same build
+# as a wheel in target/wheels/ (from the same compilation: seconds), which the packaging
+# test installs into a fresh venv.
 python: .venv/.installed
 	VIRTUAL_ENV=$(CURDIR)/.venv .venv/bin/maturin develop --release --quiet
+	@rm -f target/wheels/mbfg-*.whl
+	VIRTUAL_ENV=$(CURDIR)/.venv .venv/bin/maturin build --release --quiet --out target/wheels
 
 # Fuzzing the parsers (docs/fuzzing.md) on the stable toolchain: libFuzzer comes with
 # libfuzzer-sys, the coverage instrumentation from these flags. FUZZ_SECONDS is the

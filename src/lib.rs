@@ -37,6 +37,7 @@ pub mod scene;
 pub mod sensors;
 pub mod smoother;
 pub mod solver;
+pub mod stop;
 pub mod trajectory;
 
 // The problems keep their paths at the crate's root: `mbfg::forward`, `mbfg::inverse`.

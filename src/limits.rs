@@ -60,6 +60,20 @@ pub fn step_count(dt: f64, t_end: f64) -> Result<usize> {
     Ok(steps as usize)
 }
 
+/// The run's last time when t_end is not a whole number of steps (runs end on the
+/// step grid, at the step nearest t_end), `None` when it is, to rounding.
+pub fn t_end_unmet(dt: f64, t_end: f64) -> Option<f64> {
+    let last = (t_end / dt).round() * dt;
+    // Rounded for printing, as the CSV's times are, where that keeps the step.
+    let printed = match dt >= 1e-6 {
+        true => crate::trajectory::round_time(last),
+        false => last,
+    };
+    // A millionth of a step: t_end given in single precision (0.01 as 0.0099999998)
+    // is on the grid.
+    ((last - t_end).abs() > 1e-6 * dt).then_some(printed)
+}
+
 /// A byte count for messages.
 pub fn human(bytes: f64) -> String {
     const UNITS: [&str; 5] = ["B", "kB", "MB", "GB", "TB"];
@@ -79,6 +93,15 @@ pub fn human(bytes: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_end_time_off_the_step_grid_is_named() {
+        assert_eq!(super::t_end_unmet(1e-3, 2.0005), Some(2.001));
+        assert_eq!(super::t_end_unmet(3e-3, 1.0), Some(0.999));
+        assert_eq!(super::t_end_unmet(1e-3, 5.0), None);
+        assert_eq!(super::t_end_unmet(0.1, 0.3), None);
+        assert_eq!(super::t_end_unmet(1e-3, 0.01f32 as f64), None);
+    }
 
     #[test]
     fn step_counts_beyond_the_limit_are_refused() {

@@ -86,8 +86,46 @@ fn assert_error(name: &str, line: u64, key: &str, fragments: &[&str]) {
 
 #[test]
 fn yaml_syntax_error() {
-    // `points: [A, P` is never closed; the parser notices on the next line.
-    assert_error("yaml-syntax.yaml", 9, "", &["YAML syntax error"]);
+    // `points: [A, P` is never closed; the parser notices on the next line, the
+    // message names the line that opened it.
+    assert_error(
+        "yaml-syntax.yaml",
+        8,
+        "",
+        &["YAML syntax error", "`[` opened on this line is not closed"],
+    );
+}
+
+#[test]
+fn yaml_unclosed_brace_is_named_at_its_line() {
+    assert_error(
+        "yaml-unclosed-brace.yaml",
+        4,
+        "",
+        &["`{` opened on this line is not closed"],
+    );
+}
+
+#[test]
+fn yaml_value_that_is_not_a_number_names_its_key() {
+    let text = failure(&bad("yaml-nan.yaml"));
+    assert_error(
+        "yaml-nan.yaml",
+        9,
+        "mass",
+        &["`.nan` is not a finite number"],
+    );
+    assert!(!text.contains("syntax"), "{text}");
+}
+
+#[test]
+fn empty_file_is_called_empty() {
+    let rel = bad("empty.yaml");
+    let text = failure(&rel);
+    assert!(
+        text.starts_with(&format!("error: {rel}: the file is empty")),
+        "{text}"
+    );
 }
 
 #[test]
@@ -126,6 +164,74 @@ fn unknown_point_in_body() {
         "bodies[1].points",
         &["unknown point 'P3'"],
     );
+}
+
+/// Warnings of `mbfg check` on a scene that assembles (exit 0).
+fn warnings(rel: &str) -> Vec<String> {
+    let out = check(rel);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "{rel}: {stderr}");
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .chain(stderr.lines())
+        .filter(|l| l.trim_start().starts_with("warning: "))
+        .map(str::to_string)
+        .collect()
+}
+
+#[test]
+fn units_that_slip_through_are_warned_of() {
+    let mm = warnings("tests/data/units/millimetres.yaml");
+    assert!(
+        mm.iter()
+            .any(|w| w.contains("effect 'knee': rest_angle 97 is beyond 2π")
+                && w.contains("1.6930 rad")),
+        "{mm:?}"
+    );
+    assert!(
+        mm.iter()
+            .any(|w| w.contains("body 'crank' is 120.000 m long") && w.contains("millimetres")),
+        "{mm:?}"
+    );
+    let grams = warnings("tests/data/units/grams.yaml");
+    assert!(
+        grams
+            .iter()
+            .any(|w| w.contains("body 'crank' weighs 250.000 kg") && w.contains("grams")),
+        "{grams:?}"
+    );
+    // The suite's scenes, a 5 mm crank included, are in metres and kilograms.
+    for scene in [
+        "scenes/fourbar.yaml",
+        "scenes/driven/slider-crank-mm.yaml",
+        "scenes/driven/six-bar-press.yaml",
+        "scenes/pick-and-place.yaml",
+    ] {
+        let w = warnings(scene);
+        assert!(
+            !w.iter()
+                .any(|w| w.contains("millimetres") || w.contains("grams") || w.contains("2π")),
+            "{scene}: {w:?}"
+        );
+    }
+}
+
+#[test]
+fn a_locked_mechanism_is_warned_of_without_independent_coordinates() {
+    let dir = std::env::temp_dir().join(format!("mbfg-locked-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let text = std::fs::read_to_string(manifest_dir().join(bad("locked-independent.yaml")))
+        .unwrap()
+        .replace("independent: [theta]\n", "");
+    let scene = dir.join("locked.yaml");
+    std::fs::write(&scene, text).unwrap();
+    let w = warnings(scene.to_str().unwrap());
+    assert!(
+        w.iter().any(|w| w.contains("the mechanism cannot move")
+            && w.contains("constraint 'brace: distance(A,C)'")),
+        "{w:?}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
@@ -308,7 +414,45 @@ fn unknown_independent_coordinate() {
         "unknown-independent.yaml",
         11,
         "independent",
-        &["unknown coordinate 'thetta'"],
+        &["unknown coordinate 'thetta'", "did you mean 'theta'?"],
+    );
+}
+
+#[test]
+fn unknown_effect_coordinate_suggests_the_closest() {
+    assert_error(
+        "unknown-effect-coordinate.yaml",
+        11,
+        "effects[0].coordinate",
+        &["unknown coordinate 'pis'", "did you mean 'psi'?"],
+    );
+}
+
+#[test]
+fn a_mechanism_that_cannot_move_names_the_constraint_that_locks_it() {
+    assert_error(
+        "locked-independent.yaml",
+        16,
+        "independent",
+        &[
+            "the mechanism cannot move",
+            "0 degrees of freedom",
+            "constraint 'brace: distance(A,C)' takes its last degree of freedom",
+        ],
+    );
+}
+
+#[test]
+fn a_point_on_no_body_is_named_when_independent_coordinates_are_declared() {
+    assert_error(
+        "massless-independent.yaml",
+        12,
+        "independent",
+        &[
+            "the mechanism has 3 degree(s) of freedom",
+            "point(s) P on no body",
+            "name 3",
+        ],
     );
 }
 

@@ -9,7 +9,6 @@ motion. Writes controller.png (crank lag behind the reference) and prints both t
 
 import pathlib
 import sys
-import tempfile
 import time
 
 import matplotlib
@@ -30,12 +29,11 @@ def main(out: pathlib.Path) -> None:
     written = mbfg.simulate(SCENE, dt=1e-3, t_end=3.0)
     t_written = time.perf_counter() - start
 
-    # The same scene without its controller line, and the controller in Python.
-    text = "\n".join(l for l in SCENE.read_text().splitlines() if "name: controller" not in l)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = pathlib.Path(tmp) / "uncontrolled.yaml"
-        path.write_text(text + "\n")
-        model = mbfg.load(path)
+    # The same scene without its controller, and the controller in Python.
+    scene = mbfg.Scene.from_yaml(SCENE.read_text())
+    sections = scene.to_dict()
+    sections["effects"] = [e for e in sections["effects"] if e.get("name") != "controller"]
+    model = mbfg.load(sections)
     i, n = model.index("theta"), len(model.names)
 
     def controller(t, q, dq):

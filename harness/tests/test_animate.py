@@ -6,6 +6,7 @@ import pathlib
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -43,3 +44,42 @@ def test_animate_from_the_command_line(tmp_path):
 def test_animate_needs_a_model_or_a_simulated_result():
     with pytest.raises(mbfg.InvalidArgument, match="model"):
         mbfg.animate(object())
+
+
+def test_animate_draws_forces_guides_and_a_turning_crank(tmp_path):
+    # A crank driven to speed: its speed is on the label; the ground reactions as arrows.
+    r = mbfg.simulate(ROOT / "scenes/driven/dc-motor-crank-rocker.yaml", dt=1e-3, t_end=1.0)
+    out = mbfg.animate(r, out=tmp_path / "motor.gif", fps=10, forces=True)
+    with Image.open(out) as im:
+        assert im.n_frames == 11
+    # A slider's fixed guide runs across the whole view: grey in the frame's first
+    # column of the axes at the guide's height, which no body reaches.
+    r = mbfg.simulate(ROOT / "scenes/slider-crank.yaml", dt=1e-3, t_end=0.2)
+    out = mbfg.animate(r, out=tmp_path / "slider.gif", fps=10)
+    with Image.open(out) as im:
+        frame = np.asarray(im.convert("RGB")).astype(int)
+    grey = (np.abs(frame - frame[..., :1]).max(axis=2) < 8) & (frame[..., 0] > 150) & (frame[..., 0] < 240)
+    # A horizontal band of grey, as wide as most of the axes.
+    assert grey.sum(axis=1).max() > 0.5 * frame.shape[1]
+
+
+def test_animate_forces_need_velocities_and_accelerations():
+    r = mbfg.simulate(ROOT / "scenes/pendulum.yaml", dt=1e-2, t_end=0.1)
+
+    class Positions:
+        t, q = r.t, r.q
+    with pytest.raises(mbfg.InvalidArgument, match="forces: the result needs dq and ddq"):
+        mbfg.animate(Positions(), model=mbfg.load(ROOT / "scenes/pendulum.yaml"), forces=True)
+
+
+def test_animate_forces_from_the_command_line(tmp_path):
+    csv = tmp_path / "run.csv"
+    scene = ROOT / "scenes/pendulum.yaml"
+    subprocess.run([MBFG, "simulate", scene, "--dt", "0.01", "--t-end", "0.3", "--out", csv],
+                   check=True, capture_output=True)
+    env = {**os.environ, "MBFG_PYTHON": sys.executable}
+    r = subprocess.run([MBFG, "animate", csv, "--scene", scene, "--fps", "10", "--forces"],
+                       env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    with Image.open(tmp_path / "run.gif") as im:
+        assert im.n_frames == 4

@@ -2,7 +2,8 @@
 block (in a fresh interpreter, from the repository's root), every `$ mbfg …` command
 line (with its output file moved to a temporary directory), and the scene format's
 complete example (through `mbfg check` and a short run). A block preceded by the
-comment `<!-- snippet: not run (why) -->` is skipped, and says why."""
+comment `<!-- snippet: not run (why) -->` is skipped, and says why. A python block
+followed by a line `prints:` and a ```text block must print exactly that."""
 
 import pathlib
 import re
@@ -18,8 +19,26 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SKIP = "<!-- snippet: not run"
 
 
+def printed_after(lines, end):
+    """The ```text block after `prints:` that follows line `end` (a block's closing
+    fence), or None."""
+    rest = [line for line in lines[end + 1:end + 4]]
+    if len(rest) < 3 or rest[0].strip() or rest[1].strip() != "prints:":
+        return None
+    start = end + 3
+    while start < len(lines) and not lines[start].strip():
+        start += 1
+    if start >= len(lines) or lines[start].strip() != "```text":
+        return None
+    stop = start + 1
+    while stop < len(lines) and lines[stop].strip() != "```":
+        stop += 1
+    return "\n".join(lines[start + 1:stop])
+
+
 def blocks(lang):
-    """(file, line, code) of every fenced block in `lang` not marked as not run."""
+    """(file, line, code, printed) of every fenced block in `lang` not marked as not
+    run; `printed` is what it must print, or None."""
     out = []
     for doc in DOCS:
         lines = doc.read_text().splitlines()
@@ -32,7 +51,8 @@ def blocks(lang):
                     j += 1
                 marked = start > 0 and lines[start - 1].startswith(SKIP)
                 if not marked:
-                    out.append((doc.relative_to(ROOT), start + 1, "\n".join(lines[i + 1:j])))
+                    out.append((doc.relative_to(ROOT), start + 1, "\n".join(lines[i + 1:j]),
+                                printed_after(lines, j)))
                 i = j
             i += 1
     return out
@@ -65,11 +85,18 @@ def workdir(tmp_path):
     return tmp_path
 
 
-@pytest.mark.parametrize("doc, line, code", PYTHON, ids=[f"{d}:{n}" for d, n, _ in PYTHON])
-def test_python_snippet_runs(doc, line, code, tmp_path):
+@pytest.mark.parametrize("doc, line, code, printed", PYTHON,
+                         ids=[f"{d}:{n}" for d, n, _, _ in PYTHON])
+def test_python_snippet_runs(doc, line, code, printed, tmp_path):
     r = subprocess.run([sys.executable, "-c", code], cwd=workdir(tmp_path), capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0, f"{doc}:{line}:\n{r.stderr[-2000:]}"
+    if printed is not None:
+        assert r.stdout.strip() == printed.strip(), f"{doc}:{line}: the page says it prints"
+
+
+def test_a_printed_output_is_found():
+    assert any(printed for _, _, _, printed in PYTHON)
 
 
 @pytest.mark.parametrize("doc, line, argv", COMMANDS, ids=[f"{d}:{n}" for d, n, _ in COMMANDS])

@@ -16,11 +16,20 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from . import _native
+from . import _native, joint_space as _joint_space
 from ._native import InternalError, InvalidArgument, SceneError, SolveError, __version__
+from .scene import Scene
 
-__all__ = ["InternalError", "InvalidArgument", "Model", "PlausibilityWarning", "Result", "SceneError", "SolveError",
-           "Estimator", "animate", "estimate", "inverse", "load", "measure", "simulate"]
+__all__ = ["InternalError", "InvalidArgument", "Model", "PlausibilityWarning", "Result", "Scene",
+           "SceneError", "SolveError", "Estimator", "COLUMN_GROUPS", "animate", "estimate",
+           "inverse", "load", "measure", "simulate"]
+
+# The optional column groups of `simulate(columns=...)`, as `mbfg simulate --columns`.
+COLUMN_GROUPS = ("bodies", "energy", "joints")
+
+
+def __dir__():
+    return sorted(__all__ + ["__version__"])
 
 
 class Model:
@@ -55,8 +64,8 @@ class Model:
         try:
             return self.names.index(name)
         except ValueError:
-            raise InvalidArgument(_clip(f"no coordinate named {name!r:.60} (coordinates: "
-                                        f"{', '.join(self.names)})")) from None
+            raise InvalidArgument(_clip(f"no coordinate named {name!r:.60}{_did_you_mean(name, self.names)} "
+                                        f"(coordinates: {', '.join(self.names)})")) from None
 
     def mass_matrix(self) -> np.ndarray:
         """M (n × n), constant in natural coordinates: the bodies' masses and inertias
@@ -130,6 +139,62 @@ class Model:
         ([q, q̇, q̈]: which the reading depends on)."""
         return self._m.sensors()
 
+    # Joint space: the independent coordinates z (the scene's `independent`, or any
+    # other f coordinates of q passed as `independent=[...]`).
+    def velocity_map(self, q, independent: Sequence[str] | None = None) -> np.ndarray:
+        """R = ∂q/∂z (n × f) at a consistent q: q̇ = R ż. Raises InvalidArgument where
+        the independent coordinates do not determine the others."""
+        return _joint_space.velocity_map(self, q, independent)
+
+    def reduced_mass_matrix(self, q, independent: Sequence[str] | None = None) -> np.ndarray:
+        """M(z) = RᵀMR (f × f), the mass matrix in the independent coordinates at q."""
+        r = self.velocity_map(q, independent)
+        return r.T @ self.mass_matrix() @ r
+
+    def reduced_forces(self, q, dq, t: float = 0.0,
+                       independent: Sequence[str] | None = None) -> np.ndarray:
+        """Q_z = RᵀQ(q, q̇, t) (f): every effect's generalized force in the independent
+        coordinates (N·m on an angle, N on a length)."""
+        return self.velocity_map(q, independent).T @ self.generalized_forces(q, dq, t)
+
+    def reduced_gravity(self, q, independent: Sequence[str] | None = None) -> np.ndarray:
+        """RᵀQ_g (f): the scene's gravity alone in the independent coordinates. A motor
+        torque τ = −RᵀQ_g on them holds the mechanism still against gravity."""
+        return self.velocity_map(q, independent).T @ _joint_space.gravity_forces(self, q)
+
+    def gravity_forces(self, q) -> np.ndarray:
+        """Q_g (n): the scene's gravity alone in the natural coordinates."""
+        return _joint_space.gravity_forces(self, q)
+
+    def bias_forces(self, q, dq, independent: Sequence[str] | None = None) -> np.ndarray:
+        """c(z, ż) = RᵀM q̈₀ (f): the velocity terms of M(z) z̈ + c = Q_z, with q̈₀ the
+        accelerations at z̈ = 0 (Φ_q q̈₀ = −Φ̇_q q̇). Zero at rest."""
+        r = self.velocity_map(q, independent)
+        return r.T @ self.mass_matrix() @ _joint_space.bias_accelerations(self, q, dq, independent)
+
+    def point_jacobian(self, q=None, point: str | None = None, body: str | None = None,
+                       local=None) -> np.ndarray:
+        """∂r/∂q (2 × n) of a named point (`point=`), or of the point at `local` = (x,
+        y) in `body`'s frame (origin at its first point, x axis towards its second).
+        Constant in natural coordinates (q is accepted for symmetry and not needed);
+        the velocity is J q̇, and J R its Jacobian in the independent coordinates."""
+        if (point is None) == (body is None):
+            raise self._invalid("point_jacobian: give point=NAME, or body=NAME and local=(x, y)")
+        if point is not None:
+            return _joint_space.point_jacobian(self, point)
+        return _joint_space.body_point_jacobian(self, body, (0.0, 0.0) if local is None else local)
+
+    def body_point_position(self, q, body: str, local=(0.0, 0.0)) -> np.ndarray:
+        """(x, y) in m of the point at `local` in `body`'s frame, at q."""
+        return _joint_space.body_point_position(self, q, body, local)
+
+    def body_point_velocity(self, q, dq, body: str, local=(0.0, 0.0)) -> np.ndarray:
+        """(ẋ, ẏ) in m/s of the point at `local` in `body`'s frame, for q̇."""
+        return _joint_space.body_point_jacobian(self, body, local) @ np.asarray(dq, dtype=float)
+
+    def _invalid(self, message: str) -> InvalidArgument:
+        return InvalidArgument(_clip(message))
+
     def sensor_value(self, name: str, q, dq, ddq, t: float = 0.0):
         """The reading h(q, q̇, q̈, t) of sensor `name`, without noise, and its
         Jacobians: (h, ∂h/∂q, ∂h/∂q̇, ∂h/∂q̈), h of 1 or 2 entries, each Jacobian
@@ -145,14 +210,36 @@ class PlausibilityWarning(UserWarning):
 
 class Result:
     """A run's trajectory in the CSV contract (plus `Q` for inverse dynamics). A partial
-    one (on an exception's `.result`) has `summary["complete"]` False."""
+    one (on an exception's `.result`) has `summary["complete"]` False.
+
+    Fields:
+      t         times (rows,), s
+      q, dq, ddq  positions, velocities, accelerations (rows × n), in `names` order
+      Q         generalized forces (rows × n) of an inverse run, else None
+      names     the coordinates of q (`Model.names`)
+      columns   every column's name: t, q:<c>, dq:<c>, ddq:<c> [, Q:<c>], then the
+                optional groups asked with `columns=` (`mbfg simulate --columns`)
+      data      the whole table (rows × columns), float64
+      summary   the run's summary line as a dict: steps, requested_steps, wall_time (s),
+                mean_iterations, max_iterations, mean_factorizations, worst_phi,
+                worst_velocity_constraint, energy_drift (J, conservative scenes),
+                plan (what ran: schedule, window, integrator, dc_integrators, …),
+                refinement, reselections, converged, complete, warnings (what
+                converged but may not be right), …
+      failures  the steps that did not converge (dicts), when continued past
+      scene     the scene it was run on (for `animate`)
+    `column(name)` is one column by name."""
 
     def __init__(self, raw: dict):
         # The scene (path or Model) it was run on, for `animate`; set by `simulate`.
         self.scene = None
-        self.columns: list[str] = raw["columns"]
+        self.columns: list[str] = list(raw["columns"])
         # Row-major float64s in native byte order, in a bytearray: wrapped, not copied.
         self.data = np.frombuffer(raw["data"], dtype=float).reshape(raw["rows"], len(self.columns))
+        if raw.get("extra_columns"):
+            extra = np.asarray(raw["extra"]).reshape(raw["rows"], len(raw["extra_columns"]))
+            self.data = np.hstack([self.data, extra])
+            self.columns += list(raw["extra_columns"])
         self.summary: dict = raw["summary"]
         self.failures: list[dict] = raw["failures"]
         self.names = [c[2:] for c in self.columns if c.startswith("q:")]
@@ -173,11 +260,32 @@ class Result:
         return f"<mbfg.Result: {len(self.t)} rows, {len(self.columns)} columns, summary {self.summary}>"
 
 
-def load(scene: str | os.PathLike, params: Mapping[str, float] | None = None) -> Model:
-    """Reads and assembles a scene (or MBSE mechanism) file. `params` gives some of the
-    file's `parameters` other values (every expression using them sees the new ones);
-    naming a parameter the file does not have raises SceneError."""
-    return Model(_native.load(scene, None if params is None else dict(params)))
+def load(scene: "str | os.PathLike | Mapping | Scene | Model",
+         params: Mapping[str, float] | None = None) -> Model:
+    """Reads and assembles a scene: a scene (or MBSE mechanism) file's path, the text
+    of one (a string with a newline or a `key:`), a dict with the file's sections, or
+    an `mbfg.Scene`. `params` gives some of the scene's `parameters` other values
+    (every expression using them sees the new ones); naming a parameter the scene
+    does not have raises SceneError. Errors in text, dicts and Scenes name the line of
+    their YAML (`Scene.to_yaml()` shows it)."""
+    params = None if params is None else dict(params)
+    text = _scene_text(scene)
+    if text is not None:
+        return Model(_native.load(text[0], params, text[1]))
+    return Model(_native.load(scene._m if isinstance(scene, Model) else scene, params))
+
+
+def _scene_text(scene) -> tuple[str, str] | None:
+    """(name for messages, YAML text) of a scene given as text, dict or Scene; None for
+    a path or a Model."""
+    from .scene import to_yaml
+    if isinstance(scene, Scene):
+        return "<Scene>", scene.to_yaml()
+    if isinstance(scene, Mapping):
+        return "<dict>", to_yaml(scene)
+    if isinstance(scene, str) and ("\n" in scene or (":" in scene and not os.path.exists(scene))):
+        return "<string>", scene
+    return None
 
 
 def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1e-3,
@@ -187,8 +295,31 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
              dc_integrators: str = "auto", params: Mapping[str, float] | None = None, q0: Mapping[str, float] | None = None,
              dq0: Mapping[str, float] | None = None, refine: bool = True,
              effects: Mapping[str, Callable] | None = None,
-             square_steps: bool = True) -> Result:
-    """Forward dynamics, as `mbfg simulate` runs it, of a scene file or a loaded Model.
+             square_steps: bool = True, columns: Sequence[str] | None = None,
+             until: str | None = None) -> Result:
+    """Forward dynamics, as `mbfg simulate` runs it, of a scene (a path, text, dict or
+    `mbfg.Scene`, as `load` takes) or a loaded Model, from t = 0 to `t_end` in steps of
+    `dt` (s; a t_end off the step grid ends at the nearest step, and
+    `summary["warnings"]` says so). Returns a `Result`.
+
+    `coords` is "dc" (dependent, natural coordinates: every configuration) or "ic"
+    (the scene's `independent` coordinates). `window` is the fixed-lag smoother's
+    number of steps N_w and `batch=True` solves the whole horizon at once; where every
+    step holds all its equations (IC, tangent DC) both give N_w = 1's solution and the
+    steps are taken one at a time (`summary["plan"]` says what ran). `max_iterations`
+    bounds the solves per window. `noise` is "default" or "paper" (the paper's Table 2
+    noise models); `past` what a step leaving the window leaves behind: "adaptive"
+    (the Gaussian marginal until a solve fails, then conditioning), "conditioned" or
+    "marginalized". `continue_on_failure=True` goes on past a step that does not
+    converge (listed in `failures`). `columns` adds the optional column groups of
+    `mbfg simulate --columns`: "bodies" (angle, centre of mass position and velocity
+    of every body), "energy" (kinetic, potential, work of every non-conservative
+    effect, energy_balance), "joints" (the force on each body at each of its points).
+    `until` ends the run where an expression of the time and the state crosses zero
+    ("x(ram) - 0.3", "theta - 1.5"; names as in effects' values), as `mbfg simulate
+    --until`: the rows end with the step after it, and `summary["until"]` gives the
+    time `t` of the zero, located within that step, and the `step`.
+
     For studies without writing files: `params` overrides the scene's parameters (as
     `load` does), `q0` the initial values of coordinates of q by name (the position
     problem keeps those of independent coordinates and closes the others), `dq0` the
@@ -214,30 +345,43 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
     differences: 2n + 1 calls per linearization, about 1 µs of Python each, so a
     controller costs far more than the same law written as a scene expression. The
     first exception f raises is raised again, carrying the steps solved as `.result`."""
+    if _scene_text(scene) is not None:
+        scene = load(scene)
     native = scene._m if isinstance(scene, Model) else scene
+    if isinstance(columns, str):
+        columns = columns.split(",")
+    elif columns is not None and not isinstance(columns, (list, tuple)):
+        raise InvalidArgument(_clip(f"columns must be a list of {', '.join(COLUMN_GROUPS)}, "
+                                    f"got {columns!r:.60}"))
     try:
         result = _run(_native.simulate, native, coords, dt, t_end, window, batch,
                       max_iterations, integrator, noise, continue_on_failure, past,
                       dc_integrators, refine, _dict(params), _dict(q0), _dict(dq0),
-                      _effects(effects), square_steps)
+                      _effects(effects), square_steps,
+                      None if columns is None else [str(c).strip() for c in columns], until)
     except BaseException as e:
         if isinstance(getattr(e, "result", None), Result):
             e.result.scene = scene
         raise
     # What `animate` draws it with (the overridden parameters' geometry, if any).
-    result.scene = scene if params is None else (
-        load(scene.file, params) if isinstance(scene, Model) else load(scene, params))
+    result.scene = scene if params is None else load(scene, params)
     return result
 
 
 def animate(result: "Result", model: "Model | None" = None, out: str | os.PathLike = "mbfg.gif",
-            fps: int = 25, speed: float = 1.0, trail: str | None = None) -> str:
+            fps: int = 25, speed: float = 1.0, trail: str | None = None,
+            forces: bool = False) -> str:
     """Writes the mechanism's motion in `result` to a GIF (or an MP4 when `out` ends in
     .mp4; that needs ffmpeg): bodies as lines, fixed points as triangles, point masses
     as squares, the time in a corner. `model` defaults to the scene of a result from
-    `simulate`. Returns the path written."""
+    `simulate`. `fps` is the frames per second of the file, `speed` how much faster than
+    real time it plays (2.0: twice), `trail` a point whose path is drawn behind it,
+    `forces=True` the ground's reaction at every fixed point as an arrow. Slider guides
+    and slots are drawn; the label gives the time and the independent angles (the speed
+    of one that turns full turns).
+    Returns the path written. Needs matplotlib (`pip install "mbfg[plot]"`)."""
     from .animation import animate as draw
-    return draw(result, model, out, fps=fps, speed=speed, trail=trail)
+    return draw(result, model, out, fps=fps, speed=speed, trail=trail, forces=forces)
 
 
 def _dict(values):
@@ -252,7 +396,10 @@ def inverse(scene: str | os.PathLike, trajectory: str | os.PathLike | Mapping[st
     """Inverse dynamics, as `mbfg inverse` runs it. `trajectory` is a CSV path or a
     mapping {"t": times, "<coordinate>": values, ...}. One batch solve: Ctrl-C takes
     effect when it returns. A SolveError carries the last iterate as `.result`.
-    `effects` adds loads computed in Python, as in `simulate`."""
+    `coords` is "dc" or "ic" (as `mbfg inverse --coords`), `start` how the batch solve
+    starts ("kinematic": the classical kinematic solution; "staged": the paper's four
+    stages from the scene's configuration), `max_iterations` the solver's bound. `effects` adds loads computed in
+    Python, as in `simulate`. The result's `Q` holds the generalized forces."""
     if isinstance(scene, Model):
         scene = scene._m
     loads = _effects(effects)
@@ -273,7 +420,10 @@ def measure(scene: str | os.PathLike | Model,
             seed: int, rate: float | None = None) -> dict[str, np.ndarray]:
     """Noisy readings of the scene's sensors along a known motion, as `mbfg measure`
     makes them: `trajectory` is a trajectory CSV path, a `Result`, or a mapping
-    {"t": times, "q:<c>": values, "dq:<c>": ..., "ddq:<c>": ...}. Returns {"t": times,
+    {"t": times, "q:<c>": values, "dq:<c>": ..., "ddq:<c>": ...}. `seed` makes the
+    noise reproducible (the same seed, the same readings, as `mbfg measure --seed`);
+    `rate` (Hz) is the reading rate of the sensors without a `rate` of their own
+    (default: one reading at every row). Returns {"t": times,
     "<column>": readings, ...}, NaN where a sensor does not read at that time."""
     if isinstance(scene, Model):
         scene = scene._m
@@ -299,7 +449,8 @@ def estimate(scene: str | os.PathLike | Model,
     and its sensors' readings. `measurements` is a CSV path (as `mbfg measure` writes
     it) or a mapping {"t": times, "<column>": readings, ...} with NaN where a sensor
     did not read. `window` is the fixed-lag smoother's (default 20); `batch=True`
-    estimates every step at once. Returns {"t": times, "q:<c>": ..., "dq:<c>": ...,
+    estimates every step at once. `dt` is the estimator's step (default: the readings'
+    spacing), `max_iterations` the solver's bound per window, `coords` "dc" or "ic". Returns {"t": times, "q:<c>": ..., "dq:<c>": ...,
     "ddq:<c>": ..., "Q:<c>": (unknown inputs), "sd:q:<c>": σ, ..., "summary": {...}}:
     arrays of the final estimates and the run's summary (steps, window, readings, NIS
     mean, its expected value and 95 % bounds, whether it is consistent, process σ)."""
@@ -387,6 +538,13 @@ def _table(trajectory: Mapping) -> tuple[list[str], list[float]]:
         counts = ", ".join(f"{c}: {len(a)}" for c, a in zip(columns, arrays))
         raise InvalidArgument(_clip(f"trajectory: the columns differ in length ({counts})"))
     return columns, np.column_stack(arrays).ravel().tolist()
+
+
+def _did_you_mean(name, known) -> str:
+    """`; did you mean 'psi'?` for a name close to a known one, else empty."""
+    import difflib
+    near = difflib.get_close_matches(str(name), list(known), n=3, cutoff=0.6)
+    return "; did you mean " + " or ".join(repr(k) for k in near) + "?" if near else ""
 
 
 def _clip(message: str, limit: int = 300) -> str:

@@ -23,6 +23,9 @@ pub struct AnimateArgs {
     /// Draw the path of this point.
     #[arg(long, value_name = "POINT")]
     trail: Option<String>,
+    /// Draw the ground's reaction at every fixed point as an arrow.
+    #[arg(long)]
+    forces: bool,
 }
 
 /// `mbfg animate`: the arguments passed on.
@@ -34,8 +37,36 @@ pub fn run(args: AnimateArgs) -> Result<(), Failure> {
         fps,
         speed,
         trail,
+        forces,
     } = args;
-    animate(&run, &scene, out.as_deref(), fps, speed, trail.as_deref())
+    animate(
+        &run,
+        &scene,
+        out.as_deref(),
+        fps,
+        speed,
+        trail.as_deref(),
+        forces,
+    )
+}
+
+/// The Python that draws: `MBFG_PYTHON`; else the active virtual environment's;
+/// else the `.venv` of the checkout this binary was built in (it sits in
+/// `<checkout>/target/release/`), wherever the command runs from; else `python3`.
+fn interpreter() -> PathBuf {
+    if let Some(p) = std::env::var_os("MBFG_PYTHON") {
+        return PathBuf::from(p);
+    }
+    let active = std::env::var_os("VIRTUAL_ENV").map(|v| PathBuf::from(v).join("bin/python"));
+    let checkout = std::env::current_exe()
+        .ok()
+        .and_then(|exe| exe.canonicalize().ok())
+        .and_then(|exe| Some(exe.parent()?.parent()?.parent()?.join(".venv/bin/python")));
+    active
+        .into_iter()
+        .chain(checkout)
+        .find(|p| p.exists())
+        .unwrap_or_else(|| PathBuf::from("python3"))
 }
 
 /// `mbfg animate`: hands the drawing to the Python module's `mbfg.animate`.
@@ -46,11 +77,9 @@ fn animate(
     fps: u32,
     speed: f64,
     trail: Option<&str>,
+    forces: bool,
 ) -> Result<(), Failure> {
-    let python = std::env::var_os("MBFG_PYTHON")
-        .map(PathBuf::from)
-        .or_else(|| Some(PathBuf::from(".venv/bin/python")).filter(|p| p.exists()))
-        .unwrap_or_else(|| PathBuf::from("python3"));
+    let python = interpreter();
     let mut cmd = std::process::Command::new(&python);
     cmd.args(["-m", "mbfg.animation"])
         .arg(run)
@@ -62,6 +91,9 @@ fn animate(
     }
     if let Some(p) = trail {
         cmd.args(["--trail", p]);
+    }
+    if forces {
+        cmd.arg("--forces");
     }
     let done = cmd
         .stderr(std::process::Stdio::piped())

@@ -91,10 +91,12 @@ impl CheckReport {
                     [
                         mbfg::model::plausibility::placement_warning(model),
                         mbfg::model::plausibility::idle_warning(model),
+                        mbfg::model::plausibility::locked_warning(model),
                         mbfg::model::plausibility::inertia_warning(model),
                     ]
                     .into_iter()
                     .flatten()
+                    .chain(mbfg::model::plausibility::units_warnings(model))
                     .map(|w| format!("warning: {w}")),
                 )
                 .collect(),

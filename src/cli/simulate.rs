@@ -15,6 +15,7 @@ use mbfg::solver::Past;
 use mbfg::Model;
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 /// The arguments of `mbfg simulate`.
@@ -49,12 +50,11 @@ pub struct SimulateArgs {
     /// Integrator factor between steps.
     #[arg(long, value_enum, default_value_t = IntegratorArg(Integrator::Trapezoidal))]
     integrator: IntegratorArg,
-    /// In dependent coordinates, what the integrator factors ask: on all n
-    /// coordinates as in the paper (`full`: a least-squares compromise), only along
-    /// the directions the constraints leave free (`tangent`: one equation per
-    /// unknown, all satisfied, every window and the batch give N_w = 1's
-    /// solution), or `full` with the run made again with `tangent` where a solve
-    /// fails (`auto`)
+    /// In dependent coordinates, what the integrator factors ask: only along the
+    /// directions the constraints leave free (`tangent`: one equation per unknown,
+    /// all satisfied, every window and the batch give N_w = 1's solution), on all n
+    /// coordinates as in the paper (`full`: a least-squares compromise), or
+    /// `tangent` with the run made again with `full` where a solve fails (`auto`).
     #[arg(long = "dc-integrators", value_enum, default_value_t = DcIntegratorsArg::Auto)]
     dc_integrators: DcIntegratorsArg,
     /// Noise models: mbfg's defaults, or the paper's Table 2.
@@ -90,6 +90,13 @@ pub struct SimulateArgs {
     /// the step's size (for diagnosing a run that does not converge).
     #[arg(long = "trace-solver")]
     trace_solver: bool,
+    /// End the run where an expression of the time and the state crosses zero, e.g.
+    /// `x(ram) - 0.3` or `theta - 1.5` (names as in effects' values: coordinates by
+    /// name, rate(c), x(P), y(P), vx(P), vy(P), angle(B), omega(B), t). The time of the
+    /// zero is located within the step and stated in the summary; the rows end with the
+    /// step after it.
+    #[arg(long, value_name = "EXPR")]
+    until: Option<String>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -164,8 +171,13 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         no_square_steps,
         strict,
         trace_solver,
+        until,
     } = args;
     let (_, model) = load(&scene)?;
+    let until = until
+        .map(|text| mbfg::stop::StopCondition::new(&model, &text))
+        .transpose()
+        .map_err(|e| Failure::Input(plain(e)))?;
     let mode = if batch {
         Mode::Batch
     } else {
@@ -202,7 +214,15 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         options.mode = Mode::FixedLag(w.min(options.steps()));
     }
     let written = Written::new(&written, dt)?;
-    simulate(model, &options, out.as_deref(), &scene, strict, &written)
+    simulate(
+        model,
+        &options,
+        out.as_deref(),
+        &scene,
+        strict,
+        &written,
+        until.as_ref(),
+    )
 }
 
 /// `mbfg simulate`: runs, writes the CSV, prints the summary.
@@ -213,12 +233,15 @@ fn simulate(
     scene: &Path,
     strict: bool,
     written: &Written,
+    until: Option<&mbfg::stop::StopCondition>,
 ) -> Result<(), Failure> {
     // Open the output first: an unwritable path is bad input, found before the run.
     let output = Output::open(out, &[scene])?;
     for w in mbfg::model::plausibility::idle_warning(&model)
         .into_iter()
+        .chain(mbfg::model::plausibility::locked_warning(&model))
         .chain(mbfg::model::plausibility::inertia_warning(&model))
+        .chain(mbfg::model::plausibility::units_warnings(&model))
     {
         eprintln!("warning: {w}");
     }
@@ -253,22 +276,51 @@ fn simulate(
             .check_memory(&model, true)
             .map_err(|e| Failure::Input(plain(e)))?;
     }
+    let hit = Arc::new(AtomicBool::new(false));
+    let watched = hit.clone();
     let mut progress = |done, total| {
         bar.update(done, total);
-        if super::interrupt::requested() {
+        if super::interrupt::requested() || watched.load(Ordering::Relaxed) {
             ControlFlow::Break(())
         } else {
             ControlFlow::Continue(())
         }
     };
-    let result = match streamed.as_mut() {
-        Some(sink) => forward::simulate_streaming(model.clone(), options, &mut progress, sink)
-            .map(|summary| (None, summary)),
-        None => forward::simulate_interruptible(model.clone(), options, &mut progress)
+    let mut until_stop = None;
+    let result = match (until, streamed.as_mut()) {
+        (Some(condition), sink) => {
+            // The rows go to the file, or are held (the memory was checked above).
+            let mut held = sink.is_none().then(|| forward::Trajectory {
+                names: model.names.clone(),
+                t: Vec::new(),
+                q: Vec::new(),
+                dq: Vec::new(),
+                ddq: Vec::new(),
+            });
+            let inner: &mut dyn forward::StepSink = match (sink, held.as_mut()) {
+                (Some(sink), _) => sink,
+                (None, Some(held)) => held,
+                (None, None) => unreachable!("held when not streamed"),
+            };
+            let mut watch = mbfg::stop::Watch::new(&model, condition, inner, hit.clone());
+            let run =
+                forward::simulate_streaming(model.clone(), options, &mut progress, &mut watch);
+            until_stop = watch.stopped;
+            run.map(|summary| (held, summary))
+        }
+        (None, Some(sink)) => {
+            forward::simulate_streaming(model.clone(), options, &mut progress, sink)
+                .map(|summary| (None, summary))
+        }
+        (None, None) => forward::simulate_interruptible(model.clone(), options, &mut progress)
             .map(|(trajectory, summary)| (Some(trajectory), summary)),
     };
     bar.finish();
-    let (trajectory, summary) = result.map_err(|e| Failure::Run(plain(e)))?;
+    let (trajectory, mut summary) = result.map_err(|e| Failure::Run(plain(e)))?;
+    if let Some((k, _)) = until_stop {
+        // The steps solved past the stop are not kept.
+        summary.steps = summary.steps.min(k + 1);
+    }
     let run = match (trajectory, streamed) {
         (Some(trajectory), _) => Run::Held(trajectory),
         (None, Some(streamed)) => Run::Streamed(Box::new(streamed)),
@@ -276,7 +328,14 @@ fn simulate(
     };
     let steps = summary.steps;
     let to_file = output.to_file();
-    let line = summary_line(options, &summary, super::memory::peak());
+    let mut line = summary_line(options, &summary, super::memory::peak());
+    if let (Some(condition), Some((k, at))) = (until, until_stop) {
+        line += &format!(
+            "; stopped by --until '{}' at t = {} s (its zero, within step {k})",
+            condition.text,
+            forward::round_time(at)
+        );
+    }
     // What was kept of a run that ended early (its rows written, held or streamed).
     let keep_partial = |output: Output, run: Run, why: &str| -> Result<String, Failure> {
         match run {
@@ -292,7 +351,7 @@ fn simulate(
                 .map_err(Failure::Run),
         }
     };
-    if let Some(k) = summary.interrupted {
+    if let (Some(k), None) = (summary.interrupted, until_stop) {
         let why = format!("interrupted after step {k}");
         let what = if steps == 0 {
             output.discard();
@@ -308,7 +367,7 @@ fn simulate(
     // A batch that did not converge has no trustworthy step.
     let stopped = match batch {
         true => first_failure.is_some(),
-        false => steps < options.steps(),
+        false => steps < options.steps() && until_stop.is_none(),
     };
     for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
         eprintln!("warning: {}", shorten(&f.message()));
@@ -431,6 +490,13 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
         s.worst_phi,
         s.worst_velocity_constraint
     );
+    if let Some(t_last) = mbfg::limits::t_end_unmet(options.dt, options.t_end) {
+        line += &format!(
+            "; ends at t = {} s, the whole step nearest t_end = {} s",
+            super::seconds(t_last),
+            super::seconds(options.t_end)
+        );
+    }
     if let Some(d) = s.energy_drift {
         line += &format!("; energy drift {d:.2e} J");
     }

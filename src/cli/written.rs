@@ -14,9 +14,10 @@ pub struct WrittenArgs {
     sample_dt: Option<f64>,
     /// Optional columns after the standard ones, comma-separated: `bodies` (angle,
     /// centre of mass position and velocity of every body), `energy` (kinetic,
-    /// potential, work of every non-conservative effect, energy_balance), `joints` (the
-    /// force on every body at each of its points), `constraints` (the force each of the
-    /// scene's constraints carries: a distance's tension, a slider's normal force).
+    /// potential, work of every non-conservative effect, energy_balance), `joints`
+    /// (the force every joint and slider transmits, on each body at each point),
+    /// `constraints` (the force each of the scene's constraints carries: a distance's
+    /// tension, a slider's normal force).
     #[arg(long, value_name = "LIST")]
     columns: Option<String>,
 }

@@ -24,6 +24,50 @@ impl Model {
         Ok(model)
     }
 
+    /// `independent` names as many coordinates as the mechanism has degrees of
+    /// freedom: the error when it does not, naming what locks a mechanism that cannot
+    /// move, and the points on no body whose x, y add freedoms.
+    fn independent_count_error(&self, q: &DVector<f64>) -> Error {
+        let (k, f) = (self.independent.len(), self.dof());
+        let named = self.scene.independent.join(", ");
+        let message = if f == 0 {
+            let culprit = match super::locking_constraint(self, q) {
+                Some(c) => format!(
+                    "; constraint '{}' takes its last degree of freedom",
+                    self.constraints[c].name
+                ),
+                None => String::new(),
+            };
+            format!(
+                "the mechanism cannot move: its {} constraint(s) leave none of its {} \
+                 coordinate(s) free (0 degrees of freedom){culprit}, and `independent` \
+                 names {k} [{named}]",
+                self.m(),
+                self.n()
+            )
+        } else {
+            let massless = crate::model::plausibility::massless_points(self);
+            let why = match massless.is_empty() {
+                true => String::new(),
+                false => format!(
+                    " (point(s) {} on no body and without mass: their x, y move freely; \
+                     put them on a body, or name their coordinates)",
+                    massless.join(", ")
+                ),
+            };
+            format!(
+                "names {k} coordinate(s) [{named}], but the mechanism has {f} degree(s) of \
+                 freedom{why}: name {f}"
+            )
+        };
+        Error::Scene(crate::error::SceneError {
+            file: self.scene.file.clone(),
+            line: self.scene.independent_line,
+            key: "independent".into(),
+            message,
+        })
+    }
+
     /// The scene's approximate positions made consistent (keeping the independent
     /// coordinates), the redundant constraints found there, and the velocities from
     /// the independent ones (at rest when the scene gives none).
@@ -35,6 +79,9 @@ impl Model {
         self.active = (0..self.m())
             .filter(|k| !self.redundant.contains(k))
             .collect();
+        if !self.independent.is_empty() && self.independent.len() != self.dof() {
+            return Err(self.independent_count_error(&q));
+        }
         let dq = if self.independent.is_empty() {
             DVector::zeros(self.n())
         } else {

@@ -156,6 +156,37 @@ pub fn constraint_rank(model: &Model, q: &DVector<f64>) -> RankInfo {
     }
 }
 
+/// The constraint that takes a mechanism's last degree of freedom at q, when its
+/// constraints leave none: the rows of Φ_q are scanned as in [`constraint_rank`], the
+/// relative coordinates' definitions first (each adds an equation and a coordinate,
+/// and locks nothing), then the others in scene order; the first row after which the
+/// rank is n is named. None when the mechanism can move.
+pub fn locking_constraint(model: &Model, q: &DVector<f64>) -> Option<usize> {
+    let n = model.n();
+    if n == 0 || model.dof() > 0 {
+        return None;
+    }
+    let jac = model.jacobian(q);
+    let scale = (0..jac.nrows())
+        .map(|r| jac.row(r).norm())
+        .fold(0.0, f64::max);
+    let (defining, others): (Vec<usize>, Vec<usize>) =
+        (0..model.m()).partition(|&k| model.constraints[k].coordinate.is_some());
+    let mut basis: Vec<DVector<f64>> = Vec::new();
+    for r in defining.into_iter().chain(others) {
+        let row = jac.row(r).transpose();
+        let residual = orthogonalize(&row, &basis);
+        let norm = residual.norm();
+        if norm > 1e-8 * row.norm().max(1e-300) && norm > 1e-14 * scale {
+            basis.push(residual / norm);
+            if basis.len() == n {
+                return Some(r);
+            }
+        }
+    }
+    None
+}
+
 /// Whether no row of `jac` comes near the scan's redundancy test. The k-th pivot of
 /// the Cholesky factor of the Gram matrix of the normalized rows, in their order, is
 /// the part of row k outside the span of the rows before it, which the scan

@@ -318,17 +318,7 @@ pub fn inertia_warning(model: &Model) -> Option<String> {
     if low == 0 {
         return None;
     }
-    let massless: Vec<&str> = model
-        .points
-        .iter()
-        .zip(&model.scene.points)
-        .filter_map(|(slot, p)| match slot {
-            crate::model::PointSlot::Free(i) => (model.mass[(*i, *i)] == 0.0
-                && model.mass[(i + 1, i + 1)] == 0.0)
-                .then_some(p.name.as_str()),
-            crate::model::PointSlot::Fixed(_) => None,
-        })
-        .collect();
+    let massless = massless_points(model);
     let which = if massless.is_empty() {
         String::new()
     } else {
@@ -340,6 +330,136 @@ pub fn inertia_warning(model: &Model) -> Option<String> {
          matter; give those points a mass or put them on a body",
         basis.ncols()
     ))
+}
+
+/// The free points that carry no mass: on no body, without a point mass.
+pub fn massless_points(model: &Model) -> Vec<&str> {
+    model
+        .points
+        .iter()
+        .zip(&model.scene.points)
+        .filter_map(|(slot, p)| match slot {
+            crate::model::PointSlot::Free(i) => (model.mass[(*i, *i)] == 0.0
+                && model.mass[(i + 1, i + 1)] == 0.0)
+                .then_some(p.name.as_str()),
+            crate::model::PointSlot::Fixed(_) => None,
+        })
+        .collect()
+}
+
+/// A warning when the constraints leave the mechanism no degree of freedom, naming
+/// the constraint that takes the last one.
+pub fn locked_warning(model: &Model) -> Option<String> {
+    if model.dof() > 0 || model.n() == 0 {
+        return None;
+    }
+    let culprit = crate::kinematics::locking_constraint(model, &model.initial.q)
+        .map(|c| {
+            format!(
+                "; constraint '{}' takes its last degree of freedom",
+                model.constraints[c].name
+            )
+        })
+        .unwrap_or_default();
+    Some(format!(
+        "the mechanism cannot move: its constraints leave none of its {} coordinate(s) \
+         free (0 degrees of freedom){culprit}",
+        model.n()
+    ))
+}
+
+/// Angles above this (rad) where the scene expects an angle suggest degrees.
+const MAX_PLAUSIBLE_ANGLE: f64 = std::f64::consts::TAU;
+
+/// A body longer than this (m) that weighs less than [`MIN_LINEAR_DENSITY`] per metre,
+/// or any scene whose median body is longer than [`MM_MEDIAN_LENGTH`], suggests
+/// lengths in millimetres.
+const MM_BODY_LENGTH: f64 = 5.0;
+/// kg/m: a steel wire of 3 mm weighs 0.055 kg/m.
+const MIN_LINEAR_DENSITY: f64 = 0.05;
+const MM_MEDIAN_LENGTH: f64 = 50.0;
+/// kg/m³: a body whose mass exceeds this times the cube of its length is denser than
+/// any metal (osmium, 22 590 kg/m³) even as a solid cube: masses in grams.
+const MAX_CUBE_DENSITY: f64 = 25_000.0;
+/// kg: below it a small dense body (a 5 mm crank on a flywheel) is plausible.
+const MIN_GRAMS_MASS: f64 = 10.0;
+
+/// Warnings for values whose size suggests other units than the SI ones mbfg reads:
+/// angle constants beyond 2π (degrees for radians), lengths in millimetres, masses
+/// in grams.
+pub fn units_warnings(model: &Model) -> Vec<String> {
+    let scene = &model.scene;
+    let mut out = Vec::new();
+    let degrees = |v: f64| {
+        format!(
+            "angles are in radians ({v} degrees would be {:.4} rad)",
+            v.to_radians()
+        )
+    };
+    for effect in &scene.effects {
+        if let crate::scene::Effect::RotationalSpringDamper {
+            name, rest_angle, ..
+        } = effect
+        {
+            if rest_angle.abs() > MAX_PLAUSIBLE_ANGLE {
+                out.push(format!(
+                    "effect '{name}': rest_angle {rest_angle} is beyond 2π: {}",
+                    degrees(*rest_angle)
+                ));
+            }
+        }
+    }
+    for c in scene.coordinates.iter().filter(|c| c.kind.is_angle()) {
+        let given = c.initial.into_iter().chain(
+            scene
+                .initial_positions
+                .iter()
+                .filter(|(n, _)| *n == c.name)
+                .map(|(_, v)| *v),
+        );
+        for v in given.filter(|v| v.abs() > MAX_PLAUSIBLE_ANGLE) {
+            out.push(format!(
+                "coordinate '{}': initial angle {v} is beyond 2π: {}",
+                c.name,
+                degrees(v)
+            ));
+        }
+    }
+    let mut lengths: Vec<f64> = scene.bodies.iter().map(|b| b.length).collect();
+    lengths.sort_by(f64::total_cmp);
+    let median = lengths.get(lengths.len() / 2).copied().unwrap_or(0.0);
+    let light_and_long = scene.bodies.iter().find(|b| {
+        b.length > MM_BODY_LENGTH && b.mass > 0.0 && b.mass / b.length < MIN_LINEAR_DENSITY
+    });
+    if median > MM_MEDIAN_LENGTH || light_and_long.is_some() {
+        let why = match light_and_long {
+            Some(b) => format!(
+                "body '{}' is {} m long and weighs {} kg",
+                b.name,
+                short(b.length),
+                short(b.mass)
+            ),
+            None => format!("the bodies are {} m long (median)", short(median)),
+        };
+        out.push(format!(
+            "{why}: lengths are in metres; a scene in millimetres must be converted \
+             (divide lengths by 1000)"
+        ));
+    }
+    if let Some(b) = scene
+        .bodies
+        .iter()
+        .find(|b| b.mass > MIN_GRAMS_MASS && b.mass > MAX_CUBE_DENSITY * b.length.powi(3))
+    {
+        out.push(format!(
+            "body '{}' weighs {} kg on {} m, denser than any metal even as a solid cube: \
+             masses are in kg; a scene in grams must be converted (divide masses by 1000)",
+            b.name,
+            short(b.mass),
+            short(b.length)
+        ));
+    }
+    out
 }
 
 /// A warning when nothing can set the mechanism moving: no effect, and at rest.

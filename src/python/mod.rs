@@ -34,6 +34,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
     m.add_class::<model::PyModel>()?;
     m.add_function(wrap_pyfunction!(model::load, m)?)?;
+    m.add_function(wrap_pyfunction!(model::parse_yaml, m)?)?;
     m.add_function(wrap_pyfunction!(simulate::simulate_run, m)?)?;
     m.add_function(wrap_pyfunction!(inverse::inverse_run, m)?)?;
     m.add_function(wrap_pyfunction!(sensors::measure_run, m)?)?;

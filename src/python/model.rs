@@ -18,6 +18,9 @@ use std::sync::Arc;
 #[pyclass(name = "Model", module = "mbfg", frozen)]
 pub(super) struct PyModel {
     pub(super) model: Arc<Model>,
+    /// The scene text a model loaded from text (not a file) was read from, to read it
+    /// again with other parameters.
+    pub(super) text: Option<Arc<String>>,
 }
 
 impl PyModel {
@@ -577,17 +580,84 @@ impl PyModel {
     }
 }
 
+/// A scene file, a loaded `Model` (read again with `params`), or with `text`, scene
+/// text that `path` only names in messages (its folder resolves `mechanism:`).
 #[pyfunction]
-#[pyo3(signature = (path, params=None))]
+#[pyo3(signature = (path, params=None, text=None))]
 pub(super) fn load(
     path: &Bound<'_, PyAny>,
     params: Option<&Bound<'_, PyAny>>,
+    text: Option<&Bound<'_, PyAny>>,
 ) -> PyResult<PyModel> {
     guard(|| {
         let params = arg_values(params, "params")?;
+        let Some(text) = text.filter(|t| !t.is_none()) else {
+            let text = path
+                .cast::<PyModel>()
+                .ok()
+                .and_then(|m| m.get().text.clone());
+            return Ok(PyModel {
+                model: study_model(path, &params, &[], &[])?,
+                text,
+            });
+        };
+        let text = Arc::new(arg_str(text, "text")?);
+        let name = arg_path(path, "name")?;
+        let scene = Scene::from_str_with(&text, &name, &params)
+            .map_err(|e| SceneError::new_err(e.to_string()))?;
+        let model = Model::new(&scene).map_err(|e| SceneError::new_err(e.to_string()))?;
         Ok(PyModel {
-            model: study_model(path, &params, &[], &[])?,
+            model: Arc::new(model),
+            text: Some(text),
         })
+    })
+}
+
+/// A YAML document as Python values (dict, list, str, float, bool, None), read as
+/// scene files are: for `mbfg.Scene.from_yaml`.
+#[pyfunction]
+pub(super) fn parse_yaml<'py>(
+    py: Python<'py>,
+    text: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyAny>> {
+    guard(|| {
+        let text = arg_str(text, "text")?;
+        let root = crate::scene::yaml::parse(&text).map_err(|e| {
+            let line = e.line.map(|l| format!(":{l}")).unwrap_or_default();
+            let key = match e.key.is_empty() {
+                true => String::new(),
+                false => format!(" {}:", e.key),
+            };
+            SceneError::new_err(format!("<yaml>{line}:{key} {}", e.message))
+        })?;
+        python_value(py, &root)
+    })
+}
+
+fn python_value<'py>(
+    py: Python<'py>,
+    node: &crate::scene::yaml::Node,
+) -> PyResult<Bound<'py, PyAny>> {
+    use crate::scene::yaml::Value;
+    Ok(match &node.value {
+        Value::Null => py.None().into_bound(py),
+        Value::Bool(b) => b.into_pyobject(py)?.to_owned().into_any(),
+        Value::Number(v) => v.into_pyobject(py)?.into_any(),
+        Value::String(s) => s.into_pyobject(py)?.into_any(),
+        Value::Seq(items) => {
+            let list = PyList::empty(py);
+            for item in items {
+                list.append(python_value(py, item)?)?;
+            }
+            list.into_any()
+        }
+        Value::Map(pairs) => {
+            let dict = PyDict::new(py);
+            for (k, v) in pairs {
+                dict.set_item(python_value(py, k)?, python_value(py, v)?)?;
+            }
+            dict.into_any()
+        }
     })
 }
 
@@ -606,12 +676,18 @@ pub(super) fn study_model(
             return Ok(model.clone());
         }
     }
+    let text = scene
+        .cast::<PyModel>()
+        .ok()
+        .and_then(|m| m.get().text.clone());
     let path = match &loaded {
         Some(m) => PathBuf::from(&m.scene.file),
         None => arg_path(scene, "scene")?,
     };
-    let mut sc = match (&loaded, params.is_empty()) {
-        (Some(m), true) => m.scene.clone(),
+    let mut sc = match (&loaded, params.is_empty(), &text) {
+        (Some(m), true, _) => m.scene.clone(),
+        (_, _, Some(text)) => Scene::from_str_with(text, &path, params)
+            .map_err(|e| SceneError::new_err(e.to_string()))?,
         _ => Scene::load_with(&path, params).map_err(|e| SceneError::new_err(e.to_string()))?,
     };
     let names = crate::scene::coordinate_names(&sc);

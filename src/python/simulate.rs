@@ -1,7 +1,7 @@
 //! `mbfg.simulate`: forward dynamics, its arguments checked, and its result (the
 //! table, the summary, the failures and the warnings) as a dict.
 
-use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_values};
+use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_str, arg_values};
 use super::effects::{arg_effects, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, SolveError};
 use super::failure::{error_failure, step_failure, with_failure};
@@ -13,9 +13,13 @@ use crate::forward::{
 use crate::smoother::Mode;
 use crate::solver::Past;
 use crate::Error;
+use numpy::PyArray1;
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
+use std::ops::ControlFlow;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 
 /// A forward run's result, complete or not: `requested` is the number of steps asked
 /// for, so that a partial one says so in its summary.
@@ -153,8 +157,25 @@ pub(super) fn simulate_run<'py>(
     dq0: &Bound<'py, PyAny>,
     effects: &Bound<'py, PyAny>,
     square_steps: &Bound<'py, PyAny>,
+    columns: &Bound<'py, PyAny>,
+    until: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
+        let until = match until.is_none() {
+            true => None,
+            false => Some(arg_str(until, "until")?),
+        };
+        // The CLI's optional column groups (`--columns`), as a list of names.
+        let groups = match columns.is_none() {
+            true => Vec::new(),
+            false => {
+                let names: Vec<String> = columns.extract().map_err(|_| {
+                    invalid("columns must be a list of group names (bodies, energy, joints)")
+                })?;
+                crate::derived::Group::parse_list(&names.join(","))
+                    .map_err(|e| invalid(e.replace("--columns", "columns")))?
+            }
+        };
         let loads = arg_effects(effects)?;
         let params = arg_values(Some(params), "params")?;
         let q0 = arg_values(Some(q0), "q0")?;
@@ -217,17 +238,53 @@ pub(super) fn simulate_run<'py>(
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
-        let requested = options.steps();
+        let mut requested = options.steps();
+        let until = until
+            .map(|text| crate::stop::StopCondition::new(&model, &text))
+            .transpose()
+            .map_err(|e| invalid(e.to_string().replace("--until", "until")))?;
         let step_warning: Vec<String> = crate::model::plausibility::idle_warning(&model)
             .into_iter()
+            .chain(crate::model::plausibility::locked_warning(&model))
             .chain(crate::model::plausibility::inertia_warning(&model))
+            .chain(crate::model::plausibility::units_warnings(&model))
             .chain(crate::model::plausibility::step_warning(&model, options.dt))
+            .chain(
+                crate::limits::t_end_unmet(options.dt, options.t_end).map(|last| {
+                    format!(
+                        "t_end = {} s is not a whole number of steps: the run ends at t = {last} s, \
+                         the whole step nearest it",
+                        options.t_end
+                    )
+                }),
+            )
             .collect();
         let model_for_checks = model.clone();
-        let (run, signal) = interruptible(py, |progress| {
-            forward::simulate_interruptible(model, &options, progress)
+        let hit = Arc::new(AtomicBool::new(false));
+        let (run, signal) = interruptible(py, |progress| match &until {
+            None => forward::simulate_interruptible(model, &options, progress)
+                .map(|(tr, s)| (tr, s, None)),
+            Some(condition) => {
+                options.check_memory(&model, true)?;
+                let mut tr = Trajectory {
+                    names: model.names.clone(),
+                    t: Vec::new(),
+                    q: Vec::new(),
+                    dq: Vec::new(),
+                    ddq: Vec::new(),
+                };
+                let mut watch = crate::stop::Watch::new(&model, condition, &mut tr, hit.clone());
+                let mut watched = |done, total| match hit.load(Ordering::Relaxed) {
+                    true => ControlFlow::Break(()),
+                    false => progress(done, total),
+                };
+                let s =
+                    forward::simulate_streaming(model.clone(), &options, &mut watched, &mut watch)?;
+                let stopped = watch.stopped;
+                Ok((tr, s, stopped))
+            }
         });
-        let (tr, s) = match run {
+        let (tr, mut s, stopped) = match run {
             Ok(run) => run,
             // No trajectory comes back from a library error; an interrupt came first.
             Err(e) => {
@@ -244,7 +301,27 @@ pub(super) fn simulate_run<'py>(
                 return Err(with_result(py, err, None));
             }
         };
+        if let Some((k, _)) = stopped {
+            // The steps solved past the stop are not kept; the run is whole up to it.
+            s.steps = s.steps.min(k + 1);
+            s.interrupted = None;
+            requested = tr.len();
+        }
         let out = forward_result(py, &tr, &s, requested)?;
+        if let Some((k, at)) = stopped {
+            let d = PyDict::new(py);
+            d.set_item("t", at)?;
+            d.set_item("step", k)?;
+            out.get_item("summary")?
+                .ok_or_else(|| PyRuntimeError::new_err("a result without a summary"))?
+                .set_item("until", d)?;
+        }
+        if !groups.is_empty() && s.failures.is_empty() && signal.is_none() {
+            let extra = crate::derived::columns(&model_for_checks, &tr, &groups, None)
+                .map_err(arg_error)?;
+            out.set_item("extra_columns", extra.names)?;
+            out.set_item("extra", PyArray1::from_vec(py, extra.values))?;
+        }
         // What converged but may not be right (mbfg simulate prints these as warnings).
         let euler = crate::forward::energy_checks::euler_warning(
             &model_for_checks,

@@ -33,6 +33,7 @@ pub fn empty(file: &str) -> Scene {
         constraints: Vec::new(),
         effects: Vec::new(),
         independent: Vec::new(),
+        independent_line: None,
         initial_positions: Vec::new(),
         initial_velocities: Vec::new(),
         notes: Vec::new(),

@@ -219,12 +219,16 @@ impl<'a> Ctx<'a> {
         let opened = text.matches('(').count() > text.matches(')').count();
         let hint = match &e {
             ExprError::Syntax { .. } if opened => {
-                "; in {…} a comma ends the value: quote an expression that has one (value: \"20*min(1, t)\")"
+                "; in {…} a comma ends the value: quote an expression that has one (value: \"20*min(1, t)\")".to_string()
             }
             ExprError::Undefined(name) if name.contains('(') => {
-                "; state quantities such as rate(theta) or x(P) may appear only in the value of a torque or a force"
+                "; state quantities such as rate(theta) or x(P) may appear only in the value of a torque or a force".to_string()
             }
-            _ => "",
+            ExprError::Undefined(name) => super::suggest::did_you_mean(
+                name,
+                self.params.iter().map(|(n, _)| n.as_str()),
+            ),
+            _ => String::new(),
         };
         let text = excerpt(text, QUOTE);
         self.err(node.line, key, format!("{what} '{text}': {e}{hint}"))
@@ -276,8 +280,12 @@ impl<'a> Ctx<'a> {
                     line,
                     "parameters",
                     format!(
-                        "no parameter '{}' to override (the file's parameters: {known})",
-                        excerpt(name, QUOTE)
+                        "no parameter '{}' to override{} (the file's parameters: {known})",
+                        excerpt(name, QUOTE),
+                        super::suggest::did_you_mean(
+                            name,
+                            self.params.iter().map(|(n, _)| n.as_str())
+                        )
                     ),
                 ));
             }

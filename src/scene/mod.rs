@@ -13,6 +13,7 @@ mod fields;
 mod mbse;
 mod native;
 mod sensors;
+mod suggest;
 pub mod yaml;
 
 use crate::error::{Error, SceneError};
@@ -20,6 +21,7 @@ use crate::expr::Expr;
 use std::path::Path;
 
 pub use build::{coordinate_names, relative_value};
+pub use suggest::did_you_mean;
 
 /// A named point of the mechanism, fixed or free.
 #[derive(Debug, Clone, PartialEq)]
@@ -241,6 +243,8 @@ pub struct Scene {
     pub effects: Vec<Effect>,
     /// Names of the coordinates declared independent (a subset of q's names).
     pub independent: Vec<String>,
+    /// The line of `independent:` in the file, for messages about it.
+    pub independent_line: Option<u64>,
     /// Initial values given for coordinates of q, by name (kept by the position problem
     /// when the coordinate is independent).
     pub initial_positions: Vec<(String, f64)>,
@@ -438,8 +442,12 @@ fn parse_root(text: &str, file: &str) -> Result<yaml::Node, SceneError> {
     yaml::parse(text).map_err(|e| SceneError {
         file: file.to_string(),
         line: e.line,
-        key: String::new(),
-        message: format!("YAML syntax error: {}", e.message),
+        // An empty file and a value such as `.nan` are not errors of syntax.
+        message: match e.line.is_some() && !e.message.contains("not a finite number") {
+            true => format!("YAML syntax error: {}", e.message),
+            false => e.message,
+        },
+        key: e.key,
     })
 }
 

@@ -161,7 +161,15 @@ pub fn point_ref(ctx: &Ctx, scene: &Scene, node: &Node, key: &str) -> Result<usi
         ctx.err(
             node.line,
             key,
-            format!("unknown point '{}'", excerpt(&name, QUOTE)),
+            format!(
+                "unknown point '{}'{}",
+                excerpt(&name, QUOTE),
+                super::suggest::hint(
+                    &name,
+                    "points",
+                    scene.points.iter().map(|p| p.name.as_str())
+                )
+            ),
         )
     })
 }
@@ -414,8 +422,13 @@ fn angle_coordinate(ctx: &Ctx, scene: &Scene, f: &mut Fields) -> Result<usize, S
             n.line,
             &key,
             format!(
-                "unknown coordinate '{}' (effects act on relative coordinates)",
-                excerpt(&name, QUOTE)
+                "unknown coordinate '{}' (effects act on relative coordinates){}",
+                excerpt(&name, QUOTE),
+                super::suggest::hint(
+                    &name,
+                    "relative coordinates",
+                    scene.coordinates.iter().map(|c| c.name.as_str())
+                )
             ),
         )
     })?;
@@ -555,10 +568,13 @@ pub(super) fn q_name(
         }
         _ => String::new(),
     };
-    Err(ctx.err(node.line, key, format!("unknown coordinate '{}'{hint}; coordinates are <point>.x, <point>.y of free points and relative coordinates", excerpt(&name, QUOTE))))
+    let names = build::coordinate_names(scene);
+    let near = super::suggest::did_you_mean(&name, names.iter().map(String::as_str));
+    Err(ctx.err(node.line, key, format!("unknown coordinate '{}'{hint} (coordinates are <point>.x, <point>.y of free points and relative coordinates){near}", excerpt(&name, QUOTE))))
 }
 
 fn read_independent(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
+    scene.independent_line = (node.line > 0).then_some(node.line);
     for item in seq(ctx, node, "independent")? {
         let name = q_name(ctx, scene, item, "independent")?;
         if scene.independent.contains(&name) {

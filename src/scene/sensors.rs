@@ -38,7 +38,15 @@ pub fn read_sensors(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
                     ctx.err(
                         n.line,
                         &key,
-                        format!("unknown body '{}'", excerpt(&text, QUOTE)),
+                        format!(
+                            "unknown body '{}'{}",
+                            excerpt(&text, QUOTE),
+                            super::suggest::hint(
+                                &text,
+                                "bodies",
+                                scene.bodies.iter().map(|b| b.name.as_str())
+                            )
+                        ),
                     )
                 })?;
             let body = &scene.bodies[b];

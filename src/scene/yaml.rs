@@ -49,15 +49,28 @@ impl Node {
     }
 }
 
-/// A syntax error reported by the YAML parser: message and line.
+/// A syntax error reported by the YAML parser: message, line, and the key whose value
+/// is at fault where the line shows it (empty otherwise).
 #[derive(Debug, Clone)]
 pub struct SyntaxError {
     pub message: String,
     pub line: Option<u64>,
+    pub key: String,
 }
 
 /// Parses a whole YAML document into a located tree.
 pub fn parse(text: &str) -> Result<Node, SyntaxError> {
+    if text
+        .lines()
+        .all(|l| l.trim().is_empty() || l.trim_start().starts_with('#') || l.trim() == "---")
+    {
+        return Err(SyntaxError {
+            message: "the file is empty: a scene is a YAML mapping (name, points, bodies, …)"
+                .to_string(),
+            line: None,
+            key: String::new(),
+        });
+    }
     let options = serde_saphyr::options! {
         duplicate_keys: serde_saphyr::options::DuplicateKeyPolicy::Error,
         // YAML 1.2 booleans only: `y` and `n` are coordinates here, not yes and no.
@@ -68,6 +81,30 @@ pub fn parse(text: &str) -> Result<Node, SyntaxError> {
         Err(e) => {
             let inner = e.without_snippet();
             let line = e.location().map(|l| l.line()).filter(|&l| l > 0);
+            let column = e.location().map_or(0, |l| l.column() as usize);
+            let key = match line {
+                Some(l) if !matches!(inner, serde_saphyr::Error::Budget { .. }) => {
+                    key_before(text, l as usize, column)
+                }
+                _ => String::new(),
+            };
+            // A flow mapping or list left open is found by the parser lines later,
+            // where something cannot continue it: name the line that opened it.
+            if let Some((open_line, bracket)) = line.and_then(|l| unclosed_flow(text, l as usize)) {
+                return Err(SyntaxError {
+                    message: format!(
+                        "`{bracket}` opened on this line is not closed (a {} must end with `{}`)",
+                        if bracket == '{' {
+                            "flow mapping {…}"
+                        } else {
+                            "flow list […]"
+                        },
+                        if bracket == '{' { '}' } else { ']' }
+                    ),
+                    line: Some(open_line as u64),
+                    key: String::new(),
+                });
+            }
             let message = match inner {
                 serde_saphyr::Error::Budget { breach, .. } => budget_words(breach),
                 // The user-facing wording: the default one gives advice on the
@@ -78,13 +115,63 @@ pub fn parse(text: &str) -> Result<Node, SyntaxError> {
                     // A breach wrapped in another error still renders in Debug form.
                     match first.find("limits breached") {
                         Some(_) => "YAML document too large or too complex".to_string(),
-                        None => excerpt(first, 200),
+                        // The line is the error's own; the column is in the key.
+                        None => excerpt(first.split(" at line ").next().unwrap_or(first), 200),
                     }
                 }
             };
-            Err(SyntaxError { message, line })
+            Err(SyntaxError { message, line, key })
         }
     }
+}
+
+/// The key written before `column` (1-based) of line `line` (1-based): `k` in
+/// `  k: .nan` or in `{x: 1, k: .nan}`; empty when there is none.
+fn key_before(text: &str, line: usize, column: usize) -> String {
+    let Some(source) = text.lines().nth(line.saturating_sub(1)) else {
+        return String::new();
+    };
+    let before: String = source.chars().take(column.saturating_sub(1)).collect();
+    let Some(head) = before.trim_end().strip_suffix(':') else {
+        return String::new();
+    };
+    let key: String = head
+        .chars()
+        .rev()
+        .take_while(|c| !matches!(c, '{' | ',' | ' ' | '-' | '[' | '\t'))
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .collect();
+    excerpt(key.trim_matches(['"', '\'']), 40)
+}
+
+/// The line (1-based) and bracket of the outermost flow mapping or list still open at
+/// the start of line `error_line`, outside quotes and comments; None when all are
+/// closed there.
+fn unclosed_flow(text: &str, error_line: usize) -> Option<(usize, char)> {
+    let mut open: Vec<(usize, char)> = Vec::new();
+    for (n, source) in text.lines().enumerate().take(error_line.saturating_sub(1)) {
+        let mut quote: Option<char> = None;
+        let mut previous = ' ';
+        for c in source.chars() {
+            match quote {
+                Some(q) if c == q => quote = None,
+                Some(_) => {}
+                None => match c {
+                    '#' if previous.is_whitespace() => break,
+                    '"' | '\'' => quote = Some(c),
+                    '{' | '[' => open.push((n + 1, c)),
+                    '}' | ']' => {
+                        open.pop();
+                    }
+                    _ => {}
+                },
+            }
+            previous = c;
+        }
+    }
+    open.first().copied()
 }
 
 /// A budget breach in plain words (the parser's own message is Rust Debug text).
@@ -210,6 +297,36 @@ mod tests {
         assert_eq!(items[1].line, 4);
         assert_eq!(pairs[2].1.as_text().unwrap(), "(1/3)*m");
         assert_eq!(pairs[2].1.line, 5);
+    }
+
+    #[test]
+    fn an_unclosed_flow_mapping_is_named_where_it_opened() {
+        let e = parse("a: 1\nb:\n  - {x: 1, y: 2\n  - {x: 3, y: 4}\nc:\n  - {z: 1}\n").unwrap_err();
+        assert_eq!(e.line, Some(3), "{e:?}");
+        assert!(
+            e.message.contains("`{` opened on this line is not closed"),
+            "{e:?}"
+        );
+        // Flow mappings may span lines; closed ones are not blamed.
+        assert!(parse("a: {x: 1,\n  y: 2}\nb: [1, # c\n 2]\n").is_ok());
+    }
+
+    #[test]
+    fn a_value_that_is_not_finite_names_its_key() {
+        let e = parse("a: 1\nk: .nan\n").unwrap_err();
+        assert_eq!((e.line, e.key.as_str()), (Some(2), "k"), "{e:?}");
+        let e = parse("p:\n  - {x: 1, mass: .inf}\n").unwrap_err();
+        assert_eq!((e.line, e.key.as_str()), (Some(2), "mass"), "{e:?}");
+    }
+
+    #[test]
+    fn an_empty_file_is_called_empty() {
+        for text in ["", "\n  \n", "# only a comment\n"] {
+            assert!(parse(text)
+                .unwrap_err()
+                .message
+                .contains("the file is empty"));
+        }
     }
 
     #[test]
