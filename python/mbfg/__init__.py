@@ -116,6 +116,13 @@ class Model:
         pin's own load; at a fixed point, minus their sum is the ground's reaction."""
         return {(b, p): np.array([fx, fy]) for b, p, fx, fy in self._m.joint_forces(q, dq, ddq, t)}
 
+    def constraint_forces(self, q, dq, ddq, t: float) -> dict[str, float]:
+        """The force each of the scene's `constraints` carries at a consistent state (a
+        row of a result), by name: a distance's tension (N, positive pulling its points
+        together), a slider's normal force (N, along the guide's left normal), as the
+        CLI's `--columns constraints` writes them (`R:<name>`)."""
+        return dict(self._m.constraint_forces(q, dq, ddq, t))
+
     def point_position(self, q, name: str) -> tuple[float, float]:
         """(x, y) of a named point at q, in m (fixed points included)."""
         return self._m.point_position(q, name)
