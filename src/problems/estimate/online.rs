@@ -56,11 +56,12 @@ pub struct Update {
 /// solves per step; the next step's solve goes on from where this one stopped.
 pub const PLAUSIBLE_COST: f64 = 10.0;
 
-/// A window grows up to this many times its length while its oldest step is less
-/// certain (a larger σ of a watched coordinate) than its newest: where the readings
-/// determine the motion only slowly (a gyroscope that cannot yet tell the start
-/// angle from an unknown torque), a step leaves the window once the readings have
-/// caught up with it, not while its estimate is still mostly the prior's.
+/// At the start of a record, a window grows up to this many times its length while
+/// its oldest step is less certain (a larger σ of a watched coordinate) than its
+/// newest: where the readings determine the start only slowly (a gyroscope that
+/// cannot yet tell the start angle from an unknown torque), a step leaves the window
+/// once the readings have caught up with it, not while its estimate is still mostly
+/// the prior's.
 pub const LONGEST_FACTOR: usize = 4;
 
 /// Steps the buffer holds before it moves, past the window.
@@ -79,6 +80,9 @@ pub struct Estimator {
     /// The coordinates whose σ decide when the oldest step leaves: the scene's
     /// independent ones, else every q.
     watched: Vec<usize>,
+    /// The readings have caught up with the start: a full window's oldest step was
+    /// as certain as its newest once (the window no longer grows).
+    caught_up: bool,
     /// Steps the windows held, summed over the updates.
     held_sum: usize,
     /// The most steps a window held.
@@ -134,6 +138,7 @@ impl Estimator {
             leaving: 0,
             watched,
             held_sum: 0,
+            caught_up: false,
             held_most: 0,
             values: Vec::with_capacity(capacity.unwrap_or(window + BUFFER) * s),
             capacity,
@@ -290,11 +295,15 @@ impl Estimator {
             )
         };
         // How many of the oldest steps leave with the next update: none while the
-        // window fills, or while the oldest knows less than the newest (the readings
-        // have not yet caught up with it: a start the sensors determine only slowly)
-        // and the window may grow; two while a grown window shrinks back; else one.
+        // window fills, or, at the start of the record, while the oldest knows less
+        // than the newest (the readings have not yet caught up with the start, which
+        // the sensors determine only slowly) and the window may grow; two while a
+        // grown window shrinks back; else one. Past the start, a σ that only follows
+        // the configuration (how well a sensor sees the motion there) grows nothing.
         let held = k + 1 - self.k0;
-        let unsettled = self.oldest_less_certain(k);
+        let less_certain = self.oldest_less_certain(k);
+        self.caught_up |= held >= self.window && !less_certain;
+        let unsettled = !self.caught_up && less_certain;
         self.leaving = if held < self.window || (unsettled && held < self.longest) {
             0
         } else if held > self.window && !unsettled {
