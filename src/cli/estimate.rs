@@ -86,7 +86,10 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
         return Err(Failure::Input("--max-iterations must be at least 1".into()));
     }
     options.settings.max_iterations = args.max_iterations;
-    let output = Output::open(args.out.as_deref(), &[&args.scene, &args.measurements])?;
+    let output = Output::open(
+        args.out.as_deref(),
+        &super::inputs(&args.scene, &model, &[&args.measurements]),
+    )?;
     let record =
         Record::read(&model, &args.measurements, args.dt).map_err(|e| Failure::Input(plain(e)))?;
     let table = RefCell::new(Estimates::for_model(&model));
@@ -113,15 +116,15 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
                 .map_err(Failure::Run)?;
             print_summary(to_file, &summary_line(&summary, elapsed));
             if summary.unsettled > 0 {
-                eprintln!(
+                super::tell(&format!(
                     "warning: {} window solves reached the iteration limit ({}) still improving \
                      and were kept, the next step's solve going on from them; \
                      --max-iterations raises the limit",
                     summary.unsettled, options.settings.max_iterations
-                );
+                ));
             }
             if let Some(w) = consistency_warning(&summary) {
-                eprintln!("warning: {w}");
+                super::tell(&format!("warning: {w}"));
             }
             Ok(())
         }

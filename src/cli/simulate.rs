@@ -215,18 +215,18 @@ fn simulate(
     written: &Written,
 ) -> Result<(), Failure> {
     // Open the output first: an unwritable path is bad input, found before the run.
-    let output = Output::open(out, &[scene])?;
+    let output = Output::open(out, &super::inputs(scene, &model, &[]))?;
     for w in mbfg::model::plausibility::idle_warning(&model)
         .into_iter()
         .chain(mbfg::model::plausibility::inertia_warning(&model))
     {
-        eprintln!("warning: {w}");
+        super::tell(&format!("warning: {w}"));
     }
     if let Some(w) = mbfg::model::plausibility::step_warning(&model, options.dt) {
         if strict {
             return Err(Failure::Input(format!("{w} (--strict)")));
         }
-        eprintln!("warning: {w}");
+        super::tell(&format!("warning: {w}"));
     }
     super::interrupt::install();
     let batch = forward::Plan::new(&model, options)
@@ -311,7 +311,7 @@ fn simulate(
         false => steps < options.steps(),
     };
     for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
-        eprintln!("warning: {}", shorten(&f.message()));
+        super::tell(&format!("warning: {}", shorten(&f.message())));
     }
     if stopped {
         let Some(f) = first_failure else {
@@ -394,7 +394,7 @@ fn simulate(
             print_summary(to_file, &line);
             return Err(Failure::Run(format!("{w}; nothing was written (--strict)")));
         }
-        eprintln!("warning: {w}");
+        super::tell(&format!("warning: {w}"));
     }
     match run {
         Run::Held(trajectory) => output

@@ -2,7 +2,7 @@
 //! table, the summary, the failures and the warnings) as a dict.
 
 use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_values};
-use super::effects::{arg_effects, raised, with_loads};
+use super::effects::{arg_effects, interrupted, is_interrupted, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, SolveError};
 use super::failure::{error_failure, step_failure, with_failure};
 use super::model::study_model;
@@ -217,6 +217,9 @@ pub(super) fn simulate_run<'py>(
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
+        // The result holds every step: a run whose rows cannot fit is refused here,
+        // not aborted by the allocator (which would end the interpreter).
+        options.check_memory(&model, true).map_err(arg_error)?;
         let requested = options.steps();
         let step_warning: Vec<String> = crate::model::plausibility::idle_warning(&model)
             .into_iter()
@@ -224,9 +227,13 @@ pub(super) fn simulate_run<'py>(
             .chain(crate::model::plausibility::step_warning(&model, options.dt))
             .collect();
         let model_for_checks = model.clone();
-        let (run, signal) = interruptible(py, |progress| {
-            forward::simulate_interruptible(model, &options, progress)
-        });
+        let (run, signal) = interruptible(
+            py,
+            || !loads.is_empty() && is_interrupted(&loads),
+            |progress| forward::simulate_interruptible(model, &options, progress),
+        );
+        // A Ctrl-C that a Python effect's call received is the run's signal.
+        let signal = signal.or_else(|| interrupted(&loads));
         let (tr, s) = match run {
             Ok(run) => run,
             // No trajectory comes back from a library error; an interrupt came first.

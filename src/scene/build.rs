@@ -38,6 +38,7 @@ pub fn empty(file: &str) -> Scene {
         notes: Vec::new(),
         sensors: Vec::new(),
         estimation: Default::default(),
+        mechanism: None,
     }
 }
 
