@@ -1061,3 +1061,84 @@ fn an_unwritable_stderr_never_ends_in_a_panic() {
         assert_eq!(out.code(), Some(code), "{args:?}");
     }
 }
+
+/// A scene file in `dir`, the four-bar with theta, with `from` replaced by `to`.
+fn theta_scene(dir: &Path, name: &str, from: &str, to: &str) -> PathBuf {
+    let text = text(Path::new("scenes/fourbar-theta.yaml"));
+    assert!(text.contains(from), "{from}");
+    let path = dir.join(name);
+    std::fs::write(&path, text.replace(from, to)).unwrap();
+    path
+}
+
+/// The `worst |Φ| …` or `max |Φ| = …` figure of a summary or check report.
+fn phi_figure(report: &str, key: &str) -> f64 {
+    let rest = &report[report
+        .find(key)
+        .unwrap_or_else(|| panic!("{key} in {report}"))
+        + key.len()..];
+    let number: String = rest
+        .trim_start()
+        .chars()
+        .take_while(|c| !matches!(c, ',' | ' ' | ';'))
+        .collect();
+    number
+        .parse()
+        .unwrap_or_else(|_| panic!("{number:?} in {report}"))
+}
+
+#[test]
+fn a_crank_placed_at_a_huge_angle_is_assembled_to_the_usual_tolerance() {
+    // θ = 10⁸ rad: an angle is no length scale; the start's |Φ| is that of any other.
+    let dir = scratch("huge-angle");
+    let scene = theta_scene(
+        &dir,
+        "s.yaml",
+        "positions: {theta: 0}",
+        "positions: {theta: 1e8}",
+    );
+    let out = mbfg(&["check", scene.to_str().unwrap()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let phi = phi_figure(&String::from_utf8_lossy(&out.stdout), "max |Φ| =");
+    assert!(phi < 1e-9, "max |Φ| = {phi}");
+    let out = mbfg(&[
+        "simulate",
+        scene.to_str().unwrap(),
+        "--coords",
+        "ic",
+        "--dt",
+        "0.01",
+        "--t-end",
+        "0.05",
+        "--out",
+        dir.join("o.csv").to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // Along the run θ itself carries 10⁸·ε ≈ 10⁻⁸ rad of rounding: |Φ| stays near that
+    // floor (it was 0.93 when the start was accepted unassembled).
+    let phi = phi_figure(&String::from_utf8_lossy(&out.stdout), "worst |Φ|");
+    assert!(phi < 1e-6, "worst |Φ| = {phi}");
+}
+
+#[test]
+fn a_start_that_cannot_assemble_names_the_constraints() {
+    let dir = scratch("no-assembly");
+    let scene = theta_scene(&dir, "s.yaml", "length: sqrt(13)", "length: 100");
+    for args in [
+        vec!["check"],
+        vec!["simulate", "--dt", "0.01", "--t-end", "0.1"],
+    ] {
+        let mut args = args.clone();
+        args.insert(1, scene.to_str().unwrap());
+        let line = error_line(&mbfg(&args), 2);
+        assert!(line.contains("rocker: distance(P2,B)"), "{line}");
+    }
+}
