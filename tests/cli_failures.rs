@@ -1142,3 +1142,54 @@ fn a_start_that_cannot_assemble_names_the_constraints() {
         assert!(line.contains("rocker: distance(P2,B)"), "{line}");
     }
 }
+
+#[test]
+fn a_load_with_a_pole_inside_a_step_warns_and_strict_refuses_it() {
+    let dir = scratch("pole");
+    let gravity = "  - {type: gravity, vector: [0, -9.81]}";
+    for (name, value) in [
+        ("inverse", "-30 + 0.01/(theta+1)"),
+        ("tangent", "30 + tan(5*theta)"),
+    ] {
+        let scene = theta_scene(
+            &dir,
+            &format!("{name}.yaml"),
+            gravity,
+            &format!("{gravity}\n  - {{name: {name}, type: torque, coordinate: theta, value: \"{value}\"}}"),
+        );
+        let scene = scene.to_str().unwrap();
+        let out = dir.join("o.csv");
+        let out = out.to_str().unwrap();
+        let mut warned = 0;
+        for extra in [
+            vec!["--coords", "dc"],
+            vec!["--coords", "ic"],
+            vec!["--integrator", "hermite-simpson"],
+        ] {
+            let mut args = vec![
+                "simulate", scene, "--dt", "0.01", "--t-end", "1", "--out", out,
+            ];
+            args.extend(&extra);
+            let run = mbfg(&args);
+            let err = String::from_utf8_lossy(&run.stderr).into_owned();
+            // The tangent's pole may stop a solve instead (an error, exit 1): never
+            // a silent exit 0.
+            if run.status.success() {
+                assert!(
+                    err.contains(&format!("warning: effect '{name}' changes from"))
+                        && err.contains("t = 0."),
+                    "{name} {extra:?}: {err}"
+                );
+                assert!(err.lines().all(|l| l.chars().count() <= 300), "{err}");
+                warned += 1;
+                args.push("--strict");
+                let strict = mbfg(&args);
+                let line = error_line(&strict, 1);
+                assert!(line.contains("(--strict)"), "{line}");
+            } else {
+                assert_eq!(run.status.code(), Some(1), "{name} {extra:?}: {err}");
+            }
+        }
+        assert!(warned >= 1, "{name}: no run warned");
+    }
+}

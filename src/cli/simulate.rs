@@ -388,12 +388,19 @@ fn simulate(
         // Streamed runs are not explicit Euler ones (see `stream` above).
         Run::Streamed(_) => None,
     };
-    if let Some(w) = mbfg::forward::energy_checks::energy_warning(&summary).or(euler) {
-        if strict {
-            output.discard();
-            print_summary(to_file, &line);
-            return Err(Failure::Run(format!("{w}; nothing was written (--strict)")));
-        }
+    let warnings: Vec<String> = summary
+        .load_jump
+        .as_ref()
+        .map(|j| j.message())
+        .into_iter()
+        .chain(mbfg::forward::energy_checks::energy_warning(&summary).or(euler))
+        .collect();
+    if let (true, Some(w)) = (strict, warnings.first()) {
+        output.discard();
+        print_summary(to_file, &line);
+        return Err(Failure::Run(format!("{w}; nothing was written (--strict)")));
+    }
+    for w in &warnings {
         super::tell(&format!("warning: {w}"));
     }
     match run {

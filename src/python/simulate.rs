@@ -262,6 +262,7 @@ pub(super) fn simulate_run<'py>(
         let warnings: Vec<String> = step_warning
             .iter()
             .cloned()
+            .chain(s.load_jump.as_ref().map(|j| j.message()))
             .chain(crate::forward::energy_checks::energy_warning(&s))
             .chain(euler)
             .collect();
