@@ -340,7 +340,13 @@ fn simulate(
         let jump_hint;
         let fast_hint;
         let too_fast = mbfg::model::plausibility::too_fast(&model, options.dt);
-        let hint = if f.cause.is_some() {
+        let hint = if f
+            .cause
+            .as_deref()
+            .is_some_and(|c| c.starts_with("singular system"))
+        {
+            "a singular configuration of the mechanism, or a dt far from its time scales: a smaller dt, or check the constraints"
+        } else if f.cause.is_some() {
             "an effect must be finite over the whole run"
         } else if f.singular.is_none() && !jumping.is_empty() {
             // A step across a jump of the load (Coulomb friction as sign(v)) has no
