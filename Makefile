@@ -75,7 +75,7 @@ python: .venv/.installed
 # libfuzzer-sys, the coverage instrumentation from these flags. FUZZ_SECONDS is the
 # budget per target; fuzz-ci is the short fixed run for CI, built with less
 # optimization (profile fuzz-ci in fuzz/Cargo.toml) as its build dominates.
-FUZZ_TARGETS := scene expr trajectory
+FUZZ_TARGETS := scene expr trajectory runs
 FUZZ_SECONDS ?= 600
 FUZZ_CI_SECONDS := 10
 FUZZ_HOST = $(shell rustc -vV | sed -n 's/^host: //p')
@@ -83,6 +83,7 @@ FUZZ_FLAGS := --cfg fuzzing -Cpasses=sancov-module -Cllvm-args=-sanitizer-covera
 FUZZ_MAX_LEN_scene := 16384
 FUZZ_MAX_LEN_expr := 24576
 FUZZ_MAX_LEN_trajectory := 65536
+FUZZ_MAX_LEN_runs := 64
 # An explicit --target keeps the flags off build scripts and proc macros.
 FUZZ_BUILD = cd fuzz && RUSTFLAGS="$(FUZZ_FLAGS)" $(CARGO) build --profile $(1) --target $(FUZZ_HOST) --target-dir target
 # One target for $(2) seconds, built with profile $(3): new inputs go to fuzz/target/work/$(1) (the committed

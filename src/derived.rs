@@ -278,7 +278,7 @@ fn non_conservative(force: &Force) -> Option<Force> {
     }
 }
 
-fn effect_name(effect: &Effect) -> &str {
+pub fn effect_name(effect: &Effect) -> &str {
     effect.name().unwrap_or("gravity")
 }
 

@@ -33,6 +33,8 @@ pub mod reactions;
 #[cfg(feature = "testing")]
 pub mod reference;
 pub mod rng;
+#[cfg(feature = "testing")]
+pub mod scenario;
 pub mod scene;
 pub mod sensors;
 pub mod smoother;

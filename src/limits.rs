@@ -12,27 +12,115 @@ pub const MAX_STEPS: f64 = 1e9;
 /// digit a millimetre-scale link needs (and overflow near 1e154).
 pub const MAX_COORDINATE: f64 = 1e6;
 
-/// Bytes of memory this process may plan to use: what the system reports available
-/// (Linux `/proc/meminfo`), or 8 GiB where that cannot be read. `MBFG_MEMORY_LIMIT`
-/// (bytes) overrides it, for tests and for sharing a machine.
+/// Bytes of memory this process may plan to use: the least of what the system reports
+/// available (Linux `/proc/meminfo`, 8 GiB where that cannot be read), what the
+/// process's own limits leave (its address-space limit, `ulimit -v`, less the address
+/// space it already maps; its cgroup's memory limit less the cgroup's usage) and
+/// `MBFG_MEMORY_LIMIT` (bytes), which lowers the bound for tests and shared machines.
 pub fn available_memory() -> f64 {
-    if let Some(v) = std::env::var("MBFG_MEMORY_LIMIT")
+    let system = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|text| status_field(&text, "MemAvailable:"))
+        .unwrap_or(8.0 * 1024.0 * 1024.0 * 1024.0);
+    let requested = std::env::var("MBFG_MEMORY_LIMIT")
         .ok()
         .and_then(|s| s.trim().parse::<f64>().ok())
-        .filter(|v| *v > 0.0)
-    {
-        return v;
+        .filter(|v| *v > 0.0);
+    [Some(system), address_space_left(), cgroup_left(), requested]
+        .into_iter()
+        .flatten()
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// `Name:   123456 kB` → bytes, from a `/proc` status-like text.
+fn status_field(text: &str, name: &str) -> Option<f64> {
+    let line = text.lines().find(|l| l.starts_with(name))?;
+    let kb: f64 = line[name.len()..].split_whitespace().next()?.parse().ok()?;
+    Some(kb * 1024.0)
+}
+
+/// What RLIMIT_AS (`ulimit -v`) leaves: the limit less the address space mapped now.
+/// Allocations past it fail, and Rust aborts on a failed allocation.
+fn address_space_left() -> Option<f64> {
+    let limits = std::fs::read_to_string("/proc/self/limits").ok()?;
+    let limit = rlimit_as(&limits)?;
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let mapped = status_field(&status, "VmSize:").unwrap_or(0.0);
+    Some((limit - mapped).max(0.0))
+}
+
+/// The soft address-space limit from `/proc/self/limits`, None when unlimited.
+fn rlimit_as(limits: &str) -> Option<f64> {
+    let line = limits
+        .lines()
+        .find(|l| l.starts_with("Max address space"))?;
+    let soft = line["Max address space".len()..]
+        .split_whitespace()
+        .next()?;
+    soft.parse::<f64>().ok()
+}
+
+/// What this process's memory cgroup leaves: its limit less its usage, for cgroup v2
+/// (`memory.max`, `memory.current`) or v1 (`memory.limit_in_bytes`,
+/// `memory.usage_in_bytes`). None without a limit.
+fn cgroup_left() -> Option<f64> {
+    let membership = std::fs::read_to_string("/proc/self/cgroup").ok()?;
+    let read = |path: &str| -> Option<f64> {
+        let text = std::fs::read_to_string(path).ok()?;
+        text.trim().parse::<f64>().ok()
+    };
+    for (dir, limit, usage) in cgroup_files(&membership) {
+        // Inside a container the cgroup's own directory is often mounted as the root.
+        for base in [dir.as_str(), ""] {
+            let root = if base.is_empty() || base == "/" {
+                String::new()
+            } else {
+                base.to_string()
+            };
+            let prefix = format!("/sys/fs/cgroup{}", cgroup_mount(limit, &root));
+            if let Some(max) = read(&format!("{prefix}/{limit}")) {
+                // v1 writes "no limit" as a page-rounded i64::MAX, v2 as "max".
+                if max >= 1e18 {
+                    break;
+                }
+                let used = read(&format!("{prefix}/{usage}")).unwrap_or(0.0);
+                return Some((max - used).max(0.0));
+            }
+        }
     }
-    std::fs::read_to_string("/proc/meminfo")
-        .ok()
-        .and_then(|text| {
-            text.lines()
-                .find(|l| l.starts_with("MemAvailable:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|kb| kb.parse::<f64>().ok())
-        })
-        .map(|kb| kb * 1024.0)
-        .unwrap_or(8.0 * 1024.0 * 1024.0 * 1024.0)
+    None
+}
+
+/// The directory of a cgroup file below /sys/fs/cgroup: v1 keeps memory under `memory/`.
+fn cgroup_mount(limit_file: &str, path: &str) -> String {
+    if limit_file == "memory.limit_in_bytes" {
+        format!("/memory{path}")
+    } else {
+        path.to_string()
+    }
+}
+
+/// The (cgroup path, limit file, usage file) triples of `/proc/self/cgroup`: the v2
+/// line `0::/path` and the v1 line `N:memory:/path` (or with `memory` among others).
+fn cgroup_files(membership: &str) -> Vec<(String, &'static str, &'static str)> {
+    let mut files = Vec::new();
+    for line in membership.lines() {
+        let mut parts = line.splitn(3, ':');
+        let (Some(_), Some(controllers), Some(path)) = (parts.next(), parts.next(), parts.next())
+        else {
+            continue;
+        };
+        if controllers.is_empty() {
+            files.push((path.to_string(), "memory.max", "memory.current"));
+        } else if controllers.split(',').any(|c| c == "memory") {
+            files.push((
+                path.to_string(),
+                "memory.limit_in_bytes",
+                "memory.usage_in_bytes",
+            ));
+        }
+    }
+    files
 }
 
 /// Refuses `what` when its estimated `bytes` exceed the available memory.
@@ -110,6 +198,36 @@ mod tests {
             let e = step_count(dt, t_end).unwrap_err().to_string();
             assert!(e.contains("steps, more than"), "{e}");
         }
+    }
+
+    #[test]
+    fn the_address_space_limit_is_read_unless_unlimited() {
+        let header =
+            "Limit                     Soft Limit           Hard Limit           Units     \n";
+        let capped = format!("{header}Max address space         4096000000           unlimited            bytes     \n");
+        assert_eq!(rlimit_as(&capped), Some(4096000000.0));
+        let free = format!("{header}Max address space         unlimited            unlimited            bytes     \n");
+        assert_eq!(rlimit_as(&free), None);
+    }
+
+    #[test]
+    fn both_cgroup_versions_name_their_memory_files() {
+        let v1 = "6:cpu,cpuacct:/\n4:memory:/job/7\n0::/\n";
+        let files = cgroup_files(v1);
+        assert_eq!(
+            files[0],
+            (
+                "/job/7".to_string(),
+                "memory.limit_in_bytes",
+                "memory.usage_in_bytes"
+            )
+        );
+        assert_eq!(files[1], ("/".to_string(), "memory.max", "memory.current"));
+        assert_eq!(
+            cgroup_mount("memory.limit_in_bytes", "/job/7"),
+            "/memory/job/7"
+        );
+        assert_eq!(cgroup_mount("memory.max", "/a"), "/a");
     }
 
     #[test]

@@ -54,7 +54,7 @@ fn main() -> ExitCode {
             return ExitCode::SUCCESS;
         }
         Err(e) => {
-            eprintln!("error: {}", clap_line(&e));
+            cli::tell(&format!("error: {}", clap_line(&e)));
             return ExitCode::from(2);
         }
     };
@@ -71,7 +71,7 @@ fn main() -> ExitCode {
             ),
         ),
     };
-    eprintln!("error: {}", shorten(&message));
+    cli::tell(&format!("error: {}", shorten(&message)));
     ExitCode::from(code)
 }
 

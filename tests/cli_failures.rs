@@ -849,3 +849,347 @@ effects:
         "a row per step on the grid asked for"
     );
 }
+
+/// `mbfg` run by a shell under `ulimit -v <kib>` (the process's address-space limit).
+fn mbfg_under_ulimit(kib: u64, args: &[&str]) -> Output {
+    let script = format!("ulimit -v {kib} && exec \"$0\" \"$@\"");
+    Command::new("bash")
+        .arg("-c")
+        .arg(script)
+        .arg(env!("CARGO_BIN_EXE_mbfg"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("run bash")
+}
+
+#[test]
+fn the_address_space_limit_is_the_memory_a_run_may_use() {
+    // A held batch of 2·10⁵ full-integrator steps needs a few GB: under a 1 GB
+    // address-space limit it is refused at once with the figure, not aborted by the
+    // allocator (exit 134) halfway through.
+    let args = [
+        "simulate",
+        FOURBAR,
+        "--dc-integrators",
+        "full",
+        "--batch",
+        "--dt",
+        "0.001",
+        "--t-end",
+        "200",
+    ];
+    let started = Instant::now();
+    let line = error_line(&mbfg_under_ulimit(1_000_000, &args), 2);
+    assert!(
+        line.contains("needs about") && line.contains("GB of memory"),
+        "{line}"
+    );
+    assert!(line.contains("more than the 1.0 GB available"), "{line}");
+    assert!(started.elapsed() < Duration::from_secs(10));
+    // An ordinary run under the same limit goes through.
+    let out = mbfg_under_ulimit(
+        1_000_000,
+        &["simulate", FOURBAR, "--dt", "0.01", "--t-end", "1"],
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn a_model_too_large_names_its_file_once() {
+    let out = mbfg_in(&["check", FOURBAR], &[("MBFG_MEMORY_LIMIT", "1e3")]);
+    let line = error_line(&out, 2);
+    assert_eq!(line.matches(FOURBAR).count(), 1, "{line}");
+}
+
+#[test]
+fn out_may_not_name_the_mechanism_file_a_scene_reads() {
+    let dir = scratch("mechanism");
+    std::fs::create_dir_all(dir.join("mbse")).unwrap();
+    std::fs::copy("scenes/pick-and-place-mbse.yaml", dir.join("scene.yaml")).unwrap();
+    std::fs::copy(
+        "scenes/mbse/pick-and-place.yaml",
+        dir.join("mbse/pick-and-place.yaml"),
+    )
+    .unwrap();
+    let before = text(&dir.join("mbse/pick-and-place.yaml"));
+    let out = Command::new(env!("CARGO_BIN_EXE_mbfg"))
+        .args(["simulate", "scene.yaml", "--dt", "0.01", "--t-end", "0.1"])
+        .args(["--out", "mbse/../mbse/pick-and-place.yaml"])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
+    let line = error_line(&out, 2);
+    assert!(line.contains("refusing to overwrite"), "{line}");
+    assert_eq!(text(&dir.join("mbse/pick-and-place.yaml")), before);
+}
+
+fn mkfifo(path: &Path) {
+    let made = Command::new("mkfifo").arg(path).status().expect("mkfifo");
+    assert!(made.success());
+}
+
+#[test]
+fn a_fifo_as_out_is_one_stream_and_a_signal_ends_a_wait_on_it() {
+    let dir = scratch("fifo");
+    let fifo = dir.join("rows.csv");
+    mkfifo(&fifo);
+    let args = ["simulate", FOURBAR, "--dt", "0.01", "--t-end", "1", "--out"];
+    let reader = {
+        let fifo = fifo.clone();
+        std::thread::spawn(move || std::fs::read_to_string(fifo).unwrap())
+    };
+    let mut full = args.to_vec();
+    full.push(fifo.to_str().unwrap());
+    let out = mbfg(&full);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The one reader gets the header and every row, not an empty stream.
+    assert_eq!(reader.join().unwrap().lines().count(), 102);
+
+    // Nobody reads: SIGTERM ends the wait at once.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_mbfg"))
+        .args(&full)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    let killed = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let started = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            assert!(!status.success());
+            break;
+        }
+        if started.elapsed() > Duration::from_secs(5) {
+            child.kill().ok();
+            panic!("mbfg ignored SIGTERM while waiting on a FIFO");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn temporary_files_of_killed_runs_are_removed_by_the_next() {
+    let dir = scratch("stale");
+    let target = dir.join("run.csv");
+    // A process id above the kernel's largest (4194304) was never alive.
+    let stale = dir.join(".run.csv.9999999.tmp");
+    let other = dir.join(".other.csv.9999999.tmp");
+    std::fs::write(&stale, "t\n").unwrap();
+    std::fs::write(&other, "t\n").unwrap();
+    let out = mbfg(&[
+        "simulate",
+        FOURBAR,
+        "--dt",
+        "0.01",
+        "--t-end",
+        "0.1",
+        "--out",
+        target.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!stale.exists(), "the stale temporary file is still there");
+    assert!(other.exists(), "another target's file was removed");
+}
+
+#[test]
+fn a_reader_that_stops_reading_ends_the_run_quietly() {
+    for args in [
+        vec!["check", FOURBAR],
+        vec!["simulate", FOURBAR, "--dt", "0.001", "--t-end", "20"],
+    ] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_mbfg"))
+            .args(&args)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        // `| head -c 10`: a few bytes read, then the pipe closed.
+        let mut first = [0u8; 10];
+        std::io::Read::read_exact(child.stdout.as_mut().unwrap(), &mut first).unwrap();
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(0), "{args:?}: {err}");
+        assert!(!err.contains("error"), "{args:?}: {err}");
+    }
+}
+
+#[test]
+fn an_unwritable_stderr_never_ends_in_a_panic() {
+    let full = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap()
+    };
+    for (args, code) in [
+        (vec!["simulate", FOURBAR, "--dt", "-1", "--t-end", "1"], 2),
+        (
+            vec!["simulate", FOURBAR, "--dt", "0.01", "--t-end", "0.1"],
+            0,
+        ),
+        (vec!["check", "no-such-scene.yaml"], 2),
+        (vec!["simulate", "--no-such-option"], 2),
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_mbfg"))
+            .args(&args)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .stdout(Stdio::null())
+            .stderr(full())
+            .status()
+            .unwrap();
+        assert_eq!(out.code(), Some(code), "{args:?}");
+    }
+}
+
+/// A scene file in `dir`, the four-bar with theta, with `from` replaced by `to`.
+fn theta_scene(dir: &Path, name: &str, from: &str, to: &str) -> PathBuf {
+    let text = text(Path::new("scenes/fourbar-theta.yaml"));
+    assert!(text.contains(from), "{from}");
+    let path = dir.join(name);
+    std::fs::write(&path, text.replace(from, to)).unwrap();
+    path
+}
+
+/// The `worst |Φ| …` or `max |Φ| = …` figure of a summary or check report.
+fn phi_figure(report: &str, key: &str) -> f64 {
+    let rest = &report[report
+        .find(key)
+        .unwrap_or_else(|| panic!("{key} in {report}"))
+        + key.len()..];
+    let number: String = rest
+        .trim_start()
+        .chars()
+        .take_while(|c| !matches!(c, ',' | ' ' | ';'))
+        .collect();
+    number
+        .parse()
+        .unwrap_or_else(|_| panic!("{number:?} in {report}"))
+}
+
+#[test]
+fn a_crank_placed_at_a_huge_angle_is_assembled_to_the_usual_tolerance() {
+    // θ = 10⁸ rad: an angle is no length scale; the start's |Φ| is that of any other.
+    let dir = scratch("huge-angle");
+    let scene = theta_scene(
+        &dir,
+        "s.yaml",
+        "positions: {theta: 0}",
+        "positions: {theta: 1e8}",
+    );
+    let out = mbfg(&["check", scene.to_str().unwrap()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let phi = phi_figure(&String::from_utf8_lossy(&out.stdout), "max |Φ| =");
+    assert!(phi < 1e-9, "max |Φ| = {phi}");
+    let out = mbfg(&[
+        "simulate",
+        scene.to_str().unwrap(),
+        "--coords",
+        "ic",
+        "--dt",
+        "0.01",
+        "--t-end",
+        "0.05",
+        "--out",
+        dir.join("o.csv").to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // Along the run θ itself carries 10⁸·ε ≈ 10⁻⁸ rad of rounding: |Φ| stays near that
+    // floor (it was 0.93 when the start was accepted unassembled).
+    let phi = phi_figure(&String::from_utf8_lossy(&out.stdout), "worst |Φ|");
+    assert!(phi < 1e-6, "worst |Φ| = {phi}");
+}
+
+#[test]
+fn a_start_that_cannot_assemble_names_the_constraints() {
+    let dir = scratch("no-assembly");
+    let scene = theta_scene(&dir, "s.yaml", "length: sqrt(13)", "length: 100");
+    for args in [
+        vec!["check"],
+        vec!["simulate", "--dt", "0.01", "--t-end", "0.1"],
+    ] {
+        let mut args = args.clone();
+        args.insert(1, scene.to_str().unwrap());
+        let line = error_line(&mbfg(&args), 2);
+        assert!(line.contains("rocker: distance(P2,B)"), "{line}");
+    }
+}
+
+#[test]
+fn a_load_with_a_pole_inside_a_step_warns_and_strict_refuses_it() {
+    let dir = scratch("pole");
+    let gravity = "  - {type: gravity, vector: [0, -9.81]}";
+    for (name, value) in [
+        ("inverse", "-30 + 0.01/(theta+1)"),
+        ("tangent", "30 + tan(5*theta)"),
+    ] {
+        let scene = theta_scene(
+            &dir,
+            &format!("{name}.yaml"),
+            gravity,
+            &format!("{gravity}\n  - {{name: {name}, type: torque, coordinate: theta, value: \"{value}\"}}"),
+        );
+        let scene = scene.to_str().unwrap();
+        let out = dir.join("o.csv");
+        let out = out.to_str().unwrap();
+        let mut warned = 0;
+        for extra in [
+            vec!["--coords", "dc"],
+            vec!["--coords", "ic"],
+            vec!["--integrator", "hermite-simpson"],
+        ] {
+            let mut args = vec![
+                "simulate", scene, "--dt", "0.01", "--t-end", "1", "--out", out,
+            ];
+            args.extend(&extra);
+            let run = mbfg(&args);
+            let err = String::from_utf8_lossy(&run.stderr).into_owned();
+            // The tangent's pole may stop a solve instead (an error, exit 1): never
+            // a silent exit 0.
+            if run.status.success() {
+                assert!(
+                    err.contains(&format!("warning: effect '{name}' changes from"))
+                        && err.contains("t = 0."),
+                    "{name} {extra:?}: {err}"
+                );
+                assert!(err.lines().all(|l| l.chars().count() <= 300), "{err}");
+                warned += 1;
+                args.push("--strict");
+                let strict = mbfg(&args);
+                let line = error_line(&strict, 1);
+                assert!(line.contains("(--strict)"), "{line}");
+            } else {
+                assert_eq!(run.status.code(), Some(1), "{name} {extra:?}: {err}");
+            }
+        }
+        assert!(warned >= 1, "{name}: no run warned");
+    }
+}

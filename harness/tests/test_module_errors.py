@@ -308,3 +308,58 @@ def test_a_mechanism_nothing_moves_warns():
     with pytest.warns(mbfg.PlausibilityWarning, match="nothing moves the mechanism"):
         r = mbfg.simulate(scene, dt=0.01, t_end=0.05)
     assert r.summary["complete"]
+
+
+def test_ctrl_c_stops_a_run_with_python_effects_and_keeps_its_steps():
+    # The effect's call runs Python's Ctrl-C handler itself: the run must stop on it.
+    call = ("import numpy as np; "
+            "mbfg.simulate('scenes/fourbar.yaml', dt=1e-3, t_end=1000.0, "
+            "effects={'zero': lambda t, q, dq: np.zeros(len(q))})")
+    report, caught, exited = _interrupt(call, after=1.0)
+    assert "caught" in report, report
+    assert caught < 1.0 and exited < 2.0, (caught, exited)
+    s = report["summary"]
+    assert report["rows"] > 0 and s["steps"] == report["rows"] and s["complete"] is False
+
+
+def test_a_run_beyond_the_address_space_limit_raises_rather_than_aborts():
+    code = textwrap.dedent("""
+        import resource, mbfg
+        resource.setrlimit(resource.RLIMIT_AS, (2_000_000_000, 2_000_000_000))
+        try:
+            mbfg.simulate('scenes/fourbar.yaml', dt=1e-3, t_end=400.0, batch=True,
+                          dc_integrators='full')
+        except mbfg.InvalidArgument as e:
+            print(e)
+        # The rows of 10⁸ stepwise steps, held for the result, do not fit either.
+        try:
+            mbfg.simulate('scenes/fourbar.yaml', dt=1e-4, t_end=1e4)
+        except mbfg.InvalidArgument as e:
+            print(e)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.strip().splitlines()
+    assert len(lines) == 2, out.stdout
+    for line in lines:
+        assert "needs about" in line and "GB available" in line, line
+
+
+@pytest.mark.parametrize("value, expected", [
+    ("abc", "returned str"),
+    (None, "got None"),
+    (np.array(["a", "b", "c", "d"], dtype=object), "returned ndarray"),
+])
+def test_an_effect_returning_the_wrong_type_is_named(value, expected):
+    with pytest.raises(mbfg.InvalidArgument) as e:
+        mbfg.simulate(FOURBAR, dt=1e-2, t_end=0.1, effects={"pusher": lambda t, q, dq: value})
+    assert "effect 'pusher'" in str(e.value) and expected in str(e.value), str(e.value)
+
+
+def test_an_effect_that_raises_keeps_its_exception_with_a_note_naming_it():
+    def bad(t, q, dq):
+        return q + "x"
+    with pytest.raises(TypeError) as e:
+        mbfg.simulate(FOURBAR, dt=1e-2, t_end=0.1, effects={"pusher": bad})
+    assert any("effect 'pusher'" in n for n in getattr(e.value, "__notes__", [])), e.value

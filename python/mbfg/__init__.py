@@ -495,14 +495,22 @@ def _effects(effects):
     if not isinstance(effects, Mapping):
         return effects
 
-    def adapt(f):
+    def adapt(name, f):
         if not callable(f):
             return f
 
         def call(t, q, dq):
-            return np.asarray(f(t, q, dq), dtype=float)
+            value = f(t, q, dq)
+            if value is None:
+                return value  # refused by the native call, naming the effect
+            try:
+                return np.asarray(value, dtype=float)
+            except (TypeError, ValueError) as e:
+                raise InvalidArgument(_clip(
+                    f"effect {name!r:.60} must return one generalized force per coordinate "
+                    f"as numbers; it returned {type(value).__name__} at t = {t} ({e})")) from None
         return call
-    return {name: adapt(f) for name, f in effects.items()}
+    return {name: adapt(name, f) for name, f in effects.items()}
 
 
 def _run(native, *args) -> Result:

@@ -33,7 +33,7 @@ pub fn run(args: CheckArgs) -> Result<(), Failure> {
             scene.file
         )));
     }
-    println!("{report}");
+    super::say(&report.to_string());
     Ok(())
 }
 

@@ -92,7 +92,10 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
     }
     options.settings.max_iterations = args.max_iterations;
     options.settings.trace = args.trace_solver;
-    let output = Output::open(args.out.as_deref(), &[&args.scene, &args.measurements])?;
+    let output = Output::open(
+        args.out.as_deref(),
+        &super::inputs(&args.scene, &model, &[&args.measurements]),
+    )?;
     let record =
         Record::read(&model, &args.measurements, args.dt).map_err(|e| Failure::Input(plain(e)))?;
     let table = RefCell::new(Estimates::for_model(&model));
@@ -119,18 +122,18 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
                 .map_err(Failure::Run)?;
             print_summary(to_file, &summary_line(&summary, elapsed));
             if summary.unsettled > 0 {
-                eprintln!(
+                super::tell(&format!(
                     "warning: {} window solves reached the iteration limit ({}) still improving \
                      and were kept, the next step's solve going on from them; \
                      --max-iterations raises the limit",
                     summary.unsettled, options.settings.max_iterations
-                );
+                ));
             }
             if let Some(w) = consistency_warning(&summary) {
-                eprintln!("warning: {w}");
+                super::tell(&format!("warning: {w}"));
             }
             for u in &summary.undetermined {
-                eprintln!("warning: {}", undetermined_warning(&model, u));
+                super::tell(&format!("warning: {}", undetermined_warning(&model, u)));
             }
             Ok(())
         }

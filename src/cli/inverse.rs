@@ -82,7 +82,10 @@ pub fn run(args: InverseArgs) -> Result<(), Failure> {
         InverseCoords::Dc => Coordinates::Dependent,
         InverseCoords::Ic => Coordinates::Independent,
     };
-    let output = Output::open(out.as_deref(), &[&scene, &trajectory])?;
+    let output = Output::open(
+        out.as_deref(),
+        &super::inputs(&scene, &model, &[&trajectory]),
+    )?;
     inverse(
         model,
         &trajectory,

@@ -50,7 +50,10 @@ pub fn run(args: MeasureArgs) -> Result<(), Failure> {
             )));
         }
     }
-    let output = Output::open(out.as_deref(), &[&scene, &trajectory])?;
+    let output = Output::open(
+        out.as_deref(),
+        &super::inputs(&scene, &model, &[&trajectory]),
+    )?;
     // Only the columns the sensors read must be there (positions always).
     let mut needed = [true, false, false];
     for s in &model.sensors {

@@ -3,8 +3,15 @@
 //!   the run succeeded, so a failure, a kill or a full disk leaves the old file as it
 //!   was; the steps of a run that ended early go to `<out>.partial.csv` instead; a
 //!   name ending in `.gz` is written gzip-compressed (its partial file too);
-//! - to standard output: the rows, and after those of a run that ended early a last
-//!   line `# incomplete: …` that no CSV reader takes for a row of numbers.
+//! - to standard output or a special file (a FIFO, a device): opened once, the rows
+//!   written once, and after those of a run that ended early a last line
+//!   `# incomplete: …` that no CSV reader takes for a row of numbers; a signal that
+//!   arrives while the writer waits on a reader ends the process at once;
+//! - a consumer that stopped reading standard output (`mbfg … | head`) ends the
+//!   writing quietly: the rows it wanted went out.
+//!
+//! Temporary files that a killed run left beside a target are removed by the next
+//! run that writes it.
 
 //! - streamed ([`Output::stream`]): the rows go to the temporary file as the run's
 //!   steps become final, so that a long run holds none of them; a run made again
@@ -22,6 +29,8 @@ pub struct Output {
     /// The temporary file beside it, created when the output is opened (so that an
     /// unwritable directory is refused before the run) and removed unless renamed.
     temp: Option<PathBuf>,
+    /// A special file (FIFO, device), opened once when the output is opened.
+    special: Option<File>,
 }
 
 impl Output {
@@ -32,6 +41,7 @@ impl Output {
             return Ok(Output {
                 target: None,
                 temp: None,
+                special: None,
             });
         };
         for input in inputs {
@@ -50,17 +60,17 @@ impl Output {
             ));
         }
         if target.exists() && !target.is_file() {
-            // A device or a pipe (/dev/stdout, a FIFO): written directly, never
-            // replaced by a rename.
-            File::options()
-                .write(true)
-                .open(target)
+            // A device or a pipe (/dev/stdout, a FIFO): opened once (a FIFO's reader
+            // sees one stream), written directly, never replaced by a rename.
+            let file = super::interrupt::while_blocked(|| File::options().write(true).open(target))
                 .map_err(|e| format!("cannot write {}: {e}", target.display()))?;
             return Ok(Output {
                 target: Some(target.to_path_buf()),
                 temp: None,
+                special: Some(file),
             });
         }
+        remove_stale_temps(target);
         let temp = temp_beside(target);
         File::options()
             .write(true)
@@ -70,6 +80,7 @@ impl Output {
         Ok(Output {
             target: Some(target.to_path_buf()),
             temp: Some(temp),
+            special: None,
         })
     }
 
@@ -103,22 +114,25 @@ impl Output {
                 Ok(())
             }
             (Some(target), None) => {
-                let file = File::options()
-                    .write(true)
-                    .open(&target)
-                    .map_err(|e| format!("cannot write {}: {e}", target.display()))?;
+                let file = self.special.take().expect("a special file is opened once");
                 let w = std::io::BufWriter::new(file);
-                encode(w, is_gzip(&target), body)
+                super::interrupt::while_blocked(|| encode(w, is_gzip(&target), body))
                     .map(drop)
                     .map_err(|e| format!("cannot write {}: {e}", target.display()))
             }
             _ => {
                 let mut out = std::io::stdout().lock();
-                body(&mut out).map_err(|e| {
-                    // Rows may have gone out before the error: mark them.
-                    writeln!(out, "# incomplete: {}", one_line(&e.to_string())).ok();
-                    format!("cannot write the CSV to standard output: {e}")
-                })
+                match body(&mut out)
+                    .and_then(|()| out.flush().map_err(|e| mbfg::Error::data(e.to_string())))
+                {
+                    Ok(()) => Ok(()),
+                    Err(e) if super::consumer_gone(&e.to_string()) => Ok(()),
+                    Err(e) => {
+                        // Rows may have gone out before the error: mark them.
+                        writeln!(out, "# incomplete: {}", one_line(&e.to_string())).ok();
+                        Err(format!("cannot write the CSV to standard output: {e}"))
+                    }
+                }
             }
         }
     }
@@ -144,19 +158,9 @@ impl Output {
                 }
                 Ok(format!("{steps} steps kept in {}", partial.display()))
             }
-            (Some(target), None) => Err(format!(
-                "the {steps} steps before it were not written to {}, which is not a regular file",
-                target.display()
-            )),
             _ => {
-                let mut out = std::io::stdout().lock();
-                let written = mbfg::io::write_trajectory_with(&mut out, trajectory, csv)
-                    .map_err(|e| e.to_string())
-                    .and_then(|()| {
-                        writeln!(out, "# incomplete: {}", one_line(why)).map_err(|e| e.to_string())
-                    });
-                written.map_err(|e| format!("cannot write the CSV to standard output: {e}"))?;
-                Ok(format!("{steps} steps written, then `# incomplete`"))
+                let body = |w: &mut dyn Write| mbfg::io::write_trajectory_with(w, trajectory, csv);
+                self.keep_partial_with(&body, steps, why)
             }
         }
     }
@@ -179,16 +183,23 @@ impl Output {
                 }
                 Ok(format!("{steps} steps kept in {}", partial.display()))
             }
-            (Some(target), None) => Err(format!(
-                "the {steps} steps before it were not written to {}, which is not a regular file",
-                target.display()
-            )),
+            (Some(target), None) => {
+                let file = self.special.take().expect("a special file is opened once");
+                let mut w = std::io::BufWriter::new(file);
+                super::interrupt::while_blocked(|| marked(&mut w, body, why))
+                    .map_err(|e| format!("cannot write {}: {e}", target.display()))?;
+                Ok(format!(
+                    "{steps} steps written to {}, then `# incomplete`",
+                    target.display()
+                ))
+            }
             _ => {
                 let mut out = std::io::stdout().lock();
-                let written = body(&mut out).map_err(|e| e.to_string()).and_then(|()| {
-                    writeln!(out, "# incomplete: {}", one_line(why)).map_err(|e| e.to_string())
-                });
-                written.map_err(|e| format!("cannot write the CSV to standard output: {e}"))?;
+                match marked(&mut out, body, why) {
+                    Ok(()) => {}
+                    Err(e) if super::consumer_gone(&e) => {}
+                    Err(e) => return Err(format!("cannot write the CSV to standard output: {e}")),
+                }
                 Ok(format!("{steps} steps written, then `# incomplete`"))
             }
         }
@@ -383,6 +394,50 @@ pub fn partial_path(target: &Path) -> PathBuf {
 /// reads it.
 fn is_gzip(target: &Path) -> bool {
     target.extension().is_some_and(|e| e == "gz")
+}
+
+/// The rows `body` writes, then the line `# incomplete: why`, flushed.
+fn marked(
+    w: &mut dyn Write,
+    body: &dyn Fn(&mut dyn Write) -> mbfg::Result<()>,
+    why: &str,
+) -> Result<(), String> {
+    body(w).map_err(|e| e.to_string())?;
+    writeln!(w, "# incomplete: {}", one_line(why)).map_err(|e| e.to_string())?;
+    w.flush().map_err(|e| e.to_string())
+}
+
+/// Removes the temporary files of `target` that runs no longer alive left beside it
+/// (killed, or out of memory, before they could clean up).
+fn remove_stale_temps(target: &Path) {
+    let Some(name) = target.file_name().map(|n| n.to_string_lossy().into_owned()) else {
+        return;
+    };
+    let dir = match target.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    // Whether a process is alive is read from /proc: without it, nothing is removed.
+    let Ok(entries) = std::fs::read_dir(&dir) else {
+        return;
+    };
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let prefix = format!(".{name}.");
+    for entry in entries.flatten() {
+        let file = entry.file_name().to_string_lossy().into_owned();
+        let pid = file
+            .strip_prefix(&prefix)
+            .and_then(|rest| rest.strip_suffix(".tmp"))
+            .and_then(|pid| pid.parse::<u32>().ok());
+        if let Some(pid) = pid {
+            let alive = pid == std::process::id() || Path::new(&format!("/proc/{pid}")).exists();
+            if !alive {
+                std::fs::remove_file(entry.path()).ok();
+            }
+        }
+    }
 }
 
 /// A hidden name in the target's directory, unique to this process.

@@ -236,20 +236,20 @@ fn simulate(
     until: Option<&mbfg::stop::StopCondition>,
 ) -> Result<(), Failure> {
     // Open the output first: an unwritable path is bad input, found before the run.
-    let output = Output::open(out, &[scene])?;
+    let output = Output::open(out, &super::inputs(scene, &model, &[]))?;
     for w in mbfg::model::plausibility::idle_warning(&model)
         .into_iter()
         .chain(mbfg::model::plausibility::locked_warning(&model))
         .chain(mbfg::model::plausibility::inertia_warning(&model))
         .chain(mbfg::model::plausibility::units_warnings(&model))
     {
-        eprintln!("warning: {w}");
+        super::tell(&format!("warning: {w}"));
     }
     if let Some(w) = mbfg::model::plausibility::step_warning(&model, options.dt) {
         if strict {
             return Err(Failure::Input(format!("{w} (--strict)")));
         }
-        eprintln!("warning: {w}");
+        super::tell(&format!("warning: {w}"));
     }
     super::interrupt::install();
     let batch = forward::Plan::new(&model, options)
@@ -370,7 +370,7 @@ fn simulate(
         false => steps < options.steps() && until_stop.is_none(),
     };
     for f in summary.failures.iter().skip(usize::from(stopped)).take(10) {
-        eprintln!("warning: {}", shorten(&f.message()));
+        super::tell(&format!("warning: {}", shorten(&f.message())));
     }
     if stopped {
         let Some(f) = first_failure else {
@@ -399,7 +399,13 @@ fn simulate(
         let jump_hint;
         let fast_hint;
         let too_fast = mbfg::model::plausibility::too_fast(&model, options.dt);
-        let hint = if f.cause.is_some() {
+        let hint = if f
+            .cause
+            .as_deref()
+            .is_some_and(|c| c.starts_with("singular system"))
+        {
+            "a singular configuration of the mechanism, or a dt far from its time scales: a smaller dt, or check the constraints"
+        } else if f.cause.is_some() {
             "an effect must be finite over the whole run"
         } else if f.singular.is_none() && !jumping.is_empty() {
             // A step across a jump of the load (Coulomb friction as sign(v)) has no
@@ -447,13 +453,20 @@ fn simulate(
         // Streamed runs are not explicit Euler ones (see `stream` above).
         Run::Streamed(_) => None,
     };
-    if let Some(w) = mbfg::forward::energy_checks::energy_warning(&summary).or(euler) {
-        if strict {
-            output.discard();
-            print_summary(to_file, &line);
-            return Err(Failure::Run(format!("{w}; nothing was written (--strict)")));
-        }
-        eprintln!("warning: {w}");
+    let warnings: Vec<String> = summary
+        .load_jump
+        .as_ref()
+        .map(|j| j.message())
+        .into_iter()
+        .chain(mbfg::forward::energy_checks::energy_warning(&summary).or(euler))
+        .collect();
+    if let (true, Some(w)) = (strict, warnings.first()) {
+        output.discard();
+        print_summary(to_file, &line);
+        return Err(Failure::Run(format!("{w}; nothing was written (--strict)")));
+    }
+    for w in &warnings {
+        super::tell(&format!("warning: {w}"));
     }
     match run {
         Run::Held(trajectory) => output

@@ -3,7 +3,7 @@
 //! redundant constraints on the way. It lives with the kinematics it calls, so that
 //! the model itself does not depend on them.
 
-use super::{constraint_rank, solve_position, solve_velocity};
+use super::{assembly_tolerance, constraint_rank, solve_position_within, solve_velocity};
 use crate::error::{Error, Result};
 use crate::model::{Model, State};
 use crate::scene::Scene;
@@ -73,7 +73,8 @@ impl Model {
     /// the independent ones (at rest when the scene gives none).
     fn assemble_initial_state(&mut self) -> Result<()> {
         let mut q = self.approximate_positions();
-        solve_position(self, &mut q, &self.independent.clone())?;
+        let tol = assembly_tolerance(self, &q);
+        solve_position_within(self, &mut q, &self.independent.clone(), tol)?;
         let rank = constraint_rank(self, &q);
         self.redundant = rank.redundant;
         self.active = (0..self.m())

@@ -45,10 +45,27 @@ pub fn solve_position(
     q: &mut DVector<f64>,
     keep: &[usize],
 ) -> Result<PositionSolution> {
+    let tol = position_tolerance(q);
+    solve_position_within(model, q, keep, tol)
+}
+
+/// The tolerance of an assembly: [`position_tolerance`] of the points' coordinates
+/// only. An angle is no length scale: a crank placed at 10⁸ rad would otherwise
+/// accept a residual of 10⁴.
+pub fn assembly_tolerance(model: &Model, q: &DVector<f64>) -> f64 {
+    position_tolerance_of(&q.as_slice()[..model.relative_offset])
+}
+
+/// [`solve_position`] to the tolerance `tol` on max |Φ|.
+pub fn solve_position_within(
+    model: &Model,
+    q: &mut DVector<f64>,
+    keep: &[usize],
+    tol: f64,
+) -> Result<PositionSolution> {
     const MAX_ITERATIONS: usize = 100;
     let n = model.n();
     let free: Vec<usize> = (0..n).filter(|i| !keep.contains(i)).collect();
-    let tol = position_tolerance(q);
     let mut phi = model.phi(q);
     let mut iterations = 0;
     while !(phi.amax() <= tol) {

@@ -5,6 +5,7 @@ use super::args::{arg_numbers, describe};
 use super::errors::{arg_error, invalid, one_line};
 use crate::{Error, Model};
 use numpy::PyArray1;
+use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::sync::Arc;
@@ -17,6 +18,9 @@ pub(super) struct PyLoad {
     name: String,
     callable: Py<PyAny>,
     raised: std::sync::Mutex<Option<PyErr>>,
+    /// A KeyboardInterrupt (or SystemExit) raised inside the callable: Python ran the
+    /// Ctrl-C handler there, so the run must stop on it rather than lose it.
+    interrupted: std::sync::Mutex<Option<PyErr>>,
     /// q's names, for messages (set when the load joins a model).
     names: std::sync::OnceLock<Vec<String>>,
 }
@@ -34,7 +38,17 @@ impl crate::model::forces::ExternalLoad for PyLoad {
                 Ok(v) => v,
                 Err(e) => {
                     let message = one_line(&e.to_string());
-                    if let Ok(mut slot) = self.raised.lock() {
+                    if !message.contains(&format!("effect '{name}'")) {
+                        // The callable's own exception, raised again as it came: a note
+                        // says which effect raised it (shown under its traceback).
+                        let note = format!("raised by effect '{name}' at t = {t}");
+                        let _ = e.value(py).call_method1("add_note", (note,));
+                    }
+                    let slot = match e.is_instance_of::<PyException>(py) {
+                        true => &self.raised,
+                        false => &self.interrupted,
+                    };
+                    if let Ok(mut slot) = slot.lock() {
                         slot.get_or_insert(e);
                     }
                     return Err(Error::InvalidArgument(format!(
@@ -97,6 +111,7 @@ pub(super) fn arg_effects(effects: &Bound<'_, PyAny>) -> PyResult<Vec<Arc<PyLoad
             name,
             callable: v.unbind(),
             raised: std::sync::Mutex::new(None),
+            interrupted: std::sync::Mutex::new(None),
             names: std::sync::OnceLock::new(),
         }));
     }
@@ -118,6 +133,20 @@ pub(super) fn with_loads(model: Arc<Model>, loads: &[Arc<PyLoad>]) -> PyResult<A
             })?;
     }
     Ok(Arc::new(m))
+}
+
+/// A KeyboardInterrupt (or SystemExit) a Python effect's call received, if any.
+pub(super) fn interrupted(loads: &[Arc<PyLoad>]) -> Option<PyErr> {
+    loads
+        .iter()
+        .find_map(|l| l.interrupted.lock().ok().and_then(|mut e| e.take()))
+}
+
+/// Whether a Python effect's call received a KeyboardInterrupt (or SystemExit).
+pub(super) fn is_interrupted(loads: &[Arc<PyLoad>]) -> bool {
+    loads
+        .iter()
+        .any(|l| l.interrupted.lock().is_ok_and(|e| e.is_some()))
 }
 
 /// The first exception a Python effect raised, if any.

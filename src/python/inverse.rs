@@ -2,7 +2,7 @@
 //! and values, and its result as a dict.
 
 use super::args::{arg_choice, arg_count, arg_numbers, arg_path, describe};
-use super::effects::{arg_effects, raised, with_loads};
+use super::effects::{arg_effects, interrupted, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, one_line, SolveError};
 use super::failure::{error_failure, with_failure};
 use super::model::study_model;
@@ -132,20 +132,26 @@ pub(super) fn inverse_run<'py>(
         options.settings.max_iterations = max_iterations;
         let sol = py
             .detach(|| inverse::solve(model, &prescription, &options))
-            .map_err(|e| match (raised(&loads), e) {
-                (Some(python), _) => with_result(py, python, None),
-                (None, e @ Error::InvalidArgument(_)) => arg_error(e),
-                (None, other) => {
-                    let err = SolveError::new_err(other.to_string());
-                    let err = match error_failure(py, &other) {
-                        Ok(failure) => with_failure(py, err, failure),
-                        Err(e) => e,
-                    };
-                    with_result(py, err, None)
-                }
-            })?;
+            .map_err(
+                |e| match (interrupted(&loads).or_else(|| raised(&loads)), e) {
+                    (Some(python), _) => with_result(py, python, None),
+                    (None, e @ Error::InvalidArgument(_)) => arg_error(e),
+                    (None, other) => {
+                        let err = SolveError::new_err(other.to_string());
+                        let err = match error_failure(py, &other) {
+                            Ok(failure) => with_failure(py, err, failure),
+                            Err(e) => e,
+                        };
+                        with_result(py, err, None)
+                    }
+                },
+            )?;
         let out = inverse_result(py, &sol)?;
-        // The solve cannot stop midway: a Ctrl-C during it is raised now, with it.
+        // The solve cannot stop midway: a Ctrl-C during it is raised now, with it
+        // (one that a Python effect's call received included).
+        if let Some(signal) = interrupted(&loads) {
+            return Err(with_result(py, signal, Some(&out)));
+        }
         py.check_signals()
             .map_err(|e| with_result(py, e, Some(&out)))?;
         let s = &sol.summary;

@@ -67,15 +67,20 @@ pub(super) fn run_table<'py>(
 /// Runs `work` with the GIL released, giving it a `progress` callback that, at most
 /// every [`SIGNAL_CHECK`], takes the GIL to run Python's signal handlers: the error
 /// one raises (KeyboardInterrupt for Ctrl-C) stops the run and is returned beside
-/// the run's own outcome.
+/// the run's own outcome. A run whose Python callables run the handlers themselves
+/// says so through `caught`, looked at every step: it stops the run the same way.
 pub(super) fn interruptible<T: Send>(
     py: Python<'_>,
+    caught: impl Sync + Fn() -> bool,
     work: impl Send + FnOnce(&mut dyn FnMut(usize, usize) -> ControlFlow<()>) -> T,
 ) -> (T, Option<PyErr>) {
     let mut signal = None;
     let mut last = Instant::now();
     let out = py.detach(|| {
         work(&mut |_, _| {
+            if caught() {
+                return ControlFlow::Break(());
+            }
             if last.elapsed() < SIGNAL_CHECK {
                 return ControlFlow::Continue(());
             }

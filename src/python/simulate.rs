@@ -2,7 +2,7 @@
 //! table, the summary, the failures and the warnings) as a dict.
 
 use super::args::{arg_bool, arg_choice, arg_count, arg_real, arg_str, arg_values};
-use super::effects::{arg_effects, raised, with_loads};
+use super::effects::{arg_effects, interrupted, is_interrupted, raised, with_loads};
 use super::errors::{arg_error, guard, invalid, SolveError};
 use super::failure::{error_failure, step_failure, with_failure};
 use super::model::study_model;
@@ -238,6 +238,9 @@ pub(super) fn simulate_run<'py>(
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
         options.validate(&model).map_err(arg_error)?;
+        // The result holds every step: a run whose rows cannot fit is refused here,
+        // not aborted by the allocator (which would end the interpreter).
+        options.check_memory(&model, true).map_err(arg_error)?;
         let mut requested = options.steps();
         let until = until
             .map(|text| crate::stop::StopCondition::new(&model, &text))
@@ -261,29 +264,40 @@ pub(super) fn simulate_run<'py>(
             .collect();
         let model_for_checks = model.clone();
         let hit = Arc::new(AtomicBool::new(false));
-        let (run, signal) = interruptible(py, |progress| match &until {
-            None => forward::simulate_interruptible(model, &options, progress)
-                .map(|(tr, s)| (tr, s, None)),
-            Some(condition) => {
-                options.check_memory(&model, true)?;
-                let mut tr = Trajectory {
-                    names: model.names.clone(),
-                    t: Vec::new(),
-                    q: Vec::new(),
-                    dq: Vec::new(),
-                    ddq: Vec::new(),
-                };
-                let mut watch = crate::stop::Watch::new(&model, condition, &mut tr, hit.clone());
-                let mut watched = |done, total| match hit.load(Ordering::Relaxed) {
-                    true => ControlFlow::Break(()),
-                    false => progress(done, total),
-                };
-                let s =
-                    forward::simulate_streaming(model.clone(), &options, &mut watched, &mut watch)?;
-                let stopped = watch.stopped;
-                Ok((tr, s, stopped))
-            }
-        });
+        let (run, signal) = interruptible(
+            py,
+            || !loads.is_empty() && is_interrupted(&loads),
+            |progress| match &until {
+                None => forward::simulate_interruptible(model, &options, progress)
+                    .map(|(tr, s)| (tr, s, None)),
+                Some(condition) => {
+                    options.check_memory(&model, true)?;
+                    let mut tr = Trajectory {
+                        names: model.names.clone(),
+                        t: Vec::new(),
+                        q: Vec::new(),
+                        dq: Vec::new(),
+                        ddq: Vec::new(),
+                    };
+                    let mut watch =
+                        crate::stop::Watch::new(&model, condition, &mut tr, hit.clone());
+                    let mut watched = |done, total| match hit.load(Ordering::Relaxed) {
+                        true => ControlFlow::Break(()),
+                        false => progress(done, total),
+                    };
+                    let s = forward::simulate_streaming(
+                        model.clone(),
+                        &options,
+                        &mut watched,
+                        &mut watch,
+                    )?;
+                    let stopped = watch.stopped;
+                    Ok((tr, s, stopped))
+                }
+            },
+        );
+        // A Ctrl-C that a Python effect's call received is the run's signal.
+        let signal = signal.or_else(|| interrupted(&loads));
         let (tr, mut s, stopped) = match run {
             Ok(run) => run,
             // No trajectory comes back from a library error; an interrupt came first.
@@ -332,6 +346,7 @@ pub(super) fn simulate_run<'py>(
         let warnings: Vec<String> = step_warning
             .iter()
             .cloned()
+            .chain(s.load_jump.as_ref().map(|j| j.message()))
             .chain(crate::forward::energy_checks::energy_warning(&s))
             .chain(euler)
             .collect();

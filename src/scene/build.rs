@@ -39,6 +39,7 @@ pub fn empty(file: &str) -> Scene {
         notes: Vec::new(),
         sensors: Vec::new(),
         estimation: Default::default(),
+        mechanism: None,
     }
 }
 

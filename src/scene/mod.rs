@@ -258,6 +258,8 @@ pub struct Scene {
     /// What an estimator assumes beyond the sensors (`estimation:`); empty when not
     /// given.
     pub estimation: EstimationDef,
+    /// The MBSE mechanism file a scene names (`mechanism:`), as read.
+    pub mechanism: Option<String>,
 }
 
 /// A sensor as the scene declares it: what it reads, its noise, its quantization

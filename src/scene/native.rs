@@ -97,6 +97,7 @@ pub fn read(
         }
         let mut base = super::mbse::read(&mech_root, &mech_file, &[])?;
         base.file = file.to_string();
+        base.mechanism = Some(mech_file.clone());
         if let Some(p) = top.get("parameters") {
             ctx.read_parameters(p)?;
         }

@@ -564,8 +564,13 @@ fn diverged(cost: f64, iterations: usize) -> SolveReport {
 
 /// A solve whose evaluation failed: diverged, its reason kept.
 fn failed(e: Error, cost: f64, iterations: usize) -> SolveReport {
+    // The failure names its step and time: a located error says them only once.
+    let cause = match e {
+        Error::Singular { what, .. } => format!("singular system: {what}"),
+        other => other.to_string(),
+    };
     SolveReport {
-        cause: Some(e.to_string()),
+        cause: Some(cause),
         ..diverged(cost, iterations)
     }
 }

@@ -153,10 +153,22 @@ pub(super) fn located(
             step: None,
             t: None,
         } => Error::Singular {
-            what: format!("{}: {what}", factor.name()),
+            what: format!("{}: {what}", in_words(factor.name())),
             step: Some(step),
             t: Some(t),
         },
+        other => other,
+    }
+}
+
+/// What a factor stands for, in a user's words rather than the paper's symbols.
+fn in_words(name: &str) -> &str {
+    match name {
+        "f^d_dyn" | "f^i_dyn" => "the equations of motion",
+        "f^d_idyn" | "f^i_idyn" => "the inverse dynamics",
+        "f^d_pc" | "f^i_pc" => "the position constraints",
+        "f^d_vc" | "f^i_vc" => "the velocity constraints",
+        "f^i_ac" => "the acceleration constraints",
         other => other,
     }
 }

@@ -222,6 +222,10 @@ impl<'a> Rows<'a> {
             return Ok(());
         }
         self.stats.add(self.model, q, dq)?;
+        if k > 0 {
+            let before = (self.last_t, &self.last[..n], &self.last[n..2 * n]);
+            self.stats.watch(self.model, before, t, q, dq);
+        }
         if self.coarse.is_none() {
             self.coarse = coarse_turn(self.model, q, dq, t, self.dt, k);
         }

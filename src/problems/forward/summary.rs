@@ -36,6 +36,9 @@ pub struct RunSummary {
     pub energy_drift: Option<f64>,
     /// The largest kinetic energy along the trajectory: the scale of the drift.
     pub peak_kinetic_energy: f64,
+    /// The first step over which an expression load jumped (a pole or a
+    /// discontinuity passed over), see [`LoadJump`].
+    pub load_jump: Option<LoadJump>,
     pub failures: Vec<StepFailure>,
     /// With [`Past::Adaptive`](crate::solver::Past::Adaptive), the step from which the smoother conditioned on its
     /// past: its window solve had not converged after a marginal prior.
@@ -113,6 +116,144 @@ impl Iterations {
     }
 }
 
+/// A step across which a load's change disagrees with its slopes at both ends (by
+/// more than half of their scale): a pole (`0.01/(theta+1)`, `tan(5*theta)`) or a
+/// discontinuity (`sign(…)`, a step in t) lies inside the step, which the integrator
+/// stepped over as if the load were smooth.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoadJump {
+    /// The effect's name.
+    pub effect: String,
+    /// The step's end time, and the load's value at its start and end.
+    pub t: f64,
+    pub from: f64,
+    pub to: f64,
+}
+
+impl LoadJump {
+    /// The warning `mbfg simulate` prints.
+    pub fn message(&self) -> String {
+        format!(
+            "effect '{}' changes from {:.3e} to {:.3e} over the step ending at t = {} s, against its slopes at both ends: a pole or a discontinuity inside the step was stepped over; a smaller dt, or a load without it",
+            self.effect,
+            self.from,
+            self.to,
+            time(self.t)
+        )
+    }
+}
+
+/// A time as the messages write it: six decimals at most, trailing zeros dropped.
+fn time(t: f64) -> String {
+    let s = format!("{t:.6}");
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
+}
+
+/// The expression loads of a model, watched for jumps across steps.
+struct Watched {
+    /// (effect name, force, component count).
+    loads: Vec<(String, crate::model::forces::Force)>,
+    /// Scratch: a state between steps.
+    q: Vec<f64>,
+    dq: Vec<f64>,
+    /// The largest |value| seen, per load and component.
+    scale: Vec<f64>,
+}
+
+/// The fraction of a step at which the slopes at its ends are taken.
+const SLOPE_FRACTION: f64 = 1e-4;
+
+impl Watched {
+    fn new(model: &Model) -> Option<Self> {
+        use crate::model::forces::Force;
+        let loads: Vec<(String, Force)> = model
+            .forces
+            .iter()
+            .zip(&model.scene.effects)
+            .filter(|(f, _)| matches!(f, Force::Torque { .. } | Force::PointForce { .. }))
+            .map(|(f, e)| (crate::derived::effect_name(e).to_string(), f.clone()))
+            .collect();
+        (!loads.is_empty()).then(|| Watched {
+            scale: vec![0.0; 2 * loads.len()],
+            loads,
+            q: vec![0.0; model.n()],
+            dq: vec![0.0; model.n()],
+        })
+    }
+
+    /// The components of load `l` at the point `s` ∈ [0, 1] of the step from `a` to `b`.
+    fn at(
+        &mut self,
+        model: &Model,
+        l: usize,
+        (t0, q0, dq0): (f64, &[f64], &[f64]),
+        (t1, q1, dq1): (f64, &[f64], &[f64]),
+        s: f64,
+    ) -> Option<[f64; 2]> {
+        use crate::model::forces::Force;
+        for i in 0..q0.len() {
+            self.q[i] = q0[i] + s * (q1[i] - q0[i]);
+            self.dq[i] = dq0[i] + s * (dq1[i] - dq0[i]);
+        }
+        let t = t0 + s * (t1 - t0);
+        match &self.loads[l].1 {
+            Force::Torque { value, .. } => {
+                Some([value.value(model, &self.q, &self.dq, t).ok()?, 0.0])
+            }
+            Force::PointForce { value, .. } => Some([
+                value[0].value(model, &self.q, &self.dq, t).ok()?,
+                value[1].value(model, &self.q, &self.dq, t).ok()?,
+            ]),
+            _ => None,
+        }
+    }
+
+    /// The first load that jumps over the step from `a` to `b`.
+    fn jump(
+        &mut self,
+        model: &Model,
+        a: (f64, &[f64], &[f64]),
+        b: (f64, &[f64], &[f64]),
+        first: bool,
+    ) -> Option<LoadJump> {
+        for l in 0..self.loads.len() {
+            let (Some(v0), Some(v1), Some(near0), Some(near1)) = (
+                self.at(model, l, a, b, 0.0),
+                self.at(model, l, a, b, 1.0),
+                self.at(model, l, a, b, SLOPE_FRACTION),
+                self.at(model, l, a, b, 1.0 - SLOPE_FRACTION),
+            ) else {
+                continue;
+            };
+            for c in 0..2 {
+                let scale = &mut self.scale[2 * l + c];
+                *scale = scale.max(v0[c].abs());
+                let change = v1[c] - v0[c];
+                // The change the slopes at the ends predict (at the start of the first
+                // step only the end's: a load may start with an infinite slope, √t).
+                let slope1 = (v1[c] - near1[c]) / SLOPE_FRACTION;
+                let predicted = match first {
+                    true => slope1,
+                    false => 0.5 * ((near0[c] - v0[c]) / SLOPE_FRACTION + slope1),
+                };
+                let miss = (change - predicted).abs();
+                if miss > 0.5 * (change.abs() + predicted.abs())
+                    && miss > 1e-6 * (1.0 + *scale)
+                    && miss > 1e3 * f64::EPSILON * (v0[c].abs() + v1[c].abs()) / SLOPE_FRACTION
+                {
+                    return Some(LoadJump {
+                        effect: self.loads[l].0.clone(),
+                        t: b.0,
+                        from: v0[c],
+                        to: v1[c],
+                    });
+                }
+            }
+        }
+        None
+    }
+}
+
 /// The summary's measures of a trajectory, accumulated step by step as the steps
 /// become final (so that a long run holds none of them).
 pub(super) struct Stats {
@@ -128,6 +269,8 @@ pub(super) struct Stats {
     drift: f64,
     peak_kinetic: f64,
     steps: usize,
+    watched: Option<Watched>,
+    load_jump: Option<LoadJump>,
 }
 
 impl Stats {
@@ -142,6 +285,28 @@ impl Stats {
             drift: 0.0,
             peak_kinetic: 0.0,
             steps: 0,
+            watched: Watched::new(model),
+            load_jump: None,
+        }
+    }
+
+    /// Looks for a load that jumps over the step from `before` to (t, q, q̇), until
+    /// one does.
+    pub(super) fn watch(
+        &mut self,
+        model: &Model,
+        before: (f64, &[f64], &[f64]),
+        t: f64,
+        q: &[f64],
+        dq: &[f64],
+    ) {
+        if self.load_jump.is_some() {
+            return;
+        }
+        // Called after `add` of the step's end: the first step ends at state 1.
+        let first = self.steps == 2;
+        if let Some(w) = self.watched.as_mut() {
+            self.load_jump = w.jump(model, before, (t, q, dq), first);
         }
     }
 
@@ -195,6 +360,7 @@ impl Stats {
             worst_velocity_constraint: self.worst_vel,
             energy_drift: self.conservative.then_some(self.drift),
             peak_kinetic_energy: self.peak_kinetic,
+            load_jump: self.load_jump,
             failures,
             conditioned_from: None,
             reselections: Vec::new(),
