@@ -44,3 +44,10 @@ def test_an_angle_no_sensor_observes_is_named(tmp_path):
 
 def test_gravity_carries_the_angle_into_the_gyroscope(tmp_path):
     assert _summary(tmp_path, gravity=True)["undetermined"] == []
+
+
+def test_the_summary_says_how_far_the_window_grew(tmp_path):
+    s = _summary(tmp_path, gravity=True)
+    assert s["window"] == 20
+    assert s["window_longest"] >= 20 and s["window_longest"] <= 80
+    assert 1 <= s["window_mean"] <= s["window_longest"]
