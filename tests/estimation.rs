@@ -5,7 +5,9 @@
 //! median over seeds, and the truth within ±2σ.
 
 use mbfg::coordinates::Coordinates;
-use mbfg::estimate::{estimate, EstimateOptions, Estimates, Estimator, Record, Smoothing};
+use mbfg::estimate::{
+    estimate, EstimateOptions, EstimateSummary, Estimates, Estimator, Record, Smoothing,
+};
 use mbfg::forward::{simulate, ForwardOptions};
 use mbfg::sensors::measure::{measure, Measurements};
 use mbfg::smoother::Mode;
@@ -301,28 +303,10 @@ fn coupler_gyroscope_estimates_the_unknown_torque_in_batch() {
     let force = force_truth(&truth);
     let rms = (force.iter().map(|f| f * f).sum::<f64>() / force.len() as f64).sqrt();
     assert!((rms - 9.6).abs() < 0.2, "the missing torque's RMS {rms}");
-    let m = model("fourbar-bad-input.yaml");
-    let (columns, rows) = readings(&truth, 1, &["gyro"]);
-    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
-    let options = EstimateOptions {
-        smoothing: Smoothing::Batch,
-        ..EstimateOptions::default()
-    };
-    let mut table = Estimates::for_model(&m);
-    estimate(m.clone(), &record, &options, &mut |e| {
-        table.push(e);
-        Ok(())
-    })
-    .unwrap();
+    let (table, _) = torque_estimate(&truth, Smoothing::Batch);
     let q = table.column("Q:theta").unwrap();
     let sd = table.column("sd:Q:theta").unwrap();
-    let err = (q
-        .iter()
-        .zip(&force)
-        .map(|(a, b)| (a - b).powi(2))
-        .sum::<f64>()
-        / q.len() as f64)
-        .sqrt();
+    let err = rms_off(&q, &force);
     // The targets: 1.3 N·m, z ≤ 3.4e-3 rad, ż ≤ 2.4e-3 rad/s (errorEKF-FE: 2.6 N·m,
     // 6.8e-3, 4.8e-3).
     assert!(err <= 1.3, "torque RMSE {err} N·m");
@@ -350,19 +334,7 @@ fn coupler_gyroscope_estimates_the_unknown_torque_in_batch() {
 #[test]
 fn window_solves_cross_a_flat_valley_instead_of_crawling() {
     let truth = truth(1.0);
-    let m = model("fourbar-bad-input.yaml");
-    let (columns, rows) = readings(&truth, 1, &["gyro"]);
-    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
-    let options = EstimateOptions {
-        smoothing: Smoothing::Window(50),
-        ..EstimateOptions::default()
-    };
-    let mut table = Estimates::for_model(&m);
-    let summary = estimate(m.clone(), &record, &options, &mut |e| {
-        table.push(e);
-        Ok(())
-    })
-    .unwrap();
+    let (table, summary) = torque_estimate(&truth, Smoothing::Window(50));
     assert_eq!(
         summary.unsettled, 0,
         "window solves kept at the iteration limit"
@@ -385,32 +357,13 @@ fn window_solves_cross_a_flat_valley_instead_of_crawling() {
 fn coupler_gyroscope_estimates_the_unknown_torque_in_a_window() {
     let truth = truth(10.0);
     let force = force_truth(&truth);
-    let m = model("fourbar-bad-input.yaml");
-    let (columns, rows) = readings(&truth, 1, &["gyro"]);
-    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
-    let options = EstimateOptions {
-        smoothing: Smoothing::Window(50),
-        ..EstimateOptions::default()
-    };
-    let mut table = Estimates::for_model(&m);
-    let summary = estimate(m.clone(), &record, &options, &mut |e| {
-        table.push(e);
-        Ok(())
-    })
-    .unwrap();
+    let (table, summary) = torque_estimate(&truth, Smoothing::Window(50));
     assert!(
         summary.longest_window > 50 && summary.longest_window <= 200,
         "longest window {}",
         summary.longest_window
     );
-    let q = table.column("Q:theta").unwrap();
-    let err = (q
-        .iter()
-        .zip(&force)
-        .map(|(a, b)| (a - b).powi(2))
-        .sum::<f64>()
-        / q.len() as f64)
-        .sqrt();
+    let err = rms_off(&table.column("Q:theta").unwrap(), &force);
     assert!(err <= 1.3, "torque RMSE {err} N·m");
     let s = score(&truth, &table);
     assert!(s.z <= 3.4e-3, "z RMSE {}", s.z);
@@ -420,6 +373,31 @@ fn coupler_gyroscope_estimates_the_unknown_torque_in_a_window() {
         "truth within ±2σ at {} of the steps",
         s.inside
     );
+}
+
+/// The bad scene's estimate, its unknown torque on θ included, from the coupler
+/// gyroscope's readings of `truth` (seed 1).
+fn torque_estimate(truth: &Trajectory, smoothing: Smoothing) -> (Estimates, EstimateSummary) {
+    let m = model("fourbar-bad-input.yaml");
+    let (columns, rows) = readings(truth, 1, &["gyro"]);
+    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
+    let options = EstimateOptions {
+        smoothing,
+        ..EstimateOptions::default()
+    };
+    let mut table = Estimates::for_model(&m);
+    let summary = estimate(m, &record, &options, &mut |e| {
+        table.push(e);
+        Ok(())
+    })
+    .unwrap();
+    (table, summary)
+}
+
+/// The RMS of `v − truth`.
+fn rms_off(v: &[f64], truth: &[f64]) -> f64 {
+    let s: f64 = v.iter().zip(truth).map(|(a, b)| (a - b).powi(2)).sum();
+    (s / v.len() as f64).sqrt()
 }
 
 /// The truth of `scene` over `t_end`: a 1 ms simulation, every `every`-th step kept.
