@@ -79,13 +79,14 @@ fn score(truth: &Trajectory, est: &Estimates) -> Score {
     }
 }
 
-fn run(
+/// The estimate of scene `bad` from the readings `keep` (seed `seed`) of `truth`.
+fn estimate_from(
     bad: &str,
     truth: &Trajectory,
     seed: u64,
     keep: &[&str],
     smoothing: Smoothing,
-) -> (Score, f64) {
+) -> (Estimates, EstimateSummary) {
     let m = model(bad);
     let (columns, rows) = readings(truth, seed, keep);
     let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
@@ -99,6 +100,17 @@ fn run(
         Ok(())
     })
     .unwrap();
+    (table, summary)
+}
+
+fn run(
+    bad: &str,
+    truth: &Trajectory,
+    seed: u64,
+    keep: &[&str],
+    smoothing: Smoothing,
+) -> (Score, f64) {
+    let (table, summary) = estimate_from(bad, truth, seed, keep, smoothing);
     (score(truth, &table), summary.nis.mean())
 }
 
@@ -378,20 +390,7 @@ fn coupler_gyroscope_estimates_the_unknown_torque_in_a_window() {
 /// The bad scene's estimate, its unknown torque on θ included, from the coupler
 /// gyroscope's readings of `truth` (seed 1).
 fn torque_estimate(truth: &Trajectory, smoothing: Smoothing) -> (Estimates, EstimateSummary) {
-    let m = model("fourbar-bad-input.yaml");
-    let (columns, rows) = readings(truth, 1, &["gyro"]);
-    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
-    let options = EstimateOptions {
-        smoothing,
-        ..EstimateOptions::default()
-    };
-    let mut table = Estimates::for_model(&m);
-    let summary = estimate(m, &record, &options, &mut |e| {
-        table.push(e);
-        Ok(())
-    })
-    .unwrap();
-    (table, summary)
+    estimate_from("fourbar-bad-input.yaml", truth, 1, &["gyro"], smoothing)
 }
 
 /// The RMS of `v − truth`.

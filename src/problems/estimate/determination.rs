@@ -3,6 +3,17 @@
 //! the prior's on the start over most of the run. Their estimates are the prior's
 //! guess carried along by the model, not a measurement.
 
+/// The coordinates whose σ an estimate watches (for undetermined coordinates, and
+/// for when a growing window's oldest step has caught up): the motion's own degrees
+/// of freedom where the scene names them (`independent:`), else every q.
+pub fn watched_coordinates(model: &crate::model::Model) -> Vec<usize> {
+    if model.independent.is_empty() {
+        (0..model.n()).collect()
+    } else {
+        model.independent.clone()
+    }
+}
+
 /// A coordinate's σ counts as undetermined above this fraction of its prior's.
 pub const UNDETERMINED_FRACTION: f64 = 0.1;
 

@@ -6,6 +6,7 @@
 //! leave the graph.
 
 use super::consistency::Nis;
+use super::determination::watched_coordinates;
 use super::graph::EstimationGraph;
 use crate::error::{Error, Result};
 use crate::graph::{Factor, Noise, Workspace};
@@ -121,11 +122,7 @@ impl Estimator {
     ) -> Result<Self> {
         let window = window.max(1);
         let longest = LONGEST_FACTOR * window;
-        let watched = if model.independent.is_empty() {
-            (0..model.n()).collect()
-        } else {
-            model.independent.clone()
-        };
+        let watched = watched_coordinates(&model);
         let solver = WindowSolver::new(&eg.graph, longest + 1, settings)?;
         let s = eg.size();
         let capacity = (!keep_all).then_some(window + BUFFER);

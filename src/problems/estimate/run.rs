@@ -3,7 +3,7 @@
 //! with its covariance.
 
 use super::consistency::Nis;
-use super::determination::{Determination, Undetermined};
+use super::determination::{watched_coordinates, Determination, Undetermined};
 use super::graph::EstimationGraph;
 use super::online::{Estimator, StepEstimate};
 use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW};
@@ -118,13 +118,8 @@ pub fn estimate_with_progress(
     };
     let settings = options.settings;
     let size = eg.size();
-    // The motion's own degrees of freedom where the scene names them, else every q.
-    let watched: Vec<usize> = if model.independent.is_empty() {
-        (0..model.n()).collect()
-    } else {
-        model.independent.clone()
-    };
-    let mut determination = Determination::new(&watched, &uncertainty.initial_q);
+    let mut determination =
+        Determination::new(&watched_coordinates(&model), &uncertainty.initial_q);
     let sink = &mut |e: &StepEstimate| {
         determination.add(&e.covariance, size);
         sink(e)
