@@ -24,6 +24,20 @@ pub(super) struct PyModel {
 }
 
 impl PyModel {
+    /// q, q̇, q̈: three state vectors.
+    fn motion(
+        &self,
+        q: &Bound<'_, PyAny>,
+        dq: &Bound<'_, PyAny>,
+        ddq: &Bound<'_, PyAny>,
+    ) -> PyResult<(DVector<f64>, DVector<f64>, DVector<f64>)> {
+        Ok((
+            self.vector(q, "q")?,
+            self.vector(dq, "dq")?,
+            self.vector(ddq, "ddq")?,
+        ))
+    }
+
     /// A state vector: n finite numbers.
     fn vector(&self, obj: &Bound<'_, PyAny>, what: &str) -> PyResult<DVector<f64>> {
         let v = arg_numbers(obj, what)?;
@@ -438,11 +452,7 @@ impl PyModel {
         t: &Bound<'_, PyAny>,
     ) -> PyResult<Vec<(String, String, f64, f64)>> {
         guard(|| {
-            let (q, dq, ddq) = (
-                self.vector(q, "q")?,
-                self.vector(dq, "dq")?,
-                self.vector(ddq, "ddq")?,
-            );
+            let (q, dq, ddq) = self.motion(q, dq, ddq)?;
             let t = arg_real(t, "t")?;
             let forces = crate::reactions::joint_forces(
                 &self.model,
@@ -474,11 +484,7 @@ impl PyModel {
         t: &Bound<'_, PyAny>,
     ) -> PyResult<Vec<(String, f64)>> {
         guard(|| {
-            let (q, dq, ddq) = (
-                self.vector(q, "q")?,
-                self.vector(dq, "dq")?,
-                self.vector(ddq, "ddq")?,
-            );
+            let (q, dq, ddq) = self.motion(q, dq, ddq)?;
             let t = arg_real(t, "t")?;
             let forces = crate::reactions::constraint_forces(
                 &self.model,
@@ -549,11 +555,7 @@ impl PyModel {
     )> {
         guard(|| {
             let name = arg_str(name, "name")?;
-            let (q, dq, ddq) = (
-                self.vector(q, "q")?,
-                self.vector(dq, "dq")?,
-                self.vector(ddq, "ddq")?,
-            );
+            let (q, dq, ddq) = self.motion(q, dq, ddq)?;
             let t = match t {
                 Some(t) => arg_real(t, "t")?,
                 None => 0.0,
