@@ -60,19 +60,7 @@ fn identify(
     seed: u64,
 ) -> (Estimates, EstimateSummary) {
     let m = model(bad);
-    let readings = measure(&model(true_scene), truth, seed, None).unwrap();
-    let wanted: Vec<String> = m.sensors.iter().flat_map(|s| s.columns()).collect();
-    let mut columns = vec!["t".to_string()];
-    columns.extend(wanted.iter().cloned());
-    let values: Vec<Vec<f64>> = wanted.iter().map(|c| readings.column(c).unwrap()).collect();
-    let rows: Vec<(f64, Vec<f64>)> = (0..readings.t.len())
-        .map(|i| {
-            let mut row = vec![readings.t[i]];
-            row.extend(values.iter().map(|v| v[i]));
-            (readings.t[i], row)
-        })
-        .collect();
-    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
+    let record = record_of(&m, &model(true_scene), truth, seed);
     let options = EstimateOptions {
         smoothing: Smoothing::Batch,
         ..EstimateOptions::default()
@@ -84,6 +72,24 @@ fn identify(
     })
     .unwrap();
     (table, summary)
+}
+
+/// The readings of `bad`'s sensors made on `truth` by `true_model` (seed), as a
+/// record of `bad`.
+fn record_of(bad: &Model, true_model: &Model, truth: &Trajectory, seed: u64) -> Record {
+    let readings = measure(true_model, truth, seed, None).unwrap();
+    let wanted: Vec<String> = bad.sensors.iter().flat_map(|s| s.columns()).collect();
+    let mut columns = vec!["t".to_string()];
+    columns.extend(wanted.iter().cloned());
+    let values: Vec<Vec<f64>> = wanted.iter().map(|c| readings.column(c).unwrap()).collect();
+    let rows: Vec<(f64, Vec<f64>)> = (0..readings.t.len())
+        .map(|i| {
+            let mut row = vec![readings.t[i]];
+            row.extend(values.iter().map(|v| v[i]));
+            (readings.t[i], row)
+        })
+        .collect();
+    Record::from_rows(bad, &columns, &rows, None).unwrap()
 }
 
 fn rms_off(est: &Estimates, truth: &Trajectory, column: &str) -> f64 {
@@ -385,22 +391,7 @@ fn an_input_sensor_reads_the_scenes_torques_and_needs_an_unknown_input_to_estima
     );
     // The true scene, which declares no unknown input, cannot estimate from it.
     let truth = truth("arm-true.yaml", 0.1);
-    let readings = measure(&m, &truth, 1, None).unwrap();
-    let mut columns = vec!["t".to_string()];
-    columns.extend(readings.columns.iter().cloned());
-    let rows: Vec<(f64, Vec<f64>)> = (0..readings.t.len())
-        .map(|i| {
-            let mut row = vec![readings.t[i]];
-            row.extend(
-                readings
-                    .columns
-                    .iter()
-                    .map(|c| readings.column(c).unwrap()[i]),
-            );
-            (readings.t[i], row)
-        })
-        .collect();
-    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
+    let record = record_of(&m, &m, &truth, 1);
     let err = estimate(m, &record, &EstimateOptions::default(), &mut |_| Ok(())).unwrap_err();
     let msg = err.to_string();
     assert!(
