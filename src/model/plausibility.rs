@@ -153,8 +153,9 @@ pub fn step_warning(model: &Model, dt: f64) -> Option<String> {
         format!("its damping rate is {:.3e} 1/s", fastest.rate)
     };
     Some(format!(
-        "dt = {dt} s is too coarse for {}: {what}, and ω·dt = {} > {MAX_OMEGA_DT}; \
+        "dt = {} s is too coarse for {}: {what}, and ω·dt = {} > {MAX_OMEGA_DT}; \
          dt ≤ {:.2e} s resolves it",
+        crate::io::number(dt),
         fastest.effect,
         short(speed * dt),
         MAX_OMEGA_DT / speed

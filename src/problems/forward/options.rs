@@ -184,12 +184,16 @@ impl ForwardOptions {
     pub(super) fn validate_options(&self, model: &Model) -> Result<()> {
         let bad = |m: String| Err(Error::InvalidArgument(m));
         if !(self.dt > 0.0 && self.dt.is_finite()) {
-            return bad(format!("the time step must be positive, got {}", self.dt));
+            return bad(format!(
+                "the time step must be positive, got {}",
+                crate::io::number(self.dt)
+            ));
         }
         if !(self.t_end.is_finite() && self.t_end >= self.dt) {
             return bad(format!(
-                "the end time must be at least one step (dt = {}), got {}",
-                self.dt, self.t_end
+                "the end time must be at least one step (dt = {} s), got {}",
+                crate::io::number(self.dt),
+                crate::io::number(self.t_end)
             ));
         }
         crate::limits::step_count(self.dt, self.t_end)?;
