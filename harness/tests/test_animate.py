@@ -41,6 +41,34 @@ def test_animate_from_the_command_line(tmp_path):
     assert r.returncode == 2 and r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, r.stderr
 
 
+@pytest.mark.parametrize("damage, says", [
+    (None, "No such file"),
+    ("nan", ":4: column `q:P.x`: nan is not finite"),
+    ("abc", ":4: column `q:P.x`"),
+])
+def test_animate_names_a_bad_run_as_mbfg_does(tmp_path, damage, says):
+    # A missing file, a row that is not a number: mbfg's own message (file, row,
+    # column), one line, exit 2 — not Python's.
+    scene = ROOT / "scenes/pendulum.yaml"
+    csv = tmp_path / "run.csv"
+    subprocess.run([MBFG, "simulate", scene, "--dt", "0.01", "--t-end", "0.05", "--out", csv],
+                   check=True, capture_output=True)
+    if damage is None:
+        csv = tmp_path / "missing.csv"
+    else:
+        rows = csv.read_text().splitlines()
+        cells = rows[3].split(",")
+        cells[1] = damage
+        rows[3] = ",".join(cells)
+        csv.write_text("\n".join(rows) + "\n")
+    env = {**os.environ, "MBFG_PYTHON": sys.executable}
+    r = subprocess.run([MBFG, "animate", csv, "--scene", scene, "--out", tmp_path / "a.gif"],
+                       env=env, capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert r.stderr.startswith("error: ") and says in r.stderr, r.stderr
+    assert "Errno" not in r.stderr and "could not convert" not in r.stderr
+
+
 def test_animate_needs_a_model_or_a_simulated_result():
     with pytest.raises(mbfg.InvalidArgument, match="model"):
         mbfg.animate(object())

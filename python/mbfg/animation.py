@@ -183,22 +183,14 @@ def animate(result, model=None, out: str | os.PathLike = "mbfg.gif", fps: int = 
 
 
 class _Csv:
-    """A trajectory CSV of `mbfg simulate` read back: t and q in the model's order."""
+    """A trajectory CSV of `mbfg simulate` read back by mbfg's own reader: t and q in
+    the model's order (q̇, q̈ zero where the file has none); a missing file, a
+    missing column or a row that is not numbers is named as the CLI names it."""
 
     def __init__(self, path: str, model):
-        import csv
-        import gzip
-        opener = gzip.open if path.endswith(".gz") else open
-        with opener(path, "rt", newline="") as f:
-            rows = [r for r in csv.reader(f) if r and not r[0].startswith("#")]
-        header, body = rows[0], np.array(rows[1:], dtype=float)
-        self.t = body[:, header.index("t")]
-        try:
-            self.q = body[:, [header.index(f"q:{c}") for c in model.names]]
-            self.dq = body[:, [header.index(f"dq:{c}") for c in model.names]]
-            self.ddq = body[:, [header.index(f"ddq:{c}") for c in model.names]]
-        except ValueError:
-            raise ValueError(f"{path}: its columns are not those of {model.file}") from None
+        from . import _native
+        raw = _native.read_trajectory(model._m, path)
+        self.t, self.q, self.dq, self.ddq = raw["t"], raw["q"], raw["dq"], raw["ddq"]
 
 
 def main(argv=None) -> int:

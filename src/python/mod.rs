@@ -38,6 +38,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(simulate::simulate_run, m)?)?;
     m.add_function(wrap_pyfunction!(inverse::inverse_run, m)?)?;
     m.add_function(wrap_pyfunction!(sensors::measure_run, m)?)?;
+    m.add_function(wrap_pyfunction!(sensors::read_trajectory, m)?)?;
     m.add_function(wrap_pyfunction!(estimate::estimate_run, m)?)?;
     m.add_class::<estimate::PyEstimator>()?;
     m.add("SceneError", py.get_type::<SceneError>())?;

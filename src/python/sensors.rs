@@ -134,3 +134,35 @@ pub(super) fn measure_run<'py>(
         Ok(out)
     })
 }
+
+/// `mbfg._native.read_trajectory`: a trajectory CSV (as `mbfg simulate` writes it)
+/// read for the model of `scene`, as {"t", "q", "dq", "ddq"} (rows × n; q̇ and q̈
+/// zero where the file has none), with mbfg's own errors: the file, the row, the
+/// column.
+#[pyfunction]
+#[pyo3(signature = (scene, path))]
+pub(super) fn read_trajectory<'py>(
+    py: Python<'py>,
+    scene: &Bound<'py, PyAny>,
+    path: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    guard(|| {
+        let model = study_model(scene, &[], &[], &[])?;
+        let path = arg_path(path, "trajectory")?;
+        let table = read_table(&path).map_err(arg_error)?;
+        let tr = trajectory_from_table(
+            &model.names,
+            &table,
+            &path.display().to_string(),
+            [true, false, false],
+        )
+        .map_err(arg_error)?;
+        let (rows, n) = (tr.t.len(), model.n());
+        let out = PyDict::new(py);
+        out.set_item("t", PyArray1::from_vec(py, tr.t))?;
+        out.set_item("q", block(py, tr.q, rows, n)?)?;
+        out.set_item("dq", block(py, tr.dq, rows, n)?)?;
+        out.set_item("ddq", block(py, tr.ddq, rows, n)?)?;
+        Ok(out)
+    })
+}
