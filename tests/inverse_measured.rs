@@ -1,0 +1,159 @@
+//! Inverse dynamics from measured motion (`InverseOptions::sample_sigma`): the
+//! paper's four-bar crank motion θ = 1.2 (1 − cos 2t) sampled every 5 ms, written to
+//! 8 significant digits or with Gaussian noise, against the classical torque of the
+//! exact motion; and the sensitivity of a step's solution against finite differences.
+
+use mbfg::forward::Coordinates;
+use mbfg::inverse::{self, InverseOptions, Prescription, SampleSigma};
+use mbfg::io::Table;
+use mbfg::motions;
+use mbfg::rng::Rng;
+use mbfg::{Model, Scene};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+fn load(name: &str) -> Arc<Model> {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name);
+    Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap())
+}
+
+const DT: f64 = 5e-3;
+const T_END: f64 = 10.0;
+
+/// The crank samples, each passed through `reading`.
+fn samples(mut reading: impl FnMut(f64) -> f64) -> Table {
+    let rows = (T_END / DT).round() as usize + 1;
+    let mut values = Vec::with_capacity(2 * rows);
+    for k in 0..rows {
+        let t = k as f64 * DT;
+        values.extend([t, reading(motions::fourbar_crank(t)[0])]);
+    }
+    Table {
+        columns: vec!["t".into(), "theta".into()],
+        values,
+        rows,
+    }
+}
+
+fn eight_digits(v: f64) -> f64 {
+    format!("{v:.7e}").parse().unwrap()
+}
+
+/// The torque's error against the classical torque of the exact motion, and its σ.
+struct Outcome {
+    error: Vec<f64>,
+    sd: Vec<f64>,
+}
+
+impl Outcome {
+    fn rms(&self) -> f64 {
+        (self.error.iter().map(|e| e * e).sum::<f64>() / self.error.len() as f64).sqrt()
+    }
+    fn lag1(&self) -> f64 {
+        let e = &self.error;
+        let mean = e.iter().sum::<f64>() / e.len() as f64;
+        let var: f64 = e.iter().map(|v| (v - mean).powi(2)).sum();
+        e.windows(2)
+            .map(|w| (w[0] - mean) * (w[1] - mean))
+            .sum::<f64>()
+            / var
+    }
+    /// Σ (e/σ)² and the count: the normalized error's mean square is 1 for honest σ's.
+    fn z2(&self) -> f64 {
+        self.error
+            .iter()
+            .zip(&self.sd)
+            .map(|(e, s)| (e / s).powi(2))
+            .sum()
+    }
+    fn within_2sd(&self) -> usize {
+        self.error
+            .iter()
+            .zip(&self.sd)
+            .filter(|(e, s)| e.abs() <= 2.0 * **s)
+            .count()
+    }
+}
+
+fn run(model: &Arc<Model>, table: &Table, sigma: Option<SampleSigma>) -> Outcome {
+    let theta = model.names.iter().position(|c| c == "theta").unwrap();
+    let p = Prescription::from_table(model, table, "test").unwrap();
+    let options = InverseOptions {
+        coordinates: Coordinates::Dependent,
+        sample_sigma: sigma,
+        ..InverseOptions::default()
+    };
+    let sol = inverse::solve(model.clone(), &p, &options).unwrap();
+    let n = model.n();
+    let exact = inverse::classical(model, &[theta], &sol.trajectory.t, |t| {
+        let [a, b, c] = motions::fourbar_crank(t);
+        (vec![a], vec![b], vec![c])
+    })
+    .unwrap();
+    let error = (0..p.steps)
+        .map(|k| sol.forces[k * n + theta] - exact.forces[k * n + theta])
+        .collect();
+    let sd = match &sol.sigmas {
+        Some(s) => (0..p.steps).map(|k| s.forces[k * n + theta]).collect(),
+        None => vec![0.0; p.steps],
+    };
+    if let Some(fit) = &sol.summary.smoothing {
+        eprintln!("smoothing: {fit:?}; {:?}", sol.summary.wall_time);
+    }
+    Outcome { error, sd }
+}
+
+#[test]
+fn eight_digit_samples_give_the_exact_motions_torque() {
+    let model = load("fourbar-theta.yaml");
+    let table = samples(eight_digits);
+    let raw = run(&model, &table, None);
+    let smoothed = run(&model, &table, Some(SampleSigma::FromData));
+    eprintln!(
+        "8 digits: differences {:.3e} N·m (lag-1 {:.2}); smoothed {:.3e} N·m (lag-1 {:.2}), within 2σ {} of {}",
+        raw.rms(),
+        raw.lag1(),
+        smoothed.rms(),
+        smoothed.lag1(),
+        smoothed.within_2sd(),
+        smoothed.error.len()
+    );
+    assert!(raw.rms() > 5e-3, "today's differences: {:.3e}", raw.rms());
+    assert!(smoothed.rms() <= 5e-4, "{:.3e} N·m", smoothed.rms());
+    assert!(smoothed.lag1() > -0.2, "lag-1 {:.3}", smoothed.lag1());
+}
+
+#[test]
+fn noisy_samples_give_the_torque_within_its_sigma() {
+    let model = load("fourbar-theta.yaml");
+    let (mut within, mut total, mut z2) = (0, 0, 0.0);
+    for seed in 1..=3 {
+        let mut rng = Rng::new(seed);
+        let table = samples(|v| v + 1e-4 * rng.normal());
+        let raw = run(&model, &table, None);
+        let given = run(&model, &table, Some(SampleSigma::Given(vec![1e-4])));
+        let auto = run(&model, &table, Some(SampleSigma::FromData));
+        eprintln!(
+            "seed {seed}: differences {:.3e} N·m; σ given {:.3e} N·m (lag-1 {:.2}, within 2σ {}); from the data {:.3e} N·m",
+            raw.rms(),
+            given.rms(),
+            given.lag1(),
+            given.within_2sd(),
+            auto.rms()
+        );
+        assert!(raw.rms() > 1.0, "differences {:.3e}", raw.rms());
+        assert!(given.rms() <= 0.05, "seed {seed}: {:.3e} N·m", given.rms());
+        assert!(auto.rms() <= 0.05, "seed {seed}: {:.3e} N·m", auto.rms());
+        within += given.within_2sd();
+        z2 += given.z2();
+        total += given.error.len();
+    }
+    let fraction = within as f64 / total as f64;
+    let z_rms = (z2 / total as f64).sqrt();
+    eprintln!("within ±2σ: {fraction:.3}; RMS of error/σ {z_rms:.2}");
+    // The σ's cover the error (honest), and are not inflated far beyond it.
+    assert!(fraction >= 0.9, "{fraction}");
+    assert!((0.3..=1.2).contains(&z_rms), "RMS of error/σ {z_rms}");
+}
