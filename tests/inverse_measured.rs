@@ -157,3 +157,74 @@ fn noisy_samples_give_the_torque_within_its_sigma() {
     assert!(fraction >= 0.9, "{fraction}");
     assert!((0.3..=1.2).contains(&z_rms), "RMS of error/σ {z_rms}");
 }
+
+/// ∂(q, q̇, q̈, τ)/∂(z, ż, z̈) of a step against central differences of the classical
+/// solution, on the four-bar (one coordinate) and the robot (two).
+#[test]
+fn the_sensitivity_matches_finite_differences() {
+    for (scene, names, y) in [
+        ("fourbar-theta.yaml", vec!["theta"], vec![0.7, 1.3, -2.1]),
+        (
+            "pick-and-place.yaml",
+            vec!["motor1", "motor2"],
+            vec![-2.2, -0.9, 0.4, -0.3, 1.1, 0.8],
+        ),
+    ] {
+        let model = load(scene);
+        let (n, p) = (model.n(), names.len());
+        let idx: Vec<usize> = names
+            .iter()
+            .map(|c| model.names.iter().position(|m| m == c).unwrap())
+            .collect();
+        let t = 0.3;
+        let solve = |y: &[f64]| -> Vec<f64> {
+            let s = inverse::classical(&model, &idx, &[t], |_| {
+                (y[..p].to_vec(), y[p..2 * p].to_vec(), y[2 * p..].to_vec())
+            })
+            .unwrap();
+            let q = s.q.clone();
+            // `classical` returns q and the forces; q̇ and q̈ from the velocity and
+            // acceleration problems at that q.
+            let dq = mbfg::kinematics::solve_velocity(
+                &model,
+                &nalgebra::DVector::from_vec(q.clone()),
+                &idx,
+                &y[p..2 * p],
+            )
+            .unwrap();
+            let ddq = mbfg::kinematics::solve_acceleration(
+                &model,
+                &nalgebra::DVector::from_vec(q.clone()),
+                &dq,
+                &idx,
+                &y[2 * p..],
+            )
+            .unwrap();
+            let mut x = q;
+            x.extend(dq.iter());
+            x.extend(ddq.iter());
+            x.extend(idx.iter().map(|&i| s.forces[i]));
+            x
+        };
+        let x = solve(&y);
+        let mut sens = inverse::sensitivity::Sensitivity::new(model.clone(), idx.clone());
+        let j = sens.jacobian(t, &x).unwrap();
+        assert_eq!((j.nrows(), j.ncols()), (3 * n + p, 3 * p));
+        let h = 1e-6;
+        for c in 0..3 * p {
+            let (mut up, mut down) = (y.clone(), y.clone());
+            up[c] += h;
+            down[c] -= h;
+            let (xu, xd) = (solve(&up), solve(&down));
+            for r in 0..3 * n + p {
+                let fd = (xu[r] - xd[r]) / (2.0 * h);
+                let tol = 1e-6 * (1.0 + fd.abs());
+                assert!(
+                    (j[(r, c)] - fd).abs() <= tol,
+                    "{scene}: ∂x[{r}]/∂y[{c}] = {} against {fd}",
+                    j[(r, c)]
+                );
+            }
+        }
+    }
+}

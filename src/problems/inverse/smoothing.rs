@@ -15,11 +15,15 @@
 //! sample's state is the diagonal blocks of their inverse (selected inversion).
 //!
 //! q is chosen by maximum marginal likelihood (the "generalized maximum likelihood"
-//! of smoothing splines): −2 log p(y | q, σ) = r + log det H + (N − 1) log det(q Q_h)
-//! + N log σ² (constants dropped), r the whitened cost at the estimate and H its
-//! normal matrix. With σ unknown ([`SampleSigma::FromData`]) σ² is profiled out:
-//! σ̂² = r₁ / (N − 4), r₁ the cost at unit σ; the samples' own scatter about the
-//! smooth motion then sets σ.
+//! of smoothing splines), with constants dropped:
+//! −2 log p(y | q, σ) = r + log det H + (N − 1) log det(q Q_h) + Σ_k log σ_k²,
+//! r the whitened cost at the estimate and H its normal matrix. With σ unknown
+//! ([`SampleSigma::FromData`]) its scale is profiled out, σ̂² = r₁ / (N − 4) with r₁
+//! the cost at unit σ: the samples' own scatter about the smooth motion sets σ. Two
+//! shapes of σ_k then compete by that likelihood: the same for every sample, or
+//! proportional to each sample's rounding step (samples written to a fixed number of
+//! significant digits, whose rounding error is ten times smaller below each power of
+//! ten).
 
 use crate::error::{Error, Result};
 use crate::linalg::banded::{BandedCholesky, BlockTridiagonal};
