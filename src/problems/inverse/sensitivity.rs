@@ -9,8 +9,9 @@
 //! so ∂x/∂y = −G_x⁻¹ G_y = G_x⁻¹ [0; 0; I; 0]. G_x is the closed-form Jacobians of the
 //! factors that the inverse graph holds (each tested against finite differences), and
 //! the smoothing's covariance Σ_y then gives Σ_x ≈ (∂x/∂y) Σ_y (∂x/∂y)ᵀ to first order.
-//! Redundant constraint rows make G_x rank-deficient but consistent: the solve is a
-//! least-squares one (SVD) that drops them.
+//! Redundant constraint rows make G_x rank-deficient but consistent: the rows found
+//! redundant at the initial state are left out and the square rest solved by LU;
+//! where that fails (redundancy elsewhere along the motion), by least squares (SVD).
 
 use crate::error::{Error, Result};
 use crate::factors::{Dynamics, PositionConstraints, VelocityConstraints};
@@ -22,7 +23,9 @@ use std::sync::Arc;
 /// The factors of a step's equations and their scratch, reused along the run.
 pub struct Sensitivity {
     n: usize,
+    m: usize,
     idx: Vec<usize>,
+    redundant: Vec<usize>,
     factors: Vec<Box<dyn Factor>>,
     ws: Workspace,
 }
@@ -40,6 +43,8 @@ impl Sensitivity {
             .fold(faer::dyn_stack::StackReq::EMPTY, |r, f| r.or(f.scratch()));
         Sensitivity {
             n: model.n(),
+            m: model.m(),
+            redundant: model.redundant.clone(),
             idx,
             factors,
             ws: Workspace::new(req),
@@ -103,6 +108,21 @@ impl Sensitivity {
         let mut e = DMatrix::<f64>::zeros(rows.len(), 3 * p);
         for c in 0..3 * p {
             e[(selected_at + c, c)] = 1.0;
+        }
+        let m = self.m;
+        let kept: Vec<usize> = (0..rows.len())
+            .filter(|&i| !(i < 2 * m && self.redundant.contains(&(i % m))))
+            .collect();
+        if kept.len() == size {
+            let gk = g.select_rows(&kept);
+            let ek = e.select_rows(&kept);
+            if let Some(j) = gk.lu().solve(&ek) {
+                // Accepted where it also solves the rows left out (consistent).
+                let scale = g.amax() * j.amax().max(1.0);
+                if j.iter().all(|v| v.is_finite()) && (&g * &j - &e).amax() <= 1e-9 * scale {
+                    return Ok(j);
+                }
+            }
         }
         let svd = g.svd(true, true);
         let tol = 1e-12 * svd.singular_values.max();

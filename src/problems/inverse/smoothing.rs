@@ -304,7 +304,9 @@ impl ColumnSmoother {
                 .map_or(f64::INFINITY, |t| t.nll)
         };
         // Decades from 1e-30 to 1e12 (λ = q h⁷/σ²: the prior's snap over a step
-        // against the samples' noise).
+        // against the samples' noise). Beyond 1e12 the normal equations' condition
+        // (about λ) leaves too few digits: samples exact to round-off come out with
+        // the σ of λ = 1e12, about 1e-13 of a motion of order 1, not smaller.
         let (mut centre, mut best) = (f64::NAN, f64::INFINITY);
         for e in -30..=12 {
             let v = eval(e as f64);
@@ -387,11 +389,16 @@ impl ColumnSmoother {
         } else {
             1.0
         };
-        if !(s > 1e-15 * scale / unit && s.is_finite()) {
-            return Err(
-                "the samples lie on a cubic to round-off: no noise to estimate (give the sample σ)"
-                    .into(),
-            );
+        // Samples on a cubic to round-off (a coordinate held still, a ramp) have no
+        // scatter to measure: σ is then the round-off level of the samples.
+        let floor = 1e-13 * scale.max(1.0);
+        if profile && !(s * unit > floor) {
+            let mut fit = self.fit(y, dt, Some(floor))?;
+            fit.from_data = true;
+            return Ok(fit);
+        }
+        if !s.is_finite() {
+            return Err("the samples' scatter is not a finite number".into());
         }
         self.chol.inverse_diagonal_blocks(&mut self.cov);
         // Back to physical units: x_i · unit / dt^i, covariances alike, times s².
