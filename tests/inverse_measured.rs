@@ -78,10 +78,19 @@ impl Outcome {
 }
 
 fn run(model: &Arc<Model>, table: &Table, sigma: Option<SampleSigma>) -> Outcome {
+    run_in(model, table, sigma, Coordinates::Dependent)
+}
+
+fn run_in(
+    model: &Arc<Model>,
+    table: &Table,
+    sigma: Option<SampleSigma>,
+    coordinates: Coordinates,
+) -> Outcome {
     let theta = model.names.iter().position(|c| c == "theta").unwrap();
     let p = Prescription::from_table(model, table, "test").unwrap();
     let options = InverseOptions {
-        coordinates: Coordinates::Dependent,
+        coordinates,
         sample_sigma: sigma,
         ..InverseOptions::default()
     };
@@ -123,6 +132,20 @@ fn eight_digit_samples_give_the_exact_motions_torque() {
     assert!(raw.rms() > 5e-3, "today's differences: {:.3e}", raw.rms());
     assert!(smoothed.rms() <= 5e-4, "{:.3e} N·m", smoothed.rms());
     assert!(smoothed.lag1() > -0.2, "lag-1 {:.3}", smoothed.lag1());
+    // Independent coordinates solve the same smoothed motion: the same torque and σ.
+    let ic = run_in(
+        &model,
+        &table,
+        Some(SampleSigma::FromData),
+        Coordinates::Independent,
+    );
+    for k in 0..ic.error.len() {
+        assert!((ic.error[k] - smoothed.error[k]).abs() <= 1e-6, "step {k}");
+        assert!(
+            (ic.sd[k] - smoothed.sd[k]).abs() <= 1e-9 * (1.0 + smoothed.sd[k]),
+            "step {k}"
+        );
+    }
 }
 
 #[test]
