@@ -295,6 +295,8 @@ fn sample_sigma_writes_standard_deviations() {
         ("phi=1e-4", "`phi` is not a prescribed coordinate"),
         ("0", "must be a positive number"),
         ("theta=1e-4,theta=1e-4", "given twice"),
+        ("1e-300", "below the samples' round-off"),
+        ("1e300", "exceeds 1e6 times the samples' spread"),
     ] {
         let out = mbfg(&[
             "inverse",

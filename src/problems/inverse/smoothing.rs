@@ -128,6 +128,11 @@ pub fn smooth(
             SampleSigma::Given(s) => Some(s[c]),
             SampleSigma::FromData => None,
         };
+        if let Some(s) = given {
+            check_given(s, &y).map_err(|m| {
+                Error::InvalidArgument(format!("the sample σ of `{}` ({s:e}) {m}", names[c]))
+            })?;
+        }
         let fit = smoother.fit(&y, dt, given);
         let fit = fit.map_err(|e| {
             Error::InvalidArgument(format!("smoothing the samples of `{}`: {e}", names[c]))
@@ -147,6 +152,31 @@ pub fn smooth(
         out.columns.push(fit);
     }
     Ok(out)
+}
+
+/// A given σ within what double precision can tell apart: not below 1e-15 of the
+/// samples' size (their round-off), not above 1e6 times their spread (where no sample
+/// carries information).
+fn check_given(sigma: f64, y: &[f64]) -> std::result::Result<(), String> {
+    let size = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let (lo, hi) = y
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+            (a.min(*v), b.max(*v))
+        });
+    let spread = (hi - lo).max(1e-15 * size).max(1e-150);
+    if sigma < 1e-15 * size {
+        return Err(format!(
+            "is below the samples' round-off (1e-15 of their size {size:.3e}): give at least {:.3e}",
+            1e-15 * size
+        ));
+    }
+    if sigma > 1e6 * spread {
+        return Err(format!(
+            "exceeds 1e6 times the samples' spread ({spread:.3e}): such samples carry no information"
+        ));
+    }
+    Ok(())
 }
 
 /// F of one unit step and the prior's Q_1⁻¹ and log det Q_1 (time in steps).
