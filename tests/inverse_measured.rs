@@ -45,6 +45,7 @@ fn eight_digits(v: f64) -> f64 {
 struct Outcome {
     error: Vec<f64>,
     sd: Vec<f64>,
+    fit: Option<inverse::ColumnFit>,
 }
 
 impl Outcome {
@@ -111,7 +112,8 @@ fn run_in(
     if let Some(fit) = &sol.summary.smoothing {
         eprintln!("smoothing: {fit:?}; {:?}", sol.summary.wall_time);
     }
-    Outcome { error, sd }
+    let fit = sol.summary.smoothing.map(|f| f[0].clone());
+    Outcome { error, sd, fit }
 }
 
 #[test]
@@ -132,6 +134,11 @@ fn eight_digit_samples_give_the_exact_motions_torque() {
     assert!(raw.rms() > 5e-3, "today's differences: {:.3e}", raw.rms());
     assert!(smoothed.rms() <= 5e-4, "{:.3e} N·m", smoothed.rms());
     assert!(smoothed.lag1() > -0.2, "lag-1 {:.3}", smoothed.lag1());
+    // σ from the data: the rounding of 8 digits, whose step above 1 is 1e-7 (σ of a
+    // uniform rounding error 1e-7/√12 = 2.89e-8).
+    let fit = smoothed.fit.clone().unwrap();
+    assert_eq!(fit.noise, inverse::NoiseShape::Rounding { digits: 8 });
+    assert!((fit.sigma / 2.887e-8 - 1.0).abs() < 0.1, "{fit:?}");
     // Independent coordinates solve the same smoothed motion: the same torque and σ.
     let ic = run_in(
         &model,
@@ -169,6 +176,12 @@ fn noisy_samples_give_the_torque_within_its_sigma() {
         assert!(raw.rms() > 1.0, "differences {:.3e}", raw.rms());
         assert!(given.rms() <= 0.05, "seed {seed}: {:.3e} N·m", given.rms());
         assert!(auto.rms() <= 0.05, "seed {seed}: {:.3e} N·m", auto.rms());
+        let fit = auto.fit.clone().unwrap();
+        assert_eq!(fit.noise, inverse::NoiseShape::Uniform);
+        assert!(
+            (fit.sigma / 1e-4 - 1.0).abs() < 0.05,
+            "seed {seed}: {fit:?}"
+        );
         within += given.within_2sd();
         z2 += given.z2();
         total += given.error.len();
