@@ -304,10 +304,6 @@ pub fn solve(
     check_prescription(&model, prescription)?;
     let n = model.n();
     let (steps, idx) = (prescription.steps, &prescription.indices);
-    // One prescribed coordinate per degree of freedom: each step's motion is known from
-    // its samples, the hard constraints and the prescribed derivatives, so the graph
-    // has no integrators. Kept soft beside them, their truncation error pulled q̈ off
-    // the acceleration constraints (2e-6 of the forces' peak on the four-bar, DC).
     let names: Vec<&str> = idx.iter().map(|&i| model.names[i].as_str()).collect();
     let smoothed = match &options.sample_sigma {
         None => None,
@@ -319,6 +315,11 @@ pub fn solve(
             &names,
         )?),
     };
+    // One prescribed coordinate per degree of freedom: each step's motion is known from
+    // its samples (or their smoothed values), the hard constraints and the prescribed
+    // derivatives, so the graph has no integrators. Kept soft beside them, their
+    // truncation error pulled q̈ off the acceleration constraints (2e-6 of the forces'
+    // peak on the four-bar, DC).
     let smoothed_prescription;
     let (prescription, (rates, accelerations)) = match &smoothed {
         None => (prescription, prescription.derivatives()),
