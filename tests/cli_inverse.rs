@@ -310,3 +310,35 @@ fn sample_sigma_writes_standard_deviations() {
         assert!(line.contains(says), "{line}");
     }
 }
+
+/// A sample far from the smoothed motion (a glitch) is named in a warning.
+#[test]
+fn sample_sigma_warns_of_a_glitch() {
+    let text = rows(
+        |k| {
+            if k == 0 {
+                return "t,theta".into();
+            }
+            let t = (k - 1) as f64 * 0.005;
+            let glitch = if k == 301 { 0.01 } else { 0.0 };
+            format!("{t},{}", 1.2 * (1.0 - (2.0 * t).cos()) + glitch)
+        },
+        602,
+    );
+    let path = temp("glitch.csv", &text);
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        path.to_str().unwrap(),
+        "--sample-sigma",
+        "auto",
+    ]);
+    std::fs::remove_file(&path).ok();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("warning: the sample of theta at t = 1.5 (line 302) is "),
+        "{err}"
+    );
+}

@@ -109,6 +109,10 @@ pub fn run(args: InverseArgs) -> Result<(), Failure> {
     )
 }
 
+/// A sample this many of its σ's from the smoothed motion is warned about: a Gaussian
+/// error goes that far once in about 10⁹ samples.
+const OUTLIER: f64 = 6.0;
+
 /// `--sample-sigma`'s value for the prescribed `columns`: `auto`, one σ, or
 /// `c=σ,...` naming every column once.
 fn sample_sigma(text: &str, columns: &[&str]) -> Result<mbfg::inverse::SampleSigma, String> {
@@ -260,6 +264,16 @@ fn inverse(
     if let Some(fits) = &s.smoothing {
         let names: Vec<&str> = smoothing_names.iter().map(String::as_str).collect();
         line += &smoothing_words(&names, fits);
+        for (name, f) in names.iter().zip(fits) {
+            let (z, k) = f.worst_residual;
+            if z > OUTLIER {
+                eprintln!(
+                    "warning: the sample of {name} at t = {} (line {}) is {z:.0}σ from the smoothed motion: a glitch, an angle written wrapped, or a σ too small; the smoothing follows it only partly",
+                    sol.trajectory.t[k],
+                    k + 2
+                );
+            }
+        }
     }
     let to_file = output.to_file();
     // Computed only for what is written.

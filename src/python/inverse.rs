@@ -47,6 +47,8 @@ fn inverse_result<'py>(py: Python<'py>, sol: &InverseSolution) -> PyResult<Bound
             d.set_item("digits", digits)?;
             d.set_item("intensity", f.intensity)?;
             d.set_item("residual_rms", f.residual_rms)?;
+            d.set_item("worst_residual", f.worst_residual.0)?;
+            d.set_item("worst_sample", f.worst_residual.1)?;
             list.append(d)?;
         }
         summary.set_item("smoothing", list)?;

@@ -51,6 +51,10 @@ pub struct ColumnFit {
     pub intensity: f64,
     /// RMS of the samples' difference from the smoothed motion.
     pub residual_rms: f64,
+    /// The largest difference of a sample from the smoothed motion in units of that
+    /// sample's σ, and the sample's index: far beyond a few σ it is a glitch, an angle
+    /// written wrapped, or a σ given too small.
+    pub worst_residual: (f64, usize),
     /// How σ varies from sample to sample.
     pub noise: NoiseShape,
 }
@@ -434,11 +438,18 @@ impl ColumnSmoother {
         // Back to physical units: x_i · unit / dt^i, covariances alike, times s².
         let to_physical: [f64; D] = std::array::from_fn(|i| unit / dt.powi(i as i32));
         let mut residual = 0.0;
+        let mut worst = (0.0f64, 0);
         for k in 0..n {
             for (i, f) in to_physical.iter().enumerate() {
                 self.x[k * D + i] *= f;
             }
-            residual += (self.x[k * D] - y[k]).powi(2);
+            let r = self.x[k * D] - y[k];
+            residual += r * r;
+            // σ_k = σ ρ_k = unit · s / √weight_k.
+            let z = r.abs() * weights[k].sqrt() / (unit * s);
+            if z > worst.0 {
+                worst = (z, k);
+            }
             let cov = &mut self.cov[k];
             for i in 0..D {
                 for j in 0..D {
@@ -453,6 +464,7 @@ impl ColumnSmoother {
             noise,
             intensity: lambda * sigma * sigma / dt.powi(7),
             residual_rms: (residual / n as f64).sqrt(),
+            worst_residual: worst,
         })
     }
 }
