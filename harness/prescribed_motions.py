@@ -7,16 +7,17 @@ or python -m harness.prescribed_motions.
 import argparse
 import math
 import pathlib
+import random
 
 OUT = pathlib.Path(__file__).resolve().parent.parent / "scenes" / "trajectories"
 
 
-def write(name, columns, dt, t_end, motion, out=OUT):
+def write(name, columns, dt, t_end, motion, out=OUT, fmt=repr):
     rows = round(t_end / dt) + 1
     lines = [",".join(["t"] + columns)]
     for k in range(rows):
         t = k * dt
-        lines.append(",".join(repr(v) for v in [t] + motion(t)))
+        lines.append(",".join([repr(t)] + [fmt(v) for v in motion(t)]))
     (out / name).write_text("\n".join(lines) + "\n")
 
 
@@ -30,6 +31,13 @@ def main(argv=None):
     # The paper's four-bar (section 7.2): crank angle 1.2 (1 - cos 2t) rad, 10 s at 5 ms.
     write("fourbar-theta.csv", ["theta"], 5e-3, 10.0,
           lambda t: [1.2 * (1.0 - math.cos(2.0 * t))], out)
+    # The same as measured data (`mbfg inverse --sample-sigma`): written to 8
+    # significant digits, and with 1e-4 rad Gaussian noise (Python's random, seed 1).
+    write("fourbar-theta-8digits.csv", ["theta"], 5e-3, 10.0,
+          lambda t: [1.2 * (1.0 - math.cos(2.0 * t))], out, fmt=lambda v: f"{v:.8g}")
+    noise = random.Random(1)
+    write("fourbar-theta-noisy.csv", ["theta"], 5e-3, 10.0,
+          lambda t: [1.2 * (1.0 - math.cos(2.0 * t)) + noise.gauss(0.0, 1e-4)], out)
     # The pick-and-place robot: both motors from rest at the scene's configuration
     # (motor1 = -3π/4, motor2 = -π/4) through one 5 s cycle; with τ = 2πt/5 and
     # c = (1 - cos τ)/2 the plate goes down and sideways and back:

@@ -221,3 +221,124 @@ fn a_first_sample_unreachable_from_the_placement_says_how_to_place_it() {
     );
     assert!(line.contains("place the mechanism off it"), "{line}");
 }
+
+/// Without `--sample-sigma` the output is today's, bit for bit: the files were written
+/// by `mbfg inverse` before the option existed (commit 628d281), DC and IC.
+#[test]
+fn without_sample_sigma_the_output_is_unchanged() {
+    for coords in ["dc", "ic"] {
+        let out_csv =
+            std::env::temp_dir().join(format!("mbfg-inv-{}-same-{coords}.csv", std::process::id()));
+        let out = mbfg(&[
+            "inverse",
+            "scenes/fourbar-theta.yaml",
+            "--trajectory",
+            "tests/data/inverse/fourbar-theta-1s.csv",
+            "--coords",
+            coords,
+            "--out",
+            out_csv.to_str().unwrap(),
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let written = std::fs::read(&out_csv).unwrap();
+        std::fs::remove_file(&out_csv).ok();
+        let expected =
+            std::fs::read(format!("tests/data/inverse/fourbar-theta-1s-{coords}.csv")).unwrap();
+        assert!(
+            written == expected,
+            "{coords}: the CSV differs from the recorded one"
+        );
+    }
+}
+
+/// `--sample-sigma` adds the σ columns after the standard ones, names the smoothing
+/// in the summary, and refuses a malformed value with exit 2.
+#[test]
+fn sample_sigma_writes_standard_deviations() {
+    let out_csv = std::env::temp_dir().join(format!("mbfg-inv-{}-sd.csv", std::process::id()));
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        "tests/data/inverse/fourbar-theta-1s.csv",
+        "--sample-sigma",
+        "theta=1e-6",
+        "--out",
+        out_csv.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        summary.contains("samples smoothed: theta σ 1.000e-6 (given)"),
+        "{summary}"
+    );
+    let text = std::fs::read_to_string(&out_csv).unwrap();
+    std::fs::remove_file(&out_csv).ok();
+    let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
+    let q = header.iter().position(|c| *c == "Q:theta").unwrap();
+    let sd = header.iter().position(|c| *c == "sd:Q:theta").unwrap();
+    assert_eq!(header[q + 1], "sd:q:P1.x", "{header:?}");
+    assert_eq!(sd, header.len() - 1);
+    for line in text.lines().skip(1) {
+        let v: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
+        assert!(v[sd] > 0.0 && v[sd] < 0.1, "{line}");
+    }
+    for (bad, says) in [
+        ("phi=1e-4", "`phi` is not a prescribed coordinate"),
+        ("0", "must be a positive number"),
+        ("theta=1e-4,theta=1e-4", "given twice"),
+        ("1e-300", "below the samples' round-off"),
+        ("1e300", "exceeds 1e6 times the samples' spread"),
+    ] {
+        let out = mbfg(&[
+            "inverse",
+            "scenes/fourbar-theta.yaml",
+            "--trajectory",
+            "tests/data/inverse/fourbar-theta-1s.csv",
+            "--sample-sigma",
+            bad,
+        ]);
+        let line = one_error_line(&out, 2);
+        assert!(line.contains(says), "{line}");
+    }
+}
+
+/// A sample far from the smoothed motion (a glitch) is named in a warning.
+#[test]
+fn sample_sigma_warns_of_a_glitch() {
+    let text = rows(
+        |k| {
+            if k == 0 {
+                return "t,theta".into();
+            }
+            let t = (k - 1) as f64 * 0.005;
+            let glitch = if k == 301 { 0.01 } else { 0.0 };
+            format!("{t},{}", 1.2 * (1.0 - (2.0 * t).cos()) + glitch)
+        },
+        602,
+    );
+    let path = temp("glitch.csv", &text);
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        path.to_str().unwrap(),
+        "--sample-sigma",
+        "auto",
+    ]);
+    std::fs::remove_file(&path).ok();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("warning: the sample of theta at t = 1.5 (line 302) is "),
+        "{err}"
+    );
+}

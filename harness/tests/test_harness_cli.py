@@ -20,7 +20,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 ENTRY_POINTS = ["reference", "report", "timing", "robustness", "hard_cases", "compare",
                 "crosscheck", "coverage", "ida",
                 "exudyn_ref", "pinocchio_ref", "prescribed_motions", "regression", "trajectory",
-                "generators", "scaling", "scale_scenes"]
+                "generators", "scaling", "scale_scenes", "inverse_measured"]
 # What a runaway entry point would write into the repository.
 WATCHED = ["reports", "references", "tests/data", "scenes/trajectories", "scenes/scale"]
 

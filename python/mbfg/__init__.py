@@ -399,27 +399,32 @@ def _dict(values):
 
 def inverse(scene: str | os.PathLike, trajectory: str | os.PathLike | Mapping[str, Sequence[float]],
             coords: str = "dc", start: str = "kinematic", max_iterations: int = 50,
-            effects: Mapping[str, Callable] | None = None) -> Result:
+            effects: Mapping[str, Callable] | None = None,
+            sample_sigma: "float | str | Mapping[str, float] | None" = None) -> Result:
     """Inverse dynamics, as `mbfg inverse` runs it. `trajectory` is a CSV path or a
     mapping {"t": times, "<coordinate>": values, ...}. One batch solve: Ctrl-C takes
     effect when it returns. A SolveError carries the last iterate as `.result`.
     `coords` is "dc" or "ic" (as `mbfg inverse --coords`), `start` how the batch solve
     starts ("kinematic": the classical kinematic solution; "staged": the paper's four
     stages from the scene's configuration), `max_iterations` the solver's bound. `effects` adds loads computed in
-    Python, as in `simulate`. The result's `Q` holds the generalized forces."""
+    Python, as in `simulate`. The result's `Q` holds the generalized forces.
+    `sample_sigma` (as `mbfg inverse --sample-sigma`) treats the samples as
+    measurements with noise σ: a number for every column, a mapping {coordinate: σ},
+    or "auto" (σ from the data); the result then has the columns sd:q:<c>, sd:dq:<c>,
+    sd:ddq:<c>, sd:Q:<c> and `summary["smoothing"]`, one dict per prescribed column."""
     if isinstance(scene, Model):
         scene = scene._m
     loads = _effects(effects)
     if isinstance(trajectory, Mapping):
         columns, values = _table(trajectory)
         return _run(_native.inverse, scene, None, columns, values, coords, start, max_iterations,
-                    loads)
+                    loads, _dict(sample_sigma))
     if not isinstance(trajectory, (str, os.PathLike)):
         raise InvalidArgument(_clip("trajectory must be a CSV path or a mapping "
                                     f"{{column: values}}, got {trajectory!r:.60} "
                                     f"({type(trajectory).__name__})"))
     return _run(_native.inverse, scene, trajectory, None, None, coords, start, max_iterations,
-                loads)
+                loads, _dict(sample_sigma))
 
 
 def measure(scene: str | os.PathLike | Model,

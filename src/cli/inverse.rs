@@ -34,6 +34,17 @@ pub struct InverseArgs {
     /// in `.gz`); the summary then goes to standard output.
     #[arg(long, value_name = "FILE.csv")]
     out: Option<PathBuf>,
+    /// Treat the prescribed samples as measurements with noise σ: smooth them (a
+    /// motion whose fourth derivative is white noise, its intensity by maximum
+    /// likelihood), solve from the smoothed motion, and write the standard deviations
+    /// (`sd:q:<c>`, `sd:dq:<c>`, `sd:ddq:<c>`, `sd:Q:<c>`) after the standard
+    /// columns. S: one σ for every column (`1e-4`), one per column
+    /// (`theta=1e-4,phi=2e-4`, every prescribed column named once), or `auto`: σ
+    /// chosen from the data (the samples' scatter about the smooth motion, or the
+    /// rounding of their printed digits, whichever is likelier), printed in the
+    /// summary. Without it, the samples are exact (fourth-order differences).
+    #[arg(long = "sample-sigma", value_name = "S|auto|c=S,...")]
+    sample_sigma: Option<String>,
     #[command(flatten)]
     written: WrittenArgs,
     /// Write the result of a solve that did not converge too, to
@@ -64,6 +75,7 @@ pub fn run(args: InverseArgs) -> Result<(), Failure> {
         max_iterations,
         start,
         out,
+        sample_sigma,
         written,
         keep_unconverged,
     } = args;
@@ -89,18 +101,125 @@ pub fn run(args: InverseArgs) -> Result<(), Failure> {
     inverse(
         model,
         &trajectory,
-        &options,
+        options,
+        sample_sigma.as_deref(),
         output,
         keep_unconverged,
         &written,
     )
 }
 
+/// A sample this many of its σ's from the smoothed motion is warned about: a Gaussian
+/// error goes that far once in about 10⁹ samples.
+const OUTLIER: f64 = 6.0;
+
+/// `--sample-sigma`'s value for the prescribed `columns`: `auto`, one σ, or
+/// `c=σ,...` naming every column once.
+fn sample_sigma(text: &str, columns: &[&str]) -> Result<mbfg::inverse::SampleSigma, String> {
+    use mbfg::inverse::SampleSigma;
+    let text = text.trim();
+    let number = |v: &str, what: &str| -> Result<f64, String> {
+        match v.trim().parse::<f64>() {
+            Ok(x) if x.is_finite() && x > 0.0 => Ok(x),
+            _ => Err(format!(
+                "--sample-sigma: {what} must be a positive number, got `{}`",
+                mbfg::expr::excerpt(v.trim(), 40)
+            )),
+        }
+    };
+    if text == "auto" {
+        return Ok(SampleSigma::FromData);
+    }
+    if !text.contains('=') {
+        return Ok(SampleSigma::Given(vec![number(text, "σ")?; columns.len()]));
+    }
+    let mut given: Vec<Option<f64>> = vec![None; columns.len()];
+    for part in text.split(',') {
+        let Some((name, value)) = part.split_once('=') else {
+            return Err(format!(
+                "--sample-sigma: `{}` is not `<coordinate>=<σ>`",
+                mbfg::expr::excerpt(part.trim(), 40)
+            ));
+        };
+        let name = name.trim();
+        let Some(c) = columns.iter().position(|c| *c == name) else {
+            return Err(format!(
+                "--sample-sigma: `{}` is not a prescribed coordinate; the trajectory's are {}",
+                mbfg::expr::excerpt(name, 40),
+                columns.join(", ")
+            ));
+        };
+        if given[c].is_some() {
+            return Err(format!("--sample-sigma: `{name}` is given twice"));
+        }
+        given[c] = Some(number(value, &format!("the σ of `{name}`"))?);
+    }
+    let missing: Vec<&str> = columns
+        .iter()
+        .zip(&given)
+        .filter(|(_, g)| g.is_none())
+        .map(|(c, _)| *c)
+        .collect();
+    if !missing.is_empty() {
+        return Err(format!(
+            "--sample-sigma: no σ for {} (name every prescribed coordinate, or give one σ for all)",
+            missing.join(", ")
+        ));
+    }
+    Ok(SampleSigma::Given(given.into_iter().flatten().collect()))
+}
+
+/// The summary's words on the smoothing: per column its σ (given, from the scatter,
+/// or from the rounding of the printed digits) and the samples' RMS residual.
+fn smoothing_words(names: &[&str], fits: &[mbfg::inverse::ColumnFit]) -> String {
+    let parts: Vec<String> = names
+        .iter()
+        .zip(fits)
+        .map(|(name, f)| {
+            let how = match (f.from_data, f.noise) {
+                (false, _) => "given".to_string(),
+                (true, mbfg::inverse::NoiseShape::Uniform) => "from the data".to_string(),
+                (true, mbfg::inverse::NoiseShape::Rounding { digits }) => format!(
+                    "from the data: rounding of {digits} significant digits, σ at the largest step"
+                ),
+            };
+            format!(
+                "{name} σ {:.3e} ({how}), residual RMS {:.3e}",
+                f.sigma, f.residual_rms
+            )
+        })
+        .collect();
+    format!("; samples smoothed: {}", parts.join(", "))
+}
+
+/// The standard deviations as columns `sd:q:<c>`…, `sd:dq:<c>`…, `sd:ddq:<c>`…,
+/// `sd:Q:<c>`…, row-major steps × 4n.
+fn sigma_columns(names: &[String], s: &mbfg::inverse::Sigmas) -> mbfg::derived::Columns {
+    let n = names.len();
+    let steps = s.q.len().checked_div(n).unwrap_or(0);
+    let mut columns = Vec::with_capacity(4 * n);
+    for part in ["q", "dq", "ddq", "Q"] {
+        columns.extend(names.iter().map(|c| format!("sd:{part}:{c}")));
+    }
+    let mut values = Vec::with_capacity(steps * 4 * n);
+    for k in 0..steps {
+        for part in [&s.q, &s.dq, &s.ddq, &s.forces] {
+            values.extend_from_slice(&part[k * n..(k + 1) * n]);
+        }
+    }
+    mbfg::derived::Columns {
+        names: columns,
+        values,
+    }
+}
+
 /// `mbfg inverse`: reads the prescription, solves, writes the CSV and the summary.
+#[allow(clippy::too_many_arguments)] // the command's options, one each
 fn inverse(
     model: Model,
     trajectory: &Path,
-    options: &mbfg::inverse::InverseOptions,
+    mut options: mbfg::inverse::InverseOptions,
+    sample_sigma_arg: Option<&str>,
     output: Output,
     keep_unconverged: bool,
     written: &WrittenArgs,
@@ -116,13 +235,23 @@ fn inverse(
         mbfg::inverse::Prescription::from_table(&model, &table, &trajectory.display().to_string())
             .map_err(plain)?;
     let written = Written::new(written, prescription.dt)?;
+    let columns: Vec<&str> = prescription
+        .indices
+        .iter()
+        .map(|&i| model.names[i].as_str())
+        .collect();
+    if let Some(text) = sample_sigma_arg {
+        options.sample_sigma = Some(sample_sigma(text, &columns).map_err(Failure::Input)?);
+    }
+    let smoothing_names: Vec<String> = columns.iter().map(|c| c.to_string()).collect();
     let model = Arc::new(model);
-    let sol = mbfg::inverse::solve(model.clone(), &prescription, options).map_err(|e| match e {
-        Error::InvalidArgument(m) => Failure::Input(m),
-        other => Failure::Run(plain(other)),
-    })?;
+    let sol =
+        mbfg::inverse::solve(model.clone(), &prescription, &options).map_err(|e| match e {
+            Error::InvalidArgument(m) => Failure::Input(m),
+            other => Failure::Run(plain(other)),
+        })?;
     let s = &sol.summary;
-    let line = format!(
+    let mut line = format!(
         "{} steps (dt = {} s, batch) in {:.3} s; {} LM iterations ({}); worst tracking error {:.2e}; worst |Φ| {:.2e}",
         s.steps,
         super::seconds(prescription.dt),
@@ -132,9 +261,29 @@ fn inverse(
         s.worst_tracking,
         s.worst_phi
     );
+    if let Some(fits) = &s.smoothing {
+        let names: Vec<&str> = smoothing_names.iter().map(String::as_str).collect();
+        line += &smoothing_words(&names, fits);
+        for (name, f) in names.iter().zip(fits) {
+            let (z, k) = f.worst_residual;
+            if z > OUTLIER {
+                eprintln!(
+                    "warning: the sample of {name} at t = {} (line {}) is {z:.0}σ from the smoothed motion: a glitch, an angle written wrapped, or a σ too small; the smoothing follows it only partly",
+                    sol.trajectory.t[k],
+                    k + 2
+                );
+            }
+        }
+    }
     let to_file = output.to_file();
     // Computed only for what is written.
-    let prepare = || written.prepare(&model, &sol.trajectory, Some(&sol.forces));
+    let prepare = || {
+        let prepared = written.prepare(&model, &sol.trajectory, Some(&sol.forces))?;
+        Ok::<_, Failure>(match &sol.sigmas {
+            Some(sd) => prepared.with_leading(sigma_columns(&model.names, sd)),
+            None => prepared,
+        })
+    };
     let forces = Some(sol.forces.as_slice());
     if s.report.termination != mbfg::solver::Termination::Converged {
         let why = mbfg::Error::NotConverged {

@@ -80,6 +80,31 @@ pub struct Prepared {
 }
 
 impl Prepared {
+    /// Puts `columns` (row-major steps × names, every step) before the optional
+    /// ones: the standard deviations of an estimate.
+    pub fn with_leading(mut self, columns: mbfg::derived::Columns) -> Self {
+        let steps = if columns.names.is_empty() {
+            0
+        } else {
+            columns.values.len() / columns.names.len()
+        };
+        self.extra = Some(match self.extra.take() {
+            None => columns,
+            Some(rest) => {
+                let (a, b) = (columns.names.len(), rest.names.len());
+                let mut values = Vec::with_capacity(steps * (a + b));
+                for k in 0..steps {
+                    values.extend_from_slice(&columns.values[k * a..(k + 1) * a]);
+                    values.extend_from_slice(&rest.values[k * b..(k + 1) * b]);
+                }
+                let mut names = columns.names;
+                names.extend(rest.names);
+                mbfg::derived::Columns { names, values }
+            }
+        });
+        self
+    }
+
     pub fn csv<'a>(&'a self, forces: Option<&'a [f64]>) -> mbfg::io::CsvOptions<'a> {
         mbfg::io::CsvOptions {
             forces,

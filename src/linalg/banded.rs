@@ -339,6 +339,19 @@ impl BandedCholesky {
         }
     }
 
+    /// log det H = 2 Σ log L_ii of the last factor H = LLᵀ (what a Gaussian model's
+    /// marginal likelihood needs).
+    pub fn log_determinant(&self) -> f64 {
+        let mut sum = 0.0;
+        for k in 0..self.blocks {
+            let (dk, at) = (self.dims[k], self.diag_at[k]);
+            for i in 0..dk {
+                sum += self.l[at + i * dk + i].ln();
+            }
+        }
+        2.0 * sum
+    }
+
     /// Solves H x = b in place (b with stride s per block; entries outside the active
     /// parts come out 0).
     pub fn solve(&self, b: &mut [f64]) {

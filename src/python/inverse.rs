@@ -11,6 +11,7 @@ use crate::inverse::{self, InverseOptions, InverseSolution, Prescription, Start}
 use crate::io::{read_table, Table};
 use crate::solver::Termination;
 use crate::Error;
+use numpy::PyArray1;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyString};
 
@@ -32,9 +33,115 @@ fn inverse_result<'py>(py: Python<'py>, sol: &InverseSolution) -> PyResult<Bound
     summary.set_item("cost", s.report.cost)?;
     summary.set_item("interrupted", py.None())?;
     summary.set_item("complete", converged)?;
+    if let (Some(fits), Some(sd)) = (&s.smoothing, &sol.sigmas) {
+        let list = PyList::empty(py);
+        for f in fits {
+            let d = PyDict::new(py);
+            d.set_item("sigma", f.sigma)?;
+            d.set_item("from_data", f.from_data)?;
+            let (noise, digits) = match f.noise {
+                inverse::NoiseShape::Uniform => ("uniform", None),
+                inverse::NoiseShape::Rounding { digits } => ("rounding", Some(digits)),
+            };
+            d.set_item("noise", noise)?;
+            d.set_item("digits", digits)?;
+            d.set_item("intensity", f.intensity)?;
+            d.set_item("residual_rms", f.residual_rms)?;
+            d.set_item("worst_residual", f.worst_residual.0)?;
+            d.set_item("worst_sample", f.worst_residual.1)?;
+            list.append(d)?;
+        }
+        summary.set_item("smoothing", list)?;
+        // The standard deviations as the CLI writes them: sd:q, sd:dq, sd:ddq, sd:Q.
+        let names = &sol.trajectory.names;
+        let n = names.len();
+        let mut columns = Vec::with_capacity(4 * n);
+        for part in ["q", "dq", "ddq", "Q"] {
+            columns.extend(names.iter().map(|c| format!("sd:{part}:{c}")));
+        }
+        let steps = sd.q.len().checked_div(n).unwrap_or(0);
+        let mut values = Vec::with_capacity(steps * 4 * n);
+        for k in 0..steps {
+            for part in [&sd.q, &sd.dq, &sd.ddq, &sd.forces] {
+                values.extend_from_slice(&part[k * n..(k + 1) * n]);
+            }
+        }
+        out.set_item("extra_columns", columns)?;
+        out.set_item("extra", PyArray1::from_vec(py, values))?;
+    } else {
+        summary.set_item("smoothing", py.None())?;
+    }
     out.set_item("summary", summary)?;
     out.set_item("failures", PyList::empty(py))?;
     Ok(out)
+}
+
+/// `sample_sigma`: None, a number for every prescribed column, "auto", or a dict
+/// {coordinate: σ} naming every prescribed column.
+fn arg_sample_sigma(
+    value: &Bound<'_, PyAny>,
+    columns: &[&str],
+) -> PyResult<Option<inverse::SampleSigma>> {
+    use inverse::SampleSigma;
+    if value.is_none() {
+        return Ok(None);
+    }
+    let positive = |v: &Bound<'_, PyAny>, what: &str| -> PyResult<f64> {
+        match v.extract::<f64>() {
+            Ok(x) if x.is_finite() && x > 0.0 && !v.is_instance_of::<pyo3::types::PyBool>() => {
+                Ok(x)
+            }
+            _ => Err(invalid(format!(
+                "{what} must be a positive number, got {}",
+                describe(v)
+            ))),
+        }
+    };
+    if let Ok(text) = value.extract::<String>() {
+        if text == "auto" {
+            return Ok(Some(SampleSigma::FromData));
+        }
+        return Err(invalid(format!(
+            "sample_sigma must be None, a positive number, \"auto\" or a dict {{coordinate: σ}}, got {}",
+            describe(value)
+        )));
+    }
+    if let Ok(dict) = value.cast::<PyDict>() {
+        let mut given: Vec<Option<f64>> = vec![None; columns.len()];
+        for (k, v) in dict.iter() {
+            let name: String = k.extract().map_err(|_| {
+                invalid(format!(
+                    "sample_sigma: keys must be coordinate names, got {}",
+                    describe(&k)
+                ))
+            })?;
+            let Some(c) = columns.iter().position(|c| *c == name) else {
+                return Err(invalid(format!(
+                    "sample_sigma: '{}' is not a prescribed coordinate; the trajectory's are {}",
+                    one_line(&name).chars().take(60).collect::<String>(),
+                    columns.join(", ")
+                )));
+            };
+            given[c] = Some(positive(&v, &format!("sample_sigma['{name}']"))?);
+        }
+        let missing: Vec<&str> = columns
+            .iter()
+            .zip(&given)
+            .filter(|(_, g)| g.is_none())
+            .map(|(c, _)| *c)
+            .collect();
+        if !missing.is_empty() {
+            return Err(invalid(format!(
+                "sample_sigma: no σ for {} (name every prescribed coordinate, or give one σ for all)",
+                missing.join(", ")
+            )));
+        }
+        return Ok(Some(SampleSigma::Given(
+            given.into_iter().flatten().collect(),
+        )));
+    }
+    let v = positive(value, "sample_sigma")?;
+    Ok(Some(SampleSigma::Given(vec![v; columns.len()])))
 }
 
 /// The prescribed motion given as columns and row-major values.
@@ -84,7 +191,7 @@ pub(super) fn table_from(columns: &Bound<'_, PyAny>, values: &Bound<'_, PyAny>) 
 /// of a table. Every argument is required (`mbfg.inverse` gives the defaults). One
 /// batch solve: Ctrl-C takes effect when it returns.
 #[pyfunction]
-#[pyo3(signature = (scene, trajectory, columns, values, coords, start, max_iterations, effects))]
+#[pyo3(signature = (scene, trajectory, columns, values, coords, start, max_iterations, effects, sample_sigma=None))]
 #[pyo3(name = "inverse")]
 #[allow(clippy::too_many_arguments)] // the CLI's options, one keyword each
 pub(super) fn inverse_run<'py>(
@@ -97,6 +204,7 @@ pub(super) fn inverse_run<'py>(
     start: &Bound<'py, PyAny>,
     max_iterations: &Bound<'py, PyAny>,
     effects: &Bound<'py, PyAny>,
+    sample_sigma: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
         let loads = arg_effects(effects)?;
@@ -130,6 +238,14 @@ pub(super) fn inverse_run<'py>(
             ..InverseOptions::default()
         };
         options.settings.max_iterations = max_iterations;
+        if let Some(sigma) = sample_sigma {
+            let names: Vec<&str> = prescription
+                .indices
+                .iter()
+                .map(|&i| model.names[i].as_str())
+                .collect();
+            options.sample_sigma = arg_sample_sigma(sigma, &names)?;
+        }
         let sol = py
             .detach(|| inverse::solve(model, &prescription, &options))
             .map_err(

@@ -15,6 +15,17 @@
 //! The solve starts from the classical answer (position, velocity and acceleration
 //! problems along the samples, then the augmented system for Q), so a single batch
 //! solve converges in a few iterations.
+//!
+//! Measured samples ([`InverseOptions::sample_sigma`]) are smoothed first
+//! ([`smoothing`]): the graph then holds the smoothed values, rates and
+//! accelerations in place of the samples and their differences, and the solution's
+//! standard deviations follow from the smoothing's covariance through the step's
+//! equations ([`sensitivity`]).
+
+pub mod sensitivity;
+pub mod smoothing;
+
+pub use smoothing::{ColumnFit, NoiseShape, SampleSigma, Smoothed};
 
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
@@ -195,6 +206,10 @@ pub struct InverseOptions {
     pub coordinates: Coordinates,
     pub noise: InverseNoise,
     pub settings: Settings,
+    /// None: the samples are exact, their derivatives fourth-order differences.
+    /// Some: they are readings with that noise, smoothed first ([`smoothing`]), and
+    /// the solution carries standard deviations ([`InverseSolution::sigmas`]).
+    pub sample_sigma: Option<SampleSigma>,
 }
 
 /// Standard deviations of the soft factors of an inverse solve. The constraint
@@ -239,6 +254,7 @@ impl Default for InverseOptions {
                 max_iterations: 50,
                 ..Settings::default()
             },
+            sample_sigma: None,
         }
     }
 }
@@ -252,6 +268,19 @@ pub struct InverseSummary {
     /// max |q_c(t_k) − prescribed| over the prescribed coordinates.
     pub worst_tracking: f64,
     pub worst_phi: f64,
+    /// What the smoothing of measured samples found, per prescribed coordinate
+    /// (None without [`InverseOptions::sample_sigma`]).
+    pub smoothing: Option<Vec<ColumnFit>>,
+}
+
+/// Standard deviations of a solution from measured samples, row-major steps × n
+/// like the trajectory: of q, q̇, q̈ and the forces (0 where nothing acts).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sigmas {
+    pub q: Vec<f64>,
+    pub dq: Vec<f64>,
+    pub ddq: Vec<f64>,
+    pub forces: Vec<f64>,
 }
 
 /// The motion and the actuator forces (row-major steps × n, zero where nothing acts).
@@ -260,6 +289,8 @@ pub struct InverseSolution {
     pub trajectory: Trajectory,
     pub forces: Vec<f64>,
     pub summary: InverseSummary,
+    /// With [`InverseOptions::sample_sigma`]: the standard deviations.
+    pub sigmas: Option<Sigmas>,
 }
 
 /// Solves the inverse-dynamics problem (DC or IC, per `options.coordinates`).
@@ -273,11 +304,36 @@ pub fn solve(
     check_prescription(&model, prescription)?;
     let n = model.n();
     let (steps, idx) = (prescription.steps, &prescription.indices);
+    let names: Vec<&str> = idx.iter().map(|&i| model.names[i].as_str()).collect();
+    let smoothed = match &options.sample_sigma {
+        None => None,
+        Some(sigma) => Some(smoothing::smooth(
+            &prescription.values,
+            steps,
+            prescription.dt,
+            sigma,
+            &names,
+        )?),
+    };
     // One prescribed coordinate per degree of freedom: each step's motion is known from
-    // its samples, the hard constraints and the prescribed derivatives, so the graph
-    // has no integrators. Kept soft beside them, their truncation error pulled q̈ off
-    // the acceleration constraints (2e-6 of the forces' peak on the four-bar, DC).
-    let (rates, accelerations) = prescription.derivatives();
+    // its samples (or their smoothed values), the hard constraints and the prescribed
+    // derivatives, so the graph has no integrators. Kept soft beside them, their
+    // truncation error pulled q̈ off the acceleration constraints (2e-6 of the forces'
+    // peak on the four-bar, DC).
+    let smoothed_prescription;
+    let (prescription, (rates, accelerations)) = match &smoothed {
+        None => (prescription, prescription.derivatives()),
+        Some(s) => {
+            smoothed_prescription = Prescription {
+                values: s.values.clone(),
+                ..prescription.clone()
+            };
+            (
+                &smoothed_prescription,
+                (s.rates.clone(), s.accelerations.clone()),
+            )
+        }
+    };
     let (d1, d2) = (
         rates[..idx.len()].to_vec(),
         accelerations[..idx.len()].to_vec(),
@@ -301,7 +357,6 @@ pub fn solve(
     let mut solver = WindowSolver::new(&graph, steps, options.settings)?;
     solver.optimize_for_batch();
     let report = solver.solve(&graph, &mut values, 0, steps, None)?;
-    let wall_time = start.elapsed();
     let solved = Solved {
         graph: &graph,
         values: &values,
@@ -313,6 +368,11 @@ pub fn solve(
             "the inverse solve produced non-finite values",
         ));
     }
+    let sigmas = match &smoothed {
+        Some(s) => Some(sigmas(&model, idx, &trajectory, &forces, s)?),
+        None => None,
+    };
+    let wall_time = start.elapsed();
     Ok(InverseSolution {
         trajectory,
         forces,
@@ -322,8 +382,68 @@ pub fn solve(
             report,
             worst_tracking,
             worst_phi,
+            smoothing: smoothed.map(|s| s.columns),
         },
+        sigmas,
     })
+}
+
+/// The standard deviations of the solution from those of the smoothed motion, step
+/// by step through [`sensitivity::Sensitivity`].
+fn sigmas(
+    model: &Arc<Model>,
+    idx: &[usize],
+    trajectory: &Trajectory,
+    forces: &[f64],
+    smoothed: &Smoothed,
+) -> Result<Sigmas> {
+    let (n, p) = (model.n(), idx.len());
+    let steps = trajectory.t.len();
+    let mut sens = sensitivity::Sensitivity::new(model.clone(), idx.to_vec());
+    let mut out = Sigmas {
+        q: Vec::with_capacity(steps * n),
+        dq: Vec::with_capacity(steps * n),
+        ddq: Vec::with_capacity(steps * n),
+        forces: Vec::with_capacity(steps * n),
+    };
+    let mut x = vec![0.0; 3 * n + p];
+    for k in 0..steps {
+        x[..n].copy_from_slice(&trajectory.q[k * n..(k + 1) * n]);
+        x[n..2 * n].copy_from_slice(&trajectory.dq[k * n..(k + 1) * n]);
+        x[2 * n..3 * n].copy_from_slice(&trajectory.ddq[k * n..(k + 1) * n]);
+        for (c, &i) in idx.iter().enumerate() {
+            x[3 * n + c] = forces[k * n + i];
+        }
+        let j = sens.jacobian(trajectory.t[k], &x)?;
+        // Σ_y is block diagonal by coordinate: (z_c, ż_c, z̈_c) at columns c, p + c, 2p + c.
+        let variance = |row: usize| -> f64 {
+            let mut v = 0.0;
+            for c in 0..p {
+                let cov = &smoothed.covariances[(k * p + c) * 9..(k * p + c + 1) * 9];
+                for a in 0..3 {
+                    for b in 0..3 {
+                        v += j[(row, a * p + c)] * cov[a * 3 + b] * j[(row, b * p + c)];
+                    }
+                }
+            }
+            v.max(0.0).sqrt()
+        };
+        for i in 0..n {
+            out.q.push(variance(i));
+        }
+        for i in 0..n {
+            out.dq.push(variance(n + i));
+        }
+        for i in 0..n {
+            out.ddq.push(variance(2 * n + i));
+        }
+        let row = out.forces.len();
+        out.forces.resize(row + n, 0.0);
+        for (c, &i) in idx.iter().enumerate() {
+            out.forces[row + i] = variance(3 * n + c);
+        }
+    }
+    Ok(out)
 }
 
 /// A prescription fits the mechanism: one prescribed coordinate per degree of freedom
