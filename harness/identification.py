@@ -632,6 +632,13 @@ def plot(res, out_dir: pathlib.Path = REPORTS) -> None:
                             label=name + (" (not identifiable)" if all(named) else ""))
             ax.axhspan(-100 * test.tolerance, 100 * test.tolerance, color="0.85", zorder=0,
                        label=f"±{test.tolerance:.0%}")
+            # A parameter that is not identifiable has errors and σ's of its prior's size:
+            # the axis stops at ±60 % so that the others stay readable.
+            lim = min(max(3 * 100 * test.tolerance, 1.3 * max(
+                [abs(100 * r[f"err:{p}"] / true) for r in res["rows"]
+                 if r["test"] == key and r.get(f"err:{p}") is not None] or [0])), 60)
+            ax.set_ylim(-lim, lim)
+            ax.set_xticks(res["seeds"])
             ax.axhline(0, color="k", lw=0.6)
             ax.set_title(f"{p} (truth {true:g})", fontsize=9)
             ax.set_xlabel("seed")
