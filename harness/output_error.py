@@ -5,7 +5,8 @@ The parameters θ are fitted by scipy.optimize.least_squares to the readings y_k
     min_θ  Σ_k Σ_s ((h_s(x(t_k; θ), t_k) − y_{s,k}) / σ_s)²
 
 where each evaluation of the residual is a whole forward simulation of the model with
-the parameters θ (`mbfg.simulate(scene, params=θ)`), and h_s the model's sensors
+the parameters θ (`mbfg.simulate(scene, params=θ)`, or SUNDIALS IDA through
+harness/ida.py, the classical integrator), and h_s the model's sensors
 (`mbfg.Model.sensor_value`, noise free; an encoder's reading is its coordinate). The
 state's start is the scene's; a scene parameter that sets it (an initial angle) can be
 fitted beside the physical ones. The σ of the estimates is the classical one,
@@ -34,6 +35,26 @@ import mbfg
 FAILED_RESIDUAL = 1e3
 
 
+# IDA's tolerance where `integrator="ida"` gives none: its error then sits far below the
+# readings' noise, and far below the finite-difference steps' effect (DIFF_STEP).
+IDA_RTOL = 1e-10
+# The relative step of the Jacobian's finite differences: well above the simulations'
+# own error (an adaptive integrator's changes its steps with θ), well below θ's σ.
+DIFF_STEP = 1e-6
+
+
+class Simulation:
+    """An IDA run as the peer reads it: t, q, q̇, q̈, column(), and the model with θ."""
+
+    def __init__(self, traj, model: mbfg.Model):
+        self.t, self.q, self.dq, self.ddq = traj.t, traj.q, traj.dq, traj.ddq
+        self.names, self.scene = list(traj.names), model
+
+    def column(self, name: str) -> np.ndarray:
+        group, _, c = name.partition(":")
+        return {"q": self.q, "dq": self.dq, "ddq": self.ddq}[group][:, self.names.index(c)]
+
+
 @dataclasses.dataclass
 class Fit:
     """One output-error fit: per parameter its estimate and σ, and how the fit went."""
@@ -59,6 +80,10 @@ class Problem:
                  substeps: int = 1):
         self.scene = str(scene)
         self.names = list(parameters)
+        if integrator != "ida" and not integrator.startswith("ida:") and integrator not in (
+                "trapezoidal", "euler", "hermite-simpson"):
+            raise ValueError(f"unknown integrator {integrator!r} (expected trapezoidal, euler, "
+                             "hermite-simpson, ida or ida:<rtol>)")
         self.integrator = integrator
         t = np.asarray(readings["t"], dtype=float)
         if t.ndim != 1 or len(t) < 2 or not np.all(np.diff(t) > 0):
@@ -101,8 +126,17 @@ class Problem:
         with open(self.scene) as f:
             return set((yaml.safe_load(f) or {}).get("parameters") or {})
 
-    def simulate(self, theta) -> "mbfg.Result":
+    def simulate(self, theta) -> "mbfg.Result | Simulation":
         params = dict(zip(self.names, map(float, theta)))
+        if self.integrator.startswith("ida"):
+            from harness import ida
+            rtol = float(self.integrator.partition(":")[2] or IDA_RTOL)
+            try:
+                traj, _ = ida.generate(self.scene, float(self.t[-1]), self.dt / self.substeps,
+                                       rtol=rtol, params=params)
+            except RuntimeError as e:
+                raise mbfg.SolveError(str(e)) from None
+            return Simulation(traj, mbfg.load(self.scene, params))
         r = mbfg.simulate(self.scene, dt=self.dt / self.substeps, t_end=float(self.t[-1]),
                           integrator=self.integrator, params=params)
         if len(r.t) < (len(self.t) - 1) * self.substeps + 1:
@@ -152,7 +186,9 @@ def fit(scene, readings, start: Mapping[str, float], sensors: Sequence[str] | No
     NaN where a sensor did not read) by least squares over whole simulations. `sensors`
     chooses the scene's sensors compared (default: every one with its columns in the
     readings); `bounds` {name: (low, high)} keeps parameters physical (a mass > 0);
-    each simulation runs `integrator` at the readings' spacing / `substeps`.
+    each simulation runs `integrator` (mbfg's trapezoidal, euler or hermite-simpson at
+    the readings' spacing / `substeps`; "ida" or "ida:<rtol>" for SUNDIALS IDA, sampled
+    there).
 
     `horizons` (s) fits the first seconds of the record first, each fit starting from
     the last, then the whole record: the classical remedy for the local minima of a
@@ -174,7 +210,8 @@ def fit(scene, readings, start: Mapping[str, float], sensors: Sequence[str] | No
         part = readings if h is None else {c: np.asarray(v)[t <= h + 1e-9] for c, v in readings.items()}
         prob = Problem(scene, part, names, sensors, integrator, substeps)
         res = optimize.least_squares(prob.residuals, x, bounds=(lo, hi), x_scale=scale,
-                                     method="trf", jac="2-point", max_nfev=max_evaluations)
+                                     method="trf", jac="2-point", diff_step=DIFF_STEP,
+                                     max_nfev=max_evaluations)
         x, evaluations, failed = res.x, evaluations + prob.evaluations, failed + prob.failed
     wall = time.perf_counter() - began
     m, p = len(res.fun), len(names)

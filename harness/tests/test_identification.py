@@ -231,3 +231,16 @@ def test_page_end_to_end_on_a_short_record(tmp_path):
     assert batch[0]["relerr:g"] < 0.05 and batch[0]["z:g"] < 4
     assert peer[0]["relerr:g"] < 0.05
     assert (tmp_path / "identification" / "gravity.png").exists()
+
+
+def test_peer_over_ida_simulates_what_mbfg_does():
+    pytest.importorskip("sksundae")
+    scene = SCENES / "spring-damper.yaml"
+    readings = exact_readings(scene, 0.5)
+    hs = output_error.Problem(scene, readings, ["k"])
+    ida = output_error.Problem(scene, readings, ["k"], integrator="ida")
+    a, b = hs.simulate([18.0]), ida.simulate([18.0])
+    assert np.max(np.abs(a.column("q:theta") - b.column("q:theta"))) < 1e-6
+    assert ida.residuals([20.0]) == pytest.approx(np.zeros(len(readings["t"])), abs=1e-5)
+    with pytest.raises(ValueError, match="unknown integrator 'rk4'"):
+        output_error.Problem(scene, readings, ["k"], integrator="rk4")
