@@ -8,8 +8,8 @@ use mbfg::dynamics;
 use mbfg::factors::{
     ComponentPrior, Dynamics, DynamicsKernel, Equality, Euler, Form, HermitePosition,
     IndependentAcceleration, IndependentDynamics, IndependentPosition, IndependentVelocity,
-    Integrator, KernelScratch, PositionConstraints, PrescribedMotion, Prior, Projected, Reading,
-    SimpsonVelocity, Trapezoidal, VelocityConstraints,
+    Integrator, KernelScratch, ParametricDynamics, PositionConstraints, PrescribedMotion, Prior,
+    Projected, Reading, SimpsonVelocity, Trapezoidal, VelocityConstraints,
 };
 use mbfg::graph::{Factor, Key, StackReq, VarKind, Workspace};
 use mbfg::kinematics;
@@ -56,7 +56,7 @@ fn size(model: &Model, kind: VarKind) -> usize {
     match kind {
         VarKind::Q | VarKind::Dq | VarKind::Ddq | VarKind::Force => model.n(),
         VarKind::Z | VarKind::Dz | VarKind::Ddz => model.independent.len(),
-        VarKind::Param => panic!("no model factor takes parameters"),
+        VarKind::Param => model.parameters.as_ref().map_or(0, |p| p.len()),
     }
 }
 
@@ -80,6 +80,8 @@ struct Step {
     dz: Vec<f64>,
     ddz: Vec<f64>,
     force: Vec<f64>,
+    /// The identified parameters: their file values, perturbed by up to 30 %.
+    param: Vec<f64>,
 }
 
 impl Step {
@@ -94,6 +96,12 @@ impl Step {
             dz: rng.values(f, 1.0),
             ddz: rng.values(f, 1.0),
             force: rng.values(n, 1.0),
+            param: model.parameters.as_ref().map_or(Vec::new(), |p| {
+                p.values
+                    .iter()
+                    .map(|v| v * (1.0 + 0.3 * rng.uniform()))
+                    .collect()
+            }),
         }
     }
 
@@ -106,7 +114,7 @@ impl Step {
             VarKind::Dz => &self.dz,
             VarKind::Ddz => &self.ddz,
             VarKind::Force => &self.force,
-            VarKind::Param => panic!("no model factor takes parameters"),
+            VarKind::Param => &self.param,
         }
     }
 }
@@ -517,6 +525,47 @@ fn dynamics_factor_matches_finite_differences() {
     check_family("f^d_dyn", 3, |m, _| {
         labelled(vec![Box::new(Dynamics::new(m.clone()))])
     });
+}
+
+#[test]
+fn parametric_dynamics_matches_finite_differences() {
+    // f^d_par on scenes that identify masses, an inertia, gravity (bilinear with the
+    // masses), a spring's and a rotational spring's stiffness and damping, with and
+    // without unknown inputs: ∂/∂q, ∂/∂q̇, ∂/∂q̈, ∂/∂p and ∂/∂u.
+    let mut rng = Rng(11);
+    let mut checked = 0;
+    for name in ["fourbar-masses.yaml", "spring-damper.yaml"] {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/identification")
+            .join(name);
+        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let model = Arc::new(Model::new(&scene).unwrap_or_else(|e| panic!("{name}: {e}")));
+        let actuated: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+        for with_inputs in [false, true] {
+            let on = if with_inputs {
+                actuated.clone()
+            } else {
+                Vec::new()
+            };
+            if with_inputs && on.is_empty() {
+                continue;
+            }
+            let factor = ParametricDynamics::new(model.clone(), on).expect("parameters");
+            for _ in 0..TRIALS {
+                let now = Step::random(&model, &mut rng);
+                let before = Step::random(&model, &mut rng);
+                let mut xs = inputs(&factor, &now, &before);
+                if with_inputs {
+                    // The Force key holds one entry per input coordinate.
+                    xs[4].truncate(actuated.len());
+                }
+                let err = check_factor_with(FD_STEP, &format!("{name}: f^d_par"), &factor, &xs, T);
+                assert!(err < FD_TOLERANCE, "{name}: f^d_par off by {err:e}");
+                checked += 1;
+            }
+        }
+    }
+    assert_eq!(checked, 3 * TRIALS);
 }
 
 #[test]

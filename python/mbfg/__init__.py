@@ -460,7 +460,12 @@ def estimate(scene: str | os.PathLike | Model,
     spacing), `max_iterations` the solver's bound per window, `coords` "dc" or "ic". Returns {"t": times, "q:<c>": ..., "dq:<c>": ...,
     "ddq:<c>": ..., "Q:<c>": (unknown inputs), "sd:q:<c>": σ, ..., "summary": {...}}:
     arrays of the final estimates and the run's summary (steps, window, readings, NIS
-    mean, its expected value and 95 % bounds, whether it is consistent, process σ)."""
+    mean, its expected value and 95 % bounds, whether it is consistent, process σ).
+    With `estimation: parameters:` in the scene, "p:<name>" and "sd:p:<name>" are the
+    parameters' estimates a step, and "parameters" maps each name to {"estimate",
+    "sigma", "prior", "prior_sigma", "identifiable", "reason"} at the end of the
+    record, "parameter_correlation" their correlation matrix in the order of
+    "parameter_names"."""
     if isinstance(scene, Model):
         scene = scene._m
     def arrays(raw):
@@ -482,6 +487,8 @@ def estimate(scene: str | os.PathLike | Model,
         raise
     out = arrays(raw)
     out["summary"] = raw["summary"]
+    for key in ("parameters", "parameter_names", "parameter_correlation"):
+        out[key] = raw[key]
     return out
 
 

@@ -52,6 +52,11 @@ pub struct EstimateArgs {
     /// standard output.
     #[arg(long, value_name = "FILE.csv")]
     out: Option<PathBuf>,
+    /// Write the identified parameters (`estimation: parameters:`) to this CSV: name,
+    /// estimate, sigma, prior, prior_sigma, identifiable (yes/no), reason, and their
+    /// correlation matrix (corr:<name>), one row a parameter.
+    #[arg(long = "parameters-out", value_name = "FILE.csv")]
+    parameters_out: Option<PathBuf>,
 }
 
 pub fn run(args: EstimateArgs) -> Result<(), Failure> {
@@ -92,10 +97,24 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
     }
     options.settings.max_iterations = args.max_iterations;
     options.settings.trace = args.trace_solver;
+    if args.parameters_out.is_some() && model.parameters.is_none() {
+        return Err(Failure::Input(format!(
+            "--parameters-out: scene {} identifies no parameter; name them in \
+             `estimation: parameters:` (docs/estimation.md)",
+            args.scene.display()
+        )));
+    }
     let output = Output::open(
         args.out.as_deref(),
         &super::inputs(&args.scene, &model, &[&args.measurements]),
     )?;
+    let parameters_out = match &args.parameters_out {
+        Some(p) => Some(Output::open(
+            Some(p),
+            &super::inputs(&args.scene, &model, &[&args.measurements]),
+        )?),
+        None => None,
+    };
     let record =
         Record::read(&model, &args.measurements, args.dt).map_err(|e| Failure::Input(plain(e)))?;
     let table = RefCell::new(Estimates::for_model(&model));
@@ -120,7 +139,22 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
             output
                 .commit_with(&|w| table.write_csv(w))
                 .map_err(Failure::Run)?;
+            if let Some(out) = parameters_out {
+                out.commit_with(&|w| {
+                    summary
+                        .identification
+                        .write_csv(w)
+                        .map_err(|e| mbfg::Error::Io {
+                            path: "the parameters' CSV".into(),
+                            source: e,
+                        })
+                })
+                .map_err(Failure::Run)?;
+            }
             print_summary(to_file, &summary_line(&summary, elapsed));
+            for line in parameter_lines(&summary) {
+                print_summary(to_file, &line);
+            }
             if summary.unsettled > 0 {
                 super::tell(&format!(
                     "warning: {} window solves reached the iteration limit ({}) still improving \
@@ -188,6 +222,39 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
         nis.expected(),
         process(s)
     )
+}
+
+/// One line per identified parameter: its estimate and σ against its prior, or why
+/// the readings do not determine it.
+pub fn parameter_lines(s: &EstimateSummary) -> Vec<String> {
+    s.identification
+        .parameters
+        .iter()
+        .map(|p| {
+            let head = format!(
+                "parameter {} = {} ± {:.2e} (prior {} ± {})",
+                p.name,
+                significant(p.estimate, p.sigma),
+                p.sigma,
+                p.prior,
+                p.prior_sigma
+            );
+            match &p.undetermined {
+                None => head,
+                Some(why) => format!("{head}: NOT identified, {why}"),
+            }
+        })
+        .collect()
+}
+
+/// `v` to two significant digits of its σ.
+fn significant(v: f64, sigma: f64) -> String {
+    let digits = if sigma > 0.0 && sigma.is_finite() {
+        (1.0 - sigma.log10().floor()).clamp(0.0, 15.0) as usize
+    } else {
+        6
+    };
+    format!("{v:.digits$}")
 }
 
 /// The process σ and where it came from.

@@ -41,6 +41,9 @@ pub struct KernelScratch<'a> {
     /// (w > 0): its Jacobians then carry the regularization's derivative, which
     /// [`DynamicsKernel::along`] does not form.
     pub(super) regularized: bool,
+    /// A mass matrix in place of the model's (row-major n × n; dense K only): the
+    /// model's at other values of the parameters an estimate identifies.
+    mass: Option<&'a [f64]>,
 }
 
 impl<'a> KernelScratch<'a> {
@@ -99,8 +102,20 @@ impl<'a> KernelScratch<'a> {
             scale: 1.0,
             active: model.active.len(),
             regularized: false,
+            mass: None,
         };
         (scratch, stack)
+    }
+
+    /// The scratch of a dense K whose mass matrix is `mass` (row-major n × n), not
+    /// the model's ([`crate::model::parameters::Parameters::mass_at`]).
+    pub fn with_mass(mut self, mass: &'a [f64]) -> Self {
+        assert!(
+            self.sparse.is_none(),
+            "a mass matrix of its own needs a dense K"
+        );
+        self.mass = Some(mass);
+        self
     }
 }
 
@@ -128,18 +143,22 @@ impl KernelScratch<'_> {
 
 /// K = [M/μ Aᵀ; A −μE] into `kkt` (row-major big × big), A the active rows of
 /// Φ_q (`jacobian`, all m rows × n), E the regularization's diagonal where there is
-/// one.
-fn fill_kkt(model: &Model, jacobian: &[f64], eps: Option<&[f64]>, mu: f64, kkt: &mut [f64]) {
+/// one; M the model's, or `mass` (row-major n × n) where given.
+fn fill_kkt(
+    model: &Model,
+    mass: Option<&[f64]>,
+    jacobian: &[f64],
+    eps: Option<&[f64]>,
+    mu: f64,
+    kkt: &mut [f64],
+) {
     let (n, ma) = (model.n(), model.active.len());
     let big = n + ma;
     kkt[..big * big].fill(0.0);
     for i in 0..n {
         for j in 0..n {
-            kkt[i * big + j] = if mu == 1.0 {
-                model.mass[(i, j)]
-            } else {
-                model.mass[(i, j)] / mu
-            };
+            let m = mass.map_or(model.mass[(i, j)], |m| m[i * n + j]);
+            kkt[i * big + j] = if mu == 1.0 { m } else { m / mu };
         }
     }
     for (r, &k) in model.active.iter().enumerate() {
@@ -220,8 +239,10 @@ impl DynamicsKernel {
             factors,
             scale,
             regularized,
+            mass,
             ..
         } = scratch;
+        let mass = *mass;
 
         // K = [M Aᵀ; A −E] and the right-hand side [Q; c].
         *scale = 1.0;
@@ -248,13 +269,13 @@ impl DynamicsKernel {
                 }
             }
             let eps = (reg.w > 0.0).then_some(&scratch.eps[..ma]);
-            fill_kkt(model, mat, eps, 1.0, kkt);
+            fill_kkt(model, mass, mat, eps, 1.0, kkt);
             // The pivot test is relative to K's largest entry: a heavy mechanism
             // (1e8 kg on 1 m links) makes the constraint block's pivots, |Φ_q|²/m,
             // look singular. Then K is factored again with M in units of its scale.
             if dense::lu(kkt, big, perm).is_err() {
                 *scale = mass_scale(model);
-                fill_kkt(model, mat, eps, *scale, kkt);
+                fill_kkt(model, mass, mat, eps, *scale, kkt);
                 dense::lu(kkt, big, perm).map_err(|_| {
                     Error::singular("the augmented (KKT) system is singular: a singular configuration or dependent constraints")
                 })?;

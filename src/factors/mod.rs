@@ -24,6 +24,7 @@ mod constraints;
 mod dynamics;
 mod independent;
 mod integrator;
+mod parametric;
 mod prescribed;
 mod priors;
 mod reading;
@@ -38,6 +39,7 @@ pub use independent::{
     IndependentAcceleration, IndependentDynamics, IndependentPosition, IndependentVelocity,
 };
 pub use integrator::{Equality, Euler, Form, Integrator, Partials, Trapezoidal, TwoPoint};
+pub use parametric::ParametricDynamics;
 pub use prescribed::PrescribedMotion;
 pub use priors::{ComponentPrior, Prior};
 pub use reading::Reading;

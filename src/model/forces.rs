@@ -493,6 +493,35 @@ impl Force {
         Ok(())
     }
 
+    /// A spring-damper (linear or rotational) with other stiffness and damping, its
+    /// geometry kept: its force is linear in the two, so the constants' derivatives
+    /// give the force's. `None` for any other effect.
+    pub fn with_constants(&self, k: f64, c: f64) -> Option<Force> {
+        match self {
+            Force::SpringDamper {
+                name,
+                points,
+                rest_length,
+                ..
+            } => Some(Force::SpringDamper {
+                name: name.clone(),
+                points: *points,
+                stiffness: k,
+                rest_length: *rest_length,
+                damping: c,
+            }),
+            Force::RotationalSpringDamper {
+                index, rest_angle, ..
+            } => Some(Force::RotationalSpringDamper {
+                index: *index,
+                stiffness: k,
+                rest_angle: *rest_angle,
+                damping: c,
+            }),
+            _ => None,
+        }
+    }
+
     /// Adds this effect's generalized force at (q, q̇, t) to `out`.
     pub fn add_to(
         &self,

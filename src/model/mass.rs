@@ -16,9 +16,15 @@ use crate::scene::Body;
 
 /// The 4×4 mass matrix of a body over [x₁, y₁, x₂, y₂] (row-major).
 pub fn body_mass_matrix(body: &Body) -> [[f64; 4]; 4] {
-    let (m, l) = (body.mass, body.length);
+    inertia_matrix(body, body.mass, body.i0)
+}
+
+/// [`body_mass_matrix`] of `body`'s geometry with mass `m` and polar moment `i0`:
+/// linear in (m, i0), so that it gives ∂M/∂p from ∂m/∂p and ∂I₀/∂p too.
+pub fn inertia_matrix(body: &Body, m: f64, i0: f64) -> [[f64; 4]; 4] {
+    let l = body.length;
     let (xi, eta) = (body.cog[0], body.cog[1]);
-    let j = body.i0 / (l * l);
+    let j = i0 / (l * l);
     let d11 = m - 2.0 * m * xi / l + j;
     let d12 = m * xi / l - j;
     let r12 = m * eta / l;
@@ -35,9 +41,13 @@ pub fn body_mass_matrix(body: &Body) -> [[f64; 4]; 4] {
 /// The generalized force of uniform gravity g on a body over [x₁, y₁, x₂, y₂]:
 /// ∫Cᵀ g dm = m [(1−ā) g + b̄ R g ; ā g − b̄ R g] with ā = ξ_G/L, b̄ = η_G/L.
 pub fn body_gravity_force(body: &Body, g: [f64; 2]) -> [f64; 4] {
+    gravity_force(body, body.mass, g)
+}
+
+/// [`body_gravity_force`] of `body`'s geometry with mass `m`: bilinear in (m, g).
+pub fn gravity_force(body: &Body, m: f64, g: [f64; 2]) -> [f64; 4] {
     let (a, b) = (body.cog[0] / body.length, body.cog[1] / body.length);
     let rg = [-g[1], g[0]];
-    let m = body.mass;
     [
         m * ((1.0 - a) * g[0] + b * rg[0]),
         m * ((1.0 - a) * g[1] + b * rg[1]),

@@ -7,6 +7,7 @@
 pub mod constraints;
 pub mod forces;
 pub mod mass;
+pub mod parameters;
 pub mod plausibility;
 
 use crate::error::{Error, Result};
@@ -145,6 +146,8 @@ pub struct Model {
     pub sensors: Vec<crate::sensors::Sensor>,
     /// The scene's `estimation:` section, located in q.
     pub estimation: crate::sensors::EstimationSpec,
+    /// The parameters an estimate identifies (`estimation: parameters:`), if any.
+    pub parameters: Option<std::sync::Arc<parameters::Parameters>>,
 }
 
 /// Positions and velocities.
@@ -198,6 +201,7 @@ impl Model {
             },
             sensors: Vec::new(),
             estimation: Default::default(),
+            parameters: None,
         };
         model.build_constraints();
         model.build_mass();
@@ -210,6 +214,7 @@ impl Model {
             .ok_or_else(|| Error::InvalidArgument("independent coordinate not in q".into()))?;
         model.sensors = crate::sensors::resolve(&model, &scene.sensors)?;
         model.estimation = crate::sensors::resolve_estimation(&model, &scene.estimation)?;
+        model.parameters = parameters::Parameters::of(&model)?.map(std::sync::Arc::new);
         Ok(model)
     }
 

@@ -129,6 +129,31 @@ pub(super) fn estimate_run<'py>(
                 .collect::<Vec<_>>(),
         )?;
         out.set_item("summary", s)?;
+        let id = &summary.identification;
+        let parameters = PyDict::new(py);
+        for p in &id.parameters {
+            let d = PyDict::new(py);
+            d.set_item("estimate", p.estimate)?;
+            d.set_item("sigma", p.sigma)?;
+            d.set_item("prior", p.prior)?;
+            d.set_item("prior_sigma", p.prior_sigma)?;
+            d.set_item("identifiable", p.undetermined.is_none())?;
+            d.set_item("reason", p.undetermined.clone().unwrap_or_default())?;
+            parameters.set_item(&p.name, d)?;
+        }
+        out.set_item("parameters", parameters)?;
+        let np = id.parameters.len();
+        out.set_item(
+            "parameter_names",
+            id.parameters
+                .iter()
+                .map(|p| p.name.clone())
+                .collect::<Vec<_>>(),
+        )?;
+        out.set_item(
+            "parameter_correlation",
+            PyArray1::from_vec(py, id.correlation.clone()).reshape([np, np])?,
+        )?;
         Ok(out)
     })
 }

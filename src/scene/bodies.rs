@@ -61,6 +61,9 @@ pub fn body_spec(
     vars.push(("length", length));
     vars.push(("L", length));
     let mass = ctx.positive(f.req(ctx, "mass")?, &f.key("mass"), &vars)?;
+    let d = &ctx.derivatives;
+    let dmass = d.take(&f.key("mass"));
+    d.set_extra("mass", dmass.clone());
     vars.push(("mass", mass));
     let two_point = points.len() == 2;
     let i0_node = f.get("I0");
@@ -84,20 +87,46 @@ pub fn body_spec(
         }
     };
     let cog2 = cog[0] * cog[0] + cog[1] * cog[1];
-    let i0 = match (i0_node, inertia_node) {
+    // ∂I₀/∂p of I₀ = I_G + m |cog|² (the centre fixed: geometry is not identified).
+    let scaled = |g: &Option<Vec<f64>>, k: f64| {
+        g.as_ref()
+            .map(|g| g.iter().map(|v| v * k).collect::<Vec<f64>>())
+    };
+    let sum = |a: Option<Vec<f64>>, b: Option<Vec<f64>>| match (a, b) {
+        (Some(a), Some(b)) => Some(a.iter().zip(&b).map(|(x, y)| x + y).collect()),
+        (a, b) => a.or(b),
+    };
+    let (i0, di0) = match (i0_node, inertia_node) {
         (Some(_), Some(_)) => {
             return Err(ctx.err(f.line, &f.key("inertia"), "give either inertia (about the centre of mass) or I0 (about the first point), not both"))
         }
-        (Some(n), None) => ctx.positive(n, &f.key("I0"), &vars)?,
-        (None, Some(n)) => ctx.positive(n, &f.key("inertia"), &vars)? + mass * cog2,
+        (Some(n), None) => {
+            let v = ctx.positive(n, &f.key("I0"), &vars)?;
+            (v, d.take(&f.key("I0")))
+        }
+        (None, Some(n)) => {
+            let v = ctx.positive(n, &f.key("inertia"), &vars)?;
+            (v + mass * cog2, sum(d.take(&f.key("inertia")), scaled(&dmass, cog2)))
+        }
         (None, None) if two_point && style == BodyStyle::Scene => {
-            mass * length * length / 12.0 + mass * cog2
+            let k = length * length / 12.0 + cog2;
+            (mass * k, scaled(&dmass, k))
         }
         (None, None) => {
             let k = if style == BodyStyle::Mbse { "I0" } else { "inertia" };
             return Err(ctx.err(f.line, &f.key(k), format!("missing required key: body '{name}' needs its moment of inertia")));
         }
     };
+    d.set_extra("mass", None);
+    if dmass.is_some() || di0.is_some() {
+        let p = d.unknown.len();
+        let index = scene.bodies.len();
+        d.body(
+            index,
+            dmass.unwrap_or(vec![0.0; p]),
+            di0.unwrap_or(vec![0.0; p]),
+        );
+    }
     Ok(BodySpec {
         name,
         points,

@@ -40,6 +40,7 @@ pub fn empty(file: &str) -> Scene {
         sensors: Vec::new(),
         estimation: Default::default(),
         mechanism: None,
+        identified: Default::default(),
     }
 }
 

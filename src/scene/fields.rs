@@ -1,6 +1,7 @@
 //! Typed access to located YAML nodes, shared by both file formats: every failure is a
 //! [`SceneError`] naming the file, the line and the key path.
 
+use super::derivatives::{Derivatives, GradientError};
 use super::yaml::{Node, Value};
 use super::{LoadFunction, Scene};
 use crate::error::SceneError;
@@ -23,6 +24,9 @@ pub struct Ctx<'a> {
     /// Values that replace the file's own for parameters of these names (a study's
     /// sweep), checked to name parameters the file has.
     pub overrides: &'a [(String, f64)],
+    /// The parameters an estimate identifies (`estimation: parameters:`) and the
+    /// derivatives of every number read with respect to them ([`Derivatives`]).
+    pub derivatives: Derivatives,
 }
 
 impl<'a> Ctx<'a> {
@@ -31,6 +35,7 @@ impl<'a> Ctx<'a> {
             file,
             params: Vec::new(),
             overrides,
+            derivatives: Derivatives::default(),
         }
     }
 
@@ -67,14 +72,47 @@ impl<'a> Ctx<'a> {
     }
 
     /// A number: a YAML number or an expression over the parameters and `extra`.
+    /// Its derivative with respect to the identified parameters, where it has one,
+    /// waits under `key` for the reader that uses it ([`Derivatives::take`]).
     pub fn num(&self, node: &Node, key: &str, extra: &[(&str, f64)]) -> Result<f64, SceneError> {
+        let (value, gradient) = self.num_with_gradient(node, key, extra)?;
+        if let Some(g) = gradient {
+            self.derivatives.record(key, node.line, g);
+        }
+        Ok(value)
+    }
+
+    /// A number and its gradient with respect to the identified parameters (`None`:
+    /// it does not depend on them).
+    fn num_with_gradient(
+        &self,
+        node: &Node,
+        key: &str,
+        extra: &[(&str, f64)],
+    ) -> Result<(f64, Option<Vec<f64>>), SceneError> {
         match &node.value {
-            Value::Number(v) if v.is_finite() => Ok(*v),
+            Value::Number(v) if v.is_finite() => Ok((*v, None)),
             Value::Number(_) => Err(self.err(node.line, key, "must be a finite number")),
             Value::String(text) => {
                 let expr = Expr::parse(text).map_err(|e| self.expr_err(node, key, text, e))?;
-                expr.eval(&self.lookup(extra))
-                    .map_err(|e| self.expr_err(node, key, text, e))
+                let lookup = self.lookup(extra);
+                let value = expr
+                    .eval(&lookup)
+                    .map_err(|e| self.expr_err(node, key, text, e))?;
+                let gradient = self.gradient(&expr, extra, &lookup).map_err(|e| match e {
+                    GradientError::Expr(e) => self.expr_err(node, key, text, e),
+                    GradientError::Nonlinear(a, b) => self.err(
+                        node.line,
+                        key,
+                        format!(
+                            "'{}' is not linear in the identified parameters ('{a}' and \
+                                 '{b}' multiply or a power holds them): an estimate identifies \
+                                 parameters that enter the model linearly",
+                            excerpt(text, QUOTE)
+                        ),
+                    ),
+                })?;
+                Ok((value, gradient))
             }
             _ => Err(self.err(
                 node.line,
@@ -82,6 +120,56 @@ impl<'a> Ctx<'a> {
                 format!("expected a number or an expression, found {}", node.kind()),
             )),
         }
+    }
+
+    /// The gradient of a name: a parameter's, or one `extra` name's that the reader
+    /// set ([`Derivatives::set_extra`]); `None` where it is zero.
+    fn name_gradient(&self, name: &str, extra: &[(&str, f64)]) -> Option<Vec<f64>> {
+        if extra.iter().any(|(n, _)| *n == name) {
+            return self.derivatives.extra(name);
+        }
+        let i = self.params.iter().rposition(|(n, _)| n == name)?;
+        self.derivatives.params.get(i).cloned().flatten()
+    }
+
+    /// ∂expr/∂p by the chain rule over the names it uses, each derivative symbolic;
+    /// refused where a second derivative among those names does not vanish (the model
+    /// would not be linear in the parameters there).
+    fn gradient(
+        &self,
+        expr: &Expr,
+        extra: &[(&str, f64)],
+        lookup: &dyn Fn(&str) -> Option<f64>,
+    ) -> Result<Option<Vec<f64>>, GradientError> {
+        if self.derivatives.unknown.is_empty() {
+            return Ok(None);
+        }
+        let names: Vec<(String, Vec<f64>)> = expr
+            .names()
+            .into_iter()
+            .filter_map(|n| self.name_gradient(&n, extra).map(|g| (n, g)))
+            .collect();
+        if names.is_empty() {
+            return Ok(None);
+        }
+        let mut out = vec![0.0; self.derivatives.unknown.len()];
+        for (name, g) in &names {
+            let d = expr.derivative(name).map_err(GradientError::Expr)?;
+            let dv = d.eval(lookup).map_err(GradientError::Expr)?;
+            for (o, gj) in out.iter_mut().zip(g) {
+                *o += dv * gj;
+            }
+            for (other, _) in &names {
+                let dd = d
+                    .derivative(other)
+                    .and_then(|e| e.eval(lookup))
+                    .map_err(GradientError::Expr)?;
+                if dd != 0.0 {
+                    return Err(GradientError::Nonlinear(name.clone(), other.clone()));
+                }
+            }
+        }
+        Ok(Some(out))
     }
 
     /// A number that must be > 0.
@@ -191,6 +279,22 @@ impl<'a> Ctx<'a> {
                 ));
             }
         }
+        if let Some(name) = expr
+            .names()
+            .into_iter()
+            .find(|n| self.name_gradient(n, &[]).is_some())
+        {
+            return Err(self.err(
+                node.line,
+                key,
+                format!(
+                    "'{}' uses '{name}', a parameter the estimate identifies: an estimate \
+                     varies masses, inertias, gravity and spring and damper constants, not \
+                     the values of torques and forces",
+                    excerpt(&text, QUOTE)
+                ),
+            ));
+        }
         let keep = |n: &str| n == "t" || scene.state_quantity(n).is_some();
         let bound = expr
             .bind(&keep, &lookup)
@@ -245,10 +349,22 @@ impl<'a> Ctx<'a> {
             if self.params.iter().any(|(n, _)| *n == name) {
                 return Err(self.err(k.line, &key, format!("duplicate parameter '{name}'")));
             }
-            let value = match self.overrides.iter().find(|(n, _)| *n == name) {
-                Some((_, v)) => *v,
-                None => self.num(v, &key, &[])?,
+            let unknown = self.derivatives.unknown.iter().position(|n| *n == name);
+            let (value, gradient) = match self.overrides.iter().find(|(n, _)| *n == name) {
+                Some((_, v)) => (*v, None),
+                None => self.num_with_gradient(v, &key, &[])?,
             };
+            // An identified parameter is a variable of its own; its file value is the
+            // prior's mean.
+            let gradient = match unknown {
+                Some(j) => {
+                    let mut e = vec![0.0; self.derivatives.unknown.len()];
+                    e[j] = 1.0;
+                    Some(e)
+                }
+                None => gradient,
+            };
+            self.derivatives.params.push(gradient);
             self.params.push((name, value));
         }
         Ok(())

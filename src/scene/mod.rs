@@ -9,6 +9,7 @@
 
 mod bodies;
 mod build;
+mod derivatives;
 mod fields;
 mod mbse;
 mod native;
@@ -21,6 +22,7 @@ use crate::expr::Expr;
 use std::path::Path;
 
 pub use build::{coordinate_names, relative_value};
+pub use derivatives::Identified;
 pub use suggest::did_you_mean;
 
 /// A named point of the mechanism, fixed or free.
@@ -260,6 +262,9 @@ pub struct Scene {
     pub estimation: EstimationDef,
     /// The MBSE mechanism file a scene names (`mechanism:`), as read.
     pub mechanism: Option<String>,
+    /// The parameters an estimate identifies and the derivatives of the quantities
+    /// that depend on them; empty when `estimation: parameters:` is not given.
+    pub identified: Identified,
 }
 
 /// A sensor as the scene declares it: what it reads, its noise, its quantization
@@ -315,6 +320,9 @@ pub struct EstimationDef {
     pub initial_velocity_sigma: Vec<(String, f64)>,
     /// Unknown generalized forces on named coordinates, random walks of σ per √s.
     pub inputs: Vec<(String, f64)>,
+    /// Scene parameters identified by an estimate: (name, σ of the prior about the
+    /// file's value).
+    pub parameters: Vec<(String, f64)>,
 }
 
 impl Scene {

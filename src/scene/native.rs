@@ -34,6 +34,7 @@ pub fn read(
     overrides: &[(String, f64)],
 ) -> crate::Result<Scene> {
     let mut ctx = Ctx::with_overrides(file, overrides);
+    ctx.derivatives.unknown = super::sensors::identified_names(root);
     let mut top = Fields::new(&ctx, root, "")?;
     for k in ["name", "description"] {
         if let Some(n) = top.get(k) {
@@ -137,6 +138,18 @@ pub fn read(
         super::sensors::read_estimation(&ctx, &mut scene, n)?;
     }
     top.finish(&ctx, TOP_KEYS)?;
+    if let Some((key, line)) = ctx.derivatives.unclaimed() {
+        return Err(ctx
+            .err(
+                line,
+                &key,
+                "depends on a parameter the estimate identifies (`estimation: parameters:`): \
+                 an estimate varies masses, inertias, gravity and spring and damper constants \
+                 only, not geometry, starts or motor data; give this key a value of its own",
+            )
+            .into());
+    }
+    scene.identified = ctx.derivatives.identified(&ctx.params);
     if scene.bodies.is_empty() && scene.points.iter().all(|p| p.mass == 0.0) {
         return Err(ctx
             .err(
@@ -457,6 +470,8 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                     return Err(ctx.err(item.line, &path, "gravity is given twice"));
                 }
                 let vector = pair(ctx, f.req(ctx, "vector")?, &f.key("vector"), &[])?;
+                let v = f.key("vector");
+                ctx.derivatives.effect(scene.effects.len(), [&format!("{v}[0]"), &format!("{v}[1]")]);
                 f.finish(ctx, &["type", "name", "vector"])?;
                 Effect::Gravity { vector }
             }
@@ -473,6 +488,7 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                     Some(n) if matches!(&n.value, Value::String(s) if s.trim() == "auto") => auto,
                     Some(n) => ctx.non_negative_with(n, &f.key("rest_length"), &[("auto", auto)])?,
                 };
+                ctx.derivatives.effect(scene.effects.len(), [&f.key("stiffness"), &f.key("damping")]);
                 f.finish(ctx, &["type", "name", "points", "stiffness", "rest_length", "damping"])?;
                 if stiffness == 0.0 && damping == 0.0 {
                     return Err(ctx.err(item.line, &path, "a spring_damper needs a positive stiffness or damping"));
@@ -490,6 +506,7 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                     }
                     None => 0.0,
                 };
+                ctx.derivatives.effect(scene.effects.len(), [&f.key("stiffness"), &f.key("damping")]);
                 f.finish(ctx, &["type", "name", "coordinate", "stiffness", "rest_angle", "damping"])?;
                 if stiffness == 0.0 && damping == 0.0 {
                     return Err(ctx.err(item.line, &path, "a rotational_spring_damper needs a positive stiffness or damping"));

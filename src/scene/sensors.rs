@@ -183,6 +183,34 @@ pub fn read_sensors(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
 /// Largest encoder resolution: counts per turn still whole in a double.
 const MAX_RESOLUTION: f64 = 9.007_199_254_740_992e15;
 
+/// The names under `estimation: parameters:` as far as they can be read before the
+/// rest of the file (the parameters' derivatives are taken as the file is read);
+/// [`read_estimation`] checks them.
+pub fn identified_names(root: &Node) -> Vec<String> {
+    let field = |node: &Node, key: &str| match &node.value {
+        Value::Map(pairs) => pairs
+            .iter()
+            .find(|(k, _)| matches!(&k.value, Value::String(s) if s == key))
+            .map(|(_, v)| v.clone()),
+        _ => None,
+    };
+    let Some(list) = field(root, "estimation").and_then(|e| field(&e, "parameters")) else {
+        return Vec::new();
+    };
+    let Value::Seq(items) = &list.value else {
+        return Vec::new();
+    };
+    let mut names: Vec<String> = Vec::new();
+    for item in items {
+        if let Some(name) = field(item, "name").and_then(|n| n.as_text()) {
+            if !names.contains(&name) {
+                names.push(name);
+            }
+        }
+    }
+    names
+}
+
 pub fn read_estimation(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
     let mut f = Fields::new(ctx, node, "estimation")?;
     let mut est = super::EstimationDef::default();
@@ -212,6 +240,36 @@ pub fn read_estimation(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), 
             est.inputs.push((name, sigma));
         }
     }
+    if let Some(n) = f.get("parameters") {
+        for (i, item) in seq(ctx, n, "estimation.parameters")?.iter().enumerate() {
+            let mut g = Fields::new(ctx, item, &format!("estimation.parameters[{i}]"))?;
+            let key = g.key("name");
+            let node = g.req(ctx, "name")?;
+            let name = node
+                .as_text()
+                .ok_or_else(|| ctx.err(node.line, &key, "expected a parameter's name"))?;
+            if !ctx.params.iter().any(|(p, _)| *p == name) {
+                return Err(ctx.err(
+                    node.line,
+                    &key,
+                    format!(
+                        "no parameter '{}' in `parameters:`{}",
+                        crate::expr::excerpt(&name, 40),
+                        super::suggest::did_you_mean(
+                            &name,
+                            ctx.params.iter().map(|(p, _)| p.as_str())
+                        )
+                    ),
+                ));
+            }
+            if est.parameters.iter().any(|(p, _)| *p == name) {
+                return Err(ctx.err(node.line, &key, format!("'{name}' is identified twice")));
+            }
+            let sigma = ctx.positive(g.req(ctx, "sigma")?, &g.key("sigma"), &[])?;
+            g.finish(ctx, &["name", "sigma"])?;
+            est.parameters.push((name, sigma));
+        }
+    }
     f.finish(
         ctx,
         &[
@@ -219,6 +277,7 @@ pub fn read_estimation(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), 
             "initial_sigma",
             "initial_velocity_sigma",
             "inputs",
+            "parameters",
         ],
     )?;
     scene.estimation = est;

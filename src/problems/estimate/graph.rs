@@ -53,6 +53,13 @@ impl EstimationGraph {
                         .into(),
                 ))
             }
+            Coordinates::Independent if model.parameters.is_some() => {
+                return Err(Error::InvalidArgument(
+                    "parameters (`estimation: parameters:`) are identified in dependent \
+                     coordinates only: use --coords dc"
+                        .into(),
+                ))
+            }
             Coordinates::Independent if f > 0 => {
                 return Err(Error::InvalidArgument(
                     "unknown inputs (`estimation: inputs:`) are estimated in dependent \
@@ -69,6 +76,9 @@ impl EstimationGraph {
         }
         if f > 0 {
             vars.push((VarKind::Force, f));
+        }
+        if let Some(p) = &model.parameters {
+            vars.push((VarKind::Param, p.len()));
         }
         let builder = ChainGraph::builder(Layout::new(&vars), dt, 0.0);
         let builder = match coordinates {
@@ -110,7 +120,13 @@ impl EstimationGraph {
             .map_or(self.size(), |(o, _)| o)
     }
 
-    /// The guess of step 0: the start and its accelerations, no input.
+    /// Where the identified parameters sit in a step's block, and how many there are.
+    pub fn parameters_at(&self) -> Option<(usize, usize)> {
+        self.graph.layout().slot(VarKind::Param)
+    }
+
+    /// The guess of step 0: the start and its accelerations, no input, the
+    /// parameters' file values.
     pub fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
         let s = &self.start;
         let ddq = dynamics::accelerations_guess(model, &s.q, &s.dq, self.graph.t0())?;
@@ -122,6 +138,9 @@ impl EstimationGraph {
             block.extend(self.independent.iter().map(|&i| v[i]));
         }
         block.resize(self.size(), 0.0);
+        if let (Some((at, _)), Some(p)) = (self.parameters_at(), &model.parameters) {
+            block[at..at + p.len()].copy_from_slice(&p.values);
+        }
         Ok(block)
     }
 
@@ -147,10 +166,10 @@ fn dependent(
     _start: &State,
 ) -> ChainGraphBuilder {
     let f = inputs.len();
-    let dynamics: Box<dyn Factor> = if f > 0 {
-        Box::new(Dynamics::inverse_on(model.clone(), inputs.to_vec()))
-    } else {
-        Box::new(Dynamics::new(model.clone()))
+    let dynamics: Box<dyn Factor> = match ParametricDynamics::new(model.clone(), inputs.to_vec()) {
+        Some(d) => Box::new(d),
+        None if f > 0 => Box::new(Dynamics::inverse_on(model.clone(), inputs.to_vec())),
+        None => Box::new(Dynamics::new(model.clone())),
     };
     let mut builder = builder
         .step_constraint(Box::new(PositionConstraints::new(model.clone())))
@@ -180,8 +199,26 @@ fn dependent(
                 Noise::Isotropic(INPUT_INITIAL_SIGMA),
             );
     }
+    if let Some(p) = &model.parameters {
+        // Constant over the record: consecutive copies held equal to a small fraction of
+        // each prior's σ (a walk of 1e-5 σ a step drifts by 1e-5 σ √steps).
+        let sigmas = &uncertainty.parameters;
+        builder = builder
+            .step_soft(
+                Box::new(Equality::new(VarKind::Param, p.len())),
+                Noise::Diagonal(sigmas.iter().map(|s| s * PARAMETER_LINK).collect()),
+            )
+            .initial_soft(
+                Box::new(Prior::new(VarKind::Param, p.values.clone())),
+                Noise::Diagonal(sigmas.clone()),
+            );
+    }
     builder
 }
+
+/// The link between consecutive copies of the identified parameters, as a fraction
+/// of their prior's σ.
+const PARAMETER_LINK: f64 = 1e-5;
 
 /// The IC graph's step factors: q, q̇, q̈ held to z, ż, z̈ by the constraints, f^i_dyn
 /// soft at the process noise on z̈, the integrators of z, the weak link that keeps

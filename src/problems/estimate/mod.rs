@@ -6,6 +6,7 @@
 pub mod consistency;
 pub mod determination;
 pub mod graph;
+pub mod identification;
 pub mod online;
 pub mod options;
 pub mod record;
@@ -15,6 +16,7 @@ pub mod table;
 pub use consistency::Nis;
 pub use determination::{Determination, Undetermined};
 pub use graph::EstimationGraph;
+pub use identification::{Identification, ParameterEstimate};
 pub use online::{Estimator, StepEstimate, Update};
 pub use options::{EstimateOptions, Smoothing, Uncertainty};
 pub use record::Record;

@@ -89,9 +89,9 @@ impl EstimateOptions {
 /// coordinates' acceleration units (m/s², rad/s²): a model believed to about a
 /// third of gravity's effect. The summary's NIS says whether it suits the record.
 pub const DEFAULT_PROCESS_SIGMA: f64 = 3.0;
-/// σ of the dynamics factor when the scene declares unknown inputs and no
-/// `process_sigma`: the inputs carry the model's error, the process noise only
-/// what they cannot (a tenth of [`DEFAULT_PROCESS_SIGMA`]); with the default's σ
+/// σ of the dynamics factor when the scene declares unknown inputs or identified
+/// parameters and no `process_sigma`: the inputs and the parameters carry the model's
+/// error, the process noise only what they cannot (a tenth of [`DEFAULT_PROCESS_SIGMA`]); with the default's σ
 /// the process noise would explain much of what the inputs should.
 pub const DEFAULT_PROCESS_SIGMA_WITH_INPUTS: f64 = 0.3;
 /// σ of the prior on an initial position the scene does not name (m or rad): a start
@@ -116,6 +116,8 @@ pub struct Uncertainty {
     pub initial_dq: Vec<f64>,
     /// The unknown inputs: (coordinate of q, σ of their rate, per √s).
     pub inputs: Vec<(usize, f64)>,
+    /// σ of the prior of each identified parameter, in `Model::parameters` order.
+    pub parameters: Vec<f64>,
 }
 
 impl Uncertainty {
@@ -123,10 +125,11 @@ impl Uncertainty {
     pub fn of(model: &crate::model::Model) -> Self {
         let spec = &model.estimation;
         let mut u = Uncertainty::defaults(model.n());
-        u.process = match (spec.process_sigma, spec.inputs.is_empty()) {
+        let modelled_error = !spec.inputs.is_empty() || model.parameters.is_some();
+        u.process = match (spec.process_sigma, modelled_error) {
             (Some(p), _) => p,
-            (None, true) => DEFAULT_PROCESS_SIGMA,
-            (None, false) => DEFAULT_PROCESS_SIGMA_WITH_INPUTS,
+            (None, false) => DEFAULT_PROCESS_SIGMA,
+            (None, true) => DEFAULT_PROCESS_SIGMA_WITH_INPUTS,
         };
         for &(i, s) in &spec.initial_sigma {
             u.initial_q[i] = s;
@@ -135,6 +138,13 @@ impl Uncertainty {
             u.initial_dq[i] = s;
         }
         u.inputs = spec.inputs.clone();
+        u.parameters = model
+            .scene
+            .estimation
+            .parameters
+            .iter()
+            .map(|(_, s)| *s)
+            .collect();
         u
     }
 
@@ -145,6 +155,7 @@ impl Uncertainty {
             initial_q: vec![DEFAULT_INITIAL_SIGMA; n],
             initial_dq: vec![DEFAULT_INITIAL_VELOCITY_SIGMA; n],
             inputs: Vec::new(),
+            parameters: Vec::new(),
         }
     }
 

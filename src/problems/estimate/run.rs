@@ -5,6 +5,7 @@
 use super::consistency::Nis;
 use super::determination::{watched_coordinates, Determination, Undetermined};
 use super::graph::EstimationGraph;
+use super::identification::Identification;
 use super::online::{Estimator, StepEstimate};
 use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW};
 use super::record::Record;
@@ -41,6 +42,8 @@ pub struct EstimateSummary {
     /// The watched coordinates (the scene's independent ones, else every q) whose
     /// σ stayed of the order of their start prior's: no reading determines them.
     pub undetermined: Vec<Undetermined>,
+    /// The identified parameters at the end of the record (empty: none identified).
+    pub identification: Identification,
 }
 
 /// The factors of one step's readings, each with its noise.
@@ -120,8 +123,18 @@ pub fn estimate_with_progress(
     let size = eg.size();
     let mut determination =
         Determination::new(&watched_coordinates(&model), &uncertainty.initial_q);
+    // The parameters' estimate and covariance at the last step handed out: the
+    // estimate from the whole record.
+    let params_at = eg.parameters_at();
+    let mut last_parameters: Option<(Vec<f64>, Vec<f64>)> = None;
     let sink = &mut |e: &StepEstimate| {
         determination.add(&e.covariance, size);
+        if let Some((at, np)) = params_at {
+            let c = (0..np * np)
+                .map(|k| e.covariance[(at + k / np) * size + at + k % np])
+                .collect();
+            last_parameters = Some((e.x[at..at + np].to_vec(), c));
+        }
         sink(e)
     };
     let mut est = Estimator::new(model.clone(), eg, window, settings, keep_all)?;
@@ -136,6 +149,12 @@ pub fn estimate_with_progress(
         }
     }
     let rest = est.finish()?;
+    let identification_of = |last: &Option<(Vec<f64>, Vec<f64>)>| match (last, &model.parameters) {
+        (Some((p, c)), Some(params)) => {
+            Identification::new(&params.names, p, c, &params.values, &uncertainty.parameters)
+        }
+        _ => Identification::default(),
+    };
     let steps = record.steps.len();
     let mut iterations = est.iterations;
     match options.smoothing {
@@ -148,6 +167,7 @@ pub fn estimate_with_progress(
             iterations += smooth_all(&model, &mut est, steps, settings, sink)?;
         }
     }
+    let identification = identification_of(&last_parameters);
     Ok(EstimateSummary {
         coordinates: options.coordinates,
         steps,
@@ -162,6 +182,7 @@ pub fn estimate_with_progress(
         undetermined: determination.undetermined(),
         longest_window: est.held_most,
         mean_window: est.mean_window(),
+        identification,
     })
 }
 

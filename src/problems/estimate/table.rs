@@ -1,6 +1,6 @@
 //! The estimate as a table ([`Estimates`]): the trajectory CSV contract (t, q:, dq:,
-//! ddq:) with the unknown inputs (Q:<c>) and the standard deviation of every
-//! estimate (sd:q:, sd:dq:, sd:ddq:, sd:Q:).
+//! ddq:) with the unknown inputs (Q:<c>), the identified parameters (p:<name>) and the
+//! standard deviation of every estimate (sd:q:, sd:dq:, sd:ddq:, sd:Q:, sd:p:).
 
 use super::online::StepEstimate;
 use crate::error::{Error, Result};
@@ -28,13 +28,17 @@ impl Estimates {
             columns.extend(model.names.iter().map(|c| format!("{p}:{c}")));
         }
         columns.extend(inputs.iter().map(|&i| format!("Q:{}", model.names[i])));
+        // The identified parameters follow the inputs in the block (DC only).
+        let parameters: &[String] = model.parameters.as_ref().map_or(&[], |p| &p.names);
+        columns.extend(parameters.iter().map(|p| format!("p:{p}")));
         for p in ["q", "dq", "ddq"] {
             columns.extend(model.names.iter().map(|c| format!("sd:{p}:{c}")));
         }
         columns.extend(inputs.iter().map(|&i| format!("sd:Q:{}", model.names[i])));
+        columns.extend(parameters.iter().map(|p| format!("sd:p:{p}")));
         let n = model.n();
         let picks = (0..3 * n)
-            .chain(inputs_at..inputs_at + inputs.len())
+            .chain(inputs_at..inputs_at + inputs.len() + parameters.len())
             .collect();
         Estimates {
             columns,
