@@ -201,12 +201,15 @@ def test_verdicts_of_the_four_bar_hold_every_seed_to_one_percent():
                                                 "rmse_z:theta": 2e-3, "rmse_dz:theta": 0.01,
                                                 "rmse_ddz:theta": 0.1})
             for s, (e, c) in enumerate([(0.001, True)] * 9 + [(0.02, False)], start=1)]
-    res = {"rows": rows, "tests": ["gravity"], "seeds": list(range(1, 11))}
+    # The batch's time is the timing pass's (one run at a time), not the main pass's.
+    timing = [row("gravity", 1, "mbfg batch", wall_s=2.5, process_s=2.6, steps=2001)]
+    res = {"rows": rows, "tests": ["gravity"], "seeds": list(range(1, 11)), "timing": timing}
     v = ident.verdicts(res)
     within = next(m for k, m in v if "within 1%" in k)
     covers = next(m for k, m in v if "1σ covers" in k)
-    batch = next(m for k, m in v if "the batch of 2001 steps" in k)
-    assert (within, covers, batch) == (False, True, True)
+    batch = next(k for k, m in v if "the batch of 2001 steps" in k)
+    assert (within, covers) == (False, True)
+    assert "median 2.50 s over 1 seeds" in batch and not dict(v)[batch]
 
 
 def parameters_out_supported() -> bool:
@@ -221,7 +224,8 @@ def parameters_out_supported() -> bool:
                     reason="this build's mbfg estimate has no --parameters-out (issue 39)")
 def test_page_end_to_end_on_a_short_record(tmp_path):
     pytest.importorskip("sksundae")
-    res = ident.write(tmp_path, seeds=[1], t_end=2.0, tests=["gravity"], inverse=False)
+    res = ident.write(tmp_path, seeds=[1], t_end=2.0, tests=["gravity"], inverse=False,
+                      ida_seeds=0)
     text = (tmp_path / "identification.md").read_text()
     assert "## (a) four-bar, gravity" in text and "output-error" in text
     batch = ident.ok(res["rows"], "gravity", "mbfg batch")
@@ -258,6 +262,8 @@ NAMED = {"arm": {"m1", "I1"}}  # link 1 only turns about its base: m1 and I1 mov
 def test_batch_identifies_on_seed_1(key):
     pytest.importorskip("sksundae")
     test = ident.TEST[key]
+    if not loads(test.true_scene):
+        pytest.skip(f"this build does not read {test.true_scene} yet (`type: input` sensors)")
     exe = str(ident.est.snapshot())
     tpath = str(ident.truth_path(test))
     r = ident.mbfg_row(test, 1, ident.T_END, str(ident.readings_path(test, 1, exe=exe)), tpath,
