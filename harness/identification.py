@@ -342,7 +342,7 @@ def run(tests=TESTS, seeds=SEEDS, t_end: float = T_END, sweep=None,
                 rpath = str(readings_path(test, seed, t_end, exe=exe))
             except RuntimeError as e:  # the test's rows say so; the other tests go on
                 failed += [{"test": test.key, "seed": seed, "estimator": name,
-                            "status": f"no readings: {' '.join(str(e).split())[:300]}"}
+                            "status": f"no readings ({est.short_failure(str(e))})"}
                            for name in ESTIMATORS if name not in PEERS or name in peers]
                 continue
             tasks.append((test.key, seed, t_end, rpath, tpath, exe, tuple(peers)))
@@ -543,7 +543,8 @@ def param_table(res, test: Test) -> str:
         bad = [r for r in rows if r["test"] == test.key and r["estimator"] == name
                and r.get("status") != "ok"]
         if not rs:
-            why = est.short_failure(bad[0]["status"]) if bad else "not run"
+            why = (bad[0]["status"] if bad and bad[0]["status"].startswith("no readings")
+                   else est.short_failure(bad[0]["status"]) if bad else "not run")
             lines.append(f"| {name} | failed: {why} | | | | | | |")
             continue
         t = (f"{med(rs, 'process_s'):.2f} (solve {g(med(rs, 'wall_s'), '.2f')})"
