@@ -95,7 +95,10 @@ fn online_steps(c: &mut Criterion) {
                 let mut est = Estimator::new(bad.clone(), eg, 20, settings, false).unwrap();
                 for k in 0..steps {
                     let readings = &record.steps[k];
-                    black_box(est.update(run::reading_factors(&bad, readings)).unwrap());
+                    black_box(
+                        est.update(run::reading_factors(&bad, readings).unwrap())
+                            .unwrap(),
+                    );
                 }
             })
         });

@@ -210,7 +210,7 @@ fn the_online_estimator_keeps_a_bounded_buffer_and_graph() {
     let s = est.graph().size();
     let (mut most_values, mut most_terms) = (0, 0);
     for readings in &record.steps {
-        est.update(mbfg::estimate::run::reading_factors(&m, readings))
+        est.update(mbfg::estimate::run::reading_factors(&m, readings).unwrap())
             .unwrap();
         most_values = most_values.max(est.values().len() / s);
         most_terms = most_terms.max(est.graph().graph.sparse_terms().len());

@@ -227,7 +227,8 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
 /// One line per identified parameter: its estimate and σ against its prior, or why
 /// the readings do not determine it.
 pub fn parameter_lines(s: &EstimateSummary) -> Vec<String> {
-    s.identification
+    let id = &s.identification;
+    let mut lines: Vec<String> = id
         .parameters
         .iter()
         .map(|p| {
@@ -236,15 +237,47 @@ pub fn parameter_lines(s: &EstimateSummary) -> Vec<String> {
                 p.name,
                 significant(p.estimate, p.sigma),
                 p.sigma,
-                p.prior,
-                p.prior_sigma
+                short(p.prior),
+                short(p.prior_sigma)
             );
             match &p.undetermined {
                 None => head,
                 Some(why) => format!("{head}: NOT identified, {why}"),
             }
         })
-        .collect()
+        .collect();
+    let np = id.parameters.len();
+    let strong: Vec<String> = (0..np)
+        .flat_map(|i| (i + 1..np).map(move |j| (i, j)))
+        .filter(|&(i, j)| id.correlation[i * np + j].abs() >= STRONG_CORRELATION)
+        .map(|(i, j)| {
+            format!(
+                "{}–{} {:+.3}",
+                id.parameters[i].name,
+                id.parameters[j].name,
+                id.correlation[i * np + j]
+            )
+        })
+        .collect();
+    if !strong.is_empty() {
+        lines.push(format!(
+            "parameters correlated by {STRONG_CORRELATION} or more: {}",
+            strong.join(", ")
+        ));
+    }
+    lines
+}
+
+/// A correlation the summary points out (the whole matrix is in --parameters-out).
+const STRONG_CORRELATION: f64 = 0.9;
+
+/// `v` to six significant digits, without trailing zeros.
+fn short(v: f64) -> String {
+    let s = format!("{v:.6e}");
+    match s.parse::<f64>() {
+        Ok(r) => format!("{r}"),
+        Err(_) => s,
+    }
 }
 
 /// `v` to two significant digits of its σ.

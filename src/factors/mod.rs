@@ -42,6 +42,6 @@ pub use integrator::{Equality, Euler, Form, Integrator, Partials, Trapezoidal, T
 pub use parametric::ParametricDynamics;
 pub use prescribed::PrescribedMotion;
 pub use priors::{ComponentPrior, Prior};
-pub use reading::Reading;
+pub use reading::{InputReading, Reading};
 pub(crate) use shared::{identity, key_accessor};
 pub use tangent::Projected;

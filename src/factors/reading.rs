@@ -108,3 +108,82 @@ impl Factor for Reading {
         Ok(())
     }
 }
+
+/// f_input: e = u_k − datum, the reading of an `input` sensor in an estimate: entry
+/// `k` of the step's unknown inputs (the input on the sensor's coordinate).
+pub struct InputReading {
+    name: String,
+    keys: [Key; 1],
+    inputs: usize,
+    k: usize,
+    datum: f64,
+}
+
+impl InputReading {
+    /// The reading `datum` of sensor `sensor` of `model`, on the unknown input its
+    /// coordinate carries: an error naming the sensor where the scene declares no
+    /// input on that coordinate, or a torque of its own there (the reading would
+    /// then be of the two together).
+    pub fn new(model: &Model, sensor: usize, datum: f64) -> Result<InputReading> {
+        let s = &model.sensors[sensor];
+        let crate::sensors::SensorKind::Input { coordinate } = s.kind else {
+            return Err(Error::InvalidArgument(format!(
+                "sensor '{}' is not an input sensor",
+                s.name
+            )));
+        };
+        let inputs: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+        let name = &model.names[coordinate];
+        let Some(k) = inputs.iter().position(|&c| c == coordinate) else {
+            return Err(Error::InvalidArgument(format!(
+                "sensor '{}' reads the input on '{name}', which the scene does not estimate: \
+                 declare it in `estimation: inputs:` (an estimate reads an input sensor as \
+                 the unknown input on its coordinate)",
+                s.name
+            )));
+        };
+        if model.forces.iter().any(|f| f.actuates(coordinate)) {
+            return Err(Error::InvalidArgument(format!(
+                "sensor '{}' reads the input on '{name}', where the scene also has a torque \
+                 of its own: an estimate reads an input sensor as the unknown input alone; \
+                 remove the scene's torque on '{name}' (the readings carry it)",
+                s.name
+            )));
+        }
+        Ok(InputReading {
+            name: format!("f_input({})", s.name),
+            keys: [Key::now(VarKind::Force)],
+            inputs: inputs.len(),
+            k,
+            datum,
+        })
+    }
+}
+
+impl Factor for InputReading {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    key_accessor!();
+    fn size(&self, _key: usize) -> usize {
+        self.inputs
+    }
+    fn dim(&self) -> usize {
+        1
+    }
+    fn evaluate(
+        &self,
+        _t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        _ws: &mut Workspace,
+    ) -> Result<()> {
+        r[0] = x[0][self.k] - self.datum;
+        if let Some(j) = jac {
+            j[0].fill(0.0);
+            j[0][self.k] = 1.0;
+        }
+        Ok(())
+    }
+}

@@ -493,6 +493,12 @@ impl Force {
         Ok(())
     }
 
+    /// Whether this is an actuator on q[index]: a torque or a motor there (what an
+    /// `input` sensor reads).
+    pub fn actuates(&self, index: usize) -> bool {
+        matches!(self, Force::Torque { index: i, .. } | Force::Motor { index: i, .. } if *i == index)
+    }
+
     /// A spring-damper (linear or rotational) with other stiffness and damping, its
     /// geometry kept: its force is linear in the two, so the constants' derivatives
     /// give the force's. `None` for any other effect.

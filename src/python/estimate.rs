@@ -317,12 +317,13 @@ impl PyEstimator {
             }
             let record = Record::from_rows(&self.model, &columns, &[(t, row)], Some(self.dt))
                 .map_err(|(_, m)| invalid(format!("readings: {m}")))?;
+            let factors = reading_factors(&self.model, &record.steps[0])
+                .map_err(|e| run_error(py, e, None))?;
             for _ in next..step {
                 self.est
                     .update(Vec::new())
                     .map_err(|e| run_error(py, e, None))?;
             }
-            let factors = reading_factors(&self.model, &record.steps[0]);
             let u = self
                 .est
                 .update(factors)

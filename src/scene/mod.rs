@@ -293,6 +293,10 @@ pub enum SensorDefKind {
     Marker { point: usize },
     /// An expression of the state, as an effect's value.
     Expression { value: LoadFunction },
+    /// The generalized force the actuators put on a coordinate of q, by name: the
+    /// scene's torques on it where readings are made, the unknown input on it in an
+    /// estimate.
+    Input { coordinate: String },
 }
 
 impl SensorDefKind {
@@ -304,6 +308,7 @@ impl SensorDefKind {
             SensorDefKind::Accelerometer { .. } => "accelerometer",
             SensorDefKind::Marker { .. } => "marker",
             SensorDefKind::Expression { .. } => "expression",
+            SensorDefKind::Input { .. } => "input",
         }
     }
 }

@@ -7,7 +7,7 @@ use super::{Scene, SensorDef, SensorDefKind};
 use crate::error::SceneError;
 use crate::expr::excerpt;
 
-const TYPES: &str = "encoder, gyroscope, accelerometer, marker or expression";
+const TYPES: &str = "encoder, gyroscope, accelerometer, marker, expression or input";
 
 pub fn read_sensors(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneError> {
     for (i, item) in seq(ctx, node, "sensors")?.iter().enumerate() {
@@ -155,6 +155,14 @@ pub fn read_sensors(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
                 (
                     SensorDefKind::Expression { value },
                     &["type", "name", "sigma", "rate", "value"],
+                )
+            }
+            "input" => {
+                let n = f.req(ctx, "coordinate")?;
+                let coordinate = q_name(ctx, scene, n, &f.key("coordinate"))?;
+                (
+                    SensorDefKind::Input { coordinate },
+                    &["type", "name", "sigma", "rate", "coordinate"],
                 )
             }
             other => {

@@ -23,6 +23,10 @@ pub enum SensorKind {
     Marker { point: usize },
     /// An expression of t and the state, compiled as an effect's value is.
     Expression { value: Load },
+    /// The generalized force the actuators put on q[coordinate]: the sum of the
+    /// scene's torque and motor effects on it (what `measure` reads), or in an
+    /// estimate the unknown input on it ([`crate::factors::InputReading`]).
+    Input { coordinate: usize },
 }
 
 /// A sensor of the model.
@@ -85,6 +89,7 @@ impl Sensor {
             SensorKind::Accelerometer { .. } => "accelerometer",
             SensorKind::Marker { .. } => "marker",
             SensorKind::Expression { .. } => "expression",
+            SensorKind::Input { .. } => "input",
         }
     }
 
@@ -113,6 +118,9 @@ impl Sensor {
             ),
             SensorKind::Marker { point: p } => (format!("marker at {}", point(*p)), "m"),
             SensorKind::Expression { value } => (format!("expression {}", value.text()), ""),
+            SensorKind::Input { coordinate } => {
+                (format!("input on {}", model.names[*coordinate]), "N or N·m")
+            }
         };
         let mut line = format!("{}: {what}, σ = {}", self.name, v(self.sigma));
         if !unit.is_empty() {
@@ -138,6 +146,7 @@ impl Sensor {
                 let [q, dq] = value.reads();
                 [q, dq, false]
             }
+            SensorKind::Input { .. } => [true, true, false],
         }
     }
 
@@ -315,6 +324,24 @@ impl Sensor {
                         .map_err(|e| self.error(plain(e)))?;
                 }
             }
+            SensorKind::Input { coordinate } => {
+                let c = *coordinate;
+                let mut force = vec![0.0; n];
+                let (mut kq, mut kv) = (vec![0.0; n * n], vec![0.0; n * n]);
+                for f in model.forces.iter().filter(|f| f.actuates(c)) {
+                    f.add_to(model, q, dq, t, &mut force)
+                        .map_err(|e| self.error(plain(e)))?;
+                    if blocks.is_some() {
+                        f.add_jacobians(model, (q, dq, t), &mut kq, &mut kv)
+                            .map_err(|e| self.error(plain(e)))?;
+                    }
+                }
+                out[0] = force[c];
+                if let Some(b) = blocks {
+                    b.q.copy_from_slice(&kq[c * n..(c + 1) * n]);
+                    b.dq.copy_from_slice(&kv[c * n..(c + 1) * n]);
+                }
+            }
         }
         if let Some(i) = out[..dim].iter().position(|v| !v.is_finite()) {
             return Err(self.error(format!(
@@ -401,6 +428,9 @@ pub(crate) fn resolve(model: &Model, defs: &[SensorDef]) -> Result<Vec<Sensor>> 
                     point: *point,
                 },
                 SensorDefKind::Marker { point } => SensorKind::Marker { point: *point },
+                SensorDefKind::Input { coordinate } => SensorKind::Input {
+                    coordinate: index(model, coordinate)?,
+                },
                 SensorDefKind::Expression { value } => SensorKind::Expression {
                     value: Load::compile(model, value).map_err(|e| {
                         Error::InvalidArgument(format!("sensor '{}': {}", def.name, plain(e)))

@@ -11,9 +11,10 @@ use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW
 use super::record::Record;
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
-use crate::factors::Reading;
+use crate::factors::{InputReading, Reading};
 use crate::graph::{Factor, Noise};
 use crate::model::Model;
+use crate::sensors::SensorKind;
 use crate::solver::Marginals;
 use crate::solver::{Termination, WindowSolver};
 use std::sync::Arc;
@@ -46,19 +47,22 @@ pub struct EstimateSummary {
     pub identification: Identification,
 }
 
-/// The factors of one step's readings, each with its noise.
+/// The factors of one step's readings, each with its noise: an `input` sensor's on
+/// the unknown input of its coordinate, any other's on the motion.
 pub fn reading_factors(
     model: &Arc<Model>,
     readings: &[(usize, Vec<f64>)],
-) -> Vec<(Box<dyn Factor>, Noise)> {
+) -> Result<Vec<(Box<dyn Factor>, Noise)>> {
     readings
         .iter()
         .map(|(s, v)| {
-            let sigma = model.sensors[*s].effective_sigma();
-            (
-                Box::new(Reading::new(model.clone(), *s, v.clone())) as Box<dyn Factor>,
-                Noise::Isotropic(sigma),
-            )
+            let sensor = &model.sensors[*s];
+            let noise = Noise::Isotropic(sensor.effective_sigma());
+            let factor: Box<dyn Factor> = match sensor.kind {
+                SensorKind::Input { .. } => Box::new(InputReading::new(model, *s, v[0])?),
+                _ => Box::new(Reading::new(model.clone(), *s, v.clone())),
+            };
+            Ok((factor, noise))
         })
         .collect()
 }
@@ -140,7 +144,7 @@ pub fn estimate_with_progress(
     let mut est = Estimator::new(model.clone(), eg, window, settings, keep_all)?;
     let total = record.steps.len();
     for (k, readings) in record.steps.iter().enumerate() {
-        let update = est.update(reading_factors(&model, readings))?;
+        let update = est.update(reading_factors(&model, readings)?)?;
         progress(k + 1, total);
         if !keep_all {
             for f in &update.finals {
