@@ -111,12 +111,13 @@ class Dae:
 
 def generate(scene, t_end: float, sample_dt: float, formulation: str = "ggl",
              rtol: float = 1e-12, atol: float | None = None, max_num_steps: int = 1_000_000,
-             max_step: float = 0.0):
+             max_step: float = 0.0, params: dict | None = None):
     """Integrates `scene` (a path) over [0, t_end]; returns the Trajectory at multiples of
     sample_dt and its provenance. atol (on q and v, SI units) defaults to rtol;
-    max_num_steps bounds the internal steps of the whole run."""
+    max_num_steps bounds the internal steps of the whole run; `params` gives some of the
+    scene's parameters other values (as `mbfg.load` does)."""
     start = time.perf_counter()
-    model = mbfg.load(str(scene))
+    model = mbfg.load(str(scene), params)
     dae = Dae(model, formulation)
     atol = rtol if atol is None else atol
     solver = sksundae.ida.IDA(
