@@ -463,10 +463,12 @@ pub fn units_warnings(model: &Model) -> Vec<String> {
     out
 }
 
-/// A warning when nothing can set the mechanism moving: no effect, and at rest.
+/// A warning when nothing can set the mechanism moving: no effect, no unknown input
+/// an estimate would find (`estimation: inputs:`), and at rest.
 pub fn idle_warning(model: &Model) -> Option<String> {
     let at_rest = model.initial.dq.iter().all(|v| *v == 0.0);
-    (model.scene.effects.is_empty() && at_rest).then(|| {
+    let driven = !model.estimation.inputs.is_empty();
+    (model.scene.effects.is_empty() && at_rest && !driven).then(|| {
         format!(
             "{}: no effects (no gravity either) and at rest: nothing moves the mechanism \
              (an MBSE mechanism file declares none; name it with `mechanism:` in a scene \
