@@ -567,10 +567,17 @@ fn independent_graph(
     let mut sorted_i = ind.clone();
     sorted_i.sort_unstable();
     if sorted_p != sorted_i {
+        let theirs = if ind.is_empty() {
+            "the scene declares none: add `independent:` or use --coords dc".to_string()
+        } else {
+            ind.iter()
+                .map(|&i| model.names[i].as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
         return Err(Error::InvalidArgument(format!(
-            "{}: inverse dynamics in independent coordinates needs the prescribed coordinates to be the scene's independent ones ({})",
+            "{}: inverse dynamics in independent coordinates needs the prescribed coordinates to be the scene's independent ones ({theirs})",
             model.scene.file,
-            ind.iter().map(|&i| model.names[i].as_str()).collect::<Vec<_>>().join(", ")
         )));
     }
     let unactuated: Vec<usize> = (0..n).filter(|i| !idx.contains(i)).collect();
