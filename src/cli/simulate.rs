@@ -529,6 +529,12 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
             s.general_steps + s.square_steps
         );
     }
+    if s.paper_steps > 0 {
+        line += &format!(
+            "; {} step(s) by the paper's integrators (the tangent ones failed there)",
+            s.paper_steps
+        );
+    }
     if let Some(f) = &s.full_after {
         line += &format!(
             "; the paper's integrators (tangent ones did not converge at step {}, t = {} s)",

@@ -82,6 +82,7 @@ fn forward_result<'py>(
     summary.set_item("plan", plan)?;
     summary.set_item("square_steps", s.square_steps)?;
     summary.set_item("general_steps", s.general_steps)?;
+    summary.set_item("paper_steps", s.paper_steps)?;
     // Kept for scripts that read it: `dc_integrators="auto"` starts with tangent
     // integrators, so no run is made again with them.
     summary.set_item("tangent_after", py.None())?;

@@ -396,6 +396,7 @@ fn simulate_with(
         .finish(wall_time, run.iterations, run.failures, plan);
     summary.square_steps = run.square_steps;
     summary.general_steps = run.general_steps;
+    summary.paper_steps = run.paper_steps;
     summary.steps = rows.written;
     summary.conditioned_from = run.conditioned_from;
     summary.reselections = run.reselections;

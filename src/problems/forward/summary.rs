@@ -21,6 +21,9 @@ pub struct RunSummary {
     /// took (near a rank loss of Φ_q, or where the square step did not converge).
     pub square_steps: usize,
     pub general_steps: usize,
+    /// Steps of a stepwise DC run that the paper's integrator factors took, for
+    /// that step only, where the tangent ones failed from every guess.
+    pub paper_steps: usize,
     /// Mean and max Newton or Levenberg–Marquardt iterations (linear solves) per
     /// solve: per step for a stepwise run or the smoother, of the whole horizon for
     /// a batch.
@@ -351,6 +354,7 @@ impl Stats {
             plan,
             square_steps: 0,
             general_steps: 0,
+            paper_steps: 0,
             steps: self.steps,
             wall_time,
             mean_iterations: iterations.total as f64 / iterations.count.max(1) as f64,
