@@ -71,7 +71,7 @@ fn errors(loops: usize, tr: &Trajectory, exact: &[f64]) -> (f64, f64) {
     (b0, branch)
 }
 
-/// Five loops over 2 s, through three flat configurations (t ≈ 0.72, 1.24, 1.96 s):
+/// Five loops over 2 s, through two flat configurations (t ≈ 0.719 and 1.238 s):
 /// on the branch, with an error that falls at second order as dt halves (it did not
 /// fall when the steps near a flat configuration went to the regularized general
 /// solver: 2.2e-4, 8.6e-2 and 9.5e-5 m at 1, 0.625 and 0.5 ms over 5 s).
@@ -122,4 +122,65 @@ fn a_step_that_lands_next_to_a_flat_configuration_is_stepped_over() {
         .map(|k| ((energy(k) - energy(k - 1)).abs(), tr.t[k]))
         .fold((0.0, 0.0), |a, b| if b.0 > a.0 { b } else { a });
     assert!(jump <= 1e-7, "the energy jumps by {jump:e} J at t = {at} s");
+}
+
+/// The summary says how many passages a run made and what they did; a coarse step's
+/// energy jump at one is warned of, and `--strict` refuses it (nothing written).
+#[test]
+fn the_summary_counts_the_passages_and_strict_refuses_an_energy_jump() {
+    let scene = scene_path("benchmarks/n-fourbar-5.yaml");
+    let scene = scene.to_str().unwrap();
+    let dir = common::scratch("passages", "summary");
+    let out = dir.join("fine.csv");
+    let fine = common::mbfg(&[
+        "simulate",
+        scene,
+        "--dt",
+        "1e-3",
+        "--t-end",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(fine.status.success(), "{}", common::stderr(&fine));
+    let line = String::from_utf8_lossy(&fine.stdout).to_string();
+    assert!(
+        line.contains("2 passage(s) through a singular configuration (the first at t = 0.719 s)"),
+        "{line}"
+    );
+    assert!(
+        !common::stderr(&fine).contains("warning"),
+        "{}",
+        common::stderr(&fine)
+    );
+    let out = dir.join("coarse.csv");
+    let coarse = [
+        "simulate",
+        scene,
+        "--dt",
+        "0.025",
+        "--t-end",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let warned = common::mbfg(&coarse);
+    assert!(warned.status.success(), "{}", common::stderr(&warned));
+    assert!(
+        common::stderr(&warned)
+            .contains("across the passage through a singular configuration at t = 0.725 s"),
+        "{}",
+        common::stderr(&warned)
+    );
+    let refused = dir.join("refused.csv");
+    let mut strict = coarse;
+    strict[7] = refused.to_str().unwrap();
+    let strict = common::mbfg(&[&strict[..], &["--strict"]].concat());
+    assert!(!strict.status.success());
+    assert!(
+        common::stderr(&strict).contains("(--strict)"),
+        "{}",
+        common::stderr(&strict)
+    );
+    assert!(!refused.exists(), "--strict wrote {}", refused.display());
 }

@@ -52,7 +52,7 @@ use crate::model::Model;
 use factors::Factors;
 use nalgebra::DVector;
 use passage::{Passage, Passed};
-use regularity::{GramWork, Regularity};
+pub(super) use regularity::{GramWork, Regularity};
 use std::sync::Arc;
 use system::{Sink, System};
 
