@@ -359,6 +359,7 @@ pub(super) fn simulate_run<'py>(
             .cloned()
             .chain(s.load_jump.as_ref().map(|j| j.message()))
             .chain(crate::forward::energy_checks::energy_warning(&s))
+            .chain(crate::forward::energy_checks::passage_warning(&s))
             .chain(euler)
             .collect();
         out.get_item("summary")?

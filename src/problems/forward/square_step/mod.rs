@@ -78,6 +78,10 @@ const ROUNDING_KEPT: f64 = 1e-2;
 /// with gradients round at about 1e-16 of that).
 const ROUNDING_RESIDUAL: f64 = 1e-14;
 
+/// A step's guess is measured for its distance to a rank loss where the last
+/// step's, carried on, comes within this many times [`passage::NEAR`].
+const LOOKOUT: f64 = 10.0;
+
 /// Fresh factorizations after which a step goes back to the general solver.
 const MAX_FACTORIZATIONS: usize = 8;
 
@@ -153,6 +157,11 @@ pub struct SquareStep {
     work: Work,
     /// The longer steps a step next to a rank loss of Φ_q is interpolated from.
     passage: Passage,
+    /// The last step's distance to a rank loss and its change from the step
+    /// before ((0, 0): unknown, to be measured at the next guess).
+    recent: (f64, f64),
+    /// The guess of the step being solved (q, q̇, q̈), kept to start again from.
+    guess: Vec<f64>,
 }
 
 /// The step system with its Jacobian's pattern and the regularity test: what the
@@ -251,6 +260,8 @@ impl SquareStep {
             },
             work,
             passage: Passage::default(),
+            recent: (0.0, 0.0),
+            guess: vec![0.0; 3 * n],
         })
     }
 
@@ -266,10 +277,13 @@ impl SquareStep {
             &equations.regularity,
             factors,
         )?;
+        let n = equations.system.model.n();
         Some(SquareStep {
             equations,
             work,
             passage: Passage::default(),
+            recent: (0.0, 0.0),
+            guess: vec![0.0; 3 * n],
         })
     }
 }
@@ -588,16 +602,32 @@ impl SquareStep {
             self.equations.system.fill_independent(block);
             return Some(work);
         }
-        let from_guess = self.distance(&block[..n]);
+        // The guess's distance to a rank loss only where the last steps' s, carried
+        // on at twice its last change, may come near one within this step.
+        let near = self.recent.0 - 2.0 * self.recent.1.abs() < LOOKOUT * passage::NEAR;
+        let from_guess = match near {
+            true => self.distance(&block[..n]),
+            false => f64::INFINITY,
+        };
         if from_guess >= passage::NEAR {
-            let guess = block[..3 * n].to_vec();
+            self.guess.copy_from_slice(&block[..3 * n]);
             match self.solve_plain_watched(t, before, block, limits, watch) {
-                Some(work) if self.distance(&block[..n]) >= passage::NEAR => return Some(work),
-                Some(_) => block[..3 * n].copy_from_slice(&guess),
-                None if from_guess >= DynamicsKernel::REGULAR_ABOVE => return None,
+                Some(work) => {
+                    let s = self.distance(&block[..n]);
+                    self.recent = (s, s - self.recent.0);
+                    if s >= passage::NEAR {
+                        return Some(work);
+                    }
+                    block[..3 * n].copy_from_slice(&self.guess);
+                }
+                None if from_guess >= DynamicsKernel::REGULAR_ABOVE => {
+                    self.recent = (0.0, 0.0);
+                    return None;
+                }
                 None => {}
             }
         }
+        self.recent = (0.0, 0.0);
         let mut passage = std::mem::take(&mut self.passage);
         let solved = passage.start(self, t, before, block, limits);
         self.passage = passage;
