@@ -205,7 +205,8 @@ fn a_solve_that_does_not_converge_exits_1_and_keeps_what_converged_apart() {
 
 /// The summary line says what ran: a window asked of square steps is taken one step
 /// at a time, and says so; without square steps the window runs, and says that; the
-/// steps the square step declines (the parallelogram's flat point) are counted.
+/// passages through a singular configuration (the parallelogram's flat point) are
+/// counted, whichever solver took them.
 #[test]
 fn the_summary_names_the_schedule_that_ran() {
     let summary = |extra: &[&str], scene: &str| -> String {
@@ -229,10 +230,17 @@ fn the_summary_names_the_schedule_that_ran() {
     let line = summary(&["--batch", "--dc-integrators", "full"], fourbar);
     assert!(line.contains("(dt = 0.001 s, batch)"), "{line}");
     assert!(!line.contains("general solver"), "{line}");
-    // The parallelogram's first flat point is at t = π/6.
+    // The parallelogram's first flat point is at t = π/6: the square steps pass it,
+    // and the summary counts the passage.
     let line = summary(&["--t-end", "0.6"], "scenes/hard/parallelogram.yaml");
     assert!(
-        line.contains("steps by the general solver (the square step declined them)"),
+        line.contains("1 passage(s) through a singular configuration (the first at t = 0.524 s)"),
         "{line}"
     );
+    assert!(!line.contains("general solver"), "{line}");
+    let line = summary(
+        &["--t-end", "0.6", "--no-square-steps"],
+        "scenes/hard/parallelogram.yaml",
+    );
+    assert!(line.contains("1 passage(s)"), "{line}");
 }

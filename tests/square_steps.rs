@@ -34,14 +34,14 @@ fn largest_difference(a: &[f64], b: &[f64]) -> f64 {
         .fold(0.0, f64::max)
 }
 
-/// A chain of ten square loops through its flat configuration (t ≈ 0.72 s, where
-/// the steps go back to the general solver) and an eight-link pendulum (angle
-/// coordinates): positions, velocities and accelerations as the general solver
-/// takes them, step by step.
+/// A chain of ten square loops up to its flat configuration (t ≈ 0.72 s: near it the
+/// general solver's dynamics are regularized, the square steps' are not; see
+/// tests/passages.rs) and an eight-link pendulum (angle coordinates): positions,
+/// velocities and accelerations as the general solver takes them, step by step.
 #[test]
 fn square_steps_are_the_general_solvers_steps() {
     for (scene, t_end) in [
-        ("benchmarks/n-fourbar-10.yaml", 0.8),
+        ("benchmarks/n-fourbar-10.yaml", 0.7),
         ("scale/n-pendulum-8.yaml", 0.5),
     ] {
         let (sparse, s) = run(scene, 1e-3, t_end, Mode::FixedLag(1), true);
@@ -257,4 +257,24 @@ fn steps_settle_at_the_rounding_an_earlier_step_found() {
         per_step <= 0.25,
         "{per_step:.2} iterations a step after an update below 1e-10"
     );
+}
+
+/// A batch asked of square steps is taken one step at a time: its plan holds the
+/// stepwise buffer and two steps' systems, whatever the horizon (10^5 steps of the
+/// 40-loop chain), where the general solver's batch holds every step's system.
+#[test]
+fn a_batch_of_square_steps_is_planned_at_what_it_holds() {
+    use mbfg::forward::{DcIntegrators, Plan};
+    let path = common::scene_path("benchmarks/n-fourbar-40.yaml");
+    let model = Model::new(&Scene::load(path).unwrap()).unwrap();
+    let mut options = ForwardOptions::new(Coordinates::Dependent, 1e-4, 10.0, Mode::Batch);
+    let plan = Plan::new(&model, &options).unwrap();
+    assert_eq!(plan.schedule, Schedule::Stepwise);
+    let mib = plan.memory.streamed / (1024.0 * 1024.0);
+    assert!(mib < 64.0, "{mib:.1} MiB streamed");
+    options.t_end = 0.01;
+    options.dc_integrators = DcIntegrators::Full;
+    let general = Plan::new(&model, &options).unwrap();
+    assert_eq!(general.schedule, Schedule::Batch);
+    assert!(general.memory.streamed > 500.0 * 1024.0 * 1024.0);
 }

@@ -80,9 +80,10 @@ pub struct SimulateArgs {
     #[arg(long = "no-square-steps")]
     no_square_steps: bool,
     /// Make the plausibility warnings errors: a time step too coarse for the
-    /// stiffest spring or damper (refused before the run), and the energy drift
-    /// of a conservative scene beyond 1 % of its largest kinetic energy (the
-    /// trajectory is then not written).
+    /// stiffest spring or damper (refused before the run), the energy drift of a
+    /// conservative scene beyond 1 % of its largest kinetic energy, and its energy
+    /// changing by more than 1e-4 of it across a passage through a singular
+    /// configuration (the trajectory is then not written).
     #[arg(long)]
     strict: bool,
     /// Print every iteration of every window solve to standard error: the window,
@@ -459,6 +460,7 @@ fn simulate(
         .map(|j| j.message())
         .into_iter()
         .chain(mbfg::forward::energy_checks::energy_warning(&summary).or(euler))
+        .chain(mbfg::forward::energy_checks::passage_warning(&summary))
         .collect();
     if let (true, Some(w)) = (strict, warnings.first()) {
         output.discard();
@@ -522,11 +524,30 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
             r.t
         );
     }
+    let p = &s.passages;
+    if let Some(first) = p.first {
+        line += &format!(
+            "; {} passage(s) through a singular configuration (the first at t = {} s): \
+             max |Φq q̇| {:.2e} around them",
+            p.count,
+            forward::round_time(first),
+            p.worst_velocity_constraint
+        );
+        if let Some((jump, _)) = p.energy_jump {
+            line += &format!(", largest energy change across one {jump:.2e} J");
+        }
+    }
     if s.general_steps > 0 {
         line += &format!(
             "; {} of {} steps by the general solver (the square step declined them)",
             s.general_steps,
             s.general_steps + s.square_steps
+        );
+    }
+    if s.paper_steps > 0 {
+        line += &format!(
+            "; {} step(s) by the paper's integrators (the tangent ones failed there)",
+            s.paper_steps
         );
     }
     if let Some(f) = &s.full_after {

@@ -82,6 +82,22 @@ fn forward_result<'py>(
     summary.set_item("plan", plan)?;
     summary.set_item("square_steps", s.square_steps)?;
     summary.set_item("general_steps", s.general_steps)?;
+    summary.set_item("paper_steps", s.paper_steps)?;
+    let passages = PyDict::new(py);
+    passages.set_item("count", s.passages.count)?;
+    passages.set_item("first", s.passages.first.map(crate::trajectory::round_time))?;
+    passages.set_item(
+        "worst_velocity_constraint",
+        s.passages.worst_velocity_constraint,
+    )?;
+    passages.set_item("energy_jump", s.passages.energy_jump.map(|(j, _)| j))?;
+    passages.set_item(
+        "energy_jump_t",
+        s.passages
+            .energy_jump
+            .map(|(_, t)| crate::trajectory::round_time(t)),
+    )?;
+    summary.set_item("passages", passages)?;
     // Kept for scripts that read it: `dc_integrators="auto"` starts with tangent
     // integrators, so no run is made again with them.
     summary.set_item("tangent_after", py.None())?;
@@ -348,6 +364,7 @@ pub(super) fn simulate_run<'py>(
             .cloned()
             .chain(s.load_jump.as_ref().map(|j| j.message()))
             .chain(crate::forward::energy_checks::energy_warning(&s))
+            .chain(crate::forward::energy_checks::passage_warning(&s))
             .chain(euler)
             .collect();
         out.get_item("summary")?

@@ -1,9 +1,10 @@
 //! Checks on a run's result, beyond convergence, each reported with its numbers:
-//! energy that a conservative scene should keep but did not, and an explicit Euler
-//! run off its energy balance. `mbfg simulate --strict` makes them errors. The checks
+//! energy that a conservative scene should keep but did not, a passage through a
+//! singular configuration that moved it, and an explicit Euler run off its energy
+//! balance. `mbfg simulate --strict` makes them errors. The checks
 //! on the model before a run are in [`crate::model::plausibility`].
 
-use crate::forward::{Integrator, RunSummary};
+use crate::forward::{Integrator, Passages, RunSummary};
 use crate::model::Model;
 use crate::trajectory::Trajectory;
 
@@ -29,6 +30,25 @@ pub fn energy_warning(summary: &RunSummary) -> Option<String> {
          for the motion",
         100.0 * drift / scale.max(f64::MIN_POSITIVE),
         100.0 * ENERGY_DRIFT_TOLERANCE
+    ))
+}
+
+/// A warning when a conservative scene's energy changed across a passage through a
+/// singular configuration by more than [`Passages::ENERGY_JUMP_TOLERANCE`] of its
+/// largest kinetic energy: the motion after it is not the one before it continued.
+pub fn passage_warning(summary: &RunSummary) -> Option<String> {
+    let (jump, t) = summary.passages.energy_jump?;
+    let scale = summary.peak_kinetic_energy;
+    if !(jump > Passages::ENERGY_JUMP_TOLERANCE * scale && jump > ENERGY_DRIFT_FLOOR) {
+        return None;
+    }
+    Some(format!(
+        "the energy changed by {jump:.3e} J ({:.2e} of the largest kinetic energy \
+         {scale:.3e} J, tolerance {:.0e}) across the passage through a singular \
+         configuration at t = {} s: the step is too coarse for the passage",
+        jump / scale.max(f64::MIN_POSITIVE),
+        Passages::ENERGY_JUMP_TOLERANCE,
+        crate::trajectory::round_time(t)
     ))
 }
 

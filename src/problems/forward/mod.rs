@@ -36,4 +36,4 @@ pub use options::{DcIntegrators, ForwardOptions, Integrator, NoiseModels, Observ
 pub use plan::{Memory, Plan, Rescue, Schedule};
 pub use run::{simulate, simulate_interruptible, simulate_streaming, StepSink};
 pub use start::Start;
-pub use summary::{LoadJump, Refinement, Reselection, RunSummary};
+pub use summary::{LoadJump, Passages, Refinement, Reselection, RunSummary};

@@ -221,7 +221,7 @@ impl<'a> Rows<'a> {
             self.non_finite = Some(f);
             return Ok(());
         }
-        self.stats.add(self.model, q, dq)?;
+        self.stats.add(self.model, t, q, dq)?;
         if k > 0 {
             let before = (self.last_t, &self.last[..n], &self.last[n..2 * n]);
             self.stats.watch(self.model, before, t, q, dq);
@@ -316,10 +316,15 @@ fn simulate_integrators(
         return Ok((summary, coarse));
     }
     // The tangent factors hold one equation per unknown; where they fail, the
-    // paper's least-squares compromise is still worth a try.
+    // paper's least-squares compromise is still worth a try, where it fits: their
+    // batch holds every step's linear system (a batch of square steps holds two),
+    // and a run that cannot be made again keeps its own failure.
     let failure = failure.clone();
     let mut other = options.clone();
     other.dc_integrators = DcIntegrators::Full;
+    if Plan::new(&model, &other).is_err() {
+        return Ok((summary, coarse));
+    }
     let first_attempt = summary.wall_time;
     sink.restart()?;
     let (mut summary, coarse) = simulate_with(model, &other, progress, sink, every)?;
@@ -396,6 +401,7 @@ fn simulate_with(
         .finish(wall_time, run.iterations, run.failures, plan);
     summary.square_steps = run.square_steps;
     summary.general_steps = run.general_steps;
+    summary.paper_steps = run.paper_steps;
     summary.steps = rows.written;
     summary.conditioned_from = run.conditioned_from;
     summary.reselections = run.reselections;

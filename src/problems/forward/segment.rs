@@ -4,8 +4,8 @@
 use super::failure::StepFailure;
 use super::graph::ForwardGraph;
 use super::judge::Judge;
-use super::options::ForwardOptions;
-use super::plan::{Plan, Schedule};
+use super::options::{DcIntegrators, ForwardOptions};
+use super::plan::{Plan, Rescue, Schedule};
 use super::start::Start;
 use super::substeps::Substeps;
 use super::summary::{Iterations, Reselection};
@@ -25,6 +25,8 @@ pub(super) struct Run {
     /// Steps the square step took, and steps of a stepwise run the general solver took.
     pub(super) square_steps: usize,
     pub(super) general_steps: usize,
+    /// Steps taken by the paper's integrator factors where the run's own failed.
+    pub(super) paper_steps: usize,
 }
 
 /// Where a segment hands its steps as they become final: `emit(step, t, block)` with
@@ -79,7 +81,21 @@ impl Segment<'_> {
             noise: &self.options.noise,
             independent: &self.start.independent,
             s: fg.graph.layout().size(),
+            paper: self.paper_plan(),
         }
+    }
+
+    /// The plan of one step under the paper's integrator factors, through the
+    /// general smoother at N_w = 1: a failed step's last rescue, where the run
+    /// would otherwise start again with them from t = 0.
+    fn paper_plan(&self) -> Option<Plan> {
+        if !self.plan.tries(Rescue::PaperIntegrators) || !self.plan.tangent_dc() {
+            return None;
+        }
+        let mut options = self.options.clone();
+        options.dc_integrators = DcIntegrators::Full;
+        options.mode = crate::smoother::Mode::FixedLag(1);
+        Plan::new(&self.model, &options).ok()
     }
 
     pub(super) fn judge<'b>(

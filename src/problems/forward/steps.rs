@@ -8,7 +8,7 @@ use super::judge::{Judge, Verdict};
 use super::plan::STEPWISE_BUFFER;
 use super::segment::{finish, Emit, Run, Segment};
 use super::square_step::SquareStep;
-use super::stepwise::{self, StepHooks, Stepwise, Taker};
+use super::stepwise::{self, Rescued, StepHooks, Stepwise, Taker};
 use super::substeps::Substeps;
 use crate::convergence::SolveReport;
 use crate::error::Result;
@@ -38,17 +38,18 @@ impl Segment<'_> {
             judge: self.judge(progress),
             emit,
             reselect: None,
-            taken: (0, 0),
+            taken: (0, 0, 0),
         };
         stepwise::run(fg, &mut solver, &mut values, self.steps(), &mut hooks)?;
         let Steps {
             judge,
             reselect,
-            taken: (square_steps, general_steps),
+            taken: (square_steps, general_steps, paper_steps),
             ..
         } = hooks;
         run.square_steps += square_steps;
         run.general_steps += general_steps;
+        run.paper_steps += paper_steps;
         finish(run, judge, None);
         Ok(reselect)
     }
@@ -62,8 +63,8 @@ struct Steps<'a, 'e> {
     judge: Judge<'a>,
     emit: &'a mut Emit<'e>,
     reselect: Option<(usize, Vec<usize>)>,
-    /// Steps the square step and the general solver took.
-    taken: (usize, usize),
+    /// Steps the square step, the general solver and the paper's integrators took.
+    taken: (usize, usize, usize),
 }
 
 impl StepHooks for Steps<'_, '_> {
@@ -72,7 +73,7 @@ impl StepHooks for Steps<'_, '_> {
         values: &mut [f64],
         (k, j): (usize, usize),
         square: Option<&SquareStep>,
-    ) -> bool {
+    ) -> Option<Rescued> {
         self.substeps
             .guess(square, self.segment.first + j, values, k)
     }
@@ -87,6 +88,7 @@ impl StepHooks for Steps<'_, '_> {
         match taker {
             Taker::Square => self.taken.0 += 1,
             Taker::General => self.taken.1 += 1,
+            Taker::Paper => self.taken.2 += 1,
         }
         let s = self.fg.graph.layout().size();
         let t = self.fg.graph.run_time(j);

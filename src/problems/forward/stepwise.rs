@@ -14,14 +14,27 @@ use crate::graph::ChainGraph;
 use crate::solver::{Iteration, Settings, WindowSolver};
 
 /// A better guess of a failed step k of the values, from the step before (given the
-/// run's square step, whose analysis it may reuse); whether one was written.
-pub(super) type Rescue<'a> = dyn FnMut(&mut [f64], usize, Option<&SquareStep>) -> bool + 'a;
+/// run's square step, whose analysis it may reuse); what was written, if anything.
+pub(super) type Rescue<'a> =
+    dyn FnMut(&mut [f64], usize, Option<&SquareStep>) -> Option<Rescued> + 'a;
+
+/// What a rescue wrote into a failed step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Rescued {
+    /// A guess, from substeps of the run's own equations.
+    Guess,
+    /// The step's solution under the paper's integrator factors: kept where the
+    /// run's own equations do not converge from it either.
+    Paper,
+}
 
 /// Which solver took a step.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Taker {
     Square,
     General,
+    /// The paper's integrator factors, for this step only (the run's own failed).
+    Paper,
 }
 
 /// The solvers of one step given the one before.
@@ -108,16 +121,22 @@ impl Stepwise {
         // or stiff stretch): from a better one, if there is one.
         let failed_values = values[k * s..(k + 1) * s].to_vec();
         values[k * s..(k + 1) * s].copy_from_slice(&self.guess);
-        if !rescue(values, k, self.square.as_ref()) {
+        let Some(rescued) = rescue(values, k, self.square.as_ref()) else {
             values[k * s..(k + 1) * s].copy_from_slice(&failed_values);
             return Ok((failed, Taker::General));
-        }
+        };
+        let rescue_values = values[k * s..(k + 1) * s].to_vec();
         let again = self.general.solve_conditional(graph, values, k, k + 1)?;
-        let report = SolveReport {
+        let mut report = SolveReport {
             iterations: failed.iterations + again.iterations,
             factorizations: failed.factorizations + again.factorizations,
             ..again
         };
+        if rescued == Rescued::Paper && report.termination != Termination::Converged {
+            values[k * s..(k + 1) * s].copy_from_slice(&rescue_values);
+            report.termination = Termination::Converged;
+            return Ok((report, Taker::Paper));
+        }
         Ok((report, Taker::General))
     }
 
@@ -187,8 +206,8 @@ pub(super) trait StepHooks {
         _values: &mut [f64],
         _at: (usize, usize),
         _square: Option<&SquareStep>,
-    ) -> bool {
-        false
+    ) -> Option<Rescued> {
+        None
     }
 
     /// Step k of the buffer (run step j) was solved: `None` to go on, `Some(keep)` to

@@ -10,7 +10,7 @@ use super::options::NoiseModels;
 use super::plan::{Plan, Schedule};
 use super::square_step::SquareStep;
 use super::start::Start;
-use super::stepwise::{self, StepHooks, Stepwise, Taker};
+use super::stepwise::{self, Rescued, StepHooks, Stepwise, Taker};
 use crate::convergence::{SolveReport, Termination};
 use crate::model::{Model, State};
 use crate::smoother::{self, FixedLag, Hooks, Next};
@@ -34,14 +34,41 @@ pub(super) struct Substeps<'a> {
     pub(super) independent: &'a [usize],
     /// The graph's step layout: unknowns a step, and n.
     pub(super) s: usize,
+    /// In DC with tangent integrator factors, the plan of a step under the
+    /// paper's: tried where the substeps fail.
+    pub(super) paper: Option<Plan>,
 }
 
+/// The substep counts of a step under the paper's integrator factors.
+const PAPER_SUBSTEPS: [usize; 3] = [1, 2, 8];
+
 impl Substeps<'_> {
-    /// Writes a guess for step k of `values` (run step `step`) from step k − 1 and
-    /// returns true, or false where no substep count converged. `square`: the
-    /// run's square step, whose analysis the substeps reuse.
+    /// Writes a guess for step k of `values` (run step `step`) from step k − 1:
+    /// the end of substeps of the run's own equations, or else the step's solution
+    /// under the paper's integrator factors (in 1, 2 or 8 substeps); `None` where
+    /// none converged. `square`: the run's square step, whose analysis the
+    /// substeps reuse.
     pub(super) fn guess(
         &self,
+        square: Option<&SquareStep>,
+        step: usize,
+        values: &mut [f64],
+        k: usize,
+    ) -> Option<Rescued> {
+        if self.fine_guess(self.plan, &SUBSTEPS, square, step, values, k) {
+            return Some(Rescued::Guess);
+        }
+        let paper = self.paper.as_ref()?;
+        self.fine_guess(paper, &PAPER_SUBSTEPS, None, step, values, k)
+            .then_some(Rescued::Paper)
+    }
+
+    /// Whether one of the substep counts of `plan` converged (its end then in
+    /// step k of `values`).
+    fn fine_guess(
+        &self,
+        plan: &Plan,
+        counts: &[usize],
         square: Option<&SquareStep>,
         step: usize,
         values: &mut [f64],
@@ -56,16 +83,16 @@ impl Substeps<'_> {
             },
             independent: self.independent.to_vec(),
         };
-        for substeps in SUBSTEPS {
-            let mut fine = self.plan.clone();
-            fine.dt = self.plan.dt / substeps as f64;
+        for &substeps in counts {
+            let mut fine = plan.clone();
+            fine.dt = plan.dt / substeps as f64;
             fine.steps = substeps + 1;
             fine.settings.max_iterations = fine.settings.max_iterations.min(SUBSTEP_ITERATIONS);
             let graph = ForwardGraph::planned(self.model.clone(), &fine, self.noise, start.clone());
             let Ok(mut graph) = graph else {
                 return false;
             };
-            graph.graph.set_t0((step - 1) as f64 * self.plan.dt);
+            graph.graph.set_t0((step - 1) as f64 * plan.dt);
             let Ok(first) = graph.initial_block(self.model) else {
                 return false;
             };

@@ -21,6 +21,9 @@ pub struct RunSummary {
     /// took (near a rank loss of Φ_q, or where the square step did not converge).
     pub square_steps: usize,
     pub general_steps: usize,
+    /// Steps of a stepwise DC run that the paper's integrator factors took, for
+    /// that step only, where the tangent ones failed from every guess.
+    pub paper_steps: usize,
     /// Mean and max Newton or Levenberg–Marquardt iterations (linear solves) per
     /// solve: per step for a stepwise run or the smoother, of the whole horizon for
     /// a batch.
@@ -39,6 +42,8 @@ pub struct RunSummary {
     /// The first step over which an expression load jumped (a pole or a
     /// discontinuity passed over), see [`LoadJump`].
     pub load_jump: Option<LoadJump>,
+    /// The passages through singular configurations (rank losses of Φ_q).
+    pub passages: Passages,
     pub failures: Vec<StepFailure>,
     /// With [`Past::Adaptive`](crate::solver::Past::Adaptive), the step from which the smoother conditioned on its
     /// past: its window solve had not converged after a marginal prior.
@@ -140,6 +145,126 @@ impl LoadJump {
             self.to,
             time(self.t)
         )
+    }
+}
+
+/// The run's passages through singular configurations: steps where the distance
+/// to a rank loss of Φ_q, s = (tr G⁻¹)^(−1/2) (G the Gram matrix of Φ_q's
+/// normalized rows), has a minimum that is below [`Passages::BELOW`] or closer to
+/// 0 than its change over the steps either side (a rank loss passed between two
+/// steps). There the mechanism gains degrees of freedom, may leave its branch, and
+/// a step is hardest to solve: the summary says how many there were and what they
+/// did to the velocity constraints and the energy.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Passages {
+    pub count: usize,
+    /// The first one's time.
+    pub first: Option<f64>,
+    /// max |Φ_q q̇| over the steps either side of a passage.
+    pub worst_velocity_constraint: f64,
+    /// The largest change of the energy across a passage (from the step before its
+    /// minimum to the step after) of a conservative scene, and its time.
+    pub energy_jump: Option<(f64, f64)>,
+}
+
+impl Passages {
+    /// A minimum of s below this is a passage (the dynamics kernel's
+    /// [`REGULAR_ABOVE`](crate::dynamics::DynamicsKernel::REGULAR_ABOVE)).
+    pub const BELOW: f64 = 1e-3;
+    /// An energy jump across a passage above this fraction of the largest kinetic
+    /// energy is warned of: the passage changed the motion, not only the integrator's
+    /// error (the trapezoidal rule moves the N four-bar's energy by 1e-9 of it across
+    /// a passage at 1 ms).
+    pub const ENERGY_JUMP_TOLERANCE: f64 = 1e-4;
+}
+
+/// The passages' measure of each step as it is added: s, |Φ_q q̇| and the energy
+/// of the last three steps.
+struct PassageWatch {
+    regularity: super::square_step::Regularity,
+    gram: super::square_step::GramWork,
+    /// (s, max |Φ_q q̇|, energy) of the last three steps, oldest first.
+    last: Vec<(f64, f64, Option<f64>)>,
+    /// The last s measured and its change a step since the measure before; the
+    /// steps since.
+    measured: (f64, f64),
+    skipped: usize,
+}
+
+/// s far enough from a passage that it need not be measured every step.
+const FAR: f64 = 1e-2;
+/// The most steps between two measures of s.
+const REFRESH: usize = 8;
+
+impl PassageWatch {
+    fn new(model: &Model) -> Option<PassageWatch> {
+        if model.active.is_empty() {
+            return None;
+        }
+        let regularity = super::square_step::Regularity::new(model);
+        let gram = regularity.work(model)?;
+        Some(PassageWatch {
+            regularity,
+            gram,
+            last: Vec::with_capacity(3),
+            measured: (0.0, 0.0),
+            skipped: 0,
+        })
+    }
+
+    /// Adds a step (its configuration q at time t, its max |Φ_q q̇| and energy);
+    /// a passage at the step before is added to `passages`.
+    fn add(
+        &mut self,
+        model: &Model,
+        (t_before, q): (f64, &[f64]),
+        velocity: f64,
+        energy: Option<f64>,
+        passages: &mut Passages,
+    ) {
+        // s is measured where it may come near a passage within the steps since it
+        // was last (at four times its last change a step), and every REFRESH steps;
+        // between, far from any, the last measure stands.
+        let (measured, change) = self.measured;
+        let reach = 4.0 * change.abs() * (self.skipped + 1) as f64;
+        let s = if measured - reach > FAR && self.skipped < REFRESH {
+            self.skipped += 1;
+            measured
+        } else {
+            let s = self
+                .regularity
+                .distance_to_rank_loss(model, q, &mut self.gram);
+            let steps = (self.skipped + 1) as f64;
+            self.measured = (s, (s - measured) / steps);
+            self.skipped = 0;
+            s
+        };
+        if self.last.len() == 3 {
+            self.last.remove(0);
+        }
+        self.last.push((s, velocity, energy));
+        let [a, b, c] = match self.last.as_slice() {
+            [a, b, c] => [*a, *b, *c],
+            _ => return,
+        };
+        let minimum = b.0 <= a.0 && b.0 < c.0;
+        let change = 0.5 * ((b.0 - a.0).abs() + (c.0 - b.0).abs());
+        if !(minimum && (b.0 < Passages::BELOW || b.0 < change)) {
+            return;
+        }
+        passages.count += 1;
+        passages.first.get_or_insert(t_before);
+        passages.worst_velocity_constraint = passages
+            .worst_velocity_constraint
+            .max(a.1)
+            .max(b.1)
+            .max(c.1);
+        if let (Some(ea), Some(ec)) = (a.2, c.2) {
+            let jump = (ec - ea).abs();
+            if passages.energy_jump.is_none_or(|(j, _)| jump > j) {
+                passages.energy_jump = Some((jump, t_before));
+            }
+        }
     }
 }
 
@@ -271,6 +396,10 @@ pub(super) struct Stats {
     steps: usize,
     watched: Option<Watched>,
     load_jump: Option<LoadJump>,
+    passage_watch: Option<PassageWatch>,
+    passages: Passages,
+    /// The time of the step added last.
+    t_before: f64,
 }
 
 impl Stats {
@@ -287,6 +416,9 @@ impl Stats {
             steps: 0,
             watched: Watched::new(model),
             load_jump: None,
+            passage_watch: PassageWatch::new(model),
+            passages: Passages::default(),
+            t_before: 0.0,
         }
     }
 
@@ -310,8 +442,8 @@ impl Stats {
         }
     }
 
-    /// Adds step `steps()`'s state, which must be finite.
-    pub(super) fn add(&mut self, model: &Model, q: &[f64], dq: &[f64]) -> Result<()> {
+    /// Adds step `steps()`'s state at time t, which must be finite.
+    pub(super) fn add(&mut self, model: &Model, t: f64, q: &[f64], dq: &[f64]) -> Result<()> {
         if !q.iter().chain(dq).all(|v| v.is_finite()) {
             return Err(Error::singular(format!(
                 "non-finite state at step {}",
@@ -321,7 +453,8 @@ impl Stats {
         model.phi_into(q, &mut self.rows);
         self.worst_phi = self.rows.iter().fold(self.worst_phi, |w, v| w.max(v.abs()));
         model.constraint_rates_into(q, dq, &mut self.rows);
-        self.worst_vel = self.rows.iter().fold(self.worst_vel, |w, v| w.max(v.abs()));
+        let velocity = self.rows.iter().fold(0.0f64, |w, v| w.max(v.abs()));
+        self.worst_vel = self.worst_vel.max(velocity);
         let kinetic = 0.5
             * self
                 .mass
@@ -329,12 +462,24 @@ impl Stats {
                 .map(|&(i, j, m)| dq[i] * m * dq[j])
                 .sum::<f64>();
         self.peak_kinetic = self.peak_kinetic.max(kinetic);
-        if self.conservative {
+        let energy = self.conservative.then(|| {
             let qv = nalgebra::DVector::from_column_slice(q);
-            let e = kinetic + model.potential_energy(&qv);
+            kinetic + model.potential_energy(&qv)
+        });
+        if let Some(e) = energy {
             let e0 = *self.e0.get_or_insert(e);
             self.drift = self.drift.max((e - e0).abs());
         }
+        if let Some(watch) = self.passage_watch.as_mut() {
+            watch.add(
+                model,
+                (self.t_before, q),
+                velocity,
+                energy,
+                &mut self.passages,
+            );
+        }
+        self.t_before = t;
         self.steps += 1;
         Ok(())
     }
@@ -351,6 +496,7 @@ impl Stats {
             plan,
             square_steps: 0,
             general_steps: 0,
+            paper_steps: 0,
             steps: self.steps,
             wall_time,
             mean_iterations: iterations.total as f64 / iterations.count.max(1) as f64,
@@ -361,6 +507,7 @@ impl Stats {
             energy_drift: self.conservative.then_some(self.drift),
             peak_kinetic_energy: self.peak_kinetic,
             load_jump: self.load_jump,
+            passages: self.passages,
             failures,
             conditioned_from: None,
             reselections: Vec::new(),

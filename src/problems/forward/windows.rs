@@ -35,7 +35,9 @@ impl Hooks for Windows<'_, '_> {
     }
 
     fn rescue(&mut self, values: &mut [f64], k: usize, run_k: usize) -> bool {
-        self.substeps.guess(None, self.first + run_k, values, k)
+        self.substeps
+            .guess(None, self.first + run_k, values, k)
+            .is_some()
     }
 
     fn on_step(&mut self, k: usize, j: usize, report: &SolveReport, values: &[f64]) -> Next {

@@ -26,28 +26,33 @@
 //! consecutive q, which the general solver also weighs, is left out (at its default
 //! σ its weight is 1e-16 of the integrators').
 //!
-//! The general solver's dynamics regularize the augmented system near a singular
-//! configuration (see [`crate::dynamics::DynamicsKernel`]); there the two systems
-//! differ. A step is therefore taken from here only where the kernel's measure of
-//! the distance to a rank loss, s = (tr G⁻¹)^(−1/2) with G the Gram matrix of the
-//! normalized rows of Φ_q, is at least [`DynamicsKernel::REGULAR_ABOVE`] at the
-//! solution (tr G⁻¹ by selected inversion of G's sparse Cholesky factor), and
-//! where Newton converges within a few iterations. Anything else (and every
-//! failure) goes back to the general solver.
+//! Near a rank loss of Φ_q (a singular configuration) the system keeps its plain
+//! augmented dynamics: on the physical branch its solution is smooth, with
+//! multipliers that grow like 1/σ. Its Newton iteration converges there to a
+//! residual at the rounding of its terms, where the updates (that rounding
+//! amplified by the Jacobian's condition, which grows like 1/σ²) stop shrinking;
+//! such a residual ends the iteration ([`ROUNDING_RESIDUAL`]). A step that would
+//! end within [`passage::NEAR`] of the rank loss is stepped over ([`Passage`]).
+//! Where Newton does not converge within a few iterations away from a rank loss,
+//! the step goes back to the general solver, whose dynamics regularize the
+//! augmented system near a rank loss instead (see
+//! [`crate::dynamics::DynamicsKernel`]).
 
 mod factors;
+mod passage;
 mod regularity;
 mod system;
 
 use super::options::Integrator;
 use super::plan::Plan;
 use crate::coordinates::Coordinates;
-use crate::dynamics;
+use crate::dynamics::{self, DynamicsKernel};
 use crate::linalg::sparse::Pattern;
 use crate::model::Model;
 use factors::Factors;
 use nalgebra::DVector;
-use regularity::{GramWork, Regularity};
+use passage::{Passage, Passed};
+pub(super) use regularity::{GramWork, Regularity};
 use std::sync::Arc;
 use system::{Sink, System};
 
@@ -67,6 +72,15 @@ const ROUNDING_FLOOR: f64 = 0.5;
 
 /// The largest rounding (a fraction of the step tolerance) later steps settle at.
 const ROUNDING_KEPT: f64 = 1e-2;
+
+/// The largest residual, relative to 1 + max |xᵢ| over every unknown, that counts
+/// as the rounding of the equations' terms (their products of multipliers of 1e2–1e4
+/// with gradients round at about 1e-16 of that).
+const ROUNDING_RESIDUAL: f64 = 1e-14;
+
+/// A step's guess is measured for its distance to a rank loss where the last
+/// step's, carried on, comes within this many times [`passage::NEAR`].
+const LOOKOUT: f64 = 10.0;
 
 /// Fresh factorizations after which a step goes back to the general solver.
 const MAX_FACTORIZATIONS: usize = 8;
@@ -141,6 +155,13 @@ struct Work {
 pub struct SquareStep {
     equations: Equations,
     work: Work,
+    /// The longer steps a step next to a rank loss of Φ_q is interpolated from.
+    passage: Passage,
+    /// The last step's distance to a rank loss and its change from the step
+    /// before ((0, 0): unknown, to be measured at the next guess).
+    recent: (f64, f64),
+    /// The guess of the step being solved (q, q̇, q̈), kept to start again from.
+    guess: Vec<f64>,
 }
 
 /// The step system with its Jacobian's pattern and the regularity test: what the
@@ -238,6 +259,9 @@ impl SquareStep {
                 regularity,
             },
             work,
+            passage: Passage::default(),
+            recent: (0.0, 0.0),
+            guess: vec![0.0; 3 * n],
         })
     }
 
@@ -253,7 +277,14 @@ impl SquareStep {
             &equations.regularity,
             factors,
         )?;
-        Some(SquareStep { equations, work })
+        let n = equations.system.model.n();
+        Some(SquareStep {
+            equations,
+            work,
+            passage: Passage::default(),
+            recent: (0.0, 0.0),
+            guess: vec![0.0; 3 * n],
+        })
     }
 }
 
@@ -409,6 +440,12 @@ impl Equations {
                 Some(_) => 0.5 * work.residual.iter().map(|r| r * r).sum::<f64>(),
                 None => 0.0,
             };
+            // A residual at the rounding of the equations' terms: x solves them as far
+            // as the arithmetic tells (near a rank loss of Φ_q the updates from here
+            // are that rounding amplified by the Jacobian's condition, and never shrink).
+            let residual_size = work.residual.iter().fold(0.0f64, |m, r| m.max(r.abs()));
+            let size = work.x.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+            let at_rounding = residual_size <= ROUNDING_RESIDUAL * (1.0 + size);
             work.factors.solve_in_place(&mut work.residual);
             if !work.residual.iter().all(|d| d.is_finite()) {
                 return None;
@@ -460,6 +497,9 @@ impl Equations {
                     settled,
                 });
             }
+            if at_rounding && !settled && update > limits.step_tolerance {
+                return self.finish(model, block, iteration, factorizations, work);
+            }
             // Below the tolerance the updates approach the residual's rounding and
             // their contraction is noise: a fresh factorization buys nothing the
             // iteration does not reach anyway.
@@ -488,19 +528,29 @@ impl Equations {
                 *xi -= di;
             }
             if settled {
-                if !self.regularity.regular(model, &work.x[..n], &mut work.gram) {
-                    return None;
-                }
-                block[..3 * n].copy_from_slice(&work.x[..3 * n]);
-                system.fill_independent(block);
-                work.multipliers.copy_from_slice(&work.x[3 * n..]);
-                return Some(StepWork {
-                    iterations: iteration,
-                    factorizations,
-                });
+                return self.finish(model, block, iteration, factorizations, work);
             }
         }
         None
+    }
+
+    /// The step's solution `work.x` into `block`.
+    fn finish(
+        &self,
+        model: &Model,
+        block: &mut [f64],
+        iterations: usize,
+        factorizations: usize,
+        work: &mut Work,
+    ) -> Option<StepWork> {
+        let n = model.n();
+        block[..3 * n].copy_from_slice(&work.x[..3 * n]);
+        self.system.fill_independent(block);
+        work.multipliers.copy_from_slice(&work.x[3 * n..]);
+        Some(StepWork {
+            iterations,
+            factorizations,
+        })
     }
 }
 
@@ -535,8 +585,70 @@ impl SquareStep {
 
     /// Solves step `block` (guess in, solution out) at time `t`, given the step
     /// before (`before`); the work taken, or `None` where it declines or does not
-    /// converge (`block` is then unspecified). `watch` sees every iteration.
+    /// converge (`block` is then unspecified). `watch` sees every iteration. A
+    /// step whose guess or solution lies within [`passage::NEAR`] of a rank loss
+    /// of Φ_q, or that fails near one, is interpolated from a longer step that
+    /// clears it ([`Passage`]).
     pub fn solve(
+        &mut self,
+        t: f64,
+        before: &[f64],
+        block: &mut [f64],
+        limits: StepLimits,
+        watch: Option<&mut dyn FnMut(&StepIteration)>,
+    ) -> Option<StepWork> {
+        let n = self.equations.system.model.n();
+        if let Passed::Taken(work) = self.passage.resume(t, before, block, n) {
+            self.equations.system.fill_independent(block);
+            return Some(work);
+        }
+        // The guess's distance to a rank loss only where the last steps' s, carried
+        // on at twice its last change, may come near one within this step.
+        let near = self.recent.0 - 2.0 * self.recent.1.abs() < LOOKOUT * passage::NEAR;
+        let from_guess = match near {
+            true => self.distance(&block[..n]),
+            false => f64::INFINITY,
+        };
+        if from_guess >= passage::NEAR {
+            self.guess.copy_from_slice(&block[..3 * n]);
+            match self.solve_plain_watched(t, before, block, limits, watch) {
+                Some(work) => {
+                    let s = self.distance(&block[..n]);
+                    self.recent = (s, s - self.recent.0);
+                    if s >= passage::NEAR {
+                        return Some(work);
+                    }
+                    block[..3 * n].copy_from_slice(&self.guess);
+                }
+                None if from_guess >= DynamicsKernel::REGULAR_ABOVE => {
+                    self.recent = (0.0, 0.0);
+                    return None;
+                }
+                None => {}
+            }
+        }
+        self.recent = (0.0, 0.0);
+        let mut passage = std::mem::take(&mut self.passage);
+        let solved = passage.start(self, t, before, block, limits);
+        self.passage = passage;
+        if solved.is_some() {
+            self.equations.system.fill_independent(block);
+        }
+        solved
+    }
+
+    /// [`SquareStep::solve`] without the passage: Newton's method on this step.
+    fn solve_plain(
+        &mut self,
+        t: f64,
+        before: &[f64],
+        block: &mut [f64],
+        limits: StepLimits,
+    ) -> Option<StepWork> {
+        self.solve_plain_watched(t, before, block, limits, None)
+    }
+
+    fn solve_plain_watched(
         &mut self,
         t: f64,
         before: &[f64],
@@ -553,6 +665,14 @@ impl SquareStep {
             work.rounding = 0.0;
         }
         solved
+    }
+
+    /// The distance to a rank loss of Φ_q at q, s = (tr G⁻¹)^(−1/2).
+    fn distance(&mut self, q: &[f64]) -> f64 {
+        let model = &*self.equations.system.model;
+        self.equations
+            .regularity
+            .distance_to_rank_loss(model, q, &mut self.work.gram)
     }
 }
 

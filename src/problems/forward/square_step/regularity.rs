@@ -12,14 +12,14 @@ const REGULAR_MARGIN: f64 = 1.001;
 
 /// G's structure over a mechanism's active constraints.
 #[derive(Clone)]
-pub(super) struct Regularity {
+pub(in crate::problems::forward) struct Regularity {
     /// The lower triangle of G = ÂÂᵀ: per entry the pair of active rows (i, j ≤ i)
     /// and the pairs of their local coordinates that are one coordinate of q.
     entries: Vec<GramEntry>,
 }
 
 /// The scratch of the regularity test: the rows' gradients, G and tr G⁻¹.
-pub(super) struct GramWork {
+pub(in crate::problems::forward) struct GramWork {
     /// Each active row's gradient, the entries of AAᵀ and the row norms.
     gradients: Vec<[f64; MAX_LOCAL]>,
     dots: Vec<f64>,
@@ -31,7 +31,7 @@ pub(super) struct GramWork {
 
 impl Regularity {
     /// G's pattern for `model`.
-    pub(super) fn new(model: &Model) -> Regularity {
+    pub(in crate::problems::forward) fn new(model: &Model) -> Regularity {
         Regularity {
             entries: gram_entries(model),
         }
@@ -39,7 +39,7 @@ impl Regularity {
 
     /// The scratch of [`Regularity::regular`] for `model`, with G's symbolic
     /// analysis; `None` where that fails.
-    pub(super) fn work(&self, model: &Model) -> Option<GramWork> {
+    pub(in crate::problems::forward) fn work(&self, model: &Model) -> Option<GramWork> {
         let ma = model.active.len();
         let lower: Vec<(usize, usize)> = self.entries.iter().map(|e| (e.0, e.1)).collect();
         Some(GramWork {
@@ -60,7 +60,7 @@ impl Regularity {
     }
 
     /// The dynamics kernel's s at q (0 where G does not factor).
-    pub(super) fn distance_to_rank_loss(
+    pub(in crate::problems::forward) fn distance_to_rank_loss(
         &self,
         model: &Model,
         q: &[f64],

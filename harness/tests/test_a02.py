@@ -1,0 +1,30 @@
+"""The A02 page's pieces: its reference is the exact branch motion, its error measure
+falls with dt on a short N four-bar run, and its page lists every run it made."""
+import numpy as np
+
+import mbfg
+from harness import a02
+
+
+def test_reference_keeps_the_branch_energy():
+    loops = 40
+    t = np.linspace(0.0, 4.0, 81)
+    b0 = a02.exact_b0(loops, t)
+    assert np.allclose(np.hypot(b0[:, 0], b0[:, 1]), 1.0)
+    # θ from B0; the energy I θ̇²/2 + c g sin θ at the start is 0.5 I + c g.
+    inertia, c = (loops + 1) / 3 + loops, (loops + 1) / 2 + loops
+    theta = np.unwrap(np.arctan2(b0[:, 1], b0[:, 0]))
+    assert theta[-1] < theta[0] - 2 * np.pi          # it turns over, clockwise
+    omega = np.gradient(theta, t, edge_order=2)
+    energy = 0.5 * inertia * omega**2 + c * 9.81 * np.sin(theta)
+    assert np.max(np.abs(energy[1:-1] / (0.5 * inertia + c * 9.81) - 1)) < 2e-2
+
+
+def test_error_falls_at_second_order_through_two_flats(tmp_path):
+    rows = [a02.run_mbfg(5, "trapezoidal", dt, 2.0) for dt in (2e-3, 1e-3)]
+    assert all(r["status"] == "converged" and r["passages"] == 2 for r in rows), rows
+    assert 3.0 < rows[0]["error"] / rows[1]["error"] < 6.0, rows
+    a02.write(rows, 5, 2.0, tmp_path, 1.0)
+    page = (tmp_path / "a02.md").read_text()
+    assert page.count("| mbfg | trapezoidal") == 2
+    assert "| high (≤ 0.001 m) | " in page

@@ -1,0 +1,216 @@
+//! A step that ends next to a rank loss of Φ_q (a flat configuration of the N
+//! four-bar, a parallelogram's crossing point), taken by a longer step that
+//! clears it.
+//!
+//! Near a rank loss the step's multipliers grow like 1/σ (σ the smallest singular
+//! value of Φ_q: the constraint forces that keep a loop on its branch act through
+//! nearly parallel rows) and the step system's condition like 1/σ². A step whose
+//! end lands within [`NEAR`] of the rank loss is solved only to that rounding
+//! amplified: a jump in the energy, and a shift of the phase after it, whatever
+//! the step size. The motion itself is smooth there. So the run takes one step
+//! of K·Δt over the steps that would land near it (K = 2, 4, 8, … until its end
+//! lies clear), and continues from its end; the states at the grid times in
+//! between are Hermite interpolants of the long step's two ends ([`hermite`]),
+//! and are not stepped from.
+
+use super::{SquareStep, StepLimits, StepWork};
+
+/// The distance to a rank loss, s = (tr G⁻¹)^(−1/2), below which a step's end is
+/// stepped over. At s ≥ 1e-4 the square step converges in 4–9 iterations to a
+/// residual at rounding; at s ≈ 6e-6 it needs 17 and ends 1e-7 off, which moved
+/// the 5-loop N four-bar's energy by 2.5e-5 J at Δt = 0.1 ms.
+pub(super) const NEAR: f64 = 3e-5;
+
+/// The longest step tried, in steps: at 0.1 ms the 40-loop N four-bar's s moves
+/// by about 1e-5 a step.
+const MAX_AHEAD: usize = 64;
+
+/// The longer steps of a passage, each with its own square step (the sparse
+/// analysis of the run's, at K·Δt), made as they are first needed; and the long
+/// step under way.
+#[derive(Default)]
+pub(super) struct Passage {
+    ahead: Vec<(usize, SquareStep)>,
+    /// The long step under way: its start (time, state), its length and its end
+    /// (the whole block).
+    under_way: Option<LongStep>,
+    /// The state handed out last (q, q̇, q̈): the next step is the long step's
+    /// only where it is given this state as the step before.
+    last: Vec<f64>,
+}
+
+struct LongStep {
+    t0: f64,
+    start: Vec<f64>,
+    h: f64,
+    end: Vec<f64>,
+}
+
+/// What a passage did with a step.
+pub(super) enum Passed {
+    /// The step was interpolated within a long step, or is its end.
+    Taken(StepWork),
+    /// No long step is under way for this step.
+    NotUnderWay,
+}
+
+impl Passage {
+    /// Step `block` at time `t`, given `before`, where a long step under way
+    /// spans it: interpolated, or at its end, that end.
+    pub(super) fn resume(&mut self, t: f64, before: &[f64], block: &mut [f64], n: usize) -> Passed {
+        let Some(long) = self.under_way.as_ref() else {
+            return Passed::NotUnderWay;
+        };
+        let tau = t - long.t0;
+        let spanned = tau > 0.0 && tau <= long.h * (1.0 + 1e-9);
+        if !spanned || before[..3 * n] != self.last[..] {
+            self.under_way = None;
+            return Passed::NotUnderWay;
+        }
+        if tau >= long.h * (1.0 - 1e-9) {
+            block.copy_from_slice(&long.end);
+            self.under_way = None;
+        } else {
+            block.copy_from_slice(&long.end);
+            hermite(&long.start, &long.end[..3 * n], long.h, tau, n, block);
+        }
+        self.last.clear();
+        self.last.extend_from_slice(&block[..3 * n]);
+        Passed::Taken(StepWork {
+            iterations: 0,
+            factorizations: 0,
+        })
+    }
+
+    /// Step `block` at time `t` given `before` (Δt earlier), within the first
+    /// longer step from `before` that converges and ends at least 2·[`NEAR`] from
+    /// a rank loss (kept to hand out the steps it spans); the work of the longer
+    /// steps tried, or `None` where none does.
+    pub(super) fn start(
+        &mut self,
+        square: &SquareStep,
+        t: f64,
+        before: &[f64],
+        block: &mut [f64],
+        limits: StepLimits,
+    ) -> Option<StepWork> {
+        let system = &square.equations.system;
+        let n = system.model.n();
+        let dt = system.dt;
+        let mut total = StepWork {
+            iterations: 0,
+            factorizations: 0,
+        };
+        let mut far = block.to_vec();
+        let mut k = 2;
+        while k <= MAX_AHEAD {
+            let h = k as f64 * dt;
+            taylor(&before[..3 * n], &mut far[..3 * n], n, h);
+            let ahead = self.ahead_at(square, k)?;
+            let solved = ahead.solve_plain(t - dt + h, before, &mut far, limits);
+            if let Some(work) = solved {
+                total.iterations += work.iterations;
+                total.factorizations += work.factorizations;
+                if ahead.distance(&far[..n]) >= 2.0 * NEAR {
+                    self.under_way = Some(LongStep {
+                        t0: t - dt,
+                        start: before[..3 * n].to_vec(),
+                        h,
+                        end: far,
+                    });
+                    self.last.clear();
+                    self.last.extend_from_slice(&before[..3 * n]);
+                    if let Passed::NotUnderWay = self.resume(t, before, block, n) {
+                        return None;
+                    }
+                    return Some(total);
+                }
+            }
+            k *= 2;
+        }
+        None
+    }
+
+    /// The square step at k·Δt, made from `square`'s analysis once.
+    fn ahead_at(&mut self, square: &SquareStep, k: usize) -> Option<&mut SquareStep> {
+        let index = match self.ahead.iter().position(|(j, _)| *j == k) {
+            Some(i) => i,
+            None => {
+                let step = square.at_dt(k as f64 * square.equations.system.dt)?;
+                self.ahead.push((k, step));
+                self.ahead.len() - 1
+            }
+        };
+        Some(&mut self.ahead[index].1)
+    }
+}
+
+/// The Taylor guess of the state h after `before` (q, q̇, q̈ of n coordinates).
+fn taylor(before: &[f64], out: &mut [f64], n: usize, h: f64) {
+    for i in 0..n {
+        let (x, v, a) = (before[i], before[n + i], before[2 * n + i]);
+        out[i] = x + h * v + 0.5 * h * h * a;
+        out[n + i] = v + h * a;
+        out[2 * n + i] = a;
+    }
+}
+
+/// q, q̇, q̈ at τ after `start`, into `out[..3n]`, from the long step's two ends:
+/// q on the quintic that matches q, q̇, q̈ at both, q̇ and q̈ on the cubic that
+/// matches q̇ and q̈ at both. (A tangent step holds its integrators along the
+/// tangent space only: its q and q̇ agree with the trapezoidal rule per
+/// coordinate only to ~1e-7 of q̇ near a rank loss, which a quintic's q̇ would
+/// carry, an error of 1e-7 in the interpolated speed; its q̇ and q̈ agree far
+/// better.)
+fn hermite(start: &[f64], end: &[f64], h: f64, tau: f64, n: usize, out: &mut [f64]) {
+    let (h2, h3) = (h * h, h * h * h);
+    let (t1, t2, t3) = (tau, tau * tau, tau * tau * tau);
+    for i in 0..n {
+        let (p0, v0, a0) = (start[i], start[n + i], start[2 * n + i]);
+        let (p1, v1, a1) = (end[i], end[n + i], end[2 * n + i]);
+        // p(τ) = p0 + v0 τ + a0 τ²/2 + c3 τ³ + c4 τ⁴ + c5 τ⁵, with the end conditions
+        // on the remainders A (position), B = h·(velocity), C = h²·(acceleration).
+        let a = p1 - (p0 + v0 * h + 0.5 * a0 * h2);
+        let b = (v1 - (v0 + a0 * h)) * h;
+        let c = (a1 - a0) * h2;
+        let c3 = (10.0 * a - 4.0 * b + 0.5 * c) / h3;
+        let c4 = (-15.0 * a + 7.0 * b - c) / (h3 * h);
+        let c5 = (6.0 * a - 3.0 * b + 0.5 * c) / (h3 * h2);
+        out[i] = p0 + v0 * t1 + 0.5 * a0 * t2 + c3 * t3 + c4 * t3 * t1 + c5 * t3 * t2;
+        // v(τ) = v0 + a0 τ + d2 τ² + d3 τ³ through v1, a1 at h.
+        let (dv, da) = (v1 - v0 - a0 * h, (a1 - a0) * h);
+        let d2 = (3.0 * dv - da) / h2;
+        let d3 = (da - 2.0 * dv) / h3;
+        out[n + i] = v0 + a0 * t1 + d2 * t2 + d3 * t3;
+        out[2 * n + i] = a0 + 2.0 * d2 * t1 + 3.0 * d3 * t2;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::hermite;
+
+    /// q through a quintic's ends is that quintic, q̇ through a cubic's that cubic,
+    /// at every τ.
+    #[test]
+    fn hermite_reproduces_a_quintic_and_a_cubic() {
+        let p = |t: f64| {
+            0.3 - 1.1 * t + 0.7 * t * t + 2.0 * t.powi(3) - 0.4 * t.powi(4) + 0.9 * t.powi(5)
+        };
+        let v = |t: f64| -1.1 + 1.4 * t + 6.0 * t * t - 1.6 * t.powi(3) + 4.5 * t.powi(4);
+        let a = |t: f64| 1.4 + 12.0 * t - 4.8 * t * t + 18.0 * t.powi(3);
+        let w = |t: f64| 0.5 - 2.0 * t + 3.0 * t * t - 0.7 * t.powi(3);
+        let dw = |t: f64| -2.0 + 6.0 * t - 2.1 * t * t;
+        let h = 0.8;
+        // Coordinate 0 moves on the quintic, coordinate 1's speed on the cubic.
+        let start = [p(0.0), 0.0, v(0.0), w(0.0), a(0.0), dw(0.0)];
+        let end = [p(h), 0.0, v(h), w(h), a(h), dw(h)];
+        for tau in [0.0, 0.1, 0.35, 0.8] {
+            let mut out = [0.0; 6];
+            hermite(&start, &end, h, tau, 2, &mut out);
+            assert!((out[0] - p(tau)).abs() < 1e-13, "q at {tau}");
+            assert!((out[3] - w(tau)).abs() < 1e-13, "q̇ at {tau}");
+            assert!((out[5] - dw(tau)).abs() < 1e-12, "q̈ at {tau}");
+        }
+    }
+}
