@@ -35,6 +35,11 @@ IDA_RTOLS = [1e-4, 1e-6, 1e-8]
 EXUDYN_STEPS = [5e-3, 1e-3, 2.5e-4]
 
 
+def _failure(e: Exception) -> str:
+    """A failure's first line, the checkout's paths written relative to it."""
+    return str(e).splitlines()[0].replace(str(ROOT) + "/", "")[:160]
+
+
 def scene_path(loops: int) -> pathlib.Path:
     folder = "benchmarks" if loops in (1, 5, 10, 40) else "scale"
     return ROOT / "scenes" / folder / f"n-fourbar-{loops}.yaml"
@@ -74,7 +79,7 @@ def run_mbfg(loops, integrator, dt, t_end) -> dict:
         row["warnings"] = "; ".join(s.get("warnings", []))
     except Exception as e:      # a failed run is a row with its reason
         row["cpu"] = time.process_time() - start
-        row["status"] = f"failed: {str(e).splitlines()[0][:160]}"
+        row["status"] = f"failed: {_failure(e)}"
     return row
 
 
@@ -89,7 +94,7 @@ def run_ida(loops, rtol, t_end) -> dict:
         row["status"] = "converged"
     except Exception as e:
         row["cpu"] = time.process_time() - start
-        row["status"] = f"failed: {str(e).splitlines()[0][:160]}"
+        row["status"] = f"failed: {_failure(e)}"
     return row
 
 
@@ -107,7 +112,7 @@ def run_exudyn(loops, h, t_end) -> dict:
         row["status"] = "converged"
     except Exception as e:
         row["cpu"] = time.process_time() - start
-        row["status"] = f"failed: {str(e).splitlines()[0][:160]}"
+        row["status"] = f"failed: {_failure(e)}"
     return row
 
 
