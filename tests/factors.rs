@@ -529,12 +529,17 @@ fn dynamics_factor_matches_finite_differences() {
 
 #[test]
 fn parametric_dynamics_matches_finite_differences() {
-    // f^d_par on scenes that identify masses, an inertia, gravity (bilinear with the
-    // masses), a spring's and a rotational spring's stiffness and damping, with and
-    // without unknown inputs: ∂/∂q, ∂/∂q̇, ∂/∂q̈, ∂/∂p and ∂/∂u.
+    // f^d_par on scenes that identify masses (of bodies and of a point), an inertia,
+    // gravity (bilinear with the masses), a spring's and a rotational spring's
+    // stiffness and damping, with and without unknown inputs: ∂/∂q, ∂/∂q̇, ∂/∂q̈, ∂/∂p
+    // and ∂/∂u.
     let mut rng = Rng(11);
     let mut checked = 0;
-    for name in ["fourbar-masses.yaml", "spring-damper.yaml"] {
+    for name in [
+        "fourbar-masses.yaml",
+        "spring-damper.yaml",
+        "point-mass.yaml",
+    ] {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("tests/data/identification")
             .join(name);
@@ -565,7 +570,7 @@ fn parametric_dynamics_matches_finite_differences() {
             }
         }
     }
-    assert_eq!(checked, 3 * TRIALS);
+    assert_eq!(checked, 4 * TRIALS);
 }
 
 #[test]

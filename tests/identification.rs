@@ -226,6 +226,21 @@ fn a_spring_and_a_damper_are_identified_within_two_percent() {
 }
 
 #[test]
+fn a_point_mass_is_identified() {
+    let truth = truth("point-mass-true.yaml", 5.0);
+    let (_, summary) = identify("point-mass.yaml", "point-mass-true.yaml", &truth, 1);
+    let p = &summary.identification.parameters[0];
+    assert!(p.undetermined.is_none(), "{:?}", p.undetermined);
+    let err = (p.estimate - 1.0).abs();
+    assert!(
+        err < 0.02 && err < 3.0 * p.sigma,
+        "{} ± {}",
+        p.estimate,
+        p.sigma
+    );
+}
+
+#[test]
 fn mass_and_inertia_in_a_pure_rotation_are_named_not_identified() {
     let truth = truth("pendulum-true.yaml", 5.0);
     let (_, summary) = identify(

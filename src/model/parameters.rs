@@ -14,6 +14,13 @@ use super::forces::Force;
 use super::{mass, Model, PointSlot, Slot};
 use crate::error::{Error, Result};
 
+/// The masses of the bodies and the points, and gravity's vector, at some p.
+struct Masses {
+    bodies: Vec<f64>,
+    points: Vec<f64>,
+    g: [f64; 2],
+}
+
 /// The identified parameters, their values in the file, and the derivatives of the
 /// model's constants.
 #[derive(Debug, Clone)]
@@ -25,6 +32,8 @@ pub struct Parameters {
     mass: Vec<Vec<f64>>,
     /// ∂mass/∂p of every body (zeros where it does not depend on them).
     body_mass: Vec<Vec<f64>>,
+    /// ∂mass/∂p of every point (zeros where it does not depend on them).
+    point_mass: Vec<Vec<f64>>,
     /// Gravity's vector in the file and its ∂/∂p (x and y), if the scene has gravity.
     gravity: Option<([f64; 2], [Vec<f64>; 2])>,
     /// (index into `Model::forces`, ∂stiffness/∂p, ∂damping/∂p).
@@ -46,6 +55,7 @@ impl Parameters {
             values: id.values.clone(),
             mass: vec![vec![0.0; n * n]; p],
             body_mass: vec![vec![0.0; p]; model.scene.bodies.len()],
+            point_mass: vec![vec![0.0; p]; model.scene.points.len()],
             gravity: None,
             springs: Vec::new(),
         };
@@ -68,6 +78,16 @@ impl Parameters {
                 }
             }
             out.body_mass[*b] = dm.clone();
+        }
+        for (pt, dm) in &id.points {
+            if let PointSlot::Free(i) = model.points[*pt] {
+                for j in (0..p).filter(|&j| dm[j] != 0.0) {
+                    touched[j] = true;
+                    out.mass[j][i * n + i] += dm[j];
+                    out.mass[j][(i + 1) * n + i + 1] += dm[j];
+                }
+            }
+            out.point_mass[*pt] = dm.clone();
         }
         for (e, [a, b]) in &id.effects {
             let changed = |j: usize| a[j] != 0.0 || b[j] != 0.0;
@@ -98,7 +118,8 @@ impl Parameters {
         // A mass moves gravity's force only where there is gravity.
         if let Some((g, _)) = out.gravity {
             if g != [0.0, 0.0] {
-                for (_, dm, _) in &id.bodies {
+                let masses = id.bodies.iter().map(|(_, dm, _)| dm);
+                for dm in masses.chain(id.points.iter().map(|(_, dm)| dm)) {
                     (0..p)
                         .filter(|&j| dm[j] != 0.0)
                         .for_each(|j| touched[j] = true);
@@ -123,13 +144,13 @@ impl Parameters {
         self.names.is_empty()
     }
 
-    /// Gravity's generalized force with the bodies' masses `mass(b)` and the vector
-    /// `g`, added to `out` (points' own masses included when `points`).
+    /// Gravity's generalized force with the bodies' masses `mass(b)`, the points'
+    /// masses `point(p)` and the vector `g`, added to `out`.
     fn add_gravity(
         model: &Model,
         mass: &dyn Fn(usize) -> f64,
+        point: &dyn Fn(usize) -> f64,
         g: [f64; 2],
-        points: bool,
         out: &mut [f64],
     ) {
         for (b, body) in model.scene.bodies.iter().enumerate() {
@@ -145,12 +166,11 @@ impl Parameters {
                 }
             }
         }
-        if points {
-            for (pt, point) in model.scene.points.iter().enumerate() {
-                if let PointSlot::Free(i) = model.points[pt] {
-                    out[i] += point.mass * g[0];
-                    out[i + 1] += point.mass * g[1];
-                }
+        for pt in 0..model.scene.points.len() {
+            if let PointSlot::Free(i) = model.points[pt] {
+                let m = point(pt);
+                out[i] += m * g[0];
+                out[i + 1] += m * g[1];
             }
         }
     }
@@ -163,20 +183,26 @@ impl Parameters {
         a.iter().zip(b).map(|(x, y)| x * y).sum()
     }
 
-    /// The bodies' masses and gravity's vector at p.
-    fn gravity_at(&self, model: &Model, dp: &[f64]) -> Option<(Vec<f64>, [f64; 2])> {
+    /// The bodies' and the points' masses and gravity's vector at p.
+    fn gravity_at(&self, model: &Model, dp: &[f64]) -> Option<Masses> {
         let (g0, [gx, gy]) = self.gravity.as_ref()?;
-        let masses = model
-            .scene
-            .bodies
-            .iter()
-            .zip(&self.body_mass)
-            .map(|(b, dm)| b.mass + Self::dot(dm, dp))
-            .collect();
-        Some((
-            masses,
-            [g0[0] + Self::dot(gx, dp), g0[1] + Self::dot(gy, dp)],
-        ))
+        let scene = &model.scene;
+        let at = |m: f64, dm: &[f64]| m + Self::dot(dm, dp);
+        Some(Masses {
+            bodies: scene
+                .bodies
+                .iter()
+                .zip(&self.body_mass)
+                .map(|(b, dm)| at(b.mass, dm))
+                .collect(),
+            points: scene
+                .points
+                .iter()
+                .zip(&self.point_mass)
+                .map(|(p, dm)| at(p.mass, dm))
+                .collect(),
+            g: [g0[0] + Self::dot(gx, dp), g0[1] + Self::dot(gy, dp)],
+        })
     }
 
     /// M(p), row-major n × n.
@@ -203,11 +229,14 @@ impl Parameters {
         let n = model.n();
         let dp = self.shift(p);
         out.fill(0.0);
-        if let Some((masses, g)) = self.gravity_at(model, &dp) {
+        if let Some(at) = self.gravity_at(model, &dp) {
             let g0 = self.gravity.as_ref().map_or([0.0; 2], |(g0, _)| *g0);
-            Self::add_gravity(model, &|b| masses[b], g, true, out);
+            Self::add_gravity(model, &|b| at.bodies[b], &|p| at.points[p], at.g, out);
             let mut base = vec![0.0; n];
-            Self::add_gravity(model, &|b| model.scene.bodies[b].mass, g0, true, &mut base);
+            let scene = &model.scene;
+            let body0 = |b: usize| scene.bodies[b].mass;
+            let point0 = |p: usize| scene.points[p].mass;
+            Self::add_gravity(model, &body0, &point0, g0, &mut base);
             out.iter_mut().zip(&base).for_each(|(o, b)| *o -= b);
         }
         for (e, dk, dc) in &self.springs {
@@ -244,9 +273,13 @@ impl Parameters {
         let at = self.gravity_at(model, &dp);
         for j in 0..np {
             col.fill(0.0);
-            if let (Some((masses, g)), Some((_, [gx, gy]))) = (&at, &self.gravity) {
-                Self::add_gravity(model, &|b| self.body_mass[b][j], *g, false, &mut col);
-                Self::add_gravity(model, &|b| masses[b], [gx[j], gy[j]], true, &mut col);
+            if let (Some(at), Some((_, [gx, gy]))) = (&at, &self.gravity) {
+                let dbody = |b: usize| self.body_mass[b][j];
+                let dpoint = |p: usize| self.point_mass[p][j];
+                Self::add_gravity(model, &dbody, &dpoint, at.g, &mut col);
+                let body = |b: usize| at.bodies[b];
+                let point = |p: usize| at.points[p];
+                Self::add_gravity(model, &body, &point, [gx[j], gy[j]], &mut col);
             }
             for (e, dk, dc) in &self.springs {
                 if let Some(f) = model.forces[*e].with_constants(dk[j], dc[j]) {

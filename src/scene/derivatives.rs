@@ -1,8 +1,8 @@
 //! The derivatives of a scene's numbers with respect to the parameters an estimate
 //! identifies (`estimation: parameters:`): computed as the file is read, by the
 //! chain rule over the expression engine's symbolic derivatives, and kept for the
-//! quantities the model lets vary ([`Identified`]): masses, inertias, gravity,
-//! spring and damper constants. A number of anything else (a length, a point, a
+//! quantities the model lets vary ([`Identified`]): masses (of bodies and points),
+//! inertias, gravity, spring and damper constants. A number of anything else (a length, a point, a
 //! start) that depends on an identified parameter is refused by name.
 
 use crate::expr::ExprError;
@@ -27,6 +27,7 @@ pub struct Derivatives {
     extras: RefCell<Vec<(String, Vec<f64>)>>,
     /// What the readers claimed, as [`Identified`] keeps it.
     bodies: RefCell<Vec<BodyGradient>>,
+    points: RefCell<Vec<(usize, Vec<f64>)>>,
     effects: RefCell<Vec<EffectGradient>>,
 }
 
@@ -73,6 +74,11 @@ impl Derivatives {
         self.bodies.borrow_mut().push((index, mass, i0));
     }
 
+    /// A point mass's ∂mass/∂p.
+    pub fn point(&self, index: usize, mass: Vec<f64>) {
+        self.points.borrow_mut().push((index, mass));
+    }
+
     /// An effect's two constants' gradients, claimed under `keys` (absent: zero).
     pub fn effect(&self, index: usize, keys: [&str; 2]) {
         let p = self.unknown.len();
@@ -106,6 +112,7 @@ impl Derivatives {
             names: self.unknown.clone(),
             values,
             bodies: self.bodies.borrow().clone(),
+            points: self.points.borrow().clone(),
             effects: self.effects.borrow().clone(),
         }
     }
@@ -128,6 +135,8 @@ pub struct Identified {
     pub values: Vec<f64>,
     /// (body, ∂mass/∂p, ∂I₀/∂p) of the bodies whose inertia depends on them.
     pub bodies: Vec<BodyGradient>,
+    /// (point, ∂mass/∂p) of the point masses that depend on them.
+    pub points: Vec<(usize, Vec<f64>)>,
     /// (effect, ∂/∂p of its two constants): gravity's vector [x, y]; a spring's or
     /// a rotational spring's [stiffness, damping].
     pub effects: Vec<EffectGradient>,

@@ -238,6 +238,9 @@ fn read_points(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneErr
             Some(n) => ctx.positive(n, &f.key("mass"), &[])?,
             None => 0.0,
         };
+        if let Some(dm) = ctx.derivatives.take(&f.key("mass")) {
+            ctx.derivatives.point(scene.points.len(), dm);
+        }
         f.finish(ctx, &["name", "x", "y", "fixed", "mass"])?;
         scene.points.push(Point {
             name,
