@@ -499,9 +499,10 @@ impl Force {
         matches!(self, Force::Torque { index: i, .. } | Force::Motor { index: i, .. } if *i == index)
     }
 
-    /// A spring-damper (linear or rotational) with other stiffness and damping, its
-    /// geometry kept: its force is linear in the two, so the constants' derivatives
-    /// give the force's. `None` for any other effect.
+    /// A spring-damper (linear or rotational) with other stiffness and damping, or a
+    /// DC motor with another stall torque, its geometry kept: its force is linear in
+    /// them, so the constants' derivatives give the force's. `None` for any other
+    /// effect.
     pub fn with_constants(&self, k: f64, c: f64) -> Option<Force> {
         match self {
             Force::SpringDamper {
@@ -523,6 +524,16 @@ impl Force {
                 stiffness: k,
                 rest_angle: *rest_angle,
                 damping: c,
+            }),
+            // A DC motor's torque, linear in its stall torque (k; c unused).
+            Force::Motor {
+                index,
+                no_load_speed,
+                ..
+            } => Some(Force::Motor {
+                index: *index,
+                stall_torque: k,
+                no_load_speed: *no_load_speed,
             }),
             _ => None,
         }

@@ -36,7 +36,8 @@ pub struct Parameters {
     point_mass: Vec<Vec<f64>>,
     /// Gravity's vector in the file and its ∂/∂p (x and y), if the scene has gravity.
     gravity: Option<([f64; 2], [Vec<f64>; 2])>,
-    /// (index into `Model::forces`, ∂stiffness/∂p, ∂damping/∂p).
+    /// Forces linear in two constants (springs and dampers, a DC motor's stall
+    /// torque): (index into `Model::forces`, ∂/∂p of each constant).
     springs: Vec<(usize, Vec<f64>, Vec<f64>)>,
 }
 
@@ -129,7 +130,7 @@ impl Parameters {
         if let Some(j) = touched.iter().position(|t| !t) {
             return Err(Error::InvalidArgument(format!(
                 "the identified parameter '{}' changes nothing in the model: no mass, inertia, \
-                 gravity, spring or damper of the scene uses it",
+                 gravity, spring, damper or motor of the scene uses it",
                 out.names[j]
             )));
         }

@@ -79,13 +79,14 @@ impl Derivatives {
         self.points.borrow_mut().push((index, mass));
     }
 
-    /// An effect's two constants' gradients, claimed under `keys` (absent: zero).
+    /// An effect's two constants' gradients, claimed under `keys` (absent, or an
+    /// empty key: zero).
     pub fn effect(&self, index: usize, keys: [&str; 2]) {
         let p = self.unknown.len();
         if p == 0 {
             return;
         }
-        let [a, b] = keys.map(|k| self.take(k));
+        let [a, b] = keys.map(|k| if k.is_empty() { None } else { self.take(k) });
         if a.is_some() || b.is_some() {
             let zero = || vec![0.0; p];
             self.effects
@@ -138,7 +139,7 @@ pub struct Identified {
     /// (point, ∂mass/∂p) of the point masses that depend on them.
     pub points: Vec<(usize, Vec<f64>)>,
     /// (effect, ∂/∂p of its two constants): gravity's vector [x, y]; a spring's or
-    /// a rotational spring's [stiffness, damping].
+    /// a rotational spring's [stiffness, damping]; a DC motor's [stall torque, 0].
     pub effects: Vec<EffectGradient>,
 }
 

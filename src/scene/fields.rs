@@ -289,8 +289,8 @@ impl<'a> Ctx<'a> {
                 key,
                 format!(
                     "'{}' uses '{name}', a parameter the estimate identifies: an estimate \
-                     varies masses, inertias, gravity and spring and damper constants, not \
-                     the values of torques and forces",
+                     varies masses, inertias, gravity, spring and damper constants and motors' \
+                     stall torques, not the values of torques and forces",
                     excerpt(&text, QUOTE)
                 ),
             ));

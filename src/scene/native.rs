@@ -144,8 +144,9 @@ pub fn read(
                 line,
                 &key,
                 "depends on a parameter the estimate identifies (`estimation: parameters:`): \
-                 an estimate varies masses, inertias, gravity and spring and damper constants \
-                 only, not geometry, starts or motor data; give this key a value of its own",
+                 an estimate varies masses, inertias, gravity, spring and damper constants and \
+                 motors' stall torques only, not geometry, starts or a motor's no-load speed; \
+                 give this key a value of its own",
             )
             .into());
     }
@@ -523,6 +524,8 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                 if !(no_load_speed != 0.0) {
                     return Err(ctx.err(item.line, &f.key("no_load_speed"), "must not be 0 (the speed at which the motor's torque falls to 0, rad/s; negative turns it the other way)"));
                 }
+                // The torque is linear in its stall torque only (no_load_speed divides).
+                ctx.derivatives.effect(scene.effects.len(), [&f.key("stall_torque"), ""]);
                 f.finish(ctx, &["type", "name", "coordinate", "stall_torque", "no_load_speed"])?;
                 Effect::Motor { name: name.clone(), coordinate, stall_torque, no_load_speed }
             }
