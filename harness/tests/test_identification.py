@@ -2,7 +2,6 @@
 differ only where their comments say), the output-error peer (harness/output_error.py),
 the parsing of `--parameters-out`, the page's verdicts, and the page end to end on a
 short record."""
-import subprocess
 
 import numpy as np
 import pytest
@@ -17,16 +16,6 @@ SCENES = ident.SCENES
 
 def spec(name: str) -> dict:
     return yaml.safe_load((SCENES / name).read_text())
-
-
-def loads(name: str) -> bool:
-    """Whether this build's module reads the scene (its `estimation: parameters:` and
-    `type: input` sensors are issue 39's)."""
-    try:
-        mbfg.load(str(SCENES / name))
-        return True
-    except mbfg.SceneError:
-        return False
 
 
 # ---------------------------------------------------------------- the scenes
@@ -78,8 +67,6 @@ def test_true_and_bad_scenes_differ_only_where_said(key):
 def test_scenes_load(key):
     test = ident.TEST[key]
     for name in (test.true_scene, test.bad_scene):
-        if not loads(name):
-            pytest.skip(f"this build does not read {name} yet (issue 39's scene keys)")
         model = mbfg.load(str(SCENES / name))
         assert model.dof == len(model.independent)
 
@@ -212,16 +199,6 @@ def test_verdicts_of_the_four_bar_hold_every_seed_to_one_percent():
     assert "median 2.50 s over 1 seeds" in batch and not dict(v)[batch]
 
 
-def parameters_out_supported() -> bool:
-    exe = ident.est.binary()
-    if not exe.exists():
-        return False
-    out = subprocess.run([str(exe), "estimate", "--help"], capture_output=True, text=True)
-    return "--parameters-out" in out.stdout
-
-
-@pytest.mark.skipif(not parameters_out_supported(),
-                    reason="this build's mbfg estimate has no --parameters-out (issue 39)")
 def test_page_end_to_end_on_a_short_record(tmp_path):
     pytest.importorskip("sksundae")
     res = ident.write(tmp_path, seeds=[1], t_end=2.0, tests=["gravity"], inverse=False,
@@ -256,14 +233,10 @@ def test_peer_over_ida_simulates_what_mbfg_does():
 NAMED = {"arm": {"m1", "I1"}}  # link 1 only turns about its base: m1 and I1 move together
 
 
-@pytest.mark.skipif(not parameters_out_supported(),
-                    reason="this build's mbfg estimate has no --parameters-out (issue 39)")
 @pytest.mark.parametrize("key", list(ident.TEST))
 def test_batch_identifies_on_seed_1(key):
     pytest.importorskip("sksundae")
     test = ident.TEST[key]
-    if not loads(test.true_scene):
-        pytest.skip(f"this build does not read {test.true_scene} yet (`type: input` sensors)")
     exe = str(ident.est.snapshot())
     tpath = str(ident.truth_path(test))
     r = ident.mbfg_row(test, 1, ident.T_END, str(ident.readings_path(test, 1, exe=exe)), tpath,
