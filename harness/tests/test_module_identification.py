@@ -43,3 +43,16 @@ def test_mass_and_inertia_about_a_pivot_are_named_together():
         p = out["parameters"][name]
         assert not p["identifiable"]
         assert "combination" in p["reason"] and other in p["reason"]
+
+
+def test_the_online_estimator_gives_the_parameters_apart_from_the_inputs():
+    # spring-damper.yaml identifies k and c and declares an unknown input on theta:
+    # each update's Q holds the input only, p the two parameters.
+    readings = _readings(ROOT / "scenes" / "spring-damper.yaml", 1.0, 1e-3, 3)
+    est = mbfg.Estimator(str(DATA / "spring-damper.yaml"), dt=0.005, window=10)
+    for t, enc in zip(readings["t"], readings["enc"]):
+        out = est.update(t, {"enc": enc})
+    assert len(out["Q"]) == 1 and len(out["sd_Q"]) == 1
+    assert len(out["p"]) == 2 and len(out["sd_p"]) == 2
+    # The parameters stay near their prior within a second of readings, with σ's.
+    assert abs(out["p"][0] - 18.0) < 3 * 5.0 and out["sd_p"][0] > 0

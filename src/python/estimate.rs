@@ -330,7 +330,10 @@ impl PyEstimator {
                 .map_err(|e| run_error(py, e, None))?;
             let e = &u.newest;
             let n = self.model.n();
-            let at = self.est.graph().inputs_at();
+            let graph = self.est.graph();
+            let at = graph.inputs_at();
+            let inputs = at..at + graph.inputs.len();
+            let parameters = graph.parameters_at().map_or(0..0, |(p, np)| p..p + np);
             let sd = e.sd();
             let out = PyDict::new(py);
             out.set_item("t", e.t)?;
@@ -338,11 +341,13 @@ impl PyEstimator {
             out.set_item("q", arr(&e.x[..n]))?;
             out.set_item("dq", arr(&e.x[n..2 * n]))?;
             out.set_item("ddq", arr(&e.x[2 * n..3 * n]))?;
-            out.set_item("Q", arr(&e.x[at..]))?;
+            out.set_item("Q", arr(&e.x[inputs.clone()]))?;
+            out.set_item("p", arr(&e.x[parameters.clone()]))?;
             out.set_item("sd_q", arr(&sd[..n]))?;
             out.set_item("sd_dq", arr(&sd[n..2 * n]))?;
             out.set_item("sd_ddq", arr(&sd[2 * n..3 * n]))?;
-            out.set_item("sd_Q", arr(&sd[at..]))?;
+            out.set_item("sd_Q", arr(&sd[inputs]))?;
+            out.set_item("sd_p", arr(&sd[parameters]))?;
             out.set_item("nis", u.nis)?;
             Ok(out)
         })
