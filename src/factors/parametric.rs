@@ -11,7 +11,7 @@
 use super::shared::key_accessor;
 use crate::dynamics::{DynamicsKernel, KernelScratch};
 use crate::error::Result;
-use crate::graph::{Factor, Key, StackReq, VarKind, Workspace};
+use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
 use crate::model::parameters::Parameters;
 use crate::model::Model;
 use std::sync::Arc;
@@ -23,6 +23,8 @@ pub struct ParametricDynamics {
     /// The coordinates the unknown inputs act on (one entry of the Force variable
     /// each), empty without inputs.
     inputs: Vec<usize>,
+    /// 0..n: G's columns, the forces on every coordinate.
+    all: Vec<usize>,
 }
 
 impl ParametricDynamics {
@@ -41,6 +43,7 @@ impl ParametricDynamics {
             keys.push(Key::now(VarKind::Force));
         }
         Some(ParametricDynamics {
+            all: (0..model.n()).collect(),
             model,
             parameters,
             keys,
@@ -64,8 +67,10 @@ impl Factor for ParametricDynamics {
     fn dim(&self) -> usize {
         self.model.n()
     }
+    /// The kernel's, and M(p), the forces, q̈(p), G and ∂F/∂(q, q̇, p) with a column.
     fn scratch(&self) -> StackReq {
-        DynamicsKernel::scratch(&self.model)
+        let (n, np) = (self.model.n(), self.parameters.len());
+        DynamicsKernel::scratch(&self.model).and(StackReq::new::<f64>(4 * n * n + 3 * n + n * np))
     }
     fn evaluate(
         &self,
@@ -77,18 +82,19 @@ impl Factor for ParametricDynamics {
     ) -> Result<()> {
         let model = &*self.model;
         let (n, np) = (model.n(), self.parameters.len());
-        let mut force = vec![0.0; n];
-        self.parameters
-            .force(model, x[3], (x[0], x[1], t), &mut force)?;
+        let (force, stack) = zeros(ws.stack(), n);
+        self.parameters.force(model, x[3], (x[0], x[1], t), force)?;
         for (k, &c) in self.inputs.iter().enumerate() {
             force[c] += x[4][k];
         }
         // M(p) in a dense K (a large mechanism's sparse K holds the file's M).
-        let mass = self.parameters.mass_at(model, x[3]);
-        let (kernel, _) = KernelScratch::new(model, None, ws.stack());
-        let mut kernel = kernel.with_mass(&mass);
+        let (mass, stack) = zeros(stack, n * n);
+        self.parameters.mass_at(model, x[3], mass);
+        let mass: &[f64] = mass;
+        let (kernel, stack) = KernelScratch::new(model, None, stack);
+        let mut kernel = kernel.with_mass(mass);
         let Some(j) = jac else {
-            DynamicsKernel::evaluate(model, x[0], x[1], t, Some(&force), r, None, &mut kernel)?;
+            DynamicsKernel::evaluate(model, x[0], x[1], t, Some(force), r, None, &mut kernel)?;
             r.iter_mut().zip(x[2]).for_each(|(e, a)| *e -= a);
             return Ok(());
         };
@@ -101,26 +107,22 @@ impl Factor for ParametricDynamics {
             x[0],
             x[1],
             t,
-            Some(&force),
+            Some(force),
             r,
             Some((&mut jq[0], &mut jv[0])),
             &mut kernel,
         )?;
-        let acceleration = r.to_vec();
+        let (acceleration, stack) = zeros(stack, n);
+        acceleration.copy_from_slice(r);
         r.iter_mut().zip(x[2]).for_each(|(e, a)| *e -= a);
-        let all: Vec<usize> = (0..n).collect();
-        let mut g = vec![0.0; n * n];
-        DynamicsKernel::force_jacobian(model, &all, &mut g, &mut kernel)?;
-        let (mut fq, mut fv) = (vec![0.0; n * n], vec![0.0; n * n]);
-        let mut fp = vec![0.0; n * np];
-        self.parameters.jacobians(
-            model,
-            x[3],
-            (x[0], x[1], &acceleration, t),
-            &mut fq,
-            &mut fv,
-            &mut fp,
-        )?;
+        let (g, stack) = zeros(stack, n * n);
+        DynamicsKernel::force_jacobian(model, &self.all, g, &mut kernel)?;
+        let (fq, stack) = zeros(stack, n * n);
+        let (fv, stack) = zeros(stack, n * n);
+        let (fp, stack) = zeros(stack, n * np);
+        let (col, _) = zeros(stack, n);
+        self.parameters
+            .jacobians(model, x[3], (x[0], x[1], acceleration, t), fq, fv, fp, col)?;
         // out += G · B for a row-major n × w block B.
         let add_product = |out: &mut [f64], b: &[f64], w: usize| {
             for i in 0..n {
@@ -135,12 +137,12 @@ impl Factor for ParametricDynamics {
                 }
             }
         };
-        add_product(&mut jq[0], &fq, n);
-        add_product(&mut jv[0], &fv, n);
+        add_product(&mut jq[0], fq, n);
+        add_product(&mut jv[0], fv, n);
         super::shared::identity(&mut ja[0], n, -1.0);
         let jp = &mut jp[0];
         jp.fill(0.0);
-        add_product(jp, &fp, np);
+        add_product(jp, fp, np);
         if let Some(ju) = ju.first_mut() {
             let w = self.inputs.len();
             for i in 0..n {

@@ -14,13 +14,6 @@ use super::forces::Force;
 use super::{mass, Model, PointSlot, Slot};
 use crate::error::{Error, Result};
 
-/// The masses of the bodies and the points, and gravity's vector, at some p.
-struct Masses {
-    bodies: Vec<f64>,
-    points: Vec<f64>,
-    g: [f64; 2],
-}
-
 /// The identified parameters, their values in the file, and the derivatives of the
 /// model's constants.
 #[derive(Debug, Clone)]
@@ -34,8 +27,9 @@ pub struct Parameters {
     body_mass: Vec<Vec<f64>>,
     /// ∂mass/∂p of every point (zeros where it does not depend on them).
     point_mass: Vec<Vec<f64>>,
-    /// Gravity's vector in the file and its ∂/∂p (x and y), if the scene has gravity.
-    gravity: Option<([f64; 2], [Vec<f64>; 2])>,
+    /// Gravity, if the scene has it: its index in `Model::forces`, its vector in the
+    /// file and the vector's ∂/∂p (x and y).
+    gravity: Option<(usize, [f64; 2], [Vec<f64>; 2])>,
     /// Forces linear in two constants (springs and dampers, a DC motor's stall
     /// torque): (index into `Model::forces`, ∂/∂p of each constant).
     springs: Vec<(usize, Vec<f64>, Vec<f64>)>,
@@ -97,7 +91,7 @@ impl Parameters {
                 .for_each(|j| touched[j] = true);
             match &model.forces[*e] {
                 Force::Gravity { vector, .. } => {
-                    out.gravity = Some((*vector, [a.clone(), b.clone()]));
+                    out.gravity = Some((*e, *vector, [a.clone(), b.clone()]));
                 }
                 f if f.with_constants(0.0, 0.0).is_some() => {
                     out.springs.push((*e, a.clone(), b.clone()));
@@ -111,13 +105,13 @@ impl Parameters {
             }
         }
         if out.gravity.is_none() {
-            out.gravity = model.forces.iter().find_map(|f| match f {
-                Force::Gravity { vector, .. } => Some((*vector, [vec![0.0; p], vec![0.0; p]])),
+            out.gravity = model.forces.iter().enumerate().find_map(|(e, f)| match f {
+                Force::Gravity { vector, .. } => Some((e, *vector, [vec![0.0; p], vec![0.0; p]])),
                 _ => None,
             });
         }
         // A mass moves gravity's force only where there is gravity.
-        if let Some((g, _)) = out.gravity {
+        if let Some((_, g, _)) = out.gravity {
             if g != [0.0, 0.0] {
                 let masses = id.bodies.iter().map(|(_, dm, _)| dm);
                 for dm in masses.chain(id.points.iter().map(|(_, dm)| dm)) {
@@ -176,47 +170,34 @@ impl Parameters {
         }
     }
 
-    fn shift(&self, p: &[f64]) -> Vec<f64> {
-        p.iter().zip(&self.values).map(|(a, b)| a - b).collect()
+    /// Σⱼ gⱼ (pⱼ − p₀ⱼ): how far a constant whose derivative is g moves from the
+    /// file's p₀ to p.
+    fn change(&self, g: &[f64], p: &[f64]) -> f64 {
+        g.iter()
+            .zip(p)
+            .zip(&self.values)
+            .map(|((g, p), v)| g * (p - v))
+            .sum()
     }
 
-    fn dot(a: &[f64], b: &[f64]) -> f64 {
-        a.iter().zip(b).map(|(x, y)| x * y).sum()
+    /// Gravity's vector at p, if the scene has gravity.
+    fn gravity_at(&self, p: &[f64]) -> Option<[f64; 2]> {
+        let (_, g0, [gx, gy]) = self.gravity.as_ref()?;
+        Some([g0[0] + self.change(gx, p), g0[1] + self.change(gy, p)])
     }
 
-    /// The bodies' and the points' masses and gravity's vector at p.
-    fn gravity_at(&self, model: &Model, dp: &[f64]) -> Option<Masses> {
-        let (g0, [gx, gy]) = self.gravity.as_ref()?;
-        let scene = &model.scene;
-        let at = |m: f64, dm: &[f64]| m + Self::dot(dm, dp);
-        Some(Masses {
-            bodies: scene
-                .bodies
-                .iter()
-                .zip(&self.body_mass)
-                .map(|(b, dm)| at(b.mass, dm))
-                .collect(),
-            points: scene
-                .points
-                .iter()
-                .zip(&self.point_mass)
-                .map(|(p, dm)| at(p.mass, dm))
-                .collect(),
-            g: [g0[0] + Self::dot(gx, dp), g0[1] + Self::dot(gy, dp)],
-        })
-    }
-
-    /// M(p), row-major n × n.
-    pub fn mass_at(&self, model: &Model, p: &[f64]) -> Vec<f64> {
+    /// M(p) into `out` (row-major n × n).
+    pub fn mass_at(&self, model: &Model, p: &[f64], out: &mut [f64]) {
         let n = model.n();
-        let dp = self.shift(p);
-        let mut m: Vec<f64> = (0..n * n).map(|k| model.mass[(k / n, k % n)]).collect();
-        for (j, mj) in self.mass.iter().enumerate() {
-            if dp[j] != 0.0 {
-                m.iter_mut().zip(mj).for_each(|(a, b)| *a += dp[j] * b);
+        for (k, o) in out[..n * n].iter_mut().enumerate() {
+            *o = model.mass[(k / n, k % n)];
+        }
+        for (mj, j) in self.mass.iter().zip(0..) {
+            let dpj = p[j] - self.values[j];
+            if dpj != 0.0 {
+                out.iter_mut().zip(mj).for_each(|(a, b)| *a += dpj * b);
             }
         }
-        m
     }
 
     /// Q(p) − Q(p₀) at (q, q̇, t) into `out` (length n; overwritten).
@@ -227,21 +208,19 @@ impl Parameters {
         (q, dq, t): (&[f64], &[f64], f64),
         out: &mut [f64],
     ) -> Result<()> {
-        let n = model.n();
-        let dp = self.shift(p);
         out.fill(0.0);
-        if let Some(at) = self.gravity_at(model, &dp) {
-            let g0 = self.gravity.as_ref().map_or([0.0; 2], |(g0, _)| *g0);
-            Self::add_gravity(model, &|b| at.bodies[b], &|p| at.points[p], at.g, out);
-            let mut base = vec![0.0; n];
+        if let (Some(g), Some((e, ..))) = (self.gravity_at(p), &self.gravity) {
             let scene = &model.scene;
-            let body0 = |b: usize| scene.bodies[b].mass;
-            let point0 = |p: usize| scene.points[p].mass;
-            Self::add_gravity(model, &body0, &point0, g0, &mut base);
-            out.iter_mut().zip(&base).for_each(|(o, b)| *o -= b);
+            let body = |b: usize| scene.bodies[b].mass + self.change(&self.body_mass[b], p);
+            let point = |i: usize| scene.points[i].mass + self.change(&self.point_mass[i], p);
+            Self::add_gravity(model, &body, &point, g, out);
+            // Less the file's gravity, which the model's own force holds.
+            if let Force::Gravity { entries, .. } = &model.forces[*e] {
+                entries.iter().for_each(|&(i, v)| out[i] -= v);
+            }
         }
         for (e, dk, dc) in &self.springs {
-            let f = model.forces[*e].with_constants(Self::dot(dk, &dp), Self::dot(dc, &dp));
+            let f = model.forces[*e].with_constants(self.change(dk, p), self.change(dc, p));
             if let Some(f) = f {
                 f.add_to(model, q, dq, t, out)?;
             }
@@ -251,7 +230,8 @@ impl Parameters {
 
     /// ∂/∂q and ∂/∂q̇ of [`Parameters::force`] added to `kq`, `kv` (n × n), and
     /// ∂(Q(p) − M(p) q̈)/∂p at the accelerations `ddq` written to `kp` (n × P), all
-    /// row-major.
+    /// row-major; `col` (length n) is scratch.
+    #[allow(clippy::too_many_arguments)]
     pub fn jacobians(
         &self,
         model: &Model,
@@ -260,41 +240,42 @@ impl Parameters {
         kq: &mut [f64],
         kv: &mut [f64],
         kp: &mut [f64],
+        col: &mut [f64],
     ) -> Result<()> {
         let (n, np) = (model.n(), self.len());
-        let dp = self.shift(p);
         for (e, dk, dc) in &self.springs {
-            if let Some(f) = model.forces[*e].with_constants(Self::dot(dk, &dp), Self::dot(dc, &dp))
-            {
+            let f = model.forces[*e].with_constants(self.change(dk, p), self.change(dc, p));
+            if let Some(f) = f {
                 f.add_jacobians(model, (q, dq, t), kq, kv)?;
             }
         }
-        kp.fill(0.0);
-        let mut col = vec![0.0; n];
-        let at = self.gravity_at(model, &dp);
+        let scene = &model.scene;
+        let g = self.gravity_at(p);
         for j in 0..np {
             col.fill(0.0);
-            if let (Some(at), Some((_, [gx, gy]))) = (&at, &self.gravity) {
+            if let (Some(g), Some((_, _, [gx, gy]))) = (g, &self.gravity) {
+                // Bilinear in the masses and the vector: each moved alone.
                 let dbody = |b: usize| self.body_mass[b][j];
-                let dpoint = |p: usize| self.point_mass[p][j];
-                Self::add_gravity(model, &dbody, &dpoint, at.g, &mut col);
-                let body = |b: usize| at.bodies[b];
-                let point = |p: usize| at.points[p];
-                Self::add_gravity(model, &body, &point, [gx[j], gy[j]], &mut col);
+                let dpoint = |i: usize| self.point_mass[i][j];
+                Self::add_gravity(model, &dbody, &dpoint, g, col);
+                let body = |b: usize| scene.bodies[b].mass + self.change(&self.body_mass[b], p);
+                let point = |i: usize| scene.points[i].mass + self.change(&self.point_mass[i], p);
+                Self::add_gravity(model, &body, &point, [gx[j], gy[j]], col);
             }
             for (e, dk, dc) in &self.springs {
                 if let Some(f) = model.forces[*e].with_constants(dk[j], dc[j]) {
-                    f.add_to(model, q, dq, t, &mut col)?;
+                    f.add_to(model, q, dq, t, col)?;
                 }
             }
             let mj = &self.mass[j];
             for r in 0..n {
-                col[r] -= Self::dot(&mj[r * n..(r + 1) * n], ddq);
-            }
-            for r in 0..n {
-                kp[r * np + j] = col[r];
+                kp[r * np + j] = col[r] - Self::dot(&mj[r * n..(r + 1) * n], ddq);
             }
         }
         Ok(())
+    }
+
+    fn dot(a: &[f64], b: &[f64]) -> f64 {
+        a.iter().zip(b).map(|(x, y)| x * y).sum()
     }
 }
