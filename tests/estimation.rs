@@ -401,24 +401,9 @@ fn rms_off(v: &[f64], truth: &[f64]) -> f64 {
 
 /// The truth of `scene` over `t_end`: a 1 ms simulation, every `every`-th step kept.
 fn truth_of(scene: &str, t_end: f64, every: usize) -> Trajectory {
-    let m = model(scene);
     let options = ForwardOptions::new(Coordinates::Dependent, 0.001, t_end, Mode::FixedLag(1));
-    let (fine, _) = simulate(m.clone(), &options, &mut |_, _| {}).unwrap();
-    let n = m.n();
-    let mut tr = Trajectory {
-        names: fine.names.clone(),
-        t: Vec::new(),
-        q: Vec::new(),
-        dq: Vec::new(),
-        ddq: Vec::new(),
-    };
-    for k in (0..fine.len()).step_by(every) {
-        tr.t.push(fine.t[k]);
-        tr.q.extend_from_slice(&fine.q[k * n..(k + 1) * n]);
-        tr.dq.extend_from_slice(&fine.dq[k * n..(k + 1) * n]);
-        tr.ddq.extend_from_slice(&fine.ddq[k * n..(k + 1) * n]);
-    }
-    tr
+    let (fine, _) = simulate(model(scene), &options, &mut |_, _| {}).unwrap();
+    fine.every(every, 0.001 * every as f64)
 }
 
 #[test]

@@ -32,22 +32,8 @@ fn model(name: &str) -> Arc<Model> {
 fn truth(scene: &str, t_end: f64) -> Trajectory {
     let m = model(scene);
     let options = ForwardOptions::new(Coordinates::Dependent, 0.001, t_end, Mode::FixedLag(1));
-    let (fine, _) = simulate(m.clone(), &options, &mut |_, _| {}).unwrap();
-    let n = m.n();
-    let mut tr = Trajectory {
-        names: fine.names.clone(),
-        t: Vec::new(),
-        q: Vec::new(),
-        dq: Vec::new(),
-        ddq: Vec::new(),
-    };
-    for k in (0..fine.len()).step_by(5) {
-        tr.t.push(fine.t[k]);
-        tr.q.extend_from_slice(&fine.q[k * n..(k + 1) * n]);
-        tr.dq.extend_from_slice(&fine.dq[k * n..(k + 1) * n]);
-        tr.ddq.extend_from_slice(&fine.ddq[k * n..(k + 1) * n]);
-    }
-    tr
+    let (fine, _) = simulate(m, &options, &mut |_, _| {}).unwrap();
+    fine.every(5, 0.005)
 }
 
 /// The batch estimate of `bad` from the readings of its sensors made on `truth` by
