@@ -246,31 +246,10 @@ fn non_conservative(force: &Force) -> Option<Force> {
         {
             None
         }
-        Force::SpringDamper {
-            name,
-            points,
-            rest_length,
-            damping,
-            ..
-        } => Some(Force::SpringDamper {
-            name: name.clone(),
-            points: *points,
-            stiffness: 0.0,
-            // Kept for the direction check of a zero-length spring.
-            rest_length: *rest_length,
-            damping: *damping,
-        }),
-        Force::RotationalSpringDamper {
-            index,
-            rest_angle,
-            damping,
-            ..
-        } => Some(Force::RotationalSpringDamper {
-            index: *index,
-            stiffness: 0.0,
-            rest_angle: *rest_angle,
-            damping: *damping,
-        }),
+        // The damper alone (a spring's rest length kept for its direction check).
+        Force::SpringDamper { damping, .. } | Force::RotationalSpringDamper { damping, .. } => {
+            force.with_constants(0.0, *damping)
+        }
         Force::Torque { .. }
         | Force::PointForce { .. }
         | Force::Motor { .. }

@@ -26,7 +26,8 @@ pub enum Force {
     },
     /// Spring k(ℓ − ℓ₀) and damper c ℓ̇ along the line between two points.
     SpringDamper {
-        name: String,
+        /// Shared: an estimate makes copies with other constants at every evaluation.
+        name: Arc<str>,
         points: [usize; 2],
         stiffness: f64,
         rest_length: f64,
@@ -386,7 +387,7 @@ pub fn assemble(model: &Model) -> Result<Vec<Force>> {
                 rest_length,
                 damping,
             } => Force::SpringDamper {
-                name: name.clone(),
+                name: Arc::from(name.as_str()),
                 points: *points,
                 stiffness: *stiffness,
                 rest_length: *rest_length,
