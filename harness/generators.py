@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import importlib.util
 import math
 import os
+import pathlib
 import sys
 import time
 from typing import Mapping, Protocol
@@ -52,6 +54,27 @@ class Generator:
     # The accuracy-against-time sweeps of harness/timing.py: (variant, setting, values,
     # further settings); a point per value.
     sweeps: tuple[tuple[str, str, tuple[float, ...], Mapping], ...] = ()
+    # The harness modules whose code makes its numbers (hashed into a reference's
+    # provenance, so that a reference written by other code is told apart).
+    source: tuple[str, ...] = ()
+
+    def source_hash(self) -> str:
+        """sha256 over the files of `source`, in order: which version of this generator's
+        code a reference was written by."""
+        digest = hashlib.sha256()
+        for module in self.source:
+            digest.update(pathlib.Path(importlib.util.find_spec(module).origin).read_bytes())
+        return "sha256:" + digest.hexdigest()
+
+    def request(self, settings: Mapping | None = None, accurate: bool = False) -> dict:
+        """What a run asks of this generator: its settings (the defaults, or with accurate
+        the reference settings, updated by `settings`) and its code's hash."""
+        return {"generator": self.name, "settings": self.settings(settings, accurate),
+                "source": self.source_hash()}
+
+    def settings(self, settings: Mapping | None = None, accurate: bool = False) -> dict:
+        """The defaults (or, with accurate, the reference settings) updated by `settings`."""
+        return {**(self.reference if accurate else self.defaults), **(settings or {})}
 
     def refusal(self, model: mbfg.Model) -> str | None:
         """Why this generator cannot run the scene, known before running it; else None."""
@@ -66,8 +89,7 @@ class Generator:
                  accurate: bool = False) -> tuple[tj.Trajectory, dict]:
         """`run` with the defaults (or, with accurate, the reference settings) updated
         by `settings`."""
-        merged = {**(self.reference if accurate else self.defaults), **(settings or {})}
-        return self.run(scene, t_end, dt, **merged)
+        return self.run(scene, t_end, dt, **self.settings(settings, accurate))
 
 
 @dataclasses.dataclass
@@ -180,6 +202,7 @@ register(Generator(
     "exudyn", "exudyn", "exudyn: the scene as planar rigid bodies, generalized-alpha", run_exudyn,
     defaults={"solver": "generalized_alpha", "h": 1e-4},
     reference={"solver": "generalized_alpha", "h": 1e-5}, packages=("exudyn",), accuracy=1,
+    source=("harness.exudyn_ref", "harness.scene_file"),
     sweeps=(("generalized-alpha", "h", (1e-3, 5e-4, 2e-4, 1e-4, 1e-5),
              {"solver": "generalized_alpha"}),
             ("trapezoidal index-2", "h", (1e-3, 5e-4, 2e-4, 1e-4, 1e-5),
@@ -188,12 +211,14 @@ register(Generator(
     "ida", "IDA", "SUNDIALS IDA: BDF on mbfg's equations as a GGL index-2 DAE", run_ida,
     defaults={"formulation": "ggl", "rtol": 1e-12},
     reference={"formulation": "ggl", "rtol": 1e-14}, packages=("sksundae",), accuracy=3,
+    source=("harness.ida",),
     sweeps=(("GGL index-2", "rtol", (1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12),
              {"formulation": "ggl"}),)))
 register(Generator(
     "pinocchio", "Pinocchio", "Pinocchio: joint coordinates of a tree of revolute and "
     "prismatic joints (+ loop closures), RK4", run_pinocchio,
     defaults={"h": 2e-4}, reference={"h": 1e-5}, packages=("pinocchio",), accuracy=2,
+    source=("harness.pinocchio_ref", "harness.scene_file"),
     sweeps=(("RK4", "h", (1e-3, 5e-4, 1e-4), {}),
             ("DOP853 adaptive", "rtol", (1e-6, 1e-8, 1e-10, 1e-12), {"method": "dop853"}))))
 

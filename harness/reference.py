@@ -161,6 +161,13 @@ def run(generator: tuple[str, dict], scene: pathlib.Path, t_end: float, quick: b
     return traj, prov, time.perf_counter() - start
 
 
+def request(generator: tuple[str, dict], quick: bool = False) -> dict:
+    """What `make reference` asks of a generator for a job (run at its reference
+    settings, or its fast defaults with quick): recorded in the provenance, and checked
+    against today's by the tests."""
+    return generators.get(generator[0]).request(generator[1], accurate=not quick)
+
+
 def label(generator: tuple[str, dict]) -> str:
     return generator[0] + (f" {generator[1]}" if generator[1] else "")
 
@@ -214,11 +221,13 @@ def generate(job: Job | str, out_dir: pathlib.Path | None = None, runs: list[dic
                               "--generator, or looser settings with --set, may)")
     truth, prov, wall = first["run"]
     print(f"{name}:   done in {wall:.1f} s", flush=True)
+    prov["request"] = request(primary)
     prov["cross_checks"] = []
     for check, result in zip(job.checks, runs[1:]):
         print(f"{name}:   cross-check with {label(check)} …", flush=True)
         if "refused" in result:
-            prov["cross_checks"].append({"generator": check[0], "refused": result["refused"]})
+            prov["cross_checks"].append({"generator": check[0], "refused": result["refused"],
+                                         "request": request(check, job.quick_checks)})
             print(f"{name}:   {check[0]} refuses the scene: {result['refused']}", flush=True)
             continue
         try:
@@ -230,12 +239,15 @@ def generate(job: Job | str, out_dir: pathlib.Path | None = None, runs: list[dic
                 "generator": other_prov.get("generator", check[0]),
                 "formulation": other_prov.get("formulation"),
                 "settings": other_prov.get("settings", check[1]),
+                "request": request(check, job.quick_checks),
+                "versions": other_prov.get("versions", {}),
                 "wall_time_s": other_wall, **diff})
             print(f"{name}:   done in {other_wall:.1f} s; disagreement max {diff['max_m']:.2e} m, "
                   f"RMSE {diff['rmse_m']:.2e} m", flush=True)
         except Exception as e:  # a cross-check's failure is recorded, not fatal
             prov["cross_checks"].append({"generator": check[0],
-                                         "failed": generators.one_line(e)})
+                                         "failed": generators.one_line(e),
+                                         "request": request(check, job.quick_checks)})
             print(f"{name}:   {check[0]} failed: {generators.one_line(e)}", flush=True)
     prov["sample_dt"] = SAMPLE_DT
     prov["t_end"] = t_end

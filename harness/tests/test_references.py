@@ -51,3 +51,28 @@ def test_cross_checks_agree():
 def test_suite_stays_small():
     size = sum(f.stat().st_size for f in (ROOT / "references").rglob("*") if f.is_file())
     assert size < 20e6
+
+
+PINNED = dict(line.split("==") for line in
+              (ROOT / "harness" / "requirements.txt").read_text().split()
+              if "==" in line and not line.startswith("#"))
+
+
+@pytest.mark.parametrize("name", list(refs.SUITE))
+def test_reference_was_written_by_todays_generators(name):
+    """A reference's recorded request (generator, settings, the hash of the generator's
+    code) and package versions are those `make reference` uses today: a generator whose
+    code or settings changed without `make reference` fails here."""
+    job = refs.suite_job(name)
+    prov = provenance(name)
+    assert prov.get("request") == refs.request(job.primary), \
+        f"references/{name} was written by another version of {job.primary[0]} or other " \
+        "settings (make reference)"
+    assert [c.get("request") for c in prov["cross_checks"]] == \
+        [refs.request(c, job.quick_checks) for c in job.checks]
+    recorded = [prov["versions"]] + [c.get("versions", {}) for c in prov["cross_checks"]]
+    for versions in recorded:
+        for package, version in versions.items():
+            if package in PINNED:
+                assert version == PINNED[package], \
+                    f"references/{name}: written with {package} {version}, pinned {PINNED[package]}"
