@@ -5,6 +5,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -70,8 +71,25 @@ def test_animate_names_a_bad_run_as_mbfg_does(tmp_path, damage, says):
 
 
 def test_animate_needs_a_model_or_a_simulated_result():
+    run = types.SimpleNamespace(t=[0.0], q=[[0.0]])
     with pytest.raises(mbfg.InvalidArgument, match="model"):
-        mbfg.animate(object())
+        mbfg.animate(run)
+    with pytest.raises(mbfg.InvalidArgument, match="model: expected a Model or a scene path, got int"):
+        mbfg.animate(run, 3)
+
+
+def test_animate_names_arguments_given_in_the_wrong_place(tmp_path):
+    scene = ROOT / "scenes/pendulum.yaml"
+    with pytest.raises(mbfg.InvalidArgument, match="result: expected the Result of mbfg.simulate.*got str"):
+        mbfg.animate(str(scene), mbfg.simulate(scene, dt=0.01, t_end=0.1))
+
+
+def test_animate_takes_the_scene_as_a_path(tmp_path):
+    scene = ROOT / "scenes/pendulum.yaml"
+    r = mbfg.simulate(scene, dt=0.01, t_end=0.4)
+    out = mbfg.animate(r, str(scene), tmp_path / "p.gif", fps=10)
+    with Image.open(out) as im:
+        assert im.n_frames == 5
 
 
 def test_animate_draws_forces_guides_and_a_turning_crank(tmp_path):

@@ -380,8 +380,8 @@ def animate(result: "Result", model: "Model | None" = None, out: str | os.PathLi
             forces: bool = False) -> str:
     """Writes the mechanism's motion in `result` to a GIF (or an MP4 when `out` ends in
     .mp4; that needs ffmpeg): bodies as lines, fixed points as triangles, point masses
-    as squares, the time in a corner. `model` defaults to the scene of a result from
-    `simulate`. `fps` is the frames per second of the file, `speed` how much faster than
+    as squares, the time in a corner. `model` (a Model or a scene path) defaults to the
+    scene of a result from `simulate`. `fps` is the frames per second of the file, `speed` how much faster than
     real time it plays (2.0: twice), `trail` a point whose path is drawn behind it,
     `forces=True` the ground's reaction at every fixed point as an arrow. Slider guides
     and slots are drawn; the label gives the time and the independent angles (the speed

@@ -37,6 +37,15 @@ def animate(result, model=None, out: str | os.PathLike = "mbfg.gif", fps: int = 
 
     from . import InvalidArgument, Model, _clip, load
 
+    if not (hasattr(result, "t") and hasattr(result, "q")):
+        raise InvalidArgument(_clip(
+            f"result: expected the Result of mbfg.simulate, estimate or inverse (or an object "
+            f"with t and q), got {type(result).__name__}: mbfg.animate(result, model, out)"))
+    if isinstance(model, (str, os.PathLike)):
+        model = load(model)
+    elif model is not None and not isinstance(model, Model):
+        raise InvalidArgument(_clip(f"model: expected a Model or a scene path, got "
+                                    f"{type(model).__name__}"))
     if model is None:
         scene = getattr(result, "scene", None)
         if scene is None:
