@@ -91,6 +91,17 @@ except ModuleNotFoundError as e:
     assert lines[0] == "(501, 10) 1"
     # Without the `plot` extra (matplotlib), animate names the extra.
     assert 'pip install "mbfg[plot]"' in lines[1]
+    # `mbfg` is on the venv's PATH: without a compiled command line it says how to build
+    # one; with one (MBFG, or on the PATH) it runs it.
+    bare = {"PATH": f"{venv / 'bin'}:/usr/bin:/bin"}
+    r = subprocess.run([str(venv / "bin/mbfg"), "--version"], cwd=away, env=bare,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "make install" in r.stderr, (r.returncode, r.stderr)
+    if MBFG.exists():
+        r = subprocess.run([str(venv / "bin/mbfg"), "--version"], cwd=away,
+                           env=dict(bare, MBFG=str(MBFG)), capture_output=True, text=True,
+                           timeout=60)
+        assert r.returncode == 0 and r.stdout.startswith("mbfg "), (r.returncode, r.stderr)
 
 
 def test_with_the_extras_it_animates_and_compares_outside_the_checkout(wheel, tmp_path):
