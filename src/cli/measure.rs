@@ -72,8 +72,9 @@ pub fn run(args: MeasureArgs) -> Result<(), Failure> {
     print_summary(
         to_file,
         &format!(
-            "{count} readings of {} sensors at {} times (seed {seed})",
+            "{count} readings of {} sensor{} at {} times (seed {seed})",
             model.sensors.len(),
+            if model.sensors.len() == 1 { "" } else { "s" },
             readings.t.len()
         ),
     );
