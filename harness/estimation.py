@@ -315,7 +315,12 @@ def parse_summary(line: str) -> dict:
                    nis_ok=bool(lo <= nis <= hi))
     m = PROCESS.search(line)
     if m:
-        out.update(process_sigma=float(m["sigma"]), process_sigma_how=m["how"] or "as given")
+        how = m["how"] or "as given"
+        if how.startswith("from the readings"):
+            how = "from the readings"
+        elif how.startswith("the default"):
+            how = "the default"
+        out.update(process_sigma=float(m["sigma"]), process_sigma_how=how)
     return out
 
 
@@ -587,7 +592,9 @@ the module docstring of `harness/kalman.py`), not tuned on this truth.
   summary line, against the expected value (the readings per step) and its 95 % bounds;
   *in bounds* counts the seeds where it lies inside them. **process σ**: the σ of mbfg's
   process (dynamics) factor the run used, as its summary line reports it (the scene's
-  `estimation: process_sigma`, or mbfg's default).
+  `estimation: process_sigma`, mbfg's default, or the σ mbfg chose from the readings
+  where a filter pass with the default left the mean NIS outside its bounds), median
+  over the seeds, with how many seeds took each.
 - **µs/step**: the run's wall time per step (median over the seeds): mbfg's from its
   summary line (the solve, without the process start), the peers' measured around
   `run()` in Python. Runs share the machine's cores with each other, so compare orders of
@@ -643,9 +650,12 @@ def case_table(res, case: Case, loop: dict) -> str:
                    f"{g(rs[0]['nis_expected'], 'g')} [{g(rs[0]['nis_lo'], '.3g')}, "
                    f"{g(rs[0]['nis_hi'], '.3g')}]; {k}/{len(rs)}")
         ps = g(med(rs, "process_sigma"), ".3g")
-        how = {r.get("process_sigma_how") for r in rs} - {None, "as given"}
-        if ps != "—" and len(how) == 1:
-            ps += f" ({how.pop()})"
+        hows = [r.get("process_sigma_how") for r in rs if r.get("process_sigma_how")
+                not in (None, "as given")]
+        if ps != "—" and len(set(hows)) == 1:
+            ps += f" ({hows[0]})"
+        elif ps != "—" and hows:
+            ps += " (" + ", ".join(f"{h} on {hows.count(h)}" for h in sorted(set(hows))) + ")"
         line += (f" {pct(rs, 'within_2sd')} | {nis} | {ps} | {g(med(rs, 'us_per_step'), '.0f')} |"
                  f" {pub_txt} |")
         if failed:

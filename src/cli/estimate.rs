@@ -7,8 +7,10 @@ use super::output::Output;
 use super::progress::Progress;
 use super::{load, print_summary, seconds};
 use mbfg::coordinates::Coordinates;
+use mbfg::estimate::options::DEFAULT_PROCESS_SIGMA;
 use mbfg::estimate::{
-    estimate_with_progress, EstimateOptions, EstimateSummary, Estimates, Record, Smoothing,
+    estimate_with_progress, EstimateOptions, EstimateSummary, Estimates, ProcessSource, Record,
+    Smoothing,
 };
 use std::cell::RefCell;
 use std::path::PathBuf;
@@ -290,12 +292,35 @@ fn significant(v: f64, sigma: f64) -> String {
     format!("{v:.digits$}")
 }
 
+/// `v` to three significant digits, without trailing zeros.
+fn three_digits(v: f64) -> String {
+    let digits = (2.0 - v.abs().log10().floor()).clamp(0.0, 15.0) as usize;
+    let text = format!("{v:.digits$}");
+    if text.contains('.') {
+        text.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        text
+    }
+}
+
 /// The process σ and where it came from.
 fn process(s: &EstimateSummary) -> String {
-    if s.scene_process_sigma {
-        format!("{} (the scene's)", s.process_sigma)
-    } else {
-        format!("{} (the default)", s.process_sigma)
+    match s.process_source {
+        ProcessSource::Scene => format!("{} (the scene's)", s.process_sigma),
+        ProcessSource::Default => format!("{} (the default)", s.process_sigma),
+        ProcessSource::Unresponsive { tried, then, .. } => format!(
+            "{} (the default; at {} a filter pass's mean NIS was still {then:.3})",
+            s.process_sigma,
+            three_digits(tried)
+        ),
+        ProcessSource::Readings { nis, bounds } => format!(
+            "{} (from the readings: the default {} left a filter pass's mean NIS at \
+             {nis:.3}, outside [{:.3}, {:.3}])",
+            three_digits(s.process_sigma),
+            DEFAULT_PROCESS_SIGMA,
+            bounds.0,
+            bounds.1
+        ),
     }
 }
 
@@ -306,7 +331,17 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
         return None;
     }
     let (lo, hi) = nis.bounds();
-    Some(if nis.mean() > hi {
+    let unresponsive = matches!(s.process_source, ProcessSource::Unresponsive { .. });
+    Some(if nis.mean() > hi && unresponsive {
+        format!(
+            "the mean NIS {:.3} is above its 95 % bound {hi:.3}: the readings disagree with \
+             the model more than the σ's allow, and a larger process σ does not change \
+             that (process σ {}): look at the sensors' `sigma` (noise, quantization) and at \
+             the model",
+            nis.mean(),
+            process(s)
+        )
+    } else if nis.mean() > hi {
         format!(
             "the mean NIS {:.3} is above its 95 % bound {hi:.3}: the readings disagree with \
              the model more than the σ's allow; the reported σ's are too small. Raise \

@@ -6,6 +6,7 @@ use super::errors::{arg_error, guard, invalid, one_line, SolveError};
 use super::model::study_model;
 use crate::coordinates::Coordinates;
 use crate::estimate::run::{graph_with, reading_factors};
+use crate::estimate::ProcessSource;
 use crate::estimate::{
     estimate, EstimateOptions, Estimates, Estimator, Record, Smoothing, Uncertainty,
 };
@@ -120,6 +121,15 @@ pub(super) fn estimate_run<'py>(
         s.set_item("nis_bounds", summary.nis.bounds())?;
         s.set_item("nis_consistent", summary.nis.consistent())?;
         s.set_item("process_sigma", summary.process_sigma)?;
+        s.set_item(
+            "process_sigma_source",
+            match summary.process_source {
+                ProcessSource::Scene => "scene",
+                ProcessSource::Default => "default",
+                ProcessSource::Readings { .. } => "readings",
+                ProcessSource::Unresponsive { .. } => "default",
+            },
+        )?;
         s.set_item(
             "undetermined",
             summary

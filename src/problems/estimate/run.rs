@@ -8,6 +8,7 @@ use super::graph::EstimationGraph;
 use super::identification::Identification;
 use super::online::{Estimator, StepEstimate};
 use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW};
+use super::process_noise::{self, ProcessSource};
 use super::record::Record;
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
@@ -34,8 +35,10 @@ pub struct EstimateSummary {
     /// Window solves of the fixed-lag pass kept at the iteration limit.
     pub unsettled: usize,
     pub process_sigma: f64,
-    /// Whether the process σ is the scene's (else the default).
+    /// Whether the process σ is the scene's (else the default, or the readings').
     pub scene_process_sigma: bool,
+    /// Where the process σ came from.
+    pub process_source: ProcessSource,
     /// The most steps a window held (the window asked, or more where its oldest
     /// step was less certain than its newest), and the mean over the updates.
     pub longest_window: usize,
@@ -116,8 +119,10 @@ pub fn estimate_with_progress(
     if record.readings() == 0 {
         return Err(Error::InvalidArgument(super::record::NO_READINGS.into()));
     }
-    let uncertainty = Uncertainty::of(&model);
-    let process_sigma = uncertainty.process;
+    let mut uncertainty = Uncertainty::of(&model);
+    let (process_sigma, process_source) =
+        process_noise::choose(&model, options, record, &uncertainty)?;
+    uncertainty.process = process_sigma;
     let eg = graph_with(&model, options.coordinates, record, &uncertainty)?;
     let (window, keep_all) = match options.smoothing {
         Smoothing::Window(w) => (w, false),
@@ -183,6 +188,7 @@ pub fn estimate_with_progress(
         unsettled: est.unsettled,
         process_sigma,
         scene_process_sigma: model.estimation.process_sigma.is_some(),
+        process_source,
         undetermined: determination.undetermined(),
         longest_window: est.held_most,
         mean_window: est.mean_window(),
