@@ -108,6 +108,26 @@ fn hermite_simpson_square_steps_are_the_general_solvers_steps() {
     }
 }
 
+/// In IC Hermite–Simpson's steps stay with the general solver: on the slider-crank at
+/// 20 ms (the crank turns 1.4 rad a step) a step fails and the run is refined, not
+/// stopped at a root off the motion.
+#[test]
+fn hermite_simpson_in_ic_is_refined_by_the_general_solver() {
+    let path = scene_path("driven/slider-crank-mm.yaml");
+    let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
+    let mut options = ForwardOptions::new(Coordinates::Independent, 0.02, 1.0, Mode::FixedLag(1));
+    options.integrator = Integrator::HermiteSimpson;
+    let (trajectory, summary) = simulate(model, &options, &mut |_, _| {}).unwrap();
+    assert!(!summary.plan.square_step);
+    assert_eq!(summary.square_steps, 0);
+    assert!(summary.failures.is_empty());
+    assert!(
+        summary.refinement.is_some(),
+        "the coarse run was not refined"
+    );
+    assert_eq!(trajectory.len(), 51);
+}
+
 /// Each step holds all its equations, so every window length and the batch have
 /// the one-step solution; with square steps they are that solution.
 #[test]
