@@ -19,6 +19,10 @@
 //! positions and velocities), whose Jacobian has a few nonzeros per row: Newton's
 //! method with faer's sparse LU, its symbolic analysis done once per mechanism.
 //!
+//! With Hermite–Simpson the integrators are its collocation rules, and the step also
+//! holds the dynamics at its middle: q̈_m and λ_m as unknowns, the augmented system at
+//! the Hermite interpolants q_m, q̇_m as equations (`stage.rs`).
+//!
 //! An IC step is the same system with the integrators on the independent
 //! coordinates z only and no μ: q follows from z through Φ(q) = 0, and f^i_dyn = 0
 //! is the augmented system's q̈ on z. Its equations are as many as its unknowns
