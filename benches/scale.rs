@@ -1,8 +1,9 @@
 //! Per-step cost against the size of the mechanism (`cargo bench --bench scale`): the
 //! N four-bar (IFToMM A02; N = 1 … 100 loops, 2N + 3 coordinates) and the n-link
-//! pendulum (n = 2 … 256 links, 3n coordinates) of `scenes/scale/`, each in three
-//! series: DC with N_w = 1, IC with N_w = 1, DC batch; 100 steps of dt = 1 ms from the
-//! scene's start.
+//! pendulum (n = 2 … 256 links, 3n coordinates) of `scenes/scale/`, each in four
+//! series: DC with N_w = 1, IC with N_w = 1, DC batch (the trapezoidal rule), and DC
+//! with N_w = 1 under Hermite–Simpson (`dc_w1_hs`, beside `dc_w1` for the cost of its
+//! step against the trapezoidal rule's); 100 steps of dt = 1 ms from the scene's start.
 //!
 //! The time criterion reports is **per step, set-up apart**: each iteration runs a
 //! 101-step run and a one-step run and reports the difference divided by 100
@@ -17,7 +18,7 @@
 //! with a dense solver; then where one step with the set-up, or one run, takes more.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use mbfg::forward::{simulate, Coordinates, ForwardOptions};
+use mbfg::forward::{simulate, Coordinates, ForwardOptions, Integrator};
 use mbfg::smoother::Mode;
 use mbfg::{Model, Scene};
 use std::hint::black_box;
@@ -54,30 +55,41 @@ struct Series {
     tag: &'static str,
     coords: Coordinates,
     mode: Mode,
+    integrator: Integrator,
 }
 
-const SERIES: [Series; 3] = [
+const SERIES: [Series; 4] = [
     Series {
         tag: "dc_w1",
         coords: Coordinates::Dependent,
         mode: Mode::FixedLag(1),
+        integrator: Integrator::Trapezoidal,
+    },
+    Series {
+        tag: "dc_w1_hs",
+        coords: Coordinates::Dependent,
+        mode: Mode::FixedLag(1),
+        integrator: Integrator::HermiteSimpson,
     },
     Series {
         tag: "ic_w1",
         coords: Coordinates::Independent,
         mode: Mode::FixedLag(1),
+        integrator: Integrator::Trapezoidal,
     },
     Series {
         tag: "dc_batch",
         coords: Coordinates::Dependent,
         mode: Mode::Batch,
+        integrator: Integrator::Trapezoidal,
     },
 ];
 
 /// Runs `steps` steps; its wall time. Panics if a step fails: a benchmark of a run
 /// that stopped early would measure something else.
 fn run(model: &Arc<Model>, series: &Series, steps: usize) -> Duration {
-    let opts = ForwardOptions::new(series.coords, DT, steps as f64 * DT, series.mode);
+    let mut opts = ForwardOptions::new(series.coords, DT, steps as f64 * DT, series.mode);
+    opts.integrator = series.integrator;
     let start = Instant::now();
     let (tr, s) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
     let elapsed = start.elapsed();

@@ -2,8 +2,9 @@
 
 The N four-bar (IFToMM A02, N = 1 … 100 loops: 2N + 3 coordinates) and the n-link
 pendulum (n = 2 … 256 links: 3n coordinates) of scenes/scale/ (N = 40 from
-scenes/benchmarks/), each in three series: DC with N_w = 1, IC with N_w = 1, DC batch;
-dt = 1 ms from the scene's start. µs/step is the cost of a step: the wall time of an
+scenes/benchmarks/), each in four series: DC with N_w = 1, IC with N_w = 1, DC batch (the
+trapezoidal rule), and DC with N_w = 1 under Hermite–Simpson, whose µs/step the page
+divides by the trapezoidal rule's; dt = 1 ms from the scene's start. µs/step is the cost of a step: the wall time of an
 `mbfg.simulate` call over the common horizon of MAX_STEPS steps (0.6 s, before the N
 four-bar's first flat configuration) less that of a one-step call (parsing, model
 building, the sparse analyses and the first step), divided by the steps between,
@@ -69,7 +70,11 @@ SERIES = [
     ("DC N_w=1", "dc", {"window": 1}),
     ("IC N_w=1", "ic", {"window": 1}),
     ("DC batch", "dc", {"batch": True}),
+    ("DC N_w=1 HS", "dc", {"window": 1, "integrator": "hermite-simpson"}),
 ]
+# Hermite–Simpson's series and the trapezoidal one its cost per step is compared with.
+HS_RATIO = ("DC N_w=1 HS", "DC N_w=1")
+HS_RATIO_TARGET = 2.5
 
 
 def scene(family: str, size: int) -> pathlib.Path:
@@ -116,6 +121,7 @@ import sys, time, mbfg
 def one():
     start = time.perf_counter()
     mbfg.simulate(sys.argv[1], coords=sys.argv[2], dt=float(sys.argv[3]), t_end=float(sys.argv[4]),
+                  integrator=sys.argv[7],
                   **({"batch": True} if sys.argv[5] == "batch" else {"window": int(sys.argv[5])}))
     return time.perf_counter() - start
 first = one()
@@ -130,7 +136,8 @@ def in_child(path, coords, kw, steps, timeout, once) -> float | None:
     mode = "batch" if kw.get("batch") else str(kw["window"])
     try:
         out = subprocess.run([sys.executable, "-c", CHILD, str(path), coords, repr(DT),
-                              repr(steps * DT), mode, "once" if once else "best"],
+                              repr(steps * DT), mode, "once" if once else "best",
+                              kw.get("integrator", "trapezoidal")],
                              capture_output=True, text=True, timeout=timeout, cwd=pages.ROOT)
     except subprocess.TimeoutExpired:
         return None
@@ -327,6 +334,29 @@ def fmt(v, spec=".2e") -> str:
     return "—" if v is None else format(v, spec)
 
 
+def hs_ratios(rows: list[dict]) -> list[tuple[str, int, float]]:
+    """(family, size, Hermite–Simpson's µs/step ÷ the trapezoidal rule's) where both
+    series measured the size."""
+    ok = {(r["family"], r["size"], r["series"]): r["us_per_step"] for r in rows
+          if r.get("status") == "ok"}
+    hs, tr = HS_RATIO
+    return [(family, size, ok[(family, size, hs)] / ok[(family, size, tr)])
+            for family, (_, _, sizes) in FAMILIES.items() for size in sizes
+            if (family, size, hs) in ok and (family, size, tr) in ok]
+
+
+def hs_ratio_lines(rows: list[dict]) -> list[str]:
+    ratios = hs_ratios(rows)
+    if not ratios:
+        return []
+    lines = [f"| mechanism | size | HS ÷ trapezoidal µs/step | target ≤ {HS_RATIO_TARGET:g} |",
+             "|---|---|---|---|"]
+    for family, size, ratio in ratios:
+        verdict = "met" if ratio <= HS_RATIO_TARGET else "not met"
+        lines.append(f"| {FAMILIES[family][0]} | {size} | {ratio:.2f} | {verdict} |")
+    return lines
+
+
 def family_table(family: str, rows: list[dict], baseline: dict) -> str:
     title, letter, sizes = FAMILIES[family]
     head = f"| {letter} | coordinates | equations | dof |"
@@ -403,6 +433,7 @@ def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
             span = f"{ok[0]} … {ok[-1]} ({len(ok)})" if ok else "none"
             slope_lines.append(f"| {title} | {label} | {span} | {fmt(s_all, '.2f')} | "
                                f"{fmt(s_up, '.2f')} | {verdict} |")
+    ratio_lines = hs_ratio_lines(rows)
     not_run = [r for r in rows if r.get("status") != "ok"]
     measured = [r for r in rows if r.get("status") == "ok"]
     worst_phi = max((r["max_phi"] for r in measured), default=None)
@@ -446,6 +477,13 @@ def write(reports: pathlib.Path, machine: str, families=None, repeats=REPEATS,
         "## Slopes\n",
         "\n".join(slope_lines) + "\n",
     ]
+    if ratio_lines:
+        parts += ["## Hermite–Simpson against the trapezoidal rule\n",
+                  f"µs/step of {HS_RATIO[0]} divided by {HS_RATIO[1]}'s, size by size (both "
+                  "medians of this run's rounds): what a Hermite–Simpson step costs in "
+                  "trapezoidal steps, target ≤ "
+                  f"{HS_RATIO_TARGET:g}.\n",
+                  "\n".join(ratio_lines) + "\n"]
     if baseline:
         parts.append(f"`× baseline` is the baseline's µs/step divided by this run's "
                      f"(`{baseline_path.name}`: an earlier run of this page; > 1 is faster "

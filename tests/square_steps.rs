@@ -6,7 +6,7 @@ mod common;
 
 use common::scene_path;
 use mbfg::forward::{
-    simulate, Coordinates, ForwardOptions, Observers, RunSummary, Schedule, Trajectory,
+    simulate, Coordinates, ForwardOptions, Integrator, Observers, RunSummary, Schedule, Trajectory,
 };
 use mbfg::smoother::Mode;
 use mbfg::solver::{self, Observer};
@@ -14,9 +14,21 @@ use mbfg::{Model, Scene};
 use std::sync::{Arc, Mutex};
 
 fn run(scene: &str, dt: f64, t_end: f64, mode: Mode, exact: bool) -> (Trajectory, RunSummary) {
+    run_with(scene, Integrator::Trapezoidal, dt, t_end, mode, exact)
+}
+
+fn run_with(
+    scene: &str,
+    integrator: Integrator,
+    dt: f64,
+    t_end: f64,
+    mode: Mode,
+    exact: bool,
+) -> (Trajectory, RunSummary) {
     let model = Arc::new(Model::new(&Scene::load(scene_path(scene)).unwrap()).unwrap());
     let mut options = ForwardOptions::new(Coordinates::Dependent, dt, t_end, mode);
     options.square_steps = exact;
+    options.integrator = integrator;
     let (trajectory, summary) = simulate(model, &options, &mut |_, _| {}).unwrap();
     assert!(
         summary.failures.is_empty(),
@@ -64,6 +76,56 @@ fn square_steps_are_the_general_solvers_steps() {
             g.mean_factorizations
         );
     }
+}
+
+/// Hermite–Simpson's steps, with the stage's dynamics as unknowns and equations of
+/// the square system, are the general solver's, whose collocation factors solve the
+/// stage's augmented system inside themselves: on a chain of loops up to its flat
+/// configuration, an angle-coordinate pendulum, and Andrews' squeezer (a stiff
+/// spring, seven bodies).
+#[test]
+fn hermite_simpson_square_steps_are_the_general_solvers_steps() {
+    for (scene, dt, t_end) in [
+        ("benchmarks/n-fourbar-10.yaml", 1e-3, 0.7),
+        ("scale/n-pendulum-8.yaml", 1e-3, 0.5),
+        ("benchmarks/andrews-squeezer.yaml", 1e-4, 0.01),
+    ] {
+        let hs = Integrator::HermiteSimpson;
+        let (sparse, s) = run_with(scene, hs, dt, t_end, Mode::FixedLag(1), true);
+        let (general, g) = run_with(scene, hs, dt, t_end, Mode::FixedLag(1), false);
+        assert_eq!(s.square_steps, sparse.len(), "{scene}: every step square");
+        assert_eq!(g.square_steps, 0);
+        assert_eq!(sparse.len(), general.len());
+        let dq = largest_difference(&sparse.q, &general.q);
+        let ddq = largest_difference(&sparse.dq, &general.dq);
+        let dddq = largest_difference(&sparse.ddq, &general.ddq);
+        println!("{scene}: q {dq:e}, q̇ {ddq:e}, q̈ {dddq:e} apart");
+        assert!(
+            dq <= 1e-9 && ddq <= 1e-7 && dddq <= 1e-5,
+            "{scene}: q {dq:e}, q̇ {ddq:e}, q̈ {dddq:e} apart"
+        );
+        assert!(s.worst_phi <= 1e-12, "{scene}: |Φ| {:e}", s.worst_phi);
+    }
+}
+
+/// In IC Hermite–Simpson's steps stay with the general solver: on the slider-crank at
+/// 20 ms (the crank turns 1.4 rad a step) a step fails and the run is refined, not
+/// stopped at a root off the motion.
+#[test]
+fn hermite_simpson_in_ic_is_refined_by_the_general_solver() {
+    let path = scene_path("driven/slider-crank-mm.yaml");
+    let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
+    let mut options = ForwardOptions::new(Coordinates::Independent, 0.02, 1.0, Mode::FixedLag(1));
+    options.integrator = Integrator::HermiteSimpson;
+    let (trajectory, summary) = simulate(model, &options, &mut |_, _| {}).unwrap();
+    assert!(!summary.plan.square_step);
+    assert_eq!(summary.square_steps, 0);
+    assert!(summary.failures.is_empty());
+    assert!(
+        summary.refinement.is_some(),
+        "the coarse run was not refined"
+    );
+    assert_eq!(trajectory.len(), 51);
 }
 
 /// Each step holds all its equations, so every window length and the batch have

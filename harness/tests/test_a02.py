@@ -1,5 +1,6 @@
 """The A02 page's pieces: its reference is the exact branch motion, its error measure
-falls with dt on a short N four-bar run, and its page lists every run it made."""
+falls with dt on a short N four-bar run (at second order with the trapezoidal rule, at
+fourth with Hermite–Simpson), and its page lists every run it made."""
 import numpy as np
 
 import mbfg
@@ -28,3 +29,15 @@ def test_error_falls_at_second_order_through_two_flats(tmp_path):
     page = (tmp_path / "a02.md").read_text()
     assert page.count("| mbfg | trapezoidal") == 2
     assert "| high (≤ 0.001 m) | " in page
+
+
+def test_hermite_simpson_passes_both_flats_at_fourth_order(tmp_path):
+    rows = [a02.run_mbfg(5, "hermite-simpson", dt, 2.0) for dt in (4e-3, 2e-3)]
+    assert all(r["status"] == "converged" and r["passages"] == 2 for r in rows), rows
+    assert rows[0]["error"] / rows[1]["error"] > 12.0, rows
+    orders = a02.observed_orders(rows, "hermite-simpson")
+    assert len(orders) == 1 and orders[0][3] > 3.5, orders
+    a02.write(rows, 5, 2.0, tmp_path, 1.0)
+    page = (tmp_path / "a02.md").read_text()
+    assert page.count("| mbfg | hermite-simpson") == 2
+    assert "| hermite-simpson | 4 | 2 |" in page

@@ -233,22 +233,38 @@ def test_scaling_page_on_small_sizes(tmp_path, monkeypatch):
     assert (tmp_path / "scaling.png").stat().st_size > 1000
     with open(tmp_path / "scaling.csv", newline="") as f:
         table = list(csvmod.DictReader(f))
-    assert len(table) == len(rows) == 3 * 3                    # 3 sizes × 3 series
+    assert len(table) == len(rows) == 3 * 4                    # 3 sizes × 4 series
     assert {r["n"] for r in rows} == {6, 12, 24}
     assert all(r["status"] == "ok" for r in rows), [r["status"] for r in rows]
     assert all(r["max_phi"] <= 1e-9 and r["steps"] >= scaling.MIN_STEPS for r in rows)
     assert page.startswith("# Per-step cost") and "| n-link pendulum | DC N_w=1 | 2 … 8 (3) |" in page
     assert "× baseline" in page
+    assert "## Hermite–Simpson against the trapezoidal rule" in page
+    assert [(f, n) for f, n, _ in scaling.hs_ratios(rows)] == [("n-pendulum", n) for n in (2, 4, 8)]
+    assert "| n-link pendulum | 2 | " in page
     assert "## Not measured" not in page
     assert "Above `--max-size`, not run: n-pendulum-16, n-pendulum-32" in page
 
     rows = scaling.write(tmp_path, "test machine", families=["n-pendulum"], repeats=1,
                          budget=1e-6, max_size=4)
     page = (tmp_path / "scaling.md").read_text()
-    assert len(rows) == 2 * 3 and all(r["status"].startswith("skipped") for r in rows)
+    assert len(rows) == 2 * 4 and all(r["status"].startswith("skipped") for r in rows)
     for r in rows:
         assert f"- n-pendulum-{r['size']} {r['series']}: skipped" in page
     assert "× baseline" not in page
+    assert "## Hermite–Simpson against the trapezoidal rule" not in page
+
+
+def test_hermite_simpson_ratio_is_per_size_where_both_ran():
+    from harness import scaling
+    rows = [{"family": "n-fourbar", "size": 5, "series": "DC N_w=1", "us_per_step": 40.0, "status": "ok"},
+            {"family": "n-fourbar", "size": 5, "series": "DC N_w=1 HS", "us_per_step": 110.0,
+             "status": "ok"},
+            {"family": "n-fourbar", "size": 10, "series": "DC N_w=1", "us_per_step": 80.0, "status": "ok"},
+            {"family": "n-fourbar", "size": 10, "series": "DC N_w=1 HS", "status": "skipped: budget"}]
+    assert scaling.hs_ratios(rows) == [("n-fourbar", 5, 2.75)]
+    lines = scaling.hs_ratio_lines(rows)
+    assert lines[-1] == "| N four-bar (IFToMM A02) | 5 | 2.75 | not met |"
 
 
 def test_max_size_bounds_one_family_or_all():

@@ -130,13 +130,23 @@ impl Plan {
             (_, DcIntegrators::Tangent | DcIntegrators::Auto) => Some(DcIntegrators::Tangent),
         };
         let square = dc_integrators != Some(DcIntegrators::Full);
-        // The square step has the two-point rules' equations, and needs as many
-        // constraints as rows of Φ_q in IC (no redundant ones).
+        // The square step has the integrators' equations, and needs as many
+        // constraints as rows of Φ_q in IC (no redundant ones). Hermite–Simpson's is
+        // taken in DC only: in IC, where nothing projects the stage's interpolated
+        // state, a step too coarse for the motion can converge to a root off it
+        // that the general solver does not reach, and the run then stops instead of
+        // being refined.
         let square_step = square
             && options.square_steps
             && options.integrator.has_square_step()
             && options.settings.past != Past::Marginalized
-            && (options.coordinates == Coordinates::Dependent || model.active.len() == model.m());
+            && match options.coordinates {
+                Coordinates::Dependent => true,
+                Coordinates::Independent => {
+                    model.active.len() == model.m()
+                        && options.integrator != Integrator::HermiteSimpson
+                }
+            };
         let steps = options.steps();
         let schedule = match options.mode {
             _ if square_step => Schedule::Stepwise,

@@ -19,6 +19,10 @@
 //! positions and velocities), whose Jacobian has a few nonzeros per row: Newton's
 //! method with faer's sparse LU, its symbolic analysis done once per mechanism.
 //!
+//! With Hermite–Simpson the integrators are its collocation rules, and the step also
+//! holds the dynamics at its middle: q̈_m and λ_m as unknowns, the augmented system at
+//! the Hermite interpolants q_m, q̇_m as equations (`stage.rs`).
+//!
 //! An IC step is the same system with the integrators on the independent
 //! coordinates z only and no μ: q follows from z through Φ(q) = 0, and f^i_dyn = 0
 //! is the augmented system's q̈ on z. Its equations are as many as its unknowns
@@ -41,6 +45,7 @@
 mod factors;
 mod passage;
 mod regularity;
+mod stage;
 mod system;
 
 use super::options::Integrator;
@@ -53,6 +58,7 @@ use factors::Factors;
 use nalgebra::DVector;
 use passage::{Passage, Passed};
 pub(super) use regularity::{GramWork, Regularity};
+use stage::Stage;
 use std::sync::Arc;
 use system::{Sink, System};
 
@@ -136,6 +142,12 @@ struct Work {
     q_force: Vec<f64>,
     kq: Vec<f64>,
     kv: Vec<f64>,
+    /// Hermite–Simpson's stage: q_m and q̇_m, Q there and its Jacobians (empty
+    /// for a two-point rule).
+    stage_state: Vec<f64>,
+    stage_force: Vec<f64>,
+    stage_kq: Vec<f64>,
+    stage_kv: Vec<f64>,
     factors: Factors,
     gram: GramWork,
     /// The multipliers of the last step solved: the next step's first guess.
@@ -247,7 +259,17 @@ impl SquareStep {
             n * n
         };
         let (kq, kv) = (vec![0.0; dense], vec![0.0; dense]);
-        system.assemble(&x, &kq, &kv, &mut Sink::Pattern(&mut emitted));
+        let stage_state = vec![0.0; 2 * n];
+        let stage = match system.staged() {
+            true => Stage {
+                state: &stage_state,
+                force: &x[..n],
+                kq: &kq,
+                kv: &kv,
+            },
+            false => Stage::NONE,
+        };
+        system.assemble(&x, &kq, &kv, &stage, &mut Sink::Pattern(&mut emitted));
         let jacobian = Pattern::new(size, &emitted);
         let factors = Factors::new(&jacobian)?;
         let regularity = Regularity::new(&system.model);
@@ -325,6 +347,10 @@ impl Work {
         } else {
             n * n
         };
+        let (stage_state, stage_force, stage_dense) = match system.staged() {
+            true => (2 * n, n, dense),
+            false => (0, 0, 0),
+        };
         Some(Work {
             x: vec![0.0; size],
             residual: vec![0.0; size],
@@ -332,6 +358,10 @@ impl Work {
             q_force: vec![0.0; n],
             kq: vec![0.0; dense],
             kv: vec![0.0; dense],
+            stage_state: vec![0.0; stage_state],
+            stage_force: vec![0.0; stage_force],
+            stage_kq: vec![0.0; stage_dense],
+            stage_kv: vec![0.0; stage_dense],
             factors,
             factored: false,
             rounding: 0.0,
@@ -354,7 +384,23 @@ impl Equations {
         for force in &model.forces {
             force.add_to(model, q, v, t, &mut work.q_force).ok()?;
         }
-        system.residual(&work.x, before, &work.q_force, &mut work.residual);
+        if system.staged() {
+            system.stage_state(&work.x, before, &mut work.stage_state);
+            let (qm, vm) = work.stage_state.split_at(n);
+            work.stage_force.fill(0.0);
+            for force in &model.forces {
+                force
+                    .add_to(model, qm, vm, system.stage_time(t), &mut work.stage_force)
+                    .ok()?;
+            }
+        }
+        let stage = Stage {
+            state: &work.stage_state,
+            force: &work.stage_force,
+            kq: &work.stage_kq,
+            kv: &work.stage_kv,
+        };
+        system.residual(&work.x, before, &work.q_force, &stage, &mut work.residual);
         work.residual.iter().all(|v| v.is_finite()).then_some(())
     }
 
@@ -374,12 +420,32 @@ impl Equations {
                     .add_jacobians(model, (q, v, t), &mut work.kq, &mut work.kv)
                     .ok()?;
             }
+            if system.staged() {
+                let (qm, vm) = work.stage_state.split_at(n);
+                for force in &model.forces {
+                    force
+                        .add_jacobians(
+                            model,
+                            (qm, vm, system.stage_time(t)),
+                            &mut work.stage_kq,
+                            &mut work.stage_kv,
+                        )
+                        .ok()?;
+                }
+            }
         }
         work.values.fill(0.0);
+        let stage = Stage {
+            state: &work.stage_state,
+            force: &work.stage_force,
+            kq: &work.stage_kq,
+            kv: &work.stage_kv,
+        };
         system.assemble(
             &work.x,
             &work.kq,
             &work.kv,
+            &stage,
             &mut Sink::Values {
                 slots: &self.jacobian.slots,
                 values: &mut work.values,
@@ -389,6 +455,10 @@ impl Equations {
         for &(r, c) in &system.force_entries {
             work.kq[r * n + c] = 0.0;
             work.kv[r * n + c] = 0.0;
+            if system.staged() {
+                work.stage_kq[r * n + c] = 0.0;
+                work.stage_kv[r * n + c] = 0.0;
+            }
         }
         if !work.values.iter().all(|v| v.is_finite()) {
             return None;
@@ -613,7 +683,7 @@ impl SquareStep {
             self.guess.copy_from_slice(&block[..3 * n]);
             match self.solve_plain_watched(t, before, block, limits, watch) {
                 Some(work) => {
-                    let s = self.distance(&block[..n]);
+                    let s = self.clearance(before, block);
                     self.recent = (s, s - self.recent.0);
                     if s >= passage::NEAR {
                         return Some(work);
@@ -665,6 +735,24 @@ impl SquareStep {
             work.rounding = 0.0;
         }
         solved
+    }
+
+    /// The distance to a rank loss of Φ_q of a step solved (`state`: q, q̇, q̈)
+    /// from `before`: at its end, and with Hermite–Simpson at its stage too, whose
+    /// dynamics hold there (the configuration can pass a rank loss between two
+    /// ends clear of it, and the stage land next to it).
+    fn clearance(&mut self, before: &[f64], state: &[f64]) -> f64 {
+        let n = self.equations.system.model.n();
+        let end = self.distance(&state[..n]);
+        if !self.equations.system.staged() {
+            return end;
+        }
+        let system = &self.equations.system;
+        let mut stage = std::mem::take(&mut self.work.stage_state);
+        system.stage_state(state, before, &mut stage);
+        let middle = self.distance(&stage[..n]);
+        self.work.stage_state = stage;
+        end.min(middle)
     }
 
     /// The distance to a rank loss of Φ_q at q, s = (tr G⁻¹)^(−1/2).

@@ -111,7 +111,7 @@ impl Passage {
             if let Some(work) = solved {
                 total.iterations += work.iterations;
                 total.factorizations += work.factorizations;
-                if ahead.distance(&far[..n]) >= 2.0 * NEAR {
+                if ahead.clearance(before, &far) >= 2.0 * NEAR {
                     self.under_way = Some(LongStep {
                         t0: t - dt,
                         start: before[..3 * n].to_vec(),

@@ -1,7 +1,8 @@
 //! The equations of a square step (see the module above): their residual and their
 //! Jacobian, emitted entry by entry in a fixed order onto a compressed-column pattern.
 
-use crate::factors::Integrator;
+use super::stage::Stage;
+use crate::factors::{HermitePosition, Integrator};
 use crate::model::{Model, MAX_LOCAL};
 use std::sync::Arc;
 
@@ -17,7 +18,7 @@ pub(super) enum Sink<'a> {
 
 impl Sink<'_> {
     #[inline]
-    fn add(&mut self, row: usize, col: usize, value: f64) {
+    pub(super) fn add(&mut self, row: usize, col: usize, value: f64) {
         match self {
             Sink::Pattern(list) => list.push((row, col)),
             Sink::Values {
@@ -37,8 +38,8 @@ impl Sink<'_> {
 #[derive(Clone)]
 pub(super) struct System {
     pub(super) model: Arc<Model>,
-    /// A two-point rule ([`Integrator::has_square_step`]), whose per-coordinate
-    /// residual and partials the integrator rows are.
+    /// The rule of the integrator rows: a two-point rule's per-coordinate
+    /// residual and partials, or Hermite–Simpson's with its stage ([`Stage`]).
     pub(super) integrator: Integrator,
     pub(super) dt: f64,
     /// The nonzeros of M: (row, column, value).
@@ -53,10 +54,30 @@ pub(super) struct System {
 }
 
 impl System {
-    /// The unknowns: q, q̇, q̈, λ and (projected) μ₁, μ₂.
+    /// The unknowns: q, q̇, q̈, λ, (projected) μ₁, μ₂, and Hermite–Simpson's
+    /// stage q̈_m, λ_m.
     pub(super) fn size(&self) -> usize {
         let multipliers = if self.projected { 3 } else { 1 };
-        3 * self.model.n() + multipliers * self.model.active.len()
+        3 * self.model.n() + multipliers * self.model.active.len() + self.stage_size()
+    }
+
+    /// Whether the step has Hermite–Simpson's collocation stage at its middle.
+    pub(super) fn staged(&self) -> bool {
+        self.integrator == Integrator::HermiteSimpson
+    }
+
+    /// The stage's unknowns (q̈_m, λ_m) and equations (its dynamics and
+    /// acceleration constraints): n + m_a, or none.
+    pub(super) fn stage_size(&self) -> usize {
+        match self.staged() {
+            true => self.model.n() + self.model.active.len(),
+            false => 0,
+        }
+    }
+
+    /// The first unknown of the stage, q̈_m (then λ_m); also its first equation.
+    pub(super) fn stage_start(&self) -> usize {
+        self.size() - self.stage_size()
     }
 
     /// In IC, z, ż, z̈ of a step's `block` (after q, q̇, q̈) from its q, q̇, q̈.
@@ -76,14 +97,22 @@ impl System {
     /// The equations: the constraints at three levels, the dynamics and the
     /// integrators.
     pub(super) fn equations(&self) -> usize {
-        3 * self.model.active.len() + self.model.n() + 2 * self.integrated.len()
+        3 * self.model.active.len() + self.model.n() + 2 * self.integrated.len() + self.stage_size()
     }
 }
 
 impl System {
     /// Emits the Jacobian of the step system at `x` into `sink` (∂Q/∂q and ∂Q/∂q̇
-    /// in `kq`, `kv`, row-major n × n, read at `force_entries` only).
-    pub(super) fn assemble(&self, x: &[f64], kq: &[f64], kv: &[f64], sink: &mut Sink) {
+    /// in `kq`, `kv`, row-major n × n, read at `force_entries` only; the stage's
+    /// at its state in `stage`).
+    pub(super) fn assemble(
+        &self,
+        x: &[f64],
+        kq: &[f64],
+        kv: &[f64],
+        stage: &Stage,
+        sink: &mut Sink,
+    ) {
         let model = &*self.model;
         let (n, ma) = (model.n(), model.active.len());
         let (q, v, a) = (&x[..n], &x[n..2 * n], &x[2 * n..3 * n]);
@@ -95,14 +124,28 @@ impl System {
         let (r_vel, r_acc, r_dyn, r_pos_int, r_vel_int) =
             (ma, 2 * ma, 3 * ma, 3 * ma + n, 3 * ma + n + ni);
         let (c_lambda, c_mu1, c_mu2) = (3 * n, 3 * n + ma, 3 * n + 2 * ma);
-        // The step before is fixed: ∂e/∂x₁ and ∂e/∂ẋ₁ only.
-        let d = self.integrator.partials(self.dt);
-        for (r, &i) in self.integrated.iter().enumerate() {
-            sink.add(r_pos_int + r, i, d.x1);
-            sink.add(r_vel_int + r, n + i, d.x1);
-            if let Some(dx1) = d.dx1 {
-                sink.add(r_pos_int + r, n + i, dx1);
-                sink.add(r_vel_int + r, 2 * n + i, dx1);
+        // The step before is fixed: ∂e/∂x₁, ∂e/∂ẋ₁ (and Hermite–Simpson's ∂e/∂ẍ₁,
+        // ∂e/∂q̈_m) only.
+        if self.staged() {
+            let c = HermitePosition::coefficients(self.dt);
+            let (h6, c_am) = (self.dt / 6.0, self.stage_start());
+            for (r, &i) in self.integrated.iter().enumerate() {
+                sink.add(r_pos_int + r, i, c[1]);
+                sink.add(r_pos_int + r, n + i, c[3]);
+                sink.add(r_pos_int + r, 2 * n + i, c[5]);
+                sink.add(r_vel_int + r, n + i, 1.0);
+                sink.add(r_vel_int + r, 2 * n + i, -h6);
+                sink.add(r_vel_int + r, c_am + i, -4.0 * h6);
+            }
+        } else {
+            let d = self.integrator.partials(self.dt);
+            for (r, &i) in self.integrated.iter().enumerate() {
+                sink.add(r_pos_int + r, i, d.x1);
+                sink.add(r_vel_int + r, n + i, d.x1);
+                if let Some(dx1) = d.dx1 {
+                    sink.add(r_pos_int + r, n + i, dx1);
+                    sink.add(r_vel_int + r, 2 * n + i, dx1);
+                }
             }
         }
         for &(i, j, mass) in &self.mass {
@@ -152,11 +195,21 @@ impl System {
                 }
             }
         }
+        if self.staged() {
+            stage.assemble(self, x, sink);
+        }
     }
 
     /// The residual of the step system at `x`, given the step before (`before`: q,
-    /// q̇, q̈) and the generalized forces Q in `work.q_force`.
-    pub(super) fn residual(&self, x: &[f64], before: &[f64], q_force: &[f64], out: &mut [f64]) {
+    /// q̇, q̈), the generalized forces Q in `q_force` and the stage's in `stage`.
+    pub(super) fn residual(
+        &self,
+        x: &[f64],
+        before: &[f64],
+        q_force: &[f64],
+        stage: &Stage,
+        out: &mut [f64],
+    ) {
         let model = &*self.model;
         let (n, ma) = (model.n(), model.active.len());
         let (q, v, a) = (&x[..n], &x[n..2 * n], &x[2 * n..3 * n]);
@@ -168,10 +221,26 @@ impl System {
         for (r, force) in out[r_dyn..r_dyn + n].iter_mut().zip(q_force) {
             *r = -force;
         }
-        let rule = self.integrator;
-        for (r, &i) in self.integrated.iter().enumerate() {
-            out[r_pos_int + r] = rule.residual(qp[i], vp[i], q[i], v[i], dt);
-            out[r_vel_int + r] = rule.residual(vp[i], ap[i], v[i], a[i], dt);
+        if self.staged() {
+            // e_q = q₁ − q₀ − h/2 (q̇₀ + q̇₁) − h²/12 (q̈₀ − q̈₁) and
+            // e_v = q̇₁ − q̇₀ − h/6 (q̈₀ + 4 q̈_m + q̈₁), as the collocation factors.
+            let c = HermitePosition::coefficients(dt);
+            let (h6, am) = (dt / 6.0, &x[self.stage_start()..self.stage_start() + n]);
+            for (r, &i) in self.integrated.iter().enumerate() {
+                out[r_pos_int + r] = c[0] * qp[i]
+                    + c[1] * q[i]
+                    + c[2] * vp[i]
+                    + c[3] * v[i]
+                    + c[4] * ap[i]
+                    + c[5] * a[i];
+                out[r_vel_int + r] = v[i] - vp[i] - h6 * (ap[i] + 4.0 * am[i] + a[i]);
+            }
+        } else {
+            let rule = self.integrator;
+            for (r, &i) in self.integrated.iter().enumerate() {
+                out[r_pos_int + r] = rule.residual(qp[i], vp[i], q[i], v[i], dt);
+                out[r_vel_int + r] = rule.residual(vp[i], ap[i], v[i], a[i], dt);
+            }
         }
         for &(i, j, mass) in &self.mass {
             out[r_dyn + i] += mass * a[j];
@@ -196,19 +265,22 @@ impl System {
             out[ma + row] = vel;
             out[2 * ma + row] = acc;
         }
+        if self.staged() {
+            stage.residual(self, x, out);
+        }
     }
 }
 
 /// One active constraint's local quantities at (q, q̇, q̈): Φ, ∇Φ, Φ_qq (row-major
 /// len × len), Φ_qq q̇, Φ_qq q̈ and ∂(q̇ᵀΦ_qq q̇)/∂q.
-struct Local {
-    len: usize,
-    phi: f64,
-    gradient: [f64; MAX_LOCAL],
-    hessian: [f64; MAX_LOCAL * MAX_LOCAL],
-    hv: [f64; MAX_LOCAL],
-    ha: [f64; MAX_LOCAL],
-    third: [f64; MAX_LOCAL],
+pub(super) struct Local {
+    pub(super) len: usize,
+    pub(super) phi: f64,
+    pub(super) gradient: [f64; MAX_LOCAL],
+    pub(super) hessian: [f64; MAX_LOCAL * MAX_LOCAL],
+    pub(super) hv: [f64; MAX_LOCAL],
+    pub(super) ha: [f64; MAX_LOCAL],
+    pub(super) third: [f64; MAX_LOCAL],
 }
 
 impl Default for Local {
@@ -227,7 +299,7 @@ impl Default for Local {
 
 impl Local {
     /// What the residual needs: Φ, ∇Φ and Φ_qq q̇.
-    fn values_at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64]) {
+    pub(super) fn values_at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64]) {
         let (mut u, mut w) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
         self.len = c.equation.len();
         c.gather(q, &mut u);
@@ -238,7 +310,7 @@ impl Local {
     }
 
     /// Everything, for the Jacobian.
-    fn at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64], a: &[f64]) {
+    pub(super) fn at(&mut self, c: &crate::model::Constraint, q: &[f64], v: &[f64], a: &[f64]) {
         let len = c.equation.len();
         self.len = len;
         let (mut u, mut w, mut acc, mut e) = (

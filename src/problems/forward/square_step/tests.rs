@@ -132,6 +132,25 @@ fn jacobian_matches_finite_differences() {
         ),
         ("driven/watt-six-bar.yaml", Integrator::Trapezoidal, true),
         ("double-pendulum.yaml", Integrator::Trapezoidal, true),
+        // Hermite–Simpson: the stage's rows and columns, through the ends'
+        // q, q̇, q̈ its state is interpolated from.
+        (
+            "benchmarks/andrews-squeezer.yaml",
+            Integrator::HermiteSimpson,
+            false,
+        ),
+        ("scale/n-pendulum-4.yaml", Integrator::HermiteSimpson, false),
+        (
+            "driven/controlled-crank-rocker.yaml",
+            Integrator::HermiteSimpson,
+            false,
+        ),
+        ("driven/watt-six-bar.yaml", Integrator::HermiteSimpson, true),
+        (
+            "driven/controlled-crank-rocker.yaml",
+            Integrator::HermiteSimpson,
+            true,
+        ),
     ] {
         let step = if independent {
             ic_step_of(scene, rule)
