@@ -191,20 +191,20 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
     let tolerance = rtol
         .map(|rtol| forward::Tolerance::new(rtol, atol))
         .transpose()
-        .map_err(|e| Failure::Input(plain(e)))?;
+        .map_err(|e| Failure::Input(format!("--{}", plain(e))))?;
+    if tolerance.is_some() && (window.is_some() || batch) {
+        return Err(Failure::Input(
+            "--rtol takes its error-controlled steps one at a time: not with --window or --batch"
+                .into(),
+        ));
+    }
+    let args_dt = dt;
     let dt = match (dt, tolerance) {
         (Some(dt), _) => dt,
         // The rows of an error-controlled run: --sample-dt's, else a thousand.
         (None, Some(_)) => match written.sample_dt() {
             Some(sample) => sample,
-            None => {
-                let dt = t_end / 1000.0;
-                super::tell(&format!(
-                    "note: --rtol without --dt: rows written every {} s (t_end/1000)",
-                    super::seconds(dt)
-                ));
-                dt
-            }
+            None => t_end / 1000.0,
         },
         (None, None) => return Err(Failure::Input("--dt is required (or --rtol)".into())),
     };
@@ -244,13 +244,13 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
     options.refine = !no_refine;
     options.square_steps = !no_square_steps;
     options.tolerance = tolerance;
-    if tolerance.is_some() && (window.is_some() || batch) {
-        return Err(Failure::Input(
-            "--rtol takes its error-controlled steps one at a time: not with --window or --batch"
-                .into(),
+    options.validate(&model).map_err(plain)?;
+    if tolerance.is_some() && args_dt.is_none() && written.sample_dt().is_none() {
+        super::tell(&format!(
+            "note: --rtol without --dt: rows written every {} s (t_end/1000)",
+            super::seconds(dt)
         ));
     }
-    options.validate(&model).map_err(plain)?;
     if let Mode::FixedLag(w) = options.mode {
         // A window longer than the run is the whole run.
         options.mode = Mode::FixedLag(w.min(options.steps()));

@@ -204,7 +204,7 @@ pub(super) fn simulate_run<'py>(
                 };
                 Some(
                     forward::Tolerance::new(arg_real(rtol, "rtol")?, atol)
-                        .map_err(|e| invalid(e.to_string().replace("the tolerance ", "")))?,
+                        .map_err(|e| invalid(e.to_string()))?,
                 )
             }
         };

@@ -43,6 +43,10 @@ const MAX_STEP_IN_ROWS: f64 = 64.0;
 /// [`Controller::MAX_GROWTH`] a step).
 const FIRST_STEP_IN_ROWS: f64 = 1.0 / 64.0;
 
+/// The largest turn of a body over one step (rad): half the turn past which a
+/// failed step is named too coarse for the motion.
+const MAX_TURN: f64 = 0.5 * StepFailure::LARGE_TURN;
+
 /// The smallest step, relative to the horizon.
 const SMALLEST_STEP: f64 = 1e-10;
 
@@ -318,8 +322,9 @@ pub(super) fn simulate(
     let mut rung = ladder.rung_below(h_try);
     let mut after_reject = false;
     while written < rows && interrupted.is_none() {
-        // The rung of the size asked: down at once, up only by two rungs or more.
-        let wanted = ladder.rung_below(h_try);
+        // The rung of the size asked, within what the integrators follow: down at
+        // once, up only by two rungs or more.
+        let wanted = ladder.rung_below(h_try.min(turn_limit(&model, &current)));
         if wanted < rung || wanted >= rung + 2 {
             rung = wanted;
         }
@@ -409,6 +414,17 @@ pub(super) fn simulate(
     summary.interrupted = interrupted;
     summary.error_control = Some(control);
     Ok(summary)
+}
+
+/// The longest step over which no body turns more than [`MAX_TURN`] at the speeds
+/// of `state` (q, q̇, …): past about half a radian a step the integrators' chords
+/// stop following the motion, and their error estimates with them.
+fn turn_limit(model: &Model, state: &[f64]) -> f64 {
+    let n = model.n();
+    match model.fastest_body_index(&state[..n], &state[n..2 * n]) {
+        Some((_, omega)) if omega > 0.0 => MAX_TURN / omega,
+        _ => f64::INFINITY,
+    }
 }
 
 /// The failure of a run whose step from `state` at t did not converge at any size

@@ -37,7 +37,7 @@ impl Tolerance {
         for (name, v) in [("rtol", rtol), ("atol", atol)] {
             if !(v.is_finite() && v >= Self::SMALLEST && v < 1.0) {
                 return Err(Error::InvalidArgument(format!(
-                    "the tolerance {name} must be a number in [{:e}, 1), got {}",
+                    "{name} must be a number in [{:e}, 1), got {}",
                     Self::SMALLEST,
                     crate::io::number(v)
                 )));
@@ -308,7 +308,7 @@ mod tests {
     fn the_norm_weighs_each_coordinate_by_its_tolerance() {
         let tol = Tolerance::new(1e-3, Some(1e-6)).unwrap();
         // Weights 1e-6 + 1e-3·|x|: 1e-6 at 0, ≈1e-3 at 1.
-        let norm = tol.norm(&[1e-6, 1.000001e-3], &[0.0, 1.0], &[0.0, 0.5]);
+        let norm = tol.norm(&[1e-6, 1.001e-3], &[0.0, 1.0], &[0.0, 0.5]);
         assert!((norm - 1.0).abs() < 1e-12, "{norm}");
     }
 
