@@ -148,7 +148,7 @@ fn the_cli_writes_rows_on_the_grid_and_says_what_the_control_did() {
     assert!(out.status.success(), "{}", stderr(&out));
     let summary = String::from_utf8_lossy(&out.stdout);
     assert!(
-        summary.starts_with("501 rows (dt = 0.002 s, error-controlled square steps)"),
+        summary.starts_with("501 rows (dt = 0.002 s, error-controlled steps)"),
         "{summary}"
     );
     assert!(

@@ -540,7 +540,7 @@ enum Run {
 fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u64>) -> String {
     let (what, mode) = match s.error_control {
         // The steps are the error control's; the rows are on the grid.
-        Some(_) => ("rows", "error-controlled square steps".to_string()),
+        Some(_) => ("rows", "error-controlled steps".to_string()),
         None => ("steps", s.plan.describe()),
     };
     let mut line = format!(

@@ -410,7 +410,10 @@ pub(super) fn simulate(
     let mut summary = stats.finish(start_clock.elapsed(), iterations, failures, plan);
     summary.steps = written;
     summary.square_steps = square_steps;
-    summary.general_steps = general_steps;
+    // (Counted where there is a square step to decline them.)
+    if ladder.first.is_some() {
+        summary.general_steps = general_steps;
+    }
     summary.interrupted = interrupted;
     summary.error_control = Some(control);
     Ok(summary)
