@@ -35,7 +35,7 @@ impl Tolerance {
     pub fn new(rtol: f64, atol: Option<f64>) -> Result<Tolerance> {
         let atol = atol.unwrap_or(rtol);
         for (name, v) in [("rtol", rtol), ("atol", atol)] {
-            if !(v.is_finite() && v >= Self::SMALLEST && v < 1.0) {
+            if !(Self::SMALLEST..1.0).contains(&v) {
                 return Err(Error::InvalidArgument(format!(
                     "{name} must be a number in [{:e}, 1), got {}",
                     Self::SMALLEST,
