@@ -314,6 +314,7 @@ pub(super) fn simulate(
     let mut failures = Vec::new();
     let mut next = vec![0.0; s];
     let mut row = vec![0.0; 3 * n];
+    let mut last_row = current[..3 * n].to_vec();
     let mut error = vec![0.0; 2 * n];
     let mut history = History::default();
     history.push(0.0, &current[2 * n..3 * n]);
@@ -371,14 +372,6 @@ pub(super) fn simulate(
                     _ => general_steps += 1,
                 }
                 let t1 = t + h;
-                stats.add(&model, t1, &next[..n], &next[n..2 * n])?;
-                stats.watch(
-                    &model,
-                    (t, &current[..n], &current[n..2 * n]),
-                    t1,
-                    &next[..n],
-                    &next[n..2 * n],
-                );
                 // The rows this step reaches (the last one's time may lie a rounding
                 // past the last step's end).
                 while written < rows {
@@ -388,6 +381,17 @@ pub(super) fn simulate(
                         break;
                     }
                     interpolate(&current, &next, h, t_row - t, n, &mut row);
+                    // The summary's measures are of the rows written: between the
+                    // steps they hold the constraints only as well as the interpolant.
+                    stats.add(&model, t_row, &row[..n], &row[n..2 * n])?;
+                    stats.watch(
+                        &model,
+                        (t_row - dt, &last_row[..n], &last_row[n..2 * n]),
+                        t_row,
+                        &row[..n],
+                        &row[n..2 * n],
+                    );
+                    last_row.copy_from_slice(&row);
                     sink.step(
                         crate::trajectory::round_time(t_row),
                         &row[..n],
