@@ -331,8 +331,8 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
     `rtol` (and `atol`, by default `rtol`) asks for error-controlled steps, as
     `mbfg simulate --rtol`: each step's size is chosen so that its estimated local
     error stays within atol + rtol·|x| per coordinate and per second simulated, and
-    the rows are interpolated onto the grid of `dt`. Square steps one at a time only
-    (the trapezoidal rule or Euler, `window=1`). `summary["error_control"]` gives the
+    the rows are interpolated onto the grid of `dt`. One step at a time only
+    (`window=1`); "hermite-simpson" takes the fewest. `summary["error_control"]` gives the
     tolerance, the steps `accepted` and `rejected`, the `failed_solves` taken again
     smaller, and the `smallest_step` and `largest_step` (s).
 

@@ -103,7 +103,7 @@ pub struct SimulateArgs {
     /// Relative tolerance of error-controlled steps: each step's size is chosen so
     /// that its estimated local error stays within atol + rtol·|x| per coordinate
     /// and per second simulated; the rows are interpolated onto the grid of --dt.
-    /// Square steps one at a time (trapezoidal or euler; no --window or --batch).
+    /// One step at a time (no --window or --batch); hermite-simpson takes the fewest.
     #[arg(long, value_name = "TOL")]
     rtol: Option<f64>,
     /// Absolute tolerance of error-controlled steps (in the coordinates' units, m
