@@ -303,7 +303,8 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
              dq0: Mapping[str, float] | None = None, refine: bool = True,
              effects: Mapping[str, Callable] | None = None,
              square_steps: bool = True, columns: Sequence[str] | None = None,
-             until: str | None = None) -> Result:
+             until: str | None = None, rtol: float | None = None,
+             atol: float | None = None) -> Result:
     """Forward dynamics, as `mbfg simulate` runs it, of a scene (a path, text, dict or
     `mbfg.Scene`, as `load` takes) or a loaded Model, from t = 0 to `t_end` in steps of
     `dt` (s; a t_end off the step grid ends at the nearest step, and
@@ -326,6 +327,14 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
     ("x(ram) - 0.3", "theta - 1.5"; names as in effects' values), as `mbfg simulate
     --until`: the rows end with the step after it, and `summary["until"]` gives the
     time `t` of the zero, located within that step, and the `step`.
+
+    `rtol` (and `atol`, by default `rtol`) asks for error-controlled steps, as
+    `mbfg simulate --rtol`: each step's size is chosen so that its estimated local
+    error stays within atol + rtol·|x| per coordinate and per second simulated, and
+    the rows are interpolated onto the grid of `dt`. One step at a time only
+    (`window=1`); "hermite-simpson" takes the fewest. `summary["error_control"]` gives the
+    tolerance, the steps `accepted` and `rejected`, the `failed_solves` taken again
+    smaller, and the `smallest_step` and `largest_step` (s).
 
     For studies without writing files: `params` overrides the scene's parameters (as
     `load` does), `q0` the initial values of coordinates of q by name (the position
@@ -365,7 +374,8 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
                       max_iterations, integrator, noise, continue_on_failure, past,
                       dc_integrators, refine, _dict(params), _dict(q0), _dict(dq0),
                       _effects(effects), square_steps,
-                      None if columns is None else [str(c).strip() for c in columns], until)
+                      None if columns is None else [str(c).strip() for c in columns], until,
+                      rtol, atol)
     except BaseException as e:
         if isinstance(getattr(e, "result", None), Result):
             e.result.scene = scene

@@ -26,9 +26,11 @@ pub struct SimulateArgs {
     /// Dependent (natural) or independent coordinates.
     #[arg(long, value_enum, default_value_t = CoordsArg::Dc)]
     coords: CoordsArg,
-    /// Time step, in seconds.
-    #[arg(long)]
-    dt: f64,
+    /// Time step, in seconds. With --rtol, the spacing of the rows written (the
+    /// steps taken are chosen by the error control); then optional: --sample-dt,
+    /// else t_end/1000.
+    #[arg(long, required_unless_present = "rtol")]
+    dt: Option<f64>,
     /// End time, in seconds (the run starts at 0).
     #[arg(long = "t-end")]
     t_end: f64,
@@ -98,6 +100,16 @@ pub struct SimulateArgs {
     /// step after it.
     #[arg(long, value_name = "EXPR")]
     until: Option<String>,
+    /// Relative tolerance of error-controlled steps: each step's size is chosen so
+    /// that its estimated local error stays within atol + rtol·|x| per coordinate
+    /// and per second simulated; the rows are interpolated onto the grid of --dt.
+    /// One step at a time (no --window or --batch); hermite-simpson takes the fewest.
+    #[arg(long, value_name = "TOL")]
+    rtol: Option<f64>,
+    /// Absolute tolerance of error-controlled steps (in the coordinates' units, m
+    /// and rad) [default: rtol].
+    #[arg(long, value_name = "TOL", requires = "rtol")]
+    atol: Option<f64>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -173,7 +185,29 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         strict,
         trace_solver,
         until,
+        rtol,
+        atol,
     } = args;
+    let tolerance = rtol
+        .map(|rtol| forward::Tolerance::new(rtol, atol))
+        .transpose()
+        .map_err(|e| Failure::Input(format!("--{}", plain(e))))?;
+    if tolerance.is_some() && (window.is_some() || batch) {
+        return Err(Failure::Input(
+            "--rtol takes its error-controlled steps one at a time: not with --window or --batch"
+                .into(),
+        ));
+    }
+    let args_dt = dt;
+    let dt = match (dt, tolerance) {
+        (Some(dt), _) => dt,
+        // The rows of an error-controlled run: --sample-dt's, else a thousand.
+        (None, Some(_)) => match written.sample_dt() {
+            Some(sample) => sample,
+            None => t_end / 1000.0,
+        },
+        (None, None) => return Err(Failure::Input("--dt is required (or --rtol)".into())),
+    };
     let (_, model) = load(&scene)?;
     let until = until
         .map(|text| mbfg::stop::StopCondition::new(&model, &text))
@@ -209,7 +243,14 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
     options.continue_on_failure = continue_on_failure;
     options.refine = !no_refine;
     options.square_steps = !no_square_steps;
+    options.tolerance = tolerance;
     options.validate(&model).map_err(plain)?;
+    if tolerance.is_some() && args_dt.is_none() && written.sample_dt().is_none() {
+        super::tell(&format!(
+            "note: --rtol without --dt: rows written every {} s (t_end/1000)",
+            super::seconds(dt)
+        ));
+    }
     if let Mode::FixedLag(w) = options.mode {
         // A window longer than the run is the whole run.
         options.mode = Mode::FixedLag(w.min(options.steps()));
@@ -246,7 +287,12 @@ fn simulate(
     {
         super::tell(&format!("warning: {w}"));
     }
-    if let Some(w) = mbfg::model::plausibility::step_warning(&model, options.dt) {
+    // (An error-controlled run's dt is the rows' spacing, not its steps'.)
+    let step_warning = match options.tolerance {
+        Some(_) => None,
+        None => mbfg::model::plausibility::step_warning(&model, options.dt),
+    };
+    if let Some(w) = step_warning {
         if strict {
             return Err(Failure::Input(format!("{w} (--strict)")));
         }
@@ -492,9 +538,13 @@ enum Run {
 /// The summary line; `peak_memory`, the process's peak resident memory in bytes,
 /// where the system reports it.
 fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u64>) -> String {
-    let mode = s.plan.describe();
+    let (what, mode) = match s.error_control {
+        // The steps are the error control's; the rows are on the grid.
+        Some(_) => ("rows", "error-controlled steps".to_string()),
+        None => ("steps", s.plan.describe()),
+    };
     let mut line = format!(
-        "{} steps (dt = {} s, {mode}) in {:.3} s; iterations per solve: mean {:.2}, max {} \
+        "{} {what} (dt = {} s, {mode}) in {:.3} s; iterations per solve: mean {:.2}, max {} \
          (factorizations: mean {:.2}); worst |Φ| {:.2e}, worst |Φq q̇| {:.2e}",
         s.steps,
         super::seconds(options.dt),
@@ -542,6 +592,22 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
             "; {} of {} steps by the general solver (the square step declined them)",
             s.general_steps,
             s.general_steps + s.square_steps
+        );
+    }
+    if let Some(c) = &s.error_control {
+        line += &format!(
+            "; error control rtol {:.1e}, atol {:.1e}: {} steps taken, {} rejected{}, h from \
+             {:.3e} to {:.3e} s",
+            c.tolerance.rtol,
+            c.tolerance.atol,
+            c.accepted,
+            c.rejected,
+            match c.failed_solves {
+                0 => String::new(),
+                k => format!(", {k} failed solve(s) taken again smaller"),
+            },
+            c.smallest,
+            c.largest
         );
     }
     if s.paper_steps > 0 {

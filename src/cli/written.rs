@@ -28,6 +28,13 @@ pub struct Written {
     groups: Vec<mbfg::derived::Group>,
 }
 
+impl WrittenArgs {
+    /// `--sample-dt`, as given.
+    pub fn sample_dt(&self) -> Option<f64> {
+        self.sample_dt
+    }
+}
+
 impl Written {
     /// Checks the options against the time step; errors are bad input.
     pub fn new(args: &WrittenArgs, dt: f64) -> Result<Self, String> {

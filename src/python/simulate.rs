@@ -98,6 +98,21 @@ fn forward_result<'py>(
             .map(|(_, t)| crate::trajectory::round_time(t)),
     )?;
     summary.set_item("passages", passages)?;
+    let error_control = match &s.error_control {
+        Some(c) => {
+            let d = PyDict::new(py);
+            d.set_item("rtol", c.tolerance.rtol)?;
+            d.set_item("atol", c.tolerance.atol)?;
+            d.set_item("accepted", c.accepted)?;
+            d.set_item("rejected", c.rejected)?;
+            d.set_item("failed_solves", c.failed_solves)?;
+            d.set_item("smallest_step", c.smallest)?;
+            d.set_item("largest_step", c.largest)?;
+            Some(d)
+        }
+        None => None,
+    };
+    summary.set_item("error_control", error_control)?;
     // Kept for scripts that read it: `dc_integrators="auto"` starts with tangent
     // integrators, so no run is made again with them.
     summary.set_item("tangent_after", py.None())?;
@@ -175,8 +190,24 @@ pub(super) fn simulate_run<'py>(
     square_steps: &Bound<'py, PyAny>,
     columns: &Bound<'py, PyAny>,
     until: &Bound<'py, PyAny>,
+    rtol: &Bound<'py, PyAny>,
+    atol: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
+        let tolerance = match rtol.is_none() {
+            true if !atol.is_none() => return Err(invalid("atol is given without rtol")),
+            true => None,
+            false => {
+                let atol = match atol.is_none() {
+                    true => None,
+                    false => Some(arg_real(atol, "atol")?),
+                };
+                Some(
+                    forward::Tolerance::new(arg_real(rtol, "rtol")?, atol)
+                        .map_err(|e| invalid(e.to_string()))?,
+                )
+            }
+        };
         let until = match until.is_none() {
             true => None,
             false => Some(arg_str(until, "until")?),
@@ -250,6 +281,7 @@ pub(super) fn simulate_run<'py>(
         options.continue_on_failure = continue_on_failure;
         options.refine = refine;
         options.square_steps = square_steps;
+        options.tolerance = tolerance;
         let model = with_loads(study_model(scene, &params, &q0, &dq0)?, &loads)?;
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
@@ -267,7 +299,11 @@ pub(super) fn simulate_run<'py>(
             .chain(crate::model::plausibility::locked_warning(&model))
             .chain(crate::model::plausibility::inertia_warning(&model))
             .chain(crate::model::plausibility::units_warnings(&model))
-            .chain(crate::model::plausibility::step_warning(&model, options.dt))
+            // (An error-controlled run's dt is the rows' spacing, not its steps'.)
+            .chain(
+                crate::model::plausibility::step_warning(&model, options.dt)
+                    .filter(|_| options.tolerance.is_none()),
+            )
             .chain(
                 crate::limits::t_end_unmet(options.dt, options.t_end).map(|last| {
                     format!(

@@ -9,9 +9,12 @@
 //! `segment`s, whose steps `steps` takes one at a time (through `stepwise`, with
 //! `square_step` where it can) or `windows` hands to the general smoother, each
 //! step judged by `judge` (failures, the IC watch) and rescued by `substeps`;
-//! `failure` and `summary` are what it reports.
+//! `failure` and `summary` are what it reports. A run with a tolerance sizes its
+//! steps by `error_control` instead, in `adaptive`.
 
+mod adaptive;
 pub mod energy_checks;
+mod error_control;
 mod failure;
 mod graph;
 mod judge;
@@ -30,10 +33,11 @@ mod windows;
 pub use crate::coordinates::Coordinates;
 pub use crate::kinematics::{Determinacy, SingularConfiguration};
 pub use crate::trajectory::{round_time, Trajectory};
+pub use error_control::Tolerance;
 pub use failure::StepFailure;
 pub use graph::ForwardGraph;
 pub use options::{DcIntegrators, ForwardOptions, Integrator, NoiseModels, Observers};
 pub use plan::{Memory, Plan, Rescue, Schedule};
 pub use run::{simulate, simulate_interruptible, simulate_streaming, StepSink};
 pub use start::Start;
-pub use summary::{LoadJump, Passages, Refinement, Reselection, RunSummary};
+pub use summary::{ErrorControl, LoadJump, Passages, Refinement, Reselection, RunSummary};

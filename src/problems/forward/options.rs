@@ -124,6 +124,10 @@ pub struct ForwardOptions {
     /// substeps): how a program or a test watches the solves without parsing
     /// `--trace-solver`'s lines.
     pub observer: Option<Observers>,
+    /// Steps sized by the accuracy asked, instead of a fixed step: each step's size
+    /// chosen from its estimated local error, the rows still written at t = k·`dt`
+    /// (interpolated between the steps taken). One step at a time only (N_w = 1).
+    pub tolerance: Option<super::error_control::Tolerance>,
 }
 
 /// A maker of [`Observer`]s, one per solver a run makes.
@@ -171,6 +175,7 @@ impl ForwardOptions {
             refine: true,
             square_steps: true,
             observer: None,
+            tolerance: None,
         }
     }
 
@@ -216,7 +221,26 @@ impl ForwardOptions {
                 ));
             }
         }
+        if self.tolerance.is_some() {
+            self.validate_tolerance()?;
+        }
         self.noise.validate()?;
         self.settings.validate()
+    }
+
+    /// Refuses a tolerance with options its error-controlled steps do not take.
+    fn validate_tolerance(&self) -> Result<()> {
+        let bad = |m: &str| Err(Error::InvalidArgument(format!("rtol: {m}")));
+        if self.mode != Mode::FixedLag(1) {
+            return bad("error-controlled steps are taken one at a time: a window or a batch is not taken with a tolerance");
+        }
+        if self.coordinates == Coordinates::Dependent && self.dc_integrators == DcIntegrators::Full
+        {
+            return bad("error-controlled steps hold every step's equations exactly: not with the paper's integrator factors (dc integrators full)");
+        }
+        if self.settings.past == Past::Marginalized {
+            return bad("error-controlled steps are each solved given the step before: not with a marginalized past");
+        }
+        Ok(())
     }
 }

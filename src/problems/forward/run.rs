@@ -103,6 +103,10 @@ pub fn simulate_streaming(
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
     sink: &mut dyn StepSink,
 ) -> Result<RunSummary> {
+    if let Some(tolerance) = options.tolerance {
+        // Its steps are sized by the error they make: no refinement, no restart.
+        return super::adaptive::simulate(model, options, tolerance, progress, sink);
+    }
     let (mut summary, mut coarse) =
         simulate_integrators(model.clone(), options, progress, sink, None)?;
     if !options.refine {

@@ -57,6 +57,25 @@ pub struct RunSummary {
     pub full_after: Option<StepFailure>,
     /// With [`ForwardOptions::refine`](super::options::ForwardOptions::refine): the finer step this run was integrated at.
     pub refinement: Option<Refinement>,
+    /// With [`ForwardOptions::tolerance`](super::options::ForwardOptions::tolerance):
+    /// the tolerance and the steps the error control took.
+    pub error_control: Option<ErrorControl>,
+}
+
+/// What the error control of a run with a tolerance did: the steps it took (each
+/// solved once more for each rejection or failed solve before it) and their sizes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ErrorControl {
+    pub tolerance: super::error_control::Tolerance,
+    /// Steps kept.
+    pub accepted: usize,
+    /// Steps solved and taken again smaller: their estimated error was too large.
+    pub rejected: usize,
+    /// Steps whose solve failed and were taken again smaller.
+    pub failed_solves: usize,
+    /// The smallest and largest step kept (s).
+    pub smallest: f64,
+    pub largest: f64,
 }
 
 /// A run integrated at a finer step than asked for, because a step at the coarser one
@@ -514,6 +533,7 @@ impl Stats {
             interrupted: None,
             full_after: None,
             refinement: None,
+            error_control: None,
         }
     }
 }

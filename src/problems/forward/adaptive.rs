@@ -1,0 +1,492 @@
+//! A forward run whose steps are sized by the accuracy asked
+//! ([`ForwardOptions::tolerance`]): each step solved at a size the controller chose
+//! ([`error_control`](super::error_control)), kept or taken again smaller from its
+//! estimated error, and the rows written on the grid of `dt` by interpolation
+//! between the steps taken.
+//!
+//! The step sizes lie on a ladder of [`LEVELS_PER_OCTAVE`] sizes per factor of 2
+//! around `dt`, each with its own solvers, made as it is first needed: the square
+//! step (from the first one's sparse analysis) where the plan has one, so that its
+//! simplified Newton iteration keeps reusing one Jacobian's factors while the size
+//! stays, and the general solver's one-step solve of the graph at that size where
+//! it declines a step or there is no square step (Hermite–Simpson). The size moves
+//! up only by two rungs or more at once, so that it does not flicker between
+//! neighbours. A step that no solver converges on is taken again smaller.
+
+use super::error_control::{local_error, Controller, Decision, History, Tolerance};
+use super::failure::StepFailure;
+use super::graph::ForwardGraph;
+use super::options::ForwardOptions;
+use super::plan::Plan;
+use super::square_step::{self, SquareStep, StepLimits};
+use super::start::Start;
+use super::stepwise::{Stepwise, Taker};
+use super::summary::{ErrorControl, Iterations, RunSummary, Stats};
+use super::StepSink;
+use crate::convergence::{SolveReport, Termination};
+use crate::coordinates::Coordinates;
+use crate::dynamics;
+use crate::error::{Error, Result};
+use crate::model::Model;
+use std::collections::HashMap;
+use std::ops::ControlFlow;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Step sizes per factor of 2: neighbouring sizes differ by 19 %.
+pub(super) const LEVELS_PER_OCTAVE: f64 = 4.0;
+
+/// The largest step, in steps of the row grid `dt`.
+const MAX_STEP_IN_ROWS: f64 = 64.0;
+
+/// The first step tried, in steps of the row grid (the controller grows it by up to
+/// [`Controller::MAX_GROWTH`] a step).
+const FIRST_STEP_IN_ROWS: f64 = 1.0 / 64.0;
+
+/// The largest turn of a body over one step (rad): half the turn past which a
+/// failed step is named too coarse for the motion.
+const MAX_TURN: f64 = 0.5 * StepFailure::LARGE_TURN;
+
+/// The smallest step, relative to the horizon.
+const SMALLEST_STEP: f64 = 1e-10;
+
+/// The solvers of one step size: the square step, and the general solver's
+/// one-step solve of the graph at that size (made where first needed).
+struct Rung {
+    h: f64,
+    square: Option<SquareStep>,
+    general: Option<General>,
+}
+
+/// The graph of one step at a size, its solver, and the two steps it reads.
+struct General {
+    graph: ForwardGraph,
+    solver: Stepwise,
+    values: Vec<f64>,
+}
+
+/// The rungs of the ladder of sizes.
+struct Ladder<'a> {
+    model: &'a Arc<Model>,
+    options: &'a ForwardOptions,
+    independent: &'a [usize],
+    /// The square step at the row grid's dt, whose analysis the others copy.
+    first: Option<SquareStep>,
+    /// The size of rung 0 (the row grid's dt).
+    h0: f64,
+    rungs: HashMap<i32, Rung>,
+}
+
+impl Ladder<'_> {
+    fn size(&self, rung: i32) -> f64 {
+        self.h0 * (f64::from(rung) / LEVELS_PER_OCTAVE).exp2()
+    }
+
+    /// The rung at or below `h`.
+    fn rung_below(&self, h: f64) -> i32 {
+        // (A size the controller computed from a rung's own is that rung, not the
+        // one below, despite the rounding of the logarithm.)
+        ((h / self.h0).log2() * LEVELS_PER_OCTAVE + 1e-9).floor() as i32
+    }
+
+    fn at(&mut self, rung: i32) -> &mut Rung {
+        let h = self.size(rung);
+        let first = &self.first;
+        self.rungs.entry(rung).or_insert_with(|| Rung {
+            h,
+            square: first.as_ref().and_then(|square| square.at_dt(h)),
+            general: None,
+        })
+    }
+
+    /// The step of the rung's size from `before` at t to `block` (its guess in,
+    /// solution out): by the square step, else the general solver; its report and
+    /// who took it, or `None` where neither converged.
+    fn step(
+        &mut self,
+        rung: i32,
+        t: f64,
+        before: &[f64],
+        block: &mut [f64],
+        limits: StepLimits,
+    ) -> Result<Option<(SolveReport, Taker)>> {
+        let (model, options, independent) = (self.model, self.options, self.independent);
+        let s = block.len();
+        let guess = block.to_vec();
+        let rung = self.at(rung);
+        let h = rung.h;
+        if let Some(square) = rung.square.as_mut() {
+            if let Some(work) = square.solve(t + h, before, block, limits, None) {
+                if block.iter().all(|v| v.is_finite()) {
+                    let report = SolveReport {
+                        factorizations: work.factorizations,
+                        ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
+                    };
+                    return Ok(Some((report, Taker::Square)));
+                }
+            }
+            block.copy_from_slice(&guess);
+        }
+        if rung.general.is_none() {
+            rung.general = Some(General::new(model, options, independent, h)?);
+        }
+        let general = rung.general.as_mut().expect("made above");
+        general.graph.graph.set_t0(t);
+        general.values[..s].copy_from_slice(before);
+        general.values[s..].copy_from_slice(block);
+        let (report, taker) = general.solver.step(
+            &general.graph.graph,
+            &mut general.values,
+            1,
+            &mut |_, _, _| None,
+        )?;
+        let solved = &general.values[s..];
+        if report.termination != Termination::Converged || !solved.iter().all(|v| v.is_finite()) {
+            return Ok(None);
+        }
+        block.copy_from_slice(solved);
+        Ok(Some((report, taker)))
+    }
+}
+
+impl General {
+    /// The one-step graph of the run at size h, solved by the general solver.
+    fn new(
+        model: &Arc<Model>,
+        options: &ForwardOptions,
+        independent: &[usize],
+        h: f64,
+    ) -> Result<General> {
+        let mut one = options.clone();
+        one.dt = h;
+        one.t_end = h;
+        one.tolerance = None;
+        one.square_steps = false;
+        let plan = Plan::new(model, &one)?;
+        let start = Start {
+            state: model.initial.clone(),
+            independent: independent.to_vec(),
+        };
+        let graph = ForwardGraph::planned(model.clone(), &plan, &options.noise, start)?;
+        let solver = Stepwise::new(&graph.graph, None, plan.settings)?;
+        let s = graph.graph.layout().size();
+        Ok(General {
+            graph,
+            solver,
+            values: vec![0.0; 2 * s],
+        })
+    }
+}
+
+/// The Taylor guess of the state h after `before` (q, q̇, q̈ of n coordinates, then in
+/// IC z, ż, z̈ of f), into `out`.
+fn taylor(before: &[f64], out: &mut [f64], n: usize, f: usize, h: f64) {
+    for (offset, m) in [(0, n), (3 * n, f)] {
+        for i in 0..m {
+            let (x, v, a) = (
+                before[offset + i],
+                before[offset + m + i],
+                before[offset + 2 * m + i],
+            );
+            out[offset + i] = x + h * v + 0.5 * h * h * a;
+            out[offset + m + i] = v + h * a;
+            out[offset + 2 * m + i] = a;
+        }
+    }
+}
+
+/// q, q̇, q̈ at τ into a step of `h` from `start` to `end` (n coordinates each), into
+/// `out[..3n]`: q on the cubic Hermite interpolant of q and q̇ at both ends (fourth
+/// order), q̇ on that of q̇ and q̈ and q̈ its derivative.
+pub(super) fn interpolate(start: &[f64], end: &[f64], h: f64, tau: f64, n: usize, out: &mut [f64]) {
+    let s = (tau / h).clamp(0.0, 1.0);
+    let (s2, s3) = (s * s, s * s * s);
+    let (h00, h10, h01, h11) = (
+        2.0 * s3 - 3.0 * s2 + 1.0,
+        s3 - 2.0 * s2 + s,
+        -2.0 * s3 + 3.0 * s2,
+        s3 - s2,
+    );
+    let (d00, d10, d01, d11) = (
+        6.0 * s2 - 6.0 * s,
+        3.0 * s2 - 4.0 * s + 1.0,
+        -6.0 * s2 + 6.0 * s,
+        3.0 * s2 - 2.0 * s,
+    );
+    for i in 0..n {
+        let (q0, v0, a0) = (start[i], start[n + i], start[2 * n + i]);
+        let (q1, v1, a1) = (end[i], end[n + i], end[2 * n + i]);
+        out[i] = h00 * q0 + h10 * h * v0 + h01 * q1 + h11 * h * v1;
+        out[n + i] = h00 * v0 + h10 * h * a0 + h01 * v1 + h11 * h * a1;
+        out[2 * n + i] = (d00 * v0 + d01 * v1) / h + d10 * a0 + d11 * a1;
+    }
+}
+
+/// The run of `options` (whose `tolerance` is set) with steps sized by the error
+/// controller, its rows at t = k·dt handed to `sink`.
+pub(super) fn simulate(
+    model: Arc<Model>,
+    options: &ForwardOptions,
+    tolerance: Tolerance,
+    progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+    sink: &mut dyn StepSink,
+) -> Result<RunSummary> {
+    let plan = Plan::new(&model, options)?;
+    let start_clock = Instant::now();
+    let n = model.n();
+    let independent = match options.coordinates {
+        Coordinates::Independent => model.independent.clone(),
+        Coordinates::Dependent => Vec::new(),
+    };
+    let f = independent.len();
+    let s = 3 * (n + f);
+    let rows = plan.steps;
+    let dt = plan.dt;
+    let t_last = (rows - 1) as f64 * dt;
+    let mut ladder = Ladder {
+        model: &model,
+        options,
+        independent: &model.independent,
+        first: square_step::for_plan(&model, &plan, &model.independent),
+        h0: dt,
+        rungs: HashMap::new(),
+    };
+    let controller = Controller {
+        order: options.integrator.order(),
+        h_min: SMALLEST_STEP * t_last.max(dt),
+        h_max: (MAX_STEP_IN_ROWS * dt).min(t_last.max(dt)),
+    };
+    let limits = StepLimits {
+        max_iterations: plan.settings.max_iterations,
+        step_tolerance: plan.settings.step_tolerance.min(tolerance.rtol),
+    };
+
+    // The initial state, q̈ from the dynamics.
+    let init = &model.initial;
+    let ddq = dynamics::accelerations_guess(&model, &init.q, &init.dq, 0.0)?;
+    let mut current = Vec::with_capacity(s);
+    current.extend_from_slice(init.q.as_slice());
+    current.extend_from_slice(init.dq.as_slice());
+    current.extend_from_slice(ddq.as_slice());
+    for v in [&init.q, &init.dq, &ddq] {
+        current.extend(independent.iter().map(|&i| v[i]));
+    }
+    let mut iterations = Iterations::default();
+    if let Some(work) = ladder
+        .first
+        .as_mut()
+        .and_then(|first| first.solve_first(0.0, &mut current))
+    {
+        iterations.push(&SolveReport {
+            factorizations: work.factorizations,
+            ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
+        });
+    }
+    if !current.iter().all(|v| v.is_finite()) {
+        return Err(Error::singular(format!(
+            "{}: the initial state cannot be used: its accelerations are not finite",
+            model.scene.file
+        )));
+    }
+    let mut stats = Stats::new(&model);
+    stats.add(&model, 0.0, &current[..n], &current[n..2 * n])?;
+    sink.step(
+        0.0,
+        &current[..n],
+        &current[n..2 * n],
+        &current[2 * n..3 * n],
+    )?;
+    let mut written = 1;
+    let mut interrupted = None;
+    if progress(written, rows).is_break() {
+        interrupted = Some(0);
+    }
+
+    let mut control = ErrorControl {
+        tolerance,
+        accepted: 0,
+        rejected: 0,
+        failed_solves: 0,
+        smallest: f64::INFINITY,
+        largest: 0.0,
+    };
+    let (mut square_steps, mut general_steps) = (0, 0);
+    let mut failures = Vec::new();
+    let mut next = vec![0.0; s];
+    let mut row = vec![0.0; 3 * n];
+    let mut last_row = current[..3 * n].to_vec();
+    let mut error = vec![0.0; 2 * n];
+    let mut history = History::default();
+    history.push(0.0, &current[2 * n..3 * n]);
+    let mut t = 0.0;
+    let mut h_try = (FIRST_STEP_IN_ROWS * dt).clamp(controller.h_min, controller.h_max);
+    let mut rung = ladder.rung_below(h_try);
+    let mut after_reject = false;
+    while written < rows && interrupted.is_none() {
+        // The rung of the size asked, within what the integrators follow: down at
+        // once, up only by two rungs or more.
+        let wanted = ladder.rung_below(h_try.min(turn_limit(&model, &current)));
+        if wanted < rung || wanted >= rung + 2 {
+            rung = wanted;
+        }
+        let h = ladder.size(rung);
+        taylor(&current, &mut next, n, f, h);
+        let Some((report, taker)) = ladder.step(rung, t, &current, &mut next, limits)? else {
+            control.failed_solves += 1;
+            match controller.after_failure(h) {
+                Some(smaller) => {
+                    h_try = smaller;
+                    rung = ladder.rung_below(h_try);
+                    after_reject = true;
+                    continue;
+                }
+                None => {
+                    failures.push(failure(&model, &current, written, dt, t, h));
+                    break;
+                }
+            }
+        };
+        iterations.push(&report);
+        local_error(
+            options.integrator,
+            n,
+            h,
+            &current,
+            &next,
+            &history,
+            &mut error,
+        );
+        let norm = tolerance.norm(&error, &current[..2 * n], &next[..2 * n]);
+        match controller.decide(h, Controller::error_ratio(h, norm), after_reject) {
+            Decision::Reject { retry } => {
+                control.rejected += 1;
+                h_try = retry;
+                after_reject = true;
+            }
+            Decision::Accept { next: h_next } => {
+                control.accepted += 1;
+                control.smallest = control.smallest.min(h);
+                control.largest = control.largest.max(h);
+                match taker {
+                    Taker::Square => square_steps += 1,
+                    _ => general_steps += 1,
+                }
+                let t1 = t + h;
+                // The rows this step reaches (the last one's time may lie a rounding
+                // past the last step's end).
+                while written < rows {
+                    let t_row = written as f64 * dt;
+                    let last = written + 1 == rows && t1 >= t_last - 1e-9 * dt;
+                    if t_row > t1 + 1e-9 * h && !last {
+                        break;
+                    }
+                    interpolate(&current, &next, h, t_row - t, n, &mut row);
+                    // The summary's measures are of the rows written: between the
+                    // steps they hold the constraints only as well as the interpolant.
+                    stats.add(&model, t_row, &row[..n], &row[n..2 * n])?;
+                    stats.watch(
+                        &model,
+                        (t_row - dt, &last_row[..n], &last_row[n..2 * n]),
+                        t_row,
+                        &row[..n],
+                        &row[n..2 * n],
+                    );
+                    last_row.copy_from_slice(&row);
+                    sink.step(
+                        crate::trajectory::round_time(t_row),
+                        &row[..n],
+                        &row[n..2 * n],
+                        &row[2 * n..],
+                    )?;
+                    written += 1;
+                }
+                history.push(t1, &next[2 * n..3 * n]);
+                std::mem::swap(&mut current, &mut next);
+                t = t1;
+                h_try = h_next;
+                after_reject = false;
+                if progress(written, rows).is_break() {
+                    interrupted = Some(written - 1);
+                }
+            }
+        }
+    }
+    let mut summary = stats.finish(start_clock.elapsed(), iterations, failures, plan);
+    summary.steps = written;
+    summary.square_steps = square_steps;
+    // (Counted where there is a square step to decline them.)
+    if ladder.first.is_some() {
+        summary.general_steps = general_steps;
+    }
+    summary.interrupted = interrupted;
+    summary.error_control = Some(control);
+    Ok(summary)
+}
+
+/// The longest step over which no body turns more than [`MAX_TURN`] at the speeds
+/// of `state` (q, q̇, …): past about half a radian a step the integrators' chords
+/// stop following the motion, and their error estimates with them.
+fn turn_limit(model: &Model, state: &[f64]) -> f64 {
+    let n = model.n();
+    match model.fastest_body_index(&state[..n], &state[n..2 * n]) {
+        Some((_, omega)) if omega > 0.0 => MAX_TURN / omega,
+        _ => f64::INFINITY,
+    }
+}
+
+/// The failure of a run whose step from `state` at t did not converge at any size
+/// down to the smallest (`h`): at the row it could not write.
+fn failure(model: &Model, state: &[f64], row: usize, dt: f64, t: f64, h: f64) -> StepFailure {
+    let n = model.n();
+    let (q, dq) = (&state[..n], &state[n..2 * n]);
+    let cause = model.effect_fault(q, dq, t).unwrap_or_else(|| {
+        format!(
+            "no step from t = {} s converged, down to {h:.1e} s (error-controlled steps)",
+            crate::trajectory::round_time(t)
+        )
+    });
+    StepFailure {
+        step: row,
+        t: row as f64 * dt,
+        report: SolveReport::new(Termination::IterationLimit, 0, f64::NAN),
+        constraint_conditioning: crate::kinematics::constraint_conditioning(
+            model,
+            model.initial.q.as_slice(),
+            q,
+        ),
+        singular: None,
+        warm_start: false,
+        batch: false,
+        cause: Some(cause),
+        fast_body: None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::interpolate;
+
+    /// The interpolant reproduces q of a cubic and q̇ of a cubic at every τ.
+    #[test]
+    fn interpolation_is_exact_on_cubics() {
+        let q = |t: f64| 0.3 - 1.1 * t + 0.7 * t * t + 2.0 * t.powi(3);
+        let v = |t: f64| -1.1 + 1.4 * t + 6.0 * t * t;
+        let w = |t: f64| 0.5 - 2.0 * t + 3.0 * t * t - 0.7 * t.powi(3);
+        let dw = |t: f64| -2.0 + 6.0 * t - 2.1 * t * t;
+        let (t0, h) = (0.4, 0.8);
+        // One coordinate: q on the first cubic; its velocity on the second (each
+        // checked on its own interpolant).
+        let start = [q(t0), v(t0), 0.0];
+        let end = [q(t0 + h), v(t0 + h), 0.0];
+        let vstart = [0.0, w(t0), dw(t0)];
+        let vend = [0.0, w(t0 + h), dw(t0 + h)];
+        for tau in [0.0, 0.1, 0.35, 0.8] {
+            let mut out = [0.0; 3];
+            interpolate(&start, &end, h, tau, 1, &mut out);
+            assert!((out[0] - q(t0 + tau)).abs() < 1e-13, "q at {tau}");
+            interpolate(&vstart, &vend, h, tau, 1, &mut out);
+            assert!((out[1] - w(t0 + tau)).abs() < 1e-13, "q̇ at {tau}");
+            assert!((out[2] - dw(t0 + tau)).abs() < 1e-12, "q̈ at {tau}");
+        }
+    }
+}
