@@ -9,8 +9,10 @@
 //! `segment`s, whose steps `steps` takes one at a time (through `stepwise`, with
 //! `square_step` where it can) or `windows` hands to the general smoother, each
 //! step judged by `judge` (failures, the IC watch) and rescued by `substeps`;
-//! `failure` and `summary` are what it reports.
+//! `failure` and `summary` are what it reports, `balance` the energy balance its
+//! summary carries.
 
+mod balance;
 pub mod energy_checks;
 mod failure;
 mod graph;
@@ -30,6 +32,7 @@ mod windows;
 pub use crate::coordinates::Coordinates;
 pub use crate::kinematics::{Determinacy, SingularConfiguration};
 pub use crate::trajectory::{round_time, Trajectory};
+pub use balance::BalanceOff;
 pub use failure::StepFailure;
 pub use graph::ForwardGraph;
 pub use options::{DcIntegrators, ForwardOptions, Integrator, NoiseModels, Observers};

@@ -225,6 +225,8 @@ impl<'a> Rows<'a> {
         if k > 0 {
             let before = (self.last_t, &self.last[..n], &self.last[n..2 * n]);
             self.stats.watch(self.model, before, t, q, dq);
+            let before = (self.last_t, &self.last[..3 * n]);
+            self.stats.balance(self.model, before, t, &block[..3 * n]);
         }
         if self.coarse.is_none() {
             self.coarse = coarse_turn(self.model, q, dq, t, self.dt, k);

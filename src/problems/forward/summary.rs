@@ -2,6 +2,7 @@
 //! constraint violations, the energy drift, the failures, and where the run was
 //! refined ([`Refinement`]) or switched coordinates ([`Reselection`]).
 
+use super::balance::{Balance, BalanceOff};
 use super::failure::StepFailure;
 use super::plan::Plan;
 use crate::convergence::SolveReport;
@@ -39,6 +40,9 @@ pub struct RunSummary {
     pub energy_drift: Option<f64>,
     /// The largest kinetic energy along the trajectory: the scale of the drift.
     pub peak_kinetic_energy: f64,
+    /// How far a scene with non-conservative effects is off its energy balance
+    /// (None for a conservative scene, or where an effect could not be evaluated).
+    pub energy_balance: Option<BalanceOff>,
     /// The first step over which an expression load jumped (a pole or a
     /// discontinuity passed over), see [`LoadJump`].
     pub load_jump: Option<LoadJump>,
@@ -398,8 +402,10 @@ pub(super) struct Stats {
     load_jump: Option<LoadJump>,
     passage_watch: Option<PassageWatch>,
     passages: Passages,
-    /// The time of the step added last.
+    balance: Option<Balance>,
+    /// The time of the step added last, and its kinetic energy.
     t_before: f64,
+    kinetic_last: f64,
 }
 
 impl Stats {
@@ -418,7 +424,9 @@ impl Stats {
             load_jump: None,
             passage_watch: PassageWatch::new(model),
             passages: Passages::default(),
+            balance: Balance::new(model),
             t_before: 0.0,
+            kinetic_last: 0.0,
         }
     }
 
@@ -479,9 +487,21 @@ impl Stats {
                 &mut self.passages,
             );
         }
+        if let (0, Some(balance)) = (self.steps, self.balance.as_mut()) {
+            balance.start(model, t, q, dq, kinetic);
+        }
         self.t_before = t;
+        self.kinetic_last = kinetic;
         self.steps += 1;
         Ok(())
+    }
+
+    /// Carries the energy balance over the step from `before` (its time and q, q̇,
+    /// q̈) to `now` at time t, after `add` of `now`.
+    pub(super) fn balance(&mut self, model: &Model, before: (f64, &[f64]), t: f64, now: &[f64]) {
+        if let Some(balance) = self.balance.as_mut() {
+            balance.step(model, before, (t, now), self.kinetic_last);
+        }
     }
 
     /// The summary of the steps added.
@@ -506,6 +526,7 @@ impl Stats {
             worst_velocity_constraint: self.worst_vel,
             energy_drift: self.conservative.then_some(self.drift),
             peak_kinetic_energy: self.peak_kinetic,
+            energy_balance: self.balance.as_ref().and_then(Balance::finish),
             load_jump: self.load_jump,
             passages: self.passages,
             failures,
