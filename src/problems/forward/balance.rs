@@ -5,17 +5,17 @@
 //! balance: the step is too coarse for the motion, or the equations solved are not
 //! the motion's. Conservative scenes have the energy drift instead.
 //!
-//! The work is integrated with Simpson's rule over each step, the power at its
-//! middle taken on the cubic Hermite interpolant of the step's ends (q, q̇, q̈ at
-//! both): fourth order, so that what the balance measures is the integrator's error
-//! and not the quadrature's. The trapezoidal rule on the power at the steps alone
-//! (the `energy_balance` column) is second order itself: it would read a fourth-order
-//! run's error as the quadrature's, and the power's jump at a sign() load as much as
-//! a wrong step.
+//! The work is integrated over each step to the integrator's order, so that what the
+//! balance measures is the integrator's error and not the quadrature's: with the
+//! trapezoidal rule on the power at the steps for the first- and second-order rules,
+//! and for Hermite–Simpson with Simpson's rule, the power at the step's middle taken
+//! on the cubic Hermite interpolant of its ends (q, q̇, q̈ at both): the trapezoidal
+//! rule, second order, would read its own error as the fourth-order run's.
 //!
 //! The scene's constraints do no work: they do not depend on time, and their forces
 //! are normal to the velocities they allow (a run's |Φ_q q̇| is checked separately).
 
+use super::Integrator;
 use crate::model::forces::Force;
 use crate::model::Model;
 
@@ -31,6 +31,8 @@ pub struct BalanceOff {
 }
 
 pub(super) struct Balance {
+    /// Simpson's rule over each step (else the trapezoidal rule).
+    simpson: bool,
     /// The non-conservative part of each such effect.
     effects: Vec<Force>,
     /// Each effect's work so far, and its largest |value|.
@@ -50,7 +52,7 @@ pub(super) struct Balance {
 impl Balance {
     /// The balance of a scene with non-conservative effects; None for a conservative
     /// one.
-    pub(super) fn new(model: &Model) -> Option<Self> {
+    pub(super) fn new(model: &Model, integrator: Integrator) -> Option<Self> {
         let effects: Vec<Force> = model
             .forces
             .iter()
@@ -61,6 +63,7 @@ impl Balance {
         }
         let (k, n) = (effects.len(), model.n());
         Some(Balance {
+            simpson: integrator == Integrator::HermiteSimpson,
             effects,
             work: vec![0.0; k],
             power_before: vec![0.0; k],
@@ -114,11 +117,14 @@ impl Balance {
         }
         let n = model.n();
         let h = t1 - t0;
-        // The cubic Hermite interpolant's middle, of q (from q, q̇) and of q̇ (from q̇, q̈).
-        for i in 0..n {
-            self.q_mid[i] = 0.5 * (a[i] + b[i]) + 0.125 * h * (a[n + i] - b[n + i]);
-            self.dq_mid[i] =
-                0.5 * (a[n + i] + b[n + i]) + 0.125 * h * (a[2 * n + i] - b[2 * n + i]);
+        if self.simpson {
+            // The cubic Hermite interpolant's middle, of q (from q, q̇) and of q̇ (from
+            // q̇, q̈).
+            for i in 0..n {
+                self.q_mid[i] = 0.5 * (a[i] + b[i]) + 0.125 * h * (a[n + i] - b[n + i]);
+                self.dq_mid[i] =
+                    0.5 * (a[n + i] + b[n + i]) + 0.125 * h * (a[2 * n + i] - b[2 * n + i]);
+            }
         }
         let (q_mid, dq_mid) = (
             std::mem::take(&mut self.q_mid),
@@ -126,14 +132,20 @@ impl Balance {
         );
         let t_mid = t0 + 0.5 * h;
         for e in 0..self.effects.len() {
-            let (Some(mid), Some(end)) = (
-                self.power(model, e, &q_mid, &dq_mid, t_mid),
-                self.power(model, e, &b[..n], &b[n..2 * n], t1),
-            ) else {
+            let Some(end) = self.power(model, e, &b[..n], &b[n..2 * n], t1) else {
                 self.valid = false;
                 break;
             };
-            self.work[e] += h / 6.0 * (self.power_before[e] + 4.0 * mid + end);
+            let increment = if self.simpson {
+                let Some(mid) = self.power(model, e, &q_mid, &dq_mid, t_mid) else {
+                    self.valid = false;
+                    break;
+                };
+                h / 6.0 * (self.power_before[e] + 4.0 * mid + end)
+            } else {
+                0.5 * h * (self.power_before[e] + end)
+            };
+            self.work[e] += increment;
             self.power_before[e] = end;
             self.off.peak_work = self.off.peak_work.max(self.work[e].abs());
         }

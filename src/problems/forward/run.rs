@@ -196,7 +196,7 @@ impl<'a> Rows<'a> {
             every,
             len: 0,
             written: 0,
-            stats: Stats::new(model),
+            stats: Stats::new(model, options.integrator),
             last_t: 0.0,
             last: Vec::with_capacity(3 * model.n()),
             non_finite: None,

@@ -287,6 +287,10 @@ struct Watched {
     dq: Vec<f64>,
     /// The largest |value| seen, per load and component.
     scale: Vec<f64>,
+    /// Each load's value at the end of the step watched last, and its change over
+    /// that step.
+    ends: Vec<Option<[f64; 2]>>,
+    changes: Vec<Option<[f64; 2]>>,
 }
 
 /// The fraction of a step at which the slopes at its ends are taken.
@@ -304,6 +308,8 @@ impl Watched {
             .collect();
         (!loads.is_empty()).then(|| Watched {
             scale: vec![0.0; 2 * loads.len()],
+            ends: vec![None; loads.len()],
+            changes: vec![None; loads.len()],
             loads,
             q: vec![0.0; model.n()],
             dq: vec![0.0; model.n()],
@@ -346,9 +352,38 @@ impl Watched {
         first: bool,
     ) -> Option<LoadJump> {
         for l in 0..self.loads.len() {
+            // The value at the step's start is the one at the last step's end.
+            let v0 = match self.ends[l].take() {
+                Some(v) => Some(v),
+                None => self.at(model, l, a, b, 0.0),
+            };
+            let v1 = self.at(model, l, a, b, 1.0);
+            self.ends[l] = v1;
+            let before = self.changes[l].take();
+            if let (Some(v0), Some(v1)) = (v0, v1) {
+                let change = [v1[0] - v0[0], v1[1] - v0[1]];
+                self.changes[l] = Some(change);
+                // A change within a quarter of the last step's is the smooth load's
+                // (a pole or a jump changes the load unlike the step before, and the
+                // watch ends at the first): the slopes are not taken.
+                let smooth = |c: usize, before: [f64; 2]| {
+                    let scale = self.scale[2 * l + c].max(v0[c].abs());
+                    (change[c] - before[c]).abs()
+                        <= 0.25 * (change[c].abs() + before[c].abs()) + 1e-9 * (1.0 + scale)
+                };
+                if let (false, Some(before)) = (first, before) {
+                    if smooth(0, before) && smooth(1, before) {
+                        for c in 0..2 {
+                            let scale = &mut self.scale[2 * l + c];
+                            *scale = scale.max(v0[c].abs());
+                        }
+                        continue;
+                    }
+                }
+            }
             let (Some(v0), Some(v1), Some(near0), Some(near1)) = (
-                self.at(model, l, a, b, 0.0),
-                self.at(model, l, a, b, 1.0),
+                v0,
+                v1,
                 self.at(model, l, a, b, SLOPE_FRACTION),
                 self.at(model, l, a, b, 1.0 - SLOPE_FRACTION),
             ) else {
@@ -409,7 +444,7 @@ pub(super) struct Stats {
 }
 
 impl Stats {
-    pub(super) fn new(model: &Model) -> Self {
+    pub(super) fn new(model: &Model, integrator: super::Integrator) -> Self {
         Stats {
             rows: vec![0.0; model.m()],
             mass: model.mass_entries(),
@@ -424,7 +459,7 @@ impl Stats {
             load_jump: None,
             passage_watch: PassageWatch::new(model),
             passages: Passages::default(),
-            balance: Balance::new(model),
+            balance: Balance::new(model, integrator),
             t_before: 0.0,
             kinetic_last: 0.0,
         }
