@@ -238,7 +238,7 @@ fn wrap(d: f64) -> f64 {
 
 /// The part of an effect that has no potential, or None when it has all of it
 /// (gravity, an undamped spring): a damper without its spring, a torque, a force.
-fn non_conservative(force: &Force) -> Option<Force> {
+pub(crate) fn non_conservative(force: &Force) -> Option<Force> {
     match force {
         Force::Gravity { .. } => None,
         Force::SpringDamper { damping, .. } | Force::RotationalSpringDamper { damping, .. }

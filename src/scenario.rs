@@ -213,7 +213,7 @@ pub fn judge_with(bytes: &[u8], derivatives: Derivatives) -> Option<String> {
                 }
             }
             Ok((tr, summary)) => {
-                if let Some(bad) = judge_run(&model, &tr, &summary, integrator, derivatives) {
+                if let Some(bad) = judge_run(&model, &tr, &summary, derivatives) {
                     return Some(format!(
                         "{integrator:?}, {coordinates:?}, dt {dt}: {bad}\n{text}"
                     ));
@@ -257,7 +257,6 @@ fn judge_run(
     model: &Model,
     tr: &Trajectory,
     summary: &forward::RunSummary,
-    integrator: forward::Integrator,
     derivatives: Derivatives,
 ) -> Option<String> {
     if !finite(tr) {
@@ -279,13 +278,12 @@ fn judge_run(
         ));
     }
     let warned = forward::energy_checks::energy_warning(summary).is_some()
-        || forward::energy_checks::euler_warning(model, tr, summary, integrator).is_some()
+        || forward::energy_checks::balance_warning(summary).is_some()
+        || summary.load_jump.is_some()
         || crate::model::plausibility::step_warning(model, tr.t[1] - tr.t[0]).is_some();
-    // The product checks the energy of conservative scenes (drift) and of explicit
-    // Euler runs (balance); a non-conservative run with the other integrators has no
-    // balance check yet, and is not held to one here.
-    let checked = model.scene.is_conservative() || integrator == forward::Integrator::Euler;
-    if checked && !warned {
+    // The product checks the energy of every run: a conservative scene's drift, the
+    // balance against the work of the others (every integrator, DC and IC).
+    if !warned {
         let energy = crate::derived::energy(model, tr, None).ok()?;
         let balance = energy.column("energy_balance")?;
         let kinetic = energy.column("kinetic")?;

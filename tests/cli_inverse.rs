@@ -118,6 +118,23 @@ fn bad_trajectory_files_exit_2_with_a_clear_message() {
             format!("time,theta\n{}", rows(uniform, 6)),
             "first column must be `t`",
         ),
+        // Finite samples whose solve overflowed (exit 1, "non-finite values"): the
+        // row (line 4) and the column are named.
+        (
+            "huge.csv",
+            "t,theta\n0,0\n0.01,0\n0.02,1e300\n0.03,0\n0.04,0\n0.05,0".into(),
+            ":4: column `theta`: 1e300 is beyond ±1000000",
+        ),
+        (
+            "tiny-dt.csv",
+            "t,theta\n0,0\n1e-200,0\n2e-200,1\n3e-200,0\n4e-200,0\n5e-200,0".into(),
+            "column `theta`: the samples' rate or acceleration there is not finite",
+        ),
+        (
+            "far-time.csv",
+            "t,theta\n0,0\n0.01,0\n1e300,0\n0.03,0\n0.04,0\n0.05,0".into(),
+            "line 4: times must be uniformly spaced (step 1e300 where the mean step is 0.01)",
+        ),
     ];
     for (name, text, expect) in cases {
         let path = temp(name, &text);

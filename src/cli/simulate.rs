@@ -77,8 +77,8 @@ pub struct SimulateArgs {
     no_refine: bool,
     /// Send every step through the general solver with the window or batch asked,
     /// instead of taking the steps of IC and tangent DC runs (trapezoidal rule or
-    /// Euler) one at a time as sparse square systems: the same solution to the step
-    /// tolerance, for comparison.
+    /// Euler; Hermite–Simpson in DC) one at a time as sparse square systems: the same
+    /// solution to the step tolerance, for comparison.
     #[arg(long = "no-square-steps")]
     no_square_steps: bool,
     /// Make the plausibility warnings errors: a time step too coarse for the
@@ -306,10 +306,9 @@ fn simulate(
     let mut bar = Progress::new(batch);
     let model = Arc::new(model);
     // The rows go to the file as the steps become final where nothing needs the
-    // whole run first: the optional columns (work integrals over every step) and
-    // the explicit Euler rule's energy check do, and standard output cannot take
-    // back the rows of a run made again.
-    let stream = written.streams() && options.integrator != forward::Integrator::Euler;
+    // whole run first: the optional columns (work integrals over every step) do,
+    // and standard output cannot take back the rows of a run made again.
+    let stream = written.streams();
     let mut streamed = match stream {
         true => output
             .stream(&model.names, written.stride())
@@ -490,22 +489,13 @@ fn simulate(
         };
         return Err(Failure::Run(format!("{}; {what} ({hint})", f.message())));
     }
-    let euler = match &run {
-        Run::Held(trajectory) => mbfg::forward::energy_checks::euler_warning(
-            &model,
-            trajectory,
-            &summary,
-            options.integrator,
-        ),
-        // Streamed runs are not explicit Euler ones (see `stream` above).
-        Run::Streamed(_) => None,
-    };
     let warnings: Vec<String> = summary
         .load_jump
         .as_ref()
         .map(|j| j.message())
         .into_iter()
-        .chain(mbfg::forward::energy_checks::energy_warning(&summary).or(euler))
+        .chain(mbfg::forward::energy_checks::energy_warning(&summary))
+        .chain(mbfg::forward::energy_checks::balance_warning(&summary))
         .chain(mbfg::forward::energy_checks::passage_warning(&summary))
         .collect();
     if let (true, Some(w)) = (strict, warnings.first()) {

@@ -389,19 +389,13 @@ pub(super) fn simulate_run<'py>(
             out.set_item("extra", PyArray1::from_vec(py, extra.values))?;
         }
         // What converged but may not be right (mbfg simulate prints these as warnings).
-        let euler = crate::forward::energy_checks::euler_warning(
-            &model_for_checks,
-            &tr,
-            &s,
-            options.integrator,
-        );
         let warnings: Vec<String> = step_warning
             .iter()
             .cloned()
             .chain(s.load_jump.as_ref().map(|j| j.message()))
             .chain(crate::forward::energy_checks::energy_warning(&s))
             .chain(crate::forward::energy_checks::passage_warning(&s))
-            .chain(euler)
+            .chain(crate::forward::energy_checks::balance_warning(&s))
             .collect();
         out.get_item("summary")?
             .ok_or_else(|| PyRuntimeError::new_err("a result without a summary"))?

@@ -288,7 +288,7 @@ pub(super) fn simulate(
             model.scene.file
         )));
     }
-    let mut stats = Stats::new(&model);
+    let mut stats = Stats::new(&model, options.integrator);
     stats.add(&model, 0.0, &current[..n], &current[n..2 * n])?;
     sink.step(
         0.0,

@@ -9,10 +9,12 @@
 //! `segment`s, whose steps `steps` takes one at a time (through `stepwise`, with
 //! `square_step` where it can) or `windows` hands to the general smoother, each
 //! step judged by `judge` (failures, the IC watch) and rescued by `substeps`;
-//! `failure` and `summary` are what it reports. A run with a tolerance sizes its
-//! steps by `error_control` instead, in `adaptive`.
+//! `failure` and `summary` are what it reports, `balance` the energy balance its
+//! summary carries. A run with a tolerance sizes its steps by `error_control`
+//! instead, in `adaptive`.
 
 mod adaptive;
+mod balance;
 pub mod energy_checks;
 mod error_control;
 mod failure;
@@ -33,6 +35,7 @@ mod windows;
 pub use crate::coordinates::Coordinates;
 pub use crate::kinematics::{Determinacy, SingularConfiguration};
 pub use crate::trajectory::{round_time, Trajectory};
+pub use balance::BalanceOff;
 pub use error_control::Tolerance;
 pub use failure::StepFailure;
 pub use graph::ForwardGraph;

@@ -200,7 +200,7 @@ impl<'a> Rows<'a> {
             every,
             len: 0,
             written: 0,
-            stats: Stats::new(model),
+            stats: Stats::new(model, options.integrator),
             last_t: 0.0,
             last: Vec::with_capacity(3 * model.n()),
             non_finite: None,
@@ -229,6 +229,8 @@ impl<'a> Rows<'a> {
         if k > 0 {
             let before = (self.last_t, &self.last[..n], &self.last[n..2 * n]);
             self.stats.watch(self.model, before, t, q, dq);
+            let before = (self.last_t, &self.last[..3 * n]);
+            self.stats.balance(self.model, before, t, &block[..3 * n]);
         }
         if self.coarse.is_none() {
             self.coarse = coarse_turn(self.model, q, dq, t, self.dt, k);

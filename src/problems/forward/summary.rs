@@ -2,6 +2,7 @@
 //! constraint violations, the energy drift, the failures, and where the run was
 //! refined ([`Refinement`]) or switched coordinates ([`Reselection`]).
 
+use super::balance::{Balance, BalanceOff};
 use super::failure::StepFailure;
 use super::plan::Plan;
 use crate::convergence::SolveReport;
@@ -39,6 +40,9 @@ pub struct RunSummary {
     pub energy_drift: Option<f64>,
     /// The largest kinetic energy along the trajectory: the scale of the drift.
     pub peak_kinetic_energy: f64,
+    /// How far a scene with non-conservative effects is off its energy balance
+    /// (None for a conservative scene, or where an effect could not be evaluated).
+    pub energy_balance: Option<BalanceOff>,
     /// The first step over which an expression load jumped (a pole or a
     /// discontinuity passed over), see [`LoadJump`].
     pub load_jump: Option<LoadJump>,
@@ -302,6 +306,10 @@ struct Watched {
     dq: Vec<f64>,
     /// The largest |value| seen, per load and component.
     scale: Vec<f64>,
+    /// Each load's value at the end of the step watched last, and its change over
+    /// that step.
+    ends: Vec<Option<[f64; 2]>>,
+    changes: Vec<Option<[f64; 2]>>,
 }
 
 /// The fraction of a step at which the slopes at its ends are taken.
@@ -319,6 +327,8 @@ impl Watched {
             .collect();
         (!loads.is_empty()).then(|| Watched {
             scale: vec![0.0; 2 * loads.len()],
+            ends: vec![None; loads.len()],
+            changes: vec![None; loads.len()],
             loads,
             q: vec![0.0; model.n()],
             dq: vec![0.0; model.n()],
@@ -361,9 +371,38 @@ impl Watched {
         first: bool,
     ) -> Option<LoadJump> {
         for l in 0..self.loads.len() {
+            // The value at the step's start is the one at the last step's end.
+            let v0 = match self.ends[l].take() {
+                Some(v) => Some(v),
+                None => self.at(model, l, a, b, 0.0),
+            };
+            let v1 = self.at(model, l, a, b, 1.0);
+            self.ends[l] = v1;
+            let before = self.changes[l].take();
+            if let (Some(v0), Some(v1)) = (v0, v1) {
+                let change = [v1[0] - v0[0], v1[1] - v0[1]];
+                self.changes[l] = Some(change);
+                // A change within a quarter of the last step's is the smooth load's
+                // (a pole or a jump changes the load unlike the step before, and the
+                // watch ends at the first): the slopes are not taken.
+                let smooth = |c: usize, before: [f64; 2]| {
+                    let scale = self.scale[2 * l + c].max(v0[c].abs());
+                    (change[c] - before[c]).abs()
+                        <= 0.25 * (change[c].abs() + before[c].abs()) + 1e-9 * (1.0 + scale)
+                };
+                if let (false, Some(before)) = (first, before) {
+                    if smooth(0, before) && smooth(1, before) {
+                        for c in 0..2 {
+                            let scale = &mut self.scale[2 * l + c];
+                            *scale = scale.max(v0[c].abs());
+                        }
+                        continue;
+                    }
+                }
+            }
             let (Some(v0), Some(v1), Some(near0), Some(near1)) = (
-                self.at(model, l, a, b, 0.0),
-                self.at(model, l, a, b, 1.0),
+                v0,
+                v1,
                 self.at(model, l, a, b, SLOPE_FRACTION),
                 self.at(model, l, a, b, 1.0 - SLOPE_FRACTION),
             ) else {
@@ -417,12 +456,14 @@ pub(super) struct Stats {
     load_jump: Option<LoadJump>,
     passage_watch: Option<PassageWatch>,
     passages: Passages,
-    /// The time of the step added last.
+    balance: Option<Balance>,
+    /// The time of the step added last, and its kinetic energy.
     t_before: f64,
+    kinetic_last: f64,
 }
 
 impl Stats {
-    pub(super) fn new(model: &Model) -> Self {
+    pub(super) fn new(model: &Model, integrator: super::Integrator) -> Self {
         Stats {
             rows: vec![0.0; model.m()],
             mass: model.mass_entries(),
@@ -437,7 +478,9 @@ impl Stats {
             load_jump: None,
             passage_watch: PassageWatch::new(model),
             passages: Passages::default(),
+            balance: Balance::new(model, integrator),
             t_before: 0.0,
+            kinetic_last: 0.0,
         }
     }
 
@@ -498,9 +541,21 @@ impl Stats {
                 &mut self.passages,
             );
         }
+        if let (0, Some(balance)) = (self.steps, self.balance.as_mut()) {
+            balance.start(model, t, q, dq, kinetic);
+        }
         self.t_before = t;
+        self.kinetic_last = kinetic;
         self.steps += 1;
         Ok(())
+    }
+
+    /// Carries the energy balance over the step from `before` (its time and q, q̇,
+    /// q̈) to `now` at time t, after `add` of `now`.
+    pub(super) fn balance(&mut self, model: &Model, before: (f64, &[f64]), t: f64, now: &[f64]) {
+        if let Some(balance) = self.balance.as_mut() {
+            balance.step(model, before, (t, now), self.kinetic_last);
+        }
     }
 
     /// The summary of the steps added.
@@ -525,6 +580,7 @@ impl Stats {
             worst_velocity_constraint: self.worst_vel,
             energy_drift: self.conservative.then_some(self.drift),
             peak_kinetic_energy: self.peak_kinetic,
+            energy_balance: self.balance.as_ref().and_then(Balance::finish),
             load_jump: self.load_jump,
             passages: self.passages,
             failures,

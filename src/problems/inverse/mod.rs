@@ -31,6 +31,7 @@ use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::factors::*;
 use crate::graph::{ChainGraph, Layout, Noise, VarKind};
+use crate::io::number;
 use crate::io::Table;
 use crate::kinematics;
 use crate::model::Model;
@@ -104,14 +105,16 @@ impl Prescription {
                 return bad(format!(
                     "line {}: time {} does not increase (previous {})",
                     k + 2,
-                    t[k],
-                    t[k - 1]
+                    number(t[k]),
+                    number(t[k - 1])
                 ));
             }
             if (step - dt).abs() > 1e-6 * dt {
                 return bad(format!(
-                    "line {}: times must be uniformly spaced (step {step} where the mean step is {dt})",
-                    k + 2
+                    "line {}: times must be uniformly spaced (step {} where the mean step is {})",
+                    k + 2,
+                    number(step),
+                    number(dt)
                 ));
             }
         }
@@ -121,13 +124,50 @@ impl Prescription {
         for k in 0..table.rows {
             values.extend_from_slice(&table.values[k * w + 1..(k + 1) * w]);
         }
-        Ok(Prescription {
+        let at = |k: usize, c: usize, m: String| {
+            Err(Error::data_in(
+                file,
+                Some(k as u64 + 2),
+                format!("column `{}`: {m}", table.columns[c + 1]),
+            ))
+        };
+        let limit = crate::limits::MAX_COORDINATE;
+        if let Some(i) = values.iter().position(|v| !(v.abs() <= limit)) {
+            return at(
+                i / p,
+                i % p,
+                format!(
+                    "{} is beyond ±{} (a coordinate of the mechanism, in m or rad)",
+                    number(values[i]),
+                    number(limit)
+                ),
+            );
+        }
+        let prescription = Prescription {
             indices,
             t0: t[0],
             dt,
             steps: table.rows,
             values,
-        })
+        };
+        // The rates and accelerations the samples give must be finite too (a step
+        // of 1e-200 s squares to nothing).
+        let (rates, accelerations) = prescription.derivatives();
+        if let Some(i) = rates
+            .iter()
+            .zip(&accelerations)
+            .position(|(v, a)| !(v.is_finite() && a.is_finite()))
+        {
+            return at(
+                i / p,
+                i % p,
+                format!(
+                    "the samples' rate or acceleration there is not finite (time step {} s)",
+                    number(dt)
+                ),
+            );
+        }
+        Ok(prescription)
     }
 
     fn value(&self, k: usize, c: usize) -> f64 {
