@@ -73,20 +73,7 @@ impl StopCondition {
         let n = q0.len();
         let (mut q, mut v) = (vec![0.0; n], vec![0.0; n]);
         let mut at = |s: f64| -> Result<f64> {
-            // Cubic Hermite basis on [0, 1] and its derivative (per unit of s).
-            let (s2, s3) = (s * s, s * s * s);
-            let (h00, h10, h01, h11) = (
-                2.0 * s3 - 3.0 * s2 + 1.0,
-                s3 - 2.0 * s2 + s,
-                -2.0 * s3 + 3.0 * s2,
-                s3 - s2,
-            );
-            let (d00, d10, d01, d11) = (
-                6.0 * s2 - 6.0 * s,
-                3.0 * s2 - 4.0 * s + 1.0,
-                -6.0 * s2 + 6.0 * s,
-                3.0 * s2 - 2.0 * s,
-            );
+            let ([h00, h10, h01, h11], [d00, d10, d01, d11]) = crate::trajectory::cubic_hermite(s);
             for i in 0..n {
                 q[i] = h00 * q0[i] + h10 * h * v0[i] + h01 * q1[i] + h11 * h * v1[i];
                 v[i] = (d00 * q0[i] + d01 * q1[i]) / h + d10 * v0[i] + d11 * v1[i];

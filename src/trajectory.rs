@@ -66,3 +66,25 @@ impl Trajectory {
 pub fn round_time(t: f64) -> f64 {
     (t * 1e9).round() / 1e9
 }
+
+/// The cubic Hermite basis on [0, 1] at `s`, ([h00, h10, h01, h11]), and its
+/// derivatives per unit of s: a value between two states with rates is
+/// h00·x₀ + h10·h·ẋ₀ + h01·x₁ + h11·h·ẋ₁ (fourth-order accurate), its rate
+/// (d00·x₀ + d01·x₁)/h + d10·ẋ₀ + d11·ẋ₁.
+pub fn cubic_hermite(s: f64) -> ([f64; 4], [f64; 4]) {
+    let (s2, s3) = (s * s, s * s * s);
+    (
+        [
+            2.0 * s3 - 3.0 * s2 + 1.0,
+            s3 - 2.0 * s2 + s,
+            -2.0 * s3 + 3.0 * s2,
+            s3 - s2,
+        ],
+        [
+            6.0 * s2 - 6.0 * s,
+            3.0 * s2 - 4.0 * s + 1.0,
+            -6.0 * s2 + 6.0 * s,
+            3.0 * s2 - 2.0 * s,
+        ],
+    )
+}

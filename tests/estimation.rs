@@ -31,7 +31,17 @@ fn truth(t_end: f64) -> Trajectory {
 
 /// The readings of the columns `keep` of the true scene's sensors.
 fn readings(truth: &Trajectory, seed: u64, keep: &[&str]) -> (Vec<String>, Vec<(f64, Vec<f64>)>) {
-    let m: Measurements = measure(&model("fourbar.yaml"), truth, seed, None).unwrap();
+    readings_of("fourbar.yaml", truth, seed, keep)
+}
+
+/// The readings of the columns `keep` of the sensors of the true scene `scene`.
+fn readings_of(
+    scene: &str,
+    truth: &Trajectory,
+    seed: u64,
+    keep: &[&str],
+) -> (Vec<String>, Vec<(f64, Vec<f64>)>) {
+    let m: Measurements = measure(&model(scene), truth, seed, None).unwrap();
     let mut columns = vec!["t".to_string()];
     columns.extend(keep.iter().map(|c| c.to_string()));
     let cols: Vec<Vec<f64>> = keep.iter().map(|c| m.column(c).unwrap()).collect();
@@ -88,8 +98,21 @@ fn estimate_from(
     keep: &[&str],
     smoothing: Smoothing,
 ) -> (Estimates, EstimateSummary) {
+    estimate_of("fourbar.yaml", bad, truth, seed, keep, smoothing)
+}
+
+/// The estimate of scene `bad` from the readings `keep` (seed `seed`) of the true
+/// scene `good` along `truth`.
+fn estimate_of(
+    good: &str,
+    bad: &str,
+    truth: &Trajectory,
+    seed: u64,
+    keep: &[&str],
+    smoothing: Smoothing,
+) -> (Estimates, EstimateSummary) {
     let m = model(bad);
-    let (columns, rows) = readings(truth, seed, keep);
+    let (columns, rows) = readings_of(good, truth, seed, keep);
     let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
     let options = EstimateOptions {
         smoothing,
@@ -510,29 +533,14 @@ fn ending_on_the_flat_step_keeps_the_estimate_and_its_sigmas() {
 #[test]
 fn a_process_sigma_too_small_for_the_readings_is_raised_from_them() {
     let truth = truth_of("fivebar.yaml", 10.0, 5);
-    let (good, bad) = (model("fivebar.yaml"), model("fivebar-bad.yaml"));
-    let m: Measurements = measure(&good, &truth, 1, None).unwrap();
-    let keep = ["enc1", "enc2"];
-    let cols: Vec<Vec<f64>> = keep.iter().map(|c| m.column(c).unwrap()).collect();
-    let columns: Vec<String> = std::iter::once("t").chain(keep).map(String::from).collect();
-    let rows: Vec<(f64, Vec<f64>)> = (0..m.t.len())
-        .map(|i| {
-            let mut row = vec![m.t[i]];
-            row.extend(cols.iter().map(|c| c[i]));
-            (m.t[i], row)
-        })
-        .collect();
-    let record = Record::from_rows(&bad, &columns, &rows, None).unwrap();
-    let options = EstimateOptions {
-        smoothing: Smoothing::Window(20),
-        ..EstimateOptions::default()
-    };
-    let mut table = Estimates::for_model(&bad);
-    let summary = estimate(bad.clone(), &record, &options, &mut |e| {
-        table.push(e);
-        Ok(())
-    })
-    .unwrap();
+    let (table, summary) = estimate_of(
+        "fivebar.yaml",
+        "fivebar-bad.yaml",
+        &truth,
+        1,
+        &["enc1", "enc2"],
+        Smoothing::Window(20),
+    );
     let ProcessSource::Readings { nis, bounds } = summary.process_source else {
         panic!("process σ {:?}", summary.process_source);
     };

@@ -200,19 +200,7 @@ fn taylor(before: &[f64], out: &mut [f64], n: usize, f: usize, h: f64) {
 /// order), q̇ on that of q̇ and q̈ and q̈ its derivative.
 pub(super) fn interpolate(start: &[f64], end: &[f64], h: f64, tau: f64, n: usize, out: &mut [f64]) {
     let s = (tau / h).clamp(0.0, 1.0);
-    let (s2, s3) = (s * s, s * s * s);
-    let (h00, h10, h01, h11) = (
-        2.0 * s3 - 3.0 * s2 + 1.0,
-        s3 - 2.0 * s2 + s,
-        -2.0 * s3 + 3.0 * s2,
-        s3 - s2,
-    );
-    let (d00, d10, d01, d11) = (
-        6.0 * s2 - 6.0 * s,
-        3.0 * s2 - 4.0 * s + 1.0,
-        -6.0 * s2 + 6.0 * s,
-        3.0 * s2 - 2.0 * s,
-    );
+    let ([h00, h10, h01, h11], [d00, d10, d01, d11]) = crate::trajectory::cubic_hermite(s);
     for i in 0..n {
         let (q0, v0, a0) = (start[i], start[n + i], start[2 * n + i]);
         let (q1, v1, a1) = (end[i], end[n + i], end[2 * n + i]);
