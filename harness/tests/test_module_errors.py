@@ -228,8 +228,11 @@ def test_a_failed_inverse_solve_raises_and_one_iteration_solves_a_full_prescript
 
 
 # A child that runs until interrupted, then prints what the KeyboardInterrupt carried.
+# It takes Python's own Ctrl-C handler: started from a shell's background job, it
+# would inherit SIGINT ignored, and Python then installs none.
 CHILD = textwrap.dedent("""
-    import json, sys, time
+    import json, signal, sys, time
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     import mbfg
     print("ready", flush=True)
     try:
