@@ -35,11 +35,10 @@ reference: python
 # The tests check the solvers against the oracles of the feature `testing`
 # (mbfg::reference, mbfg::motions, mbfg::inverse::classical), which the library's
 # own build leaves out. The command the harness tests run is the one `cargo test`
-# built for the CLI's tests (the feature adds only those oracles; building it again
-# without them would compile mbfg a third time).
+# built for the CLI's tests, target/release/mbfg (the feature adds only those
+# oracles; building it again would compile mbfg a third time).
 test: python
 	$(CARGO) test --release --features testing
-	$(CARGO) build --release --features testing
 	@set -e; for s in $(SCENES); do $(MBFG) check $$s > /dev/null; done; echo "mbfg check: $(words $(SCENES)) scenes passed, 0 failed"
 	.venv/bin/python -m pytest harness/tests -q
 
