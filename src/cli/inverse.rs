@@ -154,19 +154,7 @@ fn sample_sigma(text: &str, columns: &[&str]) -> Result<mbfg::inverse::SampleSig
         }
         given[c] = Some(number(value, &format!("the σ of `{name}`"))?);
     }
-    let missing: Vec<&str> = columns
-        .iter()
-        .zip(&given)
-        .filter(|(_, g)| g.is_none())
-        .map(|(c, _)| *c)
-        .collect();
-    if !missing.is_empty() {
-        return Err(format!(
-            "--sample-sigma: no σ for {} (name every prescribed coordinate, or give one σ for all)",
-            missing.join(", ")
-        ));
-    }
-    Ok(SampleSigma::Given(given.into_iter().flatten().collect()))
+    SampleSigma::per_column(columns, given).map_err(|why| format!("--sample-sigma: {why}"))
 }
 
 /// The summary's words on the smoothing: per column its σ (given, from the scatter,

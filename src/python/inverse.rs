@@ -124,21 +124,9 @@ fn arg_sample_sigma(
             };
             given[c] = Some(positive(&v, &format!("sample_sigma['{name}']"))?);
         }
-        let missing: Vec<&str> = columns
-            .iter()
-            .zip(&given)
-            .filter(|(_, g)| g.is_none())
-            .map(|(c, _)| *c)
-            .collect();
-        if !missing.is_empty() {
-            return Err(invalid(format!(
-                "sample_sigma: no σ for {} (name every prescribed coordinate, or give one σ for all)",
-                missing.join(", ")
-            )));
-        }
-        return Ok(Some(SampleSigma::Given(
-            given.into_iter().flatten().collect(),
-        )));
+        return SampleSigma::per_column(columns, given)
+            .map(Some)
+            .map_err(|why| invalid(format!("sample_sigma: {why}")));
     }
     let v = positive(value, "sample_sigma")?;
     Ok(Some(SampleSigma::Given(vec![v; columns.len()])))

@@ -433,21 +433,13 @@ fn failure(model: &Model, state: &[f64], row: usize, dt: f64, t: f64, h: f64) ->
             crate::trajectory::round_time(t)
         )
     });
-    StepFailure {
-        step: row,
-        t: row as f64 * dt,
-        report: SolveReport::new(Termination::IterationLimit, 0, f64::NAN),
-        constraint_conditioning: crate::kinematics::constraint_conditioning(
-            model,
-            model.initial.q.as_slice(),
-            q,
-        ),
-        singular: None,
-        warm_start: false,
-        batch: false,
-        cause: Some(cause),
-        fast_body: None,
-    }
+    StepFailure::with_cause(
+        row,
+        row as f64 * dt,
+        SolveReport::new(Termination::IterationLimit, 0, f64::NAN),
+        crate::kinematics::constraint_conditioning(model, model.initial.q.as_slice(), q),
+        cause,
+    )
 }
 
 #[cfg(test)]

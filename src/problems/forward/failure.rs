@@ -42,6 +42,28 @@ impl StepFailure {
     /// step the implicit equations of a coarse step stop having a nearby solution.
     pub const LARGE_TURN: f64 = 0.5;
 
+    /// A failure found outside a window solve (a state that is not finite, a step no
+    /// size converged): its `report`, the constraints' conditioning there, and why.
+    pub(super) fn with_cause(
+        step: usize,
+        t: f64,
+        report: SolveReport,
+        constraint_conditioning: f64,
+        cause: String,
+    ) -> Self {
+        StepFailure {
+            step,
+            t,
+            report,
+            constraint_conditioning,
+            singular: None,
+            warm_start: false,
+            batch: false,
+            cause: Some(cause),
+            fast_body: None,
+        }
+    }
+
     /// Whether the step's solve converged but a body turned more than
     /// [`StepFailure::LARGE_TURN`] over it: the run is not to be trusted from there
     /// (a failure only with refinement off; by default such a run is refined).
@@ -157,17 +179,13 @@ pub(super) fn non_finite_at(
             model.scene.file
         )));
     }
-    Ok(Some(StepFailure {
-        step: k,
+    Ok(Some(StepFailure::with_cause(
+        k,
         t,
-        report: SolveReport::new(Termination::Diverged, 0, f64::INFINITY),
-        constraint_conditioning: 1.0,
-        singular: None,
-        warm_start: false,
-        batch: false,
-        cause: Some(cause),
-        fast_body: None,
-    }))
+        SolveReport::new(Termination::Diverged, 0, f64::INFINITY),
+        1.0,
+        cause,
+    )))
 }
 
 #[cfg(test)]

@@ -40,6 +40,29 @@ pub enum SampleSigma {
     FromData,
 }
 
+impl SampleSigma {
+    /// The σ's named per prescribed column (`given[c]` for `columns[c]`), or why not:
+    /// the columns left without one.
+    pub fn per_column(
+        columns: &[&str],
+        given: Vec<Option<f64>>,
+    ) -> std::result::Result<Self, String> {
+        let missing: Vec<&str> = columns
+            .iter()
+            .zip(&given)
+            .filter(|(_, g)| g.is_none())
+            .map(|(c, _)| *c)
+            .collect();
+        if !missing.is_empty() {
+            return Err(format!(
+                "no σ for {} (name every prescribed coordinate, or give one σ for all)",
+                missing.join(", ")
+            ));
+        }
+        Ok(SampleSigma::Given(given.into_iter().flatten().collect()))
+    }
+}
+
 /// What the smoothing found for one prescribed coordinate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ColumnFit {
