@@ -15,6 +15,40 @@ use crate::scene::Effect;
 use crate::trajectory::Trajectory;
 use std::f64::consts::PI;
 
+/// How the `energy` group integrates each effect's power between two samples.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum WorkRule {
+    /// The trapezoidal rule on the power at the samples: second order, as the
+    /// trapezoidal and Euler integrators.
+    #[default]
+    Trapezoidal,
+    /// Simpson's rule, the power in the middle taken on the cubic Hermite interpolant
+    /// of the two samples' q, q̇, q̈: fourth order, as Hermite–Simpson. The trapezoidal
+    /// rule would read its own error as the fourth-order run's.
+    HermiteSimpson,
+}
+
+impl WorkRule {
+    /// The rule of the integrator's order.
+    pub fn of(integrator: crate::forward::Integrator) -> WorkRule {
+        match integrator {
+            crate::forward::Integrator::HermiteSimpson => WorkRule::HermiteSimpson,
+            _ => WorkRule::Trapezoidal,
+        }
+    }
+}
+
+/// The middle of a step of length h between two samples `a` and `b` (each q, q̇, q̈
+/// of n coordinates in a row) on the cubic Hermite interpolants: of q from q, q̇, of q̇
+/// from q̇, q̈.
+pub(crate) fn hermite_middle(a: &[f64], b: &[f64], h: f64, q_mid: &mut [f64], dq_mid: &mut [f64]) {
+    let n = q_mid.len();
+    for i in 0..n {
+        q_mid[i] = 0.5 * (a[i] + b[i]) + 0.125 * h * (a[n + i] - b[n + i]);
+        dq_mid[i] = 0.5 * (a[n + i] + b[n + i]) + 0.125 * h * (a[2 * n + i] - b[2 * n + i]);
+    }
+}
+
 /// A group of optional columns.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Group {
@@ -108,18 +142,20 @@ impl Columns {
 
 /// The columns of `groups` (in their order) for every sample of `trajectory`.
 /// `actuators` are the generalized forces an inverse solve found (row-major samples
-/// × n): their work is counted in the energy balance as `work:Q`.
+/// × n): their work is counted in the energy balance as `work:Q`. `rule` integrates
+/// the work columns.
 pub fn columns(
     model: &Model,
     trajectory: &Trajectory,
     groups: &[Group],
     actuators: Option<&[f64]>,
+    rule: WorkRule,
 ) -> Result<Columns> {
     let mut out = Columns::default();
     for g in groups {
         let next = match g {
             Group::Bodies => bodies(model, trajectory),
-            Group::Energy => energy(model, trajectory, actuators)?,
+            Group::Energy => energy(model, trajectory, actuators, rule)?,
             Group::Joints => joints(model, trajectory, actuators)?,
             Group::Constraints => constraints(model, trajectory, actuators)?,
         };
@@ -263,12 +299,14 @@ pub fn effect_name(effect: &Effect) -> &str {
 
 /// `kinetic`, `potential`, `work:<effect>` for every effect with a non-conservative
 /// part (and `work:Q` for `actuators`), and `energy_balance` = kinetic + potential −
-/// their values at the first sample − Σ work. The work is the trapezoidal integral
-/// of the power Q_effect(q, q̇, t)·q̇ over every sample given, so decimate after this.
+/// their values at the first sample − Σ work. The work is the integral of the power
+/// Q_effect(q, q̇, t)·q̇ by `rule` over every sample given, so decimate after this;
+/// that of `actuators`, known at the samples only, by the trapezoidal rule.
 pub fn energy(
     model: &Model,
     trajectory: &Trajectory,
     actuators: Option<&[f64]>,
+    rule: WorkRule,
 ) -> Result<Columns> {
     let n = model.n();
     let mut effects: Vec<(String, Force)> = Vec::new();
@@ -297,25 +335,46 @@ pub fn energy(
     let mut power = vec![0.0; works];
     let mut initial = 0.0;
     let mut generalized = vec![0.0; n];
+    let power_of = |f: &Force, name: &str, q: &[f64], dq: &[f64], t: f64, g: &mut [f64]| {
+        g.fill(0.0);
+        f.add_to(model, q, dq, t, g).map_err(|e| {
+            Error::InvalidArgument(format!("the work of effect {name} at t = {t} s: {e}"))
+        })?;
+        Ok::<f64, Error>(g.iter().zip(dq).map(|(a, b)| a * b).sum())
+    };
+    let (mut before, mut now) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
+    let (mut q_mid, mut dq_mid) = (vec![0.0; n], vec![0.0; n]);
     for k in 0..trajectory.len() {
         let (q, dq, t) = (trajectory.q_at(k), trajectory.dq_at(k), trajectory.t[k]);
-        let dot = |f: &[f64]| f.iter().zip(dq).map(|(a, b)| a * b).sum::<f64>();
         for (j, (name, f)) in effects.iter().enumerate() {
-            generalized.fill(0.0);
-            f.add_to(model, q, dq, t, &mut generalized).map_err(|e| {
-                Error::InvalidArgument(format!("the work of effect {name} at t = {t} s: {e}"))
-            })?;
-            power[j] = dot(&generalized);
+            power[j] = power_of(f, name, q, dq, t, &mut generalized)?;
         }
         if let Some(a) = actuators {
-            power[works - 1] = dot(&a[k * n..(k + 1) * n]);
+            power[works - 1] = a[k * n..(k + 1) * n]
+                .iter()
+                .zip(dq)
+                .map(|(f, v)| f * v)
+                .sum();
         }
+        now[..n].copy_from_slice(q);
+        now[n..2 * n].copy_from_slice(dq);
+        now[2 * n..].copy_from_slice(trajectory.ddq_at(k));
         if k > 0 {
             let h = t - trajectory.t[k - 1];
             for j in 0..works {
                 work[j] += 0.5 * h * (power_before[j] + power[j]);
             }
+            if rule == WorkRule::HermiteSimpson {
+                hermite_middle(&before, &now, h, &mut q_mid, &mut dq_mid);
+                let t_mid = t - 0.5 * h;
+                for (j, (name, f)) in effects.iter().enumerate() {
+                    let mid = power_of(f, name, &q_mid, &dq_mid, t_mid, &mut generalized)?;
+                    // Simpson's h/6 (p₀ + 4 p_m + p₁) in place of h/2 (p₀ + p₁).
+                    work[j] += h / 6.0 * (4.0 * mid - 2.0 * (power_before[j] + power[j]));
+                }
+            }
         }
+        std::mem::swap(&mut before, &mut now);
         power_before.copy_from_slice(&power);
         let kinetic = model.kinetic_energy(&nalgebra::DVector::from_column_slice(dq));
         let potential = model.potential_energy(&nalgebra::DVector::from_column_slice(q));
@@ -373,7 +432,7 @@ mod tests {
     #[test]
     fn pendulum_energy_balances_and_body_angle_is_theta() {
         let (model, tr) = run("pendulum.yaml", 2.0);
-        let c = columns(&model, &tr, &[Group::Bodies, Group::Energy], None).unwrap();
+        let c = columns(&model, &tr, &[Group::Bodies, Group::Energy], None, WorkRule::Trapezoidal).unwrap();
         // Gravity only: no work column.
         assert!(
             !c.names.iter().any(|n| n.starts_with("work:")),
@@ -407,7 +466,7 @@ mod tests {
     #[test]
     fn damper_work_closes_the_balance() {
         let (model, tr) = run("spring-damper.yaml", 3.0);
-        let c = energy(&model, &tr, None).unwrap();
+        let c = energy(&model, &tr, None, WorkRule::Trapezoidal).unwrap();
         assert_eq!(
             c.names,
             ["kinetic", "potential", "work:spring", "energy_balance"]
@@ -429,12 +488,38 @@ mod tests {
     }
 
     #[test]
+    fn hermite_simpson_work_falls_at_fourth_order() {
+        // A Hermite–Simpson run's balance, its work by Simpson's rule on the Hermite
+        // middle, falls 16× a halving of dt; by the trapezoidal rule it is that rule's
+        // error, larger and second order.
+        let path = format!("{}/scenes/spring-damper.yaml", env!("CARGO_MANIFEST_DIR"));
+        let model = Model::new(&Scene::load(path).unwrap()).unwrap();
+        let balance = |dt: f64, rule: WorkRule| {
+            let mut options =
+                ForwardOptions::new(Coordinates::Dependent, dt, 2.0, Mode::FixedLag(1));
+            options.integrator = crate::forward::Integrator::HermiteSimpson;
+            let (tr, summary) =
+                simulate(Arc::new(model.clone()), &options, &mut |_, _| {}).unwrap();
+            assert!(summary.failures.is_empty());
+            let c = energy(&model, &tr, None, rule).unwrap();
+            max_abs(&c.column("energy_balance").unwrap())
+        };
+        let (coarse, fine) = (
+            balance(0.02, WorkRule::HermiteSimpson),
+            balance(0.01, WorkRule::HermiteSimpson),
+        );
+        assert!(coarse / fine > 12.0, "{coarse} / {fine}");
+        let trapezoidal = balance(0.01, WorkRule::Trapezoidal);
+        assert!(trapezoidal > 100.0 * fine, "{trapezoidal} vs {fine}");
+    }
+
+    #[test]
     fn actuator_work_is_its_own_column() {
         let (model, tr) = run("pendulum.yaml", 0.1);
         let n = model.n();
         // A made-up constant force on every coordinate: its work is Σ f·Δq.
         let forces = vec![1.0; tr.len() * n];
-        let c = energy(&model, &tr, Some(&forces)).unwrap();
+        let c = energy(&model, &tr, Some(&forces), WorkRule::Trapezoidal).unwrap();
         let work = c.column("work:Q").unwrap();
         let last = tr.len() - 1;
         let expected: f64 = (0..n).map(|i| tr.q_at(last)[i] - tr.q_at(0)[i]).sum();

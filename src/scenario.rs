@@ -284,7 +284,8 @@ fn judge_run(
     // The product checks the energy of every run: a conservative scene's drift, the
     // balance against the work of the others (every integrator, DC and IC).
     if !warned {
-        let energy = crate::derived::energy(model, tr, None).ok()?;
+        let rule = crate::derived::WorkRule::of(summary.plan.integrator);
+        let energy = crate::derived::energy(model, tr, None, rule).ok()?;
         let balance = energy.column("energy_balance")?;
         let kinetic = energy.column("kinetic")?;
         let potential = energy.column("potential")?;

@@ -60,6 +60,10 @@ impl Trajectory {
     pub fn dq_at(&self, k: usize) -> &[f64] {
         &self.dq[k * self.n()..(k + 1) * self.n()]
     }
+
+    pub fn ddq_at(&self, k: usize) -> &[f64] {
+        &self.ddq[k * self.n()..(k + 1) * self.n()]
+    }
 }
 
 /// A time for messages: t₀ + k·Δt carries round-off (1.2690000000000001).

@@ -222,7 +222,11 @@ fn inverse(
     let prescription =
         mbfg::inverse::Prescription::from_table(&model, &table, &trajectory.display().to_string())
             .map_err(plain)?;
-    let written = Written::new(written, prescription.dt)?;
+    let written = Written::new(
+        written,
+        prescription.dt,
+        mbfg::derived::WorkRule::Trapezoidal,
+    )?;
     let columns: Vec<&str> = prescription
         .indices
         .iter()

@@ -255,7 +255,11 @@ pub fn run(args: SimulateArgs) -> Result<(), Failure> {
         // A window longer than the run is the whole run.
         options.mode = Mode::FixedLag(w.min(options.steps()));
     }
-    let written = Written::new(&written, dt)?;
+    let written = Written::new(
+        &written,
+        dt,
+        mbfg::derived::WorkRule::of(options.integrator),
+    )?;
     simulate(
         model,
         &options,

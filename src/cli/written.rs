@@ -26,6 +26,7 @@ pub struct WrittenArgs {
 pub struct Written {
     stride: usize,
     groups: Vec<mbfg::derived::Group>,
+    rule: mbfg::derived::WorkRule,
 }
 
 impl WrittenArgs {
@@ -36,8 +37,9 @@ impl WrittenArgs {
 }
 
 impl Written {
-    /// Checks the options against the time step; errors are bad input.
-    pub fn new(args: &WrittenArgs, dt: f64) -> Result<Self, String> {
+    /// Checks the options against the time step; errors are bad input. `rule`
+    /// integrates the work columns (that of the run's integrator).
+    pub fn new(args: &WrittenArgs, dt: f64, rule: mbfg::derived::WorkRule) -> Result<Self, String> {
         let stride = match args.sample_dt {
             Some(s) => mbfg::io::sample_stride(dt, s)?,
             None => 1,
@@ -46,7 +48,11 @@ impl Written {
             Some(list) => mbfg::derived::Group::parse_list(list)?,
             None => Vec::new(),
         };
-        Ok(Written { stride, groups })
+        Ok(Written {
+            stride,
+            groups,
+            rule,
+        })
     }
 
     /// Whether the rows can be written as the run's steps become final: the
@@ -71,7 +77,7 @@ impl Written {
         let extra = if self.groups.is_empty() {
             None
         } else {
-            let c = mbfg::derived::columns(model, trajectory, &self.groups, actuators)
+            let c = mbfg::derived::columns(model, trajectory, &self.groups, actuators, self.rule)
                 .map_err(|e| Failure::Run(plain(e)))?;
             Some(c)
         };
@@ -134,10 +140,10 @@ mod tests {
             sample_dt,
             columns: columns.map(str::to_string),
         };
-        let w = Written::new(&args(Some(0.01), Some("energy")), 0.001).unwrap();
+        let w = Written::new(&args(Some(0.01), Some("energy")), 0.001, Default::default()).unwrap();
         assert_eq!(w.stride, 10);
         assert_eq!(w.groups, [mbfg::derived::Group::Energy]);
-        assert!(Written::new(&args(Some(0.0015), None), 0.001).is_err());
-        assert!(Written::new(&args(None, Some("nope")), 0.001).is_err());
+        assert!(Written::new(&args(Some(0.0015), None), 0.001, Default::default()).is_err());
+        assert!(Written::new(&args(None, Some("nope")), 0.001, Default::default()).is_err());
     }
 }

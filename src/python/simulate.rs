@@ -383,8 +383,14 @@ pub(super) fn simulate_run<'py>(
                 .set_item("until", d)?;
         }
         if !groups.is_empty() && s.failures.is_empty() && signal.is_none() {
-            let extra = crate::derived::columns(&model_for_checks, &tr, &groups, None)
-                .map_err(arg_error)?;
+            let extra = crate::derived::columns(
+                &model_for_checks,
+                &tr,
+                &groups,
+                None,
+                crate::derived::WorkRule::of(s.plan.integrator),
+            )
+            .map_err(arg_error)?;
             out.set_item("extra_columns", extra.names)?;
             out.set_item("extra", PyArray1::from_vec(py, extra.values))?;
         }

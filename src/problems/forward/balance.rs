@@ -118,13 +118,7 @@ impl Balance {
         let n = model.n();
         let h = t1 - t0;
         if self.simpson {
-            // The cubic Hermite interpolant's middle, of q (from q, q̇) and of q̇ (from
-            // q̇, q̈).
-            for i in 0..n {
-                self.q_mid[i] = 0.5 * (a[i] + b[i]) + 0.125 * h * (a[n + i] - b[n + i]);
-                self.dq_mid[i] =
-                    0.5 * (a[n + i] + b[n + i]) + 0.125 * h * (a[2 * n + i] - b[2 * n + i]);
-            }
+            crate::derived::hermite_middle(a, b, h, &mut self.q_mid, &mut self.dq_mid);
         }
         let (q_mid, dq_mid) = (
             std::mem::take(&mut self.q_mid),
