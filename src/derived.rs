@@ -164,6 +164,86 @@ pub fn columns(
     Ok(out)
 }
 
+/// A run's rows and, for a refined run, the steps taken between them
+/// ([`StepSink::between`](crate::forward::StepSink::between)): the columns integrate
+/// the work, and unwrap the angles, over every step taken, then keep the rows.
+pub struct Steps {
+    /// Every step handed on, rows and (where kept) those between.
+    taken: Trajectory,
+    /// The index in `taken` of each row.
+    rows: Vec<usize>,
+    /// Whether the steps between rows are kept (only the columns need them).
+    between: bool,
+}
+
+impl Steps {
+    /// Holds the rows, and the steps between them where `between`.
+    pub fn new(model: &Model, between: bool) -> Steps {
+        Steps {
+            between,
+            taken: Trajectory {
+                names: model.names.clone(),
+                t: Vec::new(),
+                q: Vec::new(),
+                dq: Vec::new(),
+                ddq: Vec::new(),
+            },
+            rows: Vec::new(),
+        }
+    }
+
+    /// The rows handed on, as a trajectory.
+    pub fn into_rows(self) -> Trajectory {
+        match self.rows.len() == self.taken.len() {
+            true => self.taken,
+            false => self.taken.pick(&self.rows),
+        }
+    }
+
+    /// The number of rows handed on.
+    pub fn len(&self) -> usize {
+        self.rows.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.rows.is_empty()
+    }
+
+    /// The columns of `groups` at the rows, computed over every step taken.
+    pub fn columns(&self, model: &Model, groups: &[Group], rule: WorkRule) -> Result<Columns> {
+        // (Steps after the last row, of an interrupted run, change none before it.)
+        let all = columns(model, &self.taken, groups, None, rule)?;
+        let width = all.names.len();
+        let mut values = Vec::with_capacity(self.rows.len() * width);
+        for &k in &self.rows {
+            values.extend_from_slice(&all.values[k * width..(k + 1) * width]);
+        }
+        Ok(Columns {
+            names: all.names,
+            values,
+        })
+    }
+}
+
+impl crate::forward::StepSink for Steps {
+    fn step(&mut self, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> Result<()> {
+        self.rows.push(self.taken.len());
+        self.taken.step(t, q, dq, ddq)
+    }
+
+    fn between(&mut self, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> Result<()> {
+        match self.between {
+            true => self.taken.step(t, q, dq, ddq),
+            false => Ok(()),
+        }
+    }
+
+    fn restart(&mut self) -> Result<()> {
+        self.rows.clear();
+        self.taken.restart()
+    }
+}
+
 /// `F:<body>@<point>.x`, `.y` for every body and each of its points: the force on
 /// the body there, N. `actuators` (an inverse solve's) are among the loads.
 pub fn joints(
@@ -432,7 +512,14 @@ mod tests {
     #[test]
     fn pendulum_energy_balances_and_body_angle_is_theta() {
         let (model, tr) = run("pendulum.yaml", 2.0);
-        let c = columns(&model, &tr, &[Group::Bodies, Group::Energy], None, WorkRule::Trapezoidal).unwrap();
+        let c = columns(
+            &model,
+            &tr,
+            &[Group::Bodies, Group::Energy],
+            None,
+            WorkRule::Trapezoidal,
+        )
+        .unwrap();
         // Gravity only: no work column.
         assert!(
             !c.names.iter().any(|n| n.starts_with("work:")),

@@ -206,14 +206,25 @@ pub fn judge_with(bytes: &[u8], derivatives: Derivatives) -> Option<String> {
             ForwardOptions::new(coordinates, dt, dt * steps as f64, Mode::FixedLag(1));
         options.integrator = integrator;
         options.settings.max_iterations = 50;
-        match forward::simulate(Arc::new(model.clone()), &options, &mut |_, _| {}) {
+        // Every step kept, so that the energy columns are those the CLI writes.
+        let mut steps = crate::derived::Steps::new(&model, true);
+        let run = forward::simulate_streaming(
+            Arc::new(model.clone()),
+            &options,
+            &mut |_, _| std::ops::ControlFlow::Continue(()),
+            &mut steps,
+        );
+        match run.map(|summary| (steps, summary)) {
             Err(e) => {
                 if let Err(m) = one_line(&e.to_string()) {
                     return Some(format!("{m}\n{text}"));
                 }
             }
-            Ok((tr, summary)) => {
-                if let Some(bad) = judge_run(&model, &tr, &summary, derivatives) {
+            Ok((steps, summary)) => {
+                let rule = crate::derived::WorkRule::of(summary.plan.integrator);
+                let energy = steps.columns(&model, &[crate::derived::Group::Energy], rule);
+                let tr = steps.into_rows();
+                if let Some(bad) = judge_run(&model, &tr, &summary, energy.ok(), derivatives) {
                     return Some(format!(
                         "{integrator:?}, {coordinates:?}, dt {dt}: {bad}\n{text}"
                     ));
@@ -257,6 +268,7 @@ fn judge_run(
     model: &Model,
     tr: &Trajectory,
     summary: &forward::RunSummary,
+    energy: Option<crate::derived::Columns>,
     derivatives: Derivatives,
 ) -> Option<String> {
     if !finite(tr) {
@@ -284,8 +296,7 @@ fn judge_run(
     // The product checks the energy of every run: a conservative scene's drift, the
     // balance against the work of the others (every integrator, DC and IC).
     if !warned {
-        let rule = crate::derived::WorkRule::of(summary.plan.integrator);
-        let energy = crate::derived::energy(model, tr, None, rule).ok()?;
+        let energy = energy?;
         let balance = energy.column("energy_balance")?;
         let kinetic = energy.column("kinetic")?;
         let potential = energy.column("potential")?;

@@ -157,6 +157,13 @@ impl StepSink for Watch<'_> {
         Ok(())
     }
 
+    fn between(&mut self, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> Result<()> {
+        match self.stopped {
+            Some(_) => Ok(()),
+            None => self.inner.between(t, q, dq, ddq),
+        }
+    }
+
     fn restart(&mut self) -> Result<()> {
         self.last = None;
         self.steps = 0;

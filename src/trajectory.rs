@@ -27,8 +27,17 @@ impl Trajectory {
 
     /// Every `stride`-th sample (0, stride, 2·stride, …), on the grid t_j = j·dt.
     pub fn every(&self, stride: usize, dt: f64) -> Trajectory {
-        let n = self.n();
         let rows: Vec<usize> = (0..self.len()).step_by(stride.max(1)).collect();
+        let mut picked = self.pick(&rows);
+        for (j, t) in picked.t.iter_mut().enumerate() {
+            *t = j as f64 * dt;
+        }
+        picked
+    }
+
+    /// The samples at `rows`, in that order.
+    pub fn pick(&self, rows: &[usize]) -> Trajectory {
+        let n = self.n();
         let pick = |v: &[f64]| {
             rows.iter()
                 .flat_map(|&r| &v[r * n..(r + 1) * n])
@@ -37,7 +46,7 @@ impl Trajectory {
         };
         Trajectory {
             names: self.names.clone(),
-            t: (0..rows.len()).map(|j| j as f64 * dt).collect(),
+            t: rows.iter().map(|&r| self.t[r]).collect(),
             q: pick(&self.q),
             dq: pick(&self.dq),
             ddq: pick(&self.ddq),

@@ -340,13 +340,9 @@ fn simulate(
     let result = match (until, streamed.as_mut()) {
         (Some(condition), sink) => {
             // The rows go to the file, or are held (the memory was checked above).
-            let mut held = sink.is_none().then(|| forward::Trajectory {
-                names: model.names.clone(),
-                t: Vec::new(),
-                q: Vec::new(),
-                dq: Vec::new(),
-                ddq: Vec::new(),
-            });
+            let mut held = sink
+                .is_none()
+                .then(|| mbfg::derived::Steps::new(&model, !written.streams()));
             let inner: &mut dyn forward::StepSink = match (sink, held.as_mut()) {
                 (Some(sink), _) => sink,
                 (None, Some(held)) => held,
@@ -362,8 +358,12 @@ fn simulate(
             forward::simulate_streaming(model.clone(), options, &mut progress, sink)
                 .map(|summary| (None, summary))
         }
-        (None, None) => forward::simulate_interruptible(model.clone(), options, &mut progress)
-            .map(|(trajectory, summary)| (Some(trajectory), summary)),
+        (None, None) => {
+            // (The memory was checked above.)
+            let mut held = mbfg::derived::Steps::new(&model, !written.streams());
+            forward::simulate_streaming(model.clone(), options, &mut progress, &mut held)
+                .map(|summary| (Some(held), summary))
+        }
     };
     bar.finish();
     let (trajectory, mut summary) = result.map_err(|e| Failure::Run(plain(e)))?;
@@ -389,13 +389,12 @@ fn simulate(
     // What was kept of a run that ended early (its rows written, held or streamed).
     let keep_partial = |output: Output, run: Run, why: &str| -> Result<String, Failure> {
         match run {
-            Run::Held(trajectory) => output
-                .keep_partial(
-                    &trajectory,
-                    &written.prepare(&model, &trajectory, None)?.csv(None),
-                    why,
-                )
-                .map_err(Failure::Run),
+            Run::Held(steps) => {
+                let (trajectory, prepared) = written.prepare_steps(&model, steps)?;
+                output
+                    .keep_partial(&trajectory, &prepared.csv(None), why)
+                    .map_err(Failure::Run)
+            }
             Run::Streamed(streamed) => output
                 .keep_partial_streamed(*streamed)
                 .map_err(Failure::Run),
@@ -511,12 +510,12 @@ fn simulate(
         super::tell(&format!("warning: {w}"));
     }
     match run {
-        Run::Held(trajectory) => output
-            .commit(
-                &trajectory,
-                &written.prepare(&model, &trajectory, None)?.csv(None),
-            )
-            .map_err(Failure::Run)?,
+        Run::Held(steps) => {
+            let (trajectory, prepared) = written.prepare_steps(&model, steps)?;
+            output
+                .commit(&trajectory, &prepared.csv(None))
+                .map_err(Failure::Run)?
+        }
         Run::Streamed(streamed) => output.commit_streamed(*streamed).map_err(Failure::Run)?,
     }
     print_summary(to_file, &line);
@@ -525,7 +524,7 @@ fn simulate(
 
 /// A run's rows: held until it ends, or already in the output's temporary file.
 enum Run {
-    Held(forward::Trajectory),
+    Held(mbfg::derived::Steps),
     Streamed(Box<super::output::Streamed>),
 }
 

@@ -66,6 +66,26 @@ impl Written {
         self.stride
     }
 
+    /// The rows a run handed on, and their optional columns computed over every step
+    /// it took (a refined run's between them too).
+    pub fn prepare_steps(
+        &self,
+        model: &Model,
+        steps: mbfg::derived::Steps,
+    ) -> Result<(forward::Trajectory, Prepared), Failure> {
+        let extra = match self.groups.is_empty() {
+            true => None,
+            false => Some(
+                steps
+                    .columns(model, &self.groups, self.rule)
+                    .map_err(|e| Failure::Run(plain(e)))?,
+            ),
+        };
+        let trajectory = steps.into_rows();
+        let rows = (self.stride > 1).then(|| mbfg::io::sampled_rows(trajectory.len(), self.stride));
+        Ok((trajectory, Prepared { extra, rows }))
+    }
+
     /// The optional columns over every step (the work integrals need them all), and
     /// the rows to write.
     pub fn prepare(

@@ -320,19 +320,17 @@ pub(super) fn simulate_run<'py>(
             py,
             || !loads.is_empty() && is_interrupted(&loads),
             |progress| match &until {
-                None => forward::simulate_interruptible(model, &options, progress)
-                    .map(|(tr, s)| (tr, s, None)),
+                None => {
+                    options.check_memory(&model, true)?;
+                    let mut steps = crate::derived::Steps::new(&model, !groups.is_empty());
+                    forward::simulate_streaming(model, &options, progress, &mut steps)
+                        .map(|s| (steps, s, None))
+                }
                 Some(condition) => {
                     options.check_memory(&model, true)?;
-                    let mut tr = Trajectory {
-                        names: model.names.clone(),
-                        t: Vec::new(),
-                        q: Vec::new(),
-                        dq: Vec::new(),
-                        ddq: Vec::new(),
-                    };
+                    let mut steps = crate::derived::Steps::new(&model, !groups.is_empty());
                     let mut watch =
-                        crate::stop::Watch::new(&model, condition, &mut tr, hit.clone());
+                        crate::stop::Watch::new(&model, condition, &mut steps, hit.clone());
                     let mut watched = |done, total| match hit.load(Ordering::Relaxed) {
                         true => ControlFlow::Break(()),
                         false => progress(done, total),
@@ -344,13 +342,13 @@ pub(super) fn simulate_run<'py>(
                         &mut watch,
                     )?;
                     let stopped = watch.stopped;
-                    Ok((tr, s, stopped))
+                    Ok((steps, s, stopped))
                 }
             },
         );
         // A Ctrl-C that a Python effect's call received is the run's signal.
         let signal = signal.or_else(|| interrupted(&loads));
-        let (tr, mut s, stopped) = match run {
+        let (steps, mut s, stopped) = match run {
             Ok(run) => run,
             // No trajectory comes back from a library error; an interrupt came first.
             Err(e) => {
@@ -367,6 +365,20 @@ pub(super) fn simulate_run<'py>(
                 return Err(with_result(py, err, None));
             }
         };
+        // The optional columns over every step taken (a refined run's between rows).
+        let extra = match !groups.is_empty() && s.failures.is_empty() && signal.is_none() {
+            true => Some(
+                steps
+                    .columns(
+                        &model_for_checks,
+                        &groups,
+                        crate::derived::WorkRule::of(s.plan.integrator),
+                    )
+                    .map_err(arg_error)?,
+            ),
+            false => None,
+        };
+        let tr = steps.into_rows();
         if let Some((k, _)) = stopped {
             // The steps solved past the stop are not kept; the run is whole up to it.
             s.steps = s.steps.min(k + 1);
@@ -382,15 +394,7 @@ pub(super) fn simulate_run<'py>(
                 .ok_or_else(|| PyRuntimeError::new_err("a result without a summary"))?
                 .set_item("until", d)?;
         }
-        if !groups.is_empty() && s.failures.is_empty() && signal.is_none() {
-            let extra = crate::derived::columns(
-                &model_for_checks,
-                &tr,
-                &groups,
-                None,
-                crate::derived::WorkRule::of(s.plan.integrator),
-            )
-            .map_err(arg_error)?;
+        if let Some(extra) = extra {
             out.set_item("extra_columns", extra.names)?;
             out.set_item("extra", PyArray1::from_vec(py, extra.values))?;
         }

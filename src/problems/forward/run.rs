@@ -28,6 +28,12 @@ pub trait StepSink {
     /// The run starts again from its initial state (made again with tangent
     /// integrator factors, or at a finer step): the steps received so far are void.
     fn restart(&mut self) -> Result<()>;
+    /// A step of a refined run between two of the rows it hands to `step` (at the
+    /// step's own time): ignored, but by a sink that integrates over every step taken
+    /// ([`crate::derived::Steps`]).
+    fn between(&mut self, _t: f64, _q: &[f64], _dq: &[f64], _ddq: &[f64]) -> Result<()> {
+        Ok(())
+    }
 }
 
 impl StepSink for Trajectory {
@@ -244,7 +250,7 @@ impl<'a> Rows<'a> {
                 self.sink.step(self.written as f64 * dt, q, dq, ddq)?;
                 self.written += 1;
             }
-            Some(_) => {}
+            Some(_) => self.sink.between(t, q, dq, ddq)?,
         }
         self.len += 1;
         self.last_t = t;
