@@ -130,6 +130,18 @@ fn bad_trajectory_files_exit_2_with_a_clear_message() {
             "t,theta\n0,0\n1e-200,0\n2e-200,1\n3e-200,0\n4e-200,0\n5e-200,0".into(),
             "column `theta`: the samples' rate or acceleration there is not finite",
         ),
+        // An angle turning more than π from one sample to the next: an outlier
+        // (its solve took minutes), or an angle wrapped to (−π, π].
+        (
+            "outlier.csv",
+            "t,theta\n0,0\n0.01,0.01\n0.02,0.02\n0.03,100\n0.04,0.04\n0.05,0.05".into(),
+            ":5: column `theta`: the angle changes by 99.98 rad from the sample before, more than π in one time step (an outlier",
+        ),
+        (
+            "wrapped.csv",
+            "t,theta\n0,3.1\n0.01,3.12\n0.02,3.14\n0.03,-3.12\n0.04,-3.1\n0.05,-3.08".into(),
+            "an angle wrapped to (−π, π]; unwrap it",
+        ),
         (
             "far-time.csv",
             "t,theta\n0,0\n0.01,0\n1e300,0\n0.03,0\n0.04,0\n0.05,0".into(),

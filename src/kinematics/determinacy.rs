@@ -236,7 +236,7 @@ impl Determinacy {
         // angles: a body's angle follows it through whole turns, where a point's x or
         // y loses rank twice a turn (docs/dc-stall.md, "8. Independent coordinates
         // that stop determining the others").
-        let angles = |set: &[usize]| set.iter().filter(|&&i| Self::is_angle(model, i)).count();
+        let angles = |set: &[usize]| set.iter().filter(|&&i| model.is_angle(i)).count();
         let floor = Self::PREFER_ANGLES_WITHIN * best.0;
         seen.into_iter()
             .filter(|(s, _)| *s >= floor)
@@ -247,15 +247,6 @@ impl Determinacy {
     /// Sets of independent coordinates within this fraction of the best distance to
     /// rank loss are ranked by how many angles they hold ([`Determinacy::best`]).
     pub const PREFER_ANGLES_WITHIN: f64 = 0.5;
-
-    /// Whether coordinate i of q is an angle (absolute or relative), not a point's x
-    /// or y or a distance.
-    fn is_angle(model: &Model, i: usize) -> bool {
-        i >= model.relative_offset
-            && model.scene.coordinates[i - model.relative_offset]
-                .kind
-                .is_angle()
-    }
 
     fn jacobian(&mut self, model: &Model, q: &[f64]) {
         model.jacobian_into(q, &mut self.jac);

@@ -262,6 +262,15 @@ impl Model {
         self.names.iter().position(|c| c == name)
     }
 
+    /// Whether coordinate i of q is an angle (absolute or relative), not a point's x
+    /// or y or a distance.
+    pub fn is_angle(&self, i: usize) -> bool {
+        i >= self.relative_offset
+            && self.scene.coordinates[i - self.relative_offset]
+                .kind
+                .is_angle()
+    }
+
     fn slot_point(&self, p: usize) -> [Slot; 2] {
         match self.points[p] {
             PointSlot::Free(i) => [Slot::Q(i), Slot::Q(i + 1)],

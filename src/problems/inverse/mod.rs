@@ -38,6 +38,7 @@ use crate::model::Model;
 use crate::smoother;
 use crate::solver::{Settings, SolveReport, WindowSolver};
 use crate::trajectory::Trajectory;
+use std::f64::consts::PI;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -142,6 +143,42 @@ impl Prescription {
                     number(limit)
                 ),
             );
+        }
+        // An angle that turns more than π between two samples cannot be told from one
+        // that turned the other way: an outlier, an angle wrapped to (−π, π], or
+        // samples too far apart for the motion. Differentiated, it makes a force
+        // orders of magnitude off, and a solve that crawls.
+        for (c, &i) in indices.iter().enumerate() {
+            if !model.is_angle(i) {
+                continue;
+            }
+            for k in 1..table.rows {
+                let jump = values[k * p + c] - values[(k - 1) * p + c];
+                if jump.abs() <= PI {
+                    continue;
+                }
+                let turns = (jump / (2.0 * PI)).round();
+                let why =
+                    if turns != 0.0 && (jump - turns * 2.0 * PI).abs() < 0.5 {
+                        format!(
+                        "about {}2π: an angle wrapped to (−π, π]; unwrap it (take the 2π out at each jump)",
+                        if turns.abs() == 1.0 { String::new() } else { format!("{}·", turns.abs()) }
+                    )
+                    } else {
+                        "an outlier, or samples too far apart for the motion: fix the sample, \
+                     or sample more often"
+                            .to_string()
+                    };
+                return at(
+                    k,
+                    c,
+                    format!(
+                        "the angle changes by {} rad from the sample before, more than π in \
+                         one time step ({why})",
+                        number(jump)
+                    ),
+                );
+            }
         }
         let prescription = Prescription {
             indices,
