@@ -22,7 +22,8 @@ use mbfg::forward::{simulate, Coordinates, DcIntegrators, ForwardOptions, Integr
 use mbfg::smoother::Mode;
 use mbfg::{Model, Scene};
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 fn root() -> PathBuf {
@@ -87,33 +88,54 @@ fn bounds() -> Vec<Row> {
         .collect()
 }
 
+/// Row `row` run: its printed line, and its failure if above its bound.
+fn measure(row: &Row) -> (String, Option<String>) {
+    let scene = Scene::load(root().join("scenes").join(format!("{}.yaml", row.scene))).unwrap();
+    let model = Arc::new(Model::new(&scene).unwrap());
+    let mut options = ForwardOptions::new(row.coords, row.dt, row.t_end, row.mode);
+    options.dc_integrators = row.integrators;
+    options.integrator = row.integrator;
+    options.square_steps = row.square_steps;
+    let start = Instant::now();
+    let (run, summary) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
+    let seconds = start.elapsed().as_secs_f64();
+    let measured = if summary.failures.is_empty() {
+        reference_rmse(&model, &run, &row.reference)
+    } else {
+        f64::INFINITY
+    };
+    let line = format!("{:<64} measured {measured:.4e} ({seconds:.2} s)", row.line);
+    let failure = (measured > row.bound).then(|| {
+        format!(
+            "{}: measured {measured:.4e} > bound {:.4e}",
+            row.line, row.bound
+        )
+    });
+    (line, failure)
+}
+
 #[test]
 fn rmse_stays_within_the_checked_in_bounds() {
     let rows = bounds();
     assert!(!rows.is_empty());
-    let mut failures = Vec::new();
-    for row in &rows {
-        let scene = Scene::load(root().join("scenes").join(format!("{}.yaml", row.scene))).unwrap();
-        let model = Arc::new(Model::new(&scene).unwrap());
-        let mut options = ForwardOptions::new(row.coords, row.dt, row.t_end, row.mode);
-        options.dc_integrators = row.integrators;
-        options.integrator = row.integrator;
-        options.square_steps = row.square_steps;
-        let start = Instant::now();
-        let (run, summary) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
-        let seconds = start.elapsed().as_secs_f64();
-        let measured = if summary.failures.is_empty() {
-            reference_rmse(&model, &run, &row.reference)
-        } else {
-            f64::INFINITY
-        };
-        println!("{:<64} measured {measured:.4e} ({seconds:.2} s)", row.line);
-        if measured > row.bound {
-            failures.push(format!(
-                "{}: measured {measured:.4e} > bound {:.4e}",
-                row.line, row.bound
-            ));
+    // The rows on every core (they are independent runs), reported in file order.
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<Option<(String, Option<String>)>>> = Mutex::new(vec![None; rows.len()]);
+    let workers = std::thread::available_parallelism().map_or(1, |n| n.get());
+    std::thread::scope(|scope| {
+        for _ in 0..workers {
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                let Some(row) = rows.get(i) else { break };
+                let result = measure(row);
+                results.lock().unwrap()[i] = Some(result);
+            });
         }
+    });
+    let mut failures = Vec::new();
+    for (line, failure) in results.into_inner().unwrap().into_iter().flatten() {
+        println!("{line}");
+        failures.extend(failure);
     }
     assert!(
         failures.is_empty(),
