@@ -88,8 +88,11 @@ fn bounds() -> Vec<Row> {
         .collect()
 }
 
+/// A row's printed line, and its failure if above its bound.
+type Measured = (String, Option<String>);
+
 /// Row `row` run: its printed line, and its failure if above its bound.
-fn measure(row: &Row) -> (String, Option<String>) {
+fn measure(row: &Row) -> Measured {
     let scene = Scene::load(root().join("scenes").join(format!("{}.yaml", row.scene))).unwrap();
     let model = Arc::new(Model::new(&scene).unwrap());
     let mut options = ForwardOptions::new(row.coords, row.dt, row.t_end, row.mode);
@@ -120,7 +123,7 @@ fn rmse_stays_within_the_checked_in_bounds() {
     assert!(!rows.is_empty());
     // The rows on every core (they are independent runs), reported in file order.
     let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<Option<(String, Option<String>)>>> = Mutex::new(vec![None; rows.len()]);
+    let results: Mutex<Vec<Option<Measured>>> = Mutex::new(vec![None; rows.len()]);
     let workers = std::thread::available_parallelism().map_or(1, |n| n.get());
     std::thread::scope(|scope| {
         for _ in 0..workers {
