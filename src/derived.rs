@@ -432,7 +432,14 @@ mod tests {
     #[test]
     fn pendulum_energy_balances_and_body_angle_is_theta() {
         let (model, tr) = run("pendulum.yaml", 2.0);
-        let c = columns(&model, &tr, &[Group::Bodies, Group::Energy], None, WorkRule::Trapezoidal).unwrap();
+        let c = columns(
+            &model,
+            &tr,
+            &[Group::Bodies, Group::Energy],
+            None,
+            WorkRule::Trapezoidal,
+        )
+        .unwrap();
         // Gravity only: no work column.
         assert!(
             !c.names.iter().any(|n| n.starts_with("work:")),
