@@ -83,6 +83,40 @@ pub(super) fn eval_node(
     })
 }
 
+/// [`eval_node`] with no names to look up, as [`super::Expr::eval_slots`] evaluates
+/// a resolved tree: the same operations in the same order, an unknown name `None`.
+/// Kept apart because it runs inside every step's Newton iteration, where the
+/// error's payload in `eval_node`'s result costs more than the arithmetic.
+pub(super) fn eval_slots_node(n: &Node, slots: &[f64]) -> Option<f64> {
+    // Most operands are numbers and slots: read in place, not through a call.
+    let eval = |a: &Node| match a {
+        Node::Num(v) => Some(*v),
+        Node::Slot(k) => Some(slots[*k]),
+        _ => eval_slots_node(a, slots),
+    };
+    Some(match n {
+        Node::Num(v) => *v,
+        Node::Slot(k) => slots[*k],
+        Node::Var(name) => builtin(name)?,
+        Node::Neg(a) => -eval(a)?,
+        Node::Chain(first, rest) => {
+            let mut acc = eval(first)?;
+            for (op, x) in rest {
+                acc = apply_op(*op, acc, eval(x)?);
+            }
+            acc
+        }
+        Node::Pow(a, b) => eval(a)?.powf(eval(b)?),
+        Node::Call(f, args) => {
+            let mut vals = [0.0; 2];
+            for (slot, a) in vals.iter_mut().zip(args) {
+                *slot = eval(a)?;
+            }
+            f.apply(&vals[..args.len().min(2)])
+        }
+    })
+}
+
 pub(super) fn resolve_node(
     n: &Node,
     slot_of: &dyn Fn(&str) -> Option<usize>,

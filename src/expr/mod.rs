@@ -151,7 +151,7 @@ impl Expr {
     /// Evaluates an expression whose names were all resolved to slots of `values`
     /// ([`Expr::resolve`]); the value may be non-finite, for the caller to name.
     pub fn eval_slots(&self, values: &[f64]) -> f64 {
-        eval::eval_node(&self.root, &|_| None, values).unwrap_or(f64::NAN)
+        eval::eval_slots_node(&self.root, values).unwrap_or(f64::NAN)
     }
 
     /// Replaces every name by its slot from `slot_of` (a name without one is an

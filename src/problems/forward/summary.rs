@@ -208,16 +208,9 @@ struct PassageWatch {
     gram: super::square_step::GramWork,
     /// (s, max |Φ_q q̇|, energy) of the last three steps, oldest first.
     last: Vec<(f64, f64, Option<f64>)>,
-    /// The last s measured and its change a step since the measure before; the
-    /// steps since.
-    measured: (f64, f64),
-    skipped: usize,
+    /// When s is measured.
+    remeasure: super::square_step::Remeasure,
 }
-
-/// s far enough from a passage that it need not be measured every step.
-const FAR: f64 = 1e-2;
-/// The most steps between two measures of s.
-const REFRESH: usize = 8;
 
 impl PassageWatch {
     fn new(model: &Model) -> Option<PassageWatch> {
@@ -230,8 +223,7 @@ impl PassageWatch {
             regularity,
             gram,
             last: Vec::with_capacity(3),
-            measured: (0.0, 0.0),
-            skipped: 0,
+            remeasure: Default::default(),
         })
     }
 
@@ -245,22 +237,15 @@ impl PassageWatch {
         energy: Option<f64>,
         passages: &mut Passages,
     ) {
-        // s is measured where it may come near a passage within the steps since it
-        // was last (at four times its last change a step), and every REFRESH steps;
-        // between, far from any, the last measure stands.
-        let (measured, change) = self.measured;
-        let reach = 4.0 * change.abs() * (self.skipped + 1) as f64;
-        let s = if measured - reach > FAR && self.skipped < REFRESH {
-            self.skipped += 1;
-            measured
-        } else {
-            let s = self
-                .regularity
-                .distance_to_rank_loss(model, q, &mut self.gram);
-            let steps = (self.skipped + 1) as f64;
-            self.measured = (s, (s - measured) / steps);
-            self.skipped = 0;
-            s
+        let s = match self.remeasure.standing() {
+            Some(s) => s,
+            None => {
+                let s = self
+                    .regularity
+                    .distance_to_rank_loss(model, q, &mut self.gram);
+                self.remeasure.measured(s);
+                s
+            }
         };
         if self.last.len() == 3 {
             self.last.remove(0);

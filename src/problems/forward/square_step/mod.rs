@@ -57,7 +57,7 @@ use crate::model::Model;
 use factors::Factors;
 use nalgebra::DVector;
 use passage::{Passage, Passed};
-pub(super) use regularity::{GramWork, Regularity};
+pub(super) use regularity::{GramWork, Regularity, Remeasure};
 use stage::Stage;
 use std::sync::Arc;
 use system::{Sink, System};
@@ -169,9 +169,9 @@ pub struct SquareStep {
     work: Work,
     /// The longer steps a step next to a rank loss of Φ_q is interpolated from.
     passage: Passage,
-    /// The last step's distance to a rank loss and its change from the step
-    /// before ((0, 0): unknown, to be measured at the next guess).
-    recent: (f64, f64),
+    /// The steps' distance to a rank loss as last measured, and when it is
+    /// measured again (the default: unknown, to be measured at the next guess).
+    recent: Remeasure,
     /// The guess of the step being solved (q, q̇, q̈), kept to start again from.
     guess: Vec<f64>,
 }
@@ -282,7 +282,7 @@ impl SquareStep {
             },
             work,
             passage: Passage::default(),
-            recent: (0.0, 0.0),
+            recent: Remeasure::default(),
             guess: vec![0.0; 3 * n],
         })
     }
@@ -304,7 +304,7 @@ impl SquareStep {
             equations,
             work,
             passage: Passage::default(),
-            recent: (0.0, 0.0),
+            recent: Remeasure::default(),
             guess: vec![0.0; 3 * n],
         })
     }
@@ -510,12 +510,7 @@ impl Equations {
                 Some(_) => 0.5 * work.residual.iter().map(|r| r * r).sum::<f64>(),
                 None => 0.0,
             };
-            // A residual at the rounding of the equations' terms: x solves them as far
-            // as the arithmetic tells (near a rank loss of Φ_q the updates from here
-            // are that rounding amplified by the Jacobian's condition, and never shrink).
-            let residual_size = work.residual.iter().fold(0.0f64, |m, r| m.max(r.abs()));
-            let size = work.x.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-            let at_rounding = residual_size <= ROUNDING_RESIDUAL * (1.0 + size);
+            let residual_size = max_abs(&work.residual);
             work.factors.solve_in_place(&mut work.residual);
             if !work.residual.iter().all(|d| d.is_finite()) {
                 return None;
@@ -567,7 +562,14 @@ impl Equations {
                     settled,
                 });
             }
-            if at_rounding && !settled && update > limits.step_tolerance {
+            // A residual at the rounding of the equations' terms: x solves them as far
+            // as the arithmetic tells (near a rank loss of Φ_q the updates from here
+            // are that rounding amplified by the Jacobian's condition, and never shrink).
+            // (x is the iterate the residual was taken at: the update is not applied yet.)
+            if !settled
+                && update > limits.step_tolerance
+                && residual_size <= ROUNDING_RESIDUAL * (1.0 + max_abs(&work.x))
+            {
                 return self.finish(model, block, iteration, factorizations, work);
             }
             // Below the tolerance the updates approach the residual's rounding and
@@ -624,6 +626,22 @@ impl Equations {
     }
 }
 
+/// max |vᵢ| (0 for an empty slice; a NaN passed over, as `f64::max` does), over
+/// four lanes: the maximum does not depend on the order, and four independent
+/// chains of comparisons run faster than one.
+fn max_abs(v: &[f64]) -> f64 {
+    let pick = |m: f64, x: f64| if x.abs() > m { x.abs() } else { m };
+    let mut lanes = [0.0f64; 4];
+    let mut chunks = v.chunks_exact(4);
+    for chunk in &mut chunks {
+        for (m, x) in lanes.iter_mut().zip(chunk) {
+            *m = pick(*m, *x);
+        }
+    }
+    let tail = chunks.remainder().iter().fold(0.0, |m, x| pick(m, *x));
+    lanes.iter().fold(tail, |m, x| pick(m, *x))
+}
+
 impl SquareStep {
     /// Step 0 holds q and q̇ at the model's initial state (in `block`), and f_dyn
     /// asks q̈ of the augmented system there, which is regular where the steps are
@@ -658,7 +676,8 @@ impl SquareStep {
     /// converge (`block` is then unspecified). `watch` sees every iteration. A
     /// step whose guess or solution lies within [`passage::NEAR`] of a rank loss
     /// of Φ_q, or that fails near one, is interpolated from a longer step that
-    /// clears it ([`Passage`]).
+    /// clears it ([`Passage`]); far from any rank loss the solution's distance is
+    /// measured as [`Remeasure`] says, not every step.
     pub fn solve(
         &mut self,
         t: f64,
@@ -674,7 +693,8 @@ impl SquareStep {
         }
         // The guess's distance to a rank loss only where the last steps' s, carried
         // on at twice its last change, may come near one within this step.
-        let near = self.recent.0 - 2.0 * self.recent.1.abs() < LOOKOUT * passage::NEAR;
+        let (last, change) = self.recent.last();
+        let near = last - 2.0 * change.abs() < LOOKOUT * passage::NEAR;
         let from_guess = match near {
             true => self.distance(&block[..n]),
             false => f64::INFINITY,
@@ -683,21 +703,25 @@ impl SquareStep {
             self.guess.copy_from_slice(&block[..3 * n]);
             match self.solve_plain_watched(t, before, block, limits, watch) {
                 Some(work) => {
+                    // Far from a rank loss the last measure stands for this one.
+                    if self.recent.standing().is_some() {
+                        return Some(work);
+                    }
                     let s = self.clearance(before, block);
-                    self.recent = (s, s - self.recent.0);
+                    self.recent.measured(s);
                     if s >= passage::NEAR {
                         return Some(work);
                     }
                     block[..3 * n].copy_from_slice(&self.guess);
                 }
                 None if from_guess >= DynamicsKernel::REGULAR_ABOVE => {
-                    self.recent = (0.0, 0.0);
+                    self.recent = Remeasure::default();
                     return None;
                 }
                 None => {}
             }
         }
-        self.recent = (0.0, 0.0);
+        self.recent = Remeasure::default();
         let mut passage = std::mem::take(&mut self.passage);
         let solved = passage.start(self, t, before, block, limits);
         self.passage = passage;

@@ -107,6 +107,51 @@ impl Regularity {
     }
 }
 
+/// s far enough from a rank loss that it need not be measured every step.
+const FAR: f64 = 1e-2;
+/// The most steps between two measures of s.
+const REFRESH: usize = 8;
+
+/// When s, measured along a run, is measured again: where it may have come near a
+/// rank loss since it was last (carried on at four times its last change a step),
+/// and every [`REFRESH`] steps; between, far from any, the last measure stands.
+#[derive(Debug, Clone, Copy, Default)]
+pub(in crate::problems::forward) struct Remeasure {
+    /// The last s measured (0 before any: measure) and its change a step since
+    /// the measure before.
+    measured: f64,
+    change: f64,
+    /// Steps since.
+    skipped: usize,
+}
+
+impl Remeasure {
+    /// The last measure, where it stands for this step (counted as skipped);
+    /// `None` where s is to be measured.
+    pub(in crate::problems::forward) fn standing(&mut self) -> Option<f64> {
+        let reach = 4.0 * self.change.abs() * (self.skipped + 1) as f64;
+        if self.measured - reach > FAR && self.skipped < REFRESH {
+            self.skipped += 1;
+            Some(self.measured)
+        } else {
+            None
+        }
+    }
+
+    /// Records s as measured at this step.
+    pub(in crate::problems::forward) fn measured(&mut self, s: f64) {
+        let steps = (self.skipped + 1) as f64;
+        self.change = (s - self.measured) / steps;
+        self.measured = s;
+        self.skipped = 0;
+    }
+
+    /// The last measure and its change a step.
+    pub(in crate::problems::forward) fn last(&self) -> (f64, f64) {
+        (self.measured, self.change)
+    }
+}
+
 /// An entry of G's lower triangle: rows (i, j ≤ i) and the pairs of their local
 /// coordinates that are one coordinate of q.
 type GramEntry = (usize, usize, Vec<(usize, usize)>);

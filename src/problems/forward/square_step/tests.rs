@@ -238,3 +238,22 @@ fn factors_of_a_distant_step_do_not_change_the_solution() {
         );
     }
 }
+
+/// The four-lane max_abs is the one-lane fold's value, bit for bit, NaNs and
+/// infinities included, at every length of the tail.
+#[test]
+fn max_abs_is_the_fold() {
+    let fold = |v: &[f64]| v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    let mut v: Vec<f64> = Vec::new();
+    for i in 0..23 {
+        assert_eq!(max_abs(&v).to_bits(), fold(&v).to_bits(), "{v:?}");
+        v.push(match i % 7 {
+            3 => f64::NAN,
+            5 => -0.0,
+            _ => 10.0 * wobble(i),
+        });
+    }
+    v.push(f64::NEG_INFINITY);
+    assert_eq!(max_abs(&v), f64::INFINITY);
+    assert_eq!(max_abs(&[f64::NAN, f64::NAN]), 0.0);
+}
