@@ -158,17 +158,16 @@ impl Prescription {
                     continue;
                 }
                 let turns = (jump / (2.0 * PI)).round();
-                let why =
-                    if turns != 0.0 && (jump - turns * 2.0 * PI).abs() < 0.5 {
-                        format!(
+                let why = if turns != 0.0 && (jump - turns * 2.0 * PI).abs() < 0.5 {
+                    format!(
                         "about {}2π: an angle wrapped to (−π, π]; unwrap it (take the 2π out at each jump)",
                         if turns.abs() == 1.0 { String::new() } else { format!("{}·", turns.abs()) }
                     )
-                    } else {
-                        "an outlier, or samples too far apart for the motion: fix the sample, \
+                } else {
+                    "an outlier, or samples too far apart for the motion: fix the sample, \
                      or sample more often"
-                            .to_string()
-                    };
+                        .to_string()
+                };
                 return at(
                     k,
                     c,
