@@ -57,47 +57,33 @@ pub(super) fn eval_node(
     lookup: &dyn Fn(&str) -> Option<f64>,
     slots: &[f64],
 ) -> Result<f64, ExprError> {
-    let eval = |a: &Node| eval_node(a, lookup, slots);
-    Ok(match n {
-        Node::Num(v) => *v,
-        Node::Slot(k) => slots[*k],
-        Node::Var(name) => lookup(name)
+    walk(n, slots, &|name: &String| {
+        lookup(name)
             .or_else(|| builtin(name))
-            .ok_or_else(|| ExprError::Undefined(name.clone()))?,
-        Node::Neg(a) => -eval(a)?,
-        Node::Chain(first, rest) => {
-            let mut acc = eval(first)?;
-            for (op, x) in rest {
-                acc = apply_op(*op, acc, eval(x)?);
-            }
-            acc
-        }
-        Node::Pow(a, b) => eval(a)?.powf(eval(b)?),
-        Node::Call(f, args) => {
-            let mut vals = [0.0; 2];
-            for (slot, a) in vals.iter_mut().zip(args) {
-                *slot = eval(a)?;
-            }
-            f.apply(&vals[..args.len().min(2)])
-        }
+            .ok_or_else(|| ExprError::Undefined(name.clone()))
     })
 }
 
 /// [`eval_node`] with no names to look up, as [`super::Expr::eval_slots`] evaluates
-/// a resolved tree: the same operations in the same order, an unknown name `None`.
-/// Kept apart because it runs inside every step's Newton iteration, where the
-/// error's payload in `eval_node`'s result costs more than the arithmetic.
+/// a resolved tree, an unknown name `None`. It runs inside every step's Newton
+/// iteration, where an error payload in the result costs more than the arithmetic:
+/// the walk is the same, its error type `()`.
 pub(super) fn eval_slots_node(n: &Node, slots: &[f64]) -> Option<f64> {
+    walk(n, slots, &|name: &String| builtin(name).ok_or(())).ok()
+}
+
+/// The tree's value, names by `var`.
+fn walk<E>(n: &Node, slots: &[f64], var: &impl Fn(&String) -> Result<f64, E>) -> Result<f64, E> {
     // Most operands are numbers and slots: read in place, not through a call.
     let eval = |a: &Node| match a {
-        Node::Num(v) => Some(*v),
-        Node::Slot(k) => Some(slots[*k]),
-        _ => eval_slots_node(a, slots),
+        Node::Num(v) => Ok(*v),
+        Node::Slot(k) => Ok(slots[*k]),
+        _ => walk(a, slots, var),
     };
-    Some(match n {
+    Ok(match n {
         Node::Num(v) => *v,
         Node::Slot(k) => slots[*k],
-        Node::Var(name) => builtin(name)?,
+        Node::Var(name) => var(name)?,
         Node::Neg(a) => -eval(a)?,
         Node::Chain(first, rest) => {
             let mut acc = eval(first)?;
