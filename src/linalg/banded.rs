@@ -185,7 +185,8 @@ pub struct BandedCholesky {
     summation: Summation,
     /// One block's Cᵀ (s × s), for the factorization in lanes.
     scratch: Vec<f64>,
-    /// What [`BandedCholesky::inverse_diagonal_blocks`] works in.
+    /// What [`BandedCholesky::inverse_diagonal_blocks`] and
+    /// [`BandedCholesky::inverse_end_blocks`] work in.
     inverse_scratch: Vec<f64>,
 }
 
