@@ -185,7 +185,8 @@ pub struct BandedCholesky {
     summation: Summation,
     /// One block's Cᵀ (s × s), for the factorization in lanes.
     scratch: Vec<f64>,
-    /// What [`BandedCholesky::inverse_diagonal_blocks`] works in.
+    /// What [`BandedCholesky::inverse_diagonal_blocks`] and
+    /// [`BandedCholesky::inverse_end_blocks`] work in.
     inverse_scratch: Vec<f64>,
 }
 
@@ -495,6 +496,121 @@ impl BandedCholesky {
     }
 }
 
+impl BandedCholesky {
+    /// The first and last diagonal blocks of H⁻¹ only (`out[0]` and `out[last]`; the
+    /// others left empty): the last is L_T⁻ᵀL_T⁻¹, the first ZᵀZ with Z = L⁻¹E₀, the
+    /// forward solve of the first block's unit columns, Z_0 = L_0⁻¹ and
+    /// Z_k = −L_k⁻¹C_k Z_{k−1}. A fixed-lag estimator asks for these two every step;
+    /// the forward recursion costs about two thirds of the selected inversion and
+    /// writes no middle block.
+    pub fn inverse_end_blocks(&mut self, out: &mut Vec<Vec<f64>>) {
+        out.resize_with(self.blocks, Vec::new);
+        if self.blocks == 0 {
+            return;
+        }
+        let s = self.s;
+        self.inverse_scratch.resize(2 * s * s, 0.0);
+        let (z, w) = self.inverse_scratch.split_at_mut(s * s);
+        let d0 = self.dims[0];
+        let last = self.blocks - 1;
+        let sigma0 = &mut out[0];
+        sigma0.clear();
+        sigma0.resize(d0 * d0, 0.0);
+        // Z_0 = L_0⁻¹ (rows of the identity solved forward).
+        z[..d0 * d0].fill(0.0);
+        for i in 0..d0 {
+            z[i * d0 + i] = 1.0;
+        }
+        forward_rows(&self.l[..d0 * d0], d0, &mut z[..d0 * d0], d0);
+        add_gram(&z[..d0 * d0], d0, d0, sigma0);
+        for k in 1..self.blocks {
+            let (dk, dp) = (self.dims[k], self.dims[k - 1]);
+            let ca = self.lower_at[k];
+            let c = &self.c[ca..ca + dk * dp];
+            // W = C_k Z_{k−1} (dk × d0), then Z_k = L_k⁻¹ W (the sign drops out of ZᵀZ).
+            let w = &mut w[..dk * d0];
+            w.fill(0.0);
+            for i in 0..dk {
+                for l in 0..dp {
+                    let a = c[i * dp + l];
+                    if a != 0.0 {
+                        for (o, zv) in w[i * d0..(i + 1) * d0]
+                            .iter_mut()
+                            .zip(&z[l * d0..(l + 1) * d0])
+                        {
+                            *o += a * zv;
+                        }
+                    }
+                }
+            }
+            let at = self.diag_at[k];
+            forward_rows(&self.l[at..at + dk * dk], dk, w, d0);
+            z[..dk * d0].copy_from_slice(w);
+            add_gram(&z[..dk * d0], dk, d0, &mut out[0]);
+        }
+        if last > 0 {
+            let dk = self.dims[last];
+            let at = self.diag_at[last];
+            let z = &mut z[..dk * dk];
+            z.fill(0.0);
+            for i in 0..dk {
+                z[i * dk + i] = 1.0;
+            }
+            forward_rows(&self.l[at..at + dk * dk], dk, z, dk);
+            let sigma = &mut out[last];
+            sigma.clear();
+            sigma.resize(dk * dk, 0.0);
+            add_gram(z, dk, dk, sigma);
+        }
+        for sigma in &mut out[1..last.max(1)] {
+            sigma.clear();
+        }
+    }
+}
+
+/// Solves L X = B in place for the rows × cols matrix B (row-major), L lower
+/// triangular rows × rows.
+fn forward_rows(l: &[f64], rows: usize, b: &mut [f64], cols: usize) {
+    for i in 0..rows {
+        let (done, rest) = b.split_at_mut(i * cols);
+        let row = &mut rest[..cols];
+        for (k, prev) in done.chunks_exact(cols).enumerate() {
+            let a = l[i * rows + k];
+            if a != 0.0 {
+                for (x, p) in row.iter_mut().zip(prev) {
+                    *x -= a * p;
+                }
+            }
+        }
+        let d = l[i * rows + i];
+        for x in row.iter_mut() {
+            *x /= d;
+        }
+    }
+}
+
+/// out += ZᵀZ for the rows × cols matrix Z (row-major); out is cols × cols and
+/// stays exactly symmetric.
+fn add_gram(z: &[f64], rows: usize, cols: usize, out: &mut [f64]) {
+    for r in 0..rows {
+        let zr = &z[r * cols..(r + 1) * cols];
+        for i in 0..cols {
+            let a = zr[i];
+            if a == 0.0 {
+                continue;
+            }
+            for j in 0..=i {
+                out[i * cols + j] += a * zr[j];
+            }
+        }
+    }
+    for i in 0..cols {
+        for j in 0..i {
+            out[j * cols + i] = out[i * cols + j];
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -656,7 +772,20 @@ mod tests {
         f.factor(&h, &[]).unwrap();
         let mut blocks = Vec::new();
         f.inverse_diagonal_blocks(&mut blocks);
+        let mut ends = Vec::new();
+        f.inverse_end_blocks(&mut ends);
         let inverse = dense.try_inverse().unwrap();
+        let last = dims.len() - 1;
+        assert_eq!(ends.len(), dims.len());
+        assert!(ends[1..last].iter().all(Vec::is_empty));
+        for k in [0, last] {
+            for (a, (got, want)) in ends[k].iter().zip(&blocks[k]).enumerate() {
+                assert!(
+                    (got - want).abs() < 1e-10 * (1.0 + want.abs()),
+                    "end block {k} entry {a}: {got} vs {want}"
+                );
+            }
+        }
         assert_eq!(blocks.len(), dims.len());
         for (k, (&d, &o)) in dims.iter().zip(&offsets).enumerate() {
             for a in 0..d {

@@ -7,8 +7,7 @@ use super::{LinearPrior, WindowSolver};
 use crate::error::{Error, Result};
 use crate::graph::ChainGraph;
 
-/// Which steps of a window a covariance call maps to their variables (the selected
-/// inversion gives every step's reduced block either way).
+/// Which steps of a window a covariance call gives.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Marginals {
     /// Every step's.
@@ -96,9 +95,12 @@ impl WindowSolver {
                     t: Some(crate::trajectory::round_time(self.time(graph, k0 + block))),
                 })?;
         }
-        // Σ_y of every block, in `out` (its buffers reused from call to call), then
+        // Σ_y of the blocks asked, in `out` (its buffers reused from call to call), then
         // each mapped in place: Σ_x = N Σ_y Nᵀ, with Σ_y, N and NΣ_y in `scratch`.
-        self.normal.chol.inverse_diagonal_blocks(out);
+        match marginals {
+            Marginals::Every => self.normal.chol.inverse_diagonal_blocks(out),
+            Marginals::Ends => self.normal.chol.inverse_end_blocks(out),
+        }
         let s = self.s;
         let last = out.len().saturating_sub(1);
         for (b, cov) in out.iter_mut().enumerate() {

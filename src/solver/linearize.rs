@@ -440,7 +440,12 @@ impl Linearization {
     ) -> Result<()> {
         let s = self.s;
         let linearize = mode == HardPass::Linearize;
-        self.generation += 1;
+        // Residuals alone (a correction's) change no reduction, H or g: what was
+        // made from the last linearization (the undamped factor the covariances
+        // reuse) stays current.
+        if linearize {
+            self.generation += 1;
+        }
         let mut rows = 0;
         let mut at_round_off = true;
         for at in structure.block_start[b]..structure.block_start[b + 1] {
