@@ -158,17 +158,16 @@ impl Prescription {
                     continue;
                 }
                 let turns = (jump / (2.0 * PI)).round();
-                let why =
-                    if turns != 0.0 && (jump - turns * 2.0 * PI).abs() < 0.5 {
-                        format!(
+                let why = if turns != 0.0 && (jump - turns * 2.0 * PI).abs() < 0.5 {
+                    format!(
                         "about {}2π: an angle wrapped to (−π, π]; unwrap it (take the 2π out at each jump)",
                         if turns.abs() == 1.0 { String::new() } else { format!("{}·", turns.abs()) }
                     )
-                    } else {
-                        "an outlier, or samples too far apart for the motion: fix the sample, \
+                } else {
+                    "an outlier, or samples too far apart for the motion: fix the sample, \
                      or sample more often"
-                            .to_string()
-                    };
+                        .to_string()
+                };
                 return at(
                     k,
                     c,
@@ -282,6 +281,8 @@ pub struct InverseOptions {
     /// `independent` set).
     pub coordinates: Coordinates,
     pub noise: InverseNoise,
+    /// The solves' settings; the final solve always uses Gauss-Newton's model
+    /// (`second_order` off: its reduced Hessian is the exact one there).
     pub settings: Settings,
     /// None: the samples are exact, their derivatives fourth-order differences.
     /// Some: they are readings with that noise, smoothed first ([`smoothing`]), and
@@ -431,7 +432,15 @@ pub fn solve(
         push_start_step(&model, idx, options.coordinates, b, &mut values);
     }
     debug_assert_eq!(values.len(), steps * s);
-    let mut solver = WindowSolver::new(&graph, steps, options.settings)?;
+    // One prescribed coordinate per degree of freedom: the hard equations fix q and
+    // q̇ of every step, and the soft factors are linear in what they leave free (q̈,
+    // Q), so the reduced exact Hessian is Gauss-Newton's. Its central differences
+    // would only add their error, at 6·d gradient passes over the horizon each.
+    let settings = Settings {
+        second_order: false,
+        ..options.settings
+    };
+    let mut solver = WindowSolver::new(&graph, steps, settings)?;
     solver.optimize_for_batch();
     let report = solver.solve(&graph, &mut values, 0, steps, None)?;
     let solved = Solved {
