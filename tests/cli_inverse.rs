@@ -391,8 +391,9 @@ fn forces(path: &std::path::Path) -> Vec<Vec<f64>> {
 
 /// One sample 3 rad off (below the π a step may jump): the DC solve stays on
 /// Gauss-Newton's model, whose reduced Hessian is the exact one for an inverse
-/// graph, in a few iterations; the forces away from the outlier's difference
-/// stencil are the clean run's, and at it those of the IC solve.
+/// graph, and stops once the steps are at the round-off of the 1e8 forces they
+/// move (not iterating on it); the forces away from the outlier's difference
+/// stencil are the clean run's, and at it those of the IC solve to 1e-12.
 #[test]
 fn an_outlier_sample_is_solved_without_the_finite_difference_hessian() {
     let clean = std::fs::read_to_string(
@@ -438,7 +439,7 @@ fn an_outlier_sample_is_solved_without_the_finite_difference_hessian() {
     let (_, reference) = run("scenes/trajectories/pick-and-place.csv", "dc", "clean.csv");
     std::fs::remove_file(&traj).ok();
     let iterations = trace.lines().filter(|l| l.starts_with("k0=")).count();
-    assert!((1..=8).contains(&iterations), "{trace}");
+    assert!((1..=2).contains(&iterations), "{trace}");
     assert!(!trace.contains("newton=true"), "{trace}");
     let peak = dc.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
     let clean_peak = reference
