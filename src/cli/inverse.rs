@@ -51,6 +51,10 @@ pub struct InverseArgs {
     /// `<out>.partial.csv` (or to standard output, ended by `# incomplete`).
     #[arg(long = "keep-unconverged")]
     keep_unconverged: bool,
+    /// Print every iteration of the batch solve to standard error: the cost before
+    /// and after the step, LM's damping, the predicted decrease and the step's size.
+    #[arg(long = "trace-solver")]
+    trace_solver: bool,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -78,6 +82,7 @@ pub fn run(args: InverseArgs) -> Result<(), Failure> {
         sample_sigma,
         written,
         keep_unconverged,
+        trace_solver,
     } = args;
     let (_, model) = load(&scene)?;
     if max_iterations == 0 {
@@ -89,6 +94,7 @@ pub fn run(args: InverseArgs) -> Result<(), Failure> {
     };
     let mut options = mbfg::inverse::InverseOptions::default();
     options.settings.max_iterations = max_iterations;
+    options.settings.trace = trace_solver;
     options.start = start;
     options.coordinates = match coords {
         InverseCoords::Dc => Coordinates::Dependent,

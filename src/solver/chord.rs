@@ -183,7 +183,14 @@ impl WindowSolver {
         let red = &self.lin.hard[0].reduction;
         let y = &self.normal.delta[..s];
         let mut largest = 0.0f64;
-        for (i, xi) in x.iter().enumerate() {
+        super::iterate::step_scales(
+            x,
+            self.settings
+                .step_per_variable
+                .then_some(&self.variables[..]),
+            &mut self.step_scale,
+        );
+        for (i, scale) in self.step_scale.iter().enumerate() {
             let (start, nrow) = red.row(i);
             let step = self.correction[i]
                 + nrow
@@ -192,7 +199,7 @@ impl WindowSolver {
                     .map(|(a, b)| a * b)
                     .sum::<f64>();
             self.correction[i] = step;
-            largest = largest.max(step.abs() / (1.0 + xi.abs()));
+            largest = largest.max(step.abs() / scale);
         }
         if !(largest <= tolerance) {
             return None;

@@ -319,6 +319,14 @@ impl WindowSolver {
             let at_round_off = self.lin.hard[b].at_round_off;
             let y = &self.normal.delta[b * s..(b + 1) * s];
             let x = &mut window[b * s..(b + 1) * s];
+            step_scales(
+                x,
+                self.settings
+                    .step_per_variable
+                    .then_some(&self.variables[..]),
+                &mut self.step_scale,
+            );
+            let scales = &self.step_scale;
             for i in 0..s {
                 let p = red.particular[i];
                 let (start, nrow) = red.row(i);
@@ -327,7 +335,7 @@ impl WindowSolver {
                     .zip(&y[start..])
                     .map(|(a, b)| a * b)
                     .sum::<f64>();
-                let scale = 1.0 + x[i].abs();
+                let scale = scales[i];
                 largest = largest.max(step.abs() / scale);
                 restored &= at_round_off || p.abs() <= self.settings.step_tolerance * scale;
                 x[i] += step;
@@ -555,6 +563,19 @@ fn converges(th: &Thresholds, step: &Iteration, trial: &Result<f64>) -> bool {
         && (little(th.flat_decrease)
             || (no_progress && (step.largest_step <= th.stall || little(th.stall))));
     (step.small || flat) && step.damping == 0.0
+}
+
+/// What each entry's step of a step's values `x` is measured against: 1 + |xᵢ|, or
+/// with `variables` (offset, length per variable) 1 + the largest |x| of its
+/// variable.
+pub(super) fn step_scales(x: &[f64], variables: Option<&[(usize, usize)]>, out: &mut [f64]) {
+    for (o, v) in out.iter_mut().zip(x) {
+        *o = 1.0 + v.abs();
+    }
+    for &(off, len) in variables.unwrap_or(&[]) {
+        let top = x[off..off + len].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        out[off..off + len].fill(1.0 + top);
+    }
 }
 
 /// A solve that ends diverged.

@@ -77,6 +77,11 @@ pub struct WindowSolver {
     scratch: Vec<f64>,
     newton: NewtonBuffers,
     observer: Option<Box<dyn Observer>>,
+    /// Each variable's entries in a step (offset, length), for
+    /// [`Settings::step_per_variable`].
+    variables: Vec<(usize, usize)>,
+    /// Per entry of a step, what its step is measured against (`take_step`).
+    step_scale: Vec<f64>,
     /// Unknowns per step from which a projected prior is kept as N̄CN̄ᵀ
     /// ([`TANGENT_FORM_FROM`]; the tests set it to compare the two forms).
     tangent_form_from: usize,
@@ -171,6 +176,12 @@ impl WindowSolver {
             scratch: vec![0.0; 4 * s * s + 4 * s],
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
             tangent_form_from: TANGENT_FORM_FROM,
+            variables: graph
+                .layout()
+                .kinds()
+                .filter_map(|(k, _)| graph.layout().slot(k))
+                .collect(),
+            step_scale: vec![0.0; s],
             newton: NewtonBuffers {
                 lambda: vec![0.0; capacity * max_hard],
                 grad: vec![0.0; n],

@@ -71,6 +71,11 @@ pub struct Settings {
     /// before the step (an estimate's covariances come from them). Off: every
     /// solve ends on a linearization of its answer.
     pub end_on_flat_step: bool,
+    /// Whether a step's size is measured against the largest entry of the variable
+    /// it moves (a step's q̈, its forces) rather than against each entry: where one
+    /// linear solve gives the whole vector (an inverse step's q̈ and Q from the
+    /// augmented system), its small entries carry the round-off of its large ones.
+    pub step_per_variable: bool,
     /// The iteration's finer thresholds.
     pub thresholds: Thresholds,
     /// Prints every iteration to standard error ([`Trace`]).
@@ -168,6 +173,7 @@ impl Default for Settings {
             normal_equations_limit: 1e-10,
             chord_test: true,
             end_on_flat_step: false,
+            step_per_variable: false,
             thresholds: Thresholds::default(),
             trace: false,
         }

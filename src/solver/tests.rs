@@ -7,6 +7,17 @@ mod unit {
     use crate::{Model, Scene};
     use std::sync::Arc;
 
+    /// Steps measured per entry, or against their variable's largest entry.
+    #[test]
+    fn step_scales_per_entry_or_per_variable() {
+        let x = [2.0, -0.5, 1e8, 0.25];
+        let mut out = [0.0; 4];
+        super::super::iterate::step_scales(&x, None, &mut out);
+        assert_eq!(out, [3.0, 1.5, 1e8 + 1.0, 1.25]);
+        super::super::iterate::step_scales(&x, Some(&[(0, 2), (2, 2)]), &mut out);
+        assert_eq!(out, [3.0, 3.0, 1e8 + 1.0, 1e8 + 1.0]);
+    }
+
     /// The DC four-bar at dt = 10 ms (large residuals, so the second-order terms are
     /// far from 0) after 0.5 s, with the paper's integrator factors (tangent ones
     /// leave no marginal prior to make): its graph, values on the constraint manifold,

@@ -281,6 +281,9 @@ pub struct InverseOptions {
     /// `independent` set).
     pub coordinates: Coordinates,
     pub noise: InverseNoise,
+    /// The solves' settings; the final solve always uses Gauss-Newton's model
+    /// (`second_order` off: its reduced Hessian is the exact one there) and
+    /// measures steps per variable (`step_per_variable`).
     pub settings: Settings,
     /// None: the samples are exact, their derivatives fourth-order differences.
     /// Some: they are readings with that noise, smoothed first ([`smoothing`]), and
@@ -430,7 +433,18 @@ pub fn solve(
         push_start_step(&model, idx, options.coordinates, b, &mut values);
     }
     debug_assert_eq!(values.len(), steps * s);
-    let mut solver = WindowSolver::new(&graph, steps, options.settings)?;
+    // One prescribed coordinate per degree of freedom: the hard equations fix q and
+    // q̇ of every step, and the soft factors are linear in what they leave free (q̈,
+    // Q), so the reduced exact Hessian is Gauss-Newton's. Its central differences
+    // would only add their error, at 6·d gradient passes over the horizon each.
+    // A step's q̈ and Q come from one augmented system, so an entry's round-off is
+    // that of its vector's largest entry: steps are measured against that.
+    let settings = Settings {
+        second_order: false,
+        step_per_variable: true,
+        ..options.settings
+    };
+    let mut solver = WindowSolver::new(&graph, steps, settings)?;
     solver.optimize_for_batch();
     let report = solver.solve(&graph, &mut values, 0, steps, None)?;
     let solved = Solved {
