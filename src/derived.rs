@@ -36,6 +36,15 @@ impl WorkRule {
             _ => WorkRule::Trapezoidal,
         }
     }
+
+    /// The work over a step of length h from the power at its ends, and in its
+    /// middle for Simpson's rule (`None`: the trapezoidal rule).
+    pub(crate) fn over_step(h: f64, before: f64, middle: Option<f64>, after: f64) -> f64 {
+        match middle {
+            Some(m) => h / 6.0 * (before + 4.0 * m + after),
+            None => 0.5 * h * (before + after),
+        }
+    }
 }
 
 /// The middle of a step of length h between two samples `a` and `b` (each q, q̇, q̈
@@ -441,17 +450,20 @@ pub fn energy(
         now[2 * n..].copy_from_slice(trajectory.ddq_at(k));
         if k > 0 {
             let h = t - trajectory.t[k - 1];
-            for j in 0..works {
-                work[j] += 0.5 * h * (power_before[j] + power[j]);
-            }
-            if rule == WorkRule::HermiteSimpson {
+            let simpson = rule == WorkRule::HermiteSimpson;
+            if simpson {
                 hermite_middle(&before, &now, h, &mut q_mid, &mut dq_mid);
-                let t_mid = t - 0.5 * h;
-                for (j, (name, f)) in effects.iter().enumerate() {
-                    let mid = power_of(f, name, &q_mid, &dq_mid, t_mid, &mut generalized)?;
-                    // Simpson's h/6 (p₀ + 4 p_m + p₁) in place of h/2 (p₀ + p₁).
-                    work[j] += h / 6.0 * (4.0 * mid - 2.0 * (power_before[j] + power[j]));
-                }
+            }
+            for j in 0..works {
+                // (The actuators' forces are known at the samples only.)
+                let middle = match effects.get(j) {
+                    Some((name, f)) if simpson => {
+                        let t_mid = t - 0.5 * h;
+                        Some(power_of(f, name, &q_mid, &dq_mid, t_mid, &mut generalized)?)
+                    }
+                    _ => None,
+                };
+                work[j] += WorkRule::over_step(h, power_before[j], middle, power[j]);
             }
         }
         std::mem::swap(&mut before, &mut now);

@@ -73,17 +73,10 @@ impl Written {
         model: &Model,
         steps: mbfg::derived::Steps,
     ) -> Result<(forward::Trajectory, Prepared), Failure> {
-        let extra = match self.groups.is_empty() {
-            true => None,
-            false => Some(
-                steps
-                    .columns(model, &self.groups, self.rule)
-                    .map_err(|e| Failure::Run(plain(e)))?,
-            ),
-        };
-        let trajectory = steps.into_rows();
-        let rows = (self.stride > 1).then(|| mbfg::io::sampled_rows(trajectory.len(), self.stride));
-        Ok((trajectory, Prepared { extra, rows }))
+        let prepared = self.prepared(steps.len(), |groups| {
+            steps.columns(model, groups, self.rule)
+        })?;
+        Ok((steps.into_rows(), prepared))
     }
 
     /// The optional columns over every step (the work integrals need them all), and
@@ -94,14 +87,23 @@ impl Written {
         trajectory: &forward::Trajectory,
         actuators: Option<&[f64]>,
     ) -> Result<Prepared, Failure> {
-        let extra = if self.groups.is_empty() {
-            None
-        } else {
-            let c = mbfg::derived::columns(model, trajectory, &self.groups, actuators, self.rule)
-                .map_err(|e| Failure::Run(plain(e)))?;
-            Some(c)
+        self.prepared(trajectory.len(), |groups| {
+            mbfg::derived::columns(model, trajectory, groups, actuators, self.rule)
+        })
+    }
+
+    /// The columns `columns` makes of the groups asked (none: not called) and the
+    /// rows to write of `len`.
+    fn prepared(
+        &self,
+        len: usize,
+        columns: impl FnOnce(&[mbfg::derived::Group]) -> mbfg::Result<mbfg::derived::Columns>,
+    ) -> Result<Prepared, Failure> {
+        let extra = match self.groups.is_empty() {
+            true => None,
+            false => Some(columns(&self.groups).map_err(|e| Failure::Run(plain(e)))?),
         };
-        let rows = (self.stride > 1).then(|| mbfg::io::sampled_rows(trajectory.len(), self.stride));
+        let rows = (self.stride > 1).then(|| mbfg::io::sampled_rows(len, self.stride));
         Ok(Prepared { extra, rows })
     }
 }

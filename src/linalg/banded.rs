@@ -516,12 +516,8 @@ impl BandedCholesky {
         let sigma0 = &mut out[0];
         sigma0.clear();
         sigma0.resize(d0 * d0, 0.0);
-        // Z_0 = L_0⁻¹ (rows of the identity solved forward).
-        z[..d0 * d0].fill(0.0);
-        for i in 0..d0 {
-            z[i * d0 + i] = 1.0;
-        }
-        forward_rows(&self.l[..d0 * d0], d0, &mut z[..d0 * d0], d0);
+        // Z_0 = L_0⁻¹.
+        lower_inverse(&self.l[..d0 * d0], d0, &mut z[..d0 * d0]);
         add_gram(&z[..d0 * d0], d0, d0, sigma0);
         for k in 1..self.blocks {
             let (dk, dp) = (self.dims[k], self.dims[k - 1]);
@@ -552,11 +548,7 @@ impl BandedCholesky {
             let dk = self.dims[last];
             let at = self.diag_at[last];
             let z = &mut z[..dk * dk];
-            z.fill(0.0);
-            for i in 0..dk {
-                z[i * dk + i] = 1.0;
-            }
-            forward_rows(&self.l[at..at + dk * dk], dk, z, dk);
+            lower_inverse(&self.l[at..at + dk * dk], dk, z);
             let sigma = &mut out[last];
             sigma.clear();
             sigma.resize(dk * dk, 0.0);
@@ -566,6 +558,16 @@ impl BandedCholesky {
             sigma.clear();
         }
     }
+}
+
+/// L⁻¹ into `z` (d × d) for L lower triangular d × d: the identity's rows solved
+/// forward.
+fn lower_inverse(l: &[f64], d: usize, z: &mut [f64]) {
+    z.fill(0.0);
+    for i in 0..d {
+        z[i * d + i] = 1.0;
+    }
+    forward_rows(l, d, z, d);
 }
 
 /// Solves L X = B in place for the rows × cols matrix B (row-major), L lower

@@ -16,6 +16,7 @@
 //! are normal to the velocities they allow (a run's |Φ_q q̇| is checked separately).
 
 use super::Integrator;
+use crate::derived::WorkRule;
 use crate::model::forces::Force;
 use crate::model::Model;
 
@@ -31,8 +32,8 @@ pub struct BalanceOff {
 }
 
 pub(super) struct Balance {
-    /// Simpson's rule over each step (else the trapezoidal rule).
-    simpson: bool,
+    /// The rule the work is integrated by over each step.
+    rule: WorkRule,
     /// The non-conservative part of each such effect.
     effects: Vec<Force>,
     /// Each effect's work so far, and its largest |value|.
@@ -63,7 +64,7 @@ impl Balance {
         }
         let (k, n) = (effects.len(), model.n());
         Some(Balance {
-            simpson: integrator == Integrator::HermiteSimpson,
+            rule: WorkRule::of(integrator),
             effects,
             work: vec![0.0; k],
             power_before: vec![0.0; k],
@@ -117,7 +118,7 @@ impl Balance {
         }
         let n = model.n();
         let h = t1 - t0;
-        if self.simpson {
+        if self.rule == WorkRule::HermiteSimpson {
             crate::derived::hermite_middle(a, b, h, &mut self.q_mid, &mut self.dq_mid);
         }
         let (q_mid, dq_mid) = (
@@ -130,15 +131,16 @@ impl Balance {
                 self.valid = false;
                 break;
             };
-            let increment = if self.simpson {
+            let middle = if self.rule == WorkRule::HermiteSimpson {
                 let Some(mid) = self.power(model, e, &q_mid, &dq_mid, t_mid) else {
                     self.valid = false;
                     break;
                 };
-                h / 6.0 * (self.power_before[e] + 4.0 * mid + end)
+                Some(mid)
             } else {
-                0.5 * h * (self.power_before[e] + end)
+                None
             };
+            let increment = WorkRule::over_step(h, self.power_before[e], middle, end);
             self.work[e] += increment;
             self.power_before[e] = end;
             self.off.peak_work = self.off.peak_work.max(self.work[e].abs());
