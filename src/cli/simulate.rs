@@ -337,34 +337,27 @@ fn simulate(
         }
     };
     let mut until_stop = None;
-    let result = match (until, streamed.as_mut()) {
-        (Some(condition), sink) => {
-            // The rows go to the file, or are held (the memory was checked above).
-            let mut held = sink
-                .is_none()
-                .then(|| mbfg::derived::Steps::new(&model, !written.streams()));
-            let inner: &mut dyn forward::StepSink = match (sink, held.as_mut()) {
-                (Some(sink), _) => sink,
-                (None, Some(held)) => held,
-                (None, None) => unreachable!("held when not streamed"),
-            };
-            let mut watch = mbfg::stop::Watch::new(&model, condition, inner, hit.clone());
+    // The rows go to the file, or are held (the memory was checked above; for the
+    // columns, the steps between them too).
+    let mut held = streamed
+        .is_none()
+        .then(|| mbfg::derived::Steps::new(&model, !written.streams()));
+    let sink: &mut dyn forward::StepSink = match (streamed.as_mut(), held.as_mut()) {
+        (Some(sink), _) => sink,
+        (None, Some(held)) => held,
+        (None, None) => unreachable!("held when not streamed"),
+    };
+    let result = match until {
+        Some(condition) => {
+            let mut watch = mbfg::stop::Watch::new(&model, condition, sink, hit.clone());
             let run =
                 forward::simulate_streaming(model.clone(), options, &mut progress, &mut watch);
             until_stop = watch.stopped;
-            run.map(|summary| (held, summary))
+            run
         }
-        (None, Some(sink)) => {
-            forward::simulate_streaming(model.clone(), options, &mut progress, sink)
-                .map(|summary| (None, summary))
-        }
-        (None, None) => {
-            // (The memory was checked above.)
-            let mut held = mbfg::derived::Steps::new(&model, !written.streams());
-            forward::simulate_streaming(model.clone(), options, &mut progress, &mut held)
-                .map(|summary| (Some(held), summary))
-        }
-    };
+        None => forward::simulate_streaming(model.clone(), options, &mut progress, sink),
+    }
+    .map(|summary| (held, summary));
     bar.finish();
     let (trajectory, mut summary) = result.map_err(|e| Failure::Run(plain(e)))?;
     if let Some((k, _)) = until_stop {

@@ -319,31 +319,23 @@ pub(super) fn simulate_run<'py>(
         let (run, signal) = interruptible(
             py,
             || !loads.is_empty() && is_interrupted(&loads),
-            |progress| match &until {
-                None => {
-                    options.check_memory(&model, true)?;
-                    let mut steps = crate::derived::Steps::new(&model, !groups.is_empty());
-                    forward::simulate_streaming(model, &options, progress, &mut steps)
-                        .map(|s| (steps, s, None))
-                }
-                Some(condition) => {
-                    options.check_memory(&model, true)?;
-                    let mut steps = crate::derived::Steps::new(&model, !groups.is_empty());
-                    let mut watch =
-                        crate::stop::Watch::new(&model, condition, &mut steps, hit.clone());
-                    let mut watched = |done, total| match hit.load(Ordering::Relaxed) {
-                        true => ControlFlow::Break(()),
-                        false => progress(done, total),
-                    };
-                    let s = forward::simulate_streaming(
-                        model.clone(),
-                        &options,
-                        &mut watched,
-                        &mut watch,
-                    )?;
-                    let stopped = watch.stopped;
-                    Ok((steps, s, stopped))
-                }
+            |progress| {
+                // The rows are held (and, for the columns, the steps between them).
+                options.check_memory(&model, true)?;
+                let mut steps = crate::derived::Steps::new(&model, !groups.is_empty());
+                let Some(condition) = &until else {
+                    return forward::simulate_streaming(model, &options, progress, &mut steps)
+                        .map(|s| (steps, s, None));
+                };
+                let mut watch = crate::stop::Watch::new(&model, condition, &mut steps, hit.clone());
+                let mut watched = |done, total| match hit.load(Ordering::Relaxed) {
+                    true => ControlFlow::Break(()),
+                    false => progress(done, total),
+                };
+                let s =
+                    forward::simulate_streaming(model.clone(), &options, &mut watched, &mut watch)?;
+                let stopped = watch.stopped;
+                Ok((steps, s, stopped))
             },
         );
         // A Ctrl-C that a Python effect's call received is the run's signal.
