@@ -1193,3 +1193,55 @@ fn a_load_with_a_pole_inside_a_step_warns_and_strict_refuses_it() {
         assert!(warned >= 1, "{name}: no run warned");
     }
 }
+
+/// A torque that grows without bound in time (exp(1/(1.2 − t)) on the double
+/// pendulum) ends the run where the motion outruns any step, in DC as in IC, with the
+/// steps before it kept: the DC run stops on its own failed step, never made again
+/// from t = 0 with the paper's integrator factors (which cost 16× the first run and
+/// failed at the same place).
+#[test]
+fn a_load_that_grows_without_bound_in_time_ends_the_run_where_it_outruns_the_step() {
+    let dir = scratch("time-pole");
+    let scene = dir.join("pole.yaml");
+    let text0 = text(Path::new("scenes/double-pendulum.yaml"));
+    let effect =
+        "effects:\n  - {name: pole, type: torque, coordinate: theta1, value: \"exp(1/(1.2-t))\"}\n";
+    assert!(text0.contains("effects:\n"));
+    std::fs::write(&scene, text0.replacen("effects:\n", effect, 1)).unwrap();
+    let mut last_t = Vec::new();
+    for coords in ["dc", "ic"] {
+        let out = dir.join(format!("{coords}.csv"));
+        let run = mbfg(&[
+            "simulate",
+            scene.to_str().unwrap(),
+            "--coords",
+            coords,
+            "--dt",
+            "0.01",
+            "--t-end",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let line = error_line(&run, 1);
+        assert!(
+            line.contains("did not converge") && line.contains("too coarse"),
+            "{coords}: {line}"
+        );
+        let summary = String::from_utf8_lossy(&run.stdout);
+        assert!(!summary.contains("paper's integrators"), "{summary}");
+        let partial = text(&dir.join(format!("{coords}.partial.csv")));
+        let t: f64 = partial
+            .lines()
+            .last()
+            .unwrap()
+            .split(',')
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap();
+        assert!((1.1..1.2).contains(&t), "{coords}: last row at t = {t}");
+        last_t.push(t);
+    }
+    assert!((last_t[0] - last_t[1]).abs() <= 0.05, "{last_t:?}");
+}

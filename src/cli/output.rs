@@ -15,7 +15,7 @@
 
 //! - streamed ([`Output::stream`]): the rows go to the temporary file as the run's
 //!   steps become final, so that a long run holds none of them; a run made again
-//!   (tangent integrators, a finer step) starts the file over.
+//!   (at a finer step) starts the file over.
 
 use mbfg::io::{CsvOptions, CsvRows};
 use mbfg::trajectory::Trajectory;

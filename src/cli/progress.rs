@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 /// the mean time per step of the current attempt times the steps left ([`eta`]):
 /// indicatif's own estimator, fed the first second's steps at once, reads 0 s.
 ///
-/// A run made again (with tangent integrators, or at a finer step: more steps)
+/// A run made again (at a finer step: more steps)
 /// starts a new attempt: the bar's length becomes the new count and the pace is
 /// measured afresh, so that the first attempt's time does not count against the
 /// second's steps.

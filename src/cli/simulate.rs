@@ -56,7 +56,7 @@ pub struct SimulateArgs {
     /// directions the constraints leave free (`tangent`: one equation per unknown,
     /// all satisfied, every window and the batch give N_w = 1's solution), on all n
     /// coordinates as in the paper (`full`: a least-squares compromise), or
-    /// `tangent` with the run made again with `full` where a solve fails (`auto`).
+    /// `tangent` with a step they fail taken by `full`, that step only (`auto`).
     #[arg(long = "dc-integrators", value_enum, default_value_t = DcIntegratorsArg::Auto)]
     dc_integrators: DcIntegratorsArg,
     /// Noise models: mbfg's defaults, or the paper's Table 2.
@@ -600,13 +600,6 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
         line += &format!(
             "; {} step(s) by the paper's integrators (the tangent ones failed there)",
             s.paper_steps
-        );
-    }
-    if let Some(f) = &s.full_after {
-        line += &format!(
-            "; the paper's integrators (tangent ones did not converge at step {}, t = {} s)",
-            f.step,
-            forward::round_time(f.t)
         );
     }
     if let Some(r) = &s.refinement {

@@ -113,10 +113,10 @@ fn forward_result<'py>(
         None => None,
     };
     summary.set_item("error_control", error_control)?;
-    // Kept for scripts that read it: `dc_integrators="auto"` starts with tangent
-    // integrators, so no run is made again with them.
+    // Kept for scripts that read them: no run is made again with other integrator
+    // factors (a step the tangent ones fail is taken by the paper's, `paper_steps`).
     summary.set_item("tangent_after", py.None())?;
-    summary.set_item("full_after", s.full_after.as_ref().map(|f| (f.step, f.t)))?;
+    summary.set_item("full_after", py.None())?;
     let refinement = match &s.refinement {
         Some(r) => {
             let d = PyDict::new(py);

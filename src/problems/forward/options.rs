@@ -14,10 +14,9 @@ pub use crate::factors::Integrator;
 /// What the integrator factors ask of a step in dependent coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum DcIntegrators {
-    /// [`DcIntegrators::Tangent`]. A run in which a
-    /// solve fails with them (not at an ill-posed configuration, not interrupted) is
-    /// run again with the paper's [`DcIntegrators::Full`], and
-    /// [`RunSummary::full_after`](super::summary::RunSummary::full_after) says so.
+    /// [`DcIntegrators::Tangent`]; a step that fails with them from every substep
+    /// guess is taken by the paper's [`DcIntegrators::Full`], that step only
+    /// ([`RunSummary::paper_steps`](super::summary::RunSummary::paper_steps)).
     Auto,
     /// Only along the directions the constraints leave free (see [`crate::factors::tangent`]):
     /// one soft equation per unknown, all of them satisfied, so that every window

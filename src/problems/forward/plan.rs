@@ -55,8 +55,10 @@ pub enum Rescue {
     /// A run that fails, or converges, over a step too coarse for the motion is
     /// made again at dt / K, every K-th state kept.
     Refinement,
-    /// A DC run whose tangent integrator factors fail is made again with the
-    /// paper's.
+    /// A DC step the tangent integrator factors fail from every substep guess is
+    /// taken by the paper's, that step only (never the whole run again: measured
+    /// over the test suites and the robustness matrix, a run made again with them
+    /// from t = 0 never got further).
     PaperIntegrators,
 }
 

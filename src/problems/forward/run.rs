@@ -4,8 +4,8 @@
 
 use super::failure::non_finite_at;
 use super::failure::StepFailure;
-use super::options::{DcIntegrators, ForwardOptions};
-use super::plan::{Plan, Rescue};
+use super::options::ForwardOptions;
+use super::plan::Plan;
 use super::segment::{Run, Segment};
 use super::start::Start;
 use super::summary::{Refinement, Reselection, RunSummary, Stats};
@@ -25,8 +25,8 @@ use std::time::Instant;
 pub trait StepSink {
     /// The state of the next step at time `t` (the first call: the initial state).
     fn step(&mut self, t: f64, q: &[f64], dq: &[f64], ddq: &[f64]) -> Result<()>;
-    /// The run starts again from its initial state (made again with tangent
-    /// integrator factors, or at a finer step): the steps received so far are void.
+    /// The run starts again from its initial state (made again at a finer step):
+    /// the steps received so far are void.
     fn restart(&mut self) -> Result<()>;
     /// A step of a refined run between two of the rows it hands to `step` (at the
     /// step's own time): ignored, but by a sink that integrates over every step taken
@@ -100,8 +100,7 @@ pub fn simulate_interruptible(
 /// its length; a batch solve holds every step (its linear system spans them all),
 /// and hands them out when it ends.
 ///
-/// A run made again (with tangent integrator factors where the paper's failed, or at
-/// a finer step, [`ForwardOptions::refine`]) restarts the sink: a writer that
+/// A run made again at a finer step ([`ForwardOptions::refine`]) restarts the sink: a writer that
 /// cannot take back what it wrote should hold its output until the run ends.
 pub fn simulate_streaming(
     model: Arc<Model>,
@@ -113,8 +112,7 @@ pub fn simulate_streaming(
         // Its steps are sized by the error they make: no refinement, no restart.
         return super::adaptive::simulate(model, options, tolerance, progress, sink);
     }
-    let (mut summary, mut coarse) =
-        simulate_integrators(model.clone(), options, progress, sink, None)?;
+    let (mut summary, mut coarse) = simulate_with(model.clone(), options, progress, sink, None)?;
     if !options.refine {
         // Refinement off: a run that converged over a step too coarse for the
         // motion fails there (its answer is a poor one, see below), named as such.
@@ -149,7 +147,7 @@ pub fn simulate_streaming(
         finer.dt = options.dt / factor as f64;
         finer.t_end = (options.steps().saturating_sub(1) * factor) as f64 * finer.dt;
         sink.restart()?;
-        let (mut fine_summary, fine_coarse) = simulate_integrators(
+        let (mut fine_summary, fine_coarse) = simulate_with(
             model.clone(),
             &finer,
             progress,
@@ -300,49 +298,6 @@ fn refinement_factor(failure: &StepFailure, factor: usize) -> Option<usize> {
     let more = ((turn / Refinement::TARGET_TURN).ceil() as usize).max(2);
     let next = factor.saturating_mul(more);
     (next <= Refinement::MAX_FACTOR).then_some(next)
-}
-
-/// One run at `options.dt`; with [`DcIntegrators::Auto`], made again with the other
-/// integrator factors where the first do not converge. Returns its summary and its
-/// first step too coarse for the motion (see [`coarse_turn`]).
-fn simulate_integrators(
-    model: Arc<Model>,
-    options: &ForwardOptions,
-    progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
-    sink: &mut dyn StepSink,
-    every: Option<(usize, f64)>,
-) -> Result<(RunSummary, Option<StepFailure>)> {
-    let plan = Plan::new(&model, options)?;
-    let (summary, coarse) = simulate_with(model.clone(), options, progress, sink, every)?;
-    let retry = plan.tries(Rescue::PaperIntegrators)
-        && summary.interrupted.is_none()
-        && summary.failures.iter().all(|f| f.singular.is_none());
-    let Some(failure) = summary.failures.first().filter(|_| retry) else {
-        return Ok((summary, coarse));
-    };
-    // A failure on a step too coarse for the motion is refined first, with the same
-    // factors: the other factors' failure, perhaps on a slow step, would end the
-    // refinement.
-    let factor = every.map_or(1, |(factor, _)| factor);
-    if plan.tries(Rescue::Refinement) && refinement_factor(failure, factor).is_some() {
-        return Ok((summary, coarse));
-    }
-    // The tangent factors hold one equation per unknown; where they fail, the
-    // paper's least-squares compromise is still worth a try, where it fits: their
-    // batch holds every step's linear system (a batch of square steps holds two),
-    // and a run that cannot be made again keeps its own failure.
-    let failure = failure.clone();
-    let mut other = options.clone();
-    other.dc_integrators = DcIntegrators::Full;
-    if Plan::new(&model, &other).is_err() {
-        return Ok((summary, coarse));
-    }
-    let first_attempt = summary.wall_time;
-    sink.restart()?;
-    let (mut summary, coarse) = simulate_with(model, &other, progress, sink, every)?;
-    summary.full_after = Some(failure);
-    summary.wall_time += first_attempt;
-    Ok((summary, coarse))
 }
 
 fn simulate_with(

@@ -86,8 +86,7 @@ impl Segment<'_> {
     }
 
     /// The plan of one step under the paper's integrator factors, through the
-    /// general smoother at N_w = 1: a failed step's last rescue, where the run
-    /// would otherwise start again with them from t = 0.
+    /// general smoother at N_w = 1: a failed step's last rescue.
     fn paper_plan(&self) -> Option<Plan> {
         if !self.plan.tries(Rescue::PaperIntegrators) || !self.plan.tangent_dc() {
             return None;

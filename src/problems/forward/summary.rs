@@ -56,9 +56,6 @@ pub struct RunSummary {
     pub reselections: Vec<Reselection>,
     /// Set (to the last step kept) when the caller interrupted the run.
     pub interrupted: Option<usize>,
-    /// With [`DcIntegrators::Auto`](super::options::DcIntegrators::Auto): the failure with tangent integrator factors
-    /// after which this run was made again with the paper's.
-    pub full_after: Option<StepFailure>,
     /// With [`ForwardOptions::refine`](super::options::ForwardOptions::refine): the finer step this run was integrated at.
     pub refinement: Option<Refinement>,
     /// With [`ForwardOptions::tolerance`](super::options::ForwardOptions::tolerance):
@@ -572,7 +569,6 @@ impl Stats {
             conditioned_from: None,
             reselections: Vec::new(),
             interrupted: None,
-            full_after: None,
             refinement: None,
             error_control: None,
         }
