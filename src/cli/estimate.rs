@@ -313,6 +313,12 @@ fn process(s: &EstimateSummary) -> String {
             s.process_sigma,
             three_digits(tried)
         ),
+        ProcessSource::Correlated { tried, lag_one, .. } => format!(
+            "{} (the default; at {}, where a filter pass's mean NIS was inside its bounds, \
+             its innovations' lag-one autocorrelation was {lag_one:.2}: not white)",
+            s.process_sigma,
+            three_digits(tried)
+        ),
         ProcessSource::Readings { nis, bounds } => format!(
             "{} (from the readings: the default {} left a filter pass's mean NIS at \
              {nis:.3}, outside [{:.3}, {:.3}])",
@@ -346,6 +352,23 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
             "the mean NIS {:.3} is above its 95 % bound {hi:.3}: the readings disagree with \
              the model more than the σ's allow; the reported σ's are too small. Raise \
              `estimation: process_sigma` (now {}) or the sensors' `sigma`",
+            nis.mean(),
+            process(s)
+        )
+    } else if let ProcessSource::Correlated { tried, lag_one, .. } = s.process_source {
+        format!(
+            "the mean NIS {:.3} is below its 95 % bound {lo:.3}, but a smaller process σ \
+             leaves the innovations correlated (lag-one {lag_one:.2} at σ {}): a bias in the \
+             model or in a sensor's model that white process noise does not describe; the σ's \
+             stay large (`inputs:` or `parameters:` can carry the bias)",
+            nis.mean(),
+            three_digits(tried)
+        )
+    } else if unresponsive {
+        format!(
+            "the mean NIS {:.3} is below its 95 % bound {lo:.3}: the readings agree with \
+             the model better than the σ's say, and a smaller process σ does not change \
+             that (process σ {}): the sensors' `sigma` may be too large",
             nis.mean(),
             process(s)
         )

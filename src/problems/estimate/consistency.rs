@@ -3,6 +3,7 @@
 
 use crate::graph::{ChainGraph, Layout, Term, Workspace};
 use nalgebra::{DMatrix, DVector};
+use std::collections::HashMap;
 
 /// Running NIS statistics of a run.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -13,6 +14,49 @@ pub struct Nis {
     pub count: usize,
     /// Σ of the readings' dimensions (the χ² degrees of freedom of `sum`).
     pub dof: usize,
+    /// Whether the innovations are white, as a consistent estimator's are.
+    pub whiteness: Whiteness,
+}
+
+/// The lag-one autocorrelation of each sensor's normalized innovations, pooled over
+/// the sensors: near zero for a model whose errors the process noise describes, and
+/// far above its bound where the readings keep disagreeing the same way step after
+/// step (a bias, in the dynamics or in a sensor's model).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Whiteness {
+    /// Each sensor's last normalized innovation, by its factor's name.
+    last: HashMap<String, Vec<f64>>,
+    /// Σ eₖ·eₖ₋₁, Σ eₖ₋₁², Σ eₖ² over the pairs of successive readings of a sensor.
+    products: f64,
+    before: f64,
+    after: f64,
+    /// The pairs counted.
+    pub pairs: usize,
+}
+
+impl Whiteness {
+    fn add(&mut self, sensor: &str, e: Vec<f64>) {
+        if let Some(prev) = self.last.get(sensor).filter(|p| p.len() == e.len()) {
+            for (a, b) in prev.iter().zip(&e) {
+                self.products += a * b;
+                self.before += a * a;
+                self.after += b * b;
+                self.pairs += 1;
+            }
+        }
+        self.last.insert(sensor.to_string(), e);
+    }
+
+    /// The pooled lag-one autocorrelation, if any pair was counted.
+    pub fn lag_one(&self) -> Option<f64> {
+        let d = (self.before * self.after).sqrt();
+        (self.pairs > 0 && d > 0.0).then(|| self.products / d)
+    }
+
+    /// The 95 % bound of |lag-one autocorrelation| of white innovations.
+    pub fn bound(&self) -> f64 {
+        1.959964 / (self.pairs.max(1) as f64).sqrt()
+    }
 }
 
 impl Nis {
@@ -67,6 +111,7 @@ impl Nis {
     ) -> Option<f64> {
         let s = layout.size();
         let mut rows: Vec<(f64, f64, Vec<f64>)> = Vec::new();
+        let mut sensors: Vec<(&str, usize)> = Vec::new();
         for (_, term) in terms {
             let (Term::Soft(factor, noise), true) =
                 (term, term.factor().keys().iter().all(|k| k.lag == 0))
@@ -82,6 +127,7 @@ impl Nis {
                     &x[o..o + d]
                 })
                 .collect();
+            sensors.push((factor.name(), dim));
             let mut r = vec![0.0; dim];
             let mut jac: Vec<Vec<f64>> = (0..keys.len())
                 .map(|a| vec![0.0; dim * factor.size(a)])
@@ -114,7 +160,7 @@ impl Nis {
             post[(i, i)] += row.1 * row.1;
         }
         let r = DVector::from_fn(m, |i, _| rows[i].0);
-        let chol = post.cholesky()?;
+        let chol = post.clone().cholesky()?;
         let nis = r.dot(&chol.solve(&r));
         if !nis.is_finite() {
             return None;
@@ -122,6 +168,14 @@ impl Nis {
         self.sum += nis;
         self.count += 1;
         self.dof += m;
+        let mut i = 0;
+        for (name, dim) in sensors {
+            let e = (i..i + dim)
+                .map(|j| r[j] / post[(j, j)].max(f64::MIN_POSITIVE).sqrt())
+                .collect();
+            self.whiteness.add(name, e);
+            i += dim;
+        }
         Some(nis)
     }
 }
@@ -142,6 +196,7 @@ mod tests {
             sum: 1000.0,
             count: 1000,
             dof: 1000,
+            ..Nis::default()
         };
         let (lo, hi) = nis.bounds();
         assert!((lo - 0.91426).abs() < 1e-3, "{lo}");
@@ -149,5 +204,34 @@ mod tests {
         assert!(nis.consistent());
         let off = Nis { sum: 1200.0, ..nis };
         assert!(!off.consistent());
+    }
+
+    #[test]
+    fn whiteness_tells_white_innovations_from_correlated_ones() {
+        // A reproducible white sequence (a hashed counter, uniform in [−1, 1]) and
+        // the same through a first-order filter (autocorrelation 0.8), read by two
+        // sensors, one of them every other step.
+        let white_at = |k: u64| {
+            let mut x = k.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0xD1B5_4A32_D192_ED03;
+            x ^= x >> 31;
+            x = x.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            x ^= x >> 29;
+            (x >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+        };
+        let (mut white, mut correlated) = (Whiteness::default(), Whiteness::default());
+        let mut ar = 0.0;
+        for k in 0..4000u64 {
+            ar = 0.8 * ar + white_at(k);
+            white.add("a", vec![white_at(k)]);
+            correlated.add("a", vec![ar]);
+            if k % 2 == 0 {
+                white.add("b", vec![white_at(k + 10_000), white_at(k + 20_000)]);
+            }
+        }
+        let r = white.lag_one().unwrap();
+        assert!(r.abs() <= white.bound(), "{r} against ±{}", white.bound());
+        assert_eq!(white.pairs, 3999 + 2 * 1999);
+        let r = correlated.lag_one().unwrap();
+        assert!((r - 0.8).abs() < 0.05, "{r}");
     }
 }

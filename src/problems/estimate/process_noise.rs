@@ -1,21 +1,24 @@
 //! The process σ a record's readings ask for, where the scene gives none.
 //!
 //! The default σ is a guess at how wrong a model is. A filter pass over the record
-//! (window 1: the mean NIS hardly depends on the window) tells whether the guess is
-//! too small: a mean NIS above its 95 % bounds says the readings disagree with the
-//! model more than the σ's allow, and the σ's the estimate reports would be too
-//! small. Then the σ at which the pass's mean NIS meets its expected value is taken
-//! (covariance matching), found by secant steps on ln NIS against ln σ, up to
-//! [`SIGMA_RANGE`] times the default.
+//! (window 1: the mean NIS hardly depends on the window) tells whether the guess
+//! fits (covariance matching), and the σ is moved by secant steps on ln NIS against
+//! ln σ until the pass's mean NIS falls inside its 95 % bounds:
 //!
-//! The σ is never lowered from the readings. A mean NIS below its bounds says the σ's
-//! are too large, but where the model's error is a bias (a wrong constant in the
-//! dynamics or in a sensor's model) a σ that makes the innovations consistent leaves
-//! the smoothed estimate off by more than its σ's: too large is the honest side to
-//! stay on, and the summary's warning says which way a user who knows the model's
-//! errors may move it.
+//! - above the bounds, the readings disagree with the model more than the σ's
+//!   allow and the σ's the estimate reports would be too small: σ rises to where
+//!   the mean NIS meets its expected value, up to [`SIGMA_RANGE`] times the default;
+//! - below them, the σ's are too large: σ falls only as far as the bounds ask, to a
+//!   mean NIS just inside the lower bound ([`LOWER_TARGET`]), down to the default
+//!   over [`SIGMA_RANGE_BELOW`]. Where the model's error is a bias (a wrong constant) a σ
+//!   that matches the innovations exactly may leave the smoothed estimate off by
+//!   more than its σ's; the largest consistent σ keeps the σ's on the honest side.
+//!   A σ is lowered only where a pass at it lands inside the bounds with white
+//!   enough innovations ([`Whiteness`]): readings that keep disagreeing with the model
+//!   the same way step after step say its error is a bias the process noise does
+//!   not describe, and then the default stays.
 
-use super::consistency::Nis;
+use super::consistency::{Nis, Whiteness};
 use super::online::Estimator;
 use super::options::{EstimateOptions, Uncertainty, DEFAULT_PROCESS_SIGMA};
 use super::record::Record;
@@ -27,6 +30,12 @@ use std::sync::Arc;
 /// How far above the default the σ may go: to a model whose errors are of gravity's
 /// own size.
 pub const SIGMA_RANGE: f64 = 10.0 / 3.0;
+/// How far below the default the σ may go.
+pub const SIGMA_RANGE_BELOW: f64 = 10.0;
+/// Where a lowered σ aims: this fraction of the way from the lower bound of the
+/// mean NIS to its expected value (inside the bounds, with a margin for the run's
+/// own NIS, which differs from the pass's by a little).
+const LOWER_TARGET: f64 = 0.25;
 /// A pass's mean NIS that changes by less than this power of σ does not come from
 /// the process noise (the sensors' σ, or a model error the process noise cannot
 /// explain): the default stays.
@@ -50,10 +59,14 @@ pub enum ProcessSource {
     /// Chosen from the readings: the default left the pass's mean NIS at `nis`,
     /// outside `bounds`.
     Readings { nis: f64, bounds: (f64, f64) },
-    /// The default, whose pass's mean NIS `nis` was above its bounds, kept: at the
-    /// larger σ `tried` the pass's mean NIS was still `then` (it does not come from
+    /// The default, whose pass's mean NIS `nis` was outside its bounds, kept: at
+    /// the σ `tried` the pass's mean NIS was still `then` (it does not come from
     /// the process noise).
     Unresponsive { nis: f64, tried: f64, then: f64 },
+    /// The default, whose pass's mean NIS `nis` was below its bounds, kept: at the
+    /// smaller σ `tried`, where the mean NIS was inside them, the innovations'
+    /// lag-one autocorrelation was `lag_one`, too far from white ones'.
+    Correlated { nis: f64, tried: f64, lag_one: f64 },
 }
 
 /// The process σ for an estimate of `record`, and where it came from.
@@ -75,20 +88,30 @@ pub fn choose(
     let Ok(nis0) = pass(model, options, record, uncertainty, sigma0) else {
         return Ok((sigma0, ProcessSource::Default));
     };
-    let (_, hi) = nis0.bounds();
-    if nis0.count == 0 || nis0.mean() <= hi {
+    let (lo, hi) = nis0.bounds();
+    if nis0.count == 0 || (lo..=hi).contains(&nis0.mean()) {
         return Ok((sigma0, ProcessSource::Default));
     }
     let expected = nis0.expected();
-    let top = sigma0 * SIGMA_RANGE;
-    let misfit = |n: f64| (n / expected).ln();
+    let raise = nis0.mean() > hi;
+    let (target, range) = if raise {
+        (expected, (sigma0, sigma0 * SIGMA_RANGE))
+    } else {
+        (
+            lo + LOWER_TARGET * (expected - lo),
+            (sigma0 / SIGMA_RANGE_BELOW, sigma0),
+        )
+    };
+    let misfit = |n: f64| (n / target).ln();
     let (mut s_prev, mut f_prev) = (sigma0, misfit(nis0.mean()));
+    // The best σ so far, with its misfit; a lowered one only if its pass was
+    // inside the bounds.
     let mut best = (f_prev, sigma0);
     // First step: NIS taken inversely proportional to σ; then secants.
     let mut slope = -1.0;
     for _ in 0..MAX_PASSES {
         let step = (-f_prev / slope).clamp(-10f64.ln(), 10f64.ln());
-        let s = (s_prev * step.exp()).clamp(sigma0, top);
+        let s = (s_prev * step.exp()).clamp(range.0, range.1);
         if s == s_prev {
             break; // at an end of the range, still asking to go beyond it
         }
@@ -111,10 +134,24 @@ pub fn choose(
             }
             break;
         }
-        if f.abs() < best.0.abs() {
+        let consistent = (lo..=hi).contains(&nis.mean());
+        if !raise && consistent && !white(&nis.whiteness) {
+            // A smaller σ only correlates the innovations more.
+            if best.1 == sigma0 {
+                let source = ProcessSource::Correlated {
+                    nis: nis0.mean(),
+                    tried: s,
+                    lag_one: nis.whiteness.lag_one().unwrap_or(f64::NAN),
+                };
+                return Ok((sigma0, source));
+            }
+            break;
+        }
+        let admissible = raise || consistent;
+        if admissible && (f.abs() < best.0.abs() || (!raise && best.1 == sigma0)) {
             best = (f, s);
         }
-        if f.abs() < TOLERANCE.ln_1p() {
+        if admissible && f.abs() < TOLERANCE.ln_1p() {
             break;
         }
         (s_prev, f_prev) = (s, f);
@@ -129,6 +166,19 @@ pub fn choose(
             bounds: nis0.bounds(),
         },
     ))
+}
+
+/// How much the innovations' correlation may make the smoothed σ's understate the
+/// errors: innovations correlated step to step at ρ (first order) make the errors
+/// of an average over steps (1 + ρ)/(1 − ρ) times the variance white ones would.
+const UNDERSTATEMENT: f64 = 1.1;
+
+/// Whether a pass's innovations are white enough: their lag-one autocorrelation
+/// at most the ρ at which the σ's would understate the errors by [`UNDERSTATEMENT`]
+/// (0.095; negatively correlated ones make the σ's overstate them).
+fn white(w: &Whiteness) -> bool {
+    let u2 = UNDERSTATEMENT * UNDERSTATEMENT;
+    w.lag_one().is_some_and(|r| r <= (u2 - 1.0) / (u2 + 1.0))
 }
 
 /// The NIS statistics of a window-1 pass over the record's start with process σ
