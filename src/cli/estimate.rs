@@ -313,6 +313,12 @@ fn process(s: &EstimateSummary) -> String {
             s.process_sigma,
             three_digits(tried)
         ),
+        ProcessSource::Identified { from, used } => format!(
+            "{} (lowered after identification: at the default {from} the batch's dynamics \
+             residuals used {:.2e} of their expected χ²)",
+            three_digits(s.process_sigma),
+            used
+        ),
         ProcessSource::Readings { nis, bounds } => format!(
             "{} (from the readings: the default {} left a filter pass's mean NIS at \
              {nis:.3}, outside [{:.3}, {:.3}])",
@@ -332,6 +338,13 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
     }
     let (lo, hi) = nis.bounds();
     let unresponsive = matches!(s.process_source, ProcessSource::Unresponsive { .. });
+    // The NIS is the fixed-lag pass's, at the σ before any lowering.
+    let now = match s.process_source {
+        ProcessSource::Identified { from, .. } => {
+            format!("{from}, the default, in the fixed-lag pass the NIS comes from")
+        }
+        _ => process(s),
+    };
     Some(if nis.mean() > hi && unresponsive {
         format!(
             "the mean NIS {:.3} is above its 95 % bound {hi:.3}: the readings disagree with \
@@ -339,7 +352,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              that (process σ {}): look at the sensors' `sigma` (noise, quantization) and at \
              the model",
             nis.mean(),
-            process(s)
+            now
         )
     } else if nis.mean() > hi {
         format!(
@@ -347,7 +360,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              the model more than the σ's allow; the reported σ's are too small. Raise \
              `estimation: process_sigma` (now {}) or the sensors' `sigma`",
             nis.mean(),
-            process(s)
+            now
         )
     } else {
         format!(
@@ -355,7 +368,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              model better than the σ's say; the reported σ's are too large. Lower \
              `estimation: process_sigma` (now {}) or the sensors' `sigma`",
             nis.mean(),
-            process(s)
+            now
         )
     })
 }

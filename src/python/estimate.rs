@@ -128,6 +128,7 @@ pub(super) fn estimate_run<'py>(
                 ProcessSource::Default => "default",
                 ProcessSource::Readings { .. } => "readings",
                 ProcessSource::Unresponsive { .. } => "default",
+                ProcessSource::Identified { .. } => "identification",
             },
         )?;
         s.set_item(
