@@ -287,13 +287,19 @@ impl Batch<'_> {
             }
             let eg = self.graph_at(next)?;
             let mut trial = values.clone();
-            // A stage that does not converge keeps the last one's estimate.
+            // A stage that does not converge, or whose covariances fail, keeps the
+            // last one's estimate.
             let Ok((mut stage, its)) = solve(&eg.graph, &mut trial, steps, settings) else {
                 break;
             };
             iterations += its;
             let mut c = Vec::new();
-            stage.covariances_after_solve(&eg.graph, 0, steps, Marginals::Every, &mut c)?;
+            if stage
+                .covariances_after_solve(&eg.graph, 0, steps, Marginals::Every, &mut c)
+                .is_err()
+            {
+                break;
+            }
             (values, covariances, sigma) = (trial, c, next);
             own = Some(eg);
         }
