@@ -320,6 +320,8 @@ def parse_summary(line: str) -> dict:
             how = "from the readings"
         elif how.startswith("the default"):
             how = "the default"
+        elif how.startswith("lowered after identification"):
+            how = "lowered after identification"
         out.update(process_sigma=float(m["sigma"]), process_sigma_how=how)
     return out
 

@@ -7,7 +7,9 @@
 //! determine named with the reason; every refused use named.
 
 use mbfg::coordinates::Coordinates;
-use mbfg::estimate::{estimate, EstimateOptions, EstimateSummary, Estimates, Record, Smoothing};
+use mbfg::estimate::{
+    estimate, EstimateOptions, EstimateSummary, Estimates, ProcessSource, Record, Smoothing,
+};
 use mbfg::forward::{simulate, ForwardOptions};
 use mbfg::sensors::measure::measure;
 use mbfg::smoother::Mode;
@@ -122,6 +124,17 @@ fn ten_seeds(
                 p.undetermined
             );
             let err = (p.estimate - true_value).abs();
+            // The batch lowers the default process σ once the parameters carry the
+            // model's error.
+            assert!(
+                matches!(
+                    summary.process_source,
+                    ProcessSource::Identified { from, .. } if summary.process_sigma < from
+                ),
+                "seed {seed}: process σ {} ({:?})",
+                summary.process_sigma,
+                summary.process_source
+            );
             [
                 err / true_value,
                 err / p.sigma,
@@ -157,9 +170,10 @@ fn gravity_is_identified_within_one_percent_with_honest_sigmas() {
 
 #[test]
 fn the_crank_mass_is_identified_with_honest_sigmas() {
-    // A 1° crank encoder over 10 s determines the crank's mass to ≈ 1.9 % (1σ, the
-    // same with the process noise 30 times smaller): the issue's 1 % is met by about
-    // half the seeds, and the σ's say so honestly.
+    // A 1° crank encoder over 10 s: at the default process σ the dynamics tie the
+    // crank's mass to the motion only loosely (σ ≈ 1.9 %, median error ≈ 1 %); the
+    // σ lowered after identification ties it closer. The reported σ stays the
+    // default's, which the readings do not reject.
     let scenes = ("fourbar-crank-mass.yaml", "fourbar-heavy-crank-true.yaml");
     let truth = truth(scenes.1, 10.0);
     let runs = ten_seeds(scenes, &truth, "m_crank", 2.2);
@@ -173,12 +187,18 @@ fn the_crank_mass_is_identified_with_honest_sigmas() {
         100.0 * relative_sigma
     );
     let err = median(runs.iter().map(|r| r[0]).collect());
+    let within = runs.iter().filter(|r| r[0] <= 0.01).count();
     eprintln!(
-        "crank mass: median error {:.2} %, σ {:.2} %",
+        "crank mass: median error {:.2} %, σ {:.2} %, within 1 % in {within} of 10 seeds \
+         (errors {:?} %)",
         100.0 * err,
-        100.0 * relative_sigma
+        100.0 * relative_sigma,
+        runs.iter()
+            .map(|r| (1e4 * r[0]).round() / 100.0)
+            .collect::<Vec<_>>()
     );
-    assert!(err <= 0.015, "median error {:.2} %", 100.0 * err);
+    assert!(err <= 0.0075, "median error {:.2} %", 100.0 * err);
+    assert!(within >= 8, "within 1 % in {within} of 10 seeds");
 }
 
 #[test]

@@ -319,6 +319,12 @@ fn process(s: &EstimateSummary) -> String {
             s.process_sigma,
             three_digits(tried)
         ),
+        ProcessSource::Identified { from, used } => format!(
+            "{} (lowered after identification: at the default {from} the batch's dynamics \
+             residuals used {:.2e} of their expected χ²)",
+            three_digits(s.process_sigma),
+            used
+        ),
         ProcessSource::Readings { nis, bounds } => format!(
             "{} (from the readings: the default {} left a filter pass's mean NIS at \
              {nis:.3}, outside [{:.3}, {:.3}])",
@@ -338,6 +344,13 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
     }
     let (lo, hi) = nis.bounds();
     let unresponsive = matches!(s.process_source, ProcessSource::Unresponsive { .. });
+    // The NIS is the fixed-lag pass's, at the σ before any lowering.
+    let now = match s.process_source {
+        ProcessSource::Identified { from, .. } => {
+            format!("{from}, the default, in the fixed-lag pass the NIS comes from")
+        }
+        _ => process(s),
+    };
     Some(if nis.mean() > hi && unresponsive {
         format!(
             "the mean NIS {:.3} is above its 95 % bound {hi:.3}: the readings disagree with \
@@ -345,7 +358,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              that (process σ {}): look at the sensors' `sigma` (noise, quantization) and at \
              the model",
             nis.mean(),
-            process(s)
+            now
         )
     } else if nis.mean() > hi {
         format!(
@@ -353,7 +366,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              the model more than the σ's allow; the reported σ's are too small. Raise \
              `estimation: process_sigma` (now {}) or the sensors' `sigma`",
             nis.mean(),
-            process(s)
+            now
         )
     } else if let ProcessSource::Correlated { tried, lag_one, .. } = s.process_source {
         format!(
@@ -378,7 +391,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              model better than the σ's say; the reported σ's are too large. Lower \
              `estimation: process_sigma` (now {}) or the sensors' `sigma`",
             nis.mean(),
-            process(s)
+            now
         )
     })
 }

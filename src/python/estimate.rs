@@ -129,6 +129,7 @@ pub(super) fn estimate_run<'py>(
                 ProcessSource::Readings { .. } => "readings",
                 ProcessSource::Unresponsive { .. } => "default",
                 ProcessSource::Correlated { .. } => "default",
+                ProcessSource::Identified { .. } => "identification",
             },
         )?;
         s.set_item(

@@ -120,6 +120,16 @@ impl EstimationGraph {
             .map_or(self.size(), |(o, _)| o)
     }
 
+    /// The index among the graph's step terms of the dynamics factor (soft at the
+    /// process noise): the first soft one, after the constraints.
+    pub fn dynamics_term(&self) -> usize {
+        self.graph
+            .step_terms()
+            .iter()
+            .position(|t| !t.is_constraint())
+            .expect("an estimation graph has a dynamics factor")
+    }
+
     /// Where the identified parameters sit in a step's block, and how many there are.
     pub fn parameters_at(&self) -> Option<(usize, usize)> {
         self.graph.layout().slot(VarKind::Param)

@@ -17,13 +17,20 @@
 //!   enough innovations ([`Whiteness`]): readings that keep disagreeing with the model
 //!   the same way step after step say its error is a bias the process noise does
 //!   not describe, and then the default stays.
+//!
+//! Where the scene identifies parameters, they carry the bias, and a batch estimate
+//! lowers the σ once they are estimated ([`DynamicsUse`], covariance matching on the
+//! dynamics): the default's σ leaves the dynamics too loose to tie the parameters to
+//! the motion, and the batch shows how much of that σ the motion needs.
 
 use super::consistency::{Nis, Whiteness};
+use super::graph::EstimationGraph;
 use super::online::Estimator;
 use super::options::{EstimateOptions, Uncertainty, DEFAULT_PROCESS_SIGMA};
 use super::record::Record;
 use super::run::{graph_with, reading_factors};
 use crate::error::Result;
+use crate::graph::{Term, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -67,6 +74,10 @@ pub enum ProcessSource {
     /// smaller σ `tried`, where the mean NIS was inside them, the innovations'
     /// lag-one autocorrelation was `lag_one`, too far from white ones'.
     Correlated { nis: f64, tried: f64, lag_one: f64 },
+    /// Lowered from `from` (the default) by a batch estimate that identifies
+    /// parameters: at `from` its dynamics residuals used `used` of their expected χ²
+    /// (see [`DynamicsUse`]).
+    Identified { from: f64, used: f64 },
 }
 
 /// The process σ for an estimate of `record`, and where it came from.
@@ -198,4 +209,132 @@ fn pass(
         est.update(reading_factors(model, readings)?)?;
     }
     Ok(est.nis.clone())
+}
+
+/// How much of its process noise a smoothed estimate uses, from its dynamics
+/// residuals: at the optimum of a model whose σ's are right, each whitened residual
+/// row ρ_i = r_i/σ_i has E[ρ_i²] = 1 − h_i P h_iᵀ (h_i the row's whitened Jacobian,
+/// P the step's posterior covariance), the part of the row the estimate does not
+/// absorb. `chi2` sums the ρ_i², `dof` their expectations; a `chi2` below `dof`
+/// says the motion leaves the model by less than σ, and σ·√(chi2/dof) is the σ the
+/// residuals show (covariance matching, whose fixed point is where the likelihood
+/// of the readings is largest in σ). Rows the readings do not reach (a direction
+/// the constraints fix) add about 0 to both.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DynamicsUse {
+    pub chi2: f64,
+    pub dof: f64,
+}
+
+impl DynamicsUse {
+    /// chi2 / dof: 1 where the σ is what the residuals show.
+    pub fn ratio(&self) -> f64 {
+        self.chi2 / self.dof
+    }
+
+    /// The dynamics residuals of the steps of `values` (step-major, every step of
+    /// `eg`'s graph) against their posterior covariances (row-major s × s, one per
+    /// step). `None` where a residual cannot be evaluated or there are no rows.
+    pub fn of(
+        eg: &EstimationGraph,
+        values: &[f64],
+        covariances: &[Vec<f64>],
+        ws: &mut Workspace,
+    ) -> Option<DynamicsUse> {
+        let graph = &eg.graph;
+        let layout = graph.layout();
+        let s = layout.size();
+        let Term::Soft(factor, noise) = &graph.step_terms()[eg.dynamics_term()] else {
+            return None;
+        };
+        let keys = factor.keys();
+        let dim = factor.dim();
+        let mut r = vec![0.0; dim];
+        let mut jac: Vec<Vec<f64>> = (0..keys.len())
+            .map(|a| vec![0.0; dim * factor.size(a)])
+            .collect();
+        let mut h = vec![0.0; s];
+        let (mut chi2, mut dof) = (0.0, 0.0);
+        for (k, p) in covariances.iter().enumerate() {
+            let x = &values[k * s..(k + 1) * s];
+            let inputs: Vec<&[f64]> = keys
+                .iter()
+                .map(|key| {
+                    let (o, d) = layout.slot(key.kind).unwrap_or((0, 0));
+                    &x[o..o + d]
+                })
+                .collect();
+            factor
+                .evaluate(graph.run_time(k), &inputs, &mut r, Some(&mut jac), ws)
+                .ok()?;
+            for i in 0..dim {
+                let w = noise.weight(i);
+                h.fill(0.0);
+                for (a, key) in keys.iter().enumerate() {
+                    let (o, d) = layout.slot(key.kind).unwrap_or((0, 0));
+                    for c in 0..d {
+                        h[o + c] += w * jac[a][i * d + c];
+                    }
+                }
+                let hph: f64 = (0..s)
+                    .map(|a| h[a] * (0..s).map(|b| p[a * s + b] * h[b]).sum::<f64>())
+                    .sum();
+                chi2 += (w * r[i]).powi(2);
+                dof += (1.0 - hph).clamp(0.0, 1.0);
+            }
+        }
+        (dof > 0.0 && chi2.is_finite()).then_some(DynamicsUse { chi2, dof })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::coordinates::Coordinates;
+    use crate::scene::Scene;
+    use std::path::Path;
+
+    fn graph() -> (Arc<Model>, EstimationGraph) {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scenes/identification/fourbar-mass-bad.yaml");
+        let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
+        let u = Uncertainty::of(&model);
+        let start = model.initial.clone();
+        let eg =
+            EstimationGraph::new(model.clone(), Coordinates::Dependent, &u, 0.005, start).unwrap();
+        (model, eg)
+    }
+
+    #[test]
+    fn the_dynamics_use_counts_whitened_residuals_against_what_the_estimate_absorbs() {
+        let (model, eg) = graph();
+        let (n, s, steps) = (model.n(), eg.size(), 3);
+        let sigma = Uncertainty::of(&model).process;
+        let block = eg.initial_block(&model).unwrap();
+        let mut values: Vec<f64> = (0..steps).flat_map(|_| block.clone()).collect();
+        let mut ws = eg.graph.workspace();
+        let zero = vec![vec![0.0; s * s]; steps];
+        // The start's accelerations are the model's: no residual; with no posterior
+        // uncertainty, every row counts whole.
+        let at_model = DynamicsUse::of(&eg, &values, &zero, &mut ws).unwrap();
+        assert!(at_model.chi2 < 1e-16, "{at_model:?}");
+        assert_eq!(at_model.dof, (steps * n) as f64);
+        // Each step's q̈ of one coordinate 2σ off the model's: 4 per step.
+        for k in 0..steps {
+            values[k * s + 2 * n + n - 1] += 2.0 * sigma;
+        }
+        let off = DynamicsUse::of(&eg, &values, &zero, &mut ws).unwrap();
+        assert!((off.chi2 - 4.0 * steps as f64).abs() < 1e-9, "{off:?}");
+        assert!((off.ratio() - 4.0 / n as f64).abs() < 1e-9);
+        // A posterior as wide as the prior on q̈ absorbs every row.
+        let mut wide = zero.clone();
+        for p in &mut wide {
+            for i in 2 * n..3 * n {
+                p[i * s + i] = sigma * sigma;
+            }
+        }
+        // (None: no row left to count.)
+        let absorbed = DynamicsUse::of(&eg, &values, &wide, &mut ws);
+        assert!(absorbed.is_none_or(|u| u.dof < 1e-9), "{absorbed:?}");
+    }
 }

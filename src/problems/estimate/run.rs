@@ -8,7 +8,7 @@ use super::graph::EstimationGraph;
 use super::identification::Identification;
 use super::online::{Estimator, StepEstimate};
 use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW};
-use super::process_noise::{self, ProcessSource};
+use super::process_noise::{self, DynamicsUse, ProcessSource};
 use super::record::Record;
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
@@ -120,7 +120,7 @@ pub fn estimate_with_progress(
         return Err(Error::InvalidArgument(super::record::NO_READINGS.into()));
     }
     let mut uncertainty = Uncertainty::of(&model);
-    let (process_sigma, process_source) =
+    let (mut process_sigma, mut process_source) =
         process_noise::choose(&model, options, record, &uncertainty)?;
     uncertainty.process = process_sigma;
     let eg = graph_with(&model, options.coordinates, record, &uncertainty)?;
@@ -173,7 +173,25 @@ pub fn estimate_with_progress(
             }
         }
         Smoothing::Batch => {
-            iterations += smooth_all(&model, &mut est, steps, settings, sink)?;
+            // Parameters carry the model's bias: the default σ may be lowered to
+            // what the identified model's residuals show.
+            let lower = process_source == ProcessSource::Default && model.parameters.is_some();
+            let batch = Batch {
+                model: &model,
+                record,
+                options,
+                uncertainty: &uncertainty,
+                lower,
+            };
+            let (its, lowered) = batch.smooth_all(&est, steps, sink)?;
+            iterations += its;
+            if let Some((sigma, used)) = lowered {
+                process_source = ProcessSource::Identified {
+                    from: process_sigma,
+                    used,
+                };
+                process_sigma = sigma;
+            }
         }
     }
     let identification = identification_of(&last_parameters);
@@ -196,36 +214,146 @@ pub fn estimate_with_progress(
     })
 }
 
-/// The batch solve of every step from the fixed-lag pass's estimate, and each
-/// step's marginal covariance from it.
-fn smooth_all(
-    _model: &Arc<Model>,
-    est: &mut Estimator,
+/// The most stages of the lowering of the process σ after identification, each
+/// to at most [`MAX_CUT`] times smaller: a homotopy, every stage's solve started
+/// from the last one's estimate, which a σ far smaller would leave in a narrow
+/// curved valley (Gauss–Newton steps that overshoot, damped ones that crawl).
+const MAX_STAGES: usize = 8;
+/// The largest factor a stage lowers σ by.
+const MAX_CUT: f64 = 10.0;
+/// The lowest σ, as a fraction of the default: below it the dynamics' weight
+/// swamps the readings' in double precision long before the estimate could gain.
+const LOWEST: f64 = 1e-3;
+/// Matched: the residuals use at least this share of their expected χ².
+const MATCHED: f64 = 0.8;
+
+/// A batch estimate of a record from a fixed-lag pass over it.
+struct Batch<'a> {
+    model: &'a Arc<Model>,
+    record: &'a Record,
+    options: &'a EstimateOptions,
+    uncertainty: &'a Uncertainty,
+    /// Whether the process σ may be lowered to what the residuals show.
+    lower: bool,
+}
+
+impl Batch<'_> {
+    /// The batch solve of every step from the fixed-lag pass's estimate, and each
+    /// step's marginal covariance from it; with `lower`, the process σ lowered in
+    /// stages to what the dynamics residuals show ([`DynamicsUse`]). Returns the
+    /// linear solves, and where it lowered σ, the σ it ended at with the share of
+    /// its expected χ² the residuals used at the first σ.
+    ///
+    /// The readings barely tell the process σ's below the first one apart (the
+    /// residuals' χ² has a few degrees of freedom), and each narrows the parameters'
+    /// covariance further: their reported covariance stays the first σ's, the
+    /// widest of those the readings do not reject.
+    fn smooth_all(
+        &self,
+        est: &Estimator,
+        steps: usize,
+        sink: &mut dyn FnMut(&StepEstimate) -> Result<()>,
+    ) -> Result<(usize, Option<(f64, f64)>)> {
+        let settings = self.options.settings;
+        let mut values = est.values().to_vec();
+        let s = est.graph().size();
+        let (mut first, mut iterations) = solve(&est.graph().graph, &mut values, steps, settings)?;
+        let mut covariances = Vec::new();
+        first.covariances_after_solve(
+            &est.graph().graph,
+            0,
+            steps,
+            Marginals::Every,
+            &mut covariances,
+        )?;
+        let params = est.graph().parameters_at();
+        // The covariance at the first σ (its parameters' block).
+        let at_first = params.map(|_| covariances[steps - 1].clone());
+        let mut own: Option<EstimationGraph> = None;
+        let mut sigma = self.uncertainty.process;
+        let mut first_use = None;
+        let mut ws = est.graph().graph.workspace();
+        let lowest = LOWEST * sigma;
+        for _ in 0..if self.lower { MAX_STAGES } else { 0 } {
+            let eg = own.as_ref().unwrap_or(est.graph());
+            let Some(used) = DynamicsUse::of(eg, &values, &covariances, &mut ws) else {
+                break;
+            };
+            first_use.get_or_insert(used.ratio());
+            // σ² ← σ²·χ²/dof, the σ the residuals show (never raised here).
+            let next = (sigma * used.ratio().sqrt().max(1.0 / MAX_CUT)).max(lowest);
+            if used.ratio() >= MATCHED || next >= sigma {
+                break;
+            }
+            let eg = self.graph_at(next)?;
+            let mut trial = values.clone();
+            // A stage that does not converge, or whose covariances fail, keeps the
+            // last one's estimate.
+            let Ok((mut stage, its)) = solve(&eg.graph, &mut trial, steps, settings) else {
+                break;
+            };
+            iterations += its;
+            let mut c = Vec::new();
+            if stage
+                .covariances_after_solve(&eg.graph, 0, steps, Marginals::Every, &mut c)
+                .is_err()
+            {
+                break;
+            }
+            (values, covariances, sigma) = (trial, c, next);
+            own = Some(eg);
+        }
+        if let (Some((at, np)), Some(c0), true) = (params, &at_first, own.is_some()) {
+            for c in &mut covariances {
+                for r in at..at + np {
+                    c[r * s + at..r * s + at + np]
+                        .copy_from_slice(&c0[r * s + at..r * s + at + np]);
+                }
+            }
+        }
+        for (k, covariance) in covariances.into_iter().enumerate() {
+            sink(&StepEstimate {
+                step: k,
+                t: est.time(k),
+                x: values[k * s..(k + 1) * s].to_vec(),
+                covariance,
+            })?;
+        }
+        let lowered = own.map(|_| (sigma, first_use.unwrap_or(f64::NAN)));
+        Ok((iterations, lowered))
+    }
+
+    /// The estimation graph with process σ `sigma`, holding every reading of the
+    /// record.
+    fn graph_at(&self, sigma: f64) -> Result<EstimationGraph> {
+        let mut u = self.uncertainty.clone();
+        u.process = sigma;
+        let mut eg = graph_with(self.model, self.options.coordinates, self.record, &u)?;
+        for (k, readings) in self.record.steps.iter().enumerate() {
+            for (factor, noise) in reading_factors(self.model, readings)? {
+                eg.graph.add_soft_at(k, factor, noise)?;
+            }
+        }
+        Ok(eg)
+    }
+}
+
+/// The batch solve of every step of `graph` from `values`: the solver (its
+/// linearization kept for the covariances) and its linear solves.
+fn solve(
+    graph: &crate::graph::ChainGraph,
+    values: &mut [f64],
     steps: usize,
     settings: crate::solver::Settings,
-    sink: &mut dyn FnMut(&StepEstimate) -> Result<()>,
-) -> Result<usize> {
-    let graph = &est.graph().graph;
-    let mut values = est.values().to_vec();
-    let s = est.graph().size();
+) -> Result<(WindowSolver, usize)> {
     let mut solver = WindowSolver::new(graph, steps, settings)?;
     solver.optimize_for_batch();
-    let report = solver.solve(graph, &mut values, 0, steps, None)?;
+    let report = solver.solve(graph, values, 0, steps, None)?;
     if report.termination != Termination::Converged {
         return Err(Error::NotConverged {
             what: "the batch estimate".into(),
             report,
         });
     }
-    let mut covariances = Vec::new();
-    solver.covariances_after_solve(graph, 0, steps, Marginals::Every, &mut covariances)?;
-    for (k, covariance) in covariances.into_iter().enumerate() {
-        sink(&StepEstimate {
-            step: k,
-            t: est.time(k),
-            x: values[k * s..(k + 1) * s].to_vec(),
-            covariance,
-        })?;
-    }
-    Ok(report.iterations)
+    Ok((solver, report.iterations))
 }
