@@ -332,9 +332,12 @@ impl Factor for Projected {
                 if self.inner.diagonal_jacobian(a) && cols == n {
                     // P diag(d): P's columns scaled (the dense product's only
                     // nonzero term).
-                    for i in 0..n {
-                        for k in 0..n {
-                            product[i * n + k] = rows.p[i * n + k] * block[k * n + k];
+                    for (out, p_row) in product[..n * n]
+                        .chunks_exact_mut(n)
+                        .zip(rows.p.chunks_exact(n))
+                    {
+                        for (k, (o, p)) in out.iter_mut().zip(p_row).enumerate() {
+                            *o = p * block[k * n + k];
                         }
                     }
                 } else {

@@ -262,24 +262,33 @@ impl ReducedRows {
             let out = &mut reduced[k.lag];
             let span = &mut spans[k.lag];
             let jac = &buf.jac[a];
-            let diagonal = factor.diagonal_jacobian(a);
-            for r in 0..dim {
-                let row = &mut out[r * s..r * s + red.dim];
-                let columns = if diagonal { r..r + 1 } else { 0..d };
-                for j in columns {
-                    let v = jac[r * d + j];
-                    if v == 0.0 {
-                        continue;
-                    }
-                    shifted[r] += v * red.particular[off + j];
-                    let (start, nrow) = red.row(off + j);
-                    if !nrow.is_empty() {
-                        let (lo, hi) = &mut span[r];
-                        *lo = (*lo).min(start);
-                        *hi = (*hi).max(start + nrow.len());
-                    }
-                    for (o, nv) in row[start..].iter_mut().zip(nrow) {
-                        *o += v * nv;
+            // Column by column, each of N's rows looked up once: every entry still
+            // sums its terms in the order of the columns.
+            let mut add = |r: usize, j: usize, p: f64, (start, nrow): (usize, &[f64])| {
+                let v = jac[r * d + j];
+                if v == 0.0 {
+                    return;
+                }
+                shifted[r] += v * p;
+                if !nrow.is_empty() {
+                    let (lo, hi) = &mut span[r];
+                    *lo = (*lo).min(start);
+                    *hi = (*hi).max(start + nrow.len());
+                }
+                let row = &mut out[r * s + start..r * s + red.dim];
+                for (o, nv) in row.iter_mut().zip(nrow) {
+                    *o += v * nv;
+                }
+            };
+            if factor.diagonal_jacobian(a) {
+                for r in 0..dim {
+                    add(r, r, red.particular[off + r], red.row(off + r));
+                }
+            } else {
+                for j in 0..d {
+                    let (p, nrow) = (red.particular[off + j], red.row(off + j));
+                    for r in 0..dim {
+                        add(r, j, p, nrow);
                     }
                 }
             }
