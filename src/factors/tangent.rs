@@ -50,7 +50,7 @@ struct RowSpace<'a> {
 /// at most in a Jacobian block.
 fn row_space_scratch(model: &Model, cols: usize) -> StackReq {
     let (m, n, ma) = (model.m(), model.n(), model.active.len());
-    let reals = [n * n, n * m, m * n, ma * n, ma, ma * ma, ma * n, n * ma, ma];
+    let reals = [n * n, n * m, m * n, ma * n, ma, ma * ma, ma * n, n * ma];
     let products = [n, m, n * n, m * n, n * n, n * n, n * cols.max(n)];
     StackReq::all_of(&reals.map(StackReq::new::<f64>))
         .and(StackReq::all_of(&products.map(StackReq::new::<f64>)))
@@ -70,7 +70,6 @@ fn row_space<'a>(
     let (gram, stack) = zeros(stack, ma * ma);
     let (x, stack) = zeros(stack, ma * n);
     let (pinv_hat, stack) = zeros(stack, n * ma);
-    let (column, stack) = zeros(stack, ma);
     model.jacobian_into(q, all);
     if all.iter().any(|v| !v.is_finite()) {
         return Err(Error::singular("Φ_q is not finite at the step's positions"));
@@ -105,14 +104,28 @@ fn row_space<'a>(
         }
     }
     if dense::cholesky(gram, ma).is_ok() && well_conditioned(gram, ma) {
-        // X = (ÂÂᵀ)⁻¹Â column by column, Â⁺ = Xᵀ.
-        for j in 0..n {
-            for (c, i) in column.iter_mut().zip(0..ma) {
-                *c = a[i * n + j];
+        // X = (ÂÂᵀ)⁻¹Â, Â⁺ = Xᵀ: every column at once, each by the operations of
+        // `dense::cholesky_solve` in its order.
+        x.copy_from_slice(a);
+        let l = &*gram;
+        for i in 0..ma {
+            let (done, rest) = x.split_at_mut(i * n);
+            for (j, xij) in rest[..n].iter_mut().enumerate() {
+                let sum: f64 = (0..i).map(|k| l[i * ma + k] * done[k * n + j]).sum();
+                *xij = (*xij - sum) / l[i * ma + i];
             }
-            dense::cholesky_solve(gram, ma, column);
-            for (i, c) in column.iter().enumerate() {
-                x[i * n + j] = *c;
+        }
+        for i in (0..ma).rev() {
+            let (above, rest) = x.split_at_mut(i * n);
+            let row = &mut rest[..n];
+            for v in row.iter_mut() {
+                *v /= l[i * ma + i];
+            }
+            for k in 0..i {
+                let lik = l[i * ma + k];
+                for (o, xi) in above[k * n..(k + 1) * n].iter_mut().zip(row.iter()) {
+                    *o -= lik * xi;
+                }
             }
         }
         for i in 0..n {
@@ -319,9 +332,12 @@ impl Factor for Projected {
                 if self.inner.diagonal_jacobian(a) && cols == n {
                     // P diag(d): P's columns scaled (the dense product's only
                     // nonzero term).
-                    for i in 0..n {
-                        for k in 0..n {
-                            product[i * n + k] = rows.p[i * n + k] * block[k * n + k];
+                    for (out, p_row) in product[..n * n]
+                        .chunks_exact_mut(n)
+                        .zip(rows.p.chunks_exact(n))
+                    {
+                        for (k, (o, p)) in out.iter_mut().zip(p_row).enumerate() {
+                            *o = p * block[k * n + k];
                         }
                     }
                 } else {

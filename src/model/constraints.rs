@@ -6,6 +6,8 @@
 //! for v = q̇, ∂(Φᵏ_q q̇)/∂q likewise, and Φᵏ_qq q̈ for v = q̈) and the third-order
 //! term ∂(Φ̇ᵏ_q q̇)/∂q = ∂(q̇ᵀ Φᵏ_qq q̇)/∂q. None of the constraints depends on time.
 
+use std::cell::Cell;
+
 /// Most coordinates one constraint involves (four points and an angle).
 pub const MAX_LOCAL: usize = 9;
 
@@ -36,6 +38,24 @@ pub enum Equation {
     DistanceAlong { length: f64 },
 }
 
+/// sin and cos of an angle, the last angle's kept: a step's evaluations ask them of
+/// the same angle many times over (Φ, its gradient, its second and third
+/// derivatives, in every factor at that step). The same bits in, the same out.
+fn sin_cos(x: f64) -> (f64, f64) {
+    thread_local! {
+        static LAST: Cell<(u64, f64, f64)> = const { Cell::new((0, 0.0, 1.0)) };
+    }
+    LAST.with(|last| {
+        let (bits, s, c) = last.get();
+        if bits == x.to_bits() {
+            return (s, c);
+        }
+        let (s, c) = x.sin_cos();
+        last.set((x.to_bits(), s, c));
+        (s, c)
+    })
+}
+
 impl Equation {
     /// Number of local coordinates.
     #[allow(clippy::len_without_is_empty)] // never empty: every equation has coordinates
@@ -58,12 +78,12 @@ impl Equation {
             }
             Equation::PointOnLine => (u[4] - u[2]) * (u[1] - u[3]) - (u[5] - u[3]) * (u[0] - u[2]),
             Equation::AbsoluteAngle => {
-                let (s, c) = u[4].sin_cos();
+                let (s, c) = sin_cos(u[4]);
                 (u[2] - u[0]) * s - (u[3] - u[1]) * c
             }
             Equation::RelativeAngle => {
                 let (a, b) = segments(u);
-                let (s, c) = u[8].sin_cos();
+                let (s, c) = sin_cos(u[8]);
                 cross(a, b) * c - dot(a, b) * s
             }
             Equation::DistanceAlong { length } => {
@@ -83,13 +103,13 @@ impl Equation {
             }
             Equation::PointOnLine => point_on_line_linear(u, g),
             Equation::AbsoluteAngle => {
-                let (s, c) = u[4].sin_cos();
+                let (s, c) = sin_cos(u[4]);
                 let d = [u[2] - u[0], u[3] - u[1]];
                 g[..5].copy_from_slice(&[-s, c, s, -c, d[0] * c + d[1] * s]);
             }
             Equation::RelativeAngle => {
                 let (a, b) = segments(u);
-                let (s, c) = u[8].sin_cos();
+                let (s, c) = sin_cos(u[8]);
                 relative_angle_bilinear(s, c, a, b, g);
                 g[8] = -cross(a, b) * s - dot(a, b) * c;
             }
@@ -111,7 +131,7 @@ impl Equation {
             // gradient's formula evaluated at v.
             Equation::PointOnLine => point_on_line_linear(v, out),
             Equation::AbsoluteAngle => {
-                let (s, c) = u[4].sin_cos();
+                let (s, c) = sin_cos(u[4]);
                 let d = [u[2] - u[0], u[3] - u[1]];
                 let dv = [v[2] - v[0], v[3] - v[1]];
                 let w = v[4];
@@ -129,7 +149,7 @@ impl Equation {
                 // and (a, vb); the φ column is the gradient's derivative in φ.
                 let (a, b) = segments(u);
                 let (va, vb) = segments(v);
-                let (s, c) = u[8].sin_cos();
+                let (s, c) = sin_cos(u[8]);
                 let w = v[8];
                 let mut along_a = [0.0; MAX_LOCAL];
                 let mut along_b = [0.0; MAX_LOCAL];
@@ -160,7 +180,7 @@ impl Equation {
         match *self {
             Equation::AbsoluteAngle => {
                 // vᵀΦ_qq v = 2w (c Δv_x + s Δv_y) + (d_y c − d_x s) w².
-                let (s, c) = u[4].sin_cos();
+                let (s, c) = sin_cos(u[4]);
                 let d = [u[2] - u[0], u[3] - u[1]];
                 let dv = [v[2] - v[0], v[3] - v[1]];
                 let (w, w2) = (v[4], v[4] * v[4]);
@@ -179,7 +199,7 @@ impl Equation {
                 // relative_angle_bilinear gives.
                 let (a, b) = segments(u);
                 let (va, vb) = segments(v);
-                let (s, c) = u[8].sin_cos();
+                let (s, c) = sin_cos(u[8]);
                 let (w, w2) = (v[8], v[8] * v[8]);
                 let mut first = [0.0; MAX_LOCAL];
                 relative_angle_bilinear(c, -s, va, vb, &mut first);

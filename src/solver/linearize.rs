@@ -262,24 +262,33 @@ impl ReducedRows {
             let out = &mut reduced[k.lag];
             let span = &mut spans[k.lag];
             let jac = &buf.jac[a];
-            let diagonal = factor.diagonal_jacobian(a);
-            for r in 0..dim {
-                let row = &mut out[r * s..r * s + red.dim];
-                let columns = if diagonal { r..r + 1 } else { 0..d };
-                for j in columns {
-                    let v = jac[r * d + j];
-                    if v == 0.0 {
-                        continue;
-                    }
-                    shifted[r] += v * red.particular[off + j];
-                    let (start, nrow) = red.row(off + j);
-                    if !nrow.is_empty() {
-                        let (lo, hi) = &mut span[r];
-                        *lo = (*lo).min(start);
-                        *hi = (*hi).max(start + nrow.len());
-                    }
-                    for (o, nv) in row[start..].iter_mut().zip(nrow) {
-                        *o += v * nv;
+            // Column by column, each of N's rows looked up once: every entry still
+            // sums its terms in the order of the columns.
+            let mut add = |r: usize, j: usize, p: f64, (start, nrow): (usize, &[f64])| {
+                let v = jac[r * d + j];
+                if v == 0.0 {
+                    return;
+                }
+                shifted[r] += v * p;
+                if !nrow.is_empty() {
+                    let (lo, hi) = &mut span[r];
+                    *lo = (*lo).min(start);
+                    *hi = (*hi).max(start + nrow.len());
+                }
+                let row = &mut out[r * s + start..r * s + red.dim];
+                for (o, nv) in row.iter_mut().zip(nrow) {
+                    *o += v * nv;
+                }
+            };
+            if factor.diagonal_jacobian(a) {
+                for r in 0..dim {
+                    add(r, r, red.particular[off + r], red.row(off + r));
+                }
+            } else {
+                for j in 0..d {
+                    let (p, nrow) = (red.particular[off + j], red.row(off + j));
+                    for r in 0..dim {
+                        add(r, j, p, nrow);
                     }
                 }
             }
@@ -287,7 +296,8 @@ impl ReducedRows {
     }
 
     /// Adds the reduced factor's JᵀJ and Jᵀr (its first `dim` rows) into the
-    /// block-tridiagonal system: block `step` from `jacobian[0]` and, when `lagged`,
+    /// block-tridiagonal system (the diagonal blocks' lower triangles, mirrored once
+    /// every factor is in): block `step` from `jacobian[0]` and, when `lagged`,
     /// block `step − 1` from `jacobian[1]` (only their active columns, H's block
     /// sizes). Reduced rows are often sparse (a scaled identity times a null-space
     /// basis with unit rows), so each row's products run over its nonzeros, gathered
@@ -334,10 +344,12 @@ impl ReducedRows {
                 for &(a, va) in nz.iter() {
                     gb[a] += va * rr;
                 }
+                // The lower triangle only: the upper one is its mirror
+                // (`mirror_diagonal_blocks`), the same products in the same order.
                 let hb = h.diag_mut(block);
-                for &(a, va) in nz.iter() {
+                for (i, &(a, va)) in nz.iter().enumerate() {
                     let out = &mut hb[a * d..(a + 1) * d];
-                    for &(b, vb) in nz.iter() {
+                    for &(b, vb) in &nz[..=i] {
                         out[b] += va * vb;
                     }
                 }
@@ -846,6 +858,9 @@ impl WindowSolver {
             }
             (cost, cost_first) = (sum.total, sum.first);
         }
+        if linearize {
+            mirror_diagonal_blocks(&mut self.normal.h);
+        }
         if let Some(p) = prior {
             let x = &values[k0 * s..(k0 + 1) * s];
             let (d, rest) = self.scratch.split_at_mut(s);
@@ -873,5 +888,19 @@ impl WindowSolver {
         }
         self.cost_first = cost_first;
         Ok(cost)
+    }
+}
+
+/// Copies each diagonal block's lower triangle onto its upper one: the soft factors
+/// accumulate the lower triangle only ([`ReducedRows::accumulate`]).
+fn mirror_diagonal_blocks(h: &mut BlockTridiagonal) {
+    for b in 0..h.blocks() {
+        let d = h.dim(b);
+        let block = h.diag_mut(b);
+        for a in 1..d {
+            for c in 0..a {
+                block[c * d + a] = block[a * d + c];
+            }
+        }
     }
 }
