@@ -1231,15 +1231,7 @@ fn a_load_that_grows_without_bound_in_time_ends_the_run_where_it_outruns_the_ste
         let summary = String::from_utf8_lossy(&run.stdout);
         assert!(!summary.contains("paper's integrators"), "{summary}");
         let partial = text(&dir.join(format!("{coords}.partial.csv")));
-        let t: f64 = partial
-            .lines()
-            .last()
-            .unwrap()
-            .split(',')
-            .next()
-            .unwrap()
-            .parse()
-            .unwrap();
+        let t = common::last_t(&partial);
         assert!((1.1..1.2).contains(&t), "{coords}: last row at t = {t}");
         last_t.push(t);
     }

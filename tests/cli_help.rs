@@ -114,24 +114,16 @@ fn an_end_time_off_the_step_grid_is_stated_in_the_summary() {
         ]);
         assert!(out.status.success(), "{}", stderr(&out));
         let csv = String::from_utf8_lossy(&out.stdout).into_owned();
-        let last_t = csv
-            .lines()
-            .last()
-            .unwrap()
-            .split(',')
-            .next()
-            .unwrap()
-            .to_string();
-        (stderr(&out), last_t)
+        (stderr(&out), common::last_t(&csv))
     };
     let (summary, last) = run("0.2005", "0.001");
-    assert_eq!(last.parse::<f64>().unwrap(), 0.201);
+    assert_eq!(last, 0.201);
     assert!(
         summary.contains("ends at t = 0.201 s, the whole step nearest t_end = 0.2005 s"),
         "{summary}"
     );
     let (summary, last) = run("0.1", "0.003");
-    assert_eq!(last.parse::<f64>().unwrap(), 0.099);
+    assert_eq!(last, 0.099);
     assert!(summary.contains("ends at t = 0.099 s"), "{summary}");
     let (summary, _) = run("0.3", "0.1");
     assert!(!summary.contains("ends at"), "{summary}");

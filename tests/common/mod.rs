@@ -163,3 +163,11 @@ pub fn simulate(scene: &str, t_end: &str, out: &Path, extra: &[&str]) -> std::pr
     assert!(run.status.success(), "{}", stderr(&run));
     run
 }
+
+/// The time of a trajectory CSV's last row (its first column).
+pub fn last_t(csv: &str) -> f64 {
+    let row = csv.lines().last().expect("an empty CSV");
+    let t = row.split(',').next().unwrap_or("");
+    t.parse()
+        .unwrap_or_else(|e| panic!("last row {row:?}: t {t:?}: {e}"))
+}

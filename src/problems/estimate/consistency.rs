@@ -1,7 +1,7 @@
 //! Whether the reported uncertainty is honest: the normalized innovation squared
 //! (NIS) of every reading, against the χ² bounds its mean must fall within.
 
-use crate::graph::{ChainGraph, Layout, Term, Workspace};
+use crate::graph::{ChainGraph, Factor, Key, Layout, Term, Workspace};
 use nalgebra::{DMatrix, DVector};
 use std::collections::HashMap;
 
@@ -36,7 +36,11 @@ pub struct Whiteness {
 
 impl Whiteness {
     fn add(&mut self, sensor: &str, e: Vec<f64>) {
-        if let Some(prev) = self.last.get(sensor).filter(|p| p.len() == e.len()) {
+        let Some(prev) = self.last.get_mut(sensor) else {
+            self.last.insert(sensor.to_string(), e);
+            return;
+        };
+        if prev.len() == e.len() {
             for (a, b) in prev.iter().zip(&e) {
                 self.products += a * b;
                 self.before += a * a;
@@ -44,7 +48,7 @@ impl Whiteness {
                 self.pairs += 1;
             }
         }
-        self.last.insert(sensor.to_string(), e);
+        *prev = e;
     }
 
     /// The pooled lag-one autocorrelation, if any pair was counted.
@@ -118,35 +122,10 @@ impl Nis {
             else {
                 continue;
             };
-            let dim = factor.dim();
-            let keys = factor.keys();
-            let inputs: Vec<&[f64]> = keys
-                .iter()
-                .map(|k| {
-                    let (o, d) = layout.slot(k.kind).unwrap_or((0, 0));
-                    &x[o..o + d]
-                })
-                .collect();
-            sensors.push((factor.name(), dim));
-            let mut r = vec![0.0; dim];
-            let mut jac: Vec<Vec<f64>> = (0..keys.len())
-                .map(|a| vec![0.0; dim * factor.size(a)])
-                .collect();
-            if factor
-                .evaluate(t, &inputs, &mut r, Some(&mut jac), ws)
-                .is_err()
-            {
-                return None;
-            }
-            for i in 0..dim {
-                let mut h = vec![0.0; s];
-                for (a, k) in keys.iter().enumerate() {
-                    let (o, d) = layout.slot(k.kind).unwrap_or((0, 0));
-                    for c in 0..d {
-                        h[o + c] += jac[a][i * d + c];
-                    }
-                }
-                rows.push((r[i], 1.0 / noise.weight(i), h));
+            let (r, h) = step_rows(layout, factor.as_ref(), t, x, ws)?;
+            sensors.push((factor.name(), r.len()));
+            for (i, ri) in r.iter().enumerate() {
+                rows.push((*ri, 1.0 / noise.weight(i), h[i * s..(i + 1) * s].to_vec()));
             }
         }
         if rows.is_empty() {
@@ -160,7 +139,8 @@ impl Nis {
             post[(i, i)] += row.1 * row.1;
         }
         let r = DVector::from_fn(m, |i, _| rows[i].0);
-        let chol = post.clone().cholesky()?;
+        let diagonal = post.diagonal();
+        let chol = post.cholesky()?;
         let nis = r.dot(&chol.solve(&r));
         if !nis.is_finite() {
             return None;
@@ -171,13 +151,51 @@ impl Nis {
         let mut i = 0;
         for (name, dim) in sensors {
             let e = (i..i + dim)
-                .map(|j| r[j] / post[(j, j)].max(f64::MIN_POSITIVE).sqrt())
+                .map(|j| r[j] / diagonal[j].max(f64::MIN_POSITIVE).sqrt())
                 .collect();
             self.whiteness.add(name, e);
             i += dim;
         }
         Some(nis)
     }
+}
+
+/// A factor of one step (its keys all at lag 0) at the step's state `x`: its
+/// residual, and its Jacobian on the step's unknowns (dim × `layout.size()`,
+/// row-major). `None` where it cannot be evaluated there.
+pub(super) fn step_rows(
+    layout: &Layout,
+    factor: &dyn Factor,
+    t: f64,
+    x: &[f64],
+    ws: &mut Workspace,
+) -> Option<(Vec<f64>, Vec<f64>)> {
+    let (s, dim, keys) = (layout.size(), factor.dim(), factor.keys());
+    let slot = |k: &Key| layout.slot(k.kind).unwrap_or((0, 0));
+    let inputs: Vec<&[f64]> = keys
+        .iter()
+        .map(|k| {
+            let (o, d) = slot(k);
+            &x[o..o + d]
+        })
+        .collect();
+    let mut r = vec![0.0; dim];
+    let mut jac: Vec<Vec<f64>> = (0..keys.len())
+        .map(|a| vec![0.0; dim * factor.size(a)])
+        .collect();
+    factor
+        .evaluate(t, &inputs, &mut r, Some(&mut jac), ws)
+        .ok()?;
+    let mut h = vec![0.0; dim * s];
+    for (a, k) in keys.iter().enumerate() {
+        let (o, d) = slot(k);
+        for i in 0..dim {
+            for c in 0..d {
+                h[i * s + o + c] += jac[a][i * d + c];
+            }
+        }
+    }
+    Some((r, h))
 }
 
 /// The NIS of the readings at run step `run_step` of `graph` (see [`Nis::add`]).

@@ -23,7 +23,7 @@
 //! dynamics): the default's σ leaves the dynamics too loose to tie the parameters to
 //! the motion, and the batch shows how much of that σ the motion needs.
 
-use super::consistency::{Nis, Whiteness};
+use super::consistency::{step_rows, Nis, Whiteness};
 use super::graph::EstimationGraph;
 use super::online::Estimator;
 use super::options::{EstimateOptions, Uncertainty, DEFAULT_PROCESS_SIGMA};
@@ -247,39 +247,21 @@ impl DynamicsUse {
         let Term::Soft(factor, noise) = &graph.step_terms()[eg.dynamics_term()] else {
             return None;
         };
-        let keys = factor.keys();
-        let dim = factor.dim();
-        let mut r = vec![0.0; dim];
-        let mut jac: Vec<Vec<f64>> = (0..keys.len())
-            .map(|a| vec![0.0; dim * factor.size(a)])
-            .collect();
         let mut h = vec![0.0; s];
         let (mut chi2, mut dof) = (0.0, 0.0);
         for (k, p) in covariances.iter().enumerate() {
             let x = &values[k * s..(k + 1) * s];
-            let inputs: Vec<&[f64]> = keys
-                .iter()
-                .map(|key| {
-                    let (o, d) = layout.slot(key.kind).unwrap_or((0, 0));
-                    &x[o..o + d]
-                })
-                .collect();
-            factor
-                .evaluate(graph.run_time(k), &inputs, &mut r, Some(&mut jac), ws)
-                .ok()?;
-            for i in 0..dim {
+            let (r, rows) = step_rows(layout, factor.as_ref(), graph.run_time(k), x, ws)?;
+            for (i, ri) in r.iter().enumerate() {
+                // The row whitened by its σ.
                 let w = noise.weight(i);
-                h.fill(0.0);
-                for (a, key) in keys.iter().enumerate() {
-                    let (o, d) = layout.slot(key.kind).unwrap_or((0, 0));
-                    for c in 0..d {
-                        h[o + c] += w * jac[a][i * d + c];
-                    }
+                for (hc, jc) in h.iter_mut().zip(&rows[i * s..(i + 1) * s]) {
+                    *hc = w * jc;
                 }
                 let hph: f64 = (0..s)
                     .map(|a| h[a] * (0..s).map(|b| p[a * s + b] * h[b]).sum::<f64>())
                     .sum();
-                chi2 += (w * r[i]).powi(2);
+                chi2 += (w * ri).powi(2);
                 dof += (1.0 - hph).clamp(0.0, 1.0);
             }
         }
