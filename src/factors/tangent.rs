@@ -104,30 +104,9 @@ fn row_space<'a>(
         }
     }
     if dense::cholesky(gram, ma).is_ok() && well_conditioned(gram, ma) {
-        // X = (ÂÂᵀ)⁻¹Â, Â⁺ = Xᵀ: every column at once, each by the operations of
-        // `dense::cholesky_solve` in its order.
+        // X = (ÂÂᵀ)⁻¹Â, Â⁺ = Xᵀ: every column at once.
         x.copy_from_slice(a);
-        let l = &*gram;
-        for i in 0..ma {
-            let (done, rest) = x.split_at_mut(i * n);
-            for (j, xij) in rest[..n].iter_mut().enumerate() {
-                let sum: f64 = (0..i).map(|k| l[i * ma + k] * done[k * n + j]).sum();
-                *xij = (*xij - sum) / l[i * ma + i];
-            }
-        }
-        for i in (0..ma).rev() {
-            let (above, rest) = x.split_at_mut(i * n);
-            let row = &mut rest[..n];
-            for v in row.iter_mut() {
-                *v /= l[i * ma + i];
-            }
-            for k in 0..i {
-                let lik = l[i * ma + k];
-                for (o, xi) in above[k * n..(k + 1) * n].iter_mut().zip(row.iter()) {
-                    *o -= lik * xi;
-                }
-            }
-        }
+        dense::cholesky_solve_columns(gram, ma, x, n);
         for i in 0..n {
             for k in 0..ma {
                 pinv_hat[i * ma + k] = x[k * n + i];

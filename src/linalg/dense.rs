@@ -214,6 +214,32 @@ pub fn cholesky_solve(l: &[f64], n: usize, b: &mut [f64]) {
     solve_lower_transpose(l, n, b);
 }
 
+/// Solves (L Lᵀ) X = B in place for the `cols` columns of B (n × cols, row-major),
+/// each column by [`cholesky_solve`]'s operations in its order (the same bits), a
+/// row of B at a time.
+pub fn cholesky_solve_columns(l: &[f64], n: usize, b: &mut [f64], cols: usize) {
+    for i in 0..n {
+        let (done, rest) = b.split_at_mut(i * cols);
+        for (j, bij) in rest[..cols].iter_mut().enumerate() {
+            let sum: f64 = (0..i).map(|k| l[i * n + k] * done[k * cols + j]).sum();
+            *bij = (*bij - sum) / l[i * n + i];
+        }
+    }
+    for i in (0..n).rev() {
+        let (above, rest) = b.split_at_mut(i * cols);
+        let row = &mut rest[..cols];
+        for v in row.iter_mut() {
+            *v /= l[i * n + i];
+        }
+        for k in 0..i {
+            let lik = l[i * n + k];
+            for (o, xi) in above[k * cols..(k + 1) * cols].iter_mut().zip(row.iter()) {
+                *o -= lik * xi;
+            }
+        }
+    }
+}
+
 /// In-place LU with partial pivoting of the n×n matrix `a` (row-major): P a = L U
 /// with unit-diagonal L below and U on and above the diagonal; `perm[i]` is the
 /// original row now at row i. A pivot below 1e-14 × the largest entry is singular.
@@ -788,6 +814,27 @@ mod tests {
                 plain.to_bits(),
                 "sequential is the running sum"
             );
+        }
+    }
+
+    #[test]
+    fn cholesky_solve_columns_is_cholesky_solve_per_column() {
+        let (n, cols) = (7, 5);
+        let r = random(n, 3);
+        let a = &r * r.transpose() + DMatrix::identity(n, n);
+        let mut l = row_major(&a);
+        cholesky(&mut l, n).unwrap();
+        let b: Vec<f64> = (0..n * cols)
+            .map(|i| ((i * 13) as f64 * 0.37).sin())
+            .collect();
+        let mut x = b.clone();
+        cholesky_solve_columns(&l, n, &mut x, cols);
+        for j in 0..cols {
+            let mut column: Vec<f64> = (0..n).map(|i| b[i * cols + j]).collect();
+            cholesky_solve(&l, n, &mut column);
+            for i in 0..n {
+                assert_eq!(x[i * cols + j].to_bits(), column[i].to_bits(), "({i}, {j})");
+            }
         }
     }
 
