@@ -289,6 +289,17 @@ impl SquareStep {
 
     /// The same step system at another time step, with this one's sparse analysis
     /// (a failed step's substeps).
+    /// This square step set to steps of `dt` (its factors and its multipliers
+    /// taken afresh).
+    fn set_dt(&mut self, dt: f64) {
+        if self.equations.system.dt != dt {
+            self.equations.system.dt = dt;
+            self.work.factored = false;
+            self.work.multipliers.fill(0.0);
+            self.work.rounding = 0.0;
+        }
+    }
+
     pub fn at_dt(&self, dt: f64) -> Option<SquareStep> {
         let mut equations = self.equations.clone();
         equations.system.dt = dt;

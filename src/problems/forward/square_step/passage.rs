@@ -7,12 +7,13 @@
 //! nearly parallel rows) and the step system's condition like 1/σ². A step whose
 //! end lands within [`NEAR`] of the rank loss is solved only to that rounding
 //! amplified: a jump in the energy, and a shift of the phase after it, whatever
-//! the step size. The motion itself is smooth there. So the run takes one step
-//! of K·Δt over the steps that would land near it (K = 2, 4, 8, … until its end
-//! lies clear), and continues from its end; the states at the grid times in
-//! between are Hermite interpolants of the long step's two ends ([`hermite`]),
-//! and are not stepped from.
-
+//! the step size. The motion itself is smooth there. So the run takes the
+//! shortest step longer than Δt whose end lies clear (of r·Δt, r from
+//! [`LENGTHS`]) and, where that end is off the grid, a second step back onto it;
+//! the states at the grid times in between are Hermite interpolants of the
+//! steps' ends ([`hermite`]), and are not stepped from. The shortest such step
+//! keeps the passage's error that of about one step: a step of 2Δt or more made
+//! with Hermite–Simpson errs 2⁵ = 32 times one of Δt, and at 8Δt 32,768 times.
 use super::{SquareStep, StepLimits, StepWork};
 
 /// The distance to a rank loss, s = (tr G⁻¹)^(−1/2), below which a step's end is
@@ -21,18 +22,23 @@ use super::{SquareStep, StepLimits, StepWork};
 /// the 5-loop N four-bar's energy by 2.5e-5 J at Δt = 0.1 ms.
 pub(super) const NEAR: f64 = 3e-5;
 
-/// The longest step tried, in steps: at 0.1 ms the 40-loop N four-bar's s moves
-/// by about 1e-5 a step.
-const MAX_AHEAD: usize = 64;
+/// The lengths tried for the step over a rank loss, in steps, shortest first: at
+/// coarse steps the zone within 2·[`NEAR`] is a small part of one step, at 0.1 ms
+/// the 40-loop N four-bar's s moves by about 1e-5 a step (the longest, 64, clears
+/// 6e-4 of it). An off-grid length is followed by a step of at least Δt/2 back
+/// onto the grid.
+const LENGTHS: [f64; 20] = [
+    1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 20.0, 24.0, 32.0, 40.0,
+    48.0, 56.0, 64.0,
+];
 
-/// The longer steps of a passage, each with its own square step (the sparse
-/// analysis of the run's, at K·Δt), made as they are first needed; and the long
-/// step under way.
+/// The steps of a passage: a square step (the sparse analysis of the run's) whose
+/// length is set for each; and the long step under way.
 #[derive(Default)]
 pub(super) struct Passage {
-    ahead: Vec<(usize, SquareStep)>,
-    /// The long step under way: its start (time, state), its length and its end
-    /// (the whole block).
+    over: Option<Box<SquareStep>>,
+    /// The long step under way: its pieces (one, or the step over and the one back
+    /// onto the grid), each from its start (time, state) over its length to its end.
     under_way: Option<LongStep>,
     /// The state handed out last (q, q̇, q̈): the next step is the long step's
     /// only where it is given this state as the step before.
@@ -40,10 +46,26 @@ pub(super) struct Passage {
 }
 
 struct LongStep {
+    pieces: Vec<Piece>,
+}
+
+struct Piece {
     t0: f64,
     start: Vec<f64>,
     h: f64,
+    /// The whole block at the piece's end.
     end: Vec<f64>,
+}
+
+impl LongStep {
+    fn t0(&self) -> f64 {
+        self.pieces[0].t0
+    }
+
+    fn length(&self) -> f64 {
+        let last = &self.pieces[self.pieces.len() - 1];
+        last.t0 + last.h - self.t0()
+    }
 }
 
 /// What a passage did with a step.
@@ -61,18 +83,28 @@ impl Passage {
         let Some(long) = self.under_way.as_ref() else {
             return Passed::NotUnderWay;
         };
-        let tau = t - long.t0;
-        let spanned = tau > 0.0 && tau <= long.h * (1.0 + 1e-9);
+        let (t0, length) = (long.t0(), long.length());
+        let tau = t - t0;
+        let spanned = tau > 0.0 && tau <= length * (1.0 + 1e-9);
         if !spanned || before[..3 * n] != self.last[..] {
             self.under_way = None;
             return Passed::NotUnderWay;
         }
-        if tau >= long.h * (1.0 - 1e-9) {
-            block.copy_from_slice(&long.end);
+        let last = long.pieces.len() - 1;
+        if tau >= length * (1.0 - 1e-9) {
+            block.copy_from_slice(&long.pieces[last].end);
             self.under_way = None;
         } else {
-            block.copy_from_slice(&long.end);
-            hermite(&long.start, &long.end[..3 * n], long.h, tau, n, block);
+            // The piece that spans τ (a grid time on the seam between two takes the
+            // first's end).
+            let piece = long
+                .pieces
+                .iter()
+                .find(|p| t - p.t0 <= p.h * (1.0 + 1e-9))
+                .unwrap_or(&long.pieces[last]);
+            block.copy_from_slice(&long.pieces[last].end);
+            let local = (t - piece.t0).min(piece.h);
+            hermite(&piece.start, &piece.end[..3 * n], piece.h, local, n, block);
         }
         self.last.clear();
         self.last.extend_from_slice(&block[..3 * n]);
@@ -82,10 +114,10 @@ impl Passage {
         })
     }
 
-    /// Step `block` at time `t` given `before` (Δt earlier), within the first
-    /// longer step from `before` that converges and ends at least 2·[`NEAR`] from
-    /// a rank loss (kept to hand out the steps it spans); the work of the longer
-    /// steps tried, or `None` where none does.
+    /// Step `block` at time `t` given `before` (Δt earlier), within the shortest
+    /// step of [`LENGTHS`] from `before` that converges and ends at least 2·[`NEAR`]
+    /// from a rank loss, then back onto the grid (kept to hand out the steps they
+    /// span); the work of the steps tried, or `None` where none does.
     pub(super) fn start(
         &mut self,
         square: &SquareStep,
@@ -97,51 +129,82 @@ impl Passage {
         let system = &square.equations.system;
         let n = system.model.n();
         let dt = system.dt;
+        let t0 = t - dt;
         let mut total = StepWork {
             iterations: 0,
             factorizations: 0,
         };
+        let mut add = |work: StepWork| {
+            total.iterations += work.iterations;
+            total.factorizations += work.factorizations;
+        };
         let mut far = block.to_vec();
-        let mut k = 2;
-        while k <= MAX_AHEAD {
-            let h = k as f64 * dt;
-            taylor(&before[..3 * n], &mut far[..3 * n], n, h);
-            let ahead = self.ahead_at(square, k)?;
-            let solved = ahead.solve_plain(t - dt + h, before, &mut far, limits);
-            if let Some(work) = solved {
-                total.iterations += work.iterations;
-                total.factorizations += work.factorizations;
-                if ahead.clearance(before, &far) >= 2.0 * NEAR {
-                    self.under_way = Some(LongStep {
-                        t0: t - dt,
-                        start: before[..3 * n].to_vec(),
-                        h,
-                        end: far,
-                    });
-                    self.last.clear();
-                    self.last.extend_from_slice(&before[..3 * n]);
-                    if let Passed::NotUnderWay = self.resume(t, before, block, n) {
-                        return None;
-                    }
-                    return Some(total);
-                }
+        for r in LENGTHS {
+            let h = r * dt;
+            let Some(work) = self.step(square, t0, h, before, &mut far, limits) else {
+                continue;
+            };
+            add(work);
+            let over = self.over.as_mut()?;
+            if over.clearance(before, &far) < 2.0 * NEAR {
+                continue;
             }
-            k *= 2;
+            let mut pieces = vec![Piece {
+                t0,
+                start: before[..3 * n].to_vec(),
+                h,
+                end: far.clone(),
+            }];
+            let steps = r.ceil();
+            if steps > r {
+                // Back onto the grid, from the end of the step over.
+                let back = (steps - r) * dt;
+                let mut grid = far.clone();
+                let Some(work) = self.step(square, t0 + h, back, &far, &mut grid, limits) else {
+                    continue;
+                };
+                add(work);
+                let over = self.over.as_mut()?;
+                if over.clearance(&far, &grid) < 2.0 * NEAR {
+                    continue;
+                }
+                pieces.push(Piece {
+                    t0: t0 + h,
+                    start: far[..3 * n].to_vec(),
+                    h: back,
+                    end: grid,
+                });
+            }
+            self.under_way = Some(LongStep { pieces });
+            self.last.clear();
+            self.last.extend_from_slice(&before[..3 * n]);
+            if let Passed::NotUnderWay = self.resume(t, before, block, n) {
+                return None;
+            }
+            return Some(total);
         }
         None
     }
 
-    /// The square step at k·Δt, made from `square`'s analysis once.
-    fn ahead_at(&mut self, square: &SquareStep, k: usize) -> Option<&mut SquareStep> {
-        let index = match self.ahead.iter().position(|(j, _)| *j == k) {
-            Some(i) => i,
-            None => {
-                let step = square.at_dt(k as f64 * square.equations.system.dt)?;
-                self.ahead.push((k, step));
-                self.ahead.len() - 1
-            }
-        };
-        Some(&mut self.ahead[index].1)
+    /// One step of length `h` from `from` at `t0` into `to` (its guess the Taylor
+    /// one), by the passage's square step set to that length.
+    fn step(
+        &mut self,
+        square: &SquareStep,
+        t0: f64,
+        h: f64,
+        from: &[f64],
+        to: &mut [f64],
+        limits: StepLimits,
+    ) -> Option<StepWork> {
+        let n = square.equations.system.model.n();
+        if self.over.is_none() {
+            self.over = Some(Box::new(square.at_dt(h)?));
+        }
+        let over = self.over.as_mut()?;
+        over.set_dt(h);
+        taylor(&from[..3 * n], &mut to[..3 * n], n, h);
+        over.solve_plain(t0 + h, from, to, limits)
     }
 }
 
