@@ -1,7 +1,7 @@
 """The IFToMM A02 benchmark page: the N four-bar (N = 40 over 20 s, the B0 position at
 400 output points) through its flat configurations, as the benchmark library defines it.
 
-    python -m harness.a02 [--t-end 20] [--loops 40] [--out DIR] [--no-peers]
+    python -m harness.a02 [--t-end 20] [--loops 40] [--out DIR] [--no-peers] [--shorter 1,2,5,10,20]
 
 writes DIR/a02.md, DIR/a02.csv and DIR/a02.png (DIR defaults to reports/). The
 reference is the exact motion on the parallelogram branch (every bar parallel): the
@@ -9,7 +9,10 @@ one-degree-of-freedom ODE I θ̈ = −c g cos θ, I = (N+1)/3 + N, c = (N+1)/2 +
 integrated by DOP853 at rtol 1e-13 (docs/benchmarks.md, section 2); B0 = (cos θ, sin θ).
 The error of a run is max |B0 − B0_exact| over the output points (every 0.05 s). The
 tolerances are the benchmark's: 1e-1 m ("low") and 1e-3 m ("high"). CPU time is the
-process time of the call, in this process, each tool measured in the same run.
+process time of the call, in this process, each tool measured in the same run. The
+shorter chains (`--shorter`, N = 1, 2, 5, 10 and 20 by default; `--shorter ""` for none)
+are run by mbfg alone at the same steps, for whether every run converges and how its
+error falls.
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ TRAPEZOIDAL_DTS = [25e-3, 12.5e-3, 1 / 120, 6.25e-3, 5e-3, 2.5e-3, 1.25e-3, 1e-3
 HERMITE_SIMPSON_DTS = TRAPEZOIDAL_DTS
 IDA_RTOLS = [1e-4, 1e-6, 1e-8]
 EXUDYN_STEPS = [5e-3, 1e-3, 2.5e-4]
+SHORTER_CHAINS = [1, 2, 5, 10, 20]
 
 
 def _failure(e: Exception) -> str:
@@ -144,14 +148,17 @@ def observed_orders(rows, integrator):
             for (d1, e1), (d2, e2) in zip(runs, runs[1:])]
 
 
-def write(rows, loops, t_end, out: pathlib.Path, seconds: float) -> None:
+def write(rows, loops, t_end, out: pathlib.Path, seconds: float, shorter=()) -> None:
+    """The page, its CSV (the main chain's runs, then the shorter chains', each with its
+    `loops`) and its figure; `shorter` the shorter chains' rows."""
     out.mkdir(parents=True, exist_ok=True)
     fields = ["tool", "setting", "integrator", "dt", "status", "t_last", "error", "cpu",
-              "passages", "energy_jump", "warnings"]
+              "passages", "energy_jump", "warnings", "loops"]
     with open(out / "a02.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
-        w.writerows(rows)
+        w.writerows({"loops": loops, **r} for r in rows)
+        w.writerows(shorter)
     lines = [
         f"# IFToMM A02: the {loops}-loop four-bar through its flat configurations",
         "",
@@ -194,6 +201,8 @@ def write(rows, loops, t_end, out: pathlib.Path, seconds: float) -> None:
         cells = [f"{best[t]['cpu']:.2f} s ({best[t]['setting']}: {best[t]['error']:.1e} m)"
                  if t in best else "not reached" for t in ["mbfg", "IDA", "exudyn"]]
         lines.append(f"| {name} (≤ {tol:g} m) | " + " | ".join(cells) + " |")
+    if shorter:
+        lines += shorter_section(shorter, t_end)
     lines.append("")
     (out / "a02.md").write_text("\n".join(lines))
     try:
@@ -218,12 +227,45 @@ def write(rows, loops, t_end, out: pathlib.Path, seconds: float) -> None:
         pass
 
 
+def shorter_section(shorter, t_end) -> list[str]:
+    """The shorter chains' table: per chain and integrator, the B0 error at each step
+    (✗ where the run failed), the runs converged, and the smallest observed order
+    between consecutive steps while the error is above 1e-7 m (the floor of the steps
+    that end just clear of a flat, docs/benchmarks.md)."""
+    dts = sorted({r["dt"] for r in shorter}, reverse=True)
+    lines = ["", "## The shorter chains", "",
+             f"mbfg alone, the same steps over {t_end:g} s, DC, N_w = 1: max B0 error (m) at "
+             "each dt (ms); ✗ a run that failed. Lowest order: the smallest observed order "
+             "between consecutive steps while both errors are above 1e-7 m.", "",
+             "| N | integrator | converged | " + " | ".join(f"{d * 1e3:.4g}" for d in dts)
+             + " | lowest order |",
+             "|---|---|---|" + "---|" * len(dts) + "---|"]
+    for loops in sorted({r["loops"] for r in shorter}):
+        for integrator in ["trapezoidal", "hermite-simpson"]:
+            mine = {r["dt"]: r for r in shorter
+                    if r["loops"] == loops and r["integrator"] == integrator}
+            if not mine:
+                continue
+            ok = sum(r["status"] == "converged" for r in mine.values())
+            cells = [fmt(mine[d].get("error"), ".1e") if d in mine
+                     and mine[d]["status"] == "converged" else "✗" for d in dts]
+            above = [r for r in mine.values() if r["status"] == "converged"
+                     and r.get("error") is not None and r["error"] > 1e-7]
+            orders = [o for _, _, _, o in observed_orders(above, integrator)]
+            lowest = f"{min(orders):.2f}" if orders else ""
+            lines.append(f"| {loops} | {integrator} | {ok} of {len(mine)} | "
+                         + " | ".join(cells) + f" | {lowest} |")
+    return lines
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m harness.a02", description=__doc__.split("\n")[0])
     ap.add_argument("--loops", type=int, default=40)
     ap.add_argument("--t-end", type=float, default=20.0)
     ap.add_argument("--out", type=pathlib.Path, default=pages.REPORTS)
     ap.add_argument("--no-peers", action="store_true", help="mbfg only")
+    ap.add_argument("--shorter", default=",".join(map(str, SHORTER_CHAINS)),
+                    help="the shorter chains run by mbfg alone, comma-separated ('' for none)")
     args = ap.parse_args(argv)
     started = time.perf_counter()
     rows = []
@@ -234,7 +276,13 @@ def main(argv=None) -> int:
     if not args.no_peers:
         rows += [run_ida(args.loops, rtol, args.t_end) for rtol in IDA_RTOLS]
         rows += [run_exudyn(args.loops, h, args.t_end) for h in EXUDYN_STEPS]
-    write(rows, args.loops, args.t_end, args.out, time.perf_counter() - started)
+    shorter = []
+    for loops in [int(x) for x in args.shorter.split(",") if x.strip()]:
+        for integrator, dts in [("trapezoidal", TRAPEZOIDAL_DTS),
+                                ("hermite-simpson", HERMITE_SIMPSON_DTS)]:
+            for dt in dts:
+                shorter.append({"loops": loops, **run_mbfg(loops, integrator, dt, args.t_end)})
+    write(rows, args.loops, args.t_end, args.out, time.perf_counter() - started, shorter)
     print(f"wrote {args.out / 'a02.md'}")
     return 0
 

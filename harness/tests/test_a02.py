@@ -41,3 +41,18 @@ def test_hermite_simpson_passes_both_flats_at_fourth_order(tmp_path):
     page = (tmp_path / "a02.md").read_text()
     assert page.count("| mbfg | hermite-simpson") == 2
     assert "| hermite-simpson | 4 | 2 |" in page
+
+
+def test_the_shorter_chains_have_their_table(tmp_path):
+    shorter = [{"loops": 5, **a02.run_mbfg(5, "trapezoidal", dt, 2.0)} for dt in (2e-3, 1e-3)]
+    assert all(r["status"] == "converged" for r in shorter), shorter
+    a02.write([], 40, 2.0, tmp_path, 1.0, shorter)
+    page = (tmp_path / "a02.md").read_text()
+    assert "## The shorter chains" in page
+    row = next(line for line in page.splitlines() if line.startswith("| 5 | trapezoidal |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2] == "2 of 2"
+    order = float(cells[-1])
+    assert 1.5 < order < 3.0, row
+    csv_text = (tmp_path / "a02.csv").read_text().splitlines()
+    assert csv_text[0].endswith(",loops") and len(csv_text) == 3
