@@ -17,7 +17,11 @@ fn run(loops: usize, dt: f64, t_end: f64) -> (Trajectory, RunSummary) {
 }
 
 fn run_with(loops: usize, integrator: Integrator, dt: f64, t_end: f64) -> (Trajectory, RunSummary) {
-    let path = scene_path(&format!("benchmarks/n-fourbar-{loops}.yaml"));
+    let folder = match loops {
+        1 | 5 | 10 | 40 => "benchmarks",
+        _ => "scale",
+    };
+    let path = scene_path(&format!("{folder}/n-fourbar-{loops}.yaml"));
     let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
     let mut options = ForwardOptions::new(Coordinates::Dependent, dt, t_end, Mode::FixedLag(1));
     options.integrator = integrator;
@@ -165,6 +169,36 @@ fn a_passage_errs_about_as_one_step_does() {
             );
         }
         last = Some((dt, b0));
+    }
+}
+
+/// Every chain length passes every flat configuration at coarse and fine steps alike,
+/// with both integrators: converged, on the branch, its error falling with dt.
+#[test]
+fn every_chain_passes_its_flat_configurations_at_every_step() {
+    let t_end = 5.0;
+    for loops in [1, 2, 5, 10, 20] {
+        for integrator in [Integrator::Trapezoidal, Integrator::HermiteSimpson] {
+            let mut last: Option<f64> = None;
+            for dt in [0.025, 0.025 / 3.0, 2.5e-3] {
+                let (tr, s) = run_with(loops, integrator, dt, t_end);
+                let (b0, branch) = errors(loops, &tr, &exact_theta(loops, dt, t_end));
+                let what = format!("N = {loops}, {integrator:?}, dt = {dt}");
+                assert!(
+                    s.passages.count >= 4,
+                    "{what}: {} passages",
+                    s.passages.count
+                );
+                assert!(branch <= 1e-9, "{what}: off the branch by {branch:e} m");
+                if let Some(coarser) = last {
+                    assert!(
+                        b0 < coarser,
+                        "{what}: B0 error {b0:e} m, {coarser:e} m coarser"
+                    );
+                }
+                last = Some(b0);
+            }
+        }
     }
 }
 
