@@ -287,8 +287,6 @@ impl SquareStep {
         })
     }
 
-    /// The same step system at another time step, with this one's sparse analysis
-    /// (a failed step's substeps).
     /// This square step set to steps of `dt` (its factors and its multipliers
     /// taken afresh).
     fn set_dt(&mut self, dt: f64) {
@@ -300,6 +298,8 @@ impl SquareStep {
         }
     }
 
+    /// The same step system at another time step, with this one's sparse analysis
+    /// (a failed step's substeps).
     pub fn at_dt(&self, dt: f64) -> Option<SquareStep> {
         let mut equations = self.equations.clone();
         equations.system.dt = dt;

@@ -14,6 +14,7 @@
 //! steps' ends ([`hermite`]), and are not stepped from. The shortest such step
 //! keeps the passage's error that of about one step: a step of 2Δt or more made
 //! with Hermite–Simpson errs 2⁵ = 32 times one of Δt, and at 8Δt 32,768 times.
+
 use super::{SquareStep, StepLimits, StepWork};
 
 /// The distance to a rank loss, s = (tr G⁻¹)^(−1/2), below which a step's end is
@@ -141,12 +142,11 @@ impl Passage {
         let mut far = block.to_vec();
         for r in LENGTHS {
             let h = r * dt;
-            let Some(work) = self.step(square, t0, h, before, &mut far, limits) else {
+            let Some((work, clearance)) = self.step(square, t0, h, before, &mut far, limits) else {
                 continue;
             };
             add(work);
-            let over = self.over.as_mut()?;
-            if over.clearance(before, &far) < 2.0 * NEAR {
+            if clearance < 2.0 * NEAR {
                 continue;
             }
             let mut pieces = vec![Piece {
@@ -160,12 +160,13 @@ impl Passage {
                 // Back onto the grid, from the end of the step over.
                 let back = (steps - r) * dt;
                 let mut grid = far.clone();
-                let Some(work) = self.step(square, t0 + h, back, &far, &mut grid, limits) else {
+                let Some((work, clearance)) =
+                    self.step(square, t0 + h, back, &far, &mut grid, limits)
+                else {
                     continue;
                 };
                 add(work);
-                let over = self.over.as_mut()?;
-                if over.clearance(&far, &grid) < 2.0 * NEAR {
+                if clearance < 2.0 * NEAR {
                     continue;
                 }
                 pieces.push(Piece {
@@ -187,7 +188,8 @@ impl Passage {
     }
 
     /// One step of length `h` from `from` at `t0` into `to` (its guess the Taylor
-    /// one), by the passage's square step set to that length.
+    /// one), by the passage's square step set to that length: its work and its
+    /// end's distance to a rank loss, or `None` where it does not converge.
     fn step(
         &mut self,
         square: &SquareStep,
@@ -196,15 +198,16 @@ impl Passage {
         from: &[f64],
         to: &mut [f64],
         limits: StepLimits,
-    ) -> Option<StepWork> {
+    ) -> Option<(StepWork, f64)> {
         let n = square.equations.system.model.n();
-        if self.over.is_none() {
-            self.over = Some(Box::new(square.at_dt(h)?));
-        }
-        let over = self.over.as_mut()?;
+        let over = match &mut self.over {
+            Some(over) => over,
+            none => none.insert(Box::new(square.at_dt(h)?)),
+        };
         over.set_dt(h);
         taylor(&from[..3 * n], &mut to[..3 * n], n, h);
-        over.solve_plain(t0 + h, from, to, limits)
+        let work = over.solve_plain(t0 + h, from, to, limits)?;
+        Some((work, over.clearance(from, to)))
     }
 }
 
