@@ -7,7 +7,7 @@
 use mbfg::coordinates::Coordinates;
 use mbfg::estimate::{
     estimate, EstimateOptions, EstimateSummary, Estimates, Estimator, ProcessSource, Record,
-    Smoothing,
+    Smoothing, RELINEARIZE_BEYOND,
 };
 use mbfg::forward::{simulate, ForwardOptions};
 use mbfg::sensors::measure::{measure, Measurements};
@@ -507,6 +507,9 @@ fn ending_on_the_flat_step_keeps_the_estimate_and_its_sigmas() {
             ..EstimateOptions::default()
         };
         options.settings.end_on_flat_step = end_on_flat_step;
+        // Every factor differentiated at every solve: the comparison is of where
+        // the solve ends, not of the Jacobians it ends with.
+        options.settings.relinearize_beyond = None;
         let mut table = Estimates::for_model(&m);
         estimate(m.clone(), &record, &options, &mut |e| {
             table.push(e);
@@ -540,6 +543,53 @@ fn ending_on_the_flat_step_keeps_the_estimate_and_its_sigmas() {
                 sd[k]
             );
         }
+    }
+}
+
+/// A window that keeps the Jacobians of its steps until they move by 1 %
+/// ([`RELINEARIZE_BEYOND`]) gives the estimate and its σ's of one that
+/// differentiates every factor at every solve, to well inside the σ's: from the
+/// bad model's start, where every step moves, through the run.
+#[test]
+fn kept_jacobians_keep_the_estimate_and_its_sigmas() {
+    let truth = truth(10.0);
+    let m = model("fourbar-bad.yaml");
+    for (seed, sensors, window) in [(4, &["enc"][..], 50), (2, &["gyro"][..], 20)] {
+        let (columns, rows) = readings(&truth, seed, sensors);
+        let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
+        let table_with = |beyond: Option<f64>| {
+            let mut options = EstimateOptions {
+                smoothing: Smoothing::Window(window),
+                ..EstimateOptions::default()
+            };
+            options.settings.relinearize_beyond = beyond;
+            let mut table = Estimates::for_model(&m);
+            estimate(m.clone(), &record, &options, &mut |e| {
+                table.push(e);
+                Ok(())
+            })
+            .unwrap();
+            table
+        };
+        let (kept, fresh) = (table_with(Some(RELINEARIZE_BEYOND)), table_with(None));
+        let mut worst = (0.0f64, "", 0);
+        for c in ["q:theta", "dq:theta", "sd:q:theta", "sd:dq:theta"] {
+            let (a, b) = (kept.column(c).unwrap(), fresh.column(c).unwrap());
+            let sd = fresh
+                .column(&format!("sd:{}", c.trim_start_matches("sd:")))
+                .unwrap();
+            for k in 0..a.len() {
+                let off = (a[k] - b[k]).abs() / sd[k];
+                if off > worst.0 {
+                    worst = (off, c, k);
+                }
+            }
+        }
+        eprintln!("{sensors:?} window {window}: worst {worst:?}");
+        assert!(
+            worst.0 <= 0.05,
+            "{sensors:?}, window {window}: {worst:?} of σ"
+        );
     }
 }
 

@@ -108,12 +108,17 @@ impl WindowSolver {
                 self.normal.h.capacity()
             )));
         }
+        self.reuse.allowed = true;
         let cost = match self.evaluate(graph, values, span, true) {
             Ok(c) => c,
             Err(e) => return Ok(failed(e, f64::INFINITY, 0)),
         };
         let mut state = SolveState::new(cost);
         while state.iterations < self.settings.max_iterations {
+            // Kept Jacobians speed up the solves that end in an iteration or two; one
+            // that needs more differentiates everything from its third linearization
+            // on, and converges as a plain Gauss–Newton solve does.
+            self.reuse.allowed = state.iterations < 2;
             state.iterations += 1;
             if let Outcome::Done(report) = self.iteration(graph, values, span, &mut state)? {
                 return Ok(report);

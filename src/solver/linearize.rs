@@ -764,6 +764,9 @@ impl WindowSolver {
         let s = self.s;
         let blocks = k1 - k0;
         self.last = None;
+        if linearize {
+            self.reuse.in_last = false;
+        }
         // A prior projected on this one-step window's hard equations brings their
         // reduction (see `LinearPrior::projection`).
         let projected = blocks == 1
@@ -797,7 +800,14 @@ impl WindowSolver {
                 || self.past_conditioned()
                 || scope == (Scope::Window { held: true })
                 || self.kept.keep);
-        if self.lin.step_major && linearize {
+        let reusing = self
+            .settings
+            .relinearize_beyond
+            .filter(|_| scope == (Scope::Window { held: false }) && blocks >= 3)
+            .filter(|_| !self.lin.step_major && !record && self.reuse.allowed);
+        if let Some(beyond) = reusing.filter(|_| linearize) {
+            self.linearize_reusing(graph, values, span, beyond, &mut soft)?;
+        } else if self.lin.step_major && linearize {
             // Step by step: each step's hard equations, then its factors into its
             // blocks of H (and the lagged ones into the previous step's) while they
             // are in cache.
@@ -843,7 +853,7 @@ impl WindowSolver {
             }
         }
         let (mut cost, mut cost_first) = self.lin.hard_cost_sum(graph, &self.structure, k0);
-        if self.lin.step_major && linearize {
+        if (reusing.is_some() || self.lin.step_major) && linearize {
             cost += soft.total;
             cost_first += soft.first;
         } else {

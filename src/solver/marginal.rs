@@ -499,6 +499,11 @@ impl WindowSolver {
     /// Keeps the converged window's linearization of its first block for
     /// marginalizing it ([`LastSolve`]), with the values it holds at.
     pub(super) fn keep_for_marginal(&mut self, values: &[f64], k0: usize, k1: usize) {
+        if self.reuse.in_last {
+            // Kept rows in H: the fresh rows of the joining factors would not fit
+            // them (`marginalize_last`); the marginal linearizes its two steps.
+            return;
+        }
         let s = self.s;
         self.last = Some(LastSolve {
             k0,

@@ -26,6 +26,7 @@ mod newton;
 mod normal;
 mod observer;
 mod prior;
+mod reuse;
 mod settings;
 mod structure;
 #[cfg(test)]
@@ -82,6 +83,9 @@ pub struct WindowSolver {
     variables: Vec<(usize, usize)>,
     /// Per entry of a step, what its step is measured against (`take_step`).
     step_scale: Vec<f64>,
+    /// Linearizations of the window's steps kept for its next solves
+    /// ([`Settings::relinearize_beyond`]).
+    reuse: reuse::Reuse,
     /// Unknowns per step from which a projected prior is kept as N̄CN̄ᵀ
     /// ([`TANGENT_FORM_FROM`]; the tests set it to compare the two forms).
     tangent_form_from: usize,
@@ -176,6 +180,7 @@ impl WindowSolver {
             scratch: vec![0.0; 4 * s * s + 4 * s],
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
             tangent_form_from: TANGENT_FORM_FROM,
+            reuse: reuse::Reuse::default(),
             variables: graph
                 .layout()
                 .kinds()

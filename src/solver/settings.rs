@@ -63,6 +63,15 @@ pub struct Settings {
     /// and every solve of a conditioned past (independent coordinates). Off: every
     /// convergence is decided on a fresh linearization.
     pub chord_test: bool,
+    /// A fixed-lag window's step whose values moved less than this since its last
+    /// linearization (each unknown relative to 1 + its size there) keeps that
+    /// linearization in the window's next solves: its factors enter through their
+    /// linear model, and only the newest steps and those that moved are evaluated
+    /// again (iSAM2's fluid relinearization). `None`: every step of the window is
+    /// linearized again for every solve. Windows of at least 3 steps, outside the
+    /// batch, in a solve's first two iterations; for Gauss–Newton matrices
+    /// (not with `second_order`).
+    pub relinearize_beyond: Option<f64>,
     /// Whether a solve ends right after an undamped Gauss–Newton step that kept the
     /// hard equations and was to gain less than [`Thresholds::flat_decrease`] of the
     /// cost, without linearizing at its end: the convergence test passes there
@@ -173,6 +182,7 @@ impl Default for Settings {
             normal_equations_limit: 1e-10,
             chord_test: true,
             end_on_flat_step: false,
+            relinearize_beyond: None,
             step_per_variable: false,
             thresholds: Thresholds::default(),
             trace: false,
@@ -193,6 +203,20 @@ impl Settings {
                 "step_tolerance must be in (0, 1), got {}",
                 self.step_tolerance
             )));
+        }
+        if let Some(b) = self.relinearize_beyond {
+            if !(b > 0.0 && b < 1.0) {
+                return Err(Error::InvalidArgument(format!(
+                    "relinearize_beyond must be in (0, 1), got {b}"
+                )));
+            }
+            if self.second_order {
+                return Err(Error::InvalidArgument(
+                    "relinearize_beyond keeps Gauss–Newton Jacobians, which the exact \
+                     Hessian of second_order does not use: set one of them"
+                        .into(),
+                ));
+            }
         }
         if !(self.initial_damping >= 0.0 && self.initial_damping.is_finite()) {
             return Err(Error::InvalidArgument(format!(

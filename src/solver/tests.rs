@@ -39,6 +39,84 @@ mod unit {
         (fg, values, prior, solver, k)
     }
 
+    /// Settings that keep Jacobians must keep them within (0, 1).
+    #[test]
+    fn a_relinearization_threshold_outside_0_1_is_refused() {
+        for bad in [0.0, -1e-3, 1.0, f64::NAN, f64::INFINITY] {
+            let settings = Settings {
+                relinearize_beyond: Some(bad),
+                second_order: false,
+                ..Settings::default()
+            };
+            let e = settings.validate().unwrap_err().to_string();
+            assert!(e.contains("relinearize_beyond"), "{bad}: {e}");
+        }
+        let with_newton = Settings {
+            relinearize_beyond: Some(0.01),
+            ..Settings::default()
+        };
+        let e = with_newton.validate().unwrap_err().to_string();
+        assert!(e.contains("second_order"), "{e}");
+    }
+
+    /// Windows of 5 steps slid along a simulated four-bar, each with the marginal of
+    /// the step before (every step already solved, so the solves barely move them):
+    /// with kept Jacobians each window differentiates only its newest step, and ends
+    /// where windows that differentiate everything do.
+    #[test]
+    fn a_window_keeps_the_jacobians_of_the_steps_that_did_not_move() {
+        // The projected integrators: every step's soft equations hold, so kept
+        // Jacobians change where the solves end only by their tolerance.
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/fourbar.yaml");
+        let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
+        let opts = ForwardOptions::new(Coordinates::Dependent, 1e-2, 0.5, Mode::FixedLag(1));
+        let (tr, _) = simulate(model.clone(), &opts, &mut |_, _| {}).unwrap();
+        let fg = ForwardGraph::new(model.clone(), &opts).unwrap();
+        let mut values = vec![0.0; tr.len() * fg.graph.layout().size()];
+        fg.fill_from_trajectory(&model, &tr, &mut values);
+        let (blocks, last) = (5, tr.len() - 1);
+        let run = |beyond: Option<f64>| {
+            let settings = Settings {
+                relinearize_beyond: beyond,
+                second_order: false,
+                ..Settings::default()
+            };
+            let mut solver = WindowSolver::new(&fg.graph, blocks, settings).unwrap();
+            let mut v = values.clone();
+            let mut prior: Option<LinearPrior> = None;
+            for k0 in 1..=last + 1 - blocks {
+                let p = solver
+                    .marginalize(&fg.graph, &v, k0 - 1, prior.as_ref())
+                    .unwrap();
+                let report = solver
+                    .solve(&fg.graph, &mut v, k0, k0 + blocks, Some(&p))
+                    .unwrap();
+                prior = Some(p);
+                assert_eq!(
+                    report.termination,
+                    Termination::Converged,
+                    "{beyond:?} at {k0}"
+                );
+            }
+            (v, solver.reuse.counts)
+        };
+        let (fresh, counts) = run(None);
+        let (kept, (reused, differentiated)) = run(Some(0.01));
+        assert_eq!(counts, (0, 0), "no Jacobian kept without a threshold");
+        let windows = last + 1 - blocks;
+        // After the first window, only each window's newest step is differentiated.
+        assert_eq!(
+            (reused, differentiated),
+            ((windows - 1) * (blocks - 1), blocks + windows - 1),
+            "steps through kept rows and differentiated, over {windows} windows"
+        );
+        let off = kept
+            .iter()
+            .zip(&fresh)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs() / (1.0 + b.abs())));
+        assert!(off < 1e-8, "kept Jacobians end {off} away");
+    }
+
     /// The one-step window on step `k`, with `prior` on it.
     fn span(k: usize, prior: Option<&LinearPrior>) -> Span<'_> {
         Span {

@@ -146,6 +146,56 @@ pub struct NullSpace {
 }
 
 impl NullSpace {
+    /// Becomes a copy of `other` (a reduction kept for a later solve), reusing this
+    /// one's buffers.
+    pub fn copy_from(&mut self, other: &NullSpace) {
+        self.s.clone_from(&other.s);
+        self.max_rows.clone_from(&other.max_rows);
+        self.rows.clone_from(&other.rows);
+        self.scratch_g.clone_from(&other.scratch_g);
+        self.fixed.clone_from(&other.fixed);
+        self.touched.clone_from(&other.touched);
+        self.nonzeros.clone_from(&other.nonzeros);
+        self.nonzeros_end.clone_from(&other.nonzeros_end);
+        self.qr_pos.clone_from(&other.qr_pos);
+        self.entries.clone_from(&other.entries);
+        self.column_rows.clone_from(&other.column_rows);
+        self.column_bounds.clone_from(&other.column_bounds);
+        self.free.clone_from(&other.free);
+        self.segment.clone_from(&other.segment);
+        self.segments.clone_from(&other.segments);
+        self.qr_rows.clone_from(&other.qr_rows);
+        self.seg_end.clone_from(&other.seg_end);
+        self.group.clone_from(&other.group);
+        self.rend.clone_from(&other.rend);
+        self.made.clone_from(&other.made);
+        self.others.clone_from(&other.others);
+        self.untouched.clone_from(&other.untouched);
+        self.pinned.clone_from(&other.pinned);
+        self.a.clone_from(&other.a);
+        self.rdiag.clone_from(&other.rdiag);
+        self.beta.clone_from(&other.beta);
+        self.perm.clone_from(&other.perm);
+        self.norms.clone_from(&other.norms);
+        self.support.clone_from(&other.support);
+        self.support_start.clone_from(&other.support_start);
+        self.support_end.clone_from(&other.support_end);
+        self.w.clone_from(&other.w);
+        self.column_sums.clone_from(&other.column_sums);
+        self.rhs.clone_from(&other.rhs);
+        self.row_scale.clone_from(&other.row_scale);
+        self.pin_coef.clone_from(&other.pin_coef);
+        self.others_pinned.clone_from(&other.others_pinned);
+        self.dense.clone_from(&other.dense);
+        self.dense_row.clone_from(&other.dense_row);
+        self.summation.clone_from(&other.summation);
+        self.span.clone_from(&other.span);
+        self.particular.clone_from(&other.particular);
+        self.noise.clone_from(&other.noise);
+        self.noise_floor.clone_from(&other.noise_floor);
+        self.dim.clone_from(&other.dim);
+        self.rank.clone_from(&other.rank);
+    }
     /// Relative size below which a pivot counts as zero (rank-deficient direction).
     pub const RANK_TOLERANCE: f64 = 1e-10;
 

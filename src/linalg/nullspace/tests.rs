@@ -65,6 +65,30 @@ mod unit {
         }
     }
 
+    /// A reduction copied into another one that held a different system (of other
+    /// sizes) is the original, field for field, and solves as it does.
+    #[test]
+    fn a_copied_reduction_is_the_original() {
+        let mut seed = 5;
+        let (rows, s) = (4, 9);
+        let mut original = NullSpace::new(s, rows);
+        let c = low_rank(rows, s, 3, &mut seed);
+        let row_major: Vec<f64> = c.transpose().iter().copied().collect();
+        let b: Vec<f64> = (0..rows).map(|_| pseudo_random(&mut seed)).collect();
+        original.set_segments(&[0, 0, 0, 1, 1, 1, 2, 2, 2]);
+        original.reduce(&row_major, &b, rows);
+        let mut copy = NullSpace::new(s, rows);
+        let other = low_rank(2, s, 2, &mut seed);
+        let other: Vec<f64> = other.transpose().iter().copied().collect();
+        copy.reduce(&other, &[1.0, -1.0], 2);
+        copy.copy_from(&original);
+        assert_eq!(format!("{copy:?}"), format!("{original:?}"));
+        let (mut x, mut y) = (vec![0.0; s], vec![0.0; s]);
+        original.solve(&b, &mut x);
+        copy.solve(&b, &mut y);
+        assert_eq!(x, y);
+    }
+
     #[test]
     fn unit_equations_fix_their_unknowns_and_the_rest_reduce_as_before() {
         let mut seed = 11;

@@ -19,7 +19,7 @@ pub use determination::{Determination, Undetermined};
 pub use graph::EstimationGraph;
 pub use identification::{Identification, ParameterEstimate};
 pub use online::{Estimator, StepEstimate, Update};
-pub use options::{EstimateOptions, Smoothing, Uncertainty};
+pub use options::{EstimateOptions, Smoothing, Uncertainty, RELINEARIZE_BEYOND};
 pub use process_noise::ProcessSource;
 pub use record::Record;
 pub use run::{estimate, estimate_with_progress, EstimateSummary};
