@@ -1603,3 +1603,46 @@ fn sensor_readings_match_finite_differences() {
     }
     errors.print("sensors");
 }
+
+/// A step's projected integrators share the projector made at its positions; a
+/// model of other constraints at the same positions makes its own, and so does a
+/// clone of a model (which may be changed after it is made).
+#[test]
+fn a_projector_is_shared_only_within_a_model_at_the_same_positions() {
+    let (a, b) = (load("fourbar-theta.yaml"), load("estimation/fourbar.yaml"));
+    assert_eq!(a.n(), b.n());
+    assert_ne!(a.identity, (*a).clone().identity);
+    let q = a.initial.q.as_slice().to_vec();
+    let dq: Vec<f64> = (0..a.n()).map(|i| 0.1 * (i as f64 + 1.0)).collect();
+    let residual = |m: &Arc<Model>| {
+        let f = Projected::new(
+            m.clone(),
+            Box::new(Trapezoidal::new(VarKind::Q, VarKind::Dq, m.n(), 0.01)),
+        );
+        let mut ws = workspace_for(&f);
+        // Keys: q_t, q_(t−1), q̇_t, q̇_(t−1) (the inner factor's), q_t again
+        // where the inner factor does not list it.
+        let xs: Vec<Vec<f64>> = f
+            .keys()
+            .iter()
+            .map(|k| match (k.kind, k.lag) {
+                (VarKind::Q, 0) => q.clone(),
+                (VarKind::Q, _) => q.iter().map(|v| v - 1e-3).collect(),
+                _ => dq.clone(),
+            })
+            .collect();
+        evaluate(&f, 0.0, &xs, false, &mut ws).r
+    };
+    let b_alone = residual(&b);
+    let a_first = residual(&a);
+    let b_after_a = residual(&b);
+    assert!(
+        same_bits(&b_alone, &b_after_a),
+        "{b_alone:?} vs {b_after_a:?}"
+    );
+    assert!(
+        !same_bits(&a_first, &b_after_a),
+        "two mechanisms, one projector"
+    );
+    assert!(same_bits(&residual(&a), &a_first));
+}

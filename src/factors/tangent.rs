@@ -29,6 +29,7 @@ use crate::linalg::dense;
 use crate::model::Model;
 use faer::dyn_stack::PodStack;
 use nalgebra::DMatrix;
+use std::cell::RefCell;
 use std::sync::Arc;
 
 /// Singular values of the row-normalized Φ_q below this (relative to the largest)
@@ -56,7 +57,58 @@ fn row_space_scratch(model: &Model, cols: usize) -> StackReq {
         .and(StackReq::all_of(&products.map(StackReq::new::<f64>)))
 }
 
+/// The last row space made on this thread: its model's identity, the bits of its q,
+/// and P and Φ_q⁺. A step's projected integrators (one per integrated variable) all project
+/// at the same q_t.
+#[derive(Default)]
+struct LastRowSpace {
+    model: u64,
+    q: Vec<u64>,
+    p: Vec<f64>,
+    pinv: Vec<f64>,
+}
+
+thread_local! {
+    static LAST: RefCell<LastRowSpace> = RefCell::new(LastRowSpace::default());
+}
+
+/// [`row_space_at`], or the last one made on this thread where it was made for
+/// the same model at the same bits of q: the same values.
 fn row_space<'a>(
+    model: &Model,
+    q: &[f64],
+    stack: &'a mut PodStack,
+) -> Result<(RowSpace<'a>, &'a mut PodStack)> {
+    let key = model.identity.get();
+    let hit = LAST.with_borrow(|last| {
+        last.model == key
+            && last.q.len() == q.len()
+            && last.q.iter().zip(q).all(|(a, b)| *a == b.to_bits())
+    });
+    if hit {
+        let (n, m) = (model.n(), model.m());
+        let (p, stack) = zeros(stack, n * n);
+        let (pinv, stack) = zeros(stack, n * m);
+        LAST.with_borrow(|last| {
+            p.copy_from_slice(&last.p);
+            pinv.copy_from_slice(&last.pinv);
+        });
+        return Ok((RowSpace { p, pinv }, stack));
+    }
+    let (rows, stack) = row_space_at(model, q, stack)?;
+    LAST.with_borrow_mut(|last| {
+        last.model = key;
+        last.q.clear();
+        last.q.extend(q.iter().map(|v| v.to_bits()));
+        last.p.clear();
+        last.p.extend_from_slice(rows.p);
+        last.pinv.clear();
+        last.pinv.extend_from_slice(rows.pinv);
+    });
+    Ok((rows, stack))
+}
+
+fn row_space_at<'a>(
     model: &Model,
     q: &[f64],
     stack: &'a mut PodStack,

@@ -148,6 +148,31 @@ pub struct Model {
     pub estimation: crate::sensors::EstimationSpec,
     /// The parameters an estimate identifies (`estimation: parameters:`), if any.
     pub parameters: Option<std::sync::Arc<parameters::Parameters>>,
+    /// Tells this model apart from every other one, for what is kept of its
+    /// evaluations between calls.
+    pub identity: Identity,
+}
+
+/// A model's identity: unique in the process; a clone, which may then be changed,
+/// is another model.
+#[derive(Debug, PartialEq, Eq)]
+pub struct Identity(u64);
+
+impl Identity {
+    fn new() -> Self {
+        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+        Identity(NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed))
+    }
+
+    pub fn get(&self) -> u64 {
+        self.0
+    }
+}
+
+impl Clone for Identity {
+    fn clone(&self) -> Self {
+        Identity::new()
+    }
 }
 
 /// Positions and velocities.
@@ -202,6 +227,7 @@ impl Model {
             sensors: Vec::new(),
             estimation: Default::default(),
             parameters: None,
+            identity: Identity::new(),
         };
         model.build_constraints();
         model.build_mass();

@@ -197,6 +197,9 @@ pub(super) struct HardBlock {
     /// the block's equations hold, and its particular solution is round-off divided
     /// by its pivots, no correction to wait for.
     pub(super) at_round_off: bool,
+    /// The id of the kept linearization whose reduction this is, 0 if none
+    /// ([`super::reuse`]).
+    pub(super) kept: u64,
 }
 
 /// A whitened soft factor in reduced coordinates, on its way into H and g.
@@ -228,7 +231,7 @@ impl ReducedRows {
     /// `step` on the blocks' reductions in `hard`.
     pub(super) fn reduce(
         &mut self,
-        hard: &[HardBlock],
+        hard: &[Box<HardBlock>],
         factor: &dyn Factor,
         step: usize,
         buf: &FactorBuffers,
@@ -377,7 +380,10 @@ pub(super) struct Linearization {
     /// Each factor's residual and Jacobian buffers.
     pub(super) buffers: AllBuffers,
     /// Per block of the window, its hard equations reduced.
-    pub(super) hard: Vec<HardBlock>,
+    /// Boxed, so that the blocks follow their steps as a window moves on (`reuse`)
+    /// by moving pointers, not reductions of a kilobyte each.
+    #[allow(clippy::vec_box)]
+    pub(super) hard: Vec<Box<HardBlock>>,
     /// A soft factor's rows in reduced coordinates.
     pub(super) reduced: ReducedRows,
     /// Per instance, the cost of a hard one (summed in `instances` order).
@@ -511,6 +517,7 @@ impl Linearization {
         let block = &mut self.hard[b];
         block.rows = rows;
         if linearize {
+            block.kept = 0;
             block.at_round_off = at_round_off;
             block.reduction.set_noise(&self.hard_noise[..rows]);
             block

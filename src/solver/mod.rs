@@ -152,10 +152,13 @@ impl WindowSolver {
                 s,
                 buffers: AllBuffers::new(graph),
                 hard: (0..capacity)
-                    .map(|_| HardBlock {
-                        rows: 0,
-                        at_round_off: false,
-                        reduction: NullSpace::new(s, max_hard),
+                    .map(|_| {
+                        Box::new(HardBlock {
+                            rows: 0,
+                            at_round_off: false,
+                            kept: 0,
+                            reduction: NullSpace::new(s, max_hard),
+                        })
                     })
                     .collect(),
                 hard_cost: Vec::with_capacity(

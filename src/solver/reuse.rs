@@ -47,6 +47,8 @@ struct KeptStep {
     /// The factors' share of H: Σ R₀ᵀR₀ (this step's block), Σ R₁ᵀR₁ (the step
     /// before's) and Σ R₀ᵀR₁ (the block between them), row-major.
     h: [Vec<f64>; 3],
+    /// Whether `h` is the sum of the current `factors` (made when first used).
+    summed: bool,
 }
 
 /// The kept linearizations, by run step.
@@ -67,6 +69,8 @@ pub(super) struct Reuse {
     map: Vec<usize>,
     /// Whether the last linearization took some factors through kept rows.
     pub(super) in_last: bool,
+    /// The run step of the window's first block at the last linearization here.
+    hard_first: Option<usize>,
 }
 
 impl Reuse {
@@ -102,7 +106,7 @@ impl Reuse {
 
     /// Keeps `reduction` (of `rows` hard equations, made at `x`) as run step `run`'s;
     /// the factor rows made with the one before go with it.
-    fn keep_step(&mut self, run: usize, x: &[f64], reduction: &NullSpace, rows: usize) {
+    fn keep_step(&mut self, run: usize, x: &[f64], reduction: &NullSpace, rows: usize) -> u64 {
         if run < self.first {
             self.forget_before(run);
         }
@@ -134,9 +138,11 @@ impl Reuse {
                     made_with: (0, 0),
                     factors: Vec::new(),
                     h: [Vec::new(), Vec::new(), Vec::new()],
+                    summed: false,
                 })
             }
         }
+        id
     }
 
     /// Whether `x` is within `beyond` of where the step's reduction was made, each
@@ -167,6 +173,13 @@ impl WindowSolver {
         let blocks = k1 - k0;
         let first_run = self.structure.run_step(k0);
         self.reuse.forget_before(first_run.saturating_sub(1));
+        // The blocks follow their steps as the window moves on: a kept reduction
+        // still in its step's block is not copied again.
+        if let Some(last) = self.reuse.hard_first.filter(|&l| l < first_run) {
+            let by = (first_run - last).min(self.lin.hard.len());
+            self.lin.hard.rotate_left(by);
+        }
+        self.reuse.hard_first = Some(first_run);
         for b in 0..blocks {
             let x = &values[(k0 + b) * s..(k0 + b + 1) * s];
             // The newest step is always differentiated: it was only predicted before.
@@ -179,7 +192,10 @@ impl WindowSolver {
                 // 10⁻¹⁰, `correct`), and it has not moved since: no particular step,
                 // and their cost is left out.
                 let hb = &mut self.lin.hard[b];
-                hb.reduction.copy_from(&k.reduction);
+                if hb.kept != k.id {
+                    hb.reduction.copy_from(&k.reduction);
+                    hb.kept = k.id;
+                }
                 hb.reduction.particular.fill(0.0);
                 hb.rows = k.rows;
                 hb.at_round_off = true;
@@ -187,8 +203,9 @@ impl WindowSolver {
             }
             self.lin
                 .hard_block(graph, &self.structure, values, b, HardPass::Linearize)?;
-            let hb = &self.lin.hard[b];
-            self.reuse
+            let hb = &mut self.lin.hard[b];
+            hb.kept = self
+                .reuse
                 .keep_step(first_run + b, x, &hb.reduction, hb.rows);
         }
         let hard = &self.lin.hard;
@@ -231,7 +248,7 @@ impl WindowSolver {
                 if let Some(k) = self.reuse.get_mut(run) {
                     k.factors.truncate(ordinal);
                     k.made_with = made_with;
-                    k.sum_information();
+                    k.summed = false;
                 }
             }
         }
@@ -395,6 +412,11 @@ impl WindowSolver {
     /// holds the step before, that step's block and the one between them.
     fn add_kept_information(&mut self, k0: usize, b: usize) {
         let run = self.structure.run_step(k0 + b);
+        let k = self.reuse.get_mut(run).expect("a reusable step is kept");
+        if !k.summed {
+            k.sum_information();
+            k.summed = true;
+        }
         let k = self.reuse.get(run).expect("a reusable step is kept");
         let h = &mut self.normal.h;
         if self.reuse.map.len() < k.factors.len() {
