@@ -549,12 +549,19 @@ fn ending_on_the_flat_step_keeps_the_estimate_and_its_sigmas() {
 /// A window that keeps the Jacobians of its steps until they move by 1 %
 /// ([`RELINEARIZE_BEYOND`]) gives the estimate and its σ's of one that
 /// differentiates every factor at every solve, to well inside the σ's: from the
-/// bad model's start, where every step moves, through the run.
+/// bad model's start, where every step moves and the window grows, through the run.
 #[test]
 fn kept_jacobians_keep_the_estimate_and_its_sigmas() {
     let truth = truth(10.0);
     let m = model("fourbar-bad.yaml");
-    for (seed, sensors, window) in [(4, &["enc"][..], 50), (2, &["gyro"][..], 20)] {
+    // The tutorial's record at window 5 grows its window at the start on a
+    // comparison of σ's that kept Jacobians tipped (to 6 steps instead of 20, θ
+    // 2.8 σ off at 0.09 s).
+    for (seed, sensors, window) in [
+        (4, &["enc"][..], 50),
+        (2, &["gyro"][..], 20),
+        (1, &["enc", "gyro"][..], 5),
+    ] {
         let (columns, rows) = readings(&truth, seed, sensors);
         let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
         let table_with = |beyond: Option<f64>| {

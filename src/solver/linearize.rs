@@ -811,7 +811,9 @@ impl WindowSolver {
             .settings
             .relinearize_beyond
             .filter(|_| scope == (Scope::Window { held: false }) && blocks >= 3)
-            .filter(|_| !self.lin.step_major && !record && self.reuse.allowed);
+            .filter(|_| {
+                !self.lin.step_major && !record && self.reuse.allowed && !self.reuse.paused
+            });
         if let Some(beyond) = reusing.filter(|_| linearize) {
             self.linearize_reusing(graph, values, span, beyond, &mut soft)?;
         } else if self.lin.step_major && linearize {

@@ -65,6 +65,9 @@ pub(super) struct Reuse {
     pub(super) counts: (usize, usize),
     /// Whether the current solve may use kept Jacobians (its first iterations).
     pub(super) allowed: bool,
+    /// Set by the caller while every factor is to be differentiated
+    /// ([`WindowSolver::pause_kept_jacobians`]).
+    pub(super) paused: bool,
     /// For each soft factor of the block at hand, its kept rows (`reusable`).
     map: Vec<usize>,
     /// Whether the last linearization took some factors through kept rows.
@@ -156,6 +159,12 @@ impl Reuse {
 }
 
 impl WindowSolver {
+    /// While `paused`, every linearization differentiates every factor (a caller
+    /// that decides on small differences of the σ's, as an estimate's start does).
+    pub fn pause_kept_jacobians(&mut self, paused: bool) {
+        self.reuse.paused = paused;
+    }
+
     /// Linearizes window `span` (every step held free: not a conditional solve, nor
     /// a marginalization) into H and g, differentiating again only the steps that
     /// moved beyond `beyond` since their kept linearization, and the newest one; the

@@ -218,6 +218,10 @@ impl Estimator {
         }
         self.held_most = self.held_most.max(k + 1 - self.k0);
         self.held_sum += k + 1 - self.k0;
+        // Until the window has caught up with the start, it grows on a comparison of
+        // its ends' σ's: every factor differentiated, so that kept Jacobians do not
+        // tip it.
+        self.solver.pause_kept_jacobians(!self.caught_up);
         // The newest step first brought to its optimum given the one before, then
         // the window from there.
         let mut warm = 0;
