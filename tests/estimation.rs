@@ -491,6 +491,17 @@ fn another_mechanism_at_the_defaults_and_a_wrong_sensor_model_flagged() {
     assert!(ic.z.is_finite());
 }
 
+/// Every final estimate of `record` by `m` with `options`.
+fn final_estimates(m: &Arc<Model>, record: &Record, options: &EstimateOptions) -> Estimates {
+    let mut table = Estimates::for_model(m);
+    estimate(m.clone(), record, options, &mut |e| {
+        table.push(e);
+        Ok(())
+    })
+    .unwrap();
+    table
+}
+
 /// A window solve that ends on its flat step without linearizing there gives the
 /// estimate and its σ's of the solve that linearizes at its end, to well inside
 /// the σ's: the step it skips the linearization of is to gain less than 10⁻³ of
@@ -510,13 +521,7 @@ fn ending_on_the_flat_step_keeps_the_estimate_and_its_sigmas() {
         // Every factor differentiated at every solve: the comparison is of where
         // the solve ends, not of the Jacobians it ends with.
         options.settings.relinearize_beyond = None;
-        let mut table = Estimates::for_model(&m);
-        estimate(m.clone(), &record, &options, &mut |e| {
-            table.push(e);
-            Ok(())
-        })
-        .unwrap();
-        table
+        final_estimates(&m, &record, &options)
     };
     let (ended, linearized) = (table_with(true), table_with(false));
     let sd = linearized.column("sd:q:theta").unwrap();
@@ -570,13 +575,7 @@ fn kept_jacobians_keep_the_estimate_and_its_sigmas() {
                 ..EstimateOptions::default()
             };
             options.settings.relinearize_beyond = beyond;
-            let mut table = Estimates::for_model(&m);
-            estimate(m.clone(), &record, &options, &mut |e| {
-                table.push(e);
-                Ok(())
-            })
-            .unwrap();
-            table
+            final_estimates(&m, &record, &options)
         };
         let (kept, fresh) = (table_with(Some(RELINEARIZE_BEYOND)), table_with(None));
         let mut worst = (0.0f64, "", 0);

@@ -181,6 +181,20 @@ pub(super) struct CostSum {
     pub(super) first: f64,
 }
 
+impl CostSum {
+    /// Adds the cost ½|r|² of whitened residuals `r`, to the first block's share too
+    /// where the factor touches the first block.
+    pub(super) fn add(&mut self, r: &[f64], touches_first: bool) {
+        for r in r {
+            let c = 0.5 * r * r;
+            self.total += c;
+            if touches_first {
+                self.first += c;
+            }
+        }
+    }
+}
+
 /// What a pass over the hard factors computes.
 #[derive(Clone, Copy, PartialEq, Eq)]
 pub(super) enum HardPass {
@@ -618,13 +632,7 @@ impl WindowSolver {
         let keys = factor.keys();
         let touches_first = keys.iter().any(|k| inst.step - k.lag == k0);
         buf.whiten(factor, linearize && !along);
-        for r in &buf.r {
-            let c = 0.5 * r * r;
-            cost.total += c;
-            if touches_first {
-                cost.first += c;
-            }
-        }
+        cost.add(&buf.r, touches_first);
         if linearize {
             let step = inst.step - k0;
             let lagged = step >= 1 && keys.iter().any(|k| k.lag == 1);

@@ -391,13 +391,7 @@ impl WindowSolver {
         // The particular step p is the round-off the last correction left: J p is
         // dropped. H's share is the step's sum (`add_kept_information`); g += Rᵀr.
         let touches_first = factor.keys().iter().any(|key| inst.step - key.lag == k0);
-        for r in &buf.r[..f.dim] {
-            let c = 0.5 * r * r;
-            soft.total += c;
-            if touches_first {
-                soft.first += c;
-            }
-        }
+        soft.add(&buf.r[..f.dim], touches_first);
         let lagged = b >= 1 && factor.keys().iter().any(|key| key.lag == 1);
         for (part, block) in [(0, b), (1, b.wrapping_sub(1))] {
             let w = f.width[part];
