@@ -17,7 +17,6 @@ use super::structure::{factor_of, is_hard, Instance, Source, Span};
 use super::WindowSolver;
 use crate::error::Result;
 use crate::graph::ChainGraph;
-use crate::linalg::banded::BlockTridiagonal;
 use crate::linalg::nullspace::NullSpace;
 use std::collections::VecDeque;
 
@@ -70,6 +69,8 @@ pub(super) struct Reuse {
     pub(super) paused: bool,
     /// For each soft factor of the block at hand, its kept rows (`reusable`).
     map: Vec<usize>,
+    /// The share of H of some of a step's kept factors (the first block's).
+    subset: [Vec<f64>; 3],
     /// Whether the last linearization took some factors through kept rows.
     pub(super) in_last: bool,
     /// The run step of the window's first block at the last linearization here.
@@ -79,13 +80,11 @@ pub(super) struct Reuse {
 impl Reuse {
     /// Forgets every step before run step `from`.
     fn forget_before(&mut self, from: usize) {
-        if from < self.first {
-            // The run went back (a new run on this solver): nothing kept applies.
-            self.spare.extend(self.steps.drain(..).flatten());
-            self.first = from;
-            return;
-        }
-        let drop = (from - self.first).min(self.steps.len());
+        // A run that went back (a new run on this solver) keeps nothing.
+        let drop = match from.checked_sub(self.first) {
+            Some(ahead) => ahead.min(self.steps.len()),
+            None => self.steps.len(),
+        };
         self.spare.extend(self.steps.drain(..drop).flatten());
         self.first = from;
     }
@@ -415,107 +414,75 @@ impl WindowSolver {
     /// holds the step before, that step's block and the one between them.
     fn add_kept_information(&mut self, k0: usize, b: usize) {
         let run = self.structure.run_step(k0 + b);
-        let k = self.reuse.get_mut(run).expect("a reusable step is kept");
-        if !k.summed {
-            k.sum_information();
-            k.summed = true;
-        }
-        let k = self.reuse.get(run).expect("a reusable step is kept");
-        let h = &mut self.normal.h;
-        if self.reuse.map.len() < k.factors.len() {
+        let Reuse {
+            steps,
+            first,
+            map,
+            subset,
+            ..
+        } = &mut self.reuse;
+        let k = steps
+            .get_mut(run - *first)
+            .and_then(Option::as_mut)
+            .expect("a reusable step is kept");
+        let sums = if map.len() < k.factors.len() {
             // Some kept factors are not in this window (they reach back before it):
             // the share of those that are.
-            let factors = self.reuse.map.iter().map(|&i| &k.factors[i]);
-            add_information(factors, h, b);
-            return;
-        }
-        for (o, v) in h.diag_mut(b).iter_mut().zip(&k.h[0]) {
+            sum_information(map.iter().map(|&i| &k.factors[i]), k.reduction.dim, subset);
+            &*subset
+        } else {
+            if !k.summed {
+                sum_information(k.factors.iter(), k.reduction.dim, &mut k.h);
+                k.summed = true;
+            }
+            &k.h
+        };
+        let h = &mut self.normal.h;
+        for (o, v) in h.diag_mut(b).iter_mut().zip(&sums[0]) {
             *o += v;
         }
-        if b >= 1 && !k.h[1].is_empty() {
-            for (o, v) in h.diag_mut(b - 1).iter_mut().zip(&k.h[1]) {
+        if b >= 1 && !sums[1].is_empty() {
+            for (o, v) in h.diag_mut(b - 1).iter_mut().zip(&sums[1]) {
                 *o += v;
             }
-            for (o, v) in h.lower_mut(b).iter_mut().zip(&k.h[2]) {
+            for (o, v) in h.lower_mut(b).iter_mut().zip(&sums[2]) {
                 *o += v;
             }
         }
     }
 }
 
-/// Adds the share of H of `factors` (kept at block `b`): Σ R₀ᵀR₀ into its diagonal
-/// block, and where they reach the block before, Σ R₁ᵀR₁ and Σ R₀ᵀR₁.
-fn add_information<'a>(
-    factors: impl Iterator<Item = &'a KeptFactor>,
-    h: &mut BlockTridiagonal,
-    b: usize,
+/// Into `h`, the share of H of `factors` (kept at a block of `d0` reduced
+/// unknowns): Σ R₀ᵀR₀, Σ R₁ᵀR₁ and Σ R₀ᵀR₁, row-major ([`KeptStep::h`]).
+fn sum_information<'a>(
+    factors: impl Iterator<Item = &'a KeptFactor> + Clone,
+    d0: usize,
+    h: &mut [Vec<f64>; 3],
 ) {
-    let d0 = h.dim(b);
+    let d1 = factors.clone().map(|f| f.width[1]).max().unwrap_or(0);
+    let [h00, h11, h01] = h;
+    h00.clear();
+    h00.resize(d0 * d0, 0.0);
+    h11.clear();
+    h11.resize(d1 * d1, 0.0);
+    h01.clear();
+    h01.resize(d0 * d1, 0.0);
     for f in factors {
-        let (w0, w1) = (f.width[0], if b >= 1 { f.width[1] } else { 0 });
+        let (w0, w1) = (f.width[0], f.width[1]);
         for row in 0..f.dim {
             let r0 = &f.jacobian[0][row * w0..(row + 1) * w0];
-            let diag = h.diag_mut(b);
+            let r1 = &f.jacobian[1][row * w1..(row + 1) * w1];
             for (a, &va) in r0.iter().enumerate().filter(|(_, v)| **v != 0.0) {
                 for (c, &vc) in r0.iter().enumerate() {
-                    diag[a * d0 + c] += va * vc;
+                    h00[a * d0 + c] += va * vc;
                 }
-            }
-            if w1 == 0 {
-                continue;
-            }
-            let r1 = &f.jacobian[1][row * w1..(row + 1) * w1];
-            let lower = h.lower_mut(b);
-            for (a, &va) in r0.iter().enumerate().filter(|(_, v)| **v != 0.0) {
                 for (c, &vc) in r1.iter().enumerate() {
-                    lower[a * w1 + c] += va * vc;
+                    h01[a * d1 + c] += va * vc;
                 }
             }
-            let before = h.diag_mut(b - 1);
             for (a, &va) in r1.iter().enumerate().filter(|(_, v)| **v != 0.0) {
                 for (c, &vc) in r1.iter().enumerate() {
-                    before[a * w1 + c] += va * vc;
-                }
-            }
-        }
-    }
-}
-
-impl KeptStep {
-    /// Sums the factors' share of H from their rows ([`KeptStep::h`]).
-    fn sum_information(&mut self) {
-        let d0 = self.reduction.dim;
-        let d1 = self.factors.iter().map(|f| f.width[1]).max().unwrap_or(0);
-        let [h00, h11, h01] = &mut self.h;
-        h00.clear();
-        h00.resize(d0 * d0, 0.0);
-        h11.clear();
-        h11.resize(d1 * d1, 0.0);
-        h01.clear();
-        h01.resize(d0 * d1, 0.0);
-        for f in &self.factors {
-            let (w0, w1) = (f.width[0], f.width[1]);
-            for row in 0..f.dim {
-                let r0 = &f.jacobian[0][row * w0..(row + 1) * w0];
-                let r1 = &f.jacobian[1][row * w1..(row + 1) * w1];
-                for (a, &va) in r0.iter().enumerate() {
-                    if va == 0.0 {
-                        continue;
-                    }
-                    for (c, &vc) in r0.iter().enumerate() {
-                        h00[a * d0 + c] += va * vc;
-                    }
-                    for (c, &vc) in r1.iter().enumerate() {
-                        h01[a * d1 + c] += va * vc;
-                    }
-                }
-                for (a, &va) in r1.iter().enumerate() {
-                    if va == 0.0 {
-                        continue;
-                    }
-                    for (c, &vc) in r1.iter().enumerate() {
-                        h11[a * d1 + c] += va * vc;
-                    }
+                    h11[a * d1 + c] += va * vc;
                 }
             }
         }
