@@ -686,3 +686,38 @@ fn a_nis_the_process_sigma_does_not_move_keeps_the_default() {
         "{nis} → {then} at {tried}"
     );
 }
+
+/// A process σ so small that the integrators it sets (½σdt²) are held some 10⁸
+/// times tighter than the start's prior: the information matrix loses the prior's
+/// direction to round-off. The error says so and names the σ to raise it to, not a
+/// direction the readings leave undetermined; at that σ the estimate runs.
+#[test]
+fn a_process_sigma_beyond_double_precision_is_named_with_the_sigma_that_runs() {
+    let truth = truth(1.0);
+    let path = Path::new(SCENES).join("fourbar-bad.yaml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let with = |sigma: &str| {
+        let text = format!("{text}\nestimation:\n  process_sigma: {sigma}\n");
+        Arc::new(Model::new(&Scene::from_str(&text, &path).unwrap()).unwrap())
+    };
+    let (columns, rows) = readings(&truth, 1, &["enc"]);
+    let run = |m: Arc<Model>, smoothing| {
+        let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
+        let options = EstimateOptions {
+            smoothing,
+            ..EstimateOptions::default()
+        };
+        estimate(m, &record, &options, &mut |_| Ok(()))
+    };
+    for smoothing in [Smoothing::Window(20), Smoothing::Batch] {
+        let message = run(with("1e-3"), smoothing).unwrap_err().to_string();
+        assert!(
+            message.contains("process_sigma 0.001 holds the integrators")
+                && message.contains("raise it to 8.0e-3")
+                && !message.contains("undetermined"),
+            "{message}"
+        );
+        let summary = run(with("8e-3"), smoothing).unwrap();
+        assert!(summary.nis.mean().is_finite());
+    }
+}
