@@ -7,10 +7,6 @@ use super::{LinearPrior, WindowSolver};
 use crate::error::{Error, Result};
 use crate::graph::ChainGraph;
 
-/// How a covariance that cannot be formed begins its error.
-pub const NOT_POSITIVE_DEFINITE: &str =
-    "the estimate's information matrix is not positive definite";
-
 /// Which steps of a window a covariance call gives.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Marginals {
@@ -91,10 +87,10 @@ impl WindowSolver {
                 .chol
                 .factor(&self.normal.h, &[])
                 .map_err(|(block, _)| Error::Singular {
-                    what: format!(
-                        "{NOT_POSITIVE_DEFINITE}: the readings and the model leave a \
-                         direction of the motion undetermined"
-                    ),
+                    what: "the estimate's information matrix is not positive definite: \
+                       the readings and the model leave a direction of the motion \
+                       undetermined"
+                        .into(),
                     step: Some(self.structure.run_step(k0 + block)),
                     t: Some(crate::trajectory::round_time(self.time(graph, k0 + block))),
                 })?;

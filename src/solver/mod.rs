@@ -33,7 +33,7 @@ mod structure;
 mod tests;
 
 pub use crate::convergence::{SolveReport, Termination};
-pub use covariance::{Marginals, NOT_POSITIVE_DEFINITE};
+pub use covariance::Marginals;
 pub use observer::{Iteration, Observer, Trace};
 pub use prior::{Information, LinearPrior, Projection, TangentInformation, TANGENT_FORM_FROM};
 pub use settings::{Method, Past, Settings, Thresholds};

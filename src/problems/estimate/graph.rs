@@ -28,37 +28,6 @@ pub struct EstimationGraph {
     /// Unknown inputs (generalized forces on chosen coordinates).
     pub inputs: Vec<usize>,
     pub start: State,
-    /// Where the integrators' σ is so far below the start's loosest prior σ that
-    /// double precision cannot resolve both in one information matrix: why a
-    /// factorization that fails has failed.
-    pub spread: Option<String>,
-}
-
-/// How many times tighter than the start's loosest prior the position integrator
-/// may be held before the normal equations lose the prior's direction to round-off
-/// (their entries reach 1/σ² of the integrator: about 10⁻¹⁴ of them is lost, the
-/// weakest direction's information 1/σ² of the prior).
-const RESOLVED_SPREAD: f64 = 1e7;
-
-/// [`EstimationGraph::spread`] of `uncertainty` at step `dt`.
-fn spread(uncertainty: &Uncertainty, dt: f64) -> Option<String> {
-    let held = uncertainty.integrators(dt)[0];
-    let loosest = uncertainty
-        .initial_q
-        .iter()
-        .chain(&uncertainty.initial_dq)
-        .fold(0.0f64, |a, &b| a.max(b));
-    let ratio = loosest / held;
-    // The process σ at which the ratio would be resolved.
-    let least = 2.0 * loosest / (RESOLVED_SPREAD * dt * dt);
-    (ratio > RESOLVED_SPREAD).then(|| {
-        format!(
-            "process_sigma {} holds the integrators to {held:.1e} (½σdt²), {ratio:.0e} \
-             times below the start's prior σ {loosest}, beyond double precision: raise it to \
-             {least:.1e} or more",
-            uncertainty.process
-        )
-    })
 }
 
 impl EstimationGraph {
@@ -135,7 +104,6 @@ impl EstimationGraph {
             independent,
             inputs,
             start,
-            spread: spread(uncertainty, dt),
         })
     }
 

@@ -398,12 +398,7 @@ impl Estimator {
     fn located(&self, e: Error, run_step: usize) -> Error {
         match e {
             Error::Singular { what, .. } => Error::Singular {
-                what: match &self.eg.spread {
-                    Some(spread) if what.starts_with(crate::solver::NOT_POSITIVE_DEFINITE) => {
-                        format!("{}: {spread}", crate::solver::NOT_POSITIVE_DEFINITE)
-                    }
-                    _ => what,
-                },
+                what,
                 step: Some(run_step),
                 t: Some(self.time(run_step)),
             },

@@ -116,6 +116,10 @@ pub const INPUT_INITIAL_SIGMA: f64 = 30.0;
 /// noise: the process noise, not the integration rule, is what lets the estimate
 /// leave the model.
 pub const INTEGRATOR_FRACTION: f64 = 1.0;
+/// How many times tighter than the loosest prior on the start the integrators may
+/// be held ([`Uncertainty::integrators`]): the information matrix then spans 10¹²,
+/// whose factorization keeps about three digits of the weakest direction.
+pub const RESOLVED_SPREAD: f64 = 1e6;
 
 /// The model's uncertainty, resolved against a model: every σ the graph weighs.
 #[derive(Debug, Clone, PartialEq)]
@@ -170,9 +174,20 @@ impl Uncertainty {
         }
     }
 
-    /// σ of the position and velocity integrators at step `dt`.
+    /// σ of the position and velocity integrators at step `dt`: one step's share of
+    /// the process noise, ½σΔt² and σΔt, but never more than [`RESOLVED_SPREAD`]
+    /// times tighter than the loosest prior on the start's positions or velocities.
+    /// Tighter, the information matrix would hold entries of 1/σ² of the integrators
+    /// beside the prior's 1/σ², and lose the directions only the prior and the
+    /// readings determine to round-off (a small process σ, or readings at kilohertz
+    /// rates); at the floor, a step's positions may leave the integrated motion by a
+    /// millionth of the prior's σ, far below what any reading resolves.
     pub fn integrators(&self, dt: f64) -> [f64; 2] {
         let v = INTEGRATOR_FRACTION * self.process * dt;
-        [0.5 * v * dt, v]
+        let loosest = |s: &[f64]| s.iter().fold(0.0f64, |a, &b| a.max(b)) / RESOLVED_SPREAD;
+        [
+            (0.5 * v * dt).max(loosest(&self.initial_q)),
+            v.max(loosest(&self.initial_dq)),
+        ]
     }
 }
