@@ -51,3 +51,10 @@ def test_the_summary_says_how_far_the_window_grew(tmp_path):
     assert s["window"] == 20
     assert s["window_longest"] >= 20 and s["window_longest"] <= 80
     assert 1 <= s["window_mean"] <= s["window_longest"]
+
+
+def test_the_summary_counts_the_starts_solved_again(tmp_path):
+    # A pendulum's start its gyroscope fits at once: no window holding it is far
+    # from a fit, and none is solved again from the filter's path.
+    s = _summary(tmp_path, gravity=True)
+    assert s["start_refits"] == 0

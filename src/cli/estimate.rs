@@ -193,8 +193,14 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
     let how = match s.smoothing {
         Smoothing::Window(w) if s.longest_window > w => format!(
             "window {w}, grown to {} at most and {:.0} on average while its oldest step was \
-             less certain than its newest",
-            s.longest_window, s.mean_window
+             less certain than its newest{}",
+            s.longest_window,
+            s.mean_window,
+            if s.misfit_holds > 0 {
+                " or its cost far from a fit's"
+            } else {
+                ""
+            }
         ),
         Smoothing::Window(w) => format!("window {w}"),
         Smoothing::Batch => "batch".to_string(),
@@ -212,7 +218,7 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
     };
     format!(
         "{} steps (dt = {} s, {how}) from {} readings in {:.3} s ({:.0} µs a step); \
-         linear solves per step: mean {:.2}; mean NIS {:.3} against {:.3} expected, \
+         linear solves per step: mean {:.2}{}; mean NIS {:.3} against {:.3} expected, \
          95 % bounds [{lo:.3}, {hi:.3}]: {verdict}; process σ {}",
         s.steps,
         seconds(s.dt),
@@ -220,6 +226,14 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
         elapsed,
         elapsed / s.steps.max(1) as f64 * 1e6,
         s.iterations as f64 / s.steps.max(1) as f64,
+        match s.refits {
+            0 => String::new(),
+            r => format!(
+                ", the start solved again from the filter's path {r} time{} (its window's \
+                 cost far from a fit's)",
+                if r == 1 { "" } else { "s" }
+            ),
+        },
         nis.mean(),
         nis.expected(),
         process(s)

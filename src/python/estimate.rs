@@ -116,6 +116,7 @@ pub(super) fn estimate_run<'py>(
         s.set_item("window_mean", summary.mean_window)?;
         s.set_item("iterations", summary.iterations)?;
         s.set_item("unsettled", summary.unsettled)?;
+        s.set_item("start_refits", summary.refits)?;
         s.set_item("nis_mean", summary.nis.mean())?;
         s.set_item("nis_expected", summary.nis.expected())?;
         s.set_item("nis_bounds", summary.nis.bounds())?;

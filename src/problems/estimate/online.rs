@@ -57,6 +57,16 @@ pub struct Update {
 /// solves per step; the next step's solve goes on from where this one stopped.
 pub const PLAUSIBLE_COST: f64 = 10.0;
 
+/// A window holding the start whose cost exceeds this many times its residual
+/// count (χ² at twice its expected value) is solved again from the filter's path
+/// ([`Estimator::refit_from_filter`]).
+const MISFIT_COST: f64 = 1.0;
+
+/// The most steps a window holding the start grows to while its cost stays a
+/// misfit (`MISFIT_COST`), where its own longest is shorter: a few hundred
+/// milliseconds of readings at common rates, which tell the two motions apart.
+const MISFIT_LONGEST: usize = 100;
+
 /// At the start of a record, a window grows up to this many times its length while
 /// its oldest step is less certain (a larger σ of a watched coordinate) than its
 /// newest: where the readings determine the start only slowly (a gyroscope that
@@ -108,6 +118,11 @@ pub struct Estimator {
     /// Window solves that reached the iteration limit and were kept (see
     /// [`PLAUSIBLE_COST`]).
     pub unsettled: usize,
+    /// Windows holding the start that were solved again from the filter's path and
+    /// kept that solution.
+    pub refits: usize,
+    /// Updates whose window kept the start for its cost alone (far from a fit's).
+    pub misfit_holds: usize,
 }
 
 impl Estimator {
@@ -123,7 +138,7 @@ impl Estimator {
         let window = window.max(1);
         let longest = LONGEST_FACTOR * window;
         let watched = watched_coordinates(&model);
-        let solver = WindowSolver::new(&eg.graph, longest + 1, settings)?;
+        let solver = WindowSolver::new(&eg.graph, longest.max(MISFIT_LONGEST) + 1, settings)?;
         let s = eg.size();
         let capacity = (!keep_all).then_some(window + BUFFER);
         let ws = eg.graph.workspace();
@@ -150,6 +165,8 @@ impl Estimator {
             nis: Nis::default(),
             iterations: 0,
             unsettled: 0,
+            refits: 0,
+            misfit_holds: 0,
         })
     }
 
@@ -243,6 +260,17 @@ impl Estimator {
             k + 1,
             self.prior.as_ref(),
         )?;
+        // While the window holds the start, a cost far from a fit's is solved again
+        // from the filter's path (`refit_from_filter`), and the start stays in the
+        // window for as long as the cost stays so (see `leaving` below).
+        let mut misfit = false;
+        if self.prior.is_none() && k > self.k0 {
+            let bound = MISFIT_COST * self.residuals(k + 1 - self.k0) as f64;
+            if report.cost > bound {
+                report = self.refit_from_filter(k, report)?;
+            }
+            misfit = report.cost > bound;
+        }
         report.iterations += warm;
         self.iterations += report.iterations;
         let plausible = report.termination == Termination::IterationLimit
@@ -305,7 +333,12 @@ impl Estimator {
         let less_certain = self.oldest_less_certain(k);
         self.caught_up |= held >= self.window && !less_certain;
         let unsettled = !self.caught_up && less_certain;
-        self.leaving = if held < self.window || (unsettled && held < self.longest) {
+        let for_misfit = misfit && held < MISFIT_LONGEST;
+        let growing = (unsettled && held < self.longest) || for_misfit;
+        if for_misfit && !(unsettled && held < self.longest) && held >= self.window {
+            self.misfit_holds += 1;
+        }
+        self.leaving = if held < self.window || growing {
             0
         } else if held > self.window && !unsettled {
             2
@@ -392,6 +425,55 @@ impl Estimator {
             t: self.time(run),
             x: self.values[k * s..(k + 1) * s].to_vec(),
             covariance: self.covariances[k - self.k0].clone(),
+        }
+    }
+
+    /// At the start of a record the readings may fit two motions for a few steps
+    /// (the start's velocity, which a gyroscope and an encoder of a five-bar barely
+    /// tell apart at rest: the crank rising or falling). A window that holds the
+    /// start re-solves it at every update, and once it has settled on the wrong one,
+    /// its solves stay there however strongly the later readings disagree: a local
+    /// minimum, its cost growing step after step, while a filter that only moves
+    /// its newest step follows the readings. Where such a window's cost is far from
+    /// a fit's, it is solved once more from the filter's path (each step solved
+    /// given the one before, from the start), and the lower of the two costs is
+    /// kept. `report` is the window solve's; returns the kept one's.
+    fn refit_from_filter(&mut self, k: usize, report: SolveReport) -> Result<SolveReport> {
+        let s = self.eg.size();
+        let (k0, graph) = (self.k0, &self.eg.graph);
+        let mut path = self.values.clone();
+        path[k0 * s..(k0 + 1) * s].copy_from_slice(&self.eg.initial_block(&self.model)?);
+        let start = self.solver.solve(graph, &mut path, k0, k0 + 1, None)?;
+        let mut fitted = start.termination == Termination::Converged;
+        for j in k0 + 1..=k {
+            self.eg.predict(&mut path, j);
+            let step = self.solver.solve_conditional(graph, &mut path, j, j + 1)?;
+            fitted &= step.termination == Termination::Converged;
+        }
+        let refit = match fitted {
+            true => Some(self.solver.solve(graph, &mut path, k0, k + 1, None)?),
+            false => None,
+        };
+        match refit {
+            Some(r) if r.termination == Termination::Converged && r.cost < report.cost => {
+                self.values = path;
+                self.refits += 1;
+                Ok(SolveReport {
+                    iterations: r.iterations + report.iterations,
+                    ..r
+                })
+            }
+            // The window's own solve stands; solved again from its estimate (at
+            // once) so that the solver's last linearization is the window's.
+            _ => {
+                let again = self
+                    .solver
+                    .solve(graph, &mut self.values, k0, k + 1, None)?;
+                Ok(SolveReport {
+                    iterations: report.iterations + again.iterations,
+                    ..again
+                })
+            }
         }
     }
 

@@ -55,7 +55,7 @@ pub const RELINEARIZE_BEYOND: f64 = 0.01;
 pub const DEFAULT_WINDOW: usize = 20;
 
 /// The window of the fixed-lag pass that starts a batch estimate.
-pub const BATCH_START_WINDOW: usize = 10;
+pub const BATCH_START_WINDOW: usize = DEFAULT_WINDOW;
 
 /// An estimation run's settings.
 #[derive(Debug, Clone, PartialEq)]

@@ -34,6 +34,11 @@ pub struct EstimateSummary {
     pub nis: Nis,
     /// Window solves of the fixed-lag pass kept at the iteration limit.
     pub unsettled: usize,
+    /// Windows holding the start that were solved again from the filter's path,
+    /// that solution kept (their cost far from a fit's); and the updates whose window
+    /// kept the start for that cost alone.
+    pub refits: usize,
+    pub misfit_holds: usize,
     pub process_sigma: f64,
     /// Whether the process σ is the scene's (else the default, or the readings').
     pub scene_process_sigma: bool,
@@ -204,6 +209,8 @@ pub fn estimate_with_progress(
         iterations,
         nis: est.nis.clone(),
         unsettled: est.unsettled,
+        refits: est.refits,
+        misfit_holds: est.misfit_holds,
         process_sigma,
         scene_process_sigma: model.estimation.process_sigma.is_some(),
         process_source,
