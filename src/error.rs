@@ -76,6 +76,11 @@ pub enum Error {
         message: String,
     },
 
+    /// An estimate whose readings disagree with it by far more than their noise, step
+    /// after step: it has left the motion (`why`), found at run step `step` (time `t`).
+    #[error("the estimate diverged at step {step} (t = {t} s): {why}")]
+    Diverged { step: usize, t: f64, why: String },
+
     /// An argument given to a library call is out of its domain.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),

@@ -58,3 +58,18 @@ def test_the_summary_counts_the_starts_solved_again(tmp_path):
     # from a fit, and none is solved again from the filter's path.
     s = _summary(tmp_path, gravity=True)
     assert s["start_refits"] == 0
+
+
+def test_an_estimate_that_left_the_motion_raises_with_its_failure():
+    # The five-bar read by its crank encoders and coupler gyroscopes, a noise draw
+    # whose start two motions fit: a window of 5 follows the wrong one until the
+    # readings disagree beyond any σ, and the run stops there (docs/estimation.md).
+    import pathlib
+    scenes = pathlib.Path(__file__).resolve().parents[2] / "scenes" / "estimation"
+    truth = mbfg.simulate(str(scenes / "fivebar.yaml"), dt=1e-3, t_end=2.0)
+    readings = mbfg.measure(str(scenes / "fivebar.yaml"), truth, seed=9, rate=200)
+    with pytest.raises(mbfg.SolveError) as caught:
+        mbfg.estimate(str(scenes / "fivebar-bad.yaml"), readings, window=5)
+    failure = caught.value.failure
+    assert failure["kind"] == "diverged" and failure["step"] >= 99
+    assert 0 < len(caught.value.result["t"]) <= failure["step"]

@@ -176,8 +176,13 @@ pub(super) fn estimate_run<'py>(
 /// input error it is.
 fn run_error(py: Python<'_>, e: crate::Error, partial: Option<Bound<'_, PyDict>>) -> PyErr {
     match e {
-        e @ (crate::Error::NotConverged { .. } | crate::Error::Singular { .. }) => {
-            let err = SolveError::new_err(one_line(&e.to_string()));
+        e @ (crate::Error::NotConverged { .. }
+        | crate::Error::Singular { .. }
+        | crate::Error::Diverged { .. }) => {
+            let mut err = SolveError::new_err(one_line(&e.to_string()));
+            if let Ok(failure) = super::failure::error_failure(py, &e) {
+                err = super::failure::with_failure(py, err, failure);
+            }
             if let Some(p) = partial {
                 let _ = err.value(py).setattr("result", p);
             }

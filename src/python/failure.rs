@@ -85,6 +85,11 @@ pub(super) fn error_failure<'py>(py: Python<'py>, e: &Error) -> PyResult<Bound<'
             d.set_item("violated", violated.clone())?;
             "position-problem"
         }
+        Error::Diverged { step, t, .. } => {
+            d.set_item("step", *step)?;
+            d.set_item("t", *t)?;
+            "diverged"
+        }
         Error::InvalidArgument(_) => "invalid-argument",
         Error::Scene(_) => "scene",
         Error::Io { .. } => "io",

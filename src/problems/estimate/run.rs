@@ -153,8 +153,17 @@ pub fn estimate_with_progress(
     };
     let mut est = Estimator::new(model.clone(), eg, window, settings, keep_all)?;
     let total = record.steps.len();
+    let mut divergence = Divergence::default();
     for (k, readings) in record.steps.iter().enumerate() {
+        let before = (est.nis.sum, est.nis.dof);
         let update = est.update(reading_factors(&model, readings)?)?;
+        divergence
+            .add(est.nis.sum - before.0, est.nis.dof - before.1)
+            .map_err(|why| Error::Diverged {
+                step: k,
+                t: est.time(k),
+                why,
+            })?;
         progress(k + 1, total);
         if !keep_all {
             for f in &update.finals {
@@ -219,6 +228,49 @@ pub fn estimate_with_progress(
         mean_window: est.mean_window(),
         identification,
     })
+}
+
+/// How many of the latest steps with readings the divergence test reads.
+const DIVERGENCE_STEPS: usize = 100;
+/// The mean NIS over [`DIVERGENCE_STEPS`], as a multiple of its expected value, past
+/// which the estimate has left the motion: far beyond any process or sensor σ set a
+/// few times too small (σ's 30 times too small give 1000), as where a window settled
+/// on the wrong one of two motions that fit the start.
+const DIVERGED: f64 = 1000.0;
+
+/// The NIS of the latest steps with readings, for the divergence test.
+#[derive(Default)]
+struct Divergence {
+    recent: std::collections::VecDeque<(f64, usize)>,
+    sum: f64,
+    dof: usize,
+}
+
+impl Divergence {
+    /// Adds a step's NIS and its degrees of freedom (none: a step without readings);
+    /// the reason, once the latest steps' mean NIS is [`DIVERGED`] times its expected.
+    fn add(&mut self, nis: f64, dof: usize) -> std::result::Result<(), String> {
+        if dof == 0 {
+            return Ok(());
+        }
+        self.recent.push_back((nis, dof));
+        self.sum += nis;
+        self.dof += dof;
+        if self.recent.len() > DIVERGENCE_STEPS {
+            let (n, d) = self.recent.pop_front().expect("a step to drop");
+            self.sum -= n;
+            self.dof -= d;
+        }
+        let steps = self.recent.len();
+        let (mean, expected) = (self.sum / steps as f64, self.dof as f64 / steps as f64);
+        if steps < DIVERGENCE_STEPS || mean <= DIVERGED * expected {
+            return Ok(());
+        }
+        Err(format!(
+            "the last {steps} steps' readings give a mean NIS of {mean:.2e} against {expected} \
+             expected; a longer --window, or --batch, may hold to the motion"
+        ))
+    }
 }
 
 /// The most stages of the lowering of the process σ after identification, each
