@@ -17,6 +17,8 @@ use mbfg::{Model, Scene};
 use std::path::Path;
 use std::sync::Arc;
 
+mod common;
+
 const SCENES: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/estimation");
 
 fn model(name: &str) -> Arc<Model> {
@@ -111,20 +113,19 @@ fn estimate_of(
     keep: &[&str],
     smoothing: Smoothing,
 ) -> (Estimates, EstimateSummary) {
-    let m = model(bad);
     let (columns, rows) = readings_of(good, truth, seed, keep);
-    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
-    let options = EstimateOptions {
-        smoothing,
-        ..EstimateOptions::default()
-    };
-    let mut table = Estimates::for_model(&m);
-    let summary = estimate(m, &record, &options, &mut |e| {
-        table.push(e);
-        Ok(())
-    })
-    .unwrap();
-    (table, summary)
+    estimate_rows(model(bad), &columns, &rows, smoothing)
+}
+
+/// The estimate of the model `m` from the readings `rows` (of `columns`).
+fn estimate_rows(
+    m: Arc<Model>,
+    columns: &[String],
+    rows: &[(f64, Vec<f64>)],
+    smoothing: Smoothing,
+) -> (Estimates, EstimateSummary) {
+    let record = Record::from_rows(&m, columns, rows, None).unwrap();
+    common::estimate_record(m, &record, smoothing)
 }
 
 fn run(
@@ -701,17 +702,7 @@ fn a_small_process_sigma_and_kilohertz_readings_run() {
     let trusted = Arc::new(Model::new(&Scene::from_str(&trusted, &path).unwrap()).unwrap());
     let run = |m: Arc<Model>, truth: &Trajectory, smoothing| {
         let (columns, rows) = readings(truth, 1, &["enc"]);
-        let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
-        let options = EstimateOptions {
-            smoothing,
-            ..EstimateOptions::default()
-        };
-        let mut table = Estimates::for_model(&m);
-        let summary = estimate(m, &record, &options, &mut |e| {
-            table.push(e);
-            Ok(())
-        })
-        .unwrap();
+        let (table, summary) = estimate_rows(m, &columns, &rows, smoothing);
         (score(truth, &table), summary)
     };
     // The bad model trusted to 10⁻³ rad/s²: the estimate follows it, and says the

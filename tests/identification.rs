@@ -18,6 +18,8 @@ use mbfg::{Model, Scene};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+mod common;
+
 fn path(name: &str) -> PathBuf {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     match name.strip_prefix("scenes/") {
@@ -49,17 +51,7 @@ fn identify(
 ) -> (Estimates, EstimateSummary) {
     let m = model(bad);
     let record = record_of(&m, &model(true_scene), truth, seed);
-    let options = EstimateOptions {
-        smoothing: Smoothing::Batch,
-        ..EstimateOptions::default()
-    };
-    let mut table = Estimates::for_model(&m);
-    let summary = estimate(m, &record, &options, &mut |e| {
-        table.push(e);
-        Ok(())
-    })
-    .unwrap();
-    (table, summary)
+    common::estimate_record(m, &record, Smoothing::Batch)
 }
 
 /// The readings of `bad`'s sensors made on `truth` by `true_model` (seed), as a

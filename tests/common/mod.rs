@@ -171,3 +171,23 @@ pub fn last_t(csv: &str) -> f64 {
     t.parse()
         .unwrap_or_else(|e| panic!("last row {row:?}: t {t:?}: {e}"))
 }
+
+/// The estimate of the model `m` from `record` with `smoothing` at the defaults
+/// otherwise: its final steps and its summary.
+pub fn estimate_record(
+    m: std::sync::Arc<mbfg::Model>,
+    record: &mbfg::estimate::Record,
+    smoothing: mbfg::estimate::Smoothing,
+) -> (mbfg::estimate::Estimates, mbfg::estimate::EstimateSummary) {
+    let options = mbfg::estimate::EstimateOptions {
+        smoothing,
+        ..mbfg::estimate::EstimateOptions::default()
+    };
+    let mut table = mbfg::estimate::Estimates::for_model(&m);
+    let summary = mbfg::estimate::estimate(m, record, &options, &mut |e| {
+        table.push(e);
+        Ok(())
+    })
+    .unwrap();
+    (table, summary)
+}
