@@ -88,7 +88,7 @@ fn online_steps(c: &mut Criterion) {
                     &bad,
                     Coordinates::Dependent,
                     &record,
-                    &Uncertainty::of(&bad),
+                    &Uncertainty::of(&bad, record.dt),
                 )
                 .unwrap();
                 let settings = EstimateOptions::default().settings;

@@ -7,7 +7,7 @@ use super::output::Output;
 use super::progress::Progress;
 use super::{load, print_summary, seconds};
 use mbfg::coordinates::Coordinates;
-use mbfg::estimate::options::DEFAULT_PROCESS_SIGMA;
+use mbfg::estimate::options::DEFAULT_PROCESS_STEP;
 use mbfg::estimate::{
     estimate_with_progress, EstimateOptions, EstimateSummary, Estimates, ProcessSource, Record,
     Smoothing,
@@ -319,34 +319,50 @@ fn three_digits(v: f64) -> String {
 
 /// The process σ and where it came from.
 fn process(s: &EstimateSummary) -> String {
+    let sigma = three_digits(s.process_sigma);
     match s.process_source {
-        ProcessSource::Scene => format!("{} (the scene's)", s.process_sigma),
-        ProcessSource::Default => format!("{} (the default)", s.process_sigma),
+        ProcessSource::Scene => format!("{sigma} (the scene's)"),
+        ProcessSource::Default => format!("{sigma} (the default{})", at_step(s)),
         ProcessSource::Unresponsive { tried, then, .. } => format!(
-            "{} (the default; at {} a filter pass's mean NIS was still {then:.3})",
-            s.process_sigma,
+            "{sigma} (the default{}; at {} a filter pass's mean NIS was still {then:.3})",
+            at_step(s),
             three_digits(tried)
         ),
         ProcessSource::Correlated { tried, lag_one, .. } => format!(
-            "{} (the default; at {}, where a filter pass's mean NIS was inside its bounds, \
-             its innovations' lag-one autocorrelation was {lag_one:.2}: not white)",
-            s.process_sigma,
+            "{sigma} (the default{}; at {}, where a filter pass's mean NIS was inside its \
+             bounds, its innovations' lag-one autocorrelation was {lag_one:.2}: not white)",
+            at_step(s),
             three_digits(tried)
         ),
         ProcessSource::Identified { from, used } => format!(
-            "{} (lowered after identification: at the default {from} the batch's dynamics \
+            "{sigma} (lowered after identification: at the default {} the batch's dynamics \
              residuals used {:.2e} of their expected χ²)",
-            three_digits(s.process_sigma),
+            three_digits(from),
             used
         ),
-        ProcessSource::Readings { nis, bounds } => format!(
-            "{} (from the readings: the default {} left a filter pass's mean NIS at \
+        ProcessSource::Readings {
+            nis,
+            bounds,
+            default,
+        } => format!(
+            "{sigma} (from the readings: the default {} left a filter pass's mean NIS at \
              {nis:.3}, outside [{:.3}, {:.3}])",
-            three_digits(s.process_sigma),
-            DEFAULT_PROCESS_SIGMA,
+            three_digits(default),
             bounds.0,
             bounds.1
         ),
+    }
+}
+
+/// How the default process σ was scaled to the run's step, where it was.
+fn at_step(s: &EstimateSummary) -> String {
+    if (s.dt - DEFAULT_PROCESS_STEP).abs() <= 1e-12 * DEFAULT_PROCESS_STEP {
+        String::new()
+    } else {
+        format!(
+            ", scaled to the {} s step from its value at {DEFAULT_PROCESS_STEP} s",
+            seconds(s.dt)
+        )
     }
 }
 

@@ -276,7 +276,7 @@ impl PyEstimator {
                 dt,
                 steps: Vec::new(),
             };
-            let eg = graph_with(&model, coordinates, &record, &Uncertainty::of(&model))
+            let eg = graph_with(&model, coordinates, &record, &Uncertainty::of(&model, dt))
                 .map_err(arg_error)?;
             let options = EstimateOptions::default();
             let est = Estimator::new(model.clone(), eg, window, options.settings, false)

@@ -26,7 +26,7 @@
 use super::consistency::{step_rows, Nis, Whiteness};
 use super::graph::EstimationGraph;
 use super::online::Estimator;
-use super::options::{EstimateOptions, Uncertainty, DEFAULT_PROCESS_SIGMA};
+use super::options::{EstimateOptions, Uncertainty};
 use super::record::Record;
 use super::run::{graph_with, reading_factors};
 use crate::error::Result;
@@ -63,9 +63,13 @@ pub enum ProcessSource {
     /// The default (the scene declares inputs or parameters, which carry the
     /// model's error; or the default's pass did not ask for more).
     Default,
-    /// Chosen from the readings: the default left the pass's mean NIS at `nis`,
-    /// outside `bounds`.
-    Readings { nis: f64, bounds: (f64, f64) },
+    /// Chosen from the readings: the default (`default`, at the run's step) left the
+    /// pass's mean NIS at `nis`, outside `bounds`.
+    Readings {
+        nis: f64,
+        bounds: (f64, f64),
+        default: f64,
+    },
     /// The default, whose pass's mean NIS `nis` was outside its bounds, kept: at
     /// the σ `tried` the pass's mean NIS was still `then` (it does not come from
     /// the process noise).
@@ -90,7 +94,7 @@ pub fn choose(
     if model.estimation.process_sigma.is_some() {
         return Ok((uncertainty.process, ProcessSource::Scene));
     }
-    if uncertainty.process != DEFAULT_PROCESS_SIGMA {
+    if !model.estimation.inputs.is_empty() || model.parameters.is_some() {
         return Ok((uncertainty.process, ProcessSource::Default));
     }
     let sigma0 = uncertainty.process;
@@ -175,6 +179,7 @@ pub fn choose(
         ProcessSource::Readings {
             nis: nis0.mean(),
             bounds: nis0.bounds(),
+            default: sigma0,
         },
     ))
 }
@@ -280,7 +285,7 @@ mod tests {
         let path = Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("scenes/identification/fourbar-mass-bad.yaml");
         let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
-        let u = Uncertainty::of(&model);
+        let u = Uncertainty::of(&model, 0.005);
         let start = model.initial.clone();
         let eg =
             EstimationGraph::new(model.clone(), Coordinates::Dependent, &u, 0.005, start).unwrap();
@@ -291,7 +296,7 @@ mod tests {
     fn the_dynamics_use_counts_whitened_residuals_against_what_the_estimate_absorbs() {
         let (model, eg) = graph();
         let (n, s, steps) = (model.n(), eg.size(), 3);
-        let sigma = Uncertainty::of(&model).process;
+        let sigma = Uncertainty::of(&model, 0.005).process;
         let block = eg.initial_block(&model).unwrap();
         let mut values: Vec<f64> = (0..steps).flat_map(|_| block.clone()).collect();
         let mut ws = eg.graph.workspace();

@@ -124,7 +124,7 @@ pub fn estimate_with_progress(
     if record.readings() == 0 {
         return Err(Error::InvalidArgument(super::record::NO_READINGS.into()));
     }
-    let mut uncertainty = Uncertainty::of(&model);
+    let mut uncertainty = Uncertainty::of(&model, record.dt);
     let (mut process_sigma, mut process_source) =
         process_noise::choose(&model, options, record, &uncertainty)?;
     uncertainty.process = process_sigma;
