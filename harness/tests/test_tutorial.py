@@ -123,7 +123,12 @@ def test_the_comparison_table_is_what_compare_prints(tmp_path):
     assert set(rows) == set(labels) | {"---"}
     for label, tool in labels.items():
         assert tools[tool]["status"] == "ok"
-        assert agrees(metres(rows[label][0]), tools[tool]["rmse_m"]), (label, tools[tool])
+        cell = rows[label][0]
+        if cell.startswith("below "):
+            # At the reference's own precision: its digits are the machine's rounding.
+            assert tools[tool]["rmse_m"] < float(metres(cell.removeprefix("below "))), label
+        else:
+            assert agrees(metres(cell), tools[tool]["rmse_m"]), (label, tools[tool])
 
 
 @pytest.mark.parametrize("label, dt", [("1 ms", 1e-3), ("0.5 ms", 5e-4), ("0.25 ms", 2.5e-4)])
