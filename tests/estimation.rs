@@ -57,6 +57,22 @@ fn readings_of(
     (columns, rows)
 }
 
+/// All the readings of `m` as the columns (t first) and rows of a record.
+fn every_column(m: &Measurements) -> (Vec<String>, Vec<(f64, Vec<f64>)>) {
+    let columns = std::iter::once("t".to_string())
+        .chain(m.columns.clone())
+        .collect();
+    let w = m.columns.len();
+    let rows = (0..m.t.len())
+        .map(|i| {
+            let mut row = vec![m.t[i]];
+            row.extend_from_slice(&m.values[i * w..(i + 1) * w]);
+            (m.t[i], row)
+        })
+        .collect();
+    (columns, rows)
+}
+
 struct Score {
     z: f64,
     dz: f64,
@@ -439,17 +455,7 @@ fn another_mechanism_at_the_defaults_and_a_wrong_sensor_model_flagged() {
     let truth = truth_of("slider-crank.yaml", 3.0, 10);
     let (good, bad) = (model("slider-crank.yaml"), model("slider-crank-bad.yaml"));
     let m: Measurements = measure(&good, &truth, 7, None).unwrap();
-    let columns: Vec<String> = std::iter::once("t".to_string())
-        .chain(m.columns.clone())
-        .collect();
-    let w = m.columns.len();
-    let rows: Vec<(f64, Vec<f64>)> = (0..m.t.len())
-        .map(|i| {
-            let mut row = vec![m.t[i]];
-            row.extend_from_slice(&m.values[i * w..(i + 1) * w]);
-            (m.t[i], row)
-        })
-        .collect();
+    let (columns, rows) = every_column(&m);
     let record = Record::from_rows(&bad, &columns, &rows, None).unwrap();
     let run_in = |coordinates| {
         let options = EstimateOptions {
@@ -828,17 +834,7 @@ fn the_default_process_sigma_keeps_its_meaning_at_any_reading_rate() {
     let (fine, _) = simulate(good.clone(), &options, &mut |_, _| {}).unwrap();
     let truth = fine.every(2, 2e-4);
     let m: Measurements = measure(&good, &truth, 1, None).unwrap();
-    let columns: Vec<String> = std::iter::once("t".to_string())
-        .chain(m.columns.clone())
-        .collect();
-    let w = m.columns.len();
-    let rows: Vec<(f64, Vec<f64>)> = (0..m.t.len())
-        .map(|i| {
-            let mut row = vec![m.t[i]];
-            row.extend_from_slice(&m.values[i * w..(i + 1) * w]);
-            (m.t[i], row)
-        })
-        .collect();
+    let (columns, rows) = every_column(&m);
     let (table, summary) = estimate_rows(bad, &columns, &rows, Smoothing::Window(20));
     let s = score(&truth, &table);
     assert!(s.inside >= 0.9, "truth within ±2σ at {}", s.inside);
