@@ -333,12 +333,12 @@ impl Estimator {
         let less_certain = self.oldest_less_certain(k);
         self.caught_up |= held >= self.window && !less_certain;
         let unsettled = !self.caught_up && less_certain;
+        let for_start = unsettled && held < self.longest;
         let for_misfit = misfit && held < MISFIT_LONGEST;
-        let growing = (unsettled && held < self.longest) || for_misfit;
-        if for_misfit && !(unsettled && held < self.longest) && held >= self.window {
+        if for_misfit && !for_start && held >= self.window {
             self.misfit_holds += 1;
         }
-        self.leaving = if held < self.window || growing {
+        self.leaving = if held < self.window || for_start || for_misfit {
             0
         } else if held > self.window && !unsettled {
             2

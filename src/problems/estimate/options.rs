@@ -129,6 +129,12 @@ pub const INTEGRATOR_FRACTION: f64 = 1.0;
 /// whose factorization keeps about three digits of the weakest direction.
 pub const RESOLVED_SPREAD: f64 = 1e6;
 
+/// Whether the scene declares unknown inputs or identified parameters: they carry the
+/// model's error, and the process noise only what they cannot.
+pub fn carries_its_error(model: &crate::model::Model) -> bool {
+    !model.estimation.inputs.is_empty() || model.parameters.is_some()
+}
+
 /// The model's uncertainty, resolved against a model: every σ the graph weighs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Uncertainty {
@@ -149,13 +155,13 @@ impl Uncertainty {
     pub fn of(model: &crate::model::Model, dt: f64) -> Self {
         let spec = &model.estimation;
         let mut u = Uncertainty::defaults(model.n());
-        let modelled_error = !spec.inputs.is_empty() || model.parameters.is_some();
         // (A record's step read from its times is the default's to rounding.)
-        let at_step = match (dt / DEFAULT_PROCESS_STEP - 1.0).abs() < 1e-9 {
-            true => 1.0,
-            false => (DEFAULT_PROCESS_STEP / dt).sqrt(),
+        let at_step = if (dt / DEFAULT_PROCESS_STEP - 1.0).abs() < 1e-9 {
+            1.0
+        } else {
+            (DEFAULT_PROCESS_STEP / dt).sqrt()
         };
-        u.process = match (spec.process_sigma, modelled_error) {
+        u.process = match (spec.process_sigma, carries_its_error(model)) {
             (Some(p), _) => p,
             (None, false) => DEFAULT_PROCESS_SIGMA * at_step,
             (None, true) => DEFAULT_PROCESS_SIGMA_WITH_INPUTS * at_step,

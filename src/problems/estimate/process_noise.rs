@@ -26,7 +26,7 @@
 use super::consistency::{step_rows, Nis, Whiteness};
 use super::graph::EstimationGraph;
 use super::online::Estimator;
-use super::options::{EstimateOptions, Uncertainty};
+use super::options::{carries_its_error, EstimateOptions, Uncertainty};
 use super::record::Record;
 use super::run::{graph_with, reading_factors};
 use crate::error::Result;
@@ -94,7 +94,7 @@ pub fn choose(
     if model.estimation.process_sigma.is_some() {
         return Ok((uncertainty.process, ProcessSource::Scene));
     }
-    if !model.estimation.inputs.is_empty() || model.parameters.is_some() {
+    if carries_its_error(model) {
         return Ok((uncertainty.process, ProcessSource::Default));
     }
     let sigma0 = uncertainty.process;
