@@ -86,7 +86,7 @@ fn online_steps(c: &mut Criterion) {
             b.iter(|| {
                 let eg = run::graph_with(
                     &bad,
-                    Coordinates::Dependent,
+                    EstimateOptions::default().motion(&bad),
                     &record,
                     &Uncertainty::of(&bad, record.dt),
                 )

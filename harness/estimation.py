@@ -292,7 +292,8 @@ def peer_sensors(case: Case):
 # ---------------------------------------------------------------- one run
 
 SUMMARY = re.compile(r"(?P<steps>\d+) steps .*? in (?P<wall>[\d.]+) s \((?P<us>[\d.]+) µs a step\)")
-MODE = re.compile(r"\(dt = [^,]+, (?:(?P<coords>DC|IC), )?(?:window (?P<window>\d+)|(?P<batch>batch))\)")
+MODE = re.compile(r"\(dt = [^,]+, (?:(?P<coords>DC|IC), )?(?:(?P<integrator>hermite-simpson), )?"
+                  r"(?:window (?P<window>\d+)|(?P<batch>batch))\)")
 NIS = re.compile(r"mean NIS (?P<nis>[\d.eE+-]+|NaN|inf) against (?P<exp>[\d.]+) expected, "
                  r"95 % bounds \[(?P<lo>[\d.]+), (?P<hi>[\d.]+)\]")
 PROCESS = re.compile(r"process σ (?P<sigma>[\d.eE+-]+)(?: \((?P<how>[^)]*)\))?")
@@ -307,7 +308,8 @@ def parse_summary(line: str) -> dict:
         out.update(steps=int(m["steps"]), wall_s=float(m["wall"]), us_per_step=float(m["us"]))
     m = MODE.search(line)
     if m:
-        out.update(coords=m["coords"] or "DC", window="batch" if m["batch"] else int(m["window"]))
+        out.update(coords=m["coords"] or "DC", window="batch" if m["batch"] else int(m["window"]),
+                   integrator=m["integrator"] or "trapezoidal")
     m = NIS.search(line)
     if m:
         nis, lo, hi = float(m["nis"]), float(m["lo"]), float(m["hi"])

@@ -636,6 +636,13 @@ def headline(res) -> str:
     return f"Summary: {sum(m for _, m in v)} of {len(v)} targets met."
 
 
+def mbfg_integrators(res) -> str:
+    """The integrators mbfg's runs name in their summaries, for the page to say what ran."""
+    seen = sorted({r.get("integrator") for r in res["rows"]
+                   if r.get("estimator", "").startswith("mbfg") and r.get("integrator")})
+    return " and ".join(seen) or "no integrator named"
+
+
 def write_page(res, out_dir: pathlib.Path = REPORTS, inverse: bool = True) -> str:
     folder = out_dir / "identification"
     folder.mkdir(parents=True, exist_ok=True)
@@ -645,7 +652,8 @@ def write_page(res, out_dir: pathlib.Path = REPORTS, inverse: bool = True) -> st
     md.append(f"Machine: {machine()}. {len(seeds)} noise seeds ({seeds[0]}…{seeds[-1]}) of "
               f"{res['t_end']:g} s at 5 ms per test; the page took {res['seconds']:.0f} s (seeds in "
               f"parallel, one per core). mbfg: `{est.display(res['binary'])}` (sha256 "
-              f"{res['binary_sha256']}…, copied for the page's runs). Peer: scipy "
+              f"{res['binary_sha256']}…, copied for the page's runs), integrating with "
+              f"{mbfg_integrators(res)} (its summaries). Peer: scipy "
               f"least_squares (trf, 2-point Jacobian of relative step "
               f"{output_error.DIFF_STEP:g}), {PEER_INTEGRATOR} at 5 ms, and IDA (rtol "
               f"{IDA_PEER.partition(':')[2]}) on seeds "

@@ -203,6 +203,11 @@ impl std::fmt::Debug for Workspace {
     }
 }
 
+/// The most keys a factor may have (the solver's per-instance arrays): an
+/// estimate's Hermite–Simpson velocity factor reads q, q̇, q̈ at both ends and the
+/// parameters and inputs at both.
+pub const MAX_KEYS: usize = 12;
+
 /// One factor: a residual over a few variables and its Jacobian blocks. Whether it
 /// is held exactly or weighted, and by which noise, is up to the graph it is put in
 /// ([`ChainGraphBuilder`]).
@@ -551,6 +556,12 @@ fn check_term(layout: &Layout, place: Place, term: &Term) -> Result<()> {
         if let Err(e) = noise.validate(f.dim()) {
             return invalid(format!("noise of {}: {e}", f.name()));
         }
+    }
+    if f.keys().len() > MAX_KEYS {
+        return invalid(format!(
+            "{what} has {} keys; a factor has at most {MAX_KEYS}",
+            f.keys().len()
+        ));
     }
     for (a, k) in f.keys().iter().enumerate() {
         let Some((_, d)) = layout.slot(k.kind).filter(|_| k.lag <= 1) else {

@@ -235,7 +235,7 @@ fn the_online_estimator_keeps_a_bounded_buffer_and_graph() {
     let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
     let eg = mbfg::estimate::run::graph_with(
         &m,
-        Coordinates::Dependent,
+        EstimateOptions::default().motion(&m),
         &record,
         &mbfg::estimate::Uncertainty::of(&m, record.dt),
     )

@@ -9,7 +9,7 @@ use mbfg::factors::{
     ComponentPrior, Dynamics, DynamicsKernel, Equality, Euler, Form, HermitePosition,
     IndependentAcceleration, IndependentDynamics, IndependentPosition, IndependentVelocity,
     Integrator, KernelScratch, ParametricDynamics, PositionConstraints, PrescribedMotion, Prior,
-    Projected, Reading, SimpsonVelocity, Trapezoidal, VelocityConstraints,
+    Projected, Reading, SimpsonVelocity, SimpsonVelocityThrough, Trapezoidal, VelocityConstraints,
 };
 use mbfg::graph::{Factor, Key, StackReq, VarKind, Workspace};
 use mbfg::kinematics;
@@ -571,6 +571,99 @@ fn parametric_dynamics_matches_finite_differences() {
         }
     }
     assert_eq!(checked, 4 * TRIALS);
+}
+
+#[test]
+fn hermite_simpson_through_the_estimates_dynamics_matches_finite_differences() {
+    // An estimate's Hermite–Simpson velocity factor, its stage the dynamics factor of
+    // the estimate (f^d_par with identified parameters, with and without unknown
+    // inputs, at both ends of the step), bare and projected, at a coarse and a fine
+    // step: ∂/∂q, ∂/∂q̇, ∂/∂q̈ at both ends and ∂/∂p, ∂/∂u at both.
+    let mut rng = Rng(12);
+    let mut checked = 0;
+    for name in [
+        "fourbar-masses.yaml",
+        "spring-damper.yaml",
+        "point-mass.yaml",
+    ] {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/identification")
+            .join(name);
+        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let model = Arc::new(Model::new(&scene).unwrap_or_else(|e| panic!("{name}: {e}")));
+        let actuated: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+        for with_inputs in [false, true] {
+            if with_inputs && actuated.is_empty() {
+                continue;
+            }
+            let on = if with_inputs {
+                actuated.clone()
+            } else {
+                Vec::new()
+            };
+            for dt in [0.05, 0.001] {
+                let stage = || {
+                    Box::new(
+                        ParametricDynamics::new(model.clone(), on.clone()).expect("parameters"),
+                    ) as Box<dyn Factor>
+                };
+                let bare = SimpsonVelocityThrough::new(stage(), dt);
+                let projected = Projected::new(
+                    model.clone(),
+                    Box::new(SimpsonVelocityThrough::new(stage(), dt)),
+                );
+                for factor in [&bare as &dyn Factor, &projected] {
+                    let label = format!("{name}: {} dt={dt}", factor.name());
+                    for _ in 0..TRIALS {
+                        let now = Step::random(&model, &mut rng);
+                        let before = Step::random(&model, &mut rng);
+                        let mut xs = inputs(factor, &now, &before);
+                        for (x, k) in xs.iter_mut().zip(factor.keys()) {
+                            if k.kind == VarKind::Force {
+                                // One entry per input coordinate.
+                                x.truncate(actuated.len());
+                            }
+                        }
+                        let err = check_factor_with(FD_STEP, &label, factor, &xs, T);
+                        assert!(err < 1e-5, "{label} off by {err:e}");
+                        checked += 1;
+                    }
+                }
+            }
+        }
+    }
+    assert_eq!(checked, 4 * 2 * 2 * TRIALS);
+}
+
+#[test]
+fn hermite_simpson_through_the_plain_dynamics_is_the_simulators_factor() {
+    // With f^d_dyn as its stage, the estimate's factor is the simulator's
+    // Hermite–Simpson velocity factor: the same residual and Jacobians.
+    let mut rng = Rng(13);
+    for name in SCENES {
+        let model = load(name);
+        let dt = 0.02;
+        let through = SimpsonVelocityThrough::new(Box::new(Dynamics::new(model.clone())), dt);
+        let plain = SimpsonVelocity::dependent(model.clone(), dt);
+        assert_eq!(through.keys(), plain.keys(), "{name}");
+        let mut ws = Workspace::new(through.scratch().or(plain.scratch()));
+        for _ in 0..TRIALS {
+            let now = Step::random(&model, &mut rng);
+            let before = Step::random(&model, &mut rng);
+            let xs = inputs(&plain, &now, &before);
+            let a = evaluate(&through, T, &xs, true, &mut ws);
+            let b = evaluate(&plain, T, &xs, true, &mut ws);
+            let close = |x: &[f64], y: &[f64]| {
+                x.iter()
+                    .zip(y)
+                    .all(|(u, v)| (u - v).abs() <= 1e-9 * (1.0 + v.abs()))
+            };
+            assert!(close(&a.r, &b.r), "{name}: residuals {:?} {:?}", a.r, b.r);
+            for (ja, jb) in a.jac.unwrap().iter().zip(b.jac.as_ref().unwrap()) {
+                assert!(close(ja, jb), "{name}: Jacobians differ");
+            }
+        }
+    }
 }
 
 #[test]

@@ -466,13 +466,16 @@ def measure(scene: str | os.PathLike | Model,
 def estimate(scene: str | os.PathLike | Model,
              measurements: "str | os.PathLike | Mapping[str, Sequence[float]]",
              window: int | None = None, batch: bool = False, dt: float | None = None,
-             max_iterations: int = 200, coords: str = "dc") -> dict:
+             max_iterations: int = 200, coords: str = "dc",
+             integrator: str | None = None) -> dict:
     """State estimation, as `mbfg estimate` runs it: the motion from the scene's model
     and its sensors' readings. `measurements` is a CSV path (as `mbfg measure` writes
     it) or a mapping {"t": times, "<column>": readings, ...} with NaN where a sensor
     did not read. `window` is the fixed-lag smoother's (default 20); `batch=True`
     estimates every step at once. `dt` is the estimator's step (default: the readings'
-    spacing), `max_iterations` the solver's bound per window, `coords` "dc" or "ic". Returns {"t": times, "q:<c>": ..., "dq:<c>": ...,
+    spacing), `max_iterations` the solver's bound per window, `coords` "dc" or "ic",
+    `integrator` "trapezoidal" or "hermite-simpson" (default: Hermite–Simpson where the
+    scene identifies parameters, the trapezoidal rule otherwise). Returns {"t": times, "q:<c>": ..., "dq:<c>": ...,
     "ddq:<c>": ..., "Q:<c>": (unknown inputs), "sd:q:<c>": σ, ..., "summary": {...}}:
     arrays of the final estimates and the run's summary (steps, window, readings, NIS
     mean, its expected value and 95 % bounds, whether it is consistent, process σ).
@@ -492,9 +495,11 @@ def estimate(scene: str | os.PathLike | Model,
             columns = list(measurements.keys())
             cols = [np.asarray(measurements[c], dtype=float) for c in columns]
             values = np.column_stack(cols).ravel().tolist() if cols else []
-            raw = _native.estimate(scene, None, columns, values, window, batch, dt, max_iterations, coords)
+            raw = _native.estimate(scene, None, columns, values, window, batch, dt, max_iterations, coords,
+                                   integrator)
         else:
-            raw = _native.estimate(scene, measurements, None, None, window, batch, dt, max_iterations, coords)
+            raw = _native.estimate(scene, measurements, None, None, window, batch, dt, max_iterations,
+                                   coords, integrator)
     except SolveError as e:
         # The steps final before the failure.
         if isinstance(getattr(e, "result", None), dict):

@@ -259,3 +259,137 @@ impl Factor for SimpsonVelocity {
         Ok(())
     }
 }
+
+/// Hermite–Simpson for velocities with the stage's dynamics those of an estimate's
+/// dynamics factor `stage` (f^d_dyn, f^d_idyn or f^d_par: e = q̈(q, q̇, t; w) − q̈_t with
+/// keys q, q̇, q̈ of the step and then its other variables w, such as the identified
+/// parameters or the unknown inputs): e = q̇₁ − q̇₀ − h/6 (q̈₀ + 4 q̈_m + q̈₁) with
+/// q̈_m = q̈(q_m, q̇_m, t − h/2; w_m), w_m = (w₀ + w₁)/2, the variables at the middle of
+/// a step on which they are linear (an input's random walk) or constant (a parameter).
+/// Its keys are [`SimpsonVelocity`]'s, then w₀ and w₁ of each of `stage`'s other keys.
+pub struct SimpsonVelocityThrough {
+    stage: Box<dyn Factor>,
+    name: String,
+    keys: Vec<Key>,
+    n: usize,
+    dt: f64,
+}
+
+impl SimpsonVelocityThrough {
+    /// The factor at step `dt` whose stage is evaluated by `stage` (keys q, q̇, q̈ of
+    /// the step first, n rows).
+    pub fn new(stage: Box<dyn Factor>, dt: f64) -> Self {
+        let n = stage.dim();
+        let own = [VarKind::Q, VarKind::Dq, VarKind::Ddq].map(Key::now);
+        assert!(
+            stage.keys()[..3] == own,
+            "a stage's dynamics factor reads q, q̇, q̈ of its step first"
+        );
+        let mut keys = SimpsonVelocity::state_keys();
+        for key in &stage.keys()[3..] {
+            keys.extend([Key::before(key.kind), Key::now(key.kind)]);
+        }
+        SimpsonVelocityThrough {
+            name: format!("f_hs(dq; {})", stage.name()),
+            stage,
+            keys,
+            n,
+            dt,
+        }
+    }
+
+    /// How many of the stage's keys follow q, q̇, q̈.
+    fn others(&self) -> usize {
+        self.stage.keys().len() - 3
+    }
+}
+
+impl Factor for SimpsonVelocityThrough {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    key_accessor!();
+    fn size(&self, key: usize) -> usize {
+        match key {
+            0..=5 => self.n,
+            k => self.stage.size(3 + (k - 6) / 2),
+        }
+    }
+    fn dim(&self) -> usize {
+        self.n
+    }
+    fn scratch(&self) -> StackReq {
+        self.stage.scratch()
+    }
+    fn evaluate(
+        &self,
+        t: f64,
+        x: &[&[f64]],
+        r: &mut [f64],
+        jac: Option<&mut [Vec<f64>]>,
+        ws: &mut Workspace,
+    ) -> Result<()> {
+        let (n, h) = (self.n, self.dt);
+        let (q0, q1, v0, v1, a0, a1) = (x[0], x[1], x[2], x[3], x[4], x[5]);
+        let qm: Vec<f64> = (0..n)
+            .map(|i| 0.5 * (q0[i] + q1[i]) + 0.125 * h * (v0[i] - v1[i]))
+            .collect();
+        let vm: Vec<f64> = (0..n)
+            .map(|i| 0.5 * (v0[i] + v1[i]) + 0.125 * h * (a0[i] - a1[i]))
+            .collect();
+        let others: Vec<Vec<f64>> = (0..self.others())
+            .map(|k| {
+                let (w0, w1) = (x[6 + 2 * k], x[7 + 2 * k]);
+                w0.iter().zip(w1).map(|(a, b)| 0.5 * (a + b)).collect()
+            })
+            .collect();
+        // The stage factor's residual at q̈_t = 0 is q̈_m itself.
+        let zero = vec![0.0; n];
+        let mut inputs: Vec<&[f64]> = vec![&qm, &vm, &zero];
+        inputs.extend(others.iter().map(Vec::as_slice));
+        let mut am = vec![0.0; n];
+        let mut stage_jac: Option<Vec<Vec<f64>>> = jac.is_some().then(|| {
+            (0..self.stage.keys().len())
+                .map(|k| vec![0.0; n * self.stage.size(k)])
+                .collect()
+        });
+        self.stage
+            .evaluate(t - 0.5 * h, &inputs, &mut am, stage_jac.as_deref_mut(), ws)?;
+        let h6 = h / 6.0;
+        for i in 0..n {
+            r[i] = v1[i] - v0[i] - h6 * (a0[i] + 4.0 * am[i] + a1[i]);
+        }
+        let (Some(j), Some(g)) = (jac, stage_jac) else {
+            return Ok(());
+        };
+        // As SimpsonVelocity's, with G = ∂q̈_m/∂(q_m, q̇_m) from the stage factor; each
+        // other variable enters q̈_m through its average, half from each end.
+        let (c, c2) = (2.0 * h / 3.0, h * h / 12.0);
+        let (jq, jv) = (&g[0], &g[1]);
+        for i in 0..n {
+            for col in 0..n {
+                let (gq, gv) = (jq[i * n + col], jv[i * n + col]);
+                let at = i * n + col;
+                j[0][at] = -0.5 * c * gq;
+                j[1][at] = -0.5 * c * gq;
+                j[2][at] = -c2 * gq - 0.5 * c * gv;
+                j[3][at] = c2 * gq - 0.5 * c * gv;
+                j[4][at] = -c2 * gv;
+                j[5][at] = c2 * gv;
+            }
+            let at = i * n + i;
+            j[2][at] -= 1.0;
+            j[3][at] += 1.0;
+            j[4][at] -= h6;
+            j[5][at] -= h6;
+        }
+        for k in 0..self.others() {
+            for end in 0..2 {
+                for (o, d) in j[6 + 2 * k + end].iter_mut().zip(&g[3 + k]) {
+                    *o = -0.5 * c * d;
+                }
+            }
+        }
+        Ok(())
+    }
+}

@@ -32,7 +32,7 @@ mod shared;
 pub mod tangent;
 
 pub use crate::dynamics::{DynamicsKernel, KernelScratch};
-pub use collocation::{HermitePosition, SimpsonVelocity};
+pub use collocation::{HermitePosition, SimpsonVelocity, SimpsonVelocityThrough};
 pub use constraints::{PositionConstraints, VelocityConstraints};
 pub use dynamics::{Dynamics, ALONG_FROM};
 pub use independent::{

@@ -10,6 +10,7 @@ use crate::estimate::ProcessSource;
 use crate::estimate::{
     estimate, EstimateOptions, Estimates, Estimator, Record, Smoothing, Uncertainty,
 };
+use crate::factors::Integrator;
 use crate::Model;
 use numpy::{PyArray1, PyArrayMethods};
 use pyo3::prelude::*;
@@ -37,9 +38,20 @@ fn coordinates(coords: &Bound<'_, PyAny>) -> PyResult<Coordinates> {
     }
 }
 
+/// An estimate's integrator by name: "trapezoidal" or "hermite-simpson".
+fn estimate_integrator(name: &Bound<'_, PyAny>) -> PyResult<Integrator> {
+    match arg_str(name, "integrator")?.as_str() {
+        "trapezoidal" => Ok(Integrator::Trapezoidal),
+        "hermite-simpson" => Ok(Integrator::HermiteSimpson),
+        other => Err(invalid(format!(
+            "integrator must be \"trapezoidal\" or \"hermite-simpson\", got {other:?}"
+        ))),
+    }
+}
+
 /// `mbfg.estimate`: {"columns", "values" (rows × columns), "summary"}.
 #[pyfunction]
-#[pyo3(signature = (scene, measurements, columns, values, window, batch, dt, max_iterations, coords))]
+#[pyo3(signature = (scene, measurements, columns, values, window, batch, dt, max_iterations, coords, integrator=None))]
 #[pyo3(name = "estimate")]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn estimate_run<'py>(
@@ -53,6 +65,7 @@ pub(super) fn estimate_run<'py>(
     dt: Option<&Bound<'py, PyAny>>,
     max_iterations: &Bound<'py, PyAny>,
     coords: &Bound<'py, PyAny>,
+    integrator: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
         let model = study_model(scene, &[], &[], &[])?;
@@ -64,6 +77,10 @@ pub(super) fn estimate_run<'py>(
             coordinates: coordinates(coords)?,
             smoothing: smoothing(window, batch)?,
             dt,
+            integrator: match integrator {
+                Some(i) if !i.is_none() => Some(estimate_integrator(i)?),
+                _ => None,
+            },
             ..EstimateOptions::default()
         };
         options.settings.max_iterations = arg_count(max_iterations, "max_iterations", 1)?;
@@ -107,6 +124,7 @@ pub(super) fn estimate_run<'py>(
             },
         )?;
         s.set_item("dt", summary.dt)?;
+        s.set_item("integrator", summary.integrator.name())?;
         match summary.smoothing {
             Smoothing::Window(w) => s.set_item("window", w)?,
             Smoothing::Batch => s.set_item("window", "batch")?,
@@ -228,7 +246,8 @@ fn record_from(
 
 /// `mbfg.Estimator`: the fixed-lag smoother online. Each `update(t, readings)` adds
 /// the steps up to t (the readings at t, none before) and returns the newest step's
-/// estimate; its cost does not grow with the record.
+/// estimate; its cost does not grow with the record. `integrator` is "trapezoidal" or
+/// "hermite-simpson" (default: Hermite–Simpson where the scene identifies parameters).
 #[pyclass(name = "Estimator", module = "mbfg", unsendable)]
 pub struct PyEstimator {
     model: Arc<Model>,
@@ -240,13 +259,14 @@ pub struct PyEstimator {
 #[pymethods]
 impl PyEstimator {
     #[new]
-    #[pyo3(signature = (scene, dt, window=None, t0=None, coords=None))]
+    #[pyo3(signature = (scene, dt, window=None, t0=None, coords=None, integrator=None))]
     fn new(
         scene: &Bound<'_, PyAny>,
         dt: &Bound<'_, PyAny>,
         window: Option<&Bound<'_, PyAny>>,
         t0: Option<&Bound<'_, PyAny>>,
         coords: Option<&Bound<'_, PyAny>>,
+        integrator: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         guard(|| {
             let model = study_model(scene, &[], &[], &[])?;
@@ -276,9 +296,21 @@ impl PyEstimator {
                 dt,
                 steps: Vec::new(),
             };
-            let eg = graph_with(&model, coordinates, &record, &Uncertainty::of(&model, dt))
-                .map_err(arg_error)?;
-            let options = EstimateOptions::default();
+            let options = EstimateOptions {
+                coordinates,
+                integrator: match integrator {
+                    Some(i) if !i.is_none() => Some(estimate_integrator(i)?),
+                    _ => None,
+                },
+                ..EstimateOptions::default()
+            };
+            let eg = graph_with(
+                &model,
+                options.motion(&model),
+                &record,
+                &Uncertainty::of(&model, dt),
+            )
+            .map_err(arg_error)?;
             let est = Estimator::new(model.clone(), eg, window, options.settings, false)
                 .map_err(arg_error)?;
             Ok(PyEstimator { model, est, t0, dt })

@@ -7,7 +7,7 @@ use super::{WindowSolver, HARD_SIGMA};
 use crate::error::{Error, Result};
 #[cfg(doc)]
 use crate::graph::AlongDirections;
-use crate::graph::{ChainGraph, Factor, Term, Workspace};
+use crate::graph::{ChainGraph, Factor, Term, Workspace, MAX_KEYS};
 use crate::linalg::banded::BlockTridiagonal;
 use crate::linalg::nullspace::NullSpace;
 
@@ -441,7 +441,7 @@ impl Linearization {
         let factor = factor_of(graph, inst);
         let buf = self.buffers.of(inst);
         let keys = factor.keys();
-        let mut xs: [&[f64]; 8] = [&[]; 8];
+        let mut xs: [&[f64]; MAX_KEYS] = [&[]; MAX_KEYS];
         for ((slot, k), &(off, d)) in xs.iter_mut().zip(keys).zip(&buf.slots) {
             let base = (inst.step - k.lag) * s + off;
             *slot = &values[base..base + d];
@@ -509,7 +509,7 @@ impl Linearization {
                 // Round-off in each residual: ε times the size of its terms, Σ|C||x|,
                 // summed along the row over its keys' blocks (the rest of the row is 0).
                 let x = &values[inst.step * s..(inst.step + 1) * s];
-                let mut keys: [usize; 8] = std::array::from_fn(|a| a);
+                let mut keys: [usize; MAX_KEYS] = std::array::from_fn(|a| a);
                 let keys = &mut keys[..buf.slots.len()];
                 keys.sort_by_key(|&a| buf.slots[a].0);
                 for r in 0..dim {
@@ -717,10 +717,10 @@ impl WindowSolver {
             0
         };
         let c = 1 + d0 + d1;
-        let mut xs: [&[f64]; 8] = [&[]; 8];
-        let mut ranges = [(0, 0); 8];
+        let mut xs: [&[f64]; MAX_KEYS] = [&[]; MAX_KEYS];
+        let mut ranges = [(0, 0); MAX_KEYS];
         let mut at = 0;
-        let mut slots = [(0, 0); 8];
+        let mut slots = [(0, 0); MAX_KEYS];
         slots[..keys.len()].copy_from_slice(&self.lin.buffers.of(inst).slots);
         for (a, k) in keys.iter().enumerate() {
             let (off, d) = slots[a];
@@ -741,7 +741,7 @@ impl WindowSolver {
             ranges[a] = (at, at + d * c);
             at += d * c;
         }
-        let mut dirs: [&[f64]; 8] = [&[]; 8];
+        let mut dirs: [&[f64]; MAX_KEYS] = [&[]; MAX_KEYS];
         for (d, &(a, b)) in dirs.iter_mut().zip(&ranges[..keys.len()]) {
             *d = &self.lin.along_dirs[a..b];
         }

@@ -183,8 +183,18 @@ pub fn estimate_record(
         smoothing,
         ..mbfg::estimate::EstimateOptions::default()
     };
+    estimate_with(m, record, &options)
+}
+
+/// The estimate of the model `m` from `record` with `options`: its final steps and
+/// its summary.
+pub fn estimate_with(
+    m: std::sync::Arc<mbfg::Model>,
+    record: &mbfg::estimate::Record,
+    options: &mbfg::estimate::EstimateOptions,
+) -> (mbfg::estimate::Estimates, mbfg::estimate::EstimateSummary) {
     let mut table = mbfg::estimate::Estimates::for_model(&m);
-    let summary = mbfg::estimate::estimate(m, record, &options, &mut |e| {
+    let summary = mbfg::estimate::estimate(m, record, options, &mut |e| {
         table.push(e);
         Ok(())
     })

@@ -37,10 +37,18 @@ impl EstimationGraph {
     pub fn new(
         model: Arc<Model>,
         coordinates: Coordinates,
+        integrator: Integrator,
         uncertainty: &Uncertainty,
         dt: f64,
         start: State,
     ) -> Result<Self> {
+        if integrator == Integrator::Euler {
+            return Err(Error::InvalidArgument(
+                "an estimate integrates with the trapezoidal rule or hermite-simpson, not \
+                 euler"
+                    .into(),
+            ));
+        }
         let n = model.n();
         let inputs: Vec<usize> = uncertainty.inputs.iter().map(|&(c, _)| c).collect();
         let f = inputs.len();
@@ -82,9 +90,11 @@ impl EstimationGraph {
         }
         let builder = ChainGraph::builder(Layout::new(&vars), dt, 0.0);
         let builder = match coordinates {
-            Coordinates::Dependent => dependent(builder, &model, uncertainty, &inputs, dt, &start),
+            Coordinates::Dependent => {
+                dependent(builder, &model, integrator, uncertainty, &inputs, dt)
+            }
             Coordinates::Independent => {
-                independent_graph(builder, &model, uncertainty, &independent, dt, &start)
+                independent_graph(builder, &model, integrator, uncertainty, &independent, dt)
             }
         };
         let graph = builder
@@ -170,25 +180,45 @@ impl EstimationGraph {
 fn dependent(
     builder: ChainGraphBuilder,
     model: &Arc<Model>,
+    integrator: Integrator,
     uncertainty: &Uncertainty,
     inputs: &[usize],
     dt: f64,
-    _start: &State,
 ) -> ChainGraphBuilder {
     let f = inputs.len();
-    let dynamics: Box<dyn Factor> = match ParametricDynamics::new(model.clone(), inputs.to_vec()) {
-        Some(d) => Box::new(d),
-        None if f > 0 => Box::new(Dynamics::inverse_on(model.clone(), inputs.to_vec())),
-        None => Box::new(Dynamics::new(model.clone())),
+    let dynamics = || -> Box<dyn Factor> {
+        match ParametricDynamics::new(model.clone(), inputs.to_vec()) {
+            Some(d) => Box::new(d),
+            None if f > 0 => Box::new(Dynamics::inverse_on(model.clone(), inputs.to_vec())),
+            None => Box::new(Dynamics::new(model.clone())),
+        }
     };
     let mut builder = builder
         .step_constraint(Box::new(PositionConstraints::new(model.clone())))
         .step_constraint(Box::new(VelocityConstraints::new(model.clone())))
-        .step_soft(dynamics, Noise::Isotropic(uncertainty.process));
+        .step_soft(dynamics(), Noise::Isotropic(uncertainty.process));
     // Projected on the constraints' tangent space: the full integrators ask 2m more
     // equations a step than the motion has free directions, a compromise whose
     // minimum is ill-determined along slow directions (see `factors::tangent`).
-    let integrators = Integrator::Trapezoidal.factors(model, Form::Tangent, dt);
+    // Hermite–Simpson's stage sees the dynamics factor's own variables (the
+    // identified parameters, the unknown inputs).
+    let integrators: [Box<dyn Factor>; 2] = match integrator {
+        Integrator::HermiteSimpson => {
+            let n = model.n();
+            let inner: [Box<dyn Factor>; 2] = [
+                Box::new(HermitePosition::new(
+                    VarKind::Q,
+                    VarKind::Dq,
+                    VarKind::Ddq,
+                    n,
+                    dt,
+                )),
+                Box::new(SimpsonVelocityThrough::new(dynamics(), dt)),
+            ];
+            inner.map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>)
+        }
+        _ => Integrator::Trapezoidal.factors(model, Form::Tangent, dt),
+    };
     for (factor, sigma) in integrators.into_iter().zip(uncertainty.integrators(dt)) {
         builder = builder.step_soft(factor, Noise::Isotropic(sigma));
     }
@@ -236,10 +266,10 @@ const PARAMETER_LINK: f64 = 1e-5;
 fn independent_graph(
     builder: ChainGraphBuilder,
     model: &Arc<Model>,
+    integrator: Integrator,
     uncertainty: &Uncertainty,
     independent: &[usize],
     dt: f64,
-    _start: &State,
 ) -> ChainGraphBuilder {
     let set = independent.to_vec();
     let mut builder = builder
@@ -259,7 +289,7 @@ fn independent_graph(
             Box::new(IndependentDynamics::with(model.clone(), set.clone())),
             Noise::Isotropic(uncertainty.process),
         );
-    let integrators = Integrator::Trapezoidal.factors(model, Form::Independent(independent), dt);
+    let integrators = integrator.factors(model, Form::Independent(independent), dt);
     for (factor, sigma) in integrators.into_iter().zip(uncertainty.integrators(dt)) {
         builder = builder.step_soft(factor, Noise::Isotropic(sigma));
     }

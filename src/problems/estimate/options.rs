@@ -3,6 +3,7 @@
 
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
+use crate::factors::Integrator;
 use crate::solver::Settings;
 
 /// How the record is solved.
@@ -64,6 +65,9 @@ pub struct EstimateOptions {
     pub smoothing: Smoothing,
     /// The step; `None`: the readings' period.
     pub dt: Option<f64>,
+    /// The rule between consecutive steps: the trapezoidal rule, or Hermite–Simpson
+    /// (fourth order). `None`: [`default_integrator`].
+    pub integrator: Option<Integrator>,
     pub settings: Settings,
 }
 
@@ -73,16 +77,31 @@ impl Default for EstimateOptions {
             coordinates: Coordinates::Dependent,
             smoothing: Smoothing::Window(DEFAULT_WINDOW),
             dt: None,
+            integrator: None,
             settings: estimation_settings(),
         }
     }
 }
 
 impl EstimateOptions {
+    /// The coordinates and the integrator the graph of `model`'s estimate is written
+    /// in.
+    pub fn motion(&self, model: &crate::model::Model) -> (Coordinates, Integrator) {
+        let integrator = self.integrator.unwrap_or_else(|| default_integrator(model));
+        (self.coordinates, integrator)
+    }
+
     pub fn validate(&self) -> Result<()> {
         if let Smoothing::Window(0) = self.smoothing {
             return Err(Error::InvalidArgument(
                 "the window must hold at least 1 step".into(),
+            ));
+        }
+        if self.integrator == Some(Integrator::Euler) {
+            return Err(Error::InvalidArgument(
+                "an estimate integrates with the trapezoidal rule or hermite-simpson, not \
+                 euler"
+                    .into(),
             ));
         }
         if let Some(dt) = self.dt {
@@ -128,6 +147,20 @@ pub const INTEGRATOR_FRACTION: f64 = 1.0;
 /// be held ([`Uncertainty::integrators`]): the information matrix then spans 10¹²,
 /// whose factorization keeps about three digits of the weakest direction.
 pub const RESOLVED_SPREAD: f64 = 1e6;
+
+/// The integrator of an estimate that names none: Hermite–Simpson where the scene
+/// identifies parameters, the trapezoidal rule otherwise. A parameter is fitted to a
+/// whole record, so the trapezoidal rule's error at the step enters it as a bias that
+/// more readings do not shrink (+0.5 % on a four-bar's crank mass at 5 ms, from a
+/// record 10 s long); a state's estimate is dominated by the readings' noise, at half
+/// the cost a step.
+pub fn default_integrator(model: &crate::model::Model) -> Integrator {
+    if model.parameters.is_some() {
+        Integrator::HermiteSimpson
+    } else {
+        Integrator::Trapezoidal
+    }
+}
 
 /// Whether the scene declares unknown inputs or identified parameters: they carry the
 /// model's error, and the process noise only what they cannot.

@@ -208,7 +208,7 @@ fn pass(
 ) -> Result<Nis> {
     let mut u = uncertainty.clone();
     u.process = sigma;
-    let eg = graph_with(model, options.coordinates, record, &u)?;
+    let eg = graph_with(model, options.motion(model), record, &u)?;
     let mut est = Estimator::new(model.clone(), eg, 1, options.settings, false)?;
     for readings in record.steps.iter().take(PASS_STEPS) {
         est.update(reading_factors(model, readings)?)?;
@@ -278,6 +278,7 @@ impl DynamicsUse {
 mod tests {
     use super::*;
     use crate::coordinates::Coordinates;
+    use crate::factors::Integrator;
     use crate::scene::Scene;
     use std::path::Path;
 
@@ -287,8 +288,15 @@ mod tests {
         let model = Arc::new(Model::new(&Scene::load(path).unwrap()).unwrap());
         let u = Uncertainty::of(&model, 0.005);
         let start = model.initial.clone();
-        let eg =
-            EstimationGraph::new(model.clone(), Coordinates::Dependent, &u, 0.005, start).unwrap();
+        let eg = EstimationGraph::new(
+            model.clone(),
+            Coordinates::Dependent,
+            Integrator::Trapezoidal,
+            &u,
+            0.005,
+            start,
+        )
+        .unwrap();
         (model, eg)
     }
 

@@ -12,6 +12,7 @@ use super::process_noise::{self, DynamicsUse, ProcessSource};
 use super::record::Record;
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
+use crate::factors::Integrator;
 use crate::factors::{InputReading, Reading};
 use crate::graph::{Factor, Noise};
 use crate::model::Model;
@@ -24,6 +25,8 @@ use std::sync::Arc;
 #[derive(Debug, Clone, PartialEq)]
 pub struct EstimateSummary {
     pub coordinates: Coordinates,
+    /// The integrator the graph was written with.
+    pub integrator: Integrator,
     pub steps: usize,
     pub dt: f64,
     pub smoothing: Smoothing,
@@ -79,13 +82,14 @@ pub fn reading_factors(
 /// with `uncertainty`.
 pub fn graph_with(
     model: &Arc<Model>,
-    coordinates: Coordinates,
+    (coordinates, integrator): (Coordinates, Integrator),
     record: &Record,
     uncertainty: &Uncertainty,
 ) -> Result<EstimationGraph> {
     let mut eg = EstimationGraph::new(
         model.clone(),
         coordinates,
+        integrator,
         uncertainty,
         record.dt,
         model.initial.clone(),
@@ -128,7 +132,7 @@ pub fn estimate_with_progress(
     let (mut process_sigma, mut process_source) =
         process_noise::choose(&model, options, record, &uncertainty)?;
     uncertainty.process = process_sigma;
-    let eg = graph_with(&model, options.coordinates, record, &uncertainty)?;
+    let eg = graph_with(&model, options.motion(&model), record, &uncertainty)?;
     let (window, keep_all) = match options.smoothing {
         Smoothing::Window(w) => (w, false),
         Smoothing::Batch => (BATCH_START_WINDOW, true),
@@ -211,6 +215,7 @@ pub fn estimate_with_progress(
     let identification = identification_of(&last_parameters);
     Ok(EstimateSummary {
         coordinates: options.coordinates,
+        integrator: options.motion(&model).1,
         steps,
         dt: record.dt,
         smoothing: options.smoothing,
@@ -285,6 +290,9 @@ const MAX_CUT: f64 = 10.0;
 const LOWEST: f64 = 1e-3;
 /// Matched: the residuals use at least this share of their expected χ².
 const MATCHED: f64 = 0.8;
+/// The degrees of freedom of the dynamics residuals below which their χ² says
+/// nothing of the process σ.
+const SEEN_DOF: f64 = 1.0;
 
 /// A batch estimate of a record from a fixed-lag pass over it.
 struct Batch<'a> {
@@ -339,8 +347,16 @@ impl Batch<'_> {
                 break;
             };
             first_use.get_or_insert(used.ratio());
-            // σ² ← σ²·χ²/dof, the σ the residuals show (never raised here).
-            let next = (sigma * used.ratio().sqrt().max(1.0 / MAX_CUT)).max(lowest);
+            // σ² ← σ²·χ²/dof, the σ the residuals show (never raised here). Where
+            // the estimate absorbs all but a fraction of one degree of freedom of the
+            // residuals, the readings do not see the process noise at this σ, and
+            // their ratio says nothing: the stage takes the homotopy's largest cut.
+            let cut = if used.dof < SEEN_DOF {
+                1.0 / MAX_CUT
+            } else {
+                used.ratio().sqrt().max(1.0 / MAX_CUT)
+            };
+            let next = (sigma * cut).max(lowest);
             if used.ratio() >= MATCHED || next >= sigma {
                 break;
             }
@@ -387,7 +403,7 @@ impl Batch<'_> {
     fn graph_at(&self, sigma: f64) -> Result<EstimationGraph> {
         let mut u = self.uncertainty.clone();
         u.process = sigma;
-        let mut eg = graph_with(self.model, self.options.coordinates, self.record, &u)?;
+        let mut eg = graph_with(self.model, self.options.motion(self.model), self.record, &u)?;
         for (k, readings) in self.record.steps.iter().enumerate() {
             for (factor, noise) in reading_factors(self.model, readings)? {
                 eg.graph.add_soft_at(k, factor, noise)?;
