@@ -84,6 +84,8 @@ pub struct Estimator {
     eg: EstimationGraph,
     solver: WindowSolver,
     window: usize,
+    /// The window once the readings have caught up with the start, where it differs.
+    settled: Option<usize>,
     /// The most steps the window grows to while its oldest step is unsettled.
     longest: usize,
     /// The oldest steps the next update marginalizes (handed out final by this one).
@@ -146,6 +148,7 @@ impl Estimator {
             model,
             solver,
             window,
+            settled: None,
             longest,
             leaving: 0,
             watched,
@@ -168,6 +171,15 @@ impl Estimator {
             refits: 0,
             misfit_holds: 0,
         })
+    }
+
+    /// The estimator whose window becomes `window` steps once the readings have caught
+    /// up with the start (and no misfit holds it): a batch's start pass, whose windows
+    /// only guess the batch's solution after the start. A narrower window shrinks to
+    /// it two steps an update.
+    pub fn settling_to(mut self, window: usize) -> Self {
+        self.settled = Some(window.max(1));
+        self
     }
 
     /// The mean number of steps the windows held, over the updates so far.
@@ -333,6 +345,9 @@ impl Estimator {
         let less_certain = self.oldest_less_certain(k);
         self.caught_up |= held >= self.window && !less_certain;
         let unsettled = !self.caught_up && less_certain;
+        if let (true, false, Some(w)) = (self.caught_up, misfit, self.settled) {
+            self.window = w;
+        }
         let for_start = unsettled && held < self.longest;
         let for_misfit = misfit && held < MISFIT_LONGEST;
         if for_misfit && !for_start && held >= self.window {

@@ -55,8 +55,12 @@ pub const RELINEARIZE_BEYOND: f64 = 0.01;
 /// The window an estimate uses when none is asked.
 pub const DEFAULT_WINDOW: usize = 20;
 
-/// The window of the fixed-lag pass that starts a batch estimate.
+/// The window of the fixed-lag pass that starts a batch estimate, while it holds the
+/// start of the record.
 pub const BATCH_START_WINDOW: usize = DEFAULT_WINDOW;
+/// The window of that pass once the readings have caught up with the start: its
+/// estimates only start the batch's solve.
+pub const BATCH_PASS_WINDOW: usize = 5;
 
 /// An estimation run's settings.
 #[derive(Debug, Clone, PartialEq)]

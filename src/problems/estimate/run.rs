@@ -7,7 +7,9 @@ use super::determination::{watched_coordinates, Determination, Undetermined};
 use super::graph::EstimationGraph;
 use super::identification::Identification;
 use super::online::{Estimator, StepEstimate};
-use super::options::{EstimateOptions, Smoothing, Uncertainty, BATCH_START_WINDOW};
+use super::options::{
+    EstimateOptions, Smoothing, Uncertainty, BATCH_PASS_WINDOW, BATCH_START_WINDOW,
+};
 use super::process_noise::{self, DynamicsUse, ProcessSource};
 use super::record::Record;
 use crate::coordinates::Coordinates;
@@ -156,6 +158,9 @@ pub fn estimate_with_progress(
         sink(e)
     };
     let mut est = Estimator::new(model.clone(), eg, window, settings, keep_all)?;
+    if keep_all {
+        est = est.settling_to(BATCH_PASS_WINDOW);
+    }
     let total = record.steps.len();
     let mut divergence = Divergence::default();
     for (k, readings) in record.steps.iter().enumerate() {
@@ -350,9 +355,10 @@ impl Batch<'_> {
             // σ² ← σ²·χ²/dof, the σ the residuals show (never raised here). Where
             // the estimate absorbs all but a fraction of one degree of freedom of the
             // residuals, the readings do not see the process noise at this σ, and
-            // their ratio says nothing: the stage takes the homotopy's largest cut.
+            // their ratio says nothing: the stage cuts by MAX_CUT², the estimate
+            // hardly moving from one such σ to the next.
             let cut = if used.dof < SEEN_DOF {
-                1.0 / MAX_CUT
+                1.0 / (MAX_CUT * MAX_CUT)
             } else {
                 used.ratio().sqrt().max(1.0 / MAX_CUT)
             };
