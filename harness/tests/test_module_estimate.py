@@ -73,3 +73,35 @@ def test_an_estimate_that_left_the_motion_raises_with_its_failure():
     failure = caught.value.failure
     assert failure["kind"] == "diverged" and failure["step"] >= 99
     assert 0 < len(caught.value.result["t"]) <= failure["step"]
+
+
+def test_the_integrator_is_chosen_named_and_checked():
+    # The trapezoidal rule by default for a state, Hermite–Simpson for a scene that
+    # identifies parameters; either on request; any other name refused by name; the
+    # online estimator takes the same choice.
+    import pathlib
+    root = pathlib.Path(__file__).resolve().parents[2] / "scenes"
+    truth = mbfg.simulate(str(root / "estimation" / "fourbar.yaml"), dt=1e-3, t_end=0.5)
+    readings = mbfg.measure(str(root / "estimation" / "fourbar.yaml"), truth, seed=1, rate=200)
+    state = str(root / "estimation" / "fourbar-bad.yaml")
+    assert mbfg.estimate(state, readings)["summary"]["integrator"] == "trapezoidal"
+    hs = mbfg.estimate(state, readings, integrator="hermite-simpson")
+    assert hs["summary"]["integrator"] == "hermite-simpson"
+    assert np.all(np.isfinite(hs["q:theta"]))
+    identify = str(root / "identification" / "fourbar-mass-bad.yaml")
+    truth = mbfg.simulate(str(root / "identification" / "fourbar-mass.yaml"), dt=1e-3, t_end=0.5)
+    readings = mbfg.measure(str(root / "identification" / "fourbar-mass.yaml"), truth, seed=1)
+    out = mbfg.estimate(identify, readings, batch=True)
+    assert out["summary"]["integrator"] == "hermite-simpson"
+    assert mbfg.estimate(identify, readings, batch=True,
+                         integrator="trapezoidal")["summary"]["integrator"] == "trapezoidal"
+    with pytest.raises(mbfg.InvalidArgument, match="integrator"):
+        mbfg.estimate(state, readings, integrator="euler")
+    truth = mbfg.simulate(str(root / "estimation" / "fourbar.yaml"), dt=1e-3, t_end=0.5)
+    readings = mbfg.measure(str(root / "estimation" / "fourbar.yaml"), truth, seed=1, rate=200)
+    online = mbfg.Estimator(state, 0.005, integrator="hermite-simpson")
+    for t, enc in zip(readings["t"][:20], readings["enc"][:20]):
+        step = online.update(float(t), {"enc": float(enc)})
+    assert np.all(np.isfinite(step["q"])) and np.all(np.isfinite(step["sd_q"]))
+    with pytest.raises(mbfg.InvalidArgument, match="integrator"):
+        mbfg.Estimator(state, 0.005, integrator="rk4")
