@@ -527,6 +527,27 @@ fn dynamics_factor_matches_finite_differences() {
     });
 }
 
+/// Scenes that identify masses (of bodies and of a point), an inertia, gravity
+/// (bilinear with the masses), a spring's and a rotational spring's stiffness and
+/// damping, some with unknown inputs.
+const IDENTIFYING: [&str; 3] = [
+    "fourbar-masses.yaml",
+    "spring-damper.yaml",
+    "point-mass.yaml",
+];
+
+/// The model of an identification scene of tests/data, and the coordinates its unknown
+/// inputs act on.
+fn identifying(name: &str) -> (Arc<Model>, Vec<usize>) {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/identification")
+        .join(name);
+    let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+    let model = Arc::new(Model::new(&scene).unwrap_or_else(|e| panic!("{name}: {e}")));
+    let actuated = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+    (model, actuated)
+}
+
 #[test]
 fn parametric_dynamics_matches_finite_differences() {
     // f^d_par on scenes that identify masses (of bodies and of a point), an inertia,
@@ -535,17 +556,8 @@ fn parametric_dynamics_matches_finite_differences() {
     // and ∂/∂u.
     let mut rng = Rng(11);
     let mut checked = 0;
-    for name in [
-        "fourbar-masses.yaml",
-        "spring-damper.yaml",
-        "point-mass.yaml",
-    ] {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("tests/data/identification")
-            .join(name);
-        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
-        let model = Arc::new(Model::new(&scene).unwrap_or_else(|e| panic!("{name}: {e}")));
-        let actuated: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+    for name in IDENTIFYING {
+        let (model, actuated) = identifying(name);
         for with_inputs in [false, true] {
             let on = if with_inputs {
                 actuated.clone()
@@ -581,17 +593,8 @@ fn hermite_simpson_through_the_estimates_dynamics_matches_finite_differences() {
     // step: ∂/∂q, ∂/∂q̇, ∂/∂q̈ at both ends and ∂/∂p, ∂/∂u at both.
     let mut rng = Rng(12);
     let mut checked = 0;
-    for name in [
-        "fourbar-masses.yaml",
-        "spring-damper.yaml",
-        "point-mass.yaml",
-    ] {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("tests/data/identification")
-            .join(name);
-        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
-        let model = Arc::new(Model::new(&scene).unwrap_or_else(|e| panic!("{name}: {e}")));
-        let actuated: Vec<usize> = model.estimation.inputs.iter().map(|&(c, _)| c).collect();
+    for name in IDENTIFYING {
+        let (model, actuated) = identifying(name);
         for with_inputs in [false, true] {
             if with_inputs && actuated.is_empty() {
                 continue;

@@ -236,27 +236,39 @@ impl Factor for SimpsonVelocity {
             r[k] = v1[i] - v0[i] - h6 * (a0[i] + 4.0 * am[i] + a1[i]);
         }
         let Some(j) = jac else { return Ok(()) };
-        // ∂(4 h/6 q̈_m) through q_m, q̇_m: q_m = (q₀+q₁)/2 + h/8 (q̇₀−q̇₁),
-        // q̇_m = (q̇₀+q̇₁)/2 + h/8 (q̈₀−q̈₁); then the ends' own q̇₁ − q̇₀ − h/6 (q̈₀ + q̈₁).
-        let (c, c2) = (2.0 * h / 3.0, h * h / 12.0);
-        for (k, &i) in self.rows.iter().enumerate() {
-            for col in 0..n {
-                let (gq, gv) = (jq[i * n + col], jv[i * n + col]);
-                let at = k * n + col;
-                j[0][at] = -0.5 * c * gq;
-                j[1][at] = -0.5 * c * gq;
-                j[2][at] = -c2 * gq - 0.5 * c * gv;
-                j[3][at] = c2 * gq - 0.5 * c * gv;
-                j[4][at] = -c2 * gv;
-                j[5][at] = c2 * gv;
-            }
-            let at = k * n + i;
-            j[2][at] -= 1.0;
-            j[3][at] += 1.0;
-            j[4][at] -= h6;
-            j[5][at] -= h6;
-        }
+        state_jacobians(j, &self.rows, (jq, jv), n, h);
         Ok(())
+    }
+}
+
+/// The Jacobian blocks of e = q̇₁ − q̇₀ − h/6 (q̈₀ + 4 q̈_m + q̈₁) on the step's q, q̇,
+/// q̈ at both ends (`j[0..6]`, rows `rows` of the n coordinates), from G = ∂q̈_m/∂q_m
+/// and ∂q̈_m/∂q̇_m (row-major n × n): ∂(4 h/6 q̈_m) through q_m = (q₀+q₁)/2 + h/8 (q̇₀−q̇₁)
+/// and q̇_m = (q̇₀+q̇₁)/2 + h/8 (q̈₀−q̈₁), then the ends' own q̇₁ − q̇₀ − h/6 (q̈₀ + q̈₁).
+fn state_jacobians(
+    j: &mut [Vec<f64>],
+    rows: &[usize],
+    (jq, jv): (&[f64], &[f64]),
+    n: usize,
+    h: f64,
+) {
+    let (c, c2, h6) = (2.0 * h / 3.0, h * h / 12.0, h / 6.0);
+    for (k, &i) in rows.iter().enumerate() {
+        for col in 0..n {
+            let (gq, gv) = (jq[i * n + col], jv[i * n + col]);
+            let at = k * n + col;
+            j[0][at] = -0.5 * c * gq;
+            j[1][at] = -0.5 * c * gq;
+            j[2][at] = -c2 * gq - 0.5 * c * gv;
+            j[3][at] = c2 * gq - 0.5 * c * gv;
+            j[4][at] = -c2 * gv;
+            j[5][at] = c2 * gv;
+        }
+        let at = k * n + i;
+        j[2][at] -= 1.0;
+        j[3][at] += 1.0;
+        j[4][at] -= h6;
+        j[5][at] -= h6;
     }
 }
 
@@ -272,6 +284,8 @@ pub struct SimpsonVelocityThrough {
     name: String,
     keys: Vec<Key>,
     n: usize,
+    /// Every coordinate's row.
+    rows: Vec<usize>,
     dt: f64,
 }
 
@@ -294,6 +308,7 @@ impl SimpsonVelocityThrough {
             stage,
             keys,
             n,
+            rows: (0..n).collect(),
             dt,
         }
     }
@@ -364,25 +379,8 @@ impl Factor for SimpsonVelocityThrough {
         };
         // As SimpsonVelocity's, with G = ∂q̈_m/∂(q_m, q̇_m) from the stage factor; each
         // other variable enters q̈_m through its average, half from each end.
-        let (c, c2) = (2.0 * h / 3.0, h * h / 12.0);
-        let (jq, jv) = (&g[0], &g[1]);
-        for i in 0..n {
-            for col in 0..n {
-                let (gq, gv) = (jq[i * n + col], jv[i * n + col]);
-                let at = i * n + col;
-                j[0][at] = -0.5 * c * gq;
-                j[1][at] = -0.5 * c * gq;
-                j[2][at] = -c2 * gq - 0.5 * c * gv;
-                j[3][at] = c2 * gq - 0.5 * c * gv;
-                j[4][at] = -c2 * gv;
-                j[5][at] = c2 * gv;
-            }
-            let at = i * n + i;
-            j[2][at] -= 1.0;
-            j[3][at] += 1.0;
-            j[4][at] -= h6;
-            j[5][at] -= h6;
-        }
+        state_jacobians(j, &self.rows, (&g[0], &g[1]), n, h);
+        let c = 2.0 * h / 3.0;
         for k in 0..self.others() {
             for end in 0..2 {
                 for (o, d) in j[6 + 2 * k + end].iter_mut().zip(&g[3 + k]) {
