@@ -290,3 +290,70 @@ fn the_summary_counts_the_passages_and_strict_refuses_an_energy_jump() {
     );
     assert!(!refused.exists(), "--strict wrote {}", refused.display());
 }
+
+/// Steps of the one-loop chain that end next to a flat configuration (Hermite–Simpson,
+/// 2.5 ms, started on the branch so that the first step ends from 8e-5 rad before it
+/// to 1.5e-4 rad past it): four steps from there end where the exact motion does, to
+/// 1e-9 rad/s. Newton's iterate on
+/// such a step solves its equations to their rounding, which the Jacobian's
+/// condition turns into an update of 1e-4 that grows: followed, it went to another
+/// of the step's nearby solutions, 3e-6 rad/s off.
+#[test]
+fn a_step_across_a_flat_configuration_keeps_its_converged_iterate() {
+    let (inertia, c, g) = (5.0 / 3.0, 2.0, 9.81);
+    let energy = 0.5 * inertia + c * g;
+    let speed = |theta: f64| -(2.0 * (energy - c * g * theta.sin()) / inertia).sqrt();
+    let accel = |theta: f64| -c * g * theta.cos() / inertia;
+    let path = scene_path("benchmarks/n-fourbar-1.yaml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let h = 2.5e-3;
+    // θ decreases through 0: the first step ends `end` from the flat configuration.
+    for end in [8e-5, -1e-4, -1.5e-4] {
+        let theta0 = end + speed(0.0).abs() * h;
+        let (s, co) = theta0.sin_cos();
+        let scene = text
+            .replace(
+                "{name: B0, x: 0, y: L}",
+                &format!("{{name: B0, x: {co:?}, y: {s:?}}}"),
+            )
+            .replace(
+                "{name: B1, x: 1*L, y: L}",
+                &format!("{{name: B1, x: {:?}, y: {s:?}}}", 1.0 + co),
+            )
+            .replace(
+                "positions: {theta: pi/2}",
+                &format!("positions: {{theta: {theta0:?}}}"),
+            )
+            .replace(
+                "velocities: {theta: -v0/L}",
+                &format!("velocities: {{theta: {:?}}}", speed(theta0)),
+            );
+        let model = Arc::new(Model::new(&Scene::from_str(&scene, &path).unwrap()).unwrap());
+        let mut options =
+            ForwardOptions::new(Coordinates::Dependent, h, 4.0 * h, Mode::FixedLag(1));
+        options.integrator = Integrator::HermiteSimpson;
+        let (tr, summary) = simulate(model, &options, &mut |_, _| {}).unwrap();
+        assert!(summary.failures.is_empty());
+        // The exact motion: RK4 at h/1000.
+        let (mut theta, mut omega) = (theta0, speed(theta0));
+        let k = h / 1000.0;
+        for _ in 0..4000 {
+            let (k1x, k1v) = (omega, accel(theta));
+            let (k2x, k2v) = (omega + 0.5 * k * k1v, accel(theta + 0.5 * k * k1x));
+            let (k3x, k3v) = (omega + 0.5 * k * k2v, accel(theta + 0.5 * k * k2x));
+            let (k4x, k4v) = (omega + k * k3v, accel(theta + k * k3x));
+            theta += k / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x);
+            omega += k / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v);
+        }
+        let n = tr.names.len();
+        let col = tr.names.iter().position(|c| c == "theta").unwrap();
+        let last = tr.len() - 1;
+        let (q, dq) = (tr.q[last * n + col], tr.dq[last * n + col]);
+        assert!(
+            (q - theta).abs() <= 1e-10 && (dq - omega).abs() <= 1e-9,
+            "the first step ending at θ ≈ {end:e}: θ off by {:e}, θ̇ by {:e}",
+            q - theta,
+            dq - omega
+        );
+    }
+}
