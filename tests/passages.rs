@@ -37,28 +37,33 @@ fn run_with(loops: usize, integrator: Integrator, dt: f64, t_end: f64) -> (Traje
 /// θ(t) on the parallelogram branch at t = 0, every, 2·every, …, up to t_end: RK4 on
 /// the one-degree-of-freedom ODE at a step of every/100.
 fn exact_theta(loops: usize, every: f64, t_end: f64) -> Vec<f64> {
-    let n = loops as f64;
-    let (inertia, c) = ((n + 1.0) / 3.0 + n, (n + 1.0) / 2.0 + n);
-    let accel = |theta: f64| -c * 9.81 * theta.cos() / inertia;
-    let h = every / 100.0;
-    let (mut theta, mut omega) = (std::f64::consts::FRAC_PI_2, -1.0);
+    let mut state = (std::f64::consts::FRAC_PI_2, -1.0);
     let rows = (t_end / every).round() as usize + 1;
     let mut out = Vec::with_capacity(rows);
     for row in 0..rows {
-        out.push(theta);
+        out.push(state.0);
         if row + 1 == rows {
             break;
         }
-        for _ in 0..100 {
-            let (k1x, k1v) = (omega, accel(theta));
-            let (k2x, k2v) = (omega + 0.5 * h * k1v, accel(theta + 0.5 * h * k1x));
-            let (k3x, k3v) = (omega + 0.5 * h * k2v, accel(theta + 0.5 * h * k2x));
-            let (k4x, k4v) = (omega + h * k3v, accel(theta + h * k3x));
-            theta += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x);
-            omega += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v);
-        }
+        state = on_branch(loops, state, every / 100.0, 100);
     }
     out
+}
+
+/// (θ, θ̇) after `steps` RK4 steps of `h` on the branch's ODE I θ̈ = −c g cos θ.
+fn on_branch(loops: usize, (mut theta, mut omega): (f64, f64), h: f64, steps: usize) -> (f64, f64) {
+    let n = loops as f64;
+    let (inertia, c) = ((n + 1.0) / 3.0 + n, (n + 1.0) / 2.0 + n);
+    let accel = |theta: f64| -c * 9.81 * theta.cos() / inertia;
+    for _ in 0..steps {
+        let (k1x, k1v) = (omega, accel(theta));
+        let (k2x, k2v) = (omega + 0.5 * h * k1v, accel(theta + 0.5 * h * k1x));
+        let (k3x, k3v) = (omega + 0.5 * h * k2v, accel(theta + 0.5 * h * k2x));
+        let (k4x, k4v) = (omega + h * k3v, accel(theta + h * k3x));
+        theta += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x);
+        omega += h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v);
+    }
+    (theta, omega)
 }
 
 /// max |B0 − (cos θ, sin θ)| over the rows, and the largest spread of the points
@@ -303,7 +308,6 @@ fn a_step_across_a_flat_configuration_keeps_its_converged_iterate() {
     let (inertia, c, g) = (5.0 / 3.0, 2.0, 9.81);
     let energy = 0.5 * inertia + c * g;
     let speed = |theta: f64| -(2.0 * (energy - c * g * theta.sin()) / inertia).sqrt();
-    let accel = |theta: f64| -c * g * theta.cos() / inertia;
     let path = scene_path("benchmarks/n-fourbar-1.yaml");
     let text = std::fs::read_to_string(&path).unwrap();
     let h = 2.5e-3;
@@ -335,16 +339,7 @@ fn a_step_across_a_flat_configuration_keeps_its_converged_iterate() {
         let (tr, summary) = simulate(model, &options, &mut |_, _| {}).unwrap();
         assert!(summary.failures.is_empty());
         // The exact motion: RK4 at h/1000.
-        let (mut theta, mut omega) = (theta0, speed(theta0));
-        let k = h / 1000.0;
-        for _ in 0..4000 {
-            let (k1x, k1v) = (omega, accel(theta));
-            let (k2x, k2v) = (omega + 0.5 * k * k1v, accel(theta + 0.5 * k * k1x));
-            let (k3x, k3v) = (omega + 0.5 * k * k2v, accel(theta + 0.5 * k * k2x));
-            let (k4x, k4v) = (omega + k * k3v, accel(theta + k * k3x));
-            theta += k / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x);
-            omega += k / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v);
-        }
+        let (theta, omega) = on_branch(1, (theta0, speed(theta0)), h / 1000.0, 4000);
         let n = tr.names.len();
         let col = tr.names.iter().position(|c| c == "theta").unwrap();
         let last = tr.len() - 1;
