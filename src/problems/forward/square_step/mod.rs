@@ -35,9 +35,7 @@
 //! multipliers that grow like 1/σ. Its Newton iteration converges there to a
 //! residual at the rounding of its terms, where the updates (that rounding
 //! amplified by the Jacobian's condition, which grows like 1/σ²) stop shrinking;
-//! such a residual ends the iteration ([`ROUNDING_RESIDUAL`]), and so does an update
-//! that grows from a converged iterate even with fresh factors ([`JUMP`]): followed,
-//! it leads to another of the step's nearby solutions. A step that would
+//! such a residual ends the iteration ([`ROUNDING_RESIDUAL`]). A step that would
 //! end within [`passage::NEAR`] of the rank loss is stepped over ([`Passage`]).
 //! Where Newton does not converge within a few iterations away from a rank loss,
 //! the step goes back to the general solver, whose dynamics regularize the
@@ -89,11 +87,6 @@ const ROUNDING_RESIDUAL: f64 = 1e-14;
 /// A step's guess is measured for its distance to a rank loss where the last
 /// step's, carried on, comes within this many times [`passage::NEAR`].
 const LOOKOUT: f64 = 10.0;
-
-/// How many times larger than the last update of a converged iterate a fresh
-/// factorization's update must be to be that iterate's rounding amplified, not a
-/// correction (an exact Newton update from a converged iterate is smaller).
-const JUMP: f64 = 10.0;
 
 /// Fresh factorizations after which a step goes back to the general solver.
 const MAX_FACTORIZATIONS: usize = 8;
@@ -508,8 +501,6 @@ impl Equations {
         work.x[3 * n..].copy_from_slice(&work.multipliers);
         // The sizes of the last two updates taken with the factors now held.
         let (mut last, mut before_last) = (f64::INFINITY, f64::INFINITY);
-        // The last update of a converged iterate whose next update grew (see JUMP).
-        let mut suspect: Option<f64> = None;
         let mut factorizations = 0;
         // Whether the last update was taken with an earlier step's factors and
         // nothing to judge them by: undone (from `work.saved`) if the next one shows
@@ -591,22 +582,6 @@ impl Equations {
                 && residual_size <= ROUNDING_RESIDUAL * (1.0 + max_abs(&work.x))
             {
                 return self.finish(model, block, iteration, factorizations, work);
-            }
-            // An update that grows where the iterate had converged (its error, the last
-            // update or that times the contraction it showed, within the tolerance) is
-            // taken again with fresh factors; if that one grows too, the iterate solves
-            // the equations to their rounding, which the Jacobian's condition near a
-            // rank loss of Φ_q turns into a jump along its nearly null direction, onto
-            // another of the step's nearby solutions. The iterate is kept.
-            if let Some(converged_to) = suspect.take() {
-                if fresh && update > JUMP * converged_to.max(limits.step_tolerance) {
-                    return self.finish(model, block, iteration, factorizations, work);
-                }
-            }
-            let converged = last <= limits.step_tolerance
-                || (before_last.is_finite() && last * last / before_last <= limits.step_tolerance);
-            if !settled && !fresh && converged && contraction.is_some_and(|(one, _)| one >= 1.0) {
-                suspect = Some(last);
             }
             // Below the tolerance the updates approach the residual's rounding and
             // their contraction is noise: a fresh factorization buys nothing the
