@@ -30,7 +30,7 @@
 use super::{identity, key_accessor};
 use crate::dynamics::{DynamicsKernel, KernelScratch, KktStructure};
 use crate::error::Result;
-use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace};
+use crate::graph::{zeros, Factor, Key, StackReq, VarKind, Workspace, MAX_KEYS};
 use crate::model::Model;
 use std::sync::Arc;
 
@@ -346,48 +346,78 @@ impl Factor for SimpsonVelocityThrough {
     ) -> Result<()> {
         let (n, h) = (self.n, self.dt);
         let (q0, q1, v0, v1, a0, a1) = (x[0], x[1], x[2], x[3], x[4], x[5]);
-        let qm: Vec<f64> = (0..n)
-            .map(|i| 0.5 * (q0[i] + q1[i]) + 0.125 * h * (v0[i] - v1[i]))
-            .collect();
-        let vm: Vec<f64> = (0..n)
-            .map(|i| 0.5 * (v0[i] + v1[i]) + 0.125 * h * (a0[i] - a1[i]))
-            .collect();
-        let others: Vec<Vec<f64>> = (0..self.others())
-            .map(|k| {
+        let others = self.others();
+        let want = jac.is_some();
+        STAGE.with_borrow_mut(|b| -> Result<()> {
+            // q_m, q̇_m, and q̈_t = 0 (the stage factor's residual is then q̈_m itself),
+            // then each other variable's average over the step.
+            let widths = (3..3 + others).map(|k| self.stage.size(k));
+            b.inputs.clear();
+            b.inputs.resize(3 * n + widths.clone().sum::<usize>(), 0.0);
+            let (state, averages) = b.inputs.split_at_mut(3 * n);
+            for i in 0..n {
+                state[i] = 0.5 * (q0[i] + q1[i]) + 0.125 * h * (v0[i] - v1[i]);
+                state[n + i] = 0.5 * (v0[i] + v1[i]) + 0.125 * h * (a0[i] - a1[i]);
+            }
+            let mut inputs: [&[f64]; MAX_KEYS] = [&[]; MAX_KEYS];
+            let (qm, rest) = state.split_at(n);
+            let (vm, zero) = rest.split_at(n);
+            inputs[..3].copy_from_slice(&[qm, vm, zero]);
+            let mut rest = &mut *averages;
+            for (k, width) in widths.enumerate() {
+                let (w, tail) = std::mem::take(&mut rest).split_at_mut(width);
                 let (w0, w1) = (x[6 + 2 * k], x[7 + 2 * k]);
-                w0.iter().zip(w1).map(|(a, b)| 0.5 * (a + b)).collect()
-            })
-            .collect();
-        // The stage factor's residual at q̈_t = 0 is q̈_m itself.
-        let zero = vec![0.0; n];
-        let mut inputs: Vec<&[f64]> = vec![&qm, &vm, &zero];
-        inputs.extend(others.iter().map(Vec::as_slice));
-        let mut am = vec![0.0; n];
-        let mut stage_jac: Option<Vec<Vec<f64>>> = jac.is_some().then(|| {
-            (0..self.stage.keys().len())
-                .map(|k| vec![0.0; n * self.stage.size(k)])
-                .collect()
-        });
-        self.stage
-            .evaluate(t - 0.5 * h, &inputs, &mut am, stage_jac.as_deref_mut(), ws)?;
-        let h6 = h / 6.0;
-        for i in 0..n {
-            r[i] = v1[i] - v0[i] - h6 * (a0[i] + 4.0 * am[i] + a1[i]);
-        }
-        let (Some(j), Some(g)) = (jac, stage_jac) else {
-            return Ok(());
-        };
-        // As SimpsonVelocity's, with G = ∂q̈_m/∂(q_m, q̇_m) from the stage factor; each
-        // other variable enters q̈_m through its average, half from each end.
-        state_jacobians(j, &self.rows, (&g[0], &g[1]), n, h);
-        let c = 2.0 * h / 3.0;
-        for k in 0..self.others() {
-            for end in 0..2 {
-                for (o, d) in j[6 + 2 * k + end].iter_mut().zip(&g[3 + k]) {
-                    *o = -0.5 * c * d;
+                for ((o, a), b) in w.iter_mut().zip(w0).zip(w1) {
+                    *o = 0.5 * (a + b);
+                }
+                inputs[3 + k] = w;
+                rest = tail;
+            }
+            b.am.clear();
+            b.am.resize(n, 0.0);
+            b.jac.resize_with(self.stage.keys().len(), Vec::new);
+            for (k, block) in b.jac.iter_mut().enumerate() {
+                block.clear();
+                block.resize(n * self.stage.size(k), 0.0);
+            }
+            let stage_jac = want.then_some(&mut b.jac[..]);
+            self.stage
+                .evaluate(t - 0.5 * h, &inputs[..3 + others], &mut b.am, stage_jac, ws)
+        })?;
+        STAGE.with_borrow(|b| {
+            let am = &b.am;
+            let h6 = h / 6.0;
+            for i in 0..n {
+                r[i] = v1[i] - v0[i] - h6 * (a0[i] + 4.0 * am[i] + a1[i]);
+            }
+            let Some(j) = jac else { return };
+            // As SimpsonVelocity's, with G = ∂q̈_m/∂(q_m, q̇_m) from the stage factor;
+            // each other variable enters q̈_m through its average, half from each end.
+            let g = &b.jac;
+            state_jacobians(j, &self.rows, (&g[0], &g[1]), n, h);
+            let c = 2.0 * h / 3.0;
+            for k in 0..others {
+                for end in 0..2 {
+                    for (o, d) in j[6 + 2 * k + end].iter_mut().zip(&g[3 + k]) {
+                        *o = -0.5 * c * d;
+                    }
                 }
             }
-        }
+        });
         Ok(())
     }
+}
+
+/// The buffers of a [`SimpsonVelocityThrough`] evaluation, kept on each thread so that
+/// the solver's iterations allocate nothing: the stage factor's inputs (q_m, q̇_m,
+/// zeros for q̈_t, the averaged other variables), its residual q̈_m and its Jacobian.
+#[derive(Default)]
+struct StageBuffers {
+    inputs: Vec<f64>,
+    am: Vec<f64>,
+    jac: Vec<Vec<f64>>,
+}
+
+thread_local! {
+    static STAGE: std::cell::RefCell<StageBuffers> = std::cell::RefCell::new(StageBuffers::default());
 }

@@ -40,11 +40,11 @@ fn coordinates(coords: &Bound<'_, PyAny>) -> PyResult<Coordinates> {
 
 /// An estimate's integrator by name: "trapezoidal" or "hermite-simpson".
 fn estimate_integrator(name: &Bound<'_, PyAny>) -> PyResult<Integrator> {
-    match arg_str(name, "integrator")?.as_str() {
-        "trapezoidal" => Ok(Integrator::Trapezoidal),
-        "hermite-simpson" => Ok(Integrator::HermiteSimpson),
-        other => Err(invalid(format!(
-            "integrator must be \"trapezoidal\" or \"hermite-simpson\", got {other:?}"
+    let name = arg_str(name, "integrator")?;
+    match Integrator::from_name(&name) {
+        Some(i) if i != Integrator::Euler => Ok(i),
+        _ => Err(invalid(format!(
+            "integrator must be \"trapezoidal\" or \"hermite-simpson\", got {name:?}"
         ))),
     }
 }
