@@ -158,11 +158,36 @@ impl Integrator {
                 rule.two_point(dx, ddx, dim, dt),
             ],
         };
-        match form {
-            Form::Tangent => {
-                factors.map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>)
+        project(model, form, factors)
+    }
+
+    /// [`Integrator::factors`], with Hermite–Simpson's stage in dependent coordinates
+    /// evaluated by `stage`, a dynamics factor with variables of its own (an
+    /// estimate's, with its identified parameters and unknown inputs:
+    /// [`collocation::SimpsonVelocityThrough`]). The two-point rules have no stage.
+    pub fn factors_through(
+        self,
+        model: &Arc<Model>,
+        form: Form<'_>,
+        dt: f64,
+        stage: Box<dyn Factor>,
+    ) -> [Box<dyn Factor>; 2] {
+        match (self, form) {
+            (Integrator::HermiteSimpson, Form::Full | Form::Tangent) => {
+                let n = model.n();
+                let factors: [Box<dyn Factor>; 2] = [
+                    Box::new(collocation::HermitePosition::new(
+                        VarKind::Q,
+                        VarKind::Dq,
+                        VarKind::Ddq,
+                        n,
+                        dt,
+                    )),
+                    Box::new(collocation::SimpsonVelocityThrough::new(stage, dt)),
+                ];
+                project(model, form, factors)
             }
-            Form::Full | Form::Independent(_) => factors,
+            _ => self.factors(model, form, dt),
         }
     }
 
@@ -173,6 +198,20 @@ impl Integrator {
             Integrator::Euler => Box::new(Euler::new(x, dx, dim, dt)),
             Integrator::HermiteSimpson => no_two_point_formula(),
         }
+    }
+}
+
+/// `factors` as `form` asks: projected on the tangent space, or as they are.
+fn project(
+    model: &Arc<Model>,
+    form: Form<'_>,
+    factors: [Box<dyn Factor>; 2],
+) -> [Box<dyn Factor>; 2] {
+    match form {
+        Form::Tangent => {
+            factors.map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>)
+        }
+        Form::Full | Form::Independent(_) => factors,
     }
 }
 

@@ -202,23 +202,7 @@ fn dependent(
     // minimum is ill-determined along slow directions (see `factors::tangent`).
     // Hermite–Simpson's stage sees the dynamics factor's own variables (the
     // identified parameters, the unknown inputs).
-    let integrators: [Box<dyn Factor>; 2] = match integrator {
-        Integrator::HermiteSimpson => {
-            let n = model.n();
-            let inner: [Box<dyn Factor>; 2] = [
-                Box::new(HermitePosition::new(
-                    VarKind::Q,
-                    VarKind::Dq,
-                    VarKind::Ddq,
-                    n,
-                    dt,
-                )),
-                Box::new(SimpsonVelocityThrough::new(dynamics(), dt)),
-            ];
-            inner.map(|f| Box::new(Projected::new(model.clone(), f)) as Box<dyn Factor>)
-        }
-        _ => Integrator::Trapezoidal.factors(model, Form::Tangent, dt),
-    };
+    let integrators = integrator.factors_through(model, Form::Tangent, dt, dynamics());
     for (factor, sigma) in integrators.into_iter().zip(uncertainty.integrators(dt)) {
         builder = builder.step_soft(factor, Noise::Isotropic(sigma));
     }

@@ -101,13 +101,6 @@ impl EstimateOptions {
                 "the window must hold at least 1 step".into(),
             ));
         }
-        if self.integrator == Some(Integrator::Euler) {
-            return Err(Error::InvalidArgument(
-                "an estimate integrates with the trapezoidal rule or hermite-simpson, not \
-                 euler"
-                    .into(),
-            ));
-        }
         if let Some(dt) = self.dt {
             if !(dt > 0.0 && dt.is_finite()) {
                 return Err(Error::InvalidArgument(format!(
