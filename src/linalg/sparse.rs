@@ -272,6 +272,8 @@ pub struct InverseTrace {
     factor: Vec<f64>,
     /// (LLᵀ)⁻¹ on L's pattern.
     inverse: Vec<f64>,
+    /// The largest diagonal entry of the last inverse.
+    largest_diagonal: f64,
     memory: MemBuffer,
 }
 
@@ -293,6 +295,7 @@ impl InverseTrace {
             cholesky,
             factor: vec![0.0; len],
             inverse: vec![0.0; len],
+            largest_diagonal: 0.0,
             memory,
         })
     }
@@ -320,7 +323,22 @@ impl InverseTrace {
         let SymbolicCholeskyRaw::Simplicial(l) = self.cholesky.raw() else {
             return None;
         };
-        selected_inverse_trace(l.col_ptr(), l.row_idx(), &self.factor, &mut self.inverse)
+        let trace =
+            selected_inverse_trace(l.col_ptr(), l.row_idx(), &self.factor, &mut self.inverse)?;
+        let size = l.col_ptr().len() - 1;
+        self.largest_diagonal = l.col_ptr()[..size]
+            .iter()
+            .map(|&p| self.inverse[p])
+            .fold(0.0, f64::max);
+        Some(trace)
+    }
+
+    /// max (A⁻¹)ᵢᵢ of the matrix [`InverseTrace::trace`] last succeeded on. Like
+    /// 1 / tr A⁻¹, its inverse brackets A's smallest eigenvalue λ (from λ to size·λ),
+    /// but it is not summed over eigenvectors on disjoint rows: it tells how near the
+    /// nearest part of the matrix is to singular, whatever the number of such parts.
+    pub fn largest_diagonal(&self) -> f64 {
+        self.largest_diagonal
     }
 }
 
@@ -436,12 +454,48 @@ mod tests {
                 assert!(got.is_none(), "indefinite: {got:?}");
                 continue;
             }
-            let exact = spd.try_inverse().unwrap().trace();
+            let inverse = spd.try_inverse().unwrap();
+            let exact = inverse.trace();
             let got = got.unwrap();
             assert!(
                 (got - exact).abs() <= 1e-10 * exact,
                 "shift {shift}: {got} vs {exact}"
             );
+            let largest = inverse.diagonal().max();
+            assert!(
+                (trace.largest_diagonal() - largest).abs() <= 1e-10 * largest,
+                "shift {shift}: {} vs {largest}",
+                trace.largest_diagonal()
+            );
         }
+    }
+
+    /// Two blocks near singular on disjoint rows: tr A⁻¹ adds them up, the largest
+    /// diagonal entry of A⁻¹ sees one, as it would alone.
+    #[test]
+    fn the_largest_inverse_diagonal_does_not_add_up_disjoint_parts() {
+        let block = |eps: f64| DMatrix::from_row_slice(2, 2, &[1.0, 1.0 - eps, 1.0 - eps, 1.0]);
+        let one = block(1e-6);
+        let mut two = DMatrix::zeros(4, 4);
+        two.view_mut((0, 0), (2, 2)).copy_from(&one);
+        two.view_mut((2, 2), (2, 2)).copy_from(&one);
+        let lower = |a: &DMatrix<f64>| -> (Vec<(usize, usize)>, Vec<f64>) {
+            let size = a.nrows();
+            (0..size)
+                .flat_map(|c| (c..size).map(move |r| (r, c)))
+                .filter(|&(r, c)| a[(r, c)] != 0.0)
+                .map(|(r, c)| ((r, c), a[(r, c)]))
+                .unzip()
+        };
+        let measure = |a: &DMatrix<f64>| {
+            let (entries, values) = lower(a);
+            let mut trace = InverseTrace::new(a.nrows(), &entries).unwrap();
+            let t = trace.trace(&values).unwrap();
+            (t, trace.largest_diagonal())
+        };
+        let (t1, d1) = measure(&one);
+        let (t2, d2) = measure(&two);
+        assert!((t2 / t1 - 2.0).abs() < 1e-6, "traces {t1} {t2}");
+        assert!((d2 / d1 - 1.0).abs() < 1e-6, "diagonals {d1} {d2}");
     }
 }

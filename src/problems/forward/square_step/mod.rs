@@ -36,7 +36,7 @@
 //! residual at the rounding of its terms, where the updates (that rounding
 //! amplified by the Jacobian's condition, which grows like 1/σ²) stop shrinking;
 //! such a residual ends the iteration ([`ROUNDING_RESIDUAL`]). A step that would
-//! end within [`passage::NEAR`] of the rank loss is stepped over ([`Passage`]).
+//! end within [`passage::near`] of the rank loss is stepped over ([`Passage`]).
 //! Where Newton does not converge within a few iterations away from a rank loss,
 //! the step goes back to the general solver, whose dynamics regularize the
 //! augmented system near a rank loss instead (see
@@ -85,7 +85,7 @@ const ROUNDING_KEPT: f64 = 1e-2;
 const ROUNDING_RESIDUAL: f64 = 1e-14;
 
 /// A step's guess is measured for its distance to a rank loss where the last
-/// step's, carried on, comes within this many times [`passage::NEAR`].
+/// step's, carried on, comes within this many times [`passage::near`].
 const LOOKOUT: f64 = 10.0;
 
 /// Fresh factorizations after which a step goes back to the general solver.
@@ -685,7 +685,7 @@ impl SquareStep {
     /// Solves step `block` (guess in, solution out) at time `t`, given the step
     /// before (`before`); the work taken, or `None` where it declines or does not
     /// converge (`block` is then unspecified). `watch` sees every iteration. A
-    /// step whose guess or solution lies within [`passage::NEAR`] of a rank loss
+    /// step whose guess or solution lies within [`passage::near`] of a rank loss
     /// of Φ_q, or that fails near one, is interpolated from a longer step that
     /// clears it ([`Passage`]); far from any rank loss the solution's distance is
     /// measured as [`Remeasure`] says, not every step.
@@ -705,12 +705,13 @@ impl SquareStep {
         // The guess's distance to a rank loss only where the last steps' s, carried
         // on at twice its last change, may come near one within this step.
         let (last, change) = self.recent.last();
-        let near = last - 2.0 * change.abs() < LOOKOUT * passage::NEAR;
+        let zone = passage::near(self.equations.system.staged());
+        let near = last - 2.0 * change.abs() < LOOKOUT * zone;
         let from_guess = match near {
             true => self.distance(&block[..n]),
             false => f64::INFINITY,
         };
-        if from_guess >= passage::NEAR {
+        if from_guess >= zone {
             self.guess.copy_from_slice(&block[..3 * n]);
             match self.solve_plain_watched(t, before, block, limits, watch) {
                 Some(work) => {
@@ -720,7 +721,7 @@ impl SquareStep {
                     }
                     let s = self.clearance(before, block);
                     self.recent.measured(s);
-                    if s >= passage::NEAR {
+                    if s >= zone {
                         return Some(work);
                     }
                     block[..3 * n].copy_from_slice(&self.guess);
@@ -790,12 +791,14 @@ impl SquareStep {
         end.min(middle)
     }
 
-    /// The distance to a rank loss of Φ_q at q, s = (tr G⁻¹)^(−1/2).
+    /// The distance to a rank loss of Φ_q at q of the rows nearest one,
+    /// (max (G⁻¹)ᵢᵢ)^(−1/2): a step's accuracy near a rank loss is that of the loop
+    /// that loses it, however many lose it at once.
     fn distance(&mut self, q: &[f64]) -> f64 {
         let model = &*self.equations.system.model;
         self.equations
             .regularity
-            .distance_to_rank_loss(model, q, &mut self.work.gram)
+            .nearest_rank_loss(model, q, &mut self.work.gram)
     }
 }
 

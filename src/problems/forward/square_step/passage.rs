@@ -5,7 +5,7 @@
 //! Near a rank loss the step's multipliers grow like 1/σ (σ the smallest singular
 //! value of Φ_q: the constraint forces that keep a loop on its branch act through
 //! nearly parallel rows) and the step system's condition like 1/σ². A step whose
-//! end lands within [`NEAR`] of the rank loss is solved only to that rounding
+//! end lands within [`near`] of the rank loss is solved only to that rounding
 //! amplified: a jump in the energy, and a shift of the phase after it, whatever
 //! the step size. The motion itself is smooth there. So the run takes the
 //! shortest step longer than Δt whose end lies clear (of r·Δt, r from
@@ -17,17 +17,37 @@
 
 use super::{SquareStep, StepLimits, StepWork};
 
-/// The distance to a rank loss, s = (tr G⁻¹)^(−1/2), below which a step's end is
-/// stepped over. At s ≥ 1e-4 the square step converges in 4–9 iterations to a
-/// residual at rounding; at s ≈ 6e-6 it needs 17 and ends 1e-7 off, which moved
-/// the 5-loop N four-bar's energy by 2.5e-5 J at Δt = 0.1 ms.
-pub(super) const NEAR: f64 = 3e-5;
+/// The distance to a rank loss of the rows nearest one, (max (G⁻¹)ᵢᵢ)^(−1/2), below
+/// which a step's end is stepped over, by the step's integrator. Closer, the step
+/// system's condition grows like the inverse square of that distance and Newton's
+/// iteration ends at a residual at rounding whose updates are still 1e-6 of the
+/// accelerations: the energy moves by up to 3e-8 J at each such step of one square
+/// loop, whatever Δt, a floor the steps' own errors fall below at fine steps. A step
+/// over errs like its length to the power of its order: the wider the zone, the
+/// more of the coarse steps' passages are taken by steps of 1.5Δt or longer.
+/// Measured over 20 s of the N four-bar (N = 1 … 40), DC: Hermite–Simpson at 2e-4
+/// keeps its errors at 5 to 8.33 ms and lowers its floor below 5 ms (N = 1: from
+/// 1e-5 to 3e-6 m; 4e-4 lowers it to 3e-7 m, but raises the 40-loop chain's error
+/// at 5 ms by 8 %, below third order from 6.25 ms); the trapezoidal rule at 1e-4
+/// falls monotonically at every N (at 7e-5 a 5-loop step at 0.1 ms moves the
+/// energy by 1.5e-7 J; at 1.5e-4 the 40-loop chain's error at 0.1 ms doubles).
+pub(super) fn near(staged: bool) -> f64 {
+    match staged {
+        true => NEAR_HERMITE_SIMPSON,
+        false => NEAR_TRAPEZOIDAL,
+    }
+}
+
+/// [`near`] of a Hermite–Simpson step.
+const NEAR_HERMITE_SIMPSON: f64 = 2e-4;
+/// [`near`] of a trapezoidal or Euler step.
+const NEAR_TRAPEZOIDAL: f64 = 1e-4;
 
 /// The lengths tried for the step over a rank loss, in steps, shortest first: at
-/// coarse steps the zone within 2·[`NEAR`] is a small part of one step, at 0.1 ms
-/// the 40-loop N four-bar's s moves by about 1e-5 a step (the longest, 64, clears
-/// 6e-4 of it). An off-grid length is followed by a step of at least Δt/2 back
-/// onto the grid.
+/// coarse steps the zone within 2·[`near`] is a small part of one step, at 0.1 ms
+/// the N four-bar's measure moves by 1e-4 (40 loops) to 4e-4 (one) a step (the
+/// longest, 64, clears far more). An off-grid length is followed by a step of at least Δt/2 back onto
+/// the grid.
 const LENGTHS: [f64; 20] = [
     1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 20.0, 24.0, 32.0, 40.0,
     48.0, 56.0, 64.0,
@@ -116,7 +136,7 @@ impl Passage {
     }
 
     /// Step `block` at time `t` given `before` (Δt earlier), within the shortest
-    /// step of [`LENGTHS`] from `before` that converges and ends at least 2·[`NEAR`]
+    /// step of [`LENGTHS`] from `before` that converges and ends at least 2·[`near`]
     /// from a rank loss, then back onto the grid (kept to hand out the steps they
     /// span); the work of the steps tried, or `None` where none does.
     pub(super) fn start(
@@ -131,6 +151,7 @@ impl Passage {
         let n = system.model.n();
         let dt = system.dt;
         let t0 = t - dt;
+        let near = near(system.staged());
         let mut total = StepWork {
             iterations: 0,
             factorizations: 0,
@@ -146,7 +167,7 @@ impl Passage {
                 continue;
             };
             add(work);
-            if clearance < 2.0 * NEAR {
+            if clearance < 2.0 * near {
                 continue;
             }
             let mut pieces = vec![Piece {
@@ -166,7 +187,7 @@ impl Passage {
                     continue;
                 };
                 add(work);
-                if clearance < 2.0 * NEAR {
+                if clearance < 2.0 * near {
                     continue;
                 }
                 pieces.push(Piece {

@@ -66,10 +66,36 @@ impl Regularity {
         q: &[f64],
         gram: &mut GramWork,
     ) -> f64 {
-        let ma = model.active.len();
-        if ma == 0 {
+        if model.active.is_empty() {
             return f64::INFINITY;
         }
+        self.inverse_trace(model, q, gram)
+            .map_or(0.0, |t| t.recip().sqrt())
+    }
+
+    /// The distance to a rank loss of the rows nearest one, (max (G⁻¹)ᵢᵢ)^(−1/2) at q
+    /// (0 where G does not factor). s sums G⁻¹ over every row: where k loops of a
+    /// mechanism lose a rank together it is √k smaller than one loop's, whose rows
+    /// and whose step are as far from singular as they would be alone. This measure
+    /// is that one loop's, whatever k (from σ to √m σ, σ its smallest singular value).
+    pub(in crate::problems::forward) fn nearest_rank_loss(
+        &self,
+        model: &Model,
+        q: &[f64],
+        gram: &mut GramWork,
+    ) -> f64 {
+        if model.active.is_empty() {
+            return f64::INFINITY;
+        }
+        match self.inverse_trace(model, q, gram) {
+            Some(_) => gram.trace.largest_diagonal().recip().sqrt(),
+            None => 0.0,
+        }
+    }
+
+    /// tr G⁻¹ at q, G's inverse left in `gram`; `None` where G does not factor.
+    fn inverse_trace(&self, model: &Model, q: &[f64], gram: &mut GramWork) -> Option<f64> {
+        let ma = model.active.len();
         let GramWork {
             gradients,
             dots,
@@ -95,15 +121,13 @@ impl Regularity {
                 norms[*i] = dot.sqrt();
             }
         }
-        if !norms.iter().all(|v| *v > 0.0 && v.is_finite()) {
-            return 0.0;
+        if !norms[..ma].iter().all(|v| *v > 0.0 && v.is_finite()) {
+            return None;
         }
         for ((value, (i, j, _)), dot) in gram.values.iter_mut().zip(&self.entries).zip(&gram.dots) {
             *value = dot / (gram.norms[*i] * gram.norms[*j]);
         }
-        gram.trace
-            .trace(&gram.values)
-            .map_or(0.0, |t| t.recip().sqrt())
+        gram.trace.trace(&gram.values)
     }
 }
 
