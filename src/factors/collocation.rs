@@ -236,7 +236,7 @@ impl Factor for SimpsonVelocity {
             r[k] = v1[i] - v0[i] - h6 * (a0[i] + 4.0 * am[i] + a1[i]);
         }
         let Some(j) = jac else { return Ok(()) };
-        state_jacobians(j, &self.rows, (jq, jv), n, h);
+        state_jacobians(j, self.rows.iter().copied(), (jq, jv), n, h);
         Ok(())
     }
 }
@@ -247,13 +247,13 @@ impl Factor for SimpsonVelocity {
 /// and q̇_m = (q̇₀+q̇₁)/2 + h/8 (q̈₀−q̈₁), then the ends' own q̇₁ − q̇₀ − h/6 (q̈₀ + q̈₁).
 fn state_jacobians(
     j: &mut [Vec<f64>],
-    rows: &[usize],
+    rows: impl Iterator<Item = usize>,
     (jq, jv): (&[f64], &[f64]),
     n: usize,
     h: f64,
 ) {
     let (c, c2, h6) = (2.0 * h / 3.0, h * h / 12.0, h / 6.0);
-    for (k, &i) in rows.iter().enumerate() {
+    for (k, i) in rows.enumerate() {
         for col in 0..n {
             let (gq, gv) = (jq[i * n + col], jv[i * n + col]);
             let at = k * n + col;
@@ -284,8 +284,6 @@ pub struct SimpsonVelocityThrough {
     name: String,
     keys: Vec<Key>,
     n: usize,
-    /// Every coordinate's row.
-    rows: Vec<usize>,
     dt: f64,
 }
 
@@ -308,7 +306,6 @@ impl SimpsonVelocityThrough {
             stage,
             keys,
             n,
-            rows: (0..n).collect(),
             dt,
         }
     }
@@ -394,7 +391,7 @@ impl Factor for SimpsonVelocityThrough {
             // As SimpsonVelocity's, with G = ∂q̈_m/∂(q_m, q̇_m) from the stage factor;
             // each other variable enters q̈_m through its average, half from each end.
             let g = &b.jac;
-            state_jacobians(j, &self.rows, (&g[0], &g[1]), n, h);
+            state_jacobians(j, 0..n, (&g[0], &g[1]), n, h);
             let c = 2.0 * h / 3.0;
             for k in 0..others {
                 for end in 0..2 {

@@ -272,8 +272,6 @@ pub struct InverseTrace {
     factor: Vec<f64>,
     /// (LLᵀ)⁻¹ on L's pattern.
     inverse: Vec<f64>,
-    /// The largest diagonal entry of the last inverse.
-    largest_diagonal: f64,
     memory: MemBuffer,
 }
 
@@ -295,7 +293,6 @@ impl InverseTrace {
             cholesky,
             factor: vec![0.0; len],
             inverse: vec![0.0; len],
-            largest_diagonal: 0.0,
             memory,
         })
     }
@@ -323,22 +320,23 @@ impl InverseTrace {
         let SymbolicCholeskyRaw::Simplicial(l) = self.cholesky.raw() else {
             return None;
         };
-        let trace =
-            selected_inverse_trace(l.col_ptr(), l.row_idx(), &self.factor, &mut self.inverse)?;
-        let size = l.col_ptr().len() - 1;
-        self.largest_diagonal = l.col_ptr()[..size]
-            .iter()
-            .map(|&p| self.inverse[p])
-            .fold(0.0, f64::max);
-        Some(trace)
+        selected_inverse_trace(l.col_ptr(), l.row_idx(), &self.factor, &mut self.inverse)
     }
 
-    /// max (A⁻¹)ᵢᵢ of the matrix [`InverseTrace::trace`] last succeeded on. Like
-    /// 1 / tr A⁻¹, its inverse brackets A's smallest eigenvalue λ (from λ to size·λ),
-    /// but it is not summed over eigenvectors on disjoint rows: it tells how near the
-    /// nearest part of the matrix is to singular, whatever the number of such parts.
+    /// max (A⁻¹)ᵢᵢ of the matrix of the last [`InverseTrace::trace`] (read after one
+    /// that succeeded: the diagonal it left). Like 1 / tr A⁻¹, its inverse brackets
+    /// A's smallest eigenvalue λ (from λ to size·λ), but it is not summed over
+    /// eigenvectors on disjoint rows: it tells how near the nearest part of the matrix
+    /// is to singular, whatever the number of such parts.
     pub fn largest_diagonal(&self) -> f64 {
-        self.largest_diagonal
+        let SymbolicCholeskyRaw::Simplicial(l) = self.cholesky.raw() else {
+            return f64::INFINITY;
+        };
+        let columns = l.col_ptr();
+        columns[..columns.len() - 1]
+            .iter()
+            .map(|&p| self.inverse[p])
+            .fold(0.0, f64::max)
     }
 }
 

@@ -20,18 +20,11 @@ use super::{SquareStep, StepLimits, StepWork};
 /// The distance to a rank loss of the rows nearest one, (max (G⁻¹)ᵢᵢ)^(−1/2), below
 /// which a step's end is stepped over, by the step's integrator. Closer, the step
 /// system's condition grows like the inverse square of that distance: Newton's
-/// iteration ends at a residual at rounding whose updates are still 1e-6 of the
-/// accelerations, along the lost rank, and where along it depends on the iteration's
-/// path. On one square loop such a step moved the energy by 1.5e-6 J at 5e-5 and by
-/// 1.5e-7 J at 2.2e-4, whatever Δt: a floor the steps' own errors fall below at fine
-/// steps. A step over errs like its length to the power of its order: the wider the
-/// zone, the more of the coarse steps' passages are taken by steps of 1.5Δt or longer.
-/// Measured over 20 s of the N four-bar (N = 1 … 40), DC: Hermite–Simpson at 2e-4
-/// keeps its errors at 5 to 8.33 ms and lowers its floor below 5 ms (N = 1: from
-/// 1e-5 to 3e-6 m; 4e-4 lowers it to 3e-7 m, but raises the 40-loop chain's error
-/// at 5 ms by 8 %, below third order from 6.25 ms); the trapezoidal rule at 1e-4
-/// falls monotonically at every N (at 7e-5 a 5-loop step at 0.1 ms moves the
-/// energy by 1.5e-7 J; at 1.5e-4 the 40-loop chain's error at 0.1 ms doubles).
+/// iteration ends at a residual at rounding whose updates are still large along the
+/// lost rank, and the energy moves by an amount that does not fall with Δt. A step
+/// over errs like its length to the power of its order, so the zone is as wide as
+/// the coarse steps' passages allow: wider for Hermite–Simpson, whose steps err
+/// least and whose landings err most.
 pub(super) fn near(staged: bool) -> f64 {
     match staged {
         true => NEAR_HERMITE_SIMPSON,
@@ -47,8 +40,8 @@ const NEAR_TRAPEZOIDAL: f64 = 1e-4;
 /// The lengths tried for the step over a rank loss, in steps, shortest first: at
 /// coarse steps the zone within 2·[`near`] is a small part of one step, at 0.1 ms
 /// the N four-bar's measure moves by 1e-4 (40 loops) to 4e-4 (one) a step (the
-/// longest, 64, clears far more). An off-grid length is followed by a step of at least Δt/2 back onto
-/// the grid.
+/// longest, 64, clears far more). An off-grid length is followed by a step of at
+/// least Δt/2 back onto the grid.
 const LENGTHS: [f64; 20] = [
     1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0, 20.0, 24.0, 32.0, 40.0,
     48.0, 56.0, 64.0,

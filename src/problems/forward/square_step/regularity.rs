@@ -72,9 +72,8 @@ impl Regularity {
     /// The distance to a rank loss of the rows nearest one, (max (G⁻¹)ᵢᵢ)^(−1/2) at q
     /// (0 where G does not factor): the distance of one row to the span of the others.
     /// s sums G⁻¹ over every row, so that it falls with the number of loops losing a
-    /// rank at once; this one does not add up rows on disjoint parts, and on a chain
-    /// of loops sharing bodies falls more slowly (the N four-bar at δθ from its flat
-    /// angle: s 0.6 δθ for one loop and 0.04 δθ for 40, this 0.87 δθ and 0.22 δθ).
+    /// rank at once; this one does not add up rows on disjoint parts (on a chain of
+    /// loops sharing bodies it still falls, more slowly).
     pub(in crate::problems::forward) fn nearest_rank_loss(
         &self,
         model: &Model,
@@ -106,7 +105,6 @@ impl Regularity {
 
     /// tr G⁻¹ at q, G's inverse left in `gram`; `None` where G does not factor.
     fn inverse_trace(&self, model: &Model, q: &[f64], gram: &mut GramWork) -> Option<f64> {
-        let ma = model.active.len();
         let GramWork {
             gradients,
             dots,
@@ -132,7 +130,7 @@ impl Regularity {
                 norms[*i] = dot.sqrt();
             }
         }
-        if !norms[..ma].iter().all(|v| *v > 0.0 && v.is_finite()) {
+        if !norms.iter().all(|v| *v > 0.0 && v.is_finite()) {
             return None;
         }
         for ((value, (i, j, _)), dot) in gram.values.iter_mut().zip(&self.entries).zip(&gram.dots) {
