@@ -158,6 +158,12 @@ fn the_cli_writes_rows_on_the_grid_and_says_what_the_control_did() {
             && summary.contains(", h from "),
         "{summary}"
     );
+    // The rows checked against a coarser run: their estimated error, in units of
+    // the tolerance.
+    assert!(
+        summary.contains("; the rows' estimated error "),
+        "{summary}"
+    );
     let text = std::fs::read_to_string(&csv).unwrap();
     let times: Vec<f64> = text
         .lines()
@@ -168,6 +174,27 @@ fn the_cli_writes_rows_on_the_grid_and_says_what_the_control_did() {
     for (k, t) in times.iter().enumerate() {
         assert!((t - k as f64 * 0.002).abs() < 1e-12, "row {k} at {t}");
     }
+    // A tolerance on the steps only: one run, nothing checked.
+    let out = mbfg(&[
+        "simulate",
+        "scenes/fourbar.yaml",
+        "--dt",
+        "0.002",
+        "--t-end",
+        "1",
+        "--rtol",
+        "1e-6",
+        "--tolerance-scope",
+        "steps",
+        "--out",
+        csv.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        summary.contains("error control rtol 1.0e-6") && !summary.contains("estimated error"),
+        "{summary}"
+    );
     // --sample-dt alone sets the grid.
     let out = mbfg(&[
         "simulate",
@@ -222,6 +249,14 @@ fn bad_tolerances_are_one_line_errors() {
             "integrator factors",
         ),
         (&["--atol", "1e-6", "--dt", "0.01"][..], "--rtol"),
+        (
+            &["--rtol", "1e-6", "--tolerance-scope", "rows"][..],
+            "--tolerance-scope",
+        ),
+        (
+            &["--tolerance-scope", "steps", "--dt", "0.01"][..],
+            "--rtol",
+        ),
     ] {
         let mut args = vec![
             "simulate",

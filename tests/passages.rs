@@ -321,3 +321,76 @@ fn the_summary_counts_the_passages_and_strict_refuses_an_energy_jump() {
     );
     assert!(!refused.exists(), "--strict wrote {}", refused.display());
 }
+
+/// The 1-loop chain's B0 point with a tolerance over 20 s at 0.05 s rows: passing
+/// near its separatrix every half turn, the motion turns the steps' energy errors
+/// into a phase that drifts, so a tolerance on each step ends 600–1300 times off.
+/// A tolerance on the run (the default) checks the rows against a run at a coarser
+/// step tolerance and makes the run again at a tighter one: it lands within a
+/// factor of 10 of the tolerance, and says what it estimated.
+#[test]
+fn a_tolerance_on_the_run_gives_its_accuracy_through_the_passages() {
+    use mbfg::forward::{Tolerance, ToleranceScope};
+    let (loops, t_end, every) = (1, 20.0, 0.05);
+    let model = Arc::new(
+        Model::new(&Scene::load(scene_path("benchmarks/n-fourbar-1.yaml")).unwrap()).unwrap(),
+    );
+    let exact = exact_theta(loops, every, t_end);
+    for rtol in [1e-5, 1e-6] {
+        let mut errors_by = Vec::new();
+        for scope in [ToleranceScope::Steps, ToleranceScope::Run] {
+            let mut options =
+                ForwardOptions::new(Coordinates::Dependent, every, t_end, Mode::FixedLag(1));
+            options.integrator = Integrator::HermiteSimpson;
+            options.tolerance = Some(Tolerance::new(rtol, None).unwrap());
+            options.tolerance_scope = scope;
+            let (tr, s) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
+            assert!(s.failures.is_empty(), "rtol {rtol:e} {scope:?}");
+            let (b0, _) = errors(loops, &tr, &exact);
+            let c = s.error_control.as_ref().unwrap();
+            println!(
+                "rtol {rtol:.0e} {scope:?}: B0 {b0:.2e} m, check {:?}",
+                c.check
+            );
+            if scope == ToleranceScope::Run {
+                let check = c.check.as_ref().unwrap();
+                assert!(check.step_rtols.len() >= 2, "{check:?}");
+                assert!(check.estimated.unwrap() <= 1.0, "{check:?}");
+                assert_eq!(c.tolerance.rtol, rtol);
+            } else {
+                assert_eq!(c.check, None);
+            }
+            errors_by.push(b0);
+        }
+        let (steps, run) = (errors_by[0], errors_by[1]);
+        assert!(
+            steps > 100.0 * rtol,
+            "rtol {rtol:e}: steps' tolerance {steps:e} m"
+        );
+        assert!(
+            run <= 10.0 * rtol && run >= 0.1 * rtol,
+            "rtol {rtol:e}: B0 error {run:e} m with the run's tolerance"
+        );
+    }
+}
+
+/// At a tolerance below what the steps resolve next to a flat configuration, the
+/// error estimate is the noise of the solves there and no smaller step lowers it:
+/// the steps stop shrinking at the smallest size, are kept and counted, and the run
+/// ends (it used to take the smallest step again forever).
+#[test]
+fn a_tolerance_below_the_noise_of_a_passage_ends() {
+    use mbfg::forward::{Tolerance, ToleranceScope};
+    let model = Arc::new(
+        Model::new(&Scene::load(scene_path("benchmarks/n-fourbar-1.yaml")).unwrap()).unwrap(),
+    );
+    let mut options = ForwardOptions::new(Coordinates::Dependent, 0.05, 1.0, Mode::FixedLag(1));
+    options.integrator = Integrator::HermiteSimpson;
+    options.tolerance = Some(Tolerance::new(1e-11, None).unwrap());
+    options.tolerance_scope = ToleranceScope::Steps;
+    let (tr, s) = simulate(model, &options, &mut |_, _| {}).unwrap();
+    assert!(s.failures.is_empty());
+    assert_eq!(tr.len(), 21);
+    let c = s.error_control.unwrap();
+    assert!(c.at_floor > 0, "{c:?}");
+}

@@ -19,9 +19,19 @@ def test_a_tolerance_gives_its_accuracy_on_the_double_pendulum(rtol):
     c = r.summary["error_control"]
     assert c["rtol"] == rtol and c["atol"] == rtol
     assert c["accepted"] > 0 and c["smallest_step"] <= c["largest_step"]
+    # The rows checked (the default scope): their estimated error, and the runs made.
+    assert c["estimated_error"] is not None and c["estimated_error"] <= 1.0
+    assert c["step_rtols"][0] == rtol and c["unchecked"] is None
     assert r.summary["complete"]
     assert len(r.t) == 5001
     np.testing.assert_allclose(r.t, np.arange(5001) * 1e-3, atol=1e-12)
+
+
+def test_a_tolerance_on_the_steps_is_one_run_unchecked():
+    r = mbfg.simulate(pages.scene_path("double-pendulum"), dt=1e-3, t_end=1.0,
+                      integrator="hermite-simpson", rtol=1e-6, tolerance_scope="steps")
+    c = r.summary["error_control"]
+    assert c["estimated_error"] is None and c["step_rtols"] is None
 
 
 def test_without_rtol_there_is_no_error_control():
@@ -38,6 +48,8 @@ def test_without_rtol_there_is_no_error_control():
     ({"atol": 1e-6}, "atol"),
     ({"rtol": 1e-6, "window": 5}, "window"),
     ({"rtol": 1e-6, "batch": True}, "batch"),
+    ({"rtol": 1e-6, "tolerance_scope": "rows"}, "tolerance_scope"),
+    ({"rtol": 1e-6, "tolerance_scope": 3}, "tolerance_scope"),
 ])
 def test_bad_tolerances_are_refused_by_name(kwargs, name):
     with pytest.raises(mbfg.InvalidArgument, match=name):

@@ -304,7 +304,7 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
              effects: Mapping[str, Callable] | None = None,
              square_steps: bool = True, columns: Sequence[str] | None = None,
              until: str | None = None, rtol: float | None = None,
-             atol: float | None = None) -> Result:
+             atol: float | None = None, tolerance_scope: str = "run") -> Result:
     """Forward dynamics, as `mbfg simulate` runs it, of a scene (a path, text, dict or
     `mbfg.Scene`, as `load` takes) or a loaded Model, from t = 0 to `t_end` in steps of
     `dt` (s; a t_end off the step grid ends at the nearest step, and
@@ -332,9 +332,14 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
     `mbfg simulate --rtol`: each step's size is chosen so that its estimated local
     error stays within atol + rtol·|x| per coordinate and per second simulated, and
     the rows are interpolated onto the grid of `dt`. One step at a time only
-    (`window=1`); "hermite-simpson" takes the fewest. `summary["error_control"]` gives the
-    tolerance, the steps `accepted` and `rejected`, the `failed_solves` taken again
-    smaller, and the `smallest_step` and `largest_step` (s).
+    (`window=1`); "hermite-simpson" takes the fewest. With `tolerance_scope="run"` (the
+    default) the rows are checked against a run at a coarser tolerance, and the run made
+    again at a tighter one where their estimated error exceeds the tolerance;
+    "steps" bounds each step's error only (one run, its rows unchecked).
+    `summary["error_control"]` gives the tolerance, the steps `accepted` and `rejected`,
+    the `failed_solves` taken again smaller, the `smallest_step` and `largest_step` (s),
+    the rows' `estimated_error` in units of the tolerance (None where `unchecked` says
+    why), and the `step_rtols` of the runs made (the last one's rows returned).
 
     For studies without writing files: `params` overrides the scene's parameters (as
     `load` does), `q0` the initial values of coordinates of q by name (the position
@@ -375,7 +380,7 @@ def simulate(scene: str | os.PathLike | Model, coords: str = "dc", dt: float = 1
                       dc_integrators, refine, _dict(params), _dict(q0), _dict(dq0),
                       _effects(effects), square_steps,
                       None if columns is None else [str(c).strip() for c in columns], until,
-                      rtol, atol)
+                      rtol, atol, tolerance_scope)
     except BaseException as e:
         if isinstance(getattr(e, "result", None), Result):
             e.result.scene = scene

@@ -108,6 +108,11 @@ fn forward_result<'py>(
             d.set_item("failed_solves", c.failed_solves)?;
             d.set_item("smallest_step", c.smallest)?;
             d.set_item("largest_step", c.largest)?;
+            d.set_item("at_floor", c.at_floor)?;
+            let check = c.check.as_ref();
+            d.set_item("estimated_error", check.and_then(|k| k.estimated))?;
+            d.set_item("step_rtols", check.map(|k| k.step_rtols.clone()))?;
+            d.set_item("unchecked", check.and_then(|k| k.unchecked.clone()))?;
             Some(d)
         }
         None => None,
@@ -192,6 +197,7 @@ pub(super) fn simulate_run<'py>(
     until: &Bound<'py, PyAny>,
     rtol: &Bound<'py, PyAny>,
     atol: &Bound<'py, PyAny>,
+    tolerance_scope: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guard(|| {
         let tolerance = match rtol.is_none() {
@@ -208,6 +214,12 @@ pub(super) fn simulate_run<'py>(
                 )
             }
         };
+        let scope = arg_str(tolerance_scope, "tolerance_scope")?;
+        let scope = forward::ToleranceScope::parse(&scope).ok_or_else(|| {
+            invalid(format!(
+                "tolerance_scope must be \"run\" or \"steps\", got {scope:?}"
+            ))
+        })?;
         let until = match until.is_none() {
             true => None,
             false => Some(arg_str(until, "until")?),
@@ -282,6 +294,7 @@ pub(super) fn simulate_run<'py>(
         options.refine = refine;
         options.square_steps = square_steps;
         options.tolerance = tolerance;
+        options.tolerance_scope = scope;
         let model = with_loads(study_model(scene, &params, &q0, &dq0)?, &loads)?;
         // What is left to refuse depends on the scene (its independent coordinates)
         // or on dt and t_end together (the number of steps).
@@ -397,6 +410,7 @@ pub(super) fn simulate_run<'py>(
             .chain(s.load_jump.as_ref().map(|j| j.message()))
             .chain(crate::forward::energy_checks::energy_warning(&s))
             .chain(crate::forward::energy_checks::passage_warning(&s))
+            .chain(crate::forward::energy_checks::tolerance_warning(&s))
             .chain(crate::forward::energy_checks::balance_warning(&s))
             .collect();
         out.get_item("summary")?

@@ -47,8 +47,10 @@ const FIRST_STEP_IN_ROWS: f64 = 1.0 / 64.0;
 /// failed step is named too coarse for the motion.
 const MAX_TURN: f64 = 0.5 * StepFailure::LARGE_TURN;
 
-/// The smallest step, relative to the horizon.
-const SMALLEST_STEP: f64 = 1e-10;
+/// The smallest step, relative to the horizon: near a rank loss at a tight
+/// tolerance the estimates are noise that no smaller step lowers, and the steps
+/// there stop shrinking at this size.
+const SMALLEST_STEP: f64 = 1e-9;
 
 /// The solvers of one step size: the square step, and the general solver's
 /// one-step solve of the graph at that size (made where first needed).
@@ -297,6 +299,8 @@ pub(super) fn simulate(
         failed_solves: 0,
         smallest: f64::INFINITY,
         largest: 0.0,
+        at_floor: 0,
+        check: None,
     };
     let (mut square_steps, mut general_steps) = (0, 0);
     let mut failures = Vec::new();
@@ -345,7 +349,19 @@ pub(super) fn simulate(
             &mut error,
         );
         let norm = tolerance.norm(&error, &current[..2 * n], &next[..2 * n]);
-        match controller.decide(h, Controller::error_ratio(h, norm), after_reject) {
+        let ratio = Controller::error_ratio(h, norm);
+        let decision = match controller.decide(h, ratio, after_reject) {
+            // No smaller size to take: the estimate at the smallest is the noise of
+            // the solves' accelerations (rounding, or solves near a rank loss),
+            // which grows as the step shrinks, not the step's error. The step is
+            // kept and counted.
+            Decision::Reject { retry } if ladder.rung_below(retry) >= rung => {
+                control.at_floor += 1;
+                Decision::Accept { next: h }
+            }
+            d => d,
+        };
+        match decision {
             Decision::Reject { retry } => {
                 control.rejected += 1;
                 h_try = retry;

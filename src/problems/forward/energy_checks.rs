@@ -1,10 +1,11 @@
 //! Checks on a run's result, beyond convergence, each reported with its numbers:
 //! energy that a conservative scene should keep but did not, a passage through a
 //! singular configuration that moved it, and a run with non-conservative effects
-//! off its energy balance. `mbfg simulate --strict` makes them errors. The checks
+//! off its energy balance, and a run whose rows' estimated error exceeds the
+//! tolerance asked. `mbfg simulate --strict` makes them errors. The checks
 //! on the model before a run are in [`crate::model::plausibility`].
 
-use crate::forward::{Integrator, Passages, RunSummary};
+use crate::forward::{ErrorControl, Integrator, Passages, RunSummary};
 
 /// The largest energy drift of a conservative scene, as a fraction of the largest
 /// kinetic energy along the run, that is still taken as integration error.
@@ -78,4 +79,53 @@ pub fn balance_warning(summary: &RunSummary) -> Option<String> {
         100.0 * off.worst / scale.max(f64::MIN_POSITIVE),
         100.0 * ENERGY_DRIFT_TOLERANCE
     ))
+}
+
+/// A warning when a run with a tolerance on its rows ended with their estimated
+/// error above it: the runs made again at tighter step tolerances, as many as are
+/// made, did not bring it down (the motion amplifies the steps' errors more than
+/// that, or the run's own rounding is the error).
+pub fn tolerance_warning(summary: &RunSummary) -> Option<String> {
+    let c = summary.error_control.as_ref()?;
+    let check = c.check.as_ref()?;
+    let estimated = check.estimated?;
+    if estimated <= 1.0 {
+        return None;
+    }
+    Some(format!(
+        "the rows' estimated error is {estimated:.1} times the tolerance (rtol {:.1e}, atol \
+         {:.1e}) after {} run(s) down to a step rtol of {:.1e}: the motion amplifies the \
+         steps' errors more than a tighter step tolerance makes up for; a fixed --dt, \
+         checked against one twice as fine, says how accurate its rows are",
+        c.tolerance.rtol,
+        c.tolerance.atol,
+        check.step_rtols.len(),
+        check.step_rtols.last().copied().unwrap_or(c.tolerance.rtol)
+    ))
+}
+
+/// The summary's words on the check of a run's rows against its tolerance (empty
+/// where there was none).
+pub fn check_description(c: &ErrorControl) -> String {
+    let Some(check) = &c.check else {
+        return String::new();
+    };
+    let runs = match check.step_rtols.len() {
+        1 => String::new(),
+        k => format!(
+            " after {} runs at step rtol {}",
+            k,
+            check
+                .step_rtols
+                .iter()
+                .map(|r| format!("{r:.1e}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    };
+    match (check.estimated, &check.unchecked) {
+        (Some(e), _) => format!("; the rows' estimated error {e:.2} × the tolerance{runs}"),
+        (None, Some(why)) => format!("; the rows' error unchecked: {why}"),
+        (None, None) => String::new(),
+    }
 }

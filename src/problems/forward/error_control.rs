@@ -46,6 +46,15 @@ impl Tolerance {
         Ok(Tolerance { rtol, atol })
     }
 
+    /// The tolerance `factor` times as tight or loose, both rtol and atol (no tighter
+    /// than [`Tolerance::SMALLEST`]).
+    pub fn scaled(&self, factor: f64) -> Tolerance {
+        Tolerance {
+            rtol: (self.rtol * factor).max(Self::SMALLEST),
+            atol: (self.atol * factor).max(Self::SMALLEST),
+        }
+    }
+
     /// The weighted root mean square of `error` (per coordinate of `x0`, `x1`, the
     /// state at both ends of the step): √(mean (eᵢ / (atol + rtol·max(|x0ᵢ|, |x1ᵢ|)))²).
     pub fn norm(&self, error: &[f64], x0: &[f64], x1: &[f64]) -> f64 {

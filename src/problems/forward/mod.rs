@@ -11,7 +11,8 @@
 //! step judged by `judge` (failures, the IC watch) and rescued by `substeps`;
 //! `failure` and `summary` are what it reports, `balance` the energy balance its
 //! summary carries. A run with a tolerance sizes its steps by `error_control`
-//! instead, in `adaptive`.
+//! instead, in `adaptive`, and `run_check` checks its rows against the tolerance,
+//! making it again at a tighter one where they miss it.
 
 mod adaptive;
 mod balance;
@@ -23,6 +24,7 @@ mod judge;
 mod options;
 mod plan;
 mod run;
+mod run_check;
 mod segment;
 mod square_step;
 mod start;
@@ -42,5 +44,8 @@ pub use graph::ForwardGraph;
 pub use options::{DcIntegrators, ForwardOptions, Integrator, NoiseModels, Observers};
 pub use plan::{Memory, Plan, Rescue, Schedule};
 pub use run::{simulate, simulate_interruptible, simulate_streaming, StepSink};
+pub use run_check::ToleranceScope;
 pub use start::Start;
-pub use summary::{ErrorControl, LoadJump, Passages, Refinement, Reselection, RunSummary};
+pub use summary::{
+    ErrorControl, LoadJump, Passages, Refinement, Reselection, RunCheck, RunSummary,
+};

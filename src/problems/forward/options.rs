@@ -127,6 +127,9 @@ pub struct ForwardOptions {
     /// chosen from its estimated local error, the rows still written at t = k·`dt`
     /// (interpolated between the steps taken). One step at a time only (N_w = 1).
     pub tolerance: Option<super::error_control::Tolerance>,
+    /// What the tolerance bounds: the rows written (checked, and the run made again
+    /// at a tighter step tolerance where they miss it), or each step's error only.
+    pub tolerance_scope: super::run_check::ToleranceScope,
 }
 
 /// A maker of [`Observer`]s, one per solver a run makes.
@@ -175,6 +178,7 @@ impl ForwardOptions {
             square_steps: true,
             observer: None,
             tolerance: None,
+            tolerance_scope: Default::default(),
         }
     }
 

@@ -109,8 +109,16 @@ pub fn simulate_streaming(
     sink: &mut dyn StepSink,
 ) -> Result<RunSummary> {
     if let Some(tolerance) = options.tolerance {
-        // Its steps are sized by the error they make: no refinement, no restart.
-        return super::adaptive::simulate(model, options, tolerance, progress, sink);
+        // Its steps are sized by the error they make: no refinement; a run whose rows
+        // miss the tolerance is made again at a tighter one (the sink restarted).
+        return match options.tolerance_scope {
+            super::ToleranceScope::Run => {
+                super::run_check::simulate(model, options, tolerance, progress, sink)
+            }
+            super::ToleranceScope::Steps => {
+                super::adaptive::simulate(model, options, tolerance, progress, sink)
+            }
+        };
     }
     let (mut summary, mut coarse) = simulate_with(model.clone(), options, progress, sink, None)?;
     if !options.refine {

@@ -77,6 +77,29 @@ pub struct ErrorControl {
     /// The smallest and largest step kept (s).
     pub smallest: f64,
     pub largest: f64,
+    /// Steps kept though their estimated error exceeded the tolerance, where a
+    /// smaller step did not lower the estimate (or none was smaller): there it is
+    /// the noise of the solves' accelerations, not the step's error.
+    pub at_floor: usize,
+    /// With the tolerance on the run's rows
+    /// ([`ToleranceScope::Run`](super::ToleranceScope::Run)): what its check found.
+    /// The counts above are the last run's, whose rows were written.
+    pub check: Option<RunCheck>,
+}
+
+/// The check of a run's rows against its tolerance: the runs made and the rows'
+/// estimated error.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunCheck {
+    /// The step rtol of each run made, in order (the first the tolerance asked; a
+    /// tighter one for each run made again): the last one's rows were written. The
+    /// check run, at a coarser step tolerance, is not listed.
+    pub step_rtols: Vec<f64>,
+    /// The rows' estimated error, in units of the tolerance (the weighted RMS of q
+    /// and q̇ as the steps', the largest over the rows); `None` where not checked.
+    pub estimated: Option<f64>,
+    /// Why the rows were not checked.
+    pub unchecked: Option<String>,
 }
 
 /// A run integrated at a finer step than asked for, because a step at the coarser one
