@@ -122,14 +122,19 @@ pub(super) fn simulate(
         return Ok(finish(summary, check));
     }
     let compared = match run(CHECK_RATIO, progress, None) {
-        Ok((s, coarse)) if unfinished(&s).is_none() => compare(&tolerance, &rows, &coarse),
-        _ => None,
-    };
-    let Some(difference) = compared else {
-        check.unchecked = Some(format!(
+        Ok((s, _)) if s.interrupted.is_some() => Err("the check was interrupted".to_string()),
+        Ok((s, coarse)) if s.failures.is_empty() => compare(&tolerance, &rows, &coarse)
+            .ok_or_else(|| "the check run's rows could not be compared".to_string()),
+        _ => Err(format!(
             "the check run at {CHECK_RATIO} times the tolerance did not reach the end"
-        ));
-        return Ok(finish(summary, check));
+        )),
+    };
+    let difference = match compared {
+        Ok(d) => d,
+        Err(why) => {
+            check.unchecked = Some(why);
+            return Ok(finish(summary, check));
+        }
     };
     let mut estimated = difference / (CHECK_RATIO - 1.0);
     let tightest = MAX_TIGHTENING
