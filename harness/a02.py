@@ -250,11 +250,14 @@ def write(rows, loops, t_end, out: pathlib.Path, seconds: float, shorter=(),
     if tolerance_rows:
         lines += tolerance_section(tolerance_rows)
     lines += ["", "## CPU time to reach each tolerance", "",
-              "The least CPU time of a run within it: fixed steps or a tolerance.", "",
+              "The least CPU time of a run within it: fixed steps, or a tolerance on the run "
+              "(not one on each step, whose error is not the tolerance's).", "",
               "| tolerance | " + " | ".join(["mbfg", "IDA", "exudyn"]) + " |",
               "|---|---|---|---|"]
     for name, tol in TOLERANCES.items():
-        best = fastest(list(rows) + list(tolerance_rows), tol, t_end)
+        # A tolerance on each step alone is not one on the rows: only the run's counts.
+        best = fastest(list(rows) + [r for r in tolerance_rows if r["scope"] == "run"], tol,
+                       t_end)
         cells = [f"{best[t]['cpu']:.2f} s ({best[t]['setting']}: {best[t]['error']:.1e} m)"
                  if t in best else "not reached" for t in ["mbfg", "IDA", "exudyn"]]
         lines.append(f"| {name} (≤ {tol:g} m) | " + " | ".join(cells) + " |")
