@@ -542,6 +542,31 @@ enum Run {
     Streamed(Box<super::output::Streamed>),
 }
 
+/// The summary's words on the check of a run's rows against its tolerance (empty
+/// where there was none).
+fn check_description(c: &forward::ErrorControl) -> String {
+    let Some(check) = &c.check else {
+        return String::new();
+    };
+    let runs = match check.step_rtols.len() {
+        1 => String::new(),
+        k => format!(
+            " after {k} runs at step rtol {}",
+            check
+                .step_rtols
+                .iter()
+                .map(|r| format!("{r:.1e}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    };
+    match (check.estimated, &check.unchecked) {
+        (Some(e), _) => format!("; the rows' estimated error {e:.2} × the tolerance{runs}"),
+        (None, Some(why)) => format!("; the rows' error unchecked: {why}"),
+        (None, None) => String::new(),
+    }
+}
+
 /// The summary line; `peak_memory`, the process's peak resident memory in bytes,
 /// where the system reports it.
 fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u64>) -> String {
@@ -615,14 +640,14 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
             } + &match c.at_floor {
                 0 => String::new(),
                 k => format!(
-                    ", {k} kept above the tolerance where a smaller step did not lower \
-                     the estimate (the noise of the solves, not the step's error)"
+                    ", {k} kept above the tolerance at the smallest step (the estimate \
+                     there is the noise of the solves, not the step's error)"
                 ),
             },
             c.smallest,
             c.largest
         );
-        line += &mbfg::forward::energy_checks::check_description(c);
+        line += &check_description(c);
     }
     if s.paper_steps > 0 {
         line += &format!(

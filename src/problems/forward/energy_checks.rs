@@ -5,7 +5,7 @@
 //! tolerance asked. `mbfg simulate --strict` makes them errors. The checks
 //! on the model before a run are in [`crate::model::plausibility`].
 
-use crate::forward::{ErrorControl, Integrator, Passages, RunSummary};
+use crate::forward::{Integrator, Passages, RunSummary};
 
 /// The largest energy drift of a conservative scene, as a fraction of the largest
 /// kinetic energy along the run, that is still taken as integration error.
@@ -102,30 +102,4 @@ pub fn tolerance_warning(summary: &RunSummary) -> Option<String> {
         check.step_rtols.len(),
         check.step_rtols.last().copied().unwrap_or(c.tolerance.rtol)
     ))
-}
-
-/// The summary's words on the check of a run's rows against its tolerance (empty
-/// where there was none).
-pub fn check_description(c: &ErrorControl) -> String {
-    let Some(check) = &c.check else {
-        return String::new();
-    };
-    let runs = match check.step_rtols.len() {
-        1 => String::new(),
-        k => format!(
-            " after {} runs at step rtol {}",
-            k,
-            check
-                .step_rtols
-                .iter()
-                .map(|r| format!("{r:.1e}"))
-                .collect::<Vec<_>>()
-                .join(", ")
-        ),
-    };
-    match (check.estimated, &check.unchecked) {
-        (Some(e), _) => format!("; the rows' estimated error {e:.2} × the tolerance{runs}"),
-        (None, Some(why)) => format!("; the rows' error unchecked: {why}"),
-        (None, None) => String::new(),
-    }
 }

@@ -34,13 +34,7 @@ pub enum ToleranceScope {
 }
 
 impl ToleranceScope {
-    pub fn name(self) -> &'static str {
-        match self {
-            ToleranceScope::Run => "run",
-            ToleranceScope::Steps => "steps",
-        }
-    }
-
+    /// The scope named as the CLI and Python name it ("run", "steps").
     pub fn parse(s: &str) -> Option<ToleranceScope> {
         match s {
             "run" => Some(ToleranceScope::Run),
@@ -151,7 +145,6 @@ pub(super) fn simulate(
         check.step_rtols.push(tolerance.rtol * next);
         if let Some(why) = unfinished(&s) {
             check.unchecked = Some(why);
-            check.estimated = None;
             return Ok(finish(s, check));
         }
         // The run before was `factor / next` times as coarse: the difference is

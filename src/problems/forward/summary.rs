@@ -77,9 +77,9 @@ pub struct ErrorControl {
     /// The smallest and largest step kept (s).
     pub smallest: f64,
     pub largest: f64,
-    /// Steps kept though their estimated error exceeded the tolerance, where a
-    /// smaller step did not lower the estimate (or none was smaller): there it is
-    /// the noise of the solves' accelerations, not the step's error.
+    /// Steps kept at the smallest size though their estimated error exceeded the
+    /// tolerance: there the estimate is the noise of the solves' accelerations, not
+    /// the step's error.
     pub at_floor: usize,
     /// With the tolerance on the run's rows
     /// ([`ToleranceScope::Run`](super::ToleranceScope::Run)): what its check found.
