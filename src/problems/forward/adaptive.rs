@@ -11,7 +11,10 @@
 //! stays, and the general solver's one-step solve of the graph at that size where
 //! it declines a step or there is no square step (Hermite–Simpson). The size moves
 //! up only by two rungs or more at once, so that it does not flicker between
-//! neighbours. A step that no solver converges on is taken again smaller.
+//! neighbours. A step that no solver converges on is taken again smaller. A step
+//! the square step takes within a longer step over a rank loss of Φ_q is followed
+//! by the steps of that size to the longer step's end, the state the run goes on
+//! from.
 
 use super::error_control::{local_error, Controller, Decision, History, Tolerance};
 use super::failure::StepFailure;
@@ -102,8 +105,10 @@ impl Ladder<'_> {
     }
 
     /// The step of the rung's size from `before` at t to `block` (its guess in,
-    /// solution out): by the square step, else the general solver; its report and
-    /// who took it, or `None` where neither converged.
+    /// solution out): by the square step, else the general solver; its report, who
+    /// took it, and whether it is an interpolant of a longer step over a rank loss
+    /// that goes on past it (the square step's passage); `None` where neither
+    /// converged.
     fn step(
         &mut self,
         rung: i32,
@@ -111,7 +116,7 @@ impl Ladder<'_> {
         before: &[f64],
         block: &mut [f64],
         limits: StepLimits,
-    ) -> Result<Option<(SolveReport, Taker)>> {
+    ) -> Result<Option<(SolveReport, Taker, bool)>> {
         let (model, options, independent) = (self.model, self.options, self.independent);
         let s = block.len();
         let guess = block.to_vec();
@@ -124,7 +129,8 @@ impl Ladder<'_> {
                         factorizations: work.factorizations,
                         ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
                     };
-                    return Ok(Some((report, Taker::Square)));
+                    let within_step_over = square.passed() && square.passing();
+                    return Ok(Some((report, Taker::Square, within_step_over)));
                 }
             }
             block.copy_from_slice(&guess);
@@ -147,7 +153,7 @@ impl Ladder<'_> {
             return Ok(None);
         }
         block.copy_from_slice(solved);
-        Ok(Some((report, taker)))
+        Ok(Some((report, taker, false)))
     }
 }
 
@@ -314,16 +320,25 @@ pub(super) fn simulate(
     let mut h_try = (FIRST_STEP_IN_ROWS * dt).clamp(controller.h_min, controller.h_max);
     let mut rung = ladder.rung_below(h_try);
     let mut after_reject = false;
+    // Whether the current state is an interpolant of a step over a rank loss that
+    // goes on past it. Such a state is not stepped from: its q̈ is not the
+    // dynamics' and its q, q̇ hold the constraints only as the interpolant does.
+    // The steps at the same size follow the step over to its end, a state solved,
+    // and are kept whatever their estimate, which reads the interpolant's q̈.
+    let mut within_step_over = false;
     while written < rows && interrupted.is_none() {
         // The rung of the size asked, within what the integrators follow: down at
         // once, up only by two rungs or more.
         let wanted = ladder.rung_below(h_try.min(turn_limit(&model, &current)));
-        if wanted < rung || wanted >= rung + 2 {
+        if (wanted < rung || wanted >= rung + 2) && !within_step_over {
             rung = wanted;
         }
         let h = ladder.size(rung);
         taylor(&current, &mut next, n, f, h);
-        let Some((report, taker)) = ladder.step(rung, t, &current, &mut next, limits)? else {
+        let Some((report, taker, ends_within)) =
+            ladder.step(rung, t, &current, &mut next, limits)?
+        else {
+            within_step_over = false;
             control.failed_solves += 1;
             match controller.after_failure(h) {
                 Some(smaller) => {
@@ -359,6 +374,7 @@ pub(super) fn simulate(
                 control.at_floor += 1;
                 Decision::Accept { next: h }
             }
+            _ if within_step_over => Decision::Accept { next: h },
             d => d,
         };
         match decision {
@@ -408,6 +424,7 @@ pub(super) fn simulate(
                 std::mem::swap(&mut current, &mut next);
                 t = t1;
                 h_try = h_next;
+                within_step_over = ends_within;
                 after_reject = false;
                 if progress(written, rows).is_break() {
                     interrupted = Some(written - 1);

@@ -174,6 +174,9 @@ pub struct SquareStep {
     recent: Remeasure,
     /// The guess of the step being solved (q, q̇, q̈), kept to start again from.
     guess: Vec<f64>,
+    /// Whether the last step solved was interpolated from a longer step over a
+    /// rank loss.
+    passed: bool,
 }
 
 /// The step system with its Jacobian's pattern and the regularity test: what the
@@ -284,6 +287,7 @@ impl SquareStep {
             passage: Passage::default(),
             recent: Remeasure::default(),
             guess: vec![0.0; 3 * n],
+            passed: false,
         })
     }
 
@@ -317,6 +321,7 @@ impl SquareStep {
             passage: Passage::default(),
             recent: Remeasure::default(),
             guess: vec![0.0; 3 * n],
+            passed: false,
         })
     }
 }
@@ -698,8 +703,10 @@ impl SquareStep {
         watch: Option<&mut dyn FnMut(&StepIteration)>,
     ) -> Option<StepWork> {
         let n = self.equations.system.model.n();
+        self.passed = false;
         if let Passed::Taken(work) = self.passage.resume(t, before, block, n) {
             self.equations.system.fill_independent(block);
+            self.passed = true;
             return Some(work);
         }
         // The guess's distance to a rank loss only where the last steps' s, carried
@@ -739,8 +746,21 @@ impl SquareStep {
         self.passage = passage;
         if solved.is_some() {
             self.equations.system.fill_independent(block);
+            self.passed = true;
         }
         solved
+    }
+
+    /// Whether the last step solved was interpolated from a longer step over a
+    /// rank loss ([`Passage`]).
+    pub fn passed(&self) -> bool {
+        self.passed
+    }
+
+    /// Whether a longer step over a rank loss is under way: the next steps of this
+    /// size, each from the one before, are its interpolants and then its end.
+    pub fn passing(&self) -> bool {
+        self.passage.under_way()
     }
 
     /// [`SquareStep::solve`] without the passage: Newton's method on this step.

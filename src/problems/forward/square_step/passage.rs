@@ -92,6 +92,12 @@ pub(super) enum Passed {
 }
 
 impl Passage {
+    /// Whether a long step is under way: the next steps it spans are its
+    /// interpolants, and its end.
+    pub(super) fn under_way(&self) -> bool {
+        self.under_way.is_some()
+    }
+
     /// Step `block` at time `t`, given `before`, where a long step under way
     /// spans it: interpolated, or at its end, that end.
     pub(super) fn resume(&mut self, t: f64, before: &[f64], block: &mut [f64], n: usize) -> Passed {
