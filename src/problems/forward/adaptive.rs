@@ -219,11 +219,16 @@ pub(super) fn interpolate(start: &[f64], end: &[f64], h: f64, tau: f64, n: usize
 }
 
 /// The run of `options` (whose `tolerance` is set) with steps sized by the error
-/// controller, its rows at t = k·dt handed to `sink`.
+/// controller, its rows at t = k·dt handed to `sink`. `bounds` scales the step
+/// sizes' bounds that are not the tolerance's (the largest step, the largest turn
+/// of a body over one): a run checked against another at a coarser tolerance
+/// ([`run_check`](super::run_check)) is coarser in them too, so that where they
+/// set the steps the two runs still differ by their errors.
 pub(super) fn simulate(
     model: Arc<Model>,
     options: &ForwardOptions,
     tolerance: Tolerance,
+    bounds: f64,
     progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
     sink: &mut dyn StepSink,
 ) -> Result<RunSummary> {
@@ -250,7 +255,7 @@ pub(super) fn simulate(
     let controller = Controller {
         order: options.integrator.order(),
         h_min: SMALLEST_STEP * t_last.max(dt),
-        h_max: (MAX_STEP_IN_ROWS * dt).min(t_last.max(dt)),
+        h_max: (bounds * MAX_STEP_IN_ROWS * dt).min(t_last.max(dt)),
     };
     let limits = StepLimits {
         max_iterations: plan.settings.max_iterations,
@@ -329,7 +334,7 @@ pub(super) fn simulate(
     while written < rows && interrupted.is_none() {
         // The rung of the size asked, within what the integrators follow: down at
         // once, up only by two rungs or more.
-        let wanted = ladder.rung_below(h_try.min(turn_limit(&model, &current)));
+        let wanted = ladder.rung_below(h_try.min(bounds * turn_limit(&model, &current)));
         if (wanted < rung || wanted >= rung + 2) && !within_step_over {
             rung = wanted;
         }

@@ -116,7 +116,7 @@ pub fn simulate_streaming(
                 super::run_check::simulate(model, options, tolerance, progress, sink)
             }
             super::ToleranceScope::Steps => {
-                super::adaptive::simulate(model, options, tolerance, progress, sink)
+                super::adaptive::simulate(model, options, tolerance, 1.0, progress, sink)
             }
         };
     }

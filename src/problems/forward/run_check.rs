@@ -83,6 +83,9 @@ pub(super) fn simulate(
 ) -> Result<RunSummary> {
     let start = Instant::now();
     let stride = options.steps().div_ceil(COMPARED_ROWS).max(1);
+    // The steps' sizes go as the step tolerance to the power 1/order (the error per
+    // unit step of an integrator of that order); their other bounds are scaled alike.
+    let order = f64::from(options.integrator.order());
     let run = |factor: f64,
                progress: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
                sink: Option<&mut dyn StepSink>|
@@ -92,6 +95,7 @@ pub(super) fn simulate(
             model.clone(),
             options,
             tolerance.scaled(factor),
+            factor.powf(1.0 / order),
             progress,
             &mut sampled,
         )?;
