@@ -62,10 +62,15 @@ pub const MAX_RERUNS: usize = 3;
 /// cost grows without a gain.
 pub const MAX_TIGHTENING: f64 = 1e-4;
 
-/// The tightest step rtol a run is made again at: below it the steps' error
+/// The tightest step rtol a run that passed a singular configuration, or kept
+/// steps at the smallest size, is made again at: below it the steps' error
 /// estimates near a rank loss are the noise of the solves, and the steps there
 /// shrink to the general solver's.
 pub const TIGHTEST_STEP_RTOL: f64 = 1e-10;
+
+/// The tightest step rtol of a run that met no rank loss: a step's error estimate
+/// stays above the rounding of its solve (about 1e-14 of the state) by a margin.
+pub const TIGHTEST_REGULAR_STEP_RTOL: f64 = 1e-12;
 
 /// The most rows compared: a long run is compared at every k-th row.
 const COMPARED_ROWS: usize = 4096;
@@ -135,9 +140,16 @@ pub(super) fn simulate(
         }
     };
     let mut estimated = difference / (CHECK_RATIO - 1.0);
-    let tightest = MAX_TIGHTENING
-        .max(TIGHTEST_STEP_RTOL / tolerance.rtol)
-        .min(1.0);
+    let regular = summary.passages.count == 0
+        && summary
+            .error_control
+            .as_ref()
+            .is_some_and(|c| c.at_floor == 0);
+    let tightest_step = match regular {
+        true => TIGHTEST_REGULAR_STEP_RTOL,
+        false => TIGHTEST_STEP_RTOL,
+    };
+    let tightest = MAX_TIGHTENING.max(tightest_step / tolerance.rtol).min(1.0);
     let mut factor = 1.0;
     for _ in 0..MAX_RERUNS {
         if estimated <= 1.0 || factor <= tightest {
