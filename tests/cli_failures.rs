@@ -677,8 +677,8 @@ effects:
     let smooth =
         "  - {name: friction, type: force, point: S, value: [\"-mu*tanh((vx(S) - vb)/1e-3)\", 0]}\n";
     let out = dir.join("run.csv");
-    let run = |scene: &Path| {
-        mbfg(&[
+    let run_with = |scene: &Path, more: &[&str]| {
+        let mut args = vec![
             "simulate",
             scene.to_str().unwrap(),
             "--dt",
@@ -687,17 +687,27 @@ effects:
             "0.5",
             "--out",
             out.to_str().unwrap(),
-        ])
+        ];
+        args.extend_from_slice(more);
+        mbfg(&args)
     };
+    let run = |scene: &Path| run_with(scene, &[]);
     std::fs::write(&scene, text.clone() + jumping).unwrap();
-    let line = error_line(&run(&scene), 1);
-    assert!(line.contains("did not converge"), "{line}");
-    assert!(
-        line.ends_with(
-            "(effect 'friction' jumps with sign(): smooth it, e.g. tanh(x/1e-3) for sign(x))"
-        ),
-        "{line}"
-    );
+    // With fixed steps, and with error-controlled ones (whose steps shrink to the
+    // smallest size there).
+    for (more, failed) in [
+        (&[][..], "did not converge"),
+        (&["--rtol", "1e-6"][..], "no step from t = "),
+    ] {
+        let line = error_line(&run_with(&scene, more), 1);
+        assert!(line.contains(failed), "{more:?}: {line}");
+        assert!(
+            line.ends_with(
+                "(effect 'friction' jumps with sign(): smooth it, e.g. tanh(x/1e-3) for sign(x))"
+            ),
+            "{more:?}: {line}"
+        );
+    }
     // Smoothed, the same scene runs.
     text.push_str(smooth);
     std::fs::write(&scene, text).unwrap();

@@ -467,7 +467,7 @@ fn simulate(
             .is_some_and(|c| c.starts_with("singular system"))
         {
             "a singular configuration of the mechanism, or a dt far from its time scales: a smaller dt, or check the constraints"
-        } else if f.cause.is_some() {
+        } else if f.cause.as_deref().is_some_and(|c| !no_step_converged(c)) {
             "an effect must be finite over the whole run"
         } else if f.singular.is_none() && !jumping.is_empty() {
             // A step across a jump of the load (Coulomb friction as sign(v)) has no
@@ -500,6 +500,8 @@ fn simulate(
             "--window 1 writes the run up to there"
         } else if f.report.termination == mbfg::solver::Termination::Diverged {
             "a diverged solve ends the run, --continue-on-failure too"
+        } else if f.cause.as_deref().is_some_and(no_step_converged) {
+            "a run of fixed steps (--dt without --rtol) names what stops it"
         } else {
             "--continue-on-failure goes on past it"
         };
@@ -544,6 +546,12 @@ enum Run {
 
 /// The summary's words on the check of a run's rows against its tolerance (empty
 /// where there was none).
+/// Whether a failure's cause is an error-controlled run's steps shrinking to the
+/// smallest size without converging (not an effect that cannot be evaluated).
+fn no_step_converged(cause: &str) -> bool {
+    cause.starts_with(forward::NO_STEP_CONVERGED)
+}
+
 fn check_description(c: &forward::ErrorControl) -> String {
     let Some(check) = &c.check else {
         return String::new();

@@ -21,15 +21,17 @@ use super::failure::StepFailure;
 use super::graph::ForwardGraph;
 use super::options::ForwardOptions;
 use super::plan::Plan;
+use super::run::names_of;
 use super::square_step::{self, SquareStep, StepLimits};
 use super::start::Start;
 use super::stepwise::{Stepwise, Taker};
-use super::summary::{ErrorControl, Iterations, RunSummary, Stats};
+use super::summary::{ErrorControl, Iterations, Reselection, RunSummary, Stats};
 use super::StepSink;
 use crate::convergence::{SolveReport, Termination};
 use crate::coordinates::Coordinates;
 use crate::dynamics;
 use crate::error::{Error, Result};
+use crate::kinematics::{Watch, Watched};
 use crate::model::Model;
 use std::collections::HashMap;
 use std::ops::ControlFlow;
@@ -74,7 +76,9 @@ struct General {
 struct Ladder<'a> {
     model: &'a Arc<Model>,
     options: &'a ForwardOptions,
-    independent: &'a [usize],
+    plan: &'a Plan,
+    /// The independent coordinates of the steps (in IC, the set the run is in).
+    independent: Vec<usize>,
     /// The square step at the row grid's dt, whose analysis the others copy.
     first: Option<SquareStep>,
     /// The size of rung 0 (the row grid's dt).
@@ -92,6 +96,14 @@ impl Ladder<'_> {
         // (A size the controller computed from a rung's own is that rung, not the
         // one below, despite the rounding of the logarithm.)
         ((h / self.h0).log2() * LEVELS_PER_OCTAVE + 1e-9).floor() as i32
+    }
+
+    /// The ladder in another set of independent coordinates: its solvers made
+    /// afresh as they are needed.
+    fn reselect(&mut self, independent: Vec<usize>) {
+        self.first = square_step::for_plan(self.model, self.plan, &independent);
+        self.independent = independent;
+        self.rungs.clear();
     }
 
     fn at(&mut self, rung: i32) -> &mut Rung {
@@ -117,10 +129,17 @@ impl Ladder<'_> {
         block: &mut [f64],
         limits: StepLimits,
     ) -> Result<Option<(SolveReport, Taker, bool)>> {
-        let (model, options, independent) = (self.model, self.options, self.independent);
         let s = block.len();
         let guess = block.to_vec();
-        let rung = self.at(rung);
+        self.at(rung);
+        let Ladder {
+            model,
+            options,
+            independent,
+            rungs,
+            ..
+        } = self;
+        let rung = rungs.get_mut(&rung).expect("made above");
         let h = rung.h;
         if let Some(square) = rung.square.as_mut() {
             if let Some(work) = square.solve(t + h, before, block, limits, None) {
@@ -235,7 +254,7 @@ pub(super) fn simulate(
     let plan = Plan::new(&model, options)?;
     let start_clock = Instant::now();
     let n = model.n();
-    let independent = match options.coordinates {
+    let mut independent = match options.coordinates {
         Coordinates::Independent => model.independent.clone(),
         Coordinates::Dependent => Vec::new(),
     };
@@ -247,7 +266,8 @@ pub(super) fn simulate(
     let mut ladder = Ladder {
         model: &model,
         options,
-        independent: &model.independent,
+        plan: &plan,
+        independent: model.independent.clone(),
         first: square_step::for_plan(&model, &plan, &model.independent),
         h0: dt,
         rungs: HashMap::new(),
@@ -331,6 +351,11 @@ pub(super) fn simulate(
     // The steps at the same size follow the step over to its end, a state solved,
     // and are kept whatever their estimate, which reads the interpolant's q̈.
     let mut within_step_over = false;
+    let mut watch = (options.coordinates == Coordinates::Independent)
+        .then(|| Watch::new(&model, &independent, &current[..n]));
+    // Accepted steps since the run's start or its last switch of coordinates.
+    let mut segment_step = 0;
+    let mut reselections = Vec::new();
     while written < rows && interrupted.is_none() {
         // The rung of the size asked, within what the integrators follow: down at
         // once, up only by two rungs or more.
@@ -389,6 +414,23 @@ pub(super) fn simulate(
                 after_reject = true;
             }
             Decision::Accept { next: h_next } => {
+                // In IC: whether the coordinates still determine the others at the
+                // step's end, as the fixed steps' runs watch it.
+                let mut reselect = None;
+                if let Some(watch) = watch.as_mut() {
+                    match watch.observe(&model, segment_step, t + h, &current[..n], &next[..n]) {
+                        Watched::Continue => {}
+                        Watched::Reselect(set) => reselect = Some(set),
+                        Watched::Stop(singular) => {
+                            let mut f = failure(&model, &current, written, dt, t, h);
+                            f.cause = None;
+                            f.singular = Some(singular);
+                            failures.push(f);
+                            break;
+                        }
+                    }
+                }
+                segment_step += 1;
                 control.accepted += 1;
                 control.smallest = control.smallest.min(h);
                 control.largest = control.largest.max(h);
@@ -431,20 +473,42 @@ pub(super) fn simulate(
                 h_try = h_next;
                 within_step_over = ends_within;
                 after_reject = false;
+                if let Some(set) = reselect {
+                    reselections.push(Reselection {
+                        step: written - 1,
+                        t: crate::trajectory::round_time(t),
+                        from: names_of(&model, &independent),
+                        to: names_of(&model, &set),
+                    });
+                    // The run goes on from this step's end in the new coordinates.
+                    for (part, offset) in [0, n, 2 * n].into_iter().enumerate() {
+                        for (j, &i) in set.iter().enumerate() {
+                            current[3 * n + part * f + j] = current[offset + i];
+                        }
+                    }
+                    watch = Some(Watch::new(&model, &set, &current[..n]));
+                    ladder.reselect(set.clone());
+                    independent = set;
+                    segment_step = 0;
+                    within_step_over = false;
+                }
                 if progress(written, rows).is_break() {
                     interrupted = Some(written - 1);
                 }
             }
         }
     }
+    let has_square_step = ladder.first.is_some();
+    drop(ladder);
     let mut summary = stats.finish(start_clock.elapsed(), iterations, failures, plan);
     summary.steps = written;
     summary.square_steps = square_steps;
     // (Counted where there is a square step to decline them.)
-    if ladder.first.is_some() {
+    if has_square_step {
         summary.general_steps = general_steps;
     }
     summary.interrupted = interrupted;
+    summary.reselections = reselections;
     summary.error_control = Some(control);
     Ok(summary)
 }
@@ -460,6 +524,10 @@ fn turn_limit(model: &Model, state: &[f64]) -> f64 {
     }
 }
 
+/// How the cause of a failed error-controlled run begins where no step size
+/// converged (not an effect that cannot be evaluated).
+pub const NO_STEP_CONVERGED: &str = "no step from t =";
+
 /// The failure of a run whose step from `state` at t did not converge at any size
 /// down to the smallest (`h`): at the row it could not write.
 fn failure(model: &Model, state: &[f64], row: usize, dt: f64, t: f64, h: f64) -> StepFailure {
@@ -467,7 +535,7 @@ fn failure(model: &Model, state: &[f64], row: usize, dt: f64, t: f64, h: f64) ->
     let (q, dq) = (&state[..n], &state[n..2 * n]);
     let cause = model.effect_fault(q, dq, t).unwrap_or_else(|| {
         format!(
-            "no step from t = {} s converged, down to {h:.1e} s (error-controlled steps)",
+            "{NO_STEP_CONVERGED} {} s converged, down to {h:.1e} s (error-controlled steps)",
             crate::trajectory::round_time(t)
         )
     });

@@ -37,6 +37,7 @@ mod windows;
 pub use crate::coordinates::Coordinates;
 pub use crate::kinematics::{Determinacy, SingularConfiguration};
 pub use crate::trajectory::{round_time, Trajectory};
+pub use adaptive::NO_STEP_CONVERGED;
 pub use balance::BalanceOff;
 pub use error_control::Tolerance;
 pub use failure::StepFailure;

@@ -384,6 +384,6 @@ fn simulate_with(
     Ok((summary, rows.coarse))
 }
 
-fn names_of(model: &Model, idx: &[usize]) -> Vec<String> {
+pub(super) fn names_of(model: &Model, idx: &[usize]) -> Vec<String> {
     idx.iter().map(|&i| model.names[i].clone()).collect()
 }
