@@ -54,6 +54,14 @@ pub const CHECK_RATIO: f64 = 4.0;
 /// below 1 by the margin the proportionality leaves.
 const AIM: f64 = 0.5;
 
+/// The most the first run made again tightens the step tolerance: the check run's
+/// estimate comes from a coarser run, whose error can grow faster than its
+/// tolerance (steps its bounds set, a motion that amplifies errors), and far
+/// tighter the run's steps leave the regime it was measured in (steps that a bound
+/// set become the tolerance's, whose errors fall faster than the tolerance); the
+/// next comparison, with this run, measures again.
+const FIRST_TIGHTENING: f64 = 8.0;
+
 /// The most runs made again after the first.
 pub const MAX_RERUNS: usize = 3;
 
@@ -151,11 +159,17 @@ pub(super) fn simulate(
     };
     let tightest = MAX_TIGHTENING.max(tightest_step / tolerance.rtol).min(1.0);
     let mut factor = 1.0;
-    for _ in 0..MAX_RERUNS {
+    for rerun in 0..MAX_RERUNS {
         if estimated <= 1.0 || factor <= tightest {
             break;
         }
-        let next = (factor * AIM / estimated).max(tightest);
+        // The check's estimate, from a coarser run, is bounded in what it tightens;
+        // the later ones measure the run before directly.
+        let least = match rerun {
+            0 => 1.0 / FIRST_TIGHTENING,
+            _ => 0.0,
+        };
+        let next = (factor * (AIM / estimated).max(least)).max(tightest);
         sink.restart()?;
         let (s, r) = run(next, progress, Some(&mut *sink))?;
         check.step_rtols.push(tolerance.rtol * next);
