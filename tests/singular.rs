@@ -467,3 +467,42 @@ fn an_error_controlled_run_watches_its_independent_coordinates() {
         tr.t.last().unwrap()
     );
 }
+
+/// A singular configuration no shipped scene has: the isosceles slider-crank, whose
+/// slider reaches the crank's pivot twice a turn (a bifurcation onto x_S = 0). In DC,
+/// with fixed steps and with error-controlled ones, both integrators, the run passes
+/// every one on the branch x_S = 2 r cos θ, counts them, and keeps its energy across
+/// them.
+#[test]
+fn the_isosceles_slider_crank_keeps_its_branch_at_the_pivot() {
+    use mbfg::forward::{Integrator, Tolerance};
+    let model = load("tests/data/isosceles-slider-crank.yaml");
+    let col = |name: &str| model.names.iter().position(|c| c == name).unwrap();
+    let (theta, sx) = (col("theta"), col("S.x"));
+    for integrator in [Integrator::Trapezoidal, Integrator::HermiteSimpson] {
+        for rtol in [None, Some(1e-6)] {
+            let mut o = ForwardOptions::new(Coordinates::Dependent, 1e-3, 5.0, Mode::FixedLag(1));
+            o.integrator = integrator;
+            o.tolerance = rtol.map(|r| Tolerance::new(r, None).unwrap());
+            let (tr, s) = simulate(model.clone(), &o, &mut |_, _| {}).unwrap();
+            let what = format!("{} rtol {rtol:?}", integrator.name());
+            assert!(s.failures.is_empty(), "{what}: {}", s.failures[0].message());
+            assert_eq!(tr.len(), 5001, "{what}");
+            let n = model.n();
+            let off = (0..tr.len())
+                .map(|k| (tr.q[k * n + sx] - 2.0 * tr.q[k * n + theta].cos()).abs())
+                .fold(0.0f64, f64::max);
+            let turned = tr.q[(tr.len() - 1) * n + theta] - tr.q[theta];
+            println!(
+                "{what}: off the branch {off:.1e} m, turned {turned:.2} rad, {:?}",
+                s.passages
+            );
+            assert!(off <= 1e-6, "{what}: {off:e} m off the branch");
+            // From π/3 at about 3 rad/s: past 5 upright positions (π/2 + kπ).
+            assert!(s.passages.count >= 5, "{what}: {:?}", s.passages);
+            assert!(turned > 5.0 * PI - PI / 3.0, "{what}: turned {turned}");
+            let jump = s.passages.energy_jump.map_or(0.0, |(j, _)| j);
+            assert!(jump <= 1e-6, "{what}: energy moved {jump:e} J at a passage");
+        }
+    }
+}
