@@ -157,9 +157,14 @@ fn options_the_control_does_not_take_are_refused() {
 #[test]
 fn the_cli_writes_rows_on_the_grid_and_says_what_the_control_did() {
     let csv = scratch("error-control", "grid").join("fourbar.csv");
-    let out = mbfg(&[
-        "simulate",
-        "scenes/fourbar.yaml",
+    // The four-bar simulated with `args`, its rows to the scratch file.
+    let fourbar = |args: &[&str]| {
+        let mut all = vec!["simulate", "scenes/fourbar.yaml"];
+        all.extend_from_slice(args);
+        all.extend_from_slice(&["--out", csv.to_str().unwrap()]);
+        mbfg(&all)
+    };
+    let out = fourbar(&[
         "--dt",
         "0.002",
         "--t-end",
@@ -170,8 +175,6 @@ fn the_cli_writes_rows_on_the_grid_and_says_what_the_control_did() {
         "1e-7",
         "--integrator",
         "hermite-simpson",
-        "--out",
-        csv.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let summary = String::from_utf8_lossy(&out.stdout);
@@ -203,9 +206,7 @@ fn the_cli_writes_rows_on_the_grid_and_says_what_the_control_did() {
         assert!((t - k as f64 * 0.002).abs() < 1e-12, "row {k} at {t}");
     }
     // A tolerance on the steps only: one run, nothing checked.
-    let out = mbfg(&[
-        "simulate",
-        "scenes/fourbar.yaml",
+    let out = fourbar(&[
         "--dt",
         "0.002",
         "--t-end",
@@ -214,8 +215,6 @@ fn the_cli_writes_rows_on_the_grid_and_says_what_the_control_did() {
         "1e-6",
         "--tolerance-scope",
         "steps",
-        "--out",
-        csv.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let summary = String::from_utf8_lossy(&out.stdout);
@@ -224,32 +223,12 @@ fn the_cli_writes_rows_on_the_grid_and_says_what_the_control_did() {
         "{summary}"
     );
     // --sample-dt alone sets the grid.
-    let out = mbfg(&[
-        "simulate",
-        "scenes/fourbar.yaml",
-        "--t-end",
-        "1",
-        "--rtol",
-        "1e-5",
-        "--sample-dt",
-        "0.01",
-        "--out",
-        csv.to_str().unwrap(),
-    ]);
+    let out = fourbar(&["--t-end", "1", "--rtol", "1e-5", "--sample-dt", "0.01"]);
     assert!(out.status.success(), "{}", stderr(&out));
     let rows = std::fs::read_to_string(&csv).unwrap().lines().count() - 1;
     assert_eq!(rows, 101);
     // Neither: t_end/1000, and a note says so.
-    let out = mbfg(&[
-        "simulate",
-        "scenes/fourbar.yaml",
-        "--t-end",
-        "0.5",
-        "--rtol",
-        "1e-5",
-        "--out",
-        csv.to_str().unwrap(),
-    ]);
+    let out = fourbar(&["--t-end", "0.5", "--rtol", "1e-5"]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(
         stderr(&out).contains("rows written every 0.0005 s"),

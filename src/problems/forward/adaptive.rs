@@ -84,6 +84,8 @@ struct Ladder<'a> {
     /// The size of rung 0 (the row grid's dt).
     h0: f64,
     rungs: HashMap<i32, Rung>,
+    /// The guess of the step being solved, kept to start again from.
+    guess: Vec<f64>,
 }
 
 impl Ladder<'_> {
@@ -130,13 +132,15 @@ impl Ladder<'_> {
         limits: StepLimits,
     ) -> Result<Option<(SolveReport, Taker, bool)>> {
         let s = block.len();
-        let guess = block.to_vec();
+        self.guess.clear();
+        self.guess.extend_from_slice(block);
         self.at(rung);
         let Ladder {
             model,
             options,
             independent,
             rungs,
+            guess,
             ..
         } = self;
         let rung = rungs.get_mut(&rung).expect("made above");
@@ -152,7 +156,7 @@ impl Ladder<'_> {
                     return Ok(Some((report, Taker::Square, within_step_over)));
                 }
             }
-            block.copy_from_slice(&guess);
+            block.copy_from_slice(guess);
         }
         if rung.general.is_none() {
             rung.general = Some(General::new(model, options, independent, h)?);
@@ -271,6 +275,7 @@ pub(super) fn simulate(
         first: square_step::for_plan(&model, &plan, &model.independent),
         h0: dt,
         rungs: HashMap::new(),
+        guess: Vec::new(),
     };
     let controller = Controller {
         order: options.integrator.order(),
@@ -289,9 +294,8 @@ pub(super) fn simulate(
     current.extend_from_slice(init.q.as_slice());
     current.extend_from_slice(init.dq.as_slice());
     current.extend_from_slice(ddq.as_slice());
-    for v in [&init.q, &init.dq, &ddq] {
-        current.extend(independent.iter().map(|&i| v[i]));
-    }
+    current.resize(s, 0.0);
+    fill_independent(&mut current, n, &independent);
     let mut iterations = Iterations::default();
     if let Some(work) = ladder
         .first
@@ -378,7 +382,8 @@ pub(super) fn simulate(
                     continue;
                 }
                 None => {
-                    failures.push(failure(&model, &current, written, dt, t, h));
+                    let cause = no_step_cause(&model, &current, t, h);
+                    failures.push(failure(&model, &current, written, dt, Some(cause)));
                     break;
                 }
             }
@@ -422,8 +427,7 @@ pub(super) fn simulate(
                         Watched::Continue => {}
                         Watched::Reselect(set) => reselect = Some(set),
                         Watched::Stop(singular) => {
-                            let mut f = failure(&model, &current, written, dt, t, h);
-                            f.cause = None;
+                            let mut f = failure(&model, &current, written, dt, None);
                             f.singular = Some(singular);
                             failures.push(f);
                             break;
@@ -481,11 +485,7 @@ pub(super) fn simulate(
                         to: names_of(&model, &set),
                     });
                     // The run goes on from this step's end in the new coordinates.
-                    for (part, offset) in [0, n, 2 * n].into_iter().enumerate() {
-                        for (j, &i) in set.iter().enumerate() {
-                            current[3 * n + part * f + j] = current[offset + i];
-                        }
-                    }
+                    fill_independent(&mut current, n, &set);
                     watch = Some(Watch::new(&model, &set, &current[..n]));
                     ladder.reselect(set.clone());
                     independent = set;
@@ -513,6 +513,17 @@ pub(super) fn simulate(
     Ok(summary)
 }
 
+/// The IC part of `state` (z, ż, z̈ of the coordinates `independent`, after q, q̇,
+/// q̈ of n), from its q, q̇, q̈.
+fn fill_independent(state: &mut [f64], n: usize, independent: &[usize]) {
+    let f = independent.len();
+    for part in 0..3 {
+        for (j, &i) in independent.iter().enumerate() {
+            state[3 * n + part * f + j] = state[part * n + i];
+        }
+    }
+}
+
 /// The longest step over which no body turns more than [`MAX_TURN`] at the speeds
 /// of `state` (q, q̇, …): past about half a radian a step the integrators' chords
 /// stop following the motion, and their error estimates with them.
@@ -528,24 +539,37 @@ fn turn_limit(model: &Model, state: &[f64]) -> f64 {
 /// converged (not an effect that cannot be evaluated).
 pub const NO_STEP_CONVERGED: &str = "no step from t =";
 
-/// The failure of a run whose step from `state` at t did not converge at any size
-/// down to the smallest (`h`): at the row it could not write.
-fn failure(model: &Model, state: &[f64], row: usize, dt: f64, t: f64, h: f64) -> StepFailure {
-    let n = model.n();
-    let (q, dq) = (&state[..n], &state[n..2 * n]);
-    let cause = model.effect_fault(q, dq, t).unwrap_or_else(|| {
-        format!(
-            "{NO_STEP_CONVERGED} {} s converged, down to {h:.1e} s (error-controlled steps)",
-            crate::trajectory::round_time(t)
-        )
-    });
-    StepFailure::with_cause(
+/// The failure at row `row`, the first the run could not write, from `state`:
+/// `cause`, or where there is none the caller names it (a singular configuration).
+fn failure(
+    model: &Model,
+    state: &[f64],
+    row: usize,
+    dt: f64,
+    cause: Option<String>,
+) -> StepFailure {
+    let q = &state[..model.n()];
+    StepFailure::outside_solve(
         row,
         row as f64 * dt,
         SolveReport::new(Termination::IterationLimit, 0, f64::NAN),
         crate::kinematics::constraint_conditioning(model, model.initial.q.as_slice(), q),
         cause,
     )
+}
+
+/// Why no step from `state` at t converged, down to the smallest size `h`: an
+/// effect that cannot be evaluated there, or the steps' failure itself.
+fn no_step_cause(model: &Model, state: &[f64], t: f64, h: f64) -> String {
+    let n = model.n();
+    model
+        .effect_fault(&state[..n], &state[n..2 * n], t)
+        .unwrap_or_else(|| {
+            format!(
+                "{NO_STEP_CONVERGED} {} s converged, down to {h:.1e} s (error-controlled steps)",
+                crate::trajectory::round_time(t)
+            )
+        })
 }
 
 #[cfg(test)]

@@ -43,13 +43,14 @@ impl StepFailure {
     pub const LARGE_TURN: f64 = 0.5;
 
     /// A failure found outside a window solve (a state that is not finite, a step no
-    /// size converged): its `report`, the constraints' conditioning there, and why.
-    pub(super) fn with_cause(
+    /// size converged, a stop ahead of a singular configuration): its `report`, the
+    /// constraints' conditioning there, and why where that is a cause of its own.
+    pub(super) fn outside_solve(
         step: usize,
         t: f64,
         report: SolveReport,
         constraint_conditioning: f64,
-        cause: String,
+        cause: Option<String>,
     ) -> Self {
         StepFailure {
             step,
@@ -59,7 +60,7 @@ impl StepFailure {
             singular: None,
             warm_start: false,
             batch: false,
-            cause: Some(cause),
+            cause,
             fast_body: None,
         }
     }
@@ -179,12 +180,12 @@ pub(super) fn non_finite_at(
             model.scene.file
         )));
     }
-    Ok(Some(StepFailure::with_cause(
+    Ok(Some(StepFailure::outside_solve(
         k,
         t,
         SolveReport::new(Termination::Diverged, 0, f64::INFINITY),
         1.0,
-        cause,
+        Some(cause),
     )))
 }
 
