@@ -147,6 +147,29 @@ fn hermite_simpson_passes_the_flat_configurations() {
     );
 }
 
+/// One loop with Hermite–Simpson: at 0.5 ms the step ending at t = 0.7085 s lands
+/// clear of the flat configuration by the distance measure (s = 2.1e-4), but its
+/// Newton iteration reaches the rounding of its residual with updates of 1e-5
+/// still moving the loop's lost direction: the energy jumped by 1.3e-7 J there
+/// (9e-9 and 2.8e-8 J at 0.25 and 0.1 ms). A step the arithmetic does not resolve
+/// to the step tolerance is stepped over like one that lands inside the zone.
+#[test]
+fn a_hermite_simpson_step_the_arithmetic_does_not_resolve_is_stepped_over() {
+    for dt in [5e-4, 2.5e-4, 1e-4] {
+        let (tr, s) = run_with(1, Integrator::HermiteSimpson, dt, 2.0);
+        let (b0, branch) = errors(1, &tr, &exact_theta(1, dt, 2.0));
+        let (jump, at) = s.passages.energy_jump.unwrap();
+        println!("dt = {dt}: B0 {b0:.2e} m, energy jump {jump:.2e} J at {at} s");
+        assert_eq!(s.passages.count, 2, "dt = {dt}");
+        assert!(branch <= 1e-9, "dt = {dt}: off the branch by {branch:e} m");
+        assert!(
+            jump <= 1e-8,
+            "dt = {dt}: the energy jumps by {jump:e} J at a passage (t = {at} s)"
+        );
+        assert!(b0 <= 1e-8, "dt = {dt}: B0 error {b0:e} m");
+    }
+}
+
 /// The short chains' Hermite–Simpson error through their passages. Which steps are
 /// stepped over is decided by the rows nearest a rank loss, (max (G⁻¹)ᵢᵢ)^(−1/2): s =
 /// (tr G⁻¹)^(−1/2) adds up every loop that loses a rank, so a threshold on it that

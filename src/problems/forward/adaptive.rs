@@ -103,7 +103,8 @@ impl Ladder<'_> {
     /// The ladder in another set of independent coordinates: its solvers made
     /// afresh as they are needed.
     fn reselect(&mut self, independent: Vec<usize>) {
-        self.first = square_step::for_plan(self.model, self.plan, &independent);
+        self.first = square_step::for_plan(self.model, self.plan, &independent)
+            .map(SquareStep::error_controlled);
         self.independent = independent;
         self.rungs.clear();
     }
@@ -272,7 +273,8 @@ pub(super) fn simulate(
         options,
         plan: &plan,
         independent: model.independent.clone(),
-        first: square_step::for_plan(&model, &plan, &model.independent),
+        first: square_step::for_plan(&model, &plan, &model.independent)
+            .map(SquareStep::error_controlled),
         h0: dt,
         rungs: HashMap::new(),
         guess: Vec::new(),

@@ -36,7 +36,10 @@
 //! residual at the rounding of its terms, where the updates (that rounding
 //! amplified by the Jacobian's condition, which grows like 1/σ²) stop shrinking;
 //! such a residual ends the iteration ([`ROUNDING_RESIDUAL`]). A step that would
-//! end within [`passage::near`] of the rank loss is stepped over ([`Passage`]).
+//! end within [`passage::near`] of the rank loss is stepped over ([`Passage`]), as
+//! is a Hermite–Simpson step near one whose solution the arithmetic does not
+//! resolve to the step tolerance ([`SquareStep::resolved`]): how close that is
+//! differs from one mechanism to the next.
 //! Where Newton does not converge within a few iterations away from a rank loss,
 //! the step goes back to the general solver, whose dynamics regularize the
 //! augmented system near a rank loss instead (see
@@ -83,6 +86,12 @@ const ROUNDING_KEPT: f64 = 1e-2;
 /// as the rounding of the equations' terms (their products of multipliers of 1e2–1e4
 /// with gradients round at about 1e-16 of that).
 const ROUNDING_RESIDUAL: f64 = 1e-14;
+
+/// A residual this small relative to 1 + max |xᵢ| is the rounding of the
+/// equations' terms, amplified at most a thousandfold: an update above the step
+/// tolerance taken from it moves the iterate along a direction the arithmetic
+/// does not resolve.
+const NEAR_ROUNDING: f64 = 1e3 * ROUNDING_RESIDUAL;
 
 /// A step's guess is measured for its distance to a rank loss where the last
 /// step's, carried on, comes within this many times [`passage::near`].
@@ -160,6 +169,9 @@ struct Work {
     /// The size of the updates where the last step that reached the residual's
     /// rounding stopped shrinking (0 before any did): no iteration gets below it.
     rounding: f64,
+    /// Whether the last iteration took an update above the step tolerance from a
+    /// residual at [`NEAR_ROUNDING`]: its solution is not resolved to the tolerance.
+    unresolved: bool,
 }
 
 /// The square system of a DC step with tangent integrators or of an IC step, with
@@ -177,6 +189,9 @@ pub struct SquareStep {
     /// Whether the last step solved was interpolated from a longer step over a
     /// rank loss.
     passed: bool,
+    /// Whether a step next to a rank loss stands only where it is resolved to the
+    /// step tolerance ([`SquareStep::resolved`]).
+    checks_resolution: bool,
 }
 
 /// The step system with its Jacobian's pattern and the regularity test: what the
@@ -288,6 +303,7 @@ impl SquareStep {
             recent: Remeasure::default(),
             guess: vec![0.0; 3 * n],
             passed: false,
+            checks_resolution: true,
         })
     }
 
@@ -322,7 +338,16 @@ impl SquareStep {
             recent: Remeasure::default(),
             guess: vec![0.0; 3 * n],
             passed: false,
+            checks_resolution: self.checks_resolution,
         })
+    }
+
+    /// This square step for an error-controlled run: its steps next to a rank loss
+    /// are not checked for their resolution, as the run's error estimate rejects a
+    /// step whose error the rounding sets, and a smaller step lands elsewhere.
+    pub(super) fn error_controlled(mut self) -> SquareStep {
+        self.checks_resolution = false;
+        self
     }
 }
 
@@ -381,6 +406,7 @@ impl Work {
             factors,
             factored: false,
             rounding: 0.0,
+            unresolved: false,
             saved: vec![0.0; size],
             gram: regularity.work(&system.model)?,
             multipliers: vec![0.0; size - 3 * n],
@@ -527,6 +553,7 @@ impl Equations {
                 None => 0.0,
             };
             let residual_size = max_abs(&work.residual);
+            let scale = 1.0 + max_abs(&work.x);
             work.factors.solve_in_place(&mut work.residual);
             if !work.residual.iter().all(|d| d.is_finite()) {
                 return None;
@@ -578,13 +605,16 @@ impl Equations {
                     settled,
                 });
             }
+            if update > limits.step_tolerance && residual_size <= NEAR_ROUNDING * scale {
+                work.unresolved = true;
+            }
             // A residual at the rounding of the equations' terms: x solves them as far
             // as the arithmetic tells (near a rank loss of Φ_q the updates from here
             // are that rounding amplified by the Jacobian's condition, and never shrink).
             // (x is the iterate the residual was taken at: the update is not applied yet.)
             if !settled
                 && update > limits.step_tolerance
-                && residual_size <= ROUNDING_RESIDUAL * (1.0 + max_abs(&work.x))
+                && residual_size <= ROUNDING_RESIDUAL * scale
             {
                 return self.finish(model, block, iteration, factorizations, work);
             }
@@ -620,6 +650,24 @@ impl Equations {
             }
         }
         None
+    }
+
+    /// Whether the solution in `work.x` is resolved to the step tolerance: its
+    /// iteration never moved it along a direction the arithmetic does not resolve,
+    /// and a fresh Newton update from it, the residual's rounding amplified by the
+    /// Jacobian's condition, stays below the tolerance.
+    fn resolved(&self, t: f64, before: &[f64], limits: StepLimits, work: &mut Work) -> bool {
+        if work.unresolved || self.linearize(t, before, work).is_none() {
+            return false;
+        }
+        work.factors.solve_in_place(&mut work.residual);
+        let n = self.system.model.n();
+        let update = work.x[..3 * n]
+            .iter()
+            .zip(&work.residual)
+            .map(|(xi, di)| di.abs() / (1.0 + xi.abs()))
+            .fold(0.0, f64::max);
+        update <= limits.step_tolerance
     }
 
     /// The step's solution `work.x` into `block`.
@@ -728,7 +776,14 @@ impl SquareStep {
                     }
                     let s = self.clearance(before, block);
                     self.recent.measured(s);
-                    if s >= zone {
+                    // Resolution is checked near a rank loss and where steps are fine
+                    // enough that several span the zone: where one step crosses it, the
+                    // step's own error outweighs the rounding a landing is solved to,
+                    // and a longer step over errs more (20 loops at 25 ms: 1.5e-3 m
+                    // became 9.2e-2 m).
+                    let coarse = change.abs() >= Remeasure::FAR;
+                    let regular = s >= DynamicsKernel::REGULAR_ABOVE || coarse;
+                    if s >= zone && (regular || self.resolved(t, before, limits)) {
                         return Some(work);
                     }
                     block[..3 * n].copy_from_slice(&self.guess);
@@ -783,6 +838,7 @@ impl SquareStep {
         watch: Option<&mut dyn FnMut(&StepIteration)>,
     ) -> Option<StepWork> {
         let work = &mut self.work;
+        work.unresolved = false;
         let solved = self.equations.newton(t, before, block, limits, work, watch);
         if solved.is_none() {
             // The next step starts its multipliers and its Jacobian afresh.
@@ -791,6 +847,18 @@ impl SquareStep {
             work.rounding = 0.0;
         }
         solved
+    }
+
+    /// Whether the step just solved (at `t`, from `before`) is resolved to the
+    /// step tolerance ([`Equations::resolved`]). Near a rank loss the step system's
+    /// condition grows like the inverse square of the distance, at a rate that
+    /// differs from one mechanism to the next: this measures it where the distance
+    /// alone cannot tell. Only Hermite–Simpson's steps are held to it: they err so
+    /// little that an unresolved landing sets their error at a passage, where a
+    /// trapezoidal step over errs more than the landing it avoids.
+    fn resolved(&mut self, t: f64, before: &[f64], limits: StepLimits) -> bool {
+        !(self.checks_resolution && self.equations.system.staged())
+            || self.equations.resolved(t, before, limits, &mut self.work)
     }
 
     /// The distance to a rank loss of Φ_q of a step solved (`state`: q, q̇, q̈)

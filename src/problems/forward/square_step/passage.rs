@@ -16,6 +16,7 @@
 //! with Hermite–Simpson errs 2⁵ = 32 times one of Δt, and at 8Δt 32,768 times.
 
 use super::{SquareStep, StepLimits, StepWork};
+use crate::dynamics::DynamicsKernel;
 
 /// The distance to a rank loss of the rows nearest one, (max (G⁻¹)ᵢᵢ)^(−1/2), below
 /// which a step's end is stepped over, by the step's integrator. Closer, the step
@@ -210,7 +211,9 @@ impl Passage {
 
     /// One step of length `h` from `from` at `t0` into `to` (its guess the Taylor
     /// one), by the passage's square step set to that length: its work and its
-    /// end's distance to a rank loss, or `None` where it does not converge.
+    /// end's distance to a rank loss (0 where, within
+    /// [`DynamicsKernel::REGULAR_ABOVE`] of one, its solution is not resolved to the
+    /// step tolerance), or `None` where it does not converge.
     fn step(
         &mut self,
         square: &SquareStep,
@@ -228,7 +231,11 @@ impl Passage {
         over.set_dt(h);
         taylor(&from[..3 * n], &mut to[..3 * n], n, h);
         let work = over.solve_plain(t0 + h, from, to, limits)?;
-        Some((work, over.clearance(from, to)))
+        let clearance = over.clearance(from, to);
+        if clearance < DynamicsKernel::REGULAR_ABOVE && !over.resolved(t0 + h, from, limits) {
+            return Some((work, 0.0));
+        }
+        Some((work, clearance))
     }
 }
 

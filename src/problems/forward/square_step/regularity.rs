@@ -140,8 +140,6 @@ impl Regularity {
     }
 }
 
-/// s far enough from a rank loss that it need not be measured every step.
-const FAR: f64 = 1e-2;
 /// The most steps between two measures of s.
 const REFRESH: usize = 8;
 
@@ -159,11 +157,14 @@ pub(in crate::problems::forward) struct Remeasure {
 }
 
 impl Remeasure {
+    /// s far enough from a rank loss that it need not be measured every step.
+    pub(in crate::problems::forward) const FAR: f64 = 1e-2;
+
     /// The last measure, where it stands for this step (counted as skipped);
     /// `None` where s is to be measured.
     pub(in crate::problems::forward) fn standing(&mut self) -> Option<f64> {
         let reach = 4.0 * self.change.abs() * (self.skipped + 1) as f64;
-        if self.measured - reach > FAR && self.skipped < REFRESH {
+        if self.measured - reach > Remeasure::FAR && self.skipped < REFRESH {
             self.skipped += 1;
             Some(self.measured)
         } else {
