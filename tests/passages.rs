@@ -191,7 +191,7 @@ fn the_rows_of_a_hermite_simpson_step_over_hold_the_velocity_constraints() {
 /// stepped over the 40-loop chain's passages let the 1-loop chain's steps end 5e-5
 /// from its flat configuration, where each moved the energy by up to 1.5e-6 J. Over
 /// 20 s at 0.625 ms the B0 error was then 1.2e-5, 4.8e-5 and 3.5e-7 m for N = 1, 2
-/// and 5; now 2.8e-7, 3.3e-7 and 2.2e-7 m.
+/// and 5; now 1.3e-7, 3.3e-7 and 8.9e-9 m.
 #[test]
 fn hermite_simpson_keeps_its_accuracy_through_the_short_chains_passages() {
     let (dt, t_end) = (6.25e-4, 20.0);
