@@ -179,9 +179,19 @@ fn the_rows_of_a_hermite_simpson_step_over_hold_the_velocity_constraints() {
     for dt in [2.5e-3, 5e-4] {
         let (_, s) = run_with(5, Integrator::HermiteSimpson, dt, 20.0);
         let worst = s.passages.worst_velocity_constraint;
-        println!("dt = {dt}: {} passages, |Φq q̇| {worst:.2e}", s.passages.count);
-        assert!(s.passages.count >= 20, "dt = {dt}: {} passages", s.passages.count);
-        assert!(worst <= 1e-10, "dt = {dt}: |Φq q̇| {worst:e} around a passage");
+        println!(
+            "dt = {dt}: {} passages, |Φq q̇| {worst:.2e}",
+            s.passages.count
+        );
+        assert!(
+            s.passages.count >= 20,
+            "dt = {dt}: {} passages",
+            s.passages.count
+        );
+        assert!(
+            worst <= 1e-10,
+            "dt = {dt}: |Φq q̇| {worst:e} around a passage"
+        );
     }
 }
 

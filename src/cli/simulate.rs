@@ -544,14 +544,14 @@ enum Run {
     Streamed(Box<super::output::Streamed>),
 }
 
-/// The summary's words on the check of a run's rows against its tolerance (empty
-/// where there was none).
 /// Whether a failure's cause is an error-controlled run's steps shrinking to the
 /// smallest size without converging (not an effect that cannot be evaluated).
 fn no_step_converged(cause: &str) -> bool {
     cause.starts_with(forward::NO_STEP_CONVERGED)
 }
 
+/// The summary's words on the check of a run's rows against its tolerance (empty
+/// where there was none).
 fn check_description(c: &forward::ErrorControl) -> String {
     let Some(check) = &c.check else {
         return String::new();

@@ -558,11 +558,7 @@ impl Equations {
             if !work.residual.iter().all(|d| d.is_finite()) {
                 return None;
             }
-            let update = work.x[..3 * n]
-                .iter()
-                .zip(&work.residual)
-                .map(|(xi, di)| di.abs() / (1.0 + xi.abs()))
-                .fold(0.0, f64::max);
+            let update = relative_update(&work.x[..3 * n], &work.residual);
             // The contraction θ over the last update and, where there are two, over
             // the last two (their geometric mean). The error left after this update:
             // about its square after a Newton update; after a simplified one,
@@ -662,12 +658,7 @@ impl Equations {
         }
         work.factors.solve_in_place(&mut work.residual);
         let n = self.system.model.n();
-        let update = work.x[..3 * n]
-            .iter()
-            .zip(&work.residual)
-            .map(|(xi, di)| di.abs() / (1.0 + xi.abs()))
-            .fold(0.0, f64::max);
-        update <= limits.step_tolerance
+        relative_update(&work.x[..3 * n], &work.residual) <= limits.step_tolerance
     }
 
     /// The step's solution `work.x` into `block`.
@@ -688,6 +679,15 @@ impl Equations {
             factorizations,
         })
     }
+}
+
+/// The size of an update `d` of the state `x` (q, q̇, q̈; `d` may go on past
+/// it): max |dᵢ| / (1 + |xᵢ|).
+fn relative_update(x: &[f64], d: &[f64]) -> f64 {
+    x.iter()
+        .zip(d)
+        .map(|(xi, di)| di.abs() / (1.0 + xi.abs()))
+        .fold(0.0, f64::max)
 }
 
 /// max |vᵢ| (0 for an empty slice; a NaN passed over, as `f64::max` does), over
