@@ -66,6 +66,19 @@ fn on_branch(loops: usize, (mut theta, mut omega): (f64, f64), h: f64, steps: us
     (theta, omega)
 }
 
+/// The largest spread of the loops' heights a run on the parallelogram branch may
+/// show, given its B0 error: to rounding with exact projections (the trapezoidal
+/// rule's); with Hermite–Simpson's, damped near a rank loss, the lost direction
+/// is left to the integrators over the steps that cross its zone, and the loops
+/// part by a small fraction of the run's own error (1e-7 m at 25 ms, where B0 is
+/// 2e-3 m off). A switch of branch parts them by about a link's length.
+fn branch_tolerance(integrator: Integrator, b0: f64) -> f64 {
+    match integrator {
+        Integrator::HermiteSimpson => 1e-9f64.max(1e-2 * b0),
+        _ => 1e-9,
+    }
+}
+
 /// max |B0 − (cos θ, sin θ)| over the rows, and the largest spread of the points
 /// B_i's heights (0 on the parallelogram branch).
 fn errors(loops: usize, tr: &Trajectory, exact: &[f64]) -> (f64, f64) {
@@ -97,7 +110,9 @@ fn the_n_fourbar_passes_its_flat_configurations_at_second_order() {
         let (tr, s) = run(5, dt, t_end);
         let (b0, branch) = errors(5, &tr, &exact_theta(5, dt, t_end));
         assert!(branch <= 1e-9, "dt = {dt}: off the branch by {branch:e} m");
-        assert!(s.worst_phi <= 1e-12, "dt = {dt}: |Φ| {:e}", s.worst_phi);
+        // (Damped projections leave a fraction of a step's drift in Φ near a
+        // rank loss: 3e-12 at 4 ms.)
+        assert!(s.worst_phi <= 1e-11, "dt = {dt}: |Φ| {:e}", s.worst_phi);
         if let Some(coarser) = last {
             let ratio = coarser / b0;
             assert!(
@@ -134,7 +149,9 @@ fn hermite_simpson_passes_the_flat_configurations() {
             "dt = {dt}"
         );
         assert!(branch <= 1e-9, "dt = {dt}: off the branch by {branch:e} m");
-        assert!(s.worst_phi <= 1e-12, "dt = {dt}: |Φ| {:e}", s.worst_phi);
+        // (Damped projections leave a fraction of a step's drift in Φ near a
+        // rank loss: 3e-12 at 4 ms.)
+        assert!(s.worst_phi <= 1e-11, "dt = {dt}: |Φ| {:e}", s.worst_phi);
         assert!(b0 <= 1e-8, "dt = {dt}: B0 error {b0:e} m");
         errors_at.push(b0);
     }
@@ -148,26 +165,57 @@ fn hermite_simpson_passes_the_flat_configurations() {
 }
 
 /// One loop with Hermite–Simpson: at 0.5 ms the step ending at t = 0.7085 s lands
-/// clear of the flat configuration by the distance measure (s = 2.1e-4), but its
-/// Newton iteration reaches the rounding of its residual with updates of 1e-5
-/// still moving the loop's lost direction: the energy jumped by 1.3e-7 J there
-/// (9e-9 and 2.8e-8 J at 0.25 and 0.1 ms). A step the arithmetic does not resolve
-/// to the step tolerance is stepped over like one that lands inside the zone.
+/// at s = 2.1e-4 from the flat configuration. With exact projections its Newton
+/// iteration reached the rounding of its residual with updates of 1e-5 still
+/// moving the loop's lost direction: the energy jumped by 1.3e-7 J there (and by
+/// 5e-9 to 9e-9 J at a passage once such steps were stepped over). Near a rank
+/// loss the projections are damped: every landing is resolved, and the energy
+/// moves at a passage by what a regular step's error does.
 #[test]
-fn a_hermite_simpson_step_the_arithmetic_does_not_resolve_is_stepped_over() {
+fn a_hermite_simpson_landing_next_to_a_rank_loss_is_resolved() {
     for dt in [5e-4, 2.5e-4, 1e-4] {
         let (tr, s) = run_with(1, Integrator::HermiteSimpson, dt, 2.0);
         let (b0, branch) = errors(1, &tr, &exact_theta(1, dt, 2.0));
         let (jump, at) = s.passages.energy_jump.unwrap();
-        println!("dt = {dt}: B0 {b0:.2e} m, energy jump {jump:.2e} J at {at} s");
+        println!(
+            "dt = {dt}: B0 {b0:.2e} m, branch {branch:.1e} m, energy jump {jump:.2e} J at {at} s"
+        );
         assert_eq!(s.passages.count, 2, "dt = {dt}");
         assert!(branch <= 1e-9, "dt = {dt}: off the branch by {branch:e} m");
         assert!(
-            jump <= 1e-8,
+            jump <= 1e-12,
             "dt = {dt}: the energy jumps by {jump:e} J at a passage (t = {at} s)"
         );
-        assert!(b0 <= 1e-8, "dt = {dt}: B0 error {b0:e} m");
+        assert!(b0 <= 1e-11, "dt = {dt}: B0 error {b0:e} m");
     }
+}
+
+/// Below 2.5 ms Hermite–Simpson's error on the short chains rested on a floor of
+/// 1e-8 to 1e-6 m over 20 s that did not fall with dt (two loops: 8.6e-7 m at
+/// 1 ms, 1.1e-6 m at 0.5 ms): the rounding of Φ at the landings next to each
+/// passage, amplified through the exact projections. Damped, the error falls at
+/// fourth order to 1e-10 m.
+#[test]
+fn hermite_simpson_falls_below_the_floor_of_exact_projections() {
+    let (loops, t_end) = (2, 20.0);
+    let mut errors_at = Vec::new();
+    for dt in [2.5e-3, 1.25e-3, 1e-3, 5e-4] {
+        let (tr, s) = run_with(loops, Integrator::HermiteSimpson, dt, t_end);
+        let (b0, branch) = errors(loops, &tr, &exact_theta(loops, dt, t_end));
+        println!(
+            "dt = {dt}: B0 {b0:.2e} m, branch {branch:.1e} m, {} passages",
+            s.passages.count
+        );
+        assert_eq!(s.passages.count, 20, "dt = {dt}");
+        assert!(branch <= 1e-9, "dt = {dt}: off the branch by {branch:e} m");
+        errors_at.push(b0);
+    }
+    assert!(
+        errors_at[0] / errors_at[1] >= 14.0,
+        "2.5 → 1.25 ms: {errors_at:?}"
+    );
+    assert!(errors_at[2] <= 1e-9, "1 ms: {errors_at:?}");
+    assert!(errors_at[3] <= 3e-10, "0.5 ms: {errors_at:?}");
 }
 
 /// Where one step crosses the whole zone of a rank loss, a step that lands in it
@@ -181,7 +229,8 @@ fn a_coarse_hermite_simpson_step_is_not_stepped_over_for_its_resolution() {
     let (b0, branch) = errors(loops, &tr, &exact_theta(loops, dt, t_end));
     println!("B0 {b0:.2e} m, branch {branch:.1e} m");
     assert_eq!(s.passages.count, 20);
-    assert!(branch <= 1e-9, "off the branch by {branch:e} m");
+    let tolerated = branch_tolerance(Integrator::HermiteSimpson, b0);
+    assert!(branch <= tolerated, "off the branch by {branch:e} m");
     assert!(b0 <= 3e-3, "B0 error {b0:e} m");
 }
 
@@ -251,7 +300,11 @@ fn a_passage_errs_about_as_one_step_does() {
         let (b0, branch) = errors(loops, &tr, &exact_theta(loops, dt, t_end));
         println!("dt = {dt}: B0 {b0:.3e} m, {} passages", s.passages.count);
         assert_eq!(s.passages.count, 20, "dt = {dt}");
-        assert!(branch <= 1e-9, "dt = {dt}: off the branch by {branch:e} m");
+        let tolerated = branch_tolerance(Integrator::HermiteSimpson, b0);
+        assert!(
+            branch <= tolerated,
+            "dt = {dt}: off the branch by {branch:e} m"
+        );
         if let Some((coarser, error)) = last {
             // At least third order from one dt to the next.
             let floor = (coarser / dt).powi(3);
@@ -283,7 +336,11 @@ fn every_chain_passes_its_flat_configurations_at_every_step() {
                     "{what}: {} passages",
                     s.passages.count
                 );
-                assert!(branch <= 1e-9, "{what}: off the branch by {branch:e} m");
+                let tolerated = branch_tolerance(integrator, b0);
+                assert!(
+                    branch <= tolerated,
+                    "{what}: off the branch by {branch:e} m"
+                );
                 if let Some(coarser) = last {
                     assert!(
                         b0 < coarser,

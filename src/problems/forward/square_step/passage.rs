@@ -15,6 +15,7 @@
 //! keeps the passage's error that of about one step: a step of 2Δt or more made
 //! with Hermite–Simpson errs 2⁵ = 32 times one of Δt, and at 8Δt 32,768 times.
 
+use super::system::System;
 use super::{SquareStep, StepLimits, StepWork};
 use crate::dynamics::DynamicsKernel;
 
@@ -25,13 +26,24 @@ use crate::dynamics::DynamicsKernel;
 /// lost rank, and the energy moves by an amount that does not fall with Δt. A step
 /// over errs like its length to the power of its order, so the zone is as wide as
 /// the coarse steps' passages allow: wider for Hermite–Simpson, whose steps err
-/// least and whose landings err most.
-pub(super) fn near(staged: bool) -> f64 {
-    match staged {
+/// least and whose landings err most; far narrower where the step damps its
+/// projections (`damps`: a Hermite–Simpson DC step of fixed size), whose landings
+/// are resolved.
+pub(super) fn near(system: &System, damps: bool) -> f64 {
+    if damps && system.damped() {
+        return NEAR_DAMPED;
+    }
+    match system.staged() {
         true => NEAR_HERMITE_SIMPSON,
         false => NEAR_TRAPEZOIDAL,
     }
 }
+
+/// [`near`] of a step with damped projections ([`System::row_damping`]): they
+/// leave the lost rank to the integrators, so that a landing is resolved however
+/// near it lies, except for its accelerations, whose constraint stays exact and
+/// whose lost component is the drift of q̇ divided by the distance.
+const NEAR_DAMPED: f64 = 1e-5;
 
 /// [`near`] of a Hermite–Simpson step.
 const NEAR_HERMITE_SIMPSON: f64 = 2e-4;
@@ -156,7 +168,7 @@ impl Passage {
         let n = system.model.n();
         let dt = system.dt;
         let t0 = t - dt;
-        let near = near(system.staged());
+        let near = near(system, square.damps);
         let mut total = StepWork {
             iterations: 0,
             factorizations: 0,
@@ -236,6 +248,8 @@ impl Passage {
             none => none.insert(Box::new(square.at_dt(h)?)),
         };
         over.set_dt(h);
+        // A step over lands near a rank loss: damped where its system damps.
+        over.work.near_rank_loss = over.damps && over.equations.system.damped();
         taylor(&from[..3 * n], &mut to[..3 * n], n, h);
         let work = over.solve_plain(t0 + h, from, to, limits)?;
         let clearance = over.clearance(from, to);

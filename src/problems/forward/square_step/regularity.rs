@@ -163,13 +163,24 @@ impl Remeasure {
     /// The last measure, where it stands for this step (counted as skipped);
     /// `None` where s is to be measured.
     pub(in crate::problems::forward) fn standing(&mut self) -> Option<f64> {
-        let reach = 4.0 * self.change.abs() * (self.skipped + 1) as f64;
-        if self.measured - reach > Remeasure::FAR && self.skipped < REFRESH {
+        if self.least() > Remeasure::FAR && self.skipped < REFRESH {
             self.skipped += 1;
             Some(self.measured)
         } else {
             None
         }
+    }
+
+    /// The least s the next step may reach: the last measure carried on at four
+    /// times its last change a step (0 before any measure).
+    pub(in crate::problems::forward) fn least(&self) -> f64 {
+        self.measured - 4.0 * self.change.abs() * (self.skipped + 1) as f64
+    }
+
+    /// The last measure where it was taken at the step before (`None` where it
+    /// was not, or there is none).
+    pub(in crate::problems::forward) fn fresh(&self) -> Option<f64> {
+        (self.skipped == 0 && self.measured > 0.0).then_some(self.measured)
     }
 
     /// Records s as measured at this step.

@@ -51,6 +51,8 @@ pub(super) struct System {
     /// Whether the integrators are projected on the tangent space (DC: with
     /// multipliers μ₁, μ₂) or hold as they are (IC).
     pub(super) projected: bool,
+    /// κ of the damped projections ([`System::row_damping`]): 0 for undamped ones.
+    pub(super) projection_damping: f64,
 }
 
 impl System {
@@ -94,6 +96,39 @@ impl System {
         }
     }
 
+    /// Whether the projections of the integrators are damped
+    /// ([`System::row_damping`]).
+    pub(super) fn damped(&self) -> bool {
+        self.projected && self.projection_damping > 0.0
+    }
+
+    /// The damping of each active row's projections at the step's start q₀:
+    /// κ |∇Φᵢ(q₀)|², with κ the system's `projection_damping`. The position and
+    /// velocity rows then read Φᵢ + dᵢ μ₁ᵢ = 0 and ∇Φᵢ q̇ + dᵢ μ₂ᵢ = 0: each projection
+    /// is the minimum of |Δq|² + |Φ|²/d, which enforces a constraint along the
+    /// directions of Φ_q whose normalized singular value σ has σ² ≫ κ, and leaves
+    /// one with σ² ≪ κ (a rank about to be lost) to the integrators and inertia.
+    /// Undamped, a rounding of Φ near a rank loss is amplified like 1/σ⁴ through
+    /// the nested projections into the step's motion.
+    pub(super) fn row_damping(&self, q: &[f64], out: &mut Vec<f64>) {
+        let model = &*self.model;
+        out.clear();
+        let (mut u, mut gradient) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
+        for &k in &model.active {
+            let c = &model.constraints[k];
+            c.gather(q, &mut u);
+            c.equation.gradient(&u, &mut gradient);
+            let norm2: f64 = c
+                .local_index()
+                .iter()
+                .zip(&gradient)
+                .filter(|(ip, _)| ip.is_some())
+                .map(|(_, g)| g * g)
+                .sum();
+            out.push(self.projection_damping * norm2);
+        }
+    }
+
     /// The equations: the constraints at three levels, the dynamics and the
     /// integrators.
     pub(super) fn equations(&self) -> usize {
@@ -104,13 +139,14 @@ impl System {
 impl System {
     /// Emits the Jacobian of the step system at `x` into `sink` (∂Q/∂q and ∂Q/∂q̇
     /// in `kq`, `kv`, row-major n × n, read at `force_entries` only; the stage's
-    /// at its state in `stage`).
+    /// at its state in `stage`; the step's [`System::row_damping`] in `damping`,
+    /// empty where it is not damped).
     pub(super) fn assemble(
         &self,
         x: &[f64],
-        kq: &[f64],
-        kv: &[f64],
+        (kq, kv): (&[f64], &[f64]),
         stage: &Stage,
+        damping: &[f64],
         sink: &mut Sink,
     ) {
         let model = &*self.model;
@@ -195,19 +231,28 @@ impl System {
                 }
             }
         }
+        if self.damped() {
+            for row in 0..ma {
+                let d = damping.get(row).copied().unwrap_or(0.0);
+                sink.add(row, c_mu1 + row, d);
+                sink.add(r_vel + row, c_mu2 + row, d);
+            }
+        }
         if self.staged() {
             stage.assemble(self, x, sink);
         }
     }
 
     /// The residual of the step system at `x`, given the step before (`before`: q,
-    /// q̇, q̈), the generalized forces Q in `q_force` and the stage's in `stage`.
+    /// q̇, q̈), the generalized forces Q in `q_force`, the stage's in `stage` and
+    /// the step's [`System::row_damping`] in `damping` (empty where it is not
+    /// damped).
     pub(super) fn residual(
         &self,
         x: &[f64],
         before: &[f64],
-        q_force: &[f64],
-        stage: &Stage,
+        (q_force, stage): (&[f64], &Stage),
+        damping: &[f64],
         out: &mut [f64],
     ) {
         let model = &*self.model;
@@ -264,6 +309,10 @@ impl System {
             }
             out[ma + row] = vel;
             out[2 * ma + row] = acc;
+            if let Some(&d) = damping.get(row) {
+                out[row] += d * mult[ma + row];
+                out[ma + row] += d * mult[2 * ma + row];
+            }
         }
         if self.staged() {
             stage.residual(self, x, out);

@@ -38,6 +38,14 @@ fn check_jacobian(scene: &str, mut step: SquareStep) {
     let before: Vec<f64> = (0..3 * n).map(|i| x[i % n] + 0.1 * wobble(i + 3)).collect();
     let t = 0.37;
     let work = &mut step.work;
+    work.near_rank_loss = true;
+    step.equations.prepare(&before, work);
+    if step.equations.system.damped() {
+        assert!(
+            work.damping.iter().all(|d| *d > 0.0),
+            "{scene}: undamped rows"
+        );
+    }
     work.x.copy_from_slice(&x);
     step.equations.linearize(t, &before, work).unwrap();
     let mut dense = vec![0.0; size * size];
