@@ -37,9 +37,11 @@
 //! amplified by the Jacobian's condition, which grows like 1/σ²) stop shrinking;
 //! such a residual ends the iteration ([`ROUNDING_RESIDUAL`]). A step that would
 //! end within [`passage::near`] of the rank loss is stepped over ([`Passage`]), as
-//! is a Hermite–Simpson step near one whose solution the arithmetic does not
+//! is a Hermite–Simpson IC step near one whose solution the arithmetic does not
 //! resolve to the step tolerance ([`SquareStep::resolved`]): how close that is
-//! differs from one mechanism to the next.
+//! differs from one mechanism to the next. A Hermite–Simpson DC step of fixed size
+//! damps its projections there instead ([`System::row_damping`]): the rounding of Φ
+//! otherwise reaches its motion through the nested projections amplified like 1/σ⁴.
 //! Where Newton does not converge within a few iterations away from a rank loss,
 //! the step goes back to the general solver, whose dynamics regularize the
 //! augmented system near a rank loss instead (see
