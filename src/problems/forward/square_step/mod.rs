@@ -330,25 +330,31 @@ impl SquareStep {
         let factors = Factors::new(&jacobian)?;
         let regularity = Regularity::new(&system.model);
         let work = Work::new(&system, &jacobian, &regularity, factors)?;
-        Some(
-            SquareStep {
-                equations: Equations {
-                    system,
-                    jacobian,
-                    regularity,
-                },
-                work,
-                passage: Passage::default(),
-                recent: Remeasure::default(),
-                ended: vec![f64::NAN; n],
-                guess: vec![0.0; 3 * n],
-                passed: false,
-                checks_resolution: true,
-                damps: true,
-                damped_below: DAMPED_BELOW,
-            }
-            .scaled_to_its_initial_configuration(),
-        )
+        let equations = Equations {
+            system,
+            jacobian,
+            regularity,
+        };
+        Some(SquareStep::of(equations, work).scaled_to_its_initial_configuration())
+    }
+
+    /// The square step of `equations` with its scratch, before any step: its
+    /// steps near a rank loss checked for their resolution and damped where the
+    /// system can be.
+    fn of(equations: Equations, work: Work) -> SquareStep {
+        let n = equations.system.model.n();
+        SquareStep {
+            equations,
+            work,
+            passage: Passage::default(),
+            recent: Remeasure::default(),
+            ended: vec![f64::NAN; n],
+            guess: vec![0.0; 3 * n],
+            passed: false,
+            checks_resolution: true,
+            damps: true,
+            damped_below: DAMPED_BELOW,
+        }
     }
 
     /// This square step with its damped zone ([`DAMPED_BELOW`]) scaled to the
@@ -386,18 +392,11 @@ impl SquareStep {
             &equations.regularity,
             factors,
         )?;
-        let n = equations.system.model.n();
         Some(SquareStep {
-            equations,
-            work,
-            passage: Passage::default(),
-            recent: Remeasure::default(),
-            ended: vec![f64::NAN; n],
-            guess: vec![0.0; 3 * n],
-            passed: false,
             checks_resolution: self.checks_resolution,
             damps: self.damps,
             damped_below: self.damped_below,
+            ..SquareStep::of(equations, work)
         })
     }
 
