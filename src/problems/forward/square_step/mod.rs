@@ -176,6 +176,11 @@ struct Work {
     stage_kq: Vec<f64>,
     stage_kv: Vec<f64>,
     factors: Factors,
+    /// The factors and values of the other pattern ([`Equations::pattern`]),
+    /// swapped with `factors` and `values` as a step's projections are damped
+    /// or not (`active_damped`: which ones those hold).
+    other: Option<(Factors, Vec<f64>)>,
+    active_damped: bool,
     gram: GramWork,
     /// The multipliers of the last step solved: the next step's first guess.
     multipliers: Vec<f64>,
@@ -232,8 +237,22 @@ pub struct SquareStep {
 #[derive(Clone)]
 struct Equations {
     system: System,
+    /// The Jacobian's pattern with exact projections, and where the system can
+    /// damp them, with their damping's entries (analysed apart: those entries
+    /// change the LU's ordering and fill, by a third on the 40 loops).
     jacobian: Pattern,
+    damped_jacobian: Option<Pattern>,
     regularity: Regularity,
+}
+
+impl Equations {
+    /// The Jacobian's pattern, with damped projections or exact ones.
+    fn pattern(&self, damped: bool) -> &Pattern {
+        match (damped, &self.damped_jacobian) {
+            (true, Some(pattern)) => pattern,
+            _ => &self.jacobian,
+        }
+    }
 }
 
 impl SquareStep {
@@ -324,17 +343,37 @@ impl SquareStep {
             },
             false => Stage::NONE,
         };
-        let sink = &mut Sink::Pattern(&mut emitted);
-        system.assemble(&x, (&kq, &kv), &stage, &[], sink);
+        system.assemble(
+            &x,
+            (&kq, &kv),
+            &stage,
+            &[],
+            &mut Sink::Pattern(&mut emitted),
+        );
         let jacobian = Pattern::new(size, &emitted);
         let factors = Factors::new(&jacobian)?;
+        let damped_jacobian = match system.damped() {
+            true => {
+                let mut emitted = Vec::new();
+                let damping = vec![0.0; system.model.active.len()];
+                let sink = &mut Sink::Pattern(&mut emitted);
+                system.assemble(&x, (&kq, &kv), &stage, &damping, sink);
+                Some(Pattern::new(size, &emitted))
+            }
+            false => None,
+        };
+        let damped_factors = match &damped_jacobian {
+            Some(pattern) => Some(Factors::new(pattern)?),
+            None => None,
+        };
         let regularity = Regularity::new(&system.model);
-        let work = Work::new(&system, &jacobian, &regularity, factors)?;
         let equations = Equations {
             system,
             jacobian,
+            damped_jacobian,
             regularity,
         };
+        let work = Work::new(&equations, (factors, damped_factors))?;
         Some(SquareStep::of(equations, work).scaled_to_its_initial_configuration())
     }
 
@@ -385,13 +424,13 @@ impl SquareStep {
     pub fn at_dt(&self, dt: f64) -> Option<SquareStep> {
         let mut equations = self.equations.clone();
         equations.system.dt = dt;
-        let factors = self.work.factors.like();
-        let work = Work::new(
-            &equations.system,
-            &equations.jacobian,
-            &equations.regularity,
-            factors,
-        )?;
+        // (The factors held are of either pattern: each is remade from its own.)
+        let (exact, damped) = match self.work.active_damped {
+            false => (&self.work.factors, self.work.other.as_ref().map(|o| &o.0)),
+            true => (&self.work.other.as_ref()?.0, Some(&self.work.factors)),
+        };
+        let factors = (exact.like(), damped.map(Factors::like));
+        let work = Work::new(&equations, factors)?;
         Some(SquareStep {
             checks_resolution: self.checks_resolution,
             damps: self.damps,
@@ -438,12 +477,8 @@ pub(super) fn for_plan(
 impl Work {
     /// Scratch for `system`'s iteration, unfactored, its multipliers at 0; `None`
     /// where G's analysis fails.
-    fn new(
-        system: &System,
-        jacobian: &Pattern,
-        regularity: &Regularity,
-        factors: Factors,
-    ) -> Option<Work> {
+    fn new(equations: &Equations, (factors, damped): (Factors, Option<Factors>)) -> Option<Work> {
+        let system = &equations.system;
         let n = system.model.n();
         let size = system.size();
         let dense = if system.force_entries.is_empty() {
@@ -458,7 +493,7 @@ impl Work {
         Some(Work {
             x: vec![0.0; size],
             residual: vec![0.0; size],
-            values: vec![0.0; jacobian.row_idx.len()],
+            values: vec![0.0; equations.jacobian.row_idx.len()],
             q_force: vec![0.0; n],
             kq: vec![0.0; dense],
             kv: vec![0.0; dense],
@@ -467,13 +502,15 @@ impl Work {
             stage_kq: vec![0.0; stage_dense],
             stage_kv: vec![0.0; stage_dense],
             factors,
+            other: damped.map(|f| (f, vec![0.0; equations.pattern(true).row_idx.len()])),
+            active_damped: false,
             factored: false,
             rounding: 0.0,
             unresolved: false,
             saved: vec![0.0; size],
             damping: Vec::new(),
             near_rank_loss: false,
-            gram: regularity.work(&system.model)?,
+            gram: equations.regularity.work(&system.model)?,
             multipliers: vec![0.0; size - 3 * n],
         })
     }
@@ -487,6 +524,15 @@ impl Equations {
         if self.system.damped() && work.near_rank_loss {
             let n = self.system.model.n();
             self.system.row_damping(&before[..n], &mut work.damping);
+        }
+        let damped = !work.damping.is_empty();
+        if damped != work.active_damped {
+            if let Some((factors, values)) = work.other.as_mut() {
+                std::mem::swap(&mut work.factors, factors);
+                std::mem::swap(&mut work.values, values);
+                work.active_damped = damped;
+                work.factored = false;
+            }
         }
     }
 
@@ -565,7 +611,7 @@ impl Equations {
             &stage,
             &work.damping,
             &mut Sink::Values {
-                slots: &self.jacobian.slots,
+                slots: &self.pattern(work.active_damped).slots,
                 values: &mut work.values,
                 next: 0,
             },
@@ -581,7 +627,8 @@ impl Equations {
         if !work.values.iter().all(|v| v.is_finite()) {
             return None;
         }
-        work.factors.factor(&self.jacobian, &work.values)?;
+        let pattern = self.pattern(work.active_damped);
+        work.factors.factor(pattern, &work.values)?;
         work.factored = true;
         Some(())
     }

@@ -231,12 +231,9 @@ impl System {
                 }
             }
         }
-        if self.damped() {
-            for row in 0..ma {
-                let d = damping.get(row).copied().unwrap_or(0.0);
-                sink.add(row, c_mu1 + row, d);
-                sink.add(r_vel + row, c_mu2 + row, d);
-            }
+        for (row, &d) in damping.iter().enumerate() {
+            sink.add(row, c_mu1 + row, d);
+            sink.add(r_vel + row, c_mu2 + row, d);
         }
         if self.staged() {
             stage.assemble(self, x, sink);

@@ -49,7 +49,7 @@ fn check_jacobian(scene: &str, mut step: SquareStep) {
     work.x.copy_from_slice(&x);
     step.equations.linearize(t, &before, work).unwrap();
     let mut dense = vec![0.0; size * size];
-    let pattern = &step.equations.jacobian;
+    let pattern = step.equations.pattern(work.active_damped);
     for col in 0..size {
         for e in pattern.col_ptr[col]..pattern.col_ptr[col + 1] {
             dense[pattern.row_idx[e] * size + col] = work.values[e];
