@@ -875,9 +875,10 @@ impl SquareStep {
         watch: Option<&mut dyn FnMut(&StepIteration)>,
     ) -> Option<StepWork> {
         let n = self.equations.system.model.n();
-        if before[..n] != self.ended[..] {
-            // Another solver took the step before (an error-controlled run's other
-            // step size, a rescue): the distance last measured is not this run's.
+        if self.damps && self.equations.system.damped() && before[..n] != self.ended[..] {
+            // Another solver took the step before (a rescue): the distance last
+            // measured, which decides whether this step is damped, is not this
+            // run's.
             self.recent = Remeasure::default();
         }
         let solved = self.solve_from(t, before, block, limits, watch);
