@@ -875,7 +875,7 @@ impl SquareStep {
         watch: Option<&mut dyn FnMut(&StepIteration)>,
     ) -> Option<StepWork> {
         let n = self.equations.system.model.n();
-        if self.damps && self.equations.system.damped() && before[..n] != self.ended[..] {
+        if self.may_damp() && before[..n] != self.ended[..] {
             // Another solver took the step before (a rescue): the distance last
             // measured, which decides whether this step is damped, is not this
             // run's.
@@ -905,12 +905,12 @@ impl SquareStep {
             self.passed = true;
             return Some(work);
         }
-        let damped = self.damps && self.equations.system.damped();
+        let damped = self.may_damp();
         self.work.near_rank_loss = damped && self.starts_near(before);
         // The guess's distance to a rank loss only where the last steps' s, carried
         // on at twice its last change, may come near one within this step.
         let (last, change) = self.recent.last();
-        let zone = passage::near(&self.equations.system, self.damps);
+        let zone = passage::near(&self.equations.system, damped);
         let near = last - 2.0 * change.abs() < LOOKOUT * zone;
         let from_guess = match near {
             true => self.distance(&block[..n]),
@@ -954,6 +954,12 @@ impl SquareStep {
             self.passed = true;
         }
         solved
+    }
+
+    /// Whether this square step damps its projections near a rank loss: its
+    /// system can, and its run lets it.
+    fn may_damp(&self) -> bool {
+        self.damps && self.equations.system.damped()
     }
 
     /// Whether a step from `before` starts within `damped_below` of a rank loss:

@@ -30,7 +30,7 @@ use crate::dynamics::DynamicsKernel;
 /// projections (`damps`: a Hermite–Simpson DC step of fixed size), whose landings
 /// are resolved.
 pub(super) fn near(system: &System, damps: bool) -> f64 {
-    if damps && system.damped() {
+    if damps {
         return NEAR_DAMPED;
     }
     match system.staged() {
@@ -168,7 +168,7 @@ impl Passage {
         let n = system.model.n();
         let dt = system.dt;
         let t0 = t - dt;
-        let near = near(system, square.damps);
+        let near = near(system, square.may_damp());
         let mut total = StepWork {
             iterations: 0,
             factorizations: 0,
@@ -249,7 +249,7 @@ impl Passage {
         };
         over.set_dt(h);
         // A step over lands near a rank loss: damped where its system damps.
-        over.work.near_rank_loss = over.damps && over.equations.system.damped();
+        over.work.near_rank_loss = over.may_damp();
         taylor(&from[..3 * n], &mut to[..3 * n], n, h);
         let work = over.solve_plain(t0 + h, from, to, limits)?;
         let clearance = over.clearance(from, to);
