@@ -651,6 +651,12 @@ fn summary_line(options: &ForwardOptions, s: &RunSummary, peak_memory: Option<u6
                     ", {k} kept above the tolerance at the smallest step (the estimate \
                      there is the noise of the solves, not the step's error)"
                 ),
+            } + &match c.damped {
+                0 => String::new(),
+                k => format!(
+                    ", {k} kept unestimated at the size that reached a rank loss (damped \
+                     projections, where the estimate reads the lost direction)"
+                ),
             },
             c.smallest,
             c.largest

@@ -109,6 +109,7 @@ fn forward_result<'py>(
             d.set_item("smallest_step", c.smallest)?;
             d.set_item("largest_step", c.largest)?;
             d.set_item("at_floor", c.at_floor)?;
+            d.set_item("damped", c.damped)?;
             let check = c.check.as_ref();
             d.set_item("estimated_error", check.and_then(|k| k.estimated))?;
             d.set_item("step_rtols", check.map(|k| k.step_rtols.clone()))?;

@@ -65,6 +65,16 @@ struct Rung {
     general: Option<General>,
 }
 
+/// A step solved: its report, who took it, whether it is an interpolant of a
+/// longer step over a rank loss that goes on past it (the square step's passage),
+/// and whether it damped its projections near one.
+struct Taken {
+    report: SolveReport,
+    taker: Taker,
+    within_step_over: bool,
+    damped: bool,
+}
+
 /// The graph of one step at a size, its solver, and the two steps it reads.
 struct General {
     graph: ForwardGraph,
@@ -120,10 +130,8 @@ impl Ladder<'_> {
     }
 
     /// The step of the rung's size from `before` at t to `block` (its guess in,
-    /// solution out): by the square step, else the general solver; its report, who
-    /// took it, and whether it is an interpolant of a longer step over a rank loss
-    /// that goes on past it (the square step's passage); `None` where neither
-    /// converged.
+    /// solution out): by the square step, else the general solver; `None` where
+    /// neither converged.
     fn step(
         &mut self,
         rung: i32,
@@ -131,7 +139,7 @@ impl Ladder<'_> {
         before: &[f64],
         block: &mut [f64],
         limits: StepLimits,
-    ) -> Result<Option<(SolveReport, Taker, bool)>> {
+    ) -> Result<Option<Taken>> {
         let s = block.len();
         self.guess.clear();
         self.guess.extend_from_slice(block);
@@ -153,8 +161,12 @@ impl Ladder<'_> {
                         factorizations: work.factorizations,
                         ..SolveReport::new(Termination::Converged, work.iterations, 0.0)
                     };
-                    let within_step_over = square.passed() && square.passing();
-                    return Ok(Some((report, Taker::Square, within_step_over)));
+                    return Ok(Some(Taken {
+                        report,
+                        taker: Taker::Square,
+                        within_step_over: square.passed() && square.passing(),
+                        damped: square.damped(),
+                    }));
                 }
             }
             block.copy_from_slice(guess);
@@ -177,7 +189,12 @@ impl Ladder<'_> {
             return Ok(None);
         }
         block.copy_from_slice(solved);
-        Ok(Some((report, taker, false)))
+        Ok(Some(Taken {
+            report,
+            taker,
+            within_step_over: false,
+            damped: false,
+        }))
     }
 }
 
@@ -337,6 +354,7 @@ pub(super) fn simulate(
         smallest: f64::INFINITY,
         largest: 0.0,
         at_floor: 0,
+        damped: 0,
         check: None,
     };
     let (mut square_steps, mut general_steps) = (0, 0);
@@ -371,8 +389,12 @@ pub(super) fn simulate(
         }
         let h = ladder.size(rung);
         taylor(&current, &mut next, n, f, h);
-        let Some((report, taker, ends_within)) =
-            ladder.step(rung, t, &current, &mut next, limits)?
+        let Some(Taken {
+            report,
+            taker,
+            within_step_over: ends_within,
+            damped,
+        }) = ladder.step(rung, t, &current, &mut next, limits)?
         else {
             within_step_over = false;
             control.failed_solves += 1;
@@ -406,12 +428,22 @@ pub(super) fn simulate(
             // No smaller size to take: the estimate at the smallest is the noise of
             // the solves' accelerations (rounding, or solves near a rank loss),
             // which grows as the step shrinks, not the step's error. The step is
-            // kept and counted.
+            // kept and counted (not among a run's first steps, whose estimate
+            // lacks the steps before).
             Decision::Reject { retry } if ladder.rung_below(retry) >= rung => {
-                control.at_floor += 1;
+                if !history.short_for(options.integrator) {
+                    control.at_floor += 1;
+                }
                 Decision::Accept { next: h }
             }
+            // A step interpolated from a step over, or damped near a rank loss,
+            // whose estimate reads q̈'s lost component, is kept at the size that
+            // reached the rank loss.
             _ if within_step_over => Decision::Accept { next: h },
+            _ if damped => {
+                control.damped += 1;
+                Decision::Accept { next: h }
+            }
             d => d,
         };
         match decision {

@@ -85,6 +85,18 @@ impl History {
     /// Points kept: four steps back, for Hermite–Simpson's fourth divided difference.
     pub const KEPT: usize = 4;
 
+    /// Whether fewer step ends are kept than `integrator`'s estimate differentiates
+    /// over: a run's first steps, whose estimate is the overestimate of the
+    /// missing orders ([`local_error`]), not their error.
+    pub fn short_for(&self, integrator: Integrator) -> bool {
+        let needed = match integrator {
+            Integrator::Trapezoidal => 2,
+            Integrator::HermiteSimpson => 4,
+            Integrator::Euler => 0,
+        };
+        self.points.len() < needed
+    }
+
     /// A kept step's end (time t, accelerations `ddq`).
     pub fn push(&mut self, t: f64, ddq: &[f64]) {
         if self.points.len() == Self::KEPT {

@@ -70,10 +70,10 @@ pub const MAX_RERUNS: usize = 3;
 /// cost grows without a gain.
 pub const MAX_TIGHTENING: f64 = 1e-4;
 
-/// The tightest step rtol a run that passed a singular configuration, or kept
-/// steps at the smallest size, is made again at: below it the steps' error
-/// estimates near a rank loss are the noise of the solves, and the steps there
-/// shrink to the general solver's.
+/// The tightest step rtol a run that passed a singular configuration with exact
+/// projections, or kept steps at the smallest size, is made again at: below it the
+/// steps' error estimates near a rank loss are the noise of the solves, and the
+/// steps there shrink to the general solver's.
 pub const TIGHTEST_STEP_RTOL: f64 = 1e-10;
 
 /// The tightest step rtol of a run that met no rank loss: a step's error estimate
@@ -148,11 +148,12 @@ pub(super) fn simulate(
         }
     };
     let mut estimated = difference / (CHECK_RATIO - 1.0);
-    let regular = summary.passages.count == 0
-        && summary
-            .error_control
-            .as_ref()
-            .is_some_and(|c| c.at_floor == 0);
+    // (A run that damped its steps near a rank loss kept them at the size that
+    // reached it, unestimated: its estimates are those of regular steps.)
+    let regular = summary
+        .error_control
+        .as_ref()
+        .is_some_and(|c| c.at_floor == 0 && (summary.passages.count == 0 || c.damped > 0));
     let tightest_step = match regular {
         true => TIGHTEST_REGULAR_STEP_RTOL,
         false => TIGHTEST_STEP_RTOL,

@@ -81,6 +81,9 @@ pub struct ErrorControl {
     /// tolerance: there the estimate is the noise of the solves' accelerations, not
     /// the step's error.
     pub at_floor: usize,
+    /// Steps kept unestimated where they damped their projections near a rank
+    /// loss (Hermite–Simpson, DC), at the size that reached it.
+    pub damped: usize,
     /// With the tolerance on the run's rows
     /// ([`ToleranceScope::Run`](super::ToleranceScope::Run)): what its check found.
     /// The counts above are the last run's, whose rows were written.

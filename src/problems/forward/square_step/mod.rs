@@ -441,14 +441,15 @@ impl SquareStep {
 
     /// This square step for an error-controlled run: its steps next to a rank loss
     /// are not checked for their resolution, as the run's error estimate rejects a
-    /// step whose error the rounding sets, and a smaller step lands elsewhere; and
-    /// its projections are exact. (Damped, they leave a lost rank to the
-    /// integrators, which holds over the few steps of a fixed size that cross its
-    /// zone, but not over the thousands of shrinking steps the controller takes
-    /// there: 40 loops at rtol 1e-10 drifted by 0.4 to 8 J over 5 s.)
+    /// step whose error the rounding sets, and a smaller step lands elsewhere. Its
+    /// damped steps ([`SquareStep::damped`]) are the run's to keep at the size
+    /// that reached the zone: damped projections leave a lost rank to the
+    /// integrators, which holds over the few steps of one size that cross the
+    /// zone, not over the thousands of shrinking steps the estimates there, which
+    /// read q̈'s lost component, would ask for (40 loops at rtol 1e-10 drifted by
+    /// 0.4 to 8 J over 5 s).
     pub(super) fn error_controlled(mut self) -> SquareStep {
         self.checks_resolution = false;
-        self.damps = false;
         self
     }
 }
@@ -518,7 +519,8 @@ impl Work {
 
 impl Equations {
     /// What a step's equations take from the step before and hold over its
-    /// iteration: the damping of its projections at q₀.
+    /// iteration: the damping of its projections at q₀ (a damped step's Jacobian
+    /// then factored afresh).
     fn prepare(&self, before: &[f64], work: &mut Work) {
         work.damping.clear();
         if self.system.damped() && work.near_rank_loss {
@@ -526,6 +528,14 @@ impl Equations {
             self.system.row_damping(&before[..n], &mut work.damping);
         }
         let damped = !work.damping.is_empty();
+        // A damped step factors its own Jacobian: next to a rank loss the Jacobian
+        // changes fast from one step to the next, and an iteration on an earlier
+        // one's factors ends where its updates stop shrinking, short of the
+        // solution along the lost rank (error-controlled runs on 40 loops lost
+        // 2e-9 J at such steps).
+        if damped {
+            work.factored = false;
+        }
         if damped != work.active_damped {
             if let Some((factors, values)) = work.other.as_mut() {
                 std::mem::swap(&mut work.factors, factors);
@@ -977,6 +987,13 @@ impl SquareStep {
             }
         };
         start < self.damped_below
+    }
+
+    /// Whether the last step solved started near a rank loss where its
+    /// projections are damped: solved damped, or interpolated from a longer step
+    /// over the rank loss, damped too.
+    pub fn damped(&self) -> bool {
+        self.work.near_rank_loss
     }
 
     /// Whether the last step solved was interpolated from a longer step over a
