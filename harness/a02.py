@@ -127,7 +127,8 @@ def tolerance_section(rows) -> list[str]:
              "default, `--tolerance-scope run`): the rows are compared with a run at 4 times "
              "the tolerance (its largest step and largest turn a step 4^(1/4) times "
              "larger, as its steps are) and the run is made again at tighter step tolerances (at most "
-             "three times, not below 1e-10) while their estimated error exceeds it. "
+             "three times, not below 1e-12: its steps next to the flat configurations damp "
+             "their projections and keep their size) while their estimated error exceeds it. "
              "**steps**: each step's local error per second only, one run. Estimated: the "
              "check's estimate of the rows' error, in units of the tolerance (weighted RMS "
              "of q); step rtols: the runs made, the last one's rows kept.", "",

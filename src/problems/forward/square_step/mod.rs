@@ -39,7 +39,7 @@
 //! end within [`passage::near`] of the rank loss is stepped over ([`Passage`]), as
 //! is a Hermite–Simpson IC step near one whose solution the arithmetic does not
 //! resolve to the step tolerance ([`SquareStep::resolved`]): how close that is
-//! differs from one mechanism to the next. A Hermite–Simpson DC step of fixed size
+//! differs from one mechanism to the next. A Hermite–Simpson DC step
 //! damps its projections there instead ([`System::row_damping`]): the rounding of Φ
 //! otherwise reaches its motion through the nested projections amplified like 1/σ⁴.
 //! Where Newton does not converge within a few iterations away from a rank loss,

@@ -27,7 +27,7 @@ use crate::dynamics::DynamicsKernel;
 /// over errs like its length to the power of its order, so the zone is as wide as
 /// the coarse steps' passages allow: wider for Hermite–Simpson, whose steps err
 /// least and whose landings err most; far narrower where the step damps its
-/// projections (`damps`: a Hermite–Simpson DC step of fixed size), whose landings
+/// projections (`damps`: a Hermite–Simpson DC step), whose landings
 /// are resolved.
 pub(super) fn near(system: &System, damps: bool) -> f64 {
     if damps {
