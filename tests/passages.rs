@@ -79,6 +79,28 @@ fn branch_tolerance(integrator: Integrator, b0: f64) -> f64 {
     }
 }
 
+/// The benchmark chain of `loops` loops (1 or 40) over `t_end` with rows every
+/// `every` s, Hermite–Simpson, DC, with the tolerance `rtol` (= atol) on `scope`.
+fn with_tolerance(
+    loops: usize,
+    every: f64,
+    t_end: f64,
+    rtol: f64,
+    scope: mbfg::forward::ToleranceScope,
+) -> (Trajectory, RunSummary) {
+    let model = Arc::new(
+        Model::new(
+            &Scene::load(scene_path(&format!("benchmarks/n-fourbar-{loops}.yaml"))).unwrap(),
+        )
+        .unwrap(),
+    );
+    let mut options = ForwardOptions::new(Coordinates::Dependent, every, t_end, Mode::FixedLag(1));
+    options.integrator = Integrator::HermiteSimpson;
+    options.tolerance = Some(mbfg::forward::Tolerance::new(rtol, None).unwrap());
+    options.tolerance_scope = scope;
+    simulate(model, &options, &mut |_, _| {}).unwrap()
+}
+
 /// max |B0 − (cos θ, sin θ)| over the rows, and the largest spread of the points
 /// B_i's heights (0 on the parallelogram branch).
 fn errors(loops: usize, tr: &Trajectory, exact: &[f64]) -> (f64, f64) {
@@ -450,21 +472,13 @@ fn the_summary_counts_the_passages_and_strict_refuses_an_energy_jump() {
 /// factor of 10 of the tolerance, and says what it estimated.
 #[test]
 fn a_tolerance_on_the_run_gives_its_accuracy_through_the_passages() {
-    use mbfg::forward::{Tolerance, ToleranceScope};
+    use mbfg::forward::ToleranceScope;
     let (loops, t_end, every) = (1, 20.0, 0.05);
-    let model = Arc::new(
-        Model::new(&Scene::load(scene_path("benchmarks/n-fourbar-1.yaml")).unwrap()).unwrap(),
-    );
     let exact = exact_theta(loops, every, t_end);
     for rtol in [1e-5, 1e-6] {
         let mut errors_by = Vec::new();
         for scope in [ToleranceScope::Steps, ToleranceScope::Run] {
-            let mut options =
-                ForwardOptions::new(Coordinates::Dependent, every, t_end, Mode::FixedLag(1));
-            options.integrator = Integrator::HermiteSimpson;
-            options.tolerance = Some(Tolerance::new(rtol, None).unwrap());
-            options.tolerance_scope = scope;
-            let (tr, s) = simulate(model.clone(), &options, &mut |_, _| {}).unwrap();
+            let (tr, s) = with_tolerance(loops, every, t_end, rtol, scope);
             assert!(s.failures.is_empty(), "rtol {rtol:e} {scope:?}");
             let (b0, _) = errors(loops, &tr, &exact);
             let c = s.error_control.as_ref().unwrap();
@@ -526,17 +540,10 @@ fn a_tolerance_below_the_noise_of_a_passage_ends() {
 /// that the estimates' noise allowed).
 #[test]
 fn a_tight_tolerance_on_the_run_holds_through_the_passages() {
-    use mbfg::forward::{Tolerance, ToleranceScope};
     let (loops, t_end, every, rtol) = (1, 20.0, 0.05, 1e-10);
-    let model = Arc::new(
-        Model::new(&Scene::load(scene_path("benchmarks/n-fourbar-1.yaml")).unwrap()).unwrap(),
-    );
     let exact = exact_theta(loops, every, t_end);
-    let mut options = ForwardOptions::new(Coordinates::Dependent, every, t_end, Mode::FixedLag(1));
-    options.integrator = Integrator::HermiteSimpson;
-    options.tolerance = Some(Tolerance::new(rtol, None).unwrap());
-    options.tolerance_scope = ToleranceScope::Run;
-    let (tr, s) = simulate(model, &options, &mut |_, _| {}).unwrap();
+    let scope = mbfg::forward::ToleranceScope::Run;
+    let (tr, s) = with_tolerance(loops, every, t_end, rtol, scope);
     assert!(s.failures.is_empty());
     let c = s.error_control.as_ref().unwrap();
     let check = c.check.as_ref().unwrap();
@@ -558,16 +565,9 @@ fn a_tight_tolerance_on_the_run_holds_through_the_passages() {
 /// 5e-8 J at a passage and left 40 loops 7.1e-9 m off after 5 s at rtol 1e-10.)
 #[test]
 fn an_error_controlled_run_goes_on_from_the_end_of_a_step_over() {
-    use mbfg::forward::{Tolerance, ToleranceScope};
     let (loops, t_end, every) = (40, 5.0, 0.05);
-    let model = Arc::new(
-        Model::new(&Scene::load(scene_path("benchmarks/n-fourbar-40.yaml")).unwrap()).unwrap(),
-    );
-    let mut options = ForwardOptions::new(Coordinates::Dependent, every, t_end, Mode::FixedLag(1));
-    options.integrator = Integrator::HermiteSimpson;
-    options.tolerance = Some(Tolerance::new(1e-10, None).unwrap());
-    options.tolerance_scope = ToleranceScope::Steps;
-    let (tr, s) = simulate(model, &options, &mut |_, _| {}).unwrap();
+    let scope = mbfg::forward::ToleranceScope::Steps;
+    let (tr, s) = with_tolerance(loops, every, t_end, 1e-10, scope);
     assert!(s.failures.is_empty());
     let (b0, branch) = errors(loops, &tr, &exact_theta(loops, every, t_end));
     let (jump, at) = s.passages.energy_jump.unwrap();
@@ -586,16 +586,9 @@ fn an_error_controlled_run_goes_on_from_the_end_of_a_step_over() {
 /// other bounds too.
 #[test]
 fn a_coarse_tolerance_is_checked_where_the_turn_sets_the_steps() {
-    use mbfg::forward::{Tolerance, ToleranceScope};
     let (loops, t_end, every, rtol) = (40, 20.0, 0.05, 1e-3);
-    let model = Arc::new(
-        Model::new(&Scene::load(scene_path("benchmarks/n-fourbar-40.yaml")).unwrap()).unwrap(),
-    );
-    let mut options = ForwardOptions::new(Coordinates::Dependent, every, t_end, Mode::FixedLag(1));
-    options.integrator = Integrator::HermiteSimpson;
-    options.tolerance = Some(Tolerance::new(rtol, None).unwrap());
-    options.tolerance_scope = ToleranceScope::Run;
-    let (tr, s) = simulate(model, &options, &mut |_, _| {}).unwrap();
+    let scope = mbfg::forward::ToleranceScope::Run;
+    let (tr, s) = with_tolerance(loops, every, t_end, rtol, scope);
     assert!(s.failures.is_empty());
     let (b0, _) = errors(loops, &tr, &exact_theta(loops, every, t_end));
     let check = s.error_control.unwrap().check.unwrap();
