@@ -525,7 +525,11 @@ impl Equations {
         work.damping.clear();
         if self.system.damped() && work.near_rank_loss {
             let n = self.system.model.n();
-            self.system.row_damping(&before[..n], &mut work.damping);
+            let model = &*self.system.model;
+            let norms = self
+                .regularity
+                .row_norms(model, &before[..n], &mut work.gram);
+            self.system.row_damping(norms, &mut work.damping);
         }
         let damped = !work.damping.is_empty();
         // A damped step factors its own Jacobian: next to a rank loss the Jacobian

@@ -103,8 +103,32 @@ impl Regularity {
         }
     }
 
+    /// The norm of each active row's gradient at q, |∇Φᵢ(q)| (a coordinate a row
+    /// holds twice adds up), in the order of `model.active`.
+    pub(super) fn row_norms<'a>(
+        &self,
+        model: &Model,
+        q: &[f64],
+        gram: &'a mut GramWork,
+    ) -> &'a [f64] {
+        self.rows(model, q, gram);
+        &gram.norms
+    }
+
     /// tr G⁻¹ at q, G's inverse left in `gram`; `None` where G does not factor.
     fn inverse_trace(&self, model: &Model, q: &[f64], gram: &mut GramWork) -> Option<f64> {
+        if !self.rows(model, q, gram) {
+            return None;
+        }
+        for ((value, (i, j, _)), dot) in gram.values.iter_mut().zip(&self.entries).zip(&gram.dots) {
+            *value = dot / (gram.norms[*i] * gram.norms[*j]);
+        }
+        gram.trace.trace(&gram.values)
+    }
+
+    /// The active rows' gradients at q, the entries of AAᵀ and the row norms, into
+    /// `gram`; whether every norm is positive and finite.
+    fn rows(&self, model: &Model, q: &[f64], gram: &mut GramWork) -> bool {
         let GramWork {
             gradients,
             dots,
@@ -130,13 +154,7 @@ impl Regularity {
                 norms[*i] = dot.sqrt();
             }
         }
-        if !norms.iter().all(|v| *v > 0.0 && v.is_finite()) {
-            return None;
-        }
-        for ((value, (i, j, _)), dot) in gram.values.iter_mut().zip(&self.entries).zip(&gram.dots) {
-            *value = dot / (gram.norms[*i] * gram.norms[*j]);
-        }
-        gram.trace.trace(&gram.values)
+        norms.iter().all(|v| *v > 0.0 && v.is_finite())
     }
 }
 

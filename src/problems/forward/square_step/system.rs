@@ -102,7 +102,8 @@ impl System {
         self.projected && self.projection_damping > 0.0
     }
 
-    /// The damping of each active row's projections at the step's start q₀:
+    /// The damping of each active row's projections at the step's start q₀, from
+    /// its rows' norms there (`row_norms`: |∇Φᵢ(q₀)|, [`Regularity::row_norms`]):
     /// κ |∇Φᵢ(q₀)|², with κ the system's `projection_damping`. The position and
     /// velocity rows then read Φᵢ + dᵢ μ₁ᵢ = 0 and ∇Φᵢ q̇ + dᵢ μ₂ᵢ = 0: each projection
     /// is the minimum of |Δq|² + |Φ|²/d, which enforces a constraint along the
@@ -110,23 +111,11 @@ impl System {
     /// one with σ² ≪ κ (a rank about to be lost) to the integrators and inertia.
     /// Undamped, a rounding of Φ near a rank loss is amplified like 1/σ⁴ through
     /// the nested projections into the step's motion.
-    pub(super) fn row_damping(&self, q: &[f64], out: &mut Vec<f64>) {
-        let model = &*self.model;
+    ///
+    /// [`Regularity::row_norms`]: super::regularity::Regularity::row_norms
+    pub(super) fn row_damping(&self, row_norms: &[f64], out: &mut Vec<f64>) {
         out.clear();
-        let (mut u, mut gradient) = ([0.0; MAX_LOCAL], [0.0; MAX_LOCAL]);
-        for &k in &model.active {
-            let c = &model.constraints[k];
-            c.gather(q, &mut u);
-            c.equation.gradient(&u, &mut gradient);
-            let norm2: f64 = c
-                .local_index()
-                .iter()
-                .zip(&gradient)
-                .filter(|(ip, _)| ip.is_some())
-                .map(|(_, g)| g * g)
-                .sum();
-            out.push(self.projection_damping * norm2);
-        }
+        out.extend(row_norms.iter().map(|r| self.projection_damping * r * r));
     }
 
     /// The equations: the constraints at three levels, the dynamics and the
