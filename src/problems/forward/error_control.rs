@@ -89,11 +89,7 @@ impl History {
     /// over: a run's first steps, whose estimate is the overestimate of the
     /// missing orders ([`local_error`]), not their error.
     pub fn short_for(&self, integrator: Integrator) -> bool {
-        let needed = match integrator {
-            Integrator::Trapezoidal => 2,
-            Integrator::HermiteSimpson => 4,
-            Integrator::Euler => 0,
-        };
+        let needed = leading_terms(integrator, 1.0).map_or(0, |[_, (_, velocities)]| velocities);
         self.points.len() < needed
     }
 
@@ -160,24 +156,31 @@ pub fn local_error(
         history.points.back().map_or(0.0, |(t, _)| *t) + h,
         &end[2 * n..3 * n],
     );
-    // (factor, derivative of q̈) of the positions' and the velocities' terms.
-    let terms = match integrator {
-        Integrator::Trapezoidal => [(h * h * h / 12.0, 1), (h * h * h / 12.0, 2)],
-        Integrator::HermiteSimpson => [(-h.powi(5) / 720.0, 3), (h.powi(5) / 2880.0, 4)],
-        Integrator::Euler => {
-            let (v0, v1) = (&start[n..2 * n], &end[n..2 * n]);
-            let a0 = &start[2 * n..3 * n];
-            for i in 0..n {
-                out[i] = 0.5 * h * (v1[i] - v0[i]);
-                out[n + i] = 0.5 * h * (a1[i] - a0[i]);
-            }
-            return;
+    let Some(terms) = leading_terms(integrator, h) else {
+        // Euler's, from the step's ends.
+        let (v0, v1) = (&start[n..2 * n], &end[n..2 * n]);
+        let a0 = &start[2 * n..3 * n];
+        for i in 0..n {
+            out[i] = 0.5 * h * (v1[i] - v0[i]);
+            out[n + i] = 0.5 * h * (a1[i] - a0[i]);
         }
+        return;
     };
     for i in 0..n {
         for (part, (factor, order)) in terms.iter().enumerate() {
             out[part * n + i] = factor * history.derivative(*order, i, (t1, a1), h);
         }
+    }
+}
+
+/// The leading terms of the local error of a step of `h` with `integrator`, of its
+/// positions and of its velocities ([`local_error`]): (factor, the derivative of q̈
+/// it multiplies); `None` for Euler's, read off the step's ends.
+fn leading_terms(integrator: Integrator, h: f64) -> Option<[(f64, usize); 2]> {
+    match integrator {
+        Integrator::Trapezoidal => Some([(h * h * h / 12.0, 1), (h * h * h / 12.0, 2)]),
+        Integrator::HermiteSimpson => Some([(-h.powi(5) / 720.0, 3), (h.powi(5) / 2880.0, 4)]),
+        Integrator::Euler => None,
     }
 }
 
