@@ -7,7 +7,7 @@
 use mbfg::coordinates::Coordinates;
 use mbfg::estimate::{
     estimate, EstimateOptions, EstimateSummary, Estimates, Estimator, ProcessSource, Record,
-    Smoothing, RELINEARIZE_BEYOND,
+    Smoothing, StepReading, RELINEARIZE_BEYOND,
 };
 use mbfg::factors::Integrator;
 use mbfg::forward::{simulate, ForwardOptions};
@@ -307,7 +307,15 @@ fn unknown_inputs_in_independent_coordinates_are_refused() {
     let record = Record {
         t0: 0.0,
         dt: 0.005,
-        steps: vec![vec![(0, vec![1.2])], Vec::new(), Vec::new()],
+        steps: vec![
+            vec![StepReading {
+                sensor: 0,
+                values: vec![1.2],
+                before: 0.0,
+            }],
+            Vec::new(),
+            Vec::new(),
+        ],
     };
     let options = EstimateOptions {
         coordinates: Coordinates::Independent,
@@ -925,4 +933,83 @@ fn hermite_simpson_estimates_every_scene_in_every_mode() {
         }
     }
     assert!(runs >= 18, "{runs} runs");
+}
+
+#[test]
+fn readings_between_steps_are_compared_at_their_own_times() {
+    // A logger whose times jitter: each 5 ms reading of the encoder and the coupler's
+    // gyroscope (σ 9.8e-4 rad/s) taken up to 2 ms early or late. Compared at the
+    // nearest step's state, the gyroscope's readings would be off by |ω̇|·δ, tens of
+    // its σ; compared with the motion's expansion to the reading's time, they estimate
+    // as well as readings on the grid.
+    let (t_end, every) = (3.0, 5);
+    let fine = truth_of("fourbar.yaml", t_end, 1);
+    let m = model("fourbar.yaml");
+    let all: Measurements = measure(&m, &fine, 3, None).unwrap();
+    let (columns, rows) = every_column(&all);
+    // Never two rows closer than 3 ms: on no grid coarser than the truth's 1 ms
+    // (rows on a grid of their shortest interval would set the step to it).
+    let jitter = [0i64, 2, 1, 0, -1, -2, -1, 0, 1, 2];
+    let pick = |shifted: bool| -> Vec<(f64, Vec<f64>)> {
+        (0..=(rows.len() - 1) / every)
+            .map(|k| {
+                let j = if shifted && k > 0 && (k + 1) * every < rows.len() {
+                    jitter[k % jitter.len()]
+                } else {
+                    0
+                };
+                rows[((k * every) as i64 + j) as usize].clone()
+            })
+            .collect()
+    };
+    let on_grid = Record::from_rows(&m, &columns, &pick(false), None).unwrap();
+    let jittered = Record::from_rows(&m, &columns, &pick(true), None).unwrap();
+    assert_eq!(on_grid.between_steps(), (0, 0.0));
+    let (n, most) = jittered.between_steps();
+    assert!(
+        n > 0 && (most - 0.002).abs() < 1e-9,
+        "{n} readings, up to {most} s"
+    );
+    assert!((jittered.dt - 0.005).abs() < 1e-12, "dt {}", jittered.dt);
+    let truth = fine.every(every, 0.001 * every as f64);
+    let run = |record: &Record| {
+        let (table, summary) = common::estimate_record(m.clone(), record, Smoothing::Window(20));
+        (score(&truth, &table), summary)
+    };
+    let (grid, grid_summary) = run(&on_grid);
+    let (jit, jit_summary) = run(&jittered);
+    assert_eq!(jit_summary.between_steps, (n, most));
+    assert!(
+        jit.z <= 1.5 * grid.z,
+        "z RMSE {} against {} on the grid",
+        jit.z,
+        grid.z
+    );
+    assert!(
+        jit.dz <= 1.5 * grid.dz,
+        "ż RMSE {} against {}",
+        jit.dz,
+        grid.dz
+    );
+    assert!(jit.inside >= 0.9, "truth within ±2σ at {}", jit.inside);
+    let ratio = jit_summary.nis.mean() / grid_summary.nis.mean();
+    assert!(
+        (0.7..1.4).contains(&ratio),
+        "mean NIS {ratio} times the grid's"
+    );
+    // The same readings placed at their steps' times: the gyroscope's misfit shows
+    // (ż's RMSE 6 times the grid's; the process σ raised to absorb it).
+    let mut snapped = jittered.clone();
+    snapped
+        .steps
+        .iter_mut()
+        .flatten()
+        .for_each(|r| r.before = 0.0);
+    let (snap, _) = run(&snapped);
+    assert!(
+        snap.dz > 3.0 * grid.dz,
+        "snapped: ż RMSE {} against {} on the grid",
+        snap.dz,
+        grid.dz
+    );
 }

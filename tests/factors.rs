@@ -1685,6 +1685,37 @@ fn sensor_readings_match_finite_differences() {
             }
         }
     }
+    // Taken between steps (δ before the step, or after it): Jacobians through the
+    // expansion, and the value that of the sensor at the expanded state and t − δ.
+    for before in [2.1e-3, -1.3e-3] {
+        for _ in 0..TRIALS {
+            let now = Step::random(&model, &mut rng);
+            for (k, sensor) in model.sensors.iter().enumerate() {
+                let datum = rng.values(sensor.dim(), 1.0);
+                let factor = Reading::new(model.clone(), k, datum.clone()).taken_before(before);
+                let xs = inputs(&factor, &now, &now);
+                errors.record(
+                    "f_sensor taken between steps",
+                    check_factor(factor.name(), &factor, &xs, T),
+                );
+                let b = before;
+                let q: Vec<f64> = (0..now.q.len())
+                    .map(|i| now.q[i] - b * now.dq[i] + 0.5 * b * b * now.ddq[i])
+                    .collect();
+                let dq: Vec<f64> = (0..now.q.len())
+                    .map(|i| now.dq[i] - b * now.ddq[i])
+                    .collect();
+                let mut h = vec![0.0; sensor.dim()];
+                sensor
+                    .value(&model, T - b, &q, &dq, &now.ddq, &mut h)
+                    .unwrap();
+                let r = evaluate(&factor, T, &xs, false, &mut workspace_for(&factor)).r;
+                for i in 0..h.len() {
+                    assert!((r[i] - (h[i] - datum[i])).abs() <= 1e-12 * (1.0 + h[i].abs()));
+                }
+            }
+        }
+    }
     // A datum of the wrong size or a sensor the model lacks: an error, not a panic.
     let mut ws = Workspace::new(StackReq::EMPTY);
     let now = Step::random(&model, &mut rng);

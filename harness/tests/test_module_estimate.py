@@ -105,3 +105,29 @@ def test_the_integrator_is_chosen_named_and_checked():
     assert np.all(np.isfinite(step["q"])) and np.all(np.isfinite(step["sd_q"]))
     with pytest.raises(mbfg.InvalidArgument, match="integrator"):
         mbfg.Estimator(state, 0.005, integrator="rk4")
+
+
+def test_readings_between_steps_are_taken_at_their_own_times():
+    # A logger whose 5 ms readings jitter by up to 1.5 ms: estimate() takes each at
+    # its nearest step and says so in the summary; the online estimator does the
+    # same, and an update nearest a step already updated is refused by name.
+    import pathlib
+    root = pathlib.Path(__file__).resolve().parents[2] / "scenes" / "estimation"
+    truth = mbfg.simulate(str(root / "fourbar.yaml"), dt=5e-4, t_end=1.0)
+    every = mbfg.measure(str(root / "fourbar.yaml"), truth, seed=2)
+    jitter = [0, 3, 1, -2, -3, 2, -1, 0, 2, -3]
+    rows = [10 * k + (jitter[k % 10] if 0 < k < 100 else 0) for k in range(101)]
+    readings = {c: [float(every[c][i]) for i in rows] for c in ("t", "enc", "gyro")}
+    out = mbfg.estimate(str(root / "fourbar-bad.yaml"), readings)
+    s = out["summary"]
+    assert abs(s["dt"] - 0.005) < 1e-12
+    assert s["readings_between_steps"] > 0 and abs(s["largest_offset"] - 1.5e-3) < 1e-9
+    assert np.all(np.isfinite(out["q:theta"]))
+    on_grid = {c: [float(every[c][10 * k]) for k in range(101)] for c in ("t", "enc", "gyro")}
+    assert mbfg.estimate(str(root / "fourbar-bad.yaml"), on_grid)["summary"]["readings_between_steps"] == 0
+    online = mbfg.Estimator(str(root / "fourbar-bad.yaml"), 0.005)
+    for t, enc, gyro in zip(readings["t"][:30], readings["enc"][:30], readings["gyro"][:30]):
+        step = online.update(t, {"enc": enc, "gyro": gyro})
+    assert np.all(np.isfinite(step["q"]))
+    with pytest.raises(mbfg.InvalidArgument, match="already holds"):
+        online.update(readings["t"][29] + 1e-3, {"enc": readings["enc"][29]})

@@ -234,12 +234,20 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
         "NOT consistent"
     };
     format!(
-        "{} steps (dt = {} s, {how}) from {} readings in {:.3} s ({:.0} µs a step); \
+        "{} steps (dt = {} s, {how}) from {} readings{} in {:.3} s ({:.0} µs a step); \
          linear solves per step: mean {:.2}{}; mean NIS {:.3} against {:.3} expected, \
          95 % bounds [{lo:.3}, {hi:.3}]: {verdict}; process σ {}",
         s.steps,
         seconds(s.dt),
         s.readings,
+        match s.between_steps {
+            (0, _) => String::new(),
+            (n, most) => format!(
+                " ({n} between steps, up to {} s from their nearest, compared with the \
+                 motion's expansion about it)",
+                three_digits(most)
+            ),
+        },
         elapsed,
         elapsed / s.steps.max(1) as f64 * 1e6,
         s.iterations as f64 / s.steps.max(1) as f64,

@@ -1,5 +1,6 @@
 //! A sensor's reading as a factor ([`Reading`]): e = h(q, q̇, q̈, t) − datum, with the
-//! sensor's closed-form Jacobians.
+//! sensor's closed-form Jacobians; a reading taken between two steps is compared with
+//! the motion's Taylor expansion about its nearest step.
 
 use super::shared::key_accessor;
 use crate::error::{Error, Result};
@@ -16,6 +17,8 @@ pub struct Reading {
     model: Arc<Model>,
     sensor: usize,
     datum: Vec<f64>,
+    /// How long before its step the reading was taken (negative: after it).
+    before: f64,
 }
 
 impl Reading {
@@ -37,7 +40,16 @@ impl Reading {
             model,
             sensor,
             datum,
+            before: 0.0,
         }
+    }
+
+    /// The reading taken `before` seconds before the factor's step (negative: after
+    /// it), compared with the motion there to the step's own order: q − δq̇ + ½δ²q̈,
+    /// q̇ − δq̈ and q̈ at t − δ (errors O(δ³ q⃛), O(δ² q⃛) and O(δ q⃛)).
+    pub fn taken_before(mut self, before: f64) -> Reading {
+        self.before = before;
+        self
     }
 
     /// The reading this factor holds.
@@ -89,7 +101,22 @@ impl Factor for Reading {
                 self.name, self.datum[i]
             )));
         }
-        let (q, dq, ddq) = (x[0], x[1], x[2]);
+        let b = self.before;
+        let shifted;
+        let (t, q, dq, ddq) = if b == 0.0 {
+            (t, x[0], x[1], x[2])
+        } else {
+            let (q, dq, ddq) = (x[0], x[1], x[2]);
+            shifted = (
+                (0..q.len())
+                    .map(|i| q[i] - b * dq[i] + 0.5 * b * b * ddq[i])
+                    .collect::<Vec<f64>>(),
+                (0..dq.len())
+                    .map(|i| dq[i] - b * ddq[i])
+                    .collect::<Vec<f64>>(),
+            );
+            (t - b, &shifted.0[..], &shifted.1[..], ddq)
+        };
         match jac {
             Some(j) => {
                 let [jq, jdq, jddq] = j else {
@@ -98,7 +125,16 @@ impl Factor for Reading {
                         self.name
                     )));
                 };
-                sensor.jacobians(&self.model, t, q, dq, ddq, r, jq, jdq, jddq)?
+                sensor.jacobians(&self.model, t, q, dq, ddq, r, jq, jdq, jddq)?;
+                if b != 0.0 {
+                    // The chain rule through the expansion: ∂/∂q̈ first, from the
+                    // unshifted ∂h/∂q̇.
+                    let size = dim * self.model.n();
+                    for i in 0..size {
+                        jddq[i] += 0.5 * b * b * jq[i] - b * jdq[i];
+                        jdq[i] -= b * jq[i];
+                    }
+                }
             }
             None => sensor.value(&self.model, t, q, dq, ddq, r)?,
         }

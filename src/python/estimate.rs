@@ -130,6 +130,8 @@ pub(super) fn estimate_run<'py>(
             Smoothing::Batch => s.set_item("window", "batch")?,
         }
         s.set_item("readings", summary.readings)?;
+        s.set_item("readings_between_steps", summary.between_steps.0)?;
+        s.set_item("largest_offset", summary.between_steps.1)?;
         s.set_item("window_longest", summary.longest_window)?;
         s.set_item("window_mean", summary.mean_window)?;
         s.set_item("iterations", summary.iterations)?;
@@ -254,6 +256,8 @@ pub struct PyEstimator {
     est: Estimator,
     t0: f64,
     dt: f64,
+    /// The time of the last update's readings (its step's, or between steps).
+    last: Option<f64>,
 }
 
 #[pymethods]
@@ -313,7 +317,13 @@ impl PyEstimator {
             .map_err(arg_error)?;
             let est = Estimator::new(model.clone(), eg, window, options.settings, false)
                 .map_err(arg_error)?;
-            Ok(PyEstimator { model, est, t0, dt })
+            Ok(PyEstimator {
+                model,
+                est,
+                t0,
+                dt,
+                last: None,
+            })
         })
     }
 
@@ -328,21 +338,34 @@ impl PyEstimator {
     ) -> PyResult<Bound<'py, PyDict>> {
         guard(|| {
             let t = arg_real(t, "t")?;
+            // Readings between steps are taken at the nearest step, δ before it.
             let k = (t - self.t0) / self.dt;
             let step = k.round();
-            if (k - step).abs() > 1e-6 * step.abs().max(1.0) || step < 0.0 {
+            if !(0.0..=1e12).contains(&step) {
                 return Err(invalid(format!(
-                    "t = {t} is not on a step of {} s from t0 = {}",
-                    self.dt, self.t0
+                    "t = {t} is before t0 = {} or too far after it for steps of {} s",
+                    self.t0, self.dt
                 )));
             }
+            let before = if (k - step).abs() > 1e-6 * step.abs().max(1.0) {
+                self.t0 + step * self.dt - t
+            } else {
+                0.0
+            };
             let step = step as usize;
             let next = self.est.next_step();
             if step < next {
-                return Err(invalid(format!(
-                    "t = {t} is before the last update's time {}",
-                    self.est.time(next.saturating_sub(1))
-                )));
+                let held = self.est.time(next.saturating_sub(1));
+                return Err(invalid(match self.last {
+                    Some(last) if t <= last => {
+                        format!("t = {t} is before the last update's time {last}")
+                    }
+                    _ => format!(
+                        "t = {t} is nearest the step at {held}, which the last update \
+                         already holds: readings between steps go to their nearest \
+                         step, one update per step (a smaller dt gives each its own)"
+                    ),
+                }));
             }
             let mut columns = vec!["t".to_string()];
             let mut row = vec![t];
@@ -365,8 +388,11 @@ impl PyEstimator {
                 }
                 row.push(v);
             }
-            let record = Record::from_rows(&self.model, &columns, &[(t, row)], Some(self.dt))
+            let mut record = Record::from_rows(&self.model, &columns, &[(t, row)], Some(self.dt))
                 .map_err(|(_, m)| invalid(format!("readings: {m}")))?;
+            for reading in &mut record.steps[0] {
+                reading.before = before;
+            }
             let factors = reading_factors(&self.model, &record.steps[0])
                 .map_err(|e| run_error(py, e, None))?;
             for _ in next..step {
@@ -378,6 +404,7 @@ impl PyEstimator {
                 .est
                 .update(factors)
                 .map_err(|e| run_error(py, e, None))?;
+            self.last = Some(t);
             let e = &u.newest;
             let n = self.model.n();
             let graph = self.est.graph();

@@ -21,6 +21,6 @@ pub use identification::{Identification, ParameterEstimate};
 pub use online::{Estimator, StepEstimate, Update};
 pub use options::{EstimateOptions, Smoothing, Uncertainty, RELINEARIZE_BEYOND};
 pub use process_noise::ProcessSource;
-pub use record::Record;
+pub use record::{Record, StepReading};
 pub use run::{estimate, estimate_with_progress, EstimateSummary};
 pub use table::Estimates;

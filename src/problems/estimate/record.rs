@@ -7,10 +7,19 @@ use crate::io::{read_table_with_gaps, TableLimits};
 use crate::model::Model;
 use std::path::Path;
 
-/// The readings of one step: (sensor, its values).
-pub type StepReadings = Vec<(usize, Vec<f64>)>;
+/// One reading of a step: its sensor, its values, and how long before the step's
+/// time it was taken (negative: after it; 0 on the step).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepReading {
+    pub sensor: usize,
+    pub values: Vec<f64>,
+    pub before: f64,
+}
 
-/// Readings on a uniform grid t₀ + k·dt.
+/// The readings of one step.
+pub type StepReadings = Vec<StepReading>;
+
+/// Readings on a uniform grid t₀ + k·dt, each at its nearest step.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Record {
     pub t0: f64,
@@ -23,12 +32,13 @@ pub struct Record {
 pub const NO_READINGS: &str =
     "no readings: every sensor cell is empty, and an estimate without readings is the model's own simulation";
 
-/// How far from a step a reading's time may be, as a fraction of dt.
+/// How far from a step a reading's time may be and still be on it, as a fraction of dt.
 const ON_STEP: f64 = 1e-6;
 
 impl Record {
     /// The record of a measurements CSV for `model`'s sensors, on the grid of step
-    /// `dt` (by default the smallest interval between rows) from the first row's time.
+    /// `dt` from the first row's time: by default the smallest interval between rows,
+    /// or, where readings fall off that grid, their mean interval (gaps left out).
     pub fn read(model: &Model, path: &Path, dt: Option<f64>) -> Result<Record> {
         let file = path.display().to_string();
         let table = read_table_with_gaps(path, &TableLimits::default(), &mut |columns| {
@@ -74,15 +84,27 @@ impl Record {
         let dt = match dt {
             Some(dt) => dt,
             None if rows.len() >= 2 => {
-                // The shortest interval, then the span divided into whole steps of
-                // about it: 10 s of 5 ms rows is 0.005, not the 0.004999… of one
-                // difference of rounded times.
-                let shortest = rows
-                    .windows(2)
-                    .map(|w| w[1].0 - w[0].0)
-                    .fold(f64::INFINITY, f64::min);
+                // The span divided into whole steps of about the shortest interval:
+                // 10 s of 5 ms rows is 0.005, not the 0.004999… of one difference of
+                // rounded times. Where that grid misses rows (times that jitter), the
+                // readings' own period: the mean interval, gaps (beyond 1.5 times the
+                // median) left out.
+                let mut intervals: Vec<f64> = rows.windows(2).map(|w| w[1].0 - w[0].0).collect();
                 let span = rows[rows.len() - 1].0 - rows[0].0;
-                span / (span / shortest).round()
+                let shortest = intervals.iter().copied().fold(f64::INFINITY, f64::min);
+                let grid = span / (span / shortest).round();
+                if rows.iter().all(|(t, _)| on_step(t - t0, grid)) {
+                    grid
+                } else {
+                    intervals.sort_by(f64::total_cmp);
+                    let median = intervals[intervals.len() / 2];
+                    let usual: Vec<f64> = intervals
+                        .into_iter()
+                        .filter(|&d| d <= 1.5 * median)
+                        .collect();
+                    let period = usual.iter().sum::<f64>() / usual.len() as f64;
+                    span / (span / period).round().max(1.0)
+                }
             }
             None => {
                 return Err((
@@ -101,14 +123,14 @@ impl Record {
         let slots: Vec<Option<(usize, usize)>> =
             columns.iter().map(|c| column_slot(model, c)).collect();
         for (i, (t, cells)) in rows.iter().enumerate() {
-            let k = (t - t0) / dt;
-            if (k - k.round()).abs() > ON_STEP * k.max(1.0) {
-                return Err((
-                    Some(i),
-                    format!("t = {t} is not on a step of {dt} s from t = {t0}: readings must fall on steps"),
-                ));
-            }
-            let k = k.round() as usize;
+            let k = ((t - t0) / dt).round();
+            // A reading off the grid is taken at its nearest step, δ before it.
+            let before = if on_step(t - t0, dt) {
+                0.0
+            } else {
+                t0 + k * dt - t
+            };
+            let k = (k as usize).min(steps.len() - 1);
             for (s, sensor) in model.sensors.iter().enumerate() {
                 let mut values = vec![f64::NAN; sensor.dim()];
                 for (j, slot) in slots.iter().enumerate() {
@@ -132,7 +154,11 @@ impl Record {
                         ),
                     ));
                 }
-                steps[k].push((s, values));
+                steps[k].push(StepReading {
+                    sensor: s,
+                    values,
+                    before,
+                });
             }
         }
         Ok(Record { t0, dt, steps })
@@ -142,6 +168,25 @@ impl Record {
     pub fn readings(&self) -> usize {
         self.steps.iter().map(Vec::len).sum()
     }
+
+    /// The readings taken between steps, and the largest |δ| of their times from
+    /// their steps' (0 where every reading is on a step).
+    pub fn between_steps(&self) -> (usize, f64) {
+        self.steps
+            .iter()
+            .flatten()
+            .filter(|r| r.before != 0.0)
+            .fold((0, 0.0), |(n, most), r| {
+                (n + 1, f64::max(most, r.before.abs()))
+            })
+    }
+}
+
+/// Whether a time `since` the record's start falls on a step of `dt`, to within
+/// rounding ([`ON_STEP`] of a step, relative to the step's index).
+fn on_step(since: f64, dt: f64) -> bool {
+    let k = since / dt;
+    (k - k.round()).abs() <= ON_STEP * k.abs().max(1.0)
 }
 
 /// Which sensor a column belongs to, and which of its values it is.

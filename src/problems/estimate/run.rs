@@ -11,7 +11,7 @@ use super::options::{
     EstimateOptions, Smoothing, Uncertainty, BATCH_PASS_WINDOW, BATCH_START_WINDOW,
 };
 use super::process_noise::{self, DynamicsUse, ProcessSource};
-use super::record::Record;
+use super::record::{Record, StepReading};
 use crate::coordinates::Coordinates;
 use crate::error::{Error, Result};
 use crate::factors::Integrator;
@@ -33,6 +33,9 @@ pub struct EstimateSummary {
     pub dt: f64,
     pub smoothing: Smoothing,
     pub readings: usize,
+    /// The readings taken between steps, and the largest |δ| from their steps
+    /// ([`Record::between_steps`]).
+    pub between_steps: (usize, f64),
     /// Linear solves of the fixed-lag pass (and the batch solve).
     pub iterations: usize,
     /// The normalized innovations of the fixed-lag pass (filtered estimates).
@@ -61,19 +64,23 @@ pub struct EstimateSummary {
 }
 
 /// The factors of one step's readings, each with its noise: an `input` sensor's on
-/// the unknown input of its coordinate, any other's on the motion.
+/// the unknown input of its coordinate (at the step, where it was read between
+/// steps), any other's on the motion (at its own time).
 pub fn reading_factors(
     model: &Arc<Model>,
-    readings: &[(usize, Vec<f64>)],
+    readings: &[StepReading],
 ) -> Result<Vec<(Box<dyn Factor>, Noise)>> {
     readings
         .iter()
-        .map(|(s, v)| {
-            let sensor = &model.sensors[*s];
+        .map(|reading| {
+            let (s, v) = (reading.sensor, &reading.values);
+            let sensor = &model.sensors[s];
             let noise = Noise::Isotropic(sensor.effective_sigma());
             let factor: Box<dyn Factor> = match sensor.kind {
-                SensorKind::Input { .. } => Box::new(InputReading::new(model, *s, v[0])?),
-                _ => Box::new(Reading::new(model.clone(), *s, v.clone())),
+                SensorKind::Input { .. } => Box::new(InputReading::new(model, s, v[0])?),
+                _ => {
+                    Box::new(Reading::new(model.clone(), s, v.clone()).taken_before(reading.before))
+                }
             };
             Ok((factor, noise))
         })
@@ -225,6 +232,7 @@ pub fn estimate_with_progress(
         dt: record.dt,
         smoothing: options.smoothing,
         readings: record.readings(),
+        between_steps: record.between_steps(),
         iterations,
         nis: est.nis.clone(),
         unsettled: est.unsettled,
