@@ -530,10 +530,11 @@ fn dynamics_factor_matches_finite_differences() {
 /// Scenes that identify masses (of bodies and of a point), an inertia, gravity
 /// (bilinear with the masses), a spring's and a rotational spring's stiffness and
 /// damping, some with unknown inputs.
-const IDENTIFYING: [&str; 3] = [
+const IDENTIFYING: [&str; 4] = [
     "fourbar-masses.yaml",
     "spring-damper.yaml",
     "point-mass.yaml",
+    "loads.yaml",
 ];
 
 /// The model of an identification scene of tests/data, and the coordinates its unknown
@@ -552,7 +553,8 @@ fn identifying(name: &str) -> (Arc<Model>, Vec<usize>) {
 fn parametric_dynamics_matches_finite_differences() {
     // f^d_par on scenes that identify masses (of bodies and of a point), an inertia,
     // gravity (bilinear with the masses), a spring's and a rotational spring's
-    // stiffness and damping, with and without unknown inputs: ∂/∂q, ∂/∂q̇, ∂/∂q̈, ∂/∂p
+    // stiffness and damping, parameters inside torques' and forces' expressions
+    // (nonlinearly too), with and without unknown inputs: ∂/∂q, ∂/∂q̇, ∂/∂q̈, ∂/∂p
     // and ∂/∂u.
     let mut rng = Rng(11);
     let mut checked = 0;
@@ -582,7 +584,7 @@ fn parametric_dynamics_matches_finite_differences() {
             }
         }
     }
-    assert_eq!(checked, 4 * TRIALS);
+    assert_eq!(checked, 5 * TRIALS);
 }
 
 #[test]
@@ -635,7 +637,7 @@ fn hermite_simpson_through_the_estimates_dynamics_matches_finite_differences() {
             }
         }
     }
-    assert_eq!(checked, 4 * 2 * 2 * TRIALS);
+    assert_eq!(checked, 5 * 2 * 2 * TRIALS);
 }
 
 #[test]

@@ -86,6 +86,10 @@ pub struct Load {
     value: Expr,
     quantities: Vec<Quantity>,
     partials: Vec<Expr>,
+    /// The identified parameters the value uses, in the slots after the quantities:
+    /// (index among the model's identified parameters, value in the file,
+    /// ∂value/∂p), derived symbolically.
+    parameters: Vec<(usize, f64, Expr)>,
     text: String,
 }
 
@@ -100,47 +104,83 @@ impl Load {
             .iter()
             .map(|name| locate(model, scene, name))
             .collect::<Result<Vec<_>>>()?;
+        let identified = &scene.identified.names;
         let value = function
             .expr()
             .resolve(&|n| {
                 if n == "t" {
                     Some(0)
+                } else if let Some(k) = names.iter().position(|m| m == n) {
+                    Some(k + 1)
                 } else {
-                    names.iter().position(|m| m == n).map(|k| k + 1)
+                    let k = function.parameters.iter().position(|(p, _)| p == n)?;
+                    Some(names.len() + 1 + k)
                 }
             })
             .map_err(|e| Error::InvalidArgument(format!("'{}': {e}", function.text)))?;
-        let partials = (1..=quantities.len())
-            .map(|k| value.derivative_slot(k))
-            .collect::<std::result::Result<Vec<_>, _>>()
-            .map_err(|e| {
+        let derivative = |slot: usize| {
+            value.derivative_slot(slot).map_err(|e| {
                 let text = crate::expr::excerpt(&function.text, 40);
                 Error::InvalidArgument(format!("'{text}': {e}"))
-            })?;
+            })
+        };
+        let partials = (1..=quantities.len())
+            .map(derivative)
+            .collect::<Result<Vec<_>>>()?;
+        let parameters = function
+            .parameters
+            .iter()
+            .enumerate()
+            .map(|(k, (name, v))| {
+                let j = identified.iter().position(|p| p == name).ok_or_else(|| {
+                    Error::InvalidArgument(format!(
+                        "'{}': '{name}' is not among the identified parameters",
+                        function.text
+                    ))
+                })?;
+                Ok((j, *v, derivative(names.len() + 1 + k)?))
+            })
+            .collect::<Result<Vec<_>>>()?;
         Ok(Load {
             value,
             quantities,
             partials,
+            parameters,
             text: function.text.clone(),
         })
     }
 
-    /// Calls `f` with the slot values at (q, q̇, t).
+    /// Whether the value uses a parameter an estimate identifies.
+    pub fn uses_parameters(&self) -> bool {
+        !self.parameters.is_empty()
+    }
+
+    /// The identified parameters the value uses (indices in the model's order).
+    pub fn parameter_indices(&self) -> impl Iterator<Item = usize> + '_ {
+        self.parameters.iter().map(|&(j, ..)| j)
+    }
+
+    /// Calls `f` with the slot values at (q, q̇, t), the identified parameters at `p`
+    /// (all of them, in the model's order), or at their file values.
     fn with_slots<R>(
         &self,
         model: &Model,
         q: &[f64],
         dq: &[f64],
-        t: f64,
+        (t, p): (f64, Option<&[f64]>),
         f: impl FnOnce(&[f64]) -> R,
     ) -> R {
+        let nq = self.quantities.len();
         let fill = |slots: &mut [f64]| {
             slots[0] = t;
             for (s, quantity) in slots[1..].iter_mut().zip(&self.quantities) {
                 *s = quantity.value(model, q, dq);
             }
+            for (s, &(j, file, _)) in slots[nq + 1..].iter_mut().zip(&self.parameters) {
+                *s = p.map_or(file, |p| p[j]);
+            }
         };
-        let m = self.quantities.len() + 1;
+        let m = nq + self.parameters.len() + 1;
         if m <= STACK_SLOTS {
             let mut buf = [0.0; STACK_SLOTS];
             fill(&mut buf[..m]);
@@ -153,13 +193,42 @@ impl Load {
     }
 
     pub(crate) fn value(&self, model: &Model, q: &[f64], dq: &[f64], t: f64) -> Result<f64> {
-        if self.quantities.is_empty() {
+        self.value_at(model, q, dq, (t, None))
+    }
+
+    /// The value with the identified parameters at `p` (`None`: the file's).
+    pub(crate) fn value_at(
+        &self,
+        model: &Model,
+        q: &[f64],
+        dq: &[f64],
+        (t, p): (f64, Option<&[f64]>),
+    ) -> Result<f64> {
+        if self.quantities.is_empty() && self.parameters.is_empty() {
             if let Some(c) = self.value.as_constant() {
                 return Ok(c);
             }
         }
-        let v = self.with_slots(model, q, dq, t, |s| self.value.eval_slots(s));
+        let v = self.with_slots(model, q, dq, (t, p), |s| self.value.eval_slots(s));
         self.finite(v, t)
+    }
+
+    /// ∂value/∂pⱼ at the state and the parameters `p`, for every identified
+    /// parameter j, added to `out` (length P) times `scale`.
+    pub(crate) fn add_parameter_gradient(
+        &self,
+        model: &Model,
+        (q, dq, t): (&[f64], &[f64], f64),
+        p: &[f64],
+        scale: f64,
+        out: &mut [f64],
+    ) -> Result<()> {
+        self.with_slots(model, q, dq, (t, Some(p)), |slots| {
+            for (j, _, partial) in &self.parameters {
+                out[*j] += scale * self.finite(partial.eval_slots(slots), t)?;
+            }
+            Ok(())
+        })
     }
 
     fn finite(&self, v: f64, t: f64) -> Result<f64> {
@@ -178,7 +247,21 @@ impl Load {
     pub(crate) fn add_gradient(
         &self,
         model: &Model,
+        state: (&[f64], &[f64], f64),
+        row: usize,
+        kq: &mut [f64],
+        kv: &mut [f64],
+    ) -> Result<()> {
+        self.add_gradient_at(model, state, (None, 1.0), row, kq, kv)
+    }
+
+    /// [`Load::add_gradient`] with the identified parameters at `p` (`None`: the
+    /// file's), times `scale`.
+    pub(crate) fn add_gradient_at(
+        &self,
+        model: &Model,
         (q, dq, t): (&[f64], &[f64], f64),
+        (p, scale): (Option<&[f64]>, f64),
         row: usize,
         kq: &mut [f64],
         kv: &mut [f64],
@@ -191,11 +274,11 @@ impl Load {
             &mut kq[row * n..(row + 1) * n],
             &mut kv[row * n..(row + 1) * n],
         );
-        self.with_slots(model, q, dq, t, |slots| {
+        self.with_slots(model, q, dq, (t, p), |slots| {
             for (quantity, partial) in self.quantities.iter().zip(&self.partials) {
-                let p = self.finite(partial.eval_slots(slots), t)?;
-                if p != 0.0 {
-                    quantity.add_gradient(model, q, dq, p, kq, kv);
+                let d = scale * self.finite(partial.eval_slots(slots), t)?;
+                if d != 0.0 {
+                    quantity.add_gradient(model, q, dq, d, kq, kv);
                 }
             }
             Ok(())
@@ -599,6 +682,21 @@ impl Force {
             Force::External { load, .. } => load.add_to(t, q, dq, out)?,
         }
         Ok(())
+    }
+
+    /// The loads of a torque or a force whose value uses an identified parameter,
+    /// each with the row of Q it adds to.
+    pub fn parametric_loads(&self) -> Vec<(usize, &Load)> {
+        match self {
+            Force::Torque { index, value } if value.uses_parameters() => vec![(*index, value)],
+            Force::PointForce { index, value } => value
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| v.uses_parameters())
+                .map(|(axis, v)| (index + axis, v))
+                .collect(),
+            _ => Vec::new(),
+        }
     }
 
     /// Adds ∂Q/∂q to `kq` and ∂Q/∂q̇ to `kv` (row-major n × n) at (q, q̇, t).

@@ -10,7 +10,7 @@
 //! add ([`Parameters::force`]): its residual stays an acceleration at every p, so
 //! that the process noise means the same whatever masses the estimate tries.
 
-use super::forces::Force;
+use super::forces::{Force, Load};
 use super::{mass, Model, PointSlot, Slot};
 use crate::error::{Error, Result};
 
@@ -33,6 +33,9 @@ pub struct Parameters {
     /// Forces linear in two constants (springs and dampers, a DC motor's stall
     /// torque): (index into `Model::forces`, ∂/∂p of each constant).
     springs: Vec<(usize, Vec<f64>, Vec<f64>)>,
+    /// Torques and forces whose values use the parameters, any way the expression
+    /// does: (index into `Model::forces`, which of its loads).
+    loads: Vec<(usize, usize)>,
 }
 
 impl Parameters {
@@ -53,6 +56,7 @@ impl Parameters {
             point_mass: vec![vec![0.0; p]; model.scene.points.len()],
             gravity: None,
             springs: Vec::new(),
+            loads: Vec::new(),
         };
         let mut touched = vec![false; p];
         for (b, dm, di0) in &id.bodies {
@@ -104,6 +108,12 @@ impl Parameters {
                 }
             }
         }
+        for (e, force) in model.forces.iter().enumerate() {
+            for (k, (_, load)) in force.parametric_loads().into_iter().enumerate() {
+                load.parameter_indices().for_each(|j| touched[j] = true);
+                out.loads.push((e, k));
+            }
+        }
         if out.gravity.is_none() {
             out.gravity = model.forces.iter().enumerate().find_map(|(e, f)| match f {
                 Force::Gravity { vector, .. } => Some((e, *vector, [vec![0.0; p], vec![0.0; p]])),
@@ -124,7 +134,7 @@ impl Parameters {
         if let Some(j) = touched.iter().position(|t| !t) {
             return Err(Error::InvalidArgument(format!(
                 "the identified parameter '{}' changes nothing in the model: no mass, inertia, \
-                 gravity, spring, damper or motor of the scene uses it",
+                 gravity, spring, damper, motor, torque or force of the scene uses it",
                 out.names[j]
             )));
         }
@@ -225,7 +235,18 @@ impl Parameters {
                 f.add_to(model, q, dq, t, out)?;
             }
         }
+        for (row, load) in self.loads(model) {
+            out[row] += load.value_at(model, q, dq, (t, Some(p)))?
+                - load.value_at(model, q, dq, (t, None))?;
+        }
         Ok(())
+    }
+
+    /// The torques' and forces' loads that use the parameters, with their rows of Q.
+    fn loads<'a>(&'a self, model: &'a Model) -> impl Iterator<Item = (usize, &'a Load)> + 'a {
+        self.loads
+            .iter()
+            .map(move |&(e, k)| model.forces[e].parametric_loads()[k])
     }
 
     /// ∂/∂q and ∂/∂q̇ of [`Parameters::force`] added to `kq`, `kv` (n × n), and
@@ -249,6 +270,10 @@ impl Parameters {
                 f.add_jacobians(model, (q, dq, t), kq, kv)?;
             }
         }
+        for (row, load) in self.loads(model) {
+            load.add_gradient_at(model, (q, dq, t), (Some(p), 1.0), row, kq, kv)?;
+            load.add_gradient_at(model, (q, dq, t), (None, -1.0), row, kq, kv)?;
+        }
         let scene = &model.scene;
         let g = self.gravity_at(p);
         for j in 0..np {
@@ -271,6 +296,15 @@ impl Parameters {
             for r in 0..n {
                 kp[r * np + j] = col[r] - Self::dot(&mj[r * n..(r + 1) * n], ddq);
             }
+        }
+        for (row, load) in self.loads(model) {
+            load.add_parameter_gradient(
+                model,
+                (q, dq, t),
+                p,
+                1.0,
+                &mut kp[row * np..(row + 1) * np],
+            )?;
         }
         Ok(())
     }

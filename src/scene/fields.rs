@@ -216,11 +216,14 @@ impl<'a> Ctx<'a> {
 
     /// An effect's value: a number or an expression in the time `t`, the parameters
     /// (bound now) and the state quantities of `scene` ([`Scene::state_quantity`]).
+    /// With `identified`, the parameters an estimate identifies stay names of the
+    /// expression (a force or torque's value); else they are refused (a sensor's).
     pub fn load_function(
         &self,
         node: &Node,
         key: &str,
         scene: &Scene,
+        identified: bool,
     ) -> Result<LoadFunction, SceneError> {
         let text = node.as_text().ok_or_else(|| {
             self.err(
@@ -279,33 +282,48 @@ impl<'a> Ctx<'a> {
                 ));
             }
         }
-        if let Some(name) = expr
-            .names()
-            .into_iter()
-            .find(|n| self.name_gradient(n, &[]).is_some())
-        {
+        let unknown = &self.derivatives.unknown;
+        let mut parameters = Vec::new();
+        for name in expr.names() {
+            if self.name_gradient(&name, &[]).is_none() {
+                continue;
+            }
+            let why = if !identified {
+                "a sensor's value is not varied by an estimate: give the sensor's \
+                 expression numbers of its own"
+            } else if unknown.contains(&name) {
+                let value = lookup(&name).unwrap_or(f64::NAN);
+                parameters.push((name, value));
+                continue;
+            } else {
+                "a parameter computed from an identified one: write the identified \
+                 parameter itself in the value"
+            };
+            let what = if unknown.contains(&name) {
+                "a parameter the estimate identifies"
+            } else {
+                "which depends on a parameter the estimate identifies"
+            };
             return Err(self.err(
                 node.line,
                 key,
-                format!(
-                    "'{}' uses '{name}', a parameter the estimate identifies: an estimate \
-                     varies masses, inertias, gravity, spring and damper constants and motors' \
-                     stall torques, not the values of torques and forces",
-                    excerpt(&text, QUOTE)
-                ),
+                format!("'{}' uses '{name}', {what}: {why}", excerpt(&text, QUOTE)),
             ));
         }
-        let keep = |n: &str| n == "t" || scene.state_quantity(n).is_some();
+        let keep = |n: &str| {
+            n == "t" || scene.state_quantity(n).is_some() || parameters.iter().any(|(p, _)| p == n)
+        };
         let bound = expr
             .bind(&keep, &lookup)
             .map_err(|e| self.expr_err(node, key, &text, e))?;
-        let value = LoadFunction::new(bound, text);
+        let mut value = LoadFunction::new(bound, text);
+        value.parameters = parameters;
         // Catch a function of time that is not finite at the start of the motion (one
         // of the state is checked at the initial state, by the model).
         if !value.is_state_dependent() {
             value
                 .expr()
-                .eval(&|n| (n == "t").then_some(0.0))
+                .eval(&|n| value.fixed(n, 0.0))
                 .map_err(|e| self.expr_err(node, key, &value.text, e))?;
         }
         Ok(value)

@@ -113,11 +113,14 @@ pub enum ConstraintKind {
 
 /// An effect's value from the scene: a constant, an expression in the time `t`, or an
 /// expression in `t` and the mechanism's state (`rate(theta)`, `x(P)`, …), with the
-/// parameters already substituted.
+/// parameters already substituted, but for those an estimate identifies.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LoadFunction {
     expr: Expr,
     pub text: String,
+    /// The identified parameters the expression keeps as names, with their values in
+    /// the file (`estimation: parameters:`).
+    pub parameters: Vec<(String, f64)>,
 }
 
 impl LoadFunction {
@@ -125,15 +128,20 @@ impl LoadFunction {
         LoadFunction {
             expr: Expr::constant(value),
             text: format!("{value}"),
+            parameters: Vec::new(),
         }
     }
 
     pub(crate) fn new(expr: Expr, text: String) -> Self {
-        LoadFunction { expr, text }
+        LoadFunction {
+            expr,
+            text,
+            parameters: Vec::new(),
+        }
     }
 
-    /// The expression, its names `t` and the state quantities of
-    /// [`Scene::is_state_name`].
+    /// The expression, its names `t`, the state quantities of
+    /// [`Scene::is_state_name`] and the identified [`LoadFunction::parameters`].
     pub fn expr(&self) -> &Expr {
         &self.expr
     }
@@ -141,8 +149,20 @@ impl LoadFunction {
     /// The state quantities the value depends on, in order of appearance.
     pub fn state_names(&self) -> Vec<String> {
         let mut names = self.expr.names();
-        names.retain(|n| n != "t");
+        names.retain(|n| n != "t" && !self.parameters.iter().any(|(p, _)| p == n));
         names
+    }
+
+    /// The value of name `n` other than a state quantity: `t`, or an identified
+    /// parameter at its file value.
+    fn fixed(&self, n: &str, t: f64) -> Option<f64> {
+        if n == "t" {
+            return Some(t);
+        }
+        self.parameters
+            .iter()
+            .find(|(p, _)| p == n)
+            .map(|&(_, v)| v)
     }
 
     /// Whether the value depends on the state, not on time alone.
@@ -164,7 +184,7 @@ impl LoadFunction {
             )));
         }
         self.expr
-            .eval(&|n| (n == "t").then_some(t))
+            .eval(&|n| self.fixed(n, t))
             .map_err(|e| Error::InvalidArgument(format!("'{text}' at t = {t}: {e}")))
     }
 }
