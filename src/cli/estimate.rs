@@ -273,14 +273,25 @@ pub fn parameter_lines(s: &EstimateSummary) -> Vec<String> {
         .parameters
         .iter()
         .map(|p| {
-            let head = format!(
-                "parameter {} = {} ± {:.2e} (prior {} ± {})",
-                p.name,
-                significant(p.estimate, p.sigma),
-                p.sigma,
-                short(p.prior),
-                short(p.prior_sigma)
-            );
+            let head = match p.sigma_lowered {
+                None => format!(
+                    "parameter {} = {} ± {:.2e} (prior {} ± {})",
+                    p.name,
+                    significant(p.estimate, p.sigma),
+                    p.sigma,
+                    short(p.prior),
+                    short(p.prior_sigma)
+                ),
+                Some(lowered) => format!(
+                    "parameter {} = {} ± {:.2e}, ± {lowered:.2e} at the lowered process σ \
+                     (prior {} ± {})",
+                    p.name,
+                    significant(p.estimate, p.sigma.min(lowered)),
+                    p.sigma,
+                    short(p.prior),
+                    short(p.prior_sigma)
+                ),
+            };
             match &p.undetermined {
                 None => head,
                 Some(why) => format!("{head}: NOT identified, {why}"),
@@ -453,11 +464,23 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
 
 /// A coordinate the readings leave undetermined, named with what to do.
 pub fn undetermined_warning(model: &mbfg::Model, u: &mbfg::estimate::Undetermined) -> String {
-    format!(
-        "the readings leave '{}' undetermined: its σ averages {:.3} over the run against \
-         {} for the prior on its start, so its estimate is that prior's guess carried by \
-         the model; add a sensor that observes it (directly or through the dynamics), or \
-         give its start in `estimation: initial_sigma` if it is known",
-        model.names[u.coordinate], u.mean_sd, u.prior
-    )
+    match u.grows_to {
+        None => format!(
+            "the readings leave '{}' undetermined: its σ averages {} over the run against \
+             {} for the prior on its start, so its estimate is that prior's guess carried by \
+             the model; add a sensor that observes it (directly or through the dynamics), or \
+             give its start in `estimation: initial_sigma` if it is known",
+            model.names[u.coordinate],
+            three_digits(u.mean_sd),
+            u.prior
+        ),
+        Some(end) => format!(
+            "the readings leave '{}' undetermined: its σ grows from {} for the prior on its \
+             start to {} at the end of the run, so its estimate is that start carried by the \
+             model; add a sensor that observes it (directly or through the dynamics)",
+            model.names[u.coordinate],
+            u.prior,
+            three_digits(end)
+        ),
+    }
 }

@@ -168,6 +168,7 @@ pub(super) fn estimate_run<'py>(
             let d = PyDict::new(py);
             d.set_item("estimate", p.estimate)?;
             d.set_item("sigma", p.sigma)?;
+            d.set_item("sigma_lowered", p.sigma_lowered)?;
             d.set_item("prior", p.prior)?;
             d.set_item("prior_sigma", p.prior_sigma)?;
             d.set_item("identifiable", p.undetermined.is_none())?;

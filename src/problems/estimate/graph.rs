@@ -225,7 +225,7 @@ fn dependent(
     }
     if let Some(p) = &model.parameters {
         // Constant over the record: consecutive copies held equal to a small fraction of
-        // each prior's σ (a walk of 1e-5 σ a step drifts by 1e-5 σ √steps).
+        // each prior's σ (a walk of 1e-6 σ a step drifts by 1e-6 σ √steps).
         let sigmas = &uncertainty.parameters;
         builder = builder
             .step_soft(
@@ -241,8 +241,12 @@ fn dependent(
 }
 
 /// The link between consecutive copies of the identified parameters, as a fraction
-/// of their prior's σ.
-const PARAMETER_LINK: f64 = 1e-5;
+/// of their prior's σ: tight enough that the drift it allows (4.5e-5 σ over 2000
+/// steps) stays below what the readings determine of a well-seen parameter (a
+/// friction coefficient to 1.8e-4 σ), loose enough that the first steps' pivots,
+/// which hold the prior alone against the link's weight (10¹² times it), keep their
+/// digits (at 1e-8 the start's information matrix is no longer positive definite).
+const PARAMETER_LINK: f64 = 1e-6;
 
 /// The IC graph's step factors: q, q̇, q̈ held to z, ż, z̈ by the constraints, f^i_dyn
 /// soft at the process noise on z̈, the integrators of z, the weak link that keeps

@@ -27,6 +27,9 @@ pub struct ParameterEstimate {
     pub prior_sigma: f64,
     /// Why the readings do not determine it (`None`: they do).
     pub undetermined: Option<String>,
+    /// The σ at the process σ a batch lowered to what its dynamics residuals show
+    /// (`None`: not lowered): narrower than `sigma`, which holds at the default σ too.
+    pub sigma_lowered: Option<f64>,
 }
 
 /// The identified parameters at the end of the record, with their correlations.
@@ -66,6 +69,7 @@ impl Identification {
                     prior: prior[i],
                     prior_sigma: prior_sigma[i],
                     undetermined: reasons[i].clone(),
+                    sigma_lowered: None,
                 })
                 .collect(),
             correlation,
@@ -76,8 +80,18 @@ impl Identification {
         self.parameters.is_empty()
     }
 
+    /// With the parameters' covariance `c` (row-major P × P) at the lowered process σ.
+    pub fn with_lowered(mut self, c: &[f64]) -> Self {
+        let np = self.parameters.len();
+        for (i, p) in self.parameters.iter_mut().enumerate() {
+            p.sigma_lowered = Some(c[i * np + i].max(0.0).sqrt());
+        }
+        self
+    }
+
     /// The CSV of `--parameters-out`: name, estimate, sigma, prior, prior_sigma,
-    /// identifiable, reason, then the correlation matrix's row (corr:<name>).
+    /// identifiable, reason, the correlation matrix's row (corr:<name>), then
+    /// sigma_lowered (empty where the process σ was not lowered).
     pub fn write_csv(&self, w: &mut dyn std::io::Write) -> std::io::Result<()> {
         let np = self.parameters.len();
         write!(
@@ -87,7 +101,7 @@ impl Identification {
         for p in &self.parameters {
             write!(w, ",corr:{}", p.name)?;
         }
-        writeln!(w)?;
+        writeln!(w, ",sigma_lowered")?;
         for (i, p) in self.parameters.iter().enumerate() {
             let reason = p.undetermined.as_deref().unwrap_or("");
             write!(
@@ -108,7 +122,10 @@ impl Identification {
             for j in 0..np {
                 write!(w, ",{}", crate::io::number(self.correlation[i * np + j]))?;
             }
-            writeln!(w)?;
+            match p.sigma_lowered {
+                Some(s) => writeln!(w, ",{}", crate::io::number(s))?,
+                None => writeln!(w, ",")?,
+            }
         }
         Ok(())
     }

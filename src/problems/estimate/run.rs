@@ -196,6 +196,7 @@ pub fn estimate_with_progress(
     };
     let steps = record.steps.len();
     let mut iterations = est.iterations;
+    let mut lowered_parameters = Vec::new();
     match options.smoothing {
         Smoothing::Window(_) => {
             for f in &rest {
@@ -215,16 +216,20 @@ pub fn estimate_with_progress(
             };
             let (its, lowered) = batch.smooth_all(&est, steps, sink)?;
             iterations += its;
-            if let Some((sigma, used)) = lowered {
+            if let Some(l) = lowered {
                 process_source = ProcessSource::Identified {
                     from: process_sigma,
-                    used,
+                    used: l.first_use,
                 };
-                process_sigma = sigma;
+                process_sigma = l.sigma;
+                lowered_parameters = l.parameters;
             }
         }
     }
-    let identification = identification_of(&last_parameters);
+    let mut identification = identification_of(&last_parameters);
+    if !lowered_parameters.is_empty() && !identification.is_empty() {
+        identification = identification.with_lowered(&lowered_parameters);
+    }
     Ok(EstimateSummary {
         coordinates: options.coordinates,
         integrator: options.motion(&model).1,
@@ -307,6 +312,15 @@ const MATCHED: f64 = 0.8;
 /// nothing of the process σ.
 const SEEN_DOF: f64 = 1.0;
 
+/// Where a batch lowered the process σ: the σ it ended at, the share of their
+/// expected χ² the dynamics residuals used at the first σ, and the identified
+/// parameters' covariance at the σ it ended at (row-major P × P, empty without).
+struct Lowered {
+    sigma: f64,
+    first_use: f64,
+    parameters: Vec<f64>,
+}
+
 /// A batch estimate of a record from a fixed-lag pass over it.
 struct Batch<'a> {
     model: &'a Arc<Model>,
@@ -333,7 +347,7 @@ impl Batch<'_> {
         est: &Estimator,
         steps: usize,
         sink: &mut dyn FnMut(&StepEstimate) -> Result<()>,
-    ) -> Result<(usize, Option<(f64, f64)>)> {
+    ) -> Result<(usize, Option<Lowered>)> {
         let settings = self.options.settings;
         let mut values = est.values().to_vec();
         let s = est.graph().size();
@@ -392,7 +406,12 @@ impl Batch<'_> {
             (values, covariances, sigma) = (trial, c, next);
             own = Some(eg);
         }
+        let mut lowered_block = Vec::new();
         if let (Some((at, np)), Some(c0), true) = (params, &at_first, own.is_some()) {
+            let last = &covariances[steps - 1];
+            lowered_block = (0..np * np)
+                .map(|k| last[(at + k / np) * s + at + k % np])
+                .collect();
             for c in &mut covariances {
                 for r in at..at + np {
                     c[r * s + at..r * s + at + np]
@@ -408,7 +427,11 @@ impl Batch<'_> {
                 covariance,
             })?;
         }
-        let lowered = own.map(|_| (sigma, first_use.unwrap_or(f64::NAN)));
+        let lowered = own.map(|_| Lowered {
+            sigma,
+            first_use: first_use.unwrap_or(f64::NAN),
+            parameters: lowered_block,
+        });
         Ok((iterations, lowered))
     }
 
