@@ -24,7 +24,7 @@ def spec(name: str) -> dict:
 # start is off the free points' placement (initial guesses of the assembly).
 CHANGED = {"gravity": ({"g", "th0"}, True), "mass": ({"m_crank", "th0"}, True),
            "spring": ({"k", "c"}, False), "arm": ({"m1", "m2", "I1", "I2"}, False),
-           "arm-laws": ({"m1", "m2", "I1", "I2"}, False)}
+           "arm-laws": ({"m1", "m2", "I1", "I2"}, False), "friction": ({"b", "mu"}, False)}
 
 
 @pytest.mark.parametrize("key", list(ident.TEST))
