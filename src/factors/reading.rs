@@ -1,6 +1,7 @@
 //! A sensor's reading as a factor ([`Reading`]): e = h(q, q̇, q̈, t) − datum, with the
-//! sensor's closed-form Jacobians; a reading taken between two steps is compared with
-//! the motion's Taylor expansion about its nearest step.
+//! sensor's closed-form Jacobians; an angle's e taken into (−π, π]; a reading taken
+//! between two steps is compared with the motion's Taylor expansion about its nearest
+//! step.
 
 use super::shared::key_accessor;
 use crate::error::{Error, Result};
@@ -140,6 +141,12 @@ impl Factor for Reading {
         }
         for (ri, d) in r.iter_mut().zip(&self.datum) {
             *ri -= d;
+        }
+        if sensor.reads_an_angle(&self.model) {
+            // An angle read whole turns away is the same reading: an absolute encoder
+            // wraps into one turn; the motion's coordinate does not.
+            let turn = std::f64::consts::TAU;
+            r.iter_mut().for_each(|e| *e -= turn * (*e / turn).round());
         }
         Ok(())
     }

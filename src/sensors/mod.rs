@@ -101,11 +101,7 @@ impl Sensor {
         let (what, unit) = match &self.kind {
             SensorKind::Encoder { coordinate } => (
                 format!("encoder on {}", model.names[*coordinate]),
-                if *coordinate >= model.relative_offset
-                    && model.scene.coordinates[coordinate - model.relative_offset]
-                        .kind
-                        .is_angle()
-                {
+                if self.reads_an_angle(model) {
                     "rad"
                 } else {
                     "m"
@@ -200,6 +196,20 @@ impl Sensor {
     pub fn quantum(&self) -> f64 {
         self.resolution
             .map_or(0.0, |r| std::f64::consts::TAU / r as f64)
+    }
+
+    /// Whether the reading is an angle (an encoder on an angle coordinate): a value
+    /// on the circle, equal to itself plus any whole turn.
+    pub fn reads_an_angle(&self, model: &Model) -> bool {
+        match self.kind {
+            SensorKind::Encoder { coordinate } => {
+                coordinate >= model.relative_offset
+                    && model.scene.coordinates[coordinate - model.relative_offset]
+                        .kind
+                        .is_angle()
+            }
+            _ => false,
+        }
     }
 
     /// The σ an estimator weights this reading with: √(σ² + quantum²/12), the noise
