@@ -464,23 +464,22 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
 
 /// A coordinate the readings leave undetermined, named with what to do.
 pub fn undetermined_warning(model: &mbfg::Model, u: &mbfg::estimate::Undetermined) -> String {
-    match u.grows_to {
-        None => format!(
-            "the readings leave '{}' undetermined: its σ averages {} over the run against \
-             {} for the prior on its start, so its estimate is that prior's guess carried by \
-             the model; add a sensor that observes it (directly or through the dynamics), or \
-             give its start in `estimation: initial_sigma` if it is known",
-            model.names[u.coordinate],
-            three_digits(u.mean_sd),
+    let name = &model.names[u.coordinate];
+    let mean = three_digits(u.mean_sd);
+    if u.prior < u.against {
+        format!(
+            "the readings leave '{name}' undetermined: its σ averages {mean} over the run, \
+             from a start known to {}, so its estimate is that start carried by the model; \
+             add a sensor that observes it (directly or through the dynamics)",
             u.prior
-        ),
-        Some(end) => format!(
-            "the readings leave '{}' undetermined: its σ grows from {} for the prior on its \
-             start to {} at the end of the run, so its estimate is that start carried by the \
-             model; add a sensor that observes it (directly or through the dynamics)",
-            model.names[u.coordinate],
-            u.prior,
-            three_digits(end)
-        ),
+        )
+    } else {
+        format!(
+            "the readings leave '{name}' undetermined: its σ averages {mean} over the run \
+             against {} for the prior on its start, so its estimate is that prior's guess \
+             carried by the model; add a sensor that observes it (directly or through the \
+             dynamics), or give its start in `estimation: initial_sigma` if it is known",
+            u.prior
+        )
     }
 }
