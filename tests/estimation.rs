@@ -1059,3 +1059,30 @@ sensors:
     assert!(most < 1e-9, "the estimates differ by {most} rad");
     assert!(summary.nis.consistent(), "mean NIS {}", summary.nis.mean());
 }
+
+#[test]
+fn two_times_a_glitch_apart_do_not_set_the_step() {
+    // Rows 1 ns apart among 5 ms ones: the grid of the shortest interval would hold
+    // ten million steps for four rows; the step is the readings' period instead, each
+    // reading at its nearest step.
+    let m = model("fourbar-bad.yaml");
+    let columns = vec!["t".to_string(), "enc".to_string()];
+    let rows: Vec<(f64, Vec<f64>)> = [0.0, 1e-9, 0.005, 0.01]
+        .iter()
+        .map(|&t| (t, vec![t, 1.04]))
+        .collect();
+    let record = Record::from_rows(&m, &columns, &rows, None).unwrap();
+    assert!(
+        record.steps.len() <= 5,
+        "{} steps of {} s",
+        record.steps.len(),
+        record.dt
+    );
+    assert_eq!(record.readings(), 4);
+    // Rows on a grid as fine as their own spacing keep it.
+    let even: Vec<(f64, Vec<f64>)> = (0..5)
+        .map(|k| (0.001 * k as f64, vec![0.0, 1.04]))
+        .collect();
+    let record = Record::from_rows(&m, &columns, &even, None).unwrap();
+    assert_eq!((record.steps.len(), record.between_steps().0), (5, 0));
+}

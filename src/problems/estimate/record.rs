@@ -34,6 +34,9 @@ pub const NO_READINGS: &str =
 
 /// How far from a step a reading's time may be and still be on it, as a fraction of dt.
 const ON_STEP: f64 = 1e-6;
+/// The most steps per row a default step may make: a grid of the shortest interval
+/// finer than this (rows 1 ns apart among 5 ms ones) gives way to the readings' period.
+const STEPS_PER_ROW: f64 = 10.0;
 
 impl Record {
     /// The record of a measurements CSV for `model`'s sensors, on the grid of step
@@ -86,14 +89,16 @@ impl Record {
             None if rows.len() >= 2 => {
                 // The span divided into whole steps of about the shortest interval:
                 // 10 s of 5 ms rows is 0.005, not the 0.004999… of one difference of
-                // rounded times. Where that grid misses rows (times that jitter), the
+                // rounded times. Where that grid misses rows (times that jitter), or
+                // would hold far more steps than rows (two times a glitch apart), the
                 // readings' own period: the mean interval, gaps (beyond 1.5 times the
                 // median) left out.
                 let mut intervals: Vec<f64> = rows.windows(2).map(|w| w[1].0 - w[0].0).collect();
                 let span = rows[rows.len() - 1].0 - rows[0].0;
                 let shortest = intervals.iter().copied().fold(f64::INFINITY, f64::min);
                 let grid = span / (span / shortest).round();
-                if rows.iter().all(|(t, _)| on_step(t - t0, grid)) {
+                let sparse = span / grid > STEPS_PER_ROW * rows.len() as f64;
+                if !sparse && rows.iter().all(|(t, _)| on_step(t - t0, grid)) {
                     grid
                 } else {
                     intervals.sort_by(f64::total_cmp);
