@@ -273,25 +273,17 @@ pub fn parameter_lines(s: &EstimateSummary) -> Vec<String> {
         .parameters
         .iter()
         .map(|p| {
-            let head = match p.sigma_lowered {
-                None => format!(
-                    "parameter {} = {} ± {:.2e} (prior {} ± {})",
-                    p.name,
-                    significant(p.estimate, p.sigma),
-                    p.sigma,
-                    short(p.prior),
-                    short(p.prior_sigma)
-                ),
-                Some(lowered) => format!(
-                    "parameter {} = {} ± {:.2e}, ± {lowered:.2e} at the lowered process σ \
-                     (prior {} ± {})",
-                    p.name,
-                    significant(p.estimate, p.sigma.min(lowered)),
-                    p.sigma,
-                    short(p.prior),
-                    short(p.prior_sigma)
-                ),
-            };
+            let lowered = p.sigma_lowered.map_or(String::new(), |l| {
+                format!(", ± {l:.2e} at the lowered process σ")
+            });
+            let head = format!(
+                "parameter {} = {} ± {:.2e}{lowered} (prior {} ± {})",
+                p.name,
+                significant(p.estimate, p.sigma.min(p.sigma_lowered.unwrap_or(p.sigma))),
+                p.sigma,
+                short(p.prior),
+                short(p.prior_sigma)
+            );
             match &p.undetermined {
                 None => head,
                 Some(why) => format!("{head}: NOT identified, {why}"),

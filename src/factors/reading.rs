@@ -9,6 +9,9 @@ use crate::graph::{Factor, Key, VarKind, Workspace};
 use crate::model::Model;
 use std::sync::Arc;
 
+/// Coordinates whose expanded state a reading between steps keeps on the stack.
+const SHIFT_ON_STACK: usize = 32;
+
 /// f_sensor: e = h(q, q̇, q̈, t) − datum for sensor `sensor` of the model, on the
 /// step's q, q̇ and q̈. Weighted by the sensor's [`crate::sensors::Sensor::effective_sigma`]
 /// where it is added.
@@ -103,20 +106,27 @@ impl Factor for Reading {
             )));
         }
         let b = self.before;
-        let shifted;
+        let n = x[0].len();
+        // The expanded q and q̇, on the stack for mechanisms of up to SHIFT_ON_STACK
+        // coordinates: this runs at every iteration of every solve.
+        let mut on_stack = [0.0; 2 * SHIFT_ON_STACK];
+        let mut on_heap = Vec::new();
         let (t, q, dq, ddq) = if b == 0.0 {
             (t, x[0], x[1], x[2])
         } else {
+            let shifted = if n <= SHIFT_ON_STACK {
+                &mut on_stack[..2 * n]
+            } else {
+                on_heap.resize(2 * n, 0.0);
+                &mut on_heap[..]
+            };
             let (q, dq, ddq) = (x[0], x[1], x[2]);
-            shifted = (
-                (0..q.len())
-                    .map(|i| q[i] - b * dq[i] + 0.5 * b * b * ddq[i])
-                    .collect::<Vec<f64>>(),
-                (0..dq.len())
-                    .map(|i| dq[i] - b * ddq[i])
-                    .collect::<Vec<f64>>(),
-            );
-            (t - b, &shifted.0[..], &shifted.1[..], ddq)
+            let (sq, sdq) = shifted.split_at_mut(n);
+            for i in 0..n {
+                sq[i] = q[i] - b * dq[i] + 0.5 * b * b * ddq[i];
+                sdq[i] = dq[i] - b * ddq[i];
+            }
+            (t - b, &*sq, &*sdq, ddq)
         };
         match jac {
             Some(j) => {

@@ -684,18 +684,15 @@ impl Force {
         Ok(())
     }
 
-    /// The loads of a torque or a force whose value uses an identified parameter,
-    /// each with the row of Q it adds to.
-    pub fn parametric_loads(&self) -> Vec<(usize, &Load)> {
+    /// The expressions of a torque's or a force's value, each with the row of Q it
+    /// adds to (none for other effects).
+    pub fn value_loads(&self) -> [Option<(usize, &Load)>; 2] {
         match self {
-            Force::Torque { index, value } if value.uses_parameters() => vec![(*index, value)],
-            Force::PointForce { index, value } => value
-                .iter()
-                .enumerate()
-                .filter(|(_, v)| v.uses_parameters())
-                .map(|(axis, v)| (index + axis, v))
-                .collect(),
-            _ => Vec::new(),
+            Force::Torque { index, value } => [Some((*index, value)), None],
+            Force::PointForce { index, value } => {
+                [Some((*index, &value[0])), Some((index + 1, &value[1]))]
+            }
+            _ => [None, None],
         }
     }
 

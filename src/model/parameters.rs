@@ -34,7 +34,7 @@ pub struct Parameters {
     /// torque): (index into `Model::forces`, ∂/∂p of each constant).
     springs: Vec<(usize, Vec<f64>, Vec<f64>)>,
     /// Torques and forces whose values use the parameters, any way the expression
-    /// does: (index into `Model::forces`, which of its loads).
+    /// does: (index into `Model::forces`, which of its [`Force::value_loads`]).
     loads: Vec<(usize, usize)>,
 }
 
@@ -109,9 +109,11 @@ impl Parameters {
             }
         }
         for (e, force) in model.forces.iter().enumerate() {
-            for (k, (_, load)) in force.parametric_loads().into_iter().enumerate() {
-                load.parameter_indices().for_each(|j| touched[j] = true);
-                out.loads.push((e, k));
+            for (k, slot) in force.value_loads().into_iter().enumerate() {
+                if let Some((_, load)) = slot.filter(|(_, l)| l.uses_parameters()) {
+                    load.parameter_indices().for_each(|j| touched[j] = true);
+                    out.loads.push((e, k));
+                }
             }
         }
         if out.gravity.is_none() {
@@ -246,7 +248,7 @@ impl Parameters {
     fn loads<'a>(&'a self, model: &'a Model) -> impl Iterator<Item = (usize, &'a Load)> + 'a {
         self.loads
             .iter()
-            .map(move |&(e, k)| model.forces[e].parametric_loads()[k])
+            .filter_map(move |&(e, k)| model.forces[e].value_loads()[k])
     }
 
     /// ∂/∂q and ∂/∂q̇ of [`Parameters::force`] added to `kq`, `kv` (n × n), and
