@@ -244,6 +244,17 @@ pub fn sampled_rows(len: usize, stride: usize) -> Vec<usize> {
     rows
 }
 
+/// `v` to three significant digits, without trailing zeros.
+pub fn three_digits(v: f64) -> String {
+    let digits = (2.0 - v.abs().log10().floor()).clamp(0.0, 15.0) as usize;
+    let text = format!("{v:.digits$}");
+    if text.contains('.') {
+        text.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        text
+    }
+}
+
 /// Shortest round-trip text of a number: plain for moderate magnitudes, scientific
 /// otherwise (Rust's plain form would spell 1e-30 with thirty zeros).
 pub(crate) fn number(v: f64) -> String {

@@ -247,6 +247,7 @@ pub fn judge_with(bytes: &[u8], derivatives: Derivatives) -> Option<String> {
         dt,
         steps: tr.len(),
         values: (0..tr.len()).map(|k| tr.q_at(k)[theta]).collect(),
+        times: None,
     };
     let mut options = InverseOptions {
         coordinates,

@@ -96,7 +96,12 @@ fn bad_trajectory_files_exit_2_with_a_clear_message() {
         (
             "uneven.csv",
             "t,theta\n0,0\n0.01,0\n0.02,0\n0.04,0\n0.05,0\n0.06,0".into(),
-            "uniformly spaced",
+            ":3: times are not uniformly spaced (step 0.01 s where the mean step is 0.012 s): exact samples need a uniform grid; measured ones are smoothed at their own times with a sample σ (--sample-sigma S or auto; sample_sigma in Python)",
+        ),
+        (
+            "repeated.csv",
+            "t,theta\n0,0\n0.01,0\n0.010001,0\n0.02,0\n0.03,0\n0.04,0".into(),
+            "line 4: time 0.010001 follows the previous sample by only",
         ),
         (
             "back.csv",
@@ -145,7 +150,7 @@ fn bad_trajectory_files_exit_2_with_a_clear_message() {
         (
             "far-time.csv",
             "t,theta\n0,0\n0.01,0\n1e300,0\n0.03,0\n0.04,0\n0.05,0".into(),
-            "line 4: times must be uniformly spaced (step 1e300 where the mean step is 0.01)",
+            "line 5: time 0.03 does not increase (previous 1e300)",
         ),
     ];
     for (name, text, expect) in cases {
@@ -458,5 +463,78 @@ fn an_outlier_sample_is_solved_without_the_finite_difference_hessian() {
                 assert!(off <= 1e-9 * clean_peak, "row {k}: {d:?} against {r:?}");
             }
         }
+    }
+}
+
+/// Measured samples whose times jitter are smoothed at their own times: the summary
+/// says so, and the output's rows are on the grid of their mean interval.
+#[test]
+fn sample_sigma_smooths_samples_at_their_own_times() {
+    let text = rows(
+        |k| {
+            if k == 0 {
+                return "t,theta".into();
+            }
+            // ±1 ms off a 5 ms grid, the ends on it.
+            let j = k - 1;
+            let jitter = if j == 0 || j == 400 {
+                0.0
+            } else {
+                [1e-3, -0.6e-3, 0.2e-3][j % 3]
+            };
+            let t = j as f64 * 0.005 + jitter;
+            format!("{t},{}", 1.2 * (1.0 - (2.0 * t).cos()))
+        },
+        402,
+    );
+    let path = temp("jittered.csv", &text);
+    let refused = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        path.to_str().unwrap(),
+    ]);
+    let line = one_error_line(&refused, 2);
+    assert!(
+        line.contains("jittered.csv:3: times are not uniformly spaced")
+            && line.contains("--sample-sigma S or auto"),
+        "{line}"
+    );
+    let out_csv = std::env::temp_dir().join(format!("mbfg-inv-{}-jit.csv", std::process::id()));
+    let out = mbfg(&[
+        "inverse",
+        "scenes/fourbar-theta.yaml",
+        "--trajectory",
+        path.to_str().unwrap(),
+        "--sample-sigma",
+        "auto",
+        "--out",
+        out_csv.to_str().unwrap(),
+    ]);
+    std::fs::remove_file(&path).ok();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        summary.contains(
+            "401 steps (dt = 0.005 s, batch)"
+        ) && summary.contains(
+            "samples smoothed at their own times (intervals 0.0034 to 0.0058 s), read on the grid of their mean interval: theta σ"
+        ),
+        "{summary}"
+    );
+    let written = std::fs::read_to_string(&out_csv).unwrap();
+    std::fs::remove_file(&out_csv).ok();
+    let times: Vec<f64> = written
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(times.len(), 401);
+    for (k, t) in times.iter().enumerate() {
+        assert!((t - k as f64 * 0.005).abs() < 1e-12, "row {k}: t = {t}");
     }
 }

@@ -174,8 +174,8 @@ fn noisy_samples_give_the_torque_within_its_sigma() {
             auto.rms()
         );
         assert!(raw.rms() > 1.0, "differences {:.3e}", raw.rms());
-        assert!(given.rms() <= 0.05, "seed {seed}: {:.3e} N·m", given.rms());
-        assert!(auto.rms() <= 0.05, "seed {seed}: {:.3e} N·m", auto.rms());
+        assert!(given.rms() <= 0.035, "seed {seed}: {:.3e} N·m", given.rms());
+        assert!(auto.rms() <= 0.035, "seed {seed}: {:.3e} N·m", auto.rms());
         let fit = auto.fit.clone().unwrap();
         assert_eq!(fit.noise, inverse::NoiseShape::Uniform);
         assert!(
@@ -263,4 +263,114 @@ fn the_sensitivity_matches_finite_differences() {
             }
         }
     }
+}
+
+/// The crank samples at times jittered by up to `jitter` either way (a logger's
+/// clock; the first and last on the grid), each passed through `reading`.
+fn jittered_samples(jitter: f64, seed: u64, mut reading: impl FnMut(f64) -> f64) -> Table {
+    let mut table = samples(|v| v);
+    let mut rng = Rng::new(seed);
+    for k in 1..table.rows - 1 {
+        let t = k as f64 * DT + jitter * (2.0 * rng.uniform() - 1.0);
+        table.values[2 * k] = t;
+        table.values[2 * k + 1] = reading(motions::fourbar_crank(t)[0]);
+    }
+    table
+}
+
+#[test]
+fn samples_at_jittered_times_are_smoothed_at_their_own_times() {
+    let model = load("fourbar-theta.yaml");
+    // Exact samples up to 1.5 ms off a 5 ms grid: the grid's motion is interpolated
+    // between them exactly (a sample's value taken at the nearest grid time would be
+    // off by the crank's speed times the jitter, 2.4 rad/s × 1.5 ms).
+    let exact = jittered_samples(1.5e-3, 7, |v| v);
+    let p = Prescription::from_table(&model, &exact, "test").unwrap();
+    assert!(p.times.is_some());
+    let refused = inverse::solve(model.clone(), &p, &InverseOptions::default()).unwrap_err();
+    assert!(
+        refused.to_string().contains("not uniformly spaced")
+            && refused.to_string().contains("--sample-sigma"),
+        "{refused}"
+    );
+    let smoothed = run(&model, &exact, Some(SampleSigma::FromData));
+    eprintln!("exact, jittered: {:.3e} N·m", smoothed.rms());
+    assert!(smoothed.rms() <= 1e-4, "{:.3e} N·m", smoothed.rms());
+    // Noisy samples (1e-4 rad) at jittered times are as good as on the grid: the
+    // same bound as the grid's test, σ's as honest. Intervals from 0.4 to 1.6 steps
+    // make the normal equations' condition the worst of these tests; unrefined, their
+    // solve chose λ ten times too large and the torque was 0.1 N·m off.
+    let (mut within, mut total) = (0, 0);
+    for seed in 1..=3 {
+        let mut rng = Rng::new(100 + seed);
+        let table = jittered_samples(1.5e-3, seed, |v| v + 1e-4 * rng.normal());
+        let given = run(&model, &table, Some(SampleSigma::Given(vec![1e-4])));
+        let auto = run(&model, &table, Some(SampleSigma::FromData));
+        eprintln!(
+            "seed {seed}, jittered: σ given {:.3e} N·m (within 2σ {}); from the data {:.3e} N·m",
+            given.rms(),
+            given.within_2sd(),
+            auto.rms()
+        );
+        assert!(given.rms() <= 0.035, "seed {seed}: {:.3e} N·m", given.rms());
+        assert!(auto.rms() <= 0.035, "seed {seed}: {:.3e} N·m", auto.rms());
+        let fit = auto.fit.clone().unwrap();
+        assert!(
+            (fit.sigma / 1e-4 - 1.0).abs() < 0.05,
+            "seed {seed}: {fit:?}"
+        );
+        within += given.within_2sd();
+        total += given.error.len();
+    }
+    let fraction = within as f64 / total as f64;
+    assert!(fraction >= 0.9, "{fraction}");
+}
+
+#[test]
+fn times_written_to_fixed_decimals_are_on_their_grid() {
+    // 300 Hz written to 0.1 ms (0, 0.0033, 0.0067, 0.01, …): on the grid of 1/300 s
+    // within the last decimal, so the samples are exact and need no σ.
+    let model = load("fourbar-theta.yaml");
+    let rows = 3001;
+    let mut rounded = Vec::with_capacity(2 * rows);
+    let mut exact = Vec::with_capacity(2 * rows);
+    for k in 0..rows {
+        let t = k as f64 / 300.0;
+        let theta = motions::fourbar_crank(t)[0];
+        rounded.extend([format!("{t:.4}").parse::<f64>().unwrap(), theta]);
+        exact.extend([t, theta]);
+    }
+    let table = |values| Table {
+        columns: vec!["t".into(), "theta".into()],
+        values,
+        rows,
+    };
+    let p = Prescription::from_table(&model, &table(rounded), "test").unwrap();
+    assert!(p.times.is_none());
+    assert!((p.dt - 1.0 / 300.0).abs() < 1e-15);
+    let q = Prescription::from_table(&model, &table(exact), "test").unwrap();
+    let a = inverse::solve(model.clone(), &p, &InverseOptions::default()).unwrap();
+    let b = inverse::solve(model.clone(), &q, &InverseOptions::default()).unwrap();
+    let worst = a
+        .forces
+        .iter()
+        .zip(&b.forces)
+        .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
+    assert!(worst < 1e-9, "{worst:e}");
+    // A sample repeated 1 µs after its predecessor is named, not smoothed.
+    let mut values = table(vec![]).values;
+    for k in 0..20 {
+        values.extend([k as f64 * 0.01, 0.1 * k as f64]);
+    }
+    values[2 * 5] = values[2 * 4] + 1e-6;
+    let t = Table {
+        columns: vec!["t".into(), "theta".into()],
+        values,
+        rows: 20,
+    };
+    let e = Prescription::from_table(&model, &t, "test").unwrap_err();
+    assert!(
+        e.to_string().contains("line 7") && e.to_string().contains("duplicated"),
+        "{e}"
+    );
 }

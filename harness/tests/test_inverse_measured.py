@@ -46,3 +46,23 @@ def test_without_sample_sigma_no_sd_columns_and_bad_values(case):
     for bad in ("x", {"phi": 1.0}, -1.0, True, {"theta": 0.0}):
         with pytest.raises(mbfg.InvalidArgument):
             mbfg.inverse(im.SCENE, {"t": t[:50], "theta": th[:50]}, sample_sigma=bad)
+
+
+def test_samples_at_jittered_times(case):
+    """Samples whose times jitter are smoothed at their own times (sample_sigma) and the
+    torque read on the grid of their mean interval; without a σ they are refused."""
+    t, _, truth = case
+    rng = np.random.default_rng(3)
+    tj = t + rng.uniform(-im.JITTER, im.JITTER, len(t))
+    tj[0], tj[-1] = t[0], t[-1]
+    y = im.crank(tj)[0] + im.NOISE * rng.standard_normal(len(t))
+    with pytest.raises(mbfg.InvalidArgument, match="not uniformly spaced"):
+        mbfg.inverse(im.SCENE, {"t": tj, "theta": y})
+    r = mbfg.inverse(im.SCENE, {"t": tj, "theta": y}, sample_sigma="auto")
+    assert np.allclose(r.t, t, atol=1e-12)
+    lo, hi = r.summary["sample_intervals"]
+    assert im.DT - 2 * im.JITTER <= lo < hi <= im.DT + 2 * im.JITTER
+    err = r.column("Q:theta") - truth
+    sd = r.column("sd:Q:theta")
+    assert np.sqrt(np.mean(err ** 2)) <= 0.05
+    assert np.mean(np.abs(err) <= 2 * sd) >= 0.9

@@ -245,7 +245,7 @@ pub fn summary_line(s: &EstimateSummary, elapsed: f64) -> String {
             (n, most) => format!(
                 " ({n} between steps, up to {} s from their nearest, compared with the \
                  motion's expansion about it)",
-                three_digits(most)
+                mbfg::io::three_digits(most)
             ),
         },
         elapsed,
@@ -334,38 +334,27 @@ fn significant(v: f64, sigma: f64) -> String {
     format!("{v:.digits$}")
 }
 
-/// `v` to three significant digits, without trailing zeros.
-fn three_digits(v: f64) -> String {
-    let digits = (2.0 - v.abs().log10().floor()).clamp(0.0, 15.0) as usize;
-    let text = format!("{v:.digits$}");
-    if text.contains('.') {
-        text.trim_end_matches('0').trim_end_matches('.').to_string()
-    } else {
-        text
-    }
-}
-
 /// The process σ and where it came from.
 fn process(s: &EstimateSummary) -> String {
-    let sigma = three_digits(s.process_sigma);
+    let sigma = mbfg::io::three_digits(s.process_sigma);
     match s.process_source {
         ProcessSource::Scene => format!("{sigma} (the scene's)"),
         ProcessSource::Default => format!("{sigma} (the default{})", at_step(s)),
         ProcessSource::Unresponsive { tried, then, .. } => format!(
             "{sigma} (the default{}; at {} a filter pass's mean NIS was still {then:.3})",
             at_step(s),
-            three_digits(tried)
+            mbfg::io::three_digits(tried)
         ),
         ProcessSource::Correlated { tried, lag_one, .. } => format!(
             "{sigma} (the default{}; at {}, where a filter pass's mean NIS was inside its \
              bounds, its innovations' lag-one autocorrelation was {lag_one:.2}: not white)",
             at_step(s),
-            three_digits(tried)
+            mbfg::io::three_digits(tried)
         ),
         ProcessSource::Identified { from, used } => format!(
             "{sigma} (lowered after identification: at the default {} the batch's dynamics \
              residuals used {:.2e} of their expected χ²)",
-            three_digits(from),
+            mbfg::io::three_digits(from),
             used
         ),
         ProcessSource::Readings {
@@ -375,7 +364,7 @@ fn process(s: &EstimateSummary) -> String {
         } => format!(
             "{sigma} (from the readings: the default {} left a filter pass's mean NIS at \
              {nis:.3}, outside [{:.3}, {:.3}])",
-            three_digits(default),
+            mbfg::io::three_digits(default),
             bounds.0,
             bounds.1
         ),
@@ -433,7 +422,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
              model or in a sensor's model that white process noise does not describe; the σ's \
              stay large (`inputs:` or `parameters:` can carry the bias)",
             nis.mean(),
-            three_digits(tried)
+            mbfg::io::three_digits(tried)
         )
     } else if unresponsive {
         format!(
@@ -457,7 +446,7 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
 /// A coordinate the readings leave undetermined, named with what to do.
 pub fn undetermined_warning(model: &mbfg::Model, u: &mbfg::estimate::Undetermined) -> String {
     let name = &model.names[u.coordinate];
-    let mean = three_digits(u.mean_sd);
+    let mean = mbfg::io::three_digits(u.mean_sd);
     if u.prior < u.against {
         format!(
             "the readings leave '{name}' undetermined: its σ averages {mean} over the run, \

@@ -165,7 +165,7 @@ fn sample_sigma(text: &str, columns: &[&str]) -> Result<mbfg::inverse::SampleSig
 
 /// The summary's words on the smoothing: per column its σ (given, from the scatter,
 /// or from the rounding of the printed digits) and the samples' RMS residual.
-fn smoothing_words(names: &[&str], fits: &[mbfg::inverse::ColumnFit]) -> String {
+fn smoothing_words(names: &[&str], fits: &[mbfg::inverse::ColumnFit], when: &str) -> String {
     let parts: Vec<String> = names
         .iter()
         .zip(fits)
@@ -183,7 +183,7 @@ fn smoothing_words(names: &[&str], fits: &[mbfg::inverse::ColumnFit]) -> String 
             )
         })
         .collect();
-    format!("; samples smoothed: {}", parts.join(", "))
+    format!("; samples smoothed{when}: {}", parts.join(", "))
 }
 
 /// The standard deviations as columns `sd:q:<c>`…, `sd:dq:<c>`…, `sd:ddq:<c>`…,
@@ -240,6 +240,8 @@ fn inverse(
         .collect();
     if let Some(text) = sample_sigma_arg {
         options.sample_sigma = Some(sample_sigma(text, &columns).map_err(Failure::Input)?);
+    } else {
+        prescription.check_grid(&file).map_err(plain)?;
     }
     let smoothing_names: Vec<String> = columns.iter().map(|c| c.to_string()).collect();
     let model = Arc::new(model);
@@ -261,13 +263,20 @@ fn inverse(
     );
     if let Some(fits) = &s.smoothing {
         let names: Vec<&str> = smoothing_names.iter().map(String::as_str).collect();
-        line += &smoothing_words(&names, fits);
+        let at_their_times = s.off_grid.map(|(shortest, longest)| {
+            format!(
+                " at their own times (intervals {} to {} s), read on the grid of their mean interval",
+                mbfg::io::three_digits(shortest),
+                mbfg::io::three_digits(longest)
+            )
+        });
+        line += &smoothing_words(&names, fits, at_their_times.as_deref().unwrap_or(""));
         for (name, f) in names.iter().zip(fits) {
             let (z, k) = f.worst_residual;
             if z > OUTLIER {
                 eprintln!(
                     "warning: the sample of {name} at t = {} (line {}) is {z:.0}σ from the smoothed motion: a glitch, an angle written wrapped, or a σ too small; the smoothing follows it only partly",
-                    sol.trajectory.t[k],
+                    prescription.sample_time(k),
                     k + 2
                 );
             }

@@ -415,7 +415,30 @@ impl BandedCholesky {
     /// A marginal covariance per block in O(Σ d_k³), never the whole inverse.
     /// `out[k]` is row-major d_k × d_k.
     pub fn inverse_diagonal_blocks(&mut self, out: &mut Vec<Vec<f64>>) {
+        self.selected_inverse(out, None);
+    }
+
+    /// The diagonal blocks of H⁻¹ as [`Self::inverse_diagonal_blocks`], and in
+    /// `lower[k]` (k ≥ 1) the block Σ_{k,k−1} below the diagonal, d_k × d_{k−1}
+    /// row-major (`lower[0]` empty): from Σ L = L⁻ᵀ, whose blocks below the diagonal
+    /// vanish, Σ_{k+1,k} = −Σ_{k+1} C_{k+1} L_k⁻¹. What a covariance between
+    /// neighbouring blocks needs (an interpolation between them).
+    pub fn inverse_tridiagonal_blocks(
+        &mut self,
+        diagonal: &mut Vec<Vec<f64>>,
+        lower: &mut Vec<Vec<f64>>,
+    ) {
+        self.selected_inverse(diagonal, Some(lower));
+    }
+
+    fn selected_inverse(&mut self, out: &mut Vec<Vec<f64>>, mut lower: Option<&mut Vec<Vec<f64>>>) {
         out.resize_with(self.blocks, Vec::new);
+        if let Some(lower) = lower.as_deref_mut() {
+            lower.resize_with(self.blocks, Vec::new);
+            if let Some(first) = lower.first_mut() {
+                first.clear();
+            }
+        }
         let s = self.s;
         // M (d_k²), SC (d_{k+1} × d_k), Y (d_k²), one column (d_k): reused, as the
         // blocks are (an estimator asks for them every step).
@@ -465,6 +488,20 @@ impl BandedCholesky {
             // Σ = Y L⁻¹ = (L⁻ᵀ Yᵀ)ᵀ, written by its columns.
             let at = self.diag_at[k];
             let l = &self.l[at..at + dk * dk];
+            // Σ_{k+1,k} = −SC L_k⁻¹, row by row: x L_k = −sc ⇔ L_kᵀ xᵀ = −scᵀ.
+            if let (Some(lower), true) = (lower.as_deref_mut(), k + 1 < self.blocks) {
+                let dn = self.dims[k + 1];
+                let block = &mut lower[k + 1];
+                block.clear();
+                block.resize(dn * dk, 0.0);
+                for i in 0..dn {
+                    for j in 0..dk {
+                        col[j] = -sc[i * dk + j];
+                    }
+                    dense::solve_lower_transpose_strided(l, dk, dk, col);
+                    block[i * dk..(i + 1) * dk].copy_from_slice(col);
+                }
+            }
             for j in 0..dk {
                 for i in 0..dk {
                     col[i] = m[i * dk + j];
@@ -774,6 +811,24 @@ mod tests {
         f.factor(&h, &[]).unwrap();
         let mut blocks = Vec::new();
         f.inverse_diagonal_blocks(&mut blocks);
+        let (mut diagonal, mut lower) = (Vec::new(), Vec::new());
+        f.inverse_tridiagonal_blocks(&mut diagonal, &mut lower);
+        assert_eq!(diagonal, blocks);
+        let inverse = dense.clone().try_inverse().unwrap();
+        assert!(lower[0].is_empty());
+        for k in 1..dims.len() {
+            let (d, o, dp, op) = (dims[k], offsets[k], dims[k - 1], offsets[k - 1]);
+            assert_eq!(lower[k].len(), d * dp);
+            for a in 0..d {
+                for b in 0..dp {
+                    let (got, want) = (lower[k][a * dp + b], inverse[(o + a, op + b)]);
+                    assert!(
+                        (got - want).abs() < 1e-10 * (1.0 + want.abs()),
+                        "lower block {k} ({a}, {b}): {got} vs {want}"
+                    );
+                }
+            }
+        }
         let mut ends = Vec::new();
         f.inverse_end_blocks(&mut ends);
         let inverse = dense.try_inverse().unwrap();

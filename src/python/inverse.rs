@@ -52,6 +52,7 @@ fn inverse_result<'py>(py: Python<'py>, sol: &InverseSolution) -> PyResult<Bound
             list.append(d)?;
         }
         summary.set_item("smoothing", list)?;
+        summary.set_item("sample_intervals", s.off_grid.map(|(a, b)| vec![a, b]))?;
         // The standard deviations as the CLI writes them: sd:q, sd:dq, sd:ddq, sd:Q.
         let names = &sol.trajectory.names;
         let n = names.len();
@@ -70,6 +71,7 @@ fn inverse_result<'py>(py: Python<'py>, sol: &InverseSolution) -> PyResult<Bound
         out.set_item("extra", PyArray1::from_vec(py, values))?;
     } else {
         summary.set_item("smoothing", py.None())?;
+        summary.set_item("sample_intervals", py.None())?;
     }
     out.set_item("summary", summary)?;
     out.set_item("failures", PyList::empty(py))?;
@@ -233,6 +235,9 @@ pub(super) fn inverse_run<'py>(
                 .map(|&i| model.names[i].as_str())
                 .collect();
             options.sample_sigma = arg_sample_sigma(sigma, &names)?;
+        }
+        if options.sample_sigma.is_none() {
+            prescription.check_grid(&source).map_err(arg_error)?;
         }
         let sol = py
             .detach(|| inverse::solve(model, &prescription, &options))

@@ -51,10 +51,59 @@ pub struct Prescription {
     pub steps: usize,
     /// Row-major steps × indices.len().
     pub values: Vec<f64>,
+    /// The samples' own times where they are not t₀ + k·Δt (a logger's jitter); Δt
+    /// is then their mean interval, the grid on which the motion is solved. Only
+    /// measured samples ([`InverseOptions::sample_sigma`]) may be off the grid: they
+    /// are smoothed at their own times, and the smoothed motion read on the grid.
+    pub times: Option<Vec<f64>>,
 }
 
 /// Fewest samples a prescription needs (the starting derivatives use five).
 pub const MIN_SAMPLES: usize = 5;
+
+/// Relative tolerance of an interval taken as the grid's.
+const UNIFORM: f64 = 1e-6;
+
+/// The shortest interval between samples, as a fraction of their mean.
+const CLOSEST_INTERVAL: f64 = 0.05;
+
+/// Whether times t₀, …, t_{N−1} are the grid t₀ + k·Δt: every interval within 1e-6 of
+/// Δt, or every time within the rounding of its printed digits of the grid (times
+/// written to fixed decimals, as 300 Hz to 0.1 ms: 0, 0.0033, 0.0067, 0.01; both the
+/// time and the grid's ends rounded, so within one unit of the last decimal).
+fn on_grid(t: &[f64], dt: f64) -> bool {
+    let exact = t
+        .windows(2)
+        .all(|p| ((p[1] - p[0]) - dt).abs() <= UNIFORM * dt);
+    if exact {
+        return true;
+    }
+    let Some(unit) = printed_unit(t) else {
+        return false;
+    };
+    unit <= 0.5 * dt
+        && t.iter().enumerate().all(|(k, &tk)| {
+            let grid = t[0] + k as f64 * dt;
+            (tk - grid).abs() <= unit * (1.0 + 1e-9) + 4.0 * f64::EPSILON * tk.abs().max(grid.abs())
+        })
+}
+
+/// The unit of the last decimal the times are written to (1e-4 for 0.0033), None
+/// where they need more than 12 decimals (not visibly rounded).
+fn printed_unit(t: &[f64]) -> Option<f64> {
+    let decimals = t
+        .iter()
+        .map(|v| {
+            // The shortest decimal that reads back as v.
+            let text = format!("{:e}", v.abs());
+            let (mantissa, exponent) = text.split_once('e')?;
+            let digits = mantissa.chars().filter(char::is_ascii_digit).count() as i64;
+            let exponent: i64 = exponent.parse().ok()?;
+            Some((digits - 1 - exponent).max(0))
+        })
+        .try_fold(0i64, |m, d| d.map(|d| m.max(d)))?;
+    (decimals <= 12).then(|| 10f64.powi(-(decimals as i32)))
+}
 
 impl Prescription {
     /// The prescribed coordinates' indices from a header `t,<coordinate>,...`, or
@@ -110,15 +159,22 @@ impl Prescription {
                     number(t[k - 1])
                 ));
             }
-            if (step - dt).abs() > 1e-6 * dt {
+            // Two samples much closer than the rest: a duplicate, which no smoothing
+            // at their own times can tell apart (the prior between them grows as the
+            // interval's seventh power).
+            if step < CLOSEST_INTERVAL * dt {
                 return bad(format!(
-                    "line {}: times must be uniformly spaced (step {} where the mean step is {})",
+                    "line {}: time {} follows the previous sample by only {} s, under {} of \
+                     the mean interval {} s: a duplicated sample? remove one",
                     k + 2,
+                    number(t[k]),
                     number(step),
+                    number(CLOSEST_INTERVAL),
                     number(dt)
                 ));
             }
         }
+        let times = (!on_grid(&t, dt)).then(|| t.to_vec());
         let p = indices.len();
         let w = table.columns.len();
         let mut values = Vec::with_capacity(table.rows * p);
@@ -185,6 +241,7 @@ impl Prescription {
             dt,
             steps: table.rows,
             values,
+            times,
         };
         // The rates and accelerations the samples give must be finite too (a step
         // of 1e-200 s squares to nothing).
@@ -204,6 +261,51 @@ impl Prescription {
             );
         }
         Ok(prescription)
+    }
+
+    /// The time of sample k: its own, or the grid's.
+    pub fn sample_time(&self, k: usize) -> f64 {
+        match &self.times {
+            Some(t) => t[k],
+            None => self.t0 + k as f64 * self.dt,
+        }
+    }
+
+    /// Where the samples are off the grid: the first sample (index ≥ 1) whose
+    /// interval from the one before is not Δt, and that interval.
+    pub fn first_irregular(&self) -> Option<(usize, f64)> {
+        let t = self.times.as_ref()?;
+        (1..t.len())
+            .map(|k| (k, t[k] - t[k - 1]))
+            .find(|(_, step)| (step - self.dt).abs() > UNIFORM * self.dt)
+            .or(Some((1, t[1] - t[0])))
+    }
+
+    /// Whether exact samples can be solved: they must be on the grid (their
+    /// derivatives are differences). Else the error names the first sample off it,
+    /// in `file`, and the way to smooth them at their own times.
+    pub fn check_grid(&self, file: &str) -> Result<()> {
+        let Some((k, step)) = self.first_irregular() else {
+            return Ok(());
+        };
+        Err(Error::data_in(
+            file,
+            Some(k as u64 + 2),
+            format!(
+                "times are not uniformly spaced (step {} s where the mean step is {} s): exact \
+                 samples need a uniform grid; measured ones are smoothed at their own times \
+                 with a sample σ (--sample-sigma S or auto; sample_sigma in Python)",
+                crate::io::three_digits(step),
+                crate::io::three_digits(self.dt)
+            ),
+        ))
+    }
+
+    /// The shortest and longest interval between samples.
+    pub fn interval_range(&self) -> (f64, f64) {
+        (1..self.steps)
+            .map(|k| self.sample_time(k) - self.sample_time(k - 1))
+            .fold((f64::INFINITY, 0.0f64), |(a, b), h| (a.min(h), b.max(h)))
     }
 
     fn value(&self, k: usize, c: usize) -> f64 {
@@ -350,6 +452,9 @@ pub struct InverseSummary {
     /// What the smoothing of measured samples found, per prescribed coordinate
     /// (None without [`InverseOptions::sample_sigma`]).
     pub smoothing: Option<Vec<ColumnFit>>,
+    /// Where the samples were off the grid ([`Prescription::times`]), smoothed at
+    /// their own times and read on the grid: their shortest and longest interval.
+    pub off_grid: Option<(f64, f64)>,
 }
 
 /// Standard deviations of a solution from measured samples, row-major steps × n
@@ -381,6 +486,9 @@ pub fn solve(
     options.settings.validate()?;
     let start = Instant::now();
     check_prescription(&model, prescription)?;
+    if options.sample_sigma.is_none() {
+        prescription.check_grid("the trajectory")?;
+    }
     let n = model.n();
     let (steps, idx) = (prescription.steps, &prescription.indices);
     let names: Vec<&str> = idx.iter().map(|&i| model.names[i].as_str()).collect();
@@ -390,6 +498,7 @@ pub fn solve(
             &prescription.values,
             steps,
             prescription.dt,
+            prescription.times.as_deref(),
             sigma,
             &names,
         )?),
@@ -399,12 +508,14 @@ pub fn solve(
     // derivatives, so the graph has no integrators. Kept soft beside them, their
     // truncation error pulled q̈ off the acceleration constraints (2e-6 of the forces'
     // peak on the four-bar, DC).
+    let (original, prescription_times) = (prescription, prescription.times.is_some());
     let smoothed_prescription;
     let (prescription, (rates, accelerations)) = match &smoothed {
         None => (prescription, prescription.derivatives()),
         Some(s) => {
             smoothed_prescription = Prescription {
                 values: s.values.clone(),
+                times: None,
                 ..prescription.clone()
             };
             (
@@ -473,6 +584,7 @@ pub fn solve(
             worst_tracking,
             worst_phi,
             smoothing: smoothed.map(|s| s.columns),
+            off_grid: prescription_times.then(|| original.interval_range()),
         },
         sigmas,
     })

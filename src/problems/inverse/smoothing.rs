@@ -106,11 +106,16 @@ pub struct Smoothed {
     pub columns: Vec<ColumnFit>,
 }
 
-/// Smooths every column of `values` (row-major `steps` × p) sampled every `dt`.
+/// Smooths every column of `values` (row-major `steps` × p) sampled every `dt`, or,
+/// with `times`, sampled at those times (increasing, `steps` of them): the smoothed
+/// motion is then given on the uniform grid t₀ + k·dt, k < `steps`, t₀ the first
+/// sample's time and dt their mean interval, each grid time interpolated between the
+/// samples around it.
 pub fn smooth(
     values: &[f64],
     steps: usize,
     dt: f64,
+    times: Option<&[f64]>,
     sigma: &SampleSigma,
     names: &[&str],
 ) -> Result<Smoothed> {
@@ -146,6 +151,16 @@ pub fn smooth(
         columns: Vec::with_capacity(p),
     };
     let mut smoother = ColumnSmoother::new(steps);
+    if let Some(times) = times {
+        if times.len() != steps {
+            return Err(Error::InvalidArgument(format!(
+                "{} sample times for {steps} samples",
+                times.len()
+            )));
+        }
+        // Positions in steps of dt from the first sample: the scaled problem's time.
+        smoother.at = times.iter().map(|t| (t - times[0]) / dt).collect();
+    }
     let mut y = vec![0.0; steps];
     for c in 0..p {
         for (k, v) in y.iter_mut().enumerate() {
@@ -206,29 +221,76 @@ fn check_given(sigma: f64, y: &[f64]) -> std::result::Result<(), String> {
     Ok(())
 }
 
-/// F of one unit step and the prior's Q_1⁻¹ and log det Q_1 (time in steps).
-fn unit_prior() -> ([[f64; D]; D], [[f64; D]; D], f64) {
-    let fact = [1.0, 1.0, 2.0, 6.0, 24.0, 120.0, 720.0, 5040.0];
+/// Most refinements of a smoothing solve (two or three suffice).
+const REFINEMENTS: usize = 6;
+
+/// An interval's F, W, WF and FᵀWF.
+type Weights = ([[f64; D]; D], [[f64; D]; D], [[f64; D]; D], [[f64; D]; D]);
+
+/// The prior's misfit over one interval, x_k − F x_{k−1}, from the two states
+/// (x_{k−1} then x_k).
+fn misfit(f: &[[f64; D]; D], states: &[f64]) -> [f64; D] {
+    let (before, x) = states.split_at(D);
+    std::array::from_fn(|i| x[i] - (0..D).map(|j| f[i][j] * before[j]).sum::<f64>())
+}
+
+/// 0!, …, 7!.
+const FACTORIAL: [f64; 8] = [1.0, 1.0, 2.0, 6.0, 24.0, 120.0, 720.0, 5040.0];
+
+/// The transition over h: F(h)_{ij} = h^{j−i} / (j − i)!.
+fn transition(h: f64) -> [[f64; D]; D] {
     let mut f = [[0.0; D]; D];
-    let mut q = nalgebra::Matrix4::<f64>::zeros();
     for i in 0..D {
-        for j in 0..D {
-            if j >= i {
-                f[i][j] = 1.0 / fact[j - i];
-            }
-            let (a, b) = (D - 1 - i, D - 1 - j);
-            q[(i, j)] = 1.0 / ((a + b + 1) as f64 * fact[a] * fact[b]);
+        for j in i..D {
+            f[i][j] = h.powi((j - i) as i32) / FACTORIAL[j - i];
         }
     }
+    f
+}
+
+/// The prior's covariance over h at unit intensity: Q(h)_{ij} = h^{a+b+1} / ((a+b+1) a! b!).
+fn process(h: f64) -> [[f64; D]; D] {
+    let mut q = [[0.0; D]; D];
+    for i in 0..D {
+        for j in 0..D {
+            let (a, b) = (D - 1 - i, D - 1 - j);
+            q[i][j] =
+                h.powi((a + b + 1) as i32) / ((a + b + 1) as f64 * FACTORIAL[a] * FACTORIAL[b]);
+        }
+    }
+    q
+}
+
+fn product(a: &[[f64; D]; D], b: &[[f64; D]; D]) -> [[f64; D]; D] {
+    std::array::from_fn(|i| std::array::from_fn(|j| (0..D).map(|l| a[i][l] * b[l][j]).sum()))
+}
+
+fn transpose(a: &[[f64; D]; D]) -> [[f64; D]; D] {
+    std::array::from_fn(|i| std::array::from_fn(|j| a[j][i]))
+}
+
+/// Per interval h (in steps) at intensity λ: W = Q(h)⁻¹/λ, WF and FᵀWF, with
+/// Q(h)⁻¹ = S⁻¹ Q_1⁻¹ S⁻¹, S = diag(h^{a+1/2}) (Q(h) = S Q_1 S, so no small
+/// entry of Q(h) is inverted directly).
+fn interval_weights(w1: &[[f64; D]; D], h: f64, lambda: f64) -> Weights {
+    let f = transition(h);
+    let s: [f64; D] = std::array::from_fn(|i| h.powf((D - 1 - i) as f64 + 0.5));
+    let w: [[f64; D]; D] =
+        std::array::from_fn(|i| std::array::from_fn(|j| w1[i][j] / (s[i] * s[j] * lambda)));
+    let wf = product(&w, &f);
+    let ftwf = product(&transpose(&f), &wf);
+    (f, w, wf, ftwf)
+}
+
+/// The prior's Q_1⁻¹ and log det Q_1 (one step, time in steps).
+fn unit_prior() -> ([[f64; D]; D], f64) {
+    let q = nalgebra::Matrix4::from_fn(|i, j| process(1.0)[i][j]);
     let log_det = q.determinant().ln();
     let inv = q.try_inverse().expect("Q_1 is positive definite");
-    let mut w = [[0.0; D]; D];
-    for i in 0..D {
-        for j in 0..D {
-            w[i][j] = inv[(i, j)];
-        }
-    }
-    (f, w, log_det)
+    (
+        std::array::from_fn(|i| std::array::from_fn(|j| inv[(i, j)])),
+        log_det,
+    )
 }
 
 /// One coordinate's smoother: the normal equations and their factor, reused for every
@@ -239,7 +301,11 @@ struct ColumnSmoother {
     rhs: Vec<f64>,
     x: Vec<f64>,
     cov: Vec<Vec<f64>>,
-    f: [[f64; D]; D],
+    /// Σ_{k,k−1}, the covariance of neighbouring samples' states (interpolation).
+    cov_lower: Vec<Vec<f64>>,
+    /// The samples' positions in steps of dt, where they are not 0, 1, 2, … (empty
+    /// on the uniform grid); the result is then interpolated to the grid.
+    at: Vec<f64>,
     w1: [[f64; D]; D],
     log_det_q1: f64,
 }
@@ -253,16 +319,60 @@ struct Trial {
 
 impl ColumnSmoother {
     fn new(steps: usize) -> Self {
-        let (f, w1, log_det_q1) = unit_prior();
+        let (w1, log_det_q1) = unit_prior();
         ColumnSmoother {
             h: BlockTridiagonal::new(steps, D),
             chol: BandedCholesky::new(steps, D),
             rhs: vec![0.0; steps * D],
             x: vec![0.0; steps * D],
             cov: Vec::new(),
-            f,
+            cov_lower: Vec::new(),
+            at: Vec::new(),
             w1,
             log_det_q1,
+        }
+    }
+
+    /// The whitened cost at `self.x`: the samples' misfits and the prior's.
+    fn cost(&self, y: &[f64], weights: &[f64], interval: &impl Fn(usize) -> Weights) -> f64 {
+        let x = &self.x;
+        let mut cost = 0.0;
+        for k in 0..y.len() {
+            cost += weights[k] * (x[k * D] - y[k]).powi(2);
+            if k > 0 {
+                let (f, w, _, _) = interval(k);
+                let d = misfit(&f, &x[(k - 1) * D..(k + 1) * D]);
+                for i in 0..D {
+                    for j in 0..D {
+                        cost += d[i] * w[i][j] * d[j];
+                    }
+                }
+            }
+        }
+        cost
+    }
+
+    /// b − Hx at `self.x` into `self.rhs`: minus half the cost's gradient, summed
+    /// factor by factor.
+    fn negative_gradient(
+        &mut self,
+        y: &[f64],
+        weights: &[f64],
+        interval: &impl Fn(usize) -> Weights,
+    ) {
+        let (x, r) = (&self.x, &mut self.rhs);
+        r.fill(0.0);
+        for k in 0..y.len() {
+            r[k * D] = weights[k] * (y[k] - x[k * D]);
+        }
+        for k in 1..y.len() {
+            let (f, w, _, _) = interval(k);
+            let d = misfit(&f, &x[(k - 1) * D..(k + 1) * D]);
+            let g: [f64; D] = std::array::from_fn(|i| (0..D).map(|j| w[i][j] * d[j]).sum());
+            for i in 0..D {
+                r[k * D + i] -= g[i];
+                r[(k - 1) * D + i] += (0..D).map(|j| f[j][i] * g[j]).sum::<f64>();
+            }
         }
     }
 
@@ -272,46 +382,40 @@ impl ColumnSmoother {
     /// definite in floating point (an extreme λ).
     fn trial(&mut self, y: &[f64], weights: &[f64], lambda: f64, profile: bool) -> Option<Trial> {
         let n = y.len();
-        let (f, w1) = (&self.f, &self.w1);
-        // W = Q_1⁻¹/λ; per step k ≥ 1: H_kk += W, H_{k−1,k−1} += FᵀWF, H_{k,k−1} −= WF.
-        let mut w = [[0.0; D]; D];
-        let mut wf = [[0.0; D]; D];
-        let mut ftwf = [[0.0; D]; D];
-        for i in 0..D {
-            for j in 0..D {
-                w[i][j] = w1[i][j] / lambda;
-            }
-        }
-        for i in 0..D {
-            for j in 0..D {
-                wf[i][j] = (0..D).map(|l| w[i][l] * f[l][j]).sum();
-            }
-        }
-        for i in 0..D {
-            for j in 0..D {
-                ftwf[i][j] = (0..D).map(|l| f[l][i] * wf[l][j]).sum();
-            }
-        }
+        // W = Q(h)⁻¹/λ per interval; per step k ≥ 1: H_kk += W, H_{k−1,k−1} += FᵀWF,
+        // H_{k,k−1} −= WF. On the uniform grid one set serves every interval.
+        let uniform = self.at.is_empty();
+        let table: Vec<Weights> = if uniform {
+            vec![interval_weights(&self.w1, 1.0, lambda)]
+        } else {
+            self.at
+                .windows(2)
+                .map(|p| interval_weights(&self.w1, p[1] - p[0], lambda))
+                .collect()
+        };
+        let interval = |k: usize| table[if uniform { 0 } else { k - 1 }];
         self.h.reset(n);
         for k in 0..n {
+            self.h.diag_mut(k)[0] += weights[k];
+        }
+        for k in 1..n {
+            let (_, w, wf, ftwf) = interval(k);
             let diag = self.h.diag_mut(k);
-            diag[0] += weights[k];
             for i in 0..D {
                 for j in 0..D {
-                    if k > 0 {
-                        diag[i * D + j] += w[i][j];
-                    }
-                    if k + 1 < n {
-                        diag[i * D + j] += ftwf[i][j];
-                    }
+                    diag[i * D + j] += w[i][j];
                 }
             }
-            if k > 0 {
-                let lower = self.h.lower_mut(k);
-                for i in 0..D {
-                    for j in 0..D {
-                        lower[i * D + j] = -wf[i][j];
-                    }
+            let before = self.h.diag_mut(k - 1);
+            for i in 0..D {
+                for j in 0..D {
+                    before[i * D + j] += ftwf[i][j];
+                }
+            }
+            let lower = self.h.lower_mut(k);
+            for i in 0..D {
+                for j in 0..D {
+                    lower[i * D + j] = -wf[i][j];
                 }
             }
         }
@@ -322,23 +426,31 @@ impl ColumnSmoother {
         }
         self.chol.solve(&mut self.rhs);
         std::mem::swap(&mut self.x, &mut self.rhs);
-        let x = &self.x;
-        let mut cost = 0.0;
-        for k in 0..n {
-            cost += weights[k] * (x[k * D] - y[k]).powi(2);
-            if k > 0 {
-                let mut d = [0.0; D];
-                for i in 0..D {
-                    d[i] = x[k * D + i] - (0..D).map(|j| f[i][j] * x[(k - 1) * D + j]).sum::<f64>();
-                }
-                for i in 0..D {
-                    for j in 0..D {
-                        cost += d[i] * w[i][j] * d[j];
-                    }
-                }
+        // The normal equations' condition grows as 1/λ (the prior's weight against
+        // the samples'), and the solution's error with it times the samples' size in
+        // σ's (1e4 and more): at the likeliest λ the first solve's cost can be
+        // several times the least one. Refined with the residual of the normal
+        // equations formed factor by factor (b − Hx = −gradient, each interval's
+        // misfit d_k = x_k − F x_{k−1} taken directly), the solution converges in
+        // two or three solves to the least cost.
+        let mut cost = self.cost(y, weights, &interval);
+        for _ in 0..REFINEMENTS {
+            self.negative_gradient(y, weights, &interval);
+            self.chol.solve(&mut self.rhs);
+            for (x, dx) in self.x.iter_mut().zip(&self.rhs) {
+                *x += dx;
+            }
+            let refined = self.cost(y, weights, &interval);
+            let gain = cost - refined;
+            cost = refined;
+            if !(gain > 1e-12 * cost) {
+                break;
             }
         }
-        let log_det_prior = (n - 1) as f64 * (D as f64 * lambda.ln() + self.log_det_q1);
+        // log det Q(h) = log det Q_1 + 16 log h (det S² = h^{2·(3.5+2.5+1.5+0.5)}).
+        let log_intervals: f64 = self.at.windows(2).map(|p| 16.0 * (p[1] - p[0]).ln()).sum();
+        let log_det_prior =
+            (n - 1) as f64 * (D as f64 * lambda.ln() + self.log_det_q1) + log_intervals;
         let log_det_h = self.chol.log_determinant();
         // The noise's own normalizer, Σ log ρ_k² with ρ_k² = 1/weight_k (0 for
         // equal weights): what makes two noise shapes' likelihoods comparable.
@@ -391,6 +503,74 @@ impl ColumnSmoother {
         }
         let (x, v) = if fc < fd { (c, fc) } else { (d, fd) };
         Some(if v < best { (x, v) } else { (centre, best) })
+    }
+
+    /// Replaces the states and covariances at the samples (positions `at`, scaled
+    /// units, prior intensity λ) by those at the grid 0, 1, …, n − 1. Between samples
+    /// k and k + 1 (h apart, the grid point τ after k) the prior is a Gauss–Markov
+    /// bridge: given both ends, x(τ) = A x_k + B x_{k+1} + e with
+    /// B = Q(τ)F(h−τ)ᵀQ(h)⁻¹, A = F(τ) − B F(h), and e of covariance
+    /// λ(Q(τ) − B F(h−τ) Q(τ)), independent of the samples given the ends. So the
+    /// mean is A x̂_k + B x̂_{k+1} and the covariance [A B] Σ_{k:k+1} [A B]ᵀ + Cov e,
+    /// exactly.
+    fn interpolate_to_grid(&mut self, lambda: f64) {
+        let n = self.at.len();
+        let mut x = vec![0.0; n * D];
+        let mut cov = vec![vec![0.0; D * D]; n];
+        let mut k = 0;
+        for g in 0..n {
+            let t = g as f64;
+            while k + 2 < n && self.at[k + 1] <= t {
+                k += 1;
+            }
+            let h = self.at[k + 1] - self.at[k];
+            let tau = (t - self.at[k]).clamp(0.0, h);
+            let q_tau = process(tau);
+            let f_rest = transition(h - tau);
+            let s: [f64; D] = std::array::from_fn(|i| h.powf((D - 1 - i) as f64 + 0.5));
+            let q_h_inv: [[f64; D]; D] =
+                std::array::from_fn(|i| std::array::from_fn(|j| self.w1[i][j] / (s[i] * s[j])));
+            let b = product(&product(&q_tau, &transpose(&f_rest)), &q_h_inv);
+            let bf = product(&b, &transition(h));
+            let f_tau = transition(tau);
+            let a: [[f64; D]; D] =
+                std::array::from_fn(|i| std::array::from_fn(|j| f_tau[i][j] - bf[i][j]));
+            let bridge = product(&product(&b, &f_rest), &q_tau);
+            let (xk, xn) = (
+                &self.x[k * D..(k + 1) * D],
+                &self.x[(k + 1) * D..(k + 2) * D],
+            );
+            for i in 0..D {
+                x[g * D + i] = (0..D).map(|j| a[i][j] * xk[j] + b[i][j] * xn[j]).sum();
+            }
+            // [A B] Σ [A B]ᵀ over the two ends: Σ_kk, Σ_{k+1,k+1}, Σ_{k+1,k} = lower.
+            let (pk, pn, pl) = (&self.cov[k], &self.cov[k + 1], &self.cov_lower[k + 1]);
+            let entry = |m: &[f64], i: usize, j: usize| m[i * D + j];
+            let out = &mut cov[g];
+            for i in 0..D {
+                for j in 0..D {
+                    let mut v = lambda * (q_tau[i][j] - bridge[i][j]);
+                    for l in 0..D {
+                        for m in 0..D {
+                            v += a[i][l] * entry(pk, l, m) * a[j][m]
+                                + b[i][l] * entry(pn, l, m) * b[j][m]
+                                + b[i][l] * entry(pl, l, m) * a[j][m]
+                                + a[i][l] * entry(pl, m, l) * b[j][m];
+                        }
+                    }
+                    out[i * D + j] = v;
+                }
+            }
+            for i in 0..D {
+                for j in 0..i {
+                    let v = 0.5 * (out[i * D + j] + out[j * D + i]);
+                    out[i * D + j] = v;
+                    out[j * D + i] = v;
+                }
+            }
+        }
+        self.x = x;
+        self.cov = cov;
     }
 
     /// Fits one coordinate's samples `y` (spacing `dt`), σ given or from the data,
@@ -457,21 +637,29 @@ impl ColumnSmoother {
         if !s.is_finite() {
             return Err("the samples' scatter is not a finite number".into());
         }
-        self.chol.inverse_diagonal_blocks(&mut self.cov);
-        // Back to physical units: x_i · unit / dt^i, covariances alike, times s².
-        let to_physical: [f64; D] = std::array::from_fn(|i| unit / dt.powi(i as i32));
         let mut residual = 0.0;
         let mut worst = (0.0f64, 0);
         for k in 0..n {
-            for (i, f) in to_physical.iter().enumerate() {
-                self.x[k * D + i] *= f;
-            }
-            let r = self.x[k * D] - y[k];
+            let r = (self.x[k * D] - ys[k]) * unit;
             residual += r * r;
             // σ_k = σ ρ_k = unit · s / √weight_k.
             let z = r.abs() * weights[k].sqrt() / (unit * s);
             if z > worst.0 {
                 worst = (z, k);
+            }
+        }
+        if self.at.is_empty() {
+            self.chol.inverse_diagonal_blocks(&mut self.cov);
+        } else {
+            self.chol
+                .inverse_tridiagonal_blocks(&mut self.cov, &mut self.cov_lower);
+            self.interpolate_to_grid(lambda);
+        }
+        // Back to physical units: x_i · unit / dt^i, covariances alike, times s².
+        let to_physical: [f64; D] = std::array::from_fn(|i| unit / dt.powi(i as i32));
+        for k in 0..n {
+            for (i, f) in to_physical.iter().enumerate() {
+                self.x[k * D + i] *= f;
             }
             let cov = &mut self.cov[k];
             for i in 0..D {
