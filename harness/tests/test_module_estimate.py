@@ -131,3 +131,26 @@ def test_readings_between_steps_are_taken_at_their_own_times():
     assert np.all(np.isfinite(step["q"]))
     with pytest.raises(mbfg.InvalidArgument, match="already holds"):
         online.update(readings["t"][29] + 1e-3, {"enc": readings["enc"][29]})
+
+
+def test_a_start_far_from_the_first_reading(tmp_path):
+    # The friction pendulum drawn at 3 rad while its record starts at 0.37, the start
+    # left to the default priors: the first solve begins at the first reading, in the
+    # batch estimate and in the online estimator's first update.
+    import math
+    import pathlib
+    root = pathlib.Path(__file__).resolve().parents[2] / "scenes" / "identification"
+    text = (root / "pendulum-friction-bad.yaml").read_text()
+    text = text.replace("{name: P, x: 0.9320390859672263, y: 0.36235775447667357}",
+                        f"{{name: P, x: {math.cos(3.0)!r}, y: {math.sin(3.0)!r}}}")
+    text = text.replace("  initial_sigma: {theta: 1e-6}\n", "")
+    text = text.replace("  initial_velocity_sigma: {theta: 1e-6}\n", "")
+    far = tmp_path / "far.yaml"
+    far.write_text(text)
+    truth = mbfg.simulate(str(root / "pendulum-friction.yaml"), dt=1e-3, t_end=2.0)
+    readings = mbfg.measure(str(root / "pendulum-friction.yaml"), truth, seed=1)
+    out = mbfg.estimate(str(far), readings, window=10)
+    assert abs(out["q:theta"][0] - readings["enc"][0]) < 0.01
+    online = mbfg.Estimator(str(far), 0.005, window=10)
+    first = online.update(float(readings["t"][0]), {"enc": float(readings["enc"][0])})
+    assert abs(first["q"][list(online.names).index("theta")] - readings["enc"][0]) < 0.01

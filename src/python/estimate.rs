@@ -394,6 +394,10 @@ impl PyEstimator {
             for reading in &mut record.steps[0] {
                 reading.before = before;
             }
+            if step == 0 {
+                let initial_q = Uncertainty::of(&self.model, self.dt).initial_q;
+                self.est.begin_near(&record.steps[0], &initial_q);
+            }
             let factors = reading_factors(&self.model, &record.steps[0])
                 .map_err(|e| run_error(py, e, None))?;
             for _ in next..step {

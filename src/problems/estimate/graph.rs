@@ -28,6 +28,8 @@ pub struct EstimationGraph {
     /// Unknown inputs (generalized forces on chosen coordinates).
     pub inputs: Vec<usize>,
     pub start: State,
+    /// Where the first solve begins, if not at `start` ([`super::start`]).
+    pub guess: Option<State>,
 }
 
 impl EstimationGraph {
@@ -114,6 +116,7 @@ impl EstimationGraph {
             independent,
             inputs,
             start,
+            guess: None,
         })
     }
 
@@ -148,7 +151,7 @@ impl EstimationGraph {
     /// The guess of step 0: the start and its accelerations, no input, the
     /// parameters' file values.
     pub fn initial_block(&self, model: &Model) -> Result<Vec<f64>> {
-        let s = &self.start;
+        let s = self.guess.as_ref().unwrap_or(&self.start);
         let ddq = dynamics::accelerations_guess(model, &s.q, &s.dq, self.graph.t0())?;
         let mut block = Vec::with_capacity(self.size());
         block.extend_from_slice(s.q.as_slice());

@@ -12,6 +12,7 @@ pub mod options;
 pub mod process_noise;
 pub mod record;
 pub mod run;
+pub mod start;
 pub mod table;
 
 pub use consistency::Nis;

@@ -191,6 +191,16 @@ impl Estimator {
         &self.eg
     }
 
+    /// Before the first update: its solve begins at `readings` (the first step's)
+    /// where they lie far from the start ([`super::start`]); σ's of the start prior
+    /// `initial_q`.
+    pub fn begin_near(&mut self, readings: &[super::record::StepReading], initial_q: &[f64]) {
+        if self.next == 0 {
+            self.eg.guess =
+                super::start::toward_readings(&self.model, &self.eg.start, readings, initial_q);
+        }
+    }
+
     /// The run step the next update makes.
     pub fn next_step(&self) -> usize {
         self.next

@@ -104,6 +104,9 @@ pub fn graph_with(
         model.initial.clone(),
     )?;
     eg.graph.set_t0(record.t0);
+    if let Some(first) = record.steps.first() {
+        eg.guess = super::start::toward_readings(model, &eg.start, first, &uncertainty.initial_q);
+    }
     Ok(eg)
 }
 
