@@ -1659,6 +1659,43 @@ fn regularized_kernel_jacobians_match_finite_differences_near_a_flat_configurati
     errors.print("regularized dynamics kernel near a flat configuration");
 }
 
+/// f_sensor of expression sensors whose readings use identified parameters (an
+/// offset, a scale): ∂/∂q, ∂/∂q̇, ∂/∂q̈ and ∂/∂p, at the step and between steps; the
+/// value that of the sensor at the parameters' estimate.
+#[test]
+fn sensor_readings_with_identified_parameters_match_finite_differences() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes/identification/sensor-calibration-bad.yaml");
+    let model = Arc::new(Model::new(&Scene::load(&path).unwrap()).unwrap());
+    let mut rng = Rng(13);
+    let mut checked = 0;
+    for before in [0.0, 2.1e-3] {
+        for _ in 0..TRIALS {
+            let now = Step::random(&model, &mut rng);
+            for (k, sensor) in model.sensors.iter().enumerate() {
+                assert!(sensor.uses_parameters(), "{}", sensor.name);
+                let datum = rng.values(sensor.dim(), 1.0);
+                let factor = Reading::new(model.clone(), k, datum.clone()).taken_before(before);
+                assert_eq!(factor.keys().len(), 4, "the parameters are a key");
+                let xs = inputs(&factor, &now, &now);
+                let err = check_factor_with(FD_STEP, factor.name(), &factor, &xs, T);
+                assert!(err < FD_TOLERANCE, "{}: off by {err:e}", factor.name());
+                if before == 0.0 {
+                    let mut h = vec![0.0; sensor.dim()];
+                    let state = [&now.q[..], &now.dq[..], &now.ddq[..]];
+                    sensor
+                        .value_at(&model, T, state, Some(&xs[3]), &mut h)
+                        .unwrap();
+                    let r = evaluate(&factor, T, &xs, false, &mut workspace_for(&factor)).r;
+                    assert_eq!(r[0], h[0] - datum[0]);
+                }
+                checked += 1;
+            }
+        }
+    }
+    assert_eq!(checked, 2 * 2 * TRIALS);
+}
+
 /// f_sensor of every sensor of a four-bar with one of each kind, at generic states
 /// (off the constraints, random rates and accelerations), through the `Factor` trait.
 #[test]

@@ -17,7 +17,9 @@ const SHIFT_ON_STACK: usize = 32;
 /// where it is added.
 pub struct Reading {
     name: String,
-    keys: [Key; 3],
+    /// The step's q, q̇, q̈, and its identified parameters where the sensor's
+    /// expression uses them.
+    keys: Vec<Key>,
     model: Arc<Model>,
     sensor: usize,
     datum: Vec<f64>,
@@ -34,13 +36,23 @@ impl Reading {
             Some(s) => format!("f_sensor({})", s.name),
             None => format!("f_sensor(#{sensor})"),
         };
+        let mut keys = vec![
+            Key::now(VarKind::Q),
+            Key::now(VarKind::Dq),
+            Key::now(VarKind::Ddq),
+        ];
+        let identified = model.parameters.is_some();
+        if identified
+            && model
+                .sensors
+                .get(sensor)
+                .is_some_and(|s| s.uses_parameters())
+        {
+            keys.push(Key::now(VarKind::Param));
+        }
         Reading {
             name,
-            keys: [
-                Key::now(VarKind::Q),
-                Key::now(VarKind::Dq),
-                Key::now(VarKind::Ddq),
-            ],
+            keys,
             model,
             sensor,
             datum,
@@ -67,8 +79,11 @@ impl Factor for Reading {
         &self.name
     }
     key_accessor!();
-    fn size(&self, _key: usize) -> usize {
-        self.model.n()
+    fn size(&self, key: usize) -> usize {
+        match key {
+            3 => self.model.parameters.as_ref().map_or(0, |p| p.len()),
+            _ => self.model.n(),
+        }
     }
     fn dim(&self) -> usize {
         self.model
@@ -128,15 +143,25 @@ impl Factor for Reading {
             }
             (t - b, &*sq, &*sdq, ddq)
         };
+        let p = x.get(3).copied();
         match jac {
             Some(j) => {
-                let [jq, jdq, jddq] = j else {
-                    return Err(Error::InvalidArgument(format!(
-                        "{}: three Jacobian blocks expected",
-                        self.name
-                    )));
+                let (jq, jdq, jddq, jp) = match j {
+                    [jq, jdq, jddq] => (jq, jdq, jddq, None),
+                    [jq, jdq, jddq, jp] => (jq, jdq, jddq, Some(jp)),
+                    _ => {
+                        return Err(Error::InvalidArgument(format!(
+                            "{}: {} Jacobian blocks expected",
+                            self.name,
+                            self.keys.len()
+                        )))
+                    }
                 };
-                sensor.jacobians(&self.model, t, q, dq, ddq, r, jq, jdq, jddq)?;
+                let blocks = [&mut jq[..], &mut jdq[..], &mut jddq[..]];
+                sensor.jacobians_at(&self.model, t, [q, dq, ddq], p, r, blocks)?;
+                if let (Some(jp), Some(p)) = (jp, p) {
+                    sensor.parameter_jacobian(&self.model, t, (q, dq), p, jp)?;
+                }
                 if b != 0.0 {
                     // The chain rule through the expansion: ∂/∂q̈ first, from the
                     // unshifted ∂h/∂q̇.
@@ -147,7 +172,7 @@ impl Factor for Reading {
                     }
                 }
             }
-            None => sensor.value(&self.model, t, q, dq, ddq, r)?,
+            None => sensor.value_at(&self.model, t, [q, dq, ddq], p, r)?,
         }
         for (ri, d) in r.iter_mut().zip(&self.datum) {
             *ri -= d;

@@ -116,6 +116,14 @@ impl Parameters {
                 }
             }
         }
+        // A sensor's expression (an offset, a scale) determines its parameters through
+        // the readings alone.
+        for sensor in &model.sensors {
+            sensor
+                .parameter_indices()
+                .into_iter()
+                .for_each(|j| touched[j] = true);
+        }
         if out.gravity.is_none() {
             out.gravity = model.forces.iter().enumerate().find_map(|(e, f)| match f {
                 Force::Gravity { vector, .. } => Some((e, *vector, [vec![0.0; p], vec![0.0; p]])),
@@ -136,7 +144,7 @@ impl Parameters {
         if let Some(j) = touched.iter().position(|t| !t) {
             return Err(Error::InvalidArgument(format!(
                 "the identified parameter '{}' changes nothing in the model: no mass, inertia, \
-                 gravity, spring, damper, motor, torque or force of the scene uses it",
+                 gravity, spring, damper, motor, torque, force or sensor of the scene uses it",
                 out.names[j]
             )));
         }

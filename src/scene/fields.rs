@@ -214,16 +214,15 @@ impl<'a> Ctx<'a> {
         }
     }
 
-    /// An effect's value: a number or an expression in the time `t`, the parameters
-    /// (bound now) and the state quantities of `scene` ([`Scene::state_quantity`]).
-    /// With `identified`, the parameters an estimate identifies stay names of the
-    /// expression (a force or torque's value); else they are refused (a sensor's).
+    /// An effect's or a sensor's value: a number or an expression in the time `t`, the
+    /// parameters (bound now) and the state quantities of `scene`
+    /// ([`Scene::state_quantity`]). The parameters an estimate identifies stay names of
+    /// the expression, so that it sees their estimate.
     pub fn load_function(
         &self,
         node: &Node,
         key: &str,
         scene: &Scene,
-        identified: bool,
     ) -> Result<LoadFunction, SceneError> {
         let text = node.as_text().ok_or_else(|| {
             self.err(
@@ -288,10 +287,7 @@ impl<'a> Ctx<'a> {
             if self.name_gradient(&name, &[]).is_none() {
                 continue;
             }
-            let why = if !identified {
-                "a sensor's value is not varied by an estimate: give the sensor's \
-                 expression numbers of its own"
-            } else if unknown.contains(&name) {
+            let why = if unknown.contains(&name) {
                 let value = lookup(&name).unwrap_or(f64::NAN);
                 parameters.push((name, value));
                 continue;

@@ -531,7 +531,7 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
             }
             "torque" => {
                 let coordinate = angle_coordinate(ctx, scene, &mut f)?;
-                let value = ctx.load_function(f.req(ctx, "value")?, &f.key("value"), scene, true)?;
+                let value = ctx.load_function(f.req(ctx, "value")?, &f.key("value"), scene)?;
                 f.finish(ctx, &["type", "name", "coordinate", "value"])?;
                 Effect::Torque { name: name.clone(), coordinate, value }
             }
@@ -546,8 +546,8 @@ fn read_effects(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), SceneEr
                     return Err(ctx.err(v.line, &f.key("value"), "expected [fx, fy]"));
                 }
                 let value = [
-                    ctx.load_function(&items[0], &f.key("value[0]"), scene, true)?,
-                    ctx.load_function(&items[1], &f.key("value[1]"), scene, true)?,
+                    ctx.load_function(&items[0], &f.key("value[0]"), scene)?,
+                    ctx.load_function(&items[1], &f.key("value[1]"), scene)?,
                 ];
                 f.finish(ctx, &["type", "name", "point", "value"])?;
                 Effect::Force { name: name.clone(), point, value }

@@ -141,7 +141,7 @@ pub fn read_sensors(ctx: &Ctx, scene: &mut Scene, node: &Node) -> Result<(), Sce
             }
             "expression" => {
                 let n = f.req(ctx, "value")?;
-                let value = ctx.load_function(n, &f.key("value"), scene, false)?;
+                let value = ctx.load_function(n, &f.key("value"), scene)?;
                 if !value.is_state_dependent() {
                     return Err(ctx.err(
                         n.line,

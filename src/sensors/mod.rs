@@ -156,7 +156,82 @@ impl Sensor {
         ddq: &[f64],
         out: &mut [f64],
     ) -> Result<()> {
-        self.evaluate(model, t, [q, dq, ddq], out, None)
+        self.evaluate(model, t, [q, dq, ddq], None, out, None)
+    }
+
+    /// Whether the reading's expression uses a parameter an estimate identifies (an
+    /// encoder's offset, a scale): its value and Jacobians then take the parameters'
+    /// estimate ([`Sensor::value_at`]).
+    pub fn uses_parameters(&self) -> bool {
+        matches!(&self.kind, SensorKind::Expression { value } if value.uses_parameters())
+    }
+
+    /// The identified parameters the reading uses (indices in the model's order).
+    pub fn parameter_indices(&self) -> Vec<usize> {
+        match &self.kind {
+            SensorKind::Expression { value } => value.parameter_indices().collect(),
+            _ => Vec::new(),
+        }
+    }
+
+    /// [`Sensor::value`] with the identified parameters at `p` (all of them, in the
+    /// model's order; `None`: the scene's values).
+    pub fn value_at(
+        &self,
+        model: &Model,
+        t: f64,
+        state: [&[f64]; 3],
+        p: Option<&[f64]>,
+        out: &mut [f64],
+    ) -> Result<()> {
+        self.evaluate(model, t, state, p, out, None)
+    }
+
+    /// [`Sensor::jacobians`] with the identified parameters at `p`.
+    pub fn jacobians_at(
+        &self,
+        model: &Model,
+        t: f64,
+        state: [&[f64]; 3],
+        p: Option<&[f64]>,
+        out: &mut [f64],
+        [jq, jdq, jddq]: [&mut [f64]; 3],
+    ) -> Result<()> {
+        let size = self.dim() * model.n();
+        for (block, what) in [(&*jq, "∂h/∂q"), (&*jdq, "∂h/∂q̇"), (&*jddq, "∂h/∂q̈")]
+        {
+            if block.len() < size {
+                return Err(self.error(format!(
+                    "{what} has room for {} entries, {size} are needed",
+                    block.len()
+                )));
+            }
+        }
+        let blocks = Blocks {
+            q: &mut jq[..size],
+            dq: &mut jdq[..size],
+            ddq: &mut jddq[..size],
+        };
+        self.evaluate(model, t, state, p, out, Some(blocks))
+    }
+
+    /// ∂h/∂p at the state and the parameters `p` into `out` (row-major dim × P, P the
+    /// model's identified parameters): zero for a reading that uses none.
+    pub fn parameter_jacobian(
+        &self,
+        model: &Model,
+        t: f64,
+        (q, dq): (&[f64], &[f64]),
+        p: &[f64],
+        out: &mut [f64],
+    ) -> Result<()> {
+        out.fill(0.0);
+        if let SensorKind::Expression { value } = &self.kind {
+            value
+                .add_parameter_gradient(model, (q, dq, t), p, 1.0, &mut out[..p.len()])
+                .map_err(|e| self.error(plain(e)))?;
+        }
+        Ok(())
     }
 
     /// h and its Jacobians ∂h/∂q, ∂h/∂q̇, ∂h/∂q̈, row-major dim × n each (zeros where
@@ -174,22 +249,7 @@ impl Sensor {
         jdq: &mut [f64],
         jddq: &mut [f64],
     ) -> Result<()> {
-        let size = self.dim() * model.n();
-        for (block, what) in [(&*jq, "∂h/∂q"), (&*jdq, "∂h/∂q̇"), (&*jddq, "∂h/∂q̈")]
-        {
-            if block.len() < size {
-                return Err(self.error(format!(
-                    "{what} has room for {} entries, {size} are needed",
-                    block.len()
-                )));
-            }
-        }
-        let blocks = Blocks {
-            q: &mut jq[..size],
-            dq: &mut jdq[..size],
-            ddq: &mut jddq[..size],
-        };
-        self.evaluate(model, t, [q, dq, ddq], out, Some(blocks))
+        self.jacobians_at(model, t, [q, dq, ddq], None, out, [jq, jdq, jddq])
     }
 
     /// The quantum of the reading: 2π/resolution, 0 without a resolution.
@@ -238,6 +298,7 @@ impl Sensor {
         model: &Model,
         t: f64,
         [q, dq, ddq]: [&[f64]; 3],
+        p: Option<&[f64]>,
         out: &mut [f64],
         blocks: Option<Blocks>,
     ) -> Result<()> {
@@ -326,11 +387,11 @@ impl Sensor {
             }
             SensorKind::Expression { value } => {
                 out[0] = value
-                    .value(model, q, dq, t)
+                    .value_at(model, q, dq, (t, p))
                     .map_err(|e| self.error(plain(e)))?;
                 if let Some(b) = blocks {
                     value
-                        .add_gradient(model, (q, dq, t), 0, b.q, b.dq)
+                        .add_gradient_at(model, (q, dq, t), (p, 1.0), 0, b.q, b.dq)
                         .map_err(|e| self.error(plain(e)))?;
                 }
             }
