@@ -324,3 +324,73 @@ fn an_angle_no_sensor_observes_is_named_undetermined() {
         "{err}"
     );
 }
+
+/// An identification whose misfits are far beyond the sensors' σ's says its parameters
+/// are no identification: here the encoder's σ written 10 times below its noise (mean
+/// NIS near 100); with the σ right, the warning has no such sentence. Written 100 times
+/// below, the run stops as diverged, naming the sensors' σ's first.
+#[test]
+fn an_identification_far_from_its_readings_says_so() {
+    let dir = scratch("estimate", "far-misfit");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/identification");
+    let truth = dir.join("truth.csv");
+    let out = run(&[
+        "simulate",
+        root.join("pendulum-friction.yaml").to_str().unwrap(),
+        "--dt",
+        "0.001",
+        "--t-end",
+        "2",
+        "--sample-dt",
+        "0.005",
+        "--out",
+        truth.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let readings = dir.join("readings.csv");
+    let out = run(&[
+        "measure",
+        root.join("pendulum-friction.yaml").to_str().unwrap(),
+        "--trajectory",
+        truth.to_str().unwrap(),
+        "--seed",
+        "1",
+        "--out",
+        readings.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let bad = std::fs::read_to_string(root.join("pendulum-friction-bad.yaml")).unwrap();
+    let estimate = |text: &str| {
+        let path = dir.join("bad.yaml");
+        std::fs::write(&path, text).unwrap();
+        let out = run(&[
+            "estimate",
+            path.to_str().unwrap(),
+            "--measurements",
+            readings.to_str().unwrap(),
+            "--batch",
+            "--out",
+            dir.join("estimate.csv").to_str().unwrap(),
+        ]);
+        (out.status.success(), stderr(&out))
+    };
+    let with_sigma = |s: &str| {
+        let text = bad.replace("sigma: 0.001, rate: 200", &format!("sigma: {s}, rate: 200"));
+        assert_ne!(text, bad);
+        text
+    };
+    let (ok, err) = estimate(&with_sigma("0.0001"));
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("the parameters are the best fit of a wrong model, not an identification"),
+        "{err}"
+    );
+    let (ok, err) = estimate(&bad);
+    assert!(ok && !err.contains("not an identification"), "{err}");
+    let (ok, err) = estimate(&with_sigma("0.00001"));
+    assert!(
+        !ok && err.contains("diverged") && err.contains("check the sensors' `sigma`"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -383,6 +383,11 @@ fn at_step(s: &EstimateSummary) -> String {
     }
 }
 
+/// The mean NIS, as a multiple of its expected value, beyond which an identification's
+/// warning says the model does not describe the readings: misfits of √10 ≈ 3.2 σ on
+/// average (a four-bar estimated on the other assembly than its readings' gave 31).
+const FAR_FROM_THE_READINGS: f64 = 10.0;
+
 /// What a mean NIS outside its bounds says, and what to change.
 pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
     let nis = &s.nis;
@@ -408,10 +413,22 @@ pub fn consistency_warning(s: &EstimateSummary) -> Option<String> {
             now
         )
     } else if nis.mean() > hi {
+        let ratio = nis.mean() / nis.expected();
+        let far = if ratio > FAR_FROM_THE_READINGS && !s.identification.is_empty() {
+            format!(
+                ". At {ratio:.0} times its expected value the misfits are {:.1} times their σ's (RMS): \
+                 unless the sensors' σ's are that much too small, the model does not describe \
+                 these readings (a start on the other assembly, a wrong constant left fixed), \
+                 and the parameters are the best fit of a wrong model, not an identification",
+                ratio.sqrt()
+            )
+        } else {
+            String::new()
+        };
         format!(
             "the mean NIS {:.3} is above its 95 % bound {hi:.3}: the readings disagree with \
              the model more than the σ's allow; the reported σ's are too small. Raise \
-             `estimation: process_sigma` (now {}) or the sensors' `sigma`",
+             `estimation: process_sigma` (now {}) or the sensors' `sigma`{far}",
             nis.mean(),
             now
         )

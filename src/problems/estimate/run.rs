@@ -181,7 +181,7 @@ pub fn estimate_with_progress(
             .map_err(|why| Error::Diverged {
                 step: k,
                 t: est.time(k),
-                why,
+                why: format!("{why}{}", divergence_advice(options.smoothing)),
             })?;
         progress(k + 1, total);
         if !keep_all {
@@ -264,6 +264,23 @@ const DIVERGENCE_STEPS: usize = 100;
 /// on the wrong one of two motions that fit the start.
 const DIVERGED: f64 = 1000.0;
 
+/// What a diverged run may change: the sensors' σ's (far below the readings' noise,
+/// they give such a NIS from the first steps), else a longer window; a batch's
+/// fixed-lag pass is the one that left the motion.
+fn divergence_advice(smoothing: Smoothing) -> &'static str {
+    match smoothing {
+        Smoothing::Window(_) => {
+            "; check the sensors' `sigma` against the readings' noise (30 times too small \
+             gives 1000), else a longer --window, or --batch, may hold to the motion"
+        }
+        Smoothing::Batch => {
+            "; check the sensors' `sigma` against the readings' noise (30 times too small \
+             gives 1000), and the model (the batch starts from a fixed-lag pass, which left \
+             the motion)"
+        }
+    }
+}
+
 /// The NIS of the latest steps with readings, for the divergence test.
 #[derive(Default)]
 struct Divergence {
@@ -294,7 +311,7 @@ impl Divergence {
         }
         Err(format!(
             "the last {steps} steps' readings give a mean NIS of {mean:.2e} against {expected} \
-             expected; a longer --window, or --batch, may hold to the motion"
+             expected"
         ))
     }
 }
