@@ -17,16 +17,19 @@ fn run(args: &[&str]) -> std::process::Output {
     mbfg(args)
 }
 
-/// The true motion over 2 s at 5 ms and the encoder's readings of it (seed 3).
-fn readings(dir: &Path) -> PathBuf {
+/// `mbfg simulate` of `scene` over 2 s (`--dt`, sampled every 5 ms) and `mbfg measure`
+/// of its sensors (`seed`): the readings' file in `dir`.
+fn measured(dir: &Path, scene: &Path, dt: &str, seed: &str) -> PathBuf {
     let truth = dir.join("truth.csv");
     let out = run(&[
         "simulate",
-        scene("fourbar.yaml").to_str().unwrap(),
+        scene.to_str().unwrap(),
         "--dt",
-        "0.005",
+        dt,
         "--t-end",
         "2",
+        "--sample-dt",
+        "0.005",
         "--out",
         truth.to_str().unwrap(),
     ]);
@@ -34,15 +37,21 @@ fn readings(dir: &Path) -> PathBuf {
     let all = dir.join("all.csv");
     let out = run(&[
         "measure",
-        scene("fourbar.yaml").to_str().unwrap(),
+        scene.to_str().unwrap(),
         "--trajectory",
         truth.to_str().unwrap(),
         "--seed",
-        "3",
+        seed,
         "--out",
         all.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
+    all
+}
+
+/// The true motion over 2 s at 5 ms and the encoder's readings of it (seed 3).
+fn readings(dir: &Path) -> PathBuf {
+    let all = measured(dir, &scene("fourbar.yaml"), "0.005", "3");
     // The encoder's column alone.
     let text = std::fs::read_to_string(&all).unwrap();
     let enc: String = text
@@ -333,32 +342,7 @@ fn an_angle_no_sensor_observes_is_named_undetermined() {
 fn an_identification_far_from_its_readings_says_so() {
     let dir = scratch("estimate", "far-misfit");
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/identification");
-    let truth = dir.join("truth.csv");
-    let out = run(&[
-        "simulate",
-        root.join("pendulum-friction.yaml").to_str().unwrap(),
-        "--dt",
-        "0.001",
-        "--t-end",
-        "2",
-        "--sample-dt",
-        "0.005",
-        "--out",
-        truth.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let readings = dir.join("readings.csv");
-    let out = run(&[
-        "measure",
-        root.join("pendulum-friction.yaml").to_str().unwrap(),
-        "--trajectory",
-        truth.to_str().unwrap(),
-        "--seed",
-        "1",
-        "--out",
-        readings.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
+    let readings = measured(&dir, &root.join("pendulum-friction.yaml"), "0.001", "1");
     let bad = std::fs::read_to_string(root.join("pendulum-friction-bad.yaml")).unwrap();
     let estimate = |text: &str| {
         let path = dir.join("bad.yaml");
