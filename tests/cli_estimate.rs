@@ -378,3 +378,44 @@ fn an_identification_far_from_its_readings_says_so() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A motion too fast for the readings' period (a 1 cm link whipped by a stiff spring,
+/// read at 200 Hz): at the default step the run fails and says to step finer; at the
+/// step it suggests, it holds.
+#[test]
+fn a_motion_too_fast_for_the_readings_period_is_told_to_step_finer() {
+    let dir = scratch("estimate", "too-fast");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("scenes/hard/mixed-scale-pendulum.yaml")).unwrap()
+        + "sensors:\n"
+        + "  - {name: enc1, type: encoder, coordinate: a1, sigma: 0.001, rate: 200}\n"
+        + "  - {name: enc2, type: encoder, coordinate: a2, sigma: 0.001, rate: 200}\n"
+        + "  - {name: enc3, type: encoder, coordinate: a3, sigma: 0.001, rate: 200}\n";
+    let scene = dir.join("whip.yaml");
+    std::fs::write(&scene, text).unwrap();
+    let readings = measured(&dir, &scene, "0.001", "1");
+    let estimate = |extra: &[&str]| {
+        let out_csv = dir.join("estimate.csv");
+        let mut args = vec![
+            "estimate",
+            scene.to_str().unwrap(),
+            "--measurements",
+            readings.to_str().unwrap(),
+            "--out",
+            out_csv.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    let line = one_error_line(&estimate(&[]), 1);
+    assert!(
+        line.contains("did not converge")
+            && line
+                .contains("the motion may be too fast for steps of the readings' period (0.005 s)")
+            && line.contains("--dt 0.001"),
+        "{line}"
+    );
+    let out = estimate(&["--dt", "0.001"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -39,8 +39,9 @@ pub struct EstimateArgs {
     /// their z̈).
     #[arg(long, default_value = "dc", value_parser = ["dc", "ic"])]
     coords: String,
-    /// The step, in seconds; every reading must fall on one [default: the readings'
-    /// period].
+    /// The step, in seconds; a reading between steps is compared with the motion's
+    /// expansion about its nearest step. Smaller than the readings' period, it follows
+    /// motions too fast for that period [default: the readings' period].
     #[arg(long, value_name = "S")]
     dt: Option<f64>,
     /// The rule between consecutive steps: the paper's trapezoidal rule (second
@@ -186,6 +187,7 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
             Ok(())
         }
         Err(e) => {
+            let advice = mbfg::estimate::finer_step_advice(&e, &options, record.dt);
             let why = plain(e);
             let kept = if table.rows == 0 || options.smoothing == Smoothing::Batch {
                 output.discard();
@@ -195,7 +197,10 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
                     .keep_partial_with(&|w| table.write_csv(w), table.rows, &why)
                     .map_err(Failure::Run)?
             };
-            Err(Failure::Run(format!("{why}; {kept}")))
+            Err(Failure::Run(match advice {
+                Some(a) => format!("{why}; {kept}; {a}"),
+                None => format!("{why}; {kept}"),
+            }))
         }
     }
 }

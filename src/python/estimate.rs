@@ -112,7 +112,10 @@ pub(super) fn estimate_run<'py>(
         )?;
         let summary = match result {
             Ok(summary) => summary,
-            Err(e) => return Err(run_error(py, e, Some(out))),
+            Err(e) => {
+                let advice = crate::estimate::finer_step_advice(&e, &options, record.dt);
+                return Err(run_error_with(py, e, Some(out), advice));
+            }
         };
         let s = PyDict::new(py);
         s.set_item("steps", summary.steps)?;
@@ -196,11 +199,25 @@ pub(super) fn estimate_run<'py>(
 /// as `SolveError` with the final steps so far as `.result`; anything else as the
 /// input error it is.
 fn run_error(py: Python<'_>, e: crate::Error, partial: Option<Bound<'_, PyDict>>) -> PyErr {
+    run_error_with(py, e, partial, None)
+}
+
+/// [`run_error`] with `advice` after the error's message.
+fn run_error_with(
+    py: Python<'_>,
+    e: crate::Error,
+    partial: Option<Bound<'_, PyDict>>,
+    advice: Option<String>,
+) -> PyErr {
     match e {
         e @ (crate::Error::NotConverged { .. }
         | crate::Error::Singular { .. }
         | crate::Error::Diverged { .. }) => {
-            let mut err = SolveError::new_err(one_line(&e.to_string()));
+            let message = match advice {
+                Some(a) => format!("{e}; {a}"),
+                None => e.to_string(),
+            };
+            let mut err = SolveError::new_err(one_line(&message));
             if let Ok(failure) = super::failure::error_failure(py, &e) {
                 err = super::failure::with_failure(py, err, failure);
             }

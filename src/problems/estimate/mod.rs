@@ -23,5 +23,5 @@ pub use online::{Estimator, StepEstimate, Update};
 pub use options::{EstimateOptions, Smoothing, Uncertainty, RELINEARIZE_BEYOND};
 pub use process_noise::ProcessSource;
 pub use record::{Record, StepReading};
-pub use run::{estimate, estimate_with_progress, EstimateSummary};
+pub use run::{estimate, estimate_with_progress, finer_step_advice, EstimateSummary};
 pub use table::Estimates;

@@ -264,6 +264,25 @@ const DIVERGENCE_STEPS: usize = 100;
 /// on the wrong one of two motions that fit the start.
 const DIVERGED: f64 = 1000.0;
 
+/// Where a step's solve failed with the step left at the readings' period (no `dt`
+/// chosen): the advice to step finer, the readings then falling on or between steps.
+/// A motion fast for the readings' period (a 1 cm link whipped by a stiff spring,
+/// read at 200 Hz) fails there and holds at a fifth of it.
+pub fn finer_step_advice(error: &Error, options: &EstimateOptions, dt: f64) -> Option<String> {
+    let failed_step = matches!(
+        error,
+        Error::NotConverged { .. } | Error::Diverged { .. } | Error::Singular { step: Some(_), .. }
+    );
+    (failed_step && options.dt.is_none()).then(|| {
+        format!(
+            "the motion may be too fast for steps of the readings' period ({} s): a smaller \
+             dt (--dt {}, or dt= in Python) puts steps between the readings",
+            crate::io::three_digits(dt),
+            crate::io::three_digits(dt / 5.0)
+        )
+    })
+}
+
 /// What a diverged run may change: the sensors' σ's (far below the readings' noise,
 /// they give such a NIS from the first steps), else a longer window; a batch's
 /// fixed-lag pass is the one that left the motion.
