@@ -1086,3 +1086,34 @@ fn two_times_a_glitch_apart_do_not_set_the_step() {
     let record = Record::from_rows(&m, &columns, &even, None).unwrap();
     assert_eq!((record.steps.len(), record.between_steps().0), (5, 0));
 }
+
+#[test]
+fn rows_that_share_a_time_are_one_row() {
+    // A logger that writes a row per sensor (`0.005,0.1,` then `0.005,,0.02`) gives the
+    // record of one row per time; a cell given twice at one time is refused, naming its
+    // row and column, and a time below the one before still is.
+    let m = model("fourbar-bad.yaml");
+    let truth = truth(1.0);
+    let (columns, wide) = readings(&truth, 4, &["enc", "gyro"]);
+    let mut long = Vec::new();
+    for (t, row) in &wide {
+        long.push((*t, vec![*t, row[1], f64::NAN]));
+        long.push((*t, vec![*t, f64::NAN, row[2]]));
+    }
+    let a = Record::from_rows(&m, &columns, &wide, None).unwrap();
+    let b = Record::from_rows(&m, &columns, &long, None).unwrap();
+    assert_eq!(a, b);
+    let mut twice = long.clone();
+    twice[7].1[1] = 0.5;
+    let (row, why) = Record::from_rows(&m, &columns, &twice, None).unwrap_err();
+    assert_eq!(row, Some(7));
+    assert!(
+        why.contains("repeats with a second value of column `enc`"),
+        "{why}"
+    );
+    let mut back = long;
+    back.swap(4, 6);
+    let (row, why) = Record::from_rows(&m, &columns, &back, None).unwrap_err();
+    assert_eq!(row, Some(5));
+    assert!(why.contains("does not increase"), "{why}");
+}

@@ -75,14 +75,8 @@ impl Record {
         if rows.is_empty() {
             return Err((None, "no readings: the file has no rows".into()));
         }
-        for (i, (t, _)) in rows.iter().enumerate() {
-            if !t.is_finite() {
-                return Err((Some(i), "t is empty or not finite".into()));
-            }
-            if i > 0 && *t <= rows[i - 1].0 {
-                return Err((Some(i), format!("t = {t} does not increase")));
-            }
-        }
+        let (rows, origin) = merge_equal_times(columns, rows)?;
+        let rows = &rows[..];
         let t0 = rows[0].0;
         let dt = match dt {
             Some(dt) => dt,
@@ -151,7 +145,7 @@ impl Record {
                 }
                 if given < values.len() {
                     return Err((
-                        Some(i),
+                        Some(origin[i]),
                         format!(
                             "sensor {}: some of its columns ({}) are empty and some not",
                             sensor.name,
@@ -228,4 +222,50 @@ fn check_columns(model: &Model, columns: &[String]) -> std::result::Result<(), S
         }
     }
     Ok(())
+}
+
+/// The rows with those that share a time merged into one (a logger that writes a row
+/// per sensor: `0.005,0.1,` then `0.005,,0.02`), each row's index in `rows` beside it;
+/// or why not: a time not finite, or below the one before, or a cell given twice at
+/// one time.
+#[allow(clippy::type_complexity)]
+fn merge_equal_times(
+    columns: &[String],
+    rows: &[(f64, Vec<f64>)],
+) -> std::result::Result<(Vec<(f64, Vec<f64>)>, Vec<usize>), (Option<usize>, String)> {
+    let mut merged: Vec<(f64, Vec<f64>)> = Vec::with_capacity(rows.len());
+    let mut origin = Vec::with_capacity(rows.len());
+    for (i, (t, cells)) in rows.iter().enumerate() {
+        if !t.is_finite() {
+            return Err((Some(i), "t is empty or not finite".into()));
+        }
+        match merged.last_mut() {
+            Some((last, into)) if *t == *last => {
+                for (j, (cell, held)) in cells.iter().zip(into.iter_mut()).enumerate().skip(1) {
+                    if cell.is_nan() {
+                        continue;
+                    }
+                    if !held.is_nan() {
+                        return Err((
+                            Some(i),
+                            format!(
+                                "t = {t} repeats with a second value of column `{}` (rows \
+                                 that share a time are merged, each cell given once)",
+                                columns[j]
+                            ),
+                        ));
+                    }
+                    *held = *cell;
+                }
+            }
+            Some((last, _)) if *t < *last => {
+                return Err((Some(i), format!("t = {t} does not increase")));
+            }
+            _ => {
+                merged.push((*t, cells.clone()));
+                origin.push(i);
+            }
+        }
+    }
+    Ok((merged, origin))
 }
