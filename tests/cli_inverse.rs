@@ -345,21 +345,29 @@ fn sample_sigma_writes_standard_deviations() {
     }
 }
 
-/// A sample far from the smoothed motion (a glitch) is named in a warning.
-#[test]
-fn sample_sigma_warns_of_a_glitch() {
+/// A file `t,theta` of `count` samples of the paper's crank motion
+/// θ = 1.2 (1 − cos 2t): sample j at the time `at(j).0`, off the motion by `at(j).1`.
+fn crank_samples(name: &str, count: usize, at: impl Fn(usize) -> (f64, f64)) -> PathBuf {
     let text = rows(
         |k| {
             if k == 0 {
                 return "t,theta".into();
             }
-            let t = (k - 1) as f64 * 0.005;
-            let glitch = if k == 301 { 0.01 } else { 0.0 };
-            format!("{t},{}", 1.2 * (1.0 - (2.0 * t).cos()) + glitch)
+            let (t, off) = at(k - 1);
+            format!("{t},{}", 1.2 * (1.0 - (2.0 * t).cos()) + off)
         },
-        602,
+        count + 1,
     );
-    let path = temp("glitch.csv", &text);
+    temp(name, &text)
+}
+
+/// A sample far from the smoothed motion (a glitch) is named in a warning.
+#[test]
+fn sample_sigma_warns_of_a_glitch() {
+    let path = crank_samples("glitch.csv", 601, |j| {
+        let glitch = if j == 300 { 0.01 } else { 0.0 };
+        (j as f64 * 0.005, glitch)
+    });
     let out = mbfg(&[
         "inverse",
         "scenes/fourbar-theta.yaml",
@@ -470,24 +478,15 @@ fn an_outlier_sample_is_solved_without_the_finite_difference_hessian() {
 /// says so, and the output's rows are on the grid of their mean interval.
 #[test]
 fn sample_sigma_smooths_samples_at_their_own_times() {
-    let text = rows(
-        |k| {
-            if k == 0 {
-                return "t,theta".into();
-            }
-            // ±1 ms off a 5 ms grid, the ends on it.
-            let j = k - 1;
-            let jitter = if j == 0 || j == 400 {
-                0.0
-            } else {
-                [1e-3, -0.6e-3, 0.2e-3][j % 3]
-            };
-            let t = j as f64 * 0.005 + jitter;
-            format!("{t},{}", 1.2 * (1.0 - (2.0 * t).cos()))
-        },
-        402,
-    );
-    let path = temp("jittered.csv", &text);
+    // ±1 ms off a 5 ms grid, the ends on it.
+    let path = crank_samples("jittered.csv", 401, |j| {
+        let jitter = if j == 0 || j == 400 {
+            0.0
+        } else {
+            [1e-3, -0.6e-3, 0.2e-3][j % 3]
+        };
+        (j as f64 * 0.005 + jitter, 0.0)
+    });
     let refused = mbfg(&[
         "inverse",
         "scenes/fourbar-theta.yaml",
