@@ -412,6 +412,14 @@ fn read_table_impl<R: std::io::Read>(
     if columns.is_empty() || columns.iter().all(|c| c.is_empty()) {
         return Err(Error::data_in(file, None, "no header row"));
     }
+    if columns[0].starts_with('#') {
+        return Err(Error::data_in(
+            file,
+            Some(1),
+            "begins with `#`, a comment: a table has none; delete the comment lines, so that \
+             the header is the first line",
+        ));
+    }
     if columns.len() > limits.max_cells {
         return Err(Error::data_in(
             file,

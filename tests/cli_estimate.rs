@@ -202,6 +202,11 @@ fn bad_readings_are_refused_naming_what_is_wrong() {
     );
     check("half.csv", "t,enc\n", "no rows");
     check(
+        "comment.csv",
+        "# logged at 200 Hz\nt,enc\n0,1.0\n",
+        "comment.csv:1: begins with `#`, a comment",
+    );
+    check(
         "empty.csv",
         "t,enc\n0,\n0.005,\n",
         "no readings: every sensor cell is empty",
