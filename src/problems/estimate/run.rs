@@ -264,15 +264,14 @@ const DIVERGENCE_STEPS: usize = 100;
 /// on the wrong one of two motions that fit the start.
 const DIVERGED: f64 = 1000.0;
 
-/// Where a step's solve failed with the step left at the readings' period (no `dt`
-/// chosen): the advice to step finer, the readings then falling on or between steps.
+/// Where a step's solve failed (not converged, or diverged) with the step left at the
+/// readings' period (no `dt` chosen): the advice to step finer, the readings then falling on or between steps.
 /// A motion fast for the readings' period (a 1 cm link whipped by a stiff spring,
 /// read at 200 Hz) fails there and holds at a fifth of it.
 pub fn finer_step_advice(error: &Error, options: &EstimateOptions, dt: f64) -> Option<String> {
-    let failed_step = matches!(
-        error,
-        Error::NotConverged { .. } | Error::Diverged { .. } | Error::Singular { step: Some(_), .. }
-    );
+    // Not a singular system: that is a direction no reading determines (a long gap
+    // without readings), which a finer step does not mend.
+    let failed_step = matches!(error, Error::NotConverged { .. } | Error::Diverged { .. });
     (failed_step && options.dt.is_none()).then(|| {
         format!(
             "the motion may be too fast for steps of the readings' period ({} s): a smaller \
@@ -507,4 +506,38 @@ fn solve(
         });
     }
     Ok((solver, report.iterations))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_finer_step_is_advised_for_a_failed_step_at_the_readings_period_only() {
+        let options = EstimateOptions::default();
+        let diverged = Error::Diverged {
+            step: 3,
+            t: 0.015,
+            why: "a mean NIS of 1e4".into(),
+        };
+        let advice = finer_step_advice(&diverged, &options, 0.005).unwrap();
+        assert!(
+            advice.contains("(0.005 s)") && advice.contains("--dt 0.001"),
+            "{advice}"
+        );
+        // A step chosen by the user is theirs to change.
+        let chosen = EstimateOptions {
+            dt: Some(0.005),
+            ..EstimateOptions::default()
+        };
+        assert_eq!(finer_step_advice(&diverged, &chosen, 0.005), None);
+        // A singular system is a direction no reading determines (a long gap), which a
+        // finer step does not mend.
+        let singular = Error::Singular {
+            what: "the information matrix".into(),
+            step: Some(13126),
+            t: Some(65.63),
+        };
+        assert_eq!(finer_step_advice(&singular, &options, 0.005), None);
+    }
 }
