@@ -497,6 +497,18 @@ fn every_use_an_estimate_cannot_vary_is_refused_by_name() {
         let err = refusal(&text);
         assert!(err.contains(expect), "{expect}: {err}");
     }
+    // A motor's no-load speed is refused with the way to identify it: the motor
+    // written as a torque.
+    let text = scene("w: 30", "{name: w, sigma: 1}", &[("TORQUE", "0")]).replace(
+        "{name: motor, type: torque, coordinate: theta, value: 0}",
+        "{name: motor, type: dc_motor, coordinate: theta, stall_torque: 1, no_load_speed: w}",
+    );
+    assert!(text.contains("no_load_speed: w"));
+    let err = refusal(&text);
+    assert!(
+        err.contains("no_load_speed") && err.contains("write the motor as a torque"),
+        "{err}"
+    );
     // A sensor's expression sees the estimate (a scale, an offset): a parameter only
     // it uses is accepted, and one computed from an identified parameter refused.
     let text = scene("a: 1, c: 1", "{name: a, sigma: 0.1}", &[("MASS", "c")]).replace(
@@ -646,4 +658,14 @@ fn an_encoders_offset_and_a_gyroscopes_scale_are_identified() {
         let z = rms_off(&table, &truth, "q:theta");
         assert!(z < 1e-3, "seed {seed}: θ RMSE {z}");
     }
+}
+
+#[test]
+fn a_dc_motors_stall_torque_and_no_load_speed_are_identified_as_a_torque() {
+    // The crank-rocker spun up from rest by a DC motor (stall torque 60 N·m, no-load
+    // speed 30 rad/s), read by a crank encoder for 5 s; the motor written as the
+    // torque ts*(1 - rate(theta)/w0), both identified from guesses of 40 and 20.
+    let truth = truth("dc-motor-true.yaml", 5.0);
+    let (_, summary) = identify("dc-motor.yaml", "dc-motor-true.yaml", &truth, 1);
+    assert_identified(&summary, &[("ts", 60.0), ("w0", 30.0)], 1);
 }

@@ -139,16 +139,18 @@ pub fn read(
     }
     top.finish(&ctx, TOP_KEYS)?;
     if let Some((key, line)) = ctx.derivatives.unclaimed() {
-        return Err(ctx
-            .err(
-                line,
-                &key,
-                "depends on a parameter the estimate identifies (`estimation: parameters:`): \
-                 an estimate varies masses, inertias, gravity, spring and damper constants, \
-                 motors' stall torques and the values of torques and forces only, not \
-                 geometry, starts or a motor's no-load speed; give this key a value of its own",
-            )
-            .into());
+        // A motor's no-load speed enters its torque as 1/ω₀: a torque written as an
+        // expression carries it any way, and its value is differentiated symbolically.
+        let message = if key.ends_with(".no_load_speed") {
+            "uses an identified parameter, which a no-load speed cannot be; write the motor \
+             as a torque, `value: \"ts*(1 - rate(theta)/w0)\"`, whose parameters can"
+        } else {
+            "depends on a parameter the estimate identifies (`estimation: parameters:`): an \
+             estimate varies masses, inertias, gravity, spring and damper constants, motors' \
+             stall torques and the values of torques, forces and sensors only, not geometry \
+             or starts; give this key a value of its own"
+        };
+        return Err(ctx.err(line, &key, message).into());
     }
     scene.identified = ctx.derivatives.identified(&ctx.params);
     if scene.bodies.is_empty() && scene.points.iter().all(|p| p.mass == 0.0) {
