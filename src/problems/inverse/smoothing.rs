@@ -227,6 +227,35 @@ const REFINEMENTS: usize = 6;
 /// An interval's F, W, WF and FᵀWF.
 type Weights = ([[f64; D]; D], [[f64; D]; D], [[f64; D]; D], [[f64; D]; D]);
 
+/// The prior's [`Weights`] of every interval at one λ: one set on the uniform grid,
+/// one per interval off it; the buffer kept from trial to trial.
+#[derive(Debug, Default)]
+struct Intervals {
+    table: Vec<Weights>,
+    uniform: bool,
+}
+
+impl Intervals {
+    /// For samples at `at` (in steps; empty: the uniform grid) and intensity λ.
+    fn fill(&mut self, w1: &[[f64; D]; D], at: &[f64], lambda: f64) {
+        self.uniform = at.is_empty();
+        self.table.clear();
+        if self.uniform {
+            self.table.push(interval_weights(w1, 1.0, lambda));
+        } else {
+            self.table.extend(
+                at.windows(2)
+                    .map(|p| interval_weights(w1, p[1] - p[0], lambda)),
+            );
+        }
+    }
+
+    /// The weights of the interval ending at step k ≥ 1.
+    fn ending_at(&self, k: usize) -> &Weights {
+        &self.table[if self.uniform { 0 } else { k - 1 }]
+    }
+}
+
 /// The prior's misfit over one interval, x_k − F x_{k−1}, from the two states
 /// (x_{k−1} then x_k).
 fn misfit(f: &[[f64; D]; D], states: &[f64]) -> [f64; D] {
@@ -306,6 +335,7 @@ struct ColumnSmoother {
     /// The samples' positions in steps of dt, where they are not 0, 1, 2, … (empty
     /// on the uniform grid); the result is then interpolated to the grid.
     at: Vec<f64>,
+    intervals: Intervals,
     w1: [[f64; D]; D],
     log_det_q1: f64,
 }
@@ -328,20 +358,21 @@ impl ColumnSmoother {
             cov: Vec::new(),
             cov_lower: Vec::new(),
             at: Vec::new(),
+            intervals: Intervals::default(),
             w1,
             log_det_q1,
         }
     }
 
     /// The whitened cost at `self.x`: the samples' misfits and the prior's.
-    fn cost(&self, y: &[f64], weights: &[f64], interval: &impl Fn(usize) -> Weights) -> f64 {
+    fn cost(&self, y: &[f64], weights: &[f64]) -> f64 {
         let x = &self.x;
         let mut cost = 0.0;
         for k in 0..y.len() {
             cost += weights[k] * (x[k * D] - y[k]).powi(2);
             if k > 0 {
-                let (f, w, _, _) = interval(k);
-                let d = misfit(&f, &x[(k - 1) * D..(k + 1) * D]);
+                let (f, w, _, _) = self.intervals.ending_at(k);
+                let d = misfit(f, &x[(k - 1) * D..(k + 1) * D]);
                 for i in 0..D {
                     for j in 0..D {
                         cost += d[i] * w[i][j] * d[j];
@@ -354,20 +385,15 @@ impl ColumnSmoother {
 
     /// b − Hx at `self.x` into `self.rhs`: minus half the cost's gradient, summed
     /// factor by factor.
-    fn negative_gradient(
-        &mut self,
-        y: &[f64],
-        weights: &[f64],
-        interval: &impl Fn(usize) -> Weights,
-    ) {
-        let (x, r) = (&self.x, &mut self.rhs);
+    fn negative_gradient(&mut self, y: &[f64], weights: &[f64]) {
+        let (x, r, intervals) = (&self.x, &mut self.rhs, &self.intervals);
         r.fill(0.0);
         for k in 0..y.len() {
             r[k * D] = weights[k] * (y[k] - x[k * D]);
         }
         for k in 1..y.len() {
-            let (f, w, _, _) = interval(k);
-            let d = misfit(&f, &x[(k - 1) * D..(k + 1) * D]);
+            let (f, w, _, _) = intervals.ending_at(k);
+            let d = misfit(f, &x[(k - 1) * D..(k + 1) * D]);
             let g: [f64; D] = std::array::from_fn(|i| (0..D).map(|j| w[i][j] * d[j]).sum());
             for i in 0..D {
                 r[k * D + i] -= g[i];
@@ -384,22 +410,13 @@ impl ColumnSmoother {
         let n = y.len();
         // W = Q(h)⁻¹/λ per interval; per step k ≥ 1: H_kk += W, H_{k−1,k−1} += FᵀWF,
         // H_{k,k−1} −= WF. On the uniform grid one set serves every interval.
-        let uniform = self.at.is_empty();
-        let table: Vec<Weights> = if uniform {
-            vec![interval_weights(&self.w1, 1.0, lambda)]
-        } else {
-            self.at
-                .windows(2)
-                .map(|p| interval_weights(&self.w1, p[1] - p[0], lambda))
-                .collect()
-        };
-        let interval = |k: usize| table[if uniform { 0 } else { k - 1 }];
+        self.intervals.fill(&self.w1, &self.at, lambda);
         self.h.reset(n);
         for k in 0..n {
             self.h.diag_mut(k)[0] += weights[k];
         }
         for k in 1..n {
-            let (_, w, wf, ftwf) = interval(k);
+            let (_, w, wf, ftwf) = self.intervals.ending_at(k);
             let diag = self.h.diag_mut(k);
             for i in 0..D {
                 for j in 0..D {
@@ -433,14 +450,14 @@ impl ColumnSmoother {
         // equations formed factor by factor (b − Hx = −gradient, each interval's
         // misfit d_k = x_k − F x_{k−1} taken directly), the solution converges in
         // two or three solves to the least cost.
-        let mut cost = self.cost(y, weights, &interval);
+        let mut cost = self.cost(y, weights);
         for _ in 0..REFINEMENTS {
-            self.negative_gradient(y, weights, &interval);
+            self.negative_gradient(y, weights);
             self.chol.solve(&mut self.rhs);
             for (x, dx) in self.x.iter_mut().zip(&self.rhs) {
                 *x += dx;
             }
-            let refined = self.cost(y, weights, &interval);
+            let refined = self.cost(y, weights);
             let gain = cost - refined;
             cost = refined;
             if !(gain > 1e-12 * cost) {
