@@ -1020,23 +1020,11 @@ fn an_angle_read_wrapped_into_one_turn_estimates_as_read_whole() {
     // the angle wrapped into (−π, π]. Compared on the circle, those readings give the
     // estimate of the unwrapped ones; compared as numbers, a jump of 2π would be a
     // misfit of thousands of σ's.
-    let text = "
-name: spin
-points:
-  - {name: O, x: 0, y: 0, fixed: true}
-  - {name: P, x: 1, y: 0}
-bodies:
-  - {name: bar, points: [O, P], mass: 1}
-coordinates:
-  - {name: th, type: angle, points: [O, P]}
-independent: [th]
-initial:
-  positions: {th: 0}
-  velocities: {th: 2}
-sensors:
-  - {name: enc, type: encoder, coordinate: th, sigma: 1e-3}
-";
-    let m = Arc::new(Model::new(&Scene::from_str(text, Path::new("spin.yaml")).unwrap()).unwrap());
+    let bar = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/spinning-bar.yaml");
+    let text = std::fs::read_to_string(bar).unwrap()
+        + "initial:\n  positions: {th: 0}\n  velocities: {th: 2}\n"
+        + "sensors:\n  - {name: enc, type: encoder, coordinate: th, sigma: 1e-3}\n";
+    let m = Arc::new(Model::new(&Scene::from_str(&text, Path::new("spin.yaml")).unwrap()).unwrap());
     let options = ForwardOptions::new(Coordinates::Dependent, 0.005, 4.0, Mode::FixedLag(1));
     let (truth, _) = simulate(m.clone(), &options, &mut |_, _| {}).unwrap();
     let (columns, rows) = every_column(&measure(&m, &truth, 1, None).unwrap());

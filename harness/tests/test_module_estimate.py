@@ -3,27 +3,16 @@ undetermined (a freely spinning bar read by a gyroscope alone, without gravity),
 and none where the dynamics carry the angle into the reading (the same bar under
 gravity)."""
 
+import pathlib
+
 import numpy as np
 import pytest
 
 mbfg = pytest.importorskip("mbfg")
 
-SPIN = """
-name: spin
-points:
-  - {name: O, x: 0, y: 0, fixed: true}
-  - {name: P, x: 1, y: 0}
-bodies:
-  - {name: bar, points: [O, P], mass: 1}
-coordinates:
-  - {name: th, type: angle, points: [O, P]}
-independent: [th]
-initial:
-  positions: {th: 0}
-  velocities: {th: 1}
-sensors:
-  - {name: gyro, type: gyroscope, body: bar, sigma: 1e-3}
-"""
+SPIN = ((pathlib.Path(__file__).resolve().parents[2] / "tests" / "data" / "spinning-bar.yaml").read_text()
+        + "initial:\n  positions: {th: 0}\n  velocities: {th: 1}\n"
+        + "sensors:\n  - {name: gyro, type: gyroscope, body: bar, sigma: 1e-3}\n")
 
 
 def _summary(tmp_path, gravity):
