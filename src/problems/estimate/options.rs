@@ -58,9 +58,10 @@ pub const DEFAULT_WINDOW: usize = 20;
 /// The window of the fixed-lag pass that starts a batch estimate, while it holds the
 /// start of the record.
 pub const BATCH_START_WINDOW: usize = DEFAULT_WINDOW;
-/// The window of that pass once the readings have caught up with the start: its
-/// estimates only start the batch's solve.
-pub const BATCH_PASS_WINDOW: usize = 5;
+/// The window of that pass once the readings have caught up with the start: a
+/// filter, as its estimates only start the batch's solve (which converges to the
+/// same optimum from a filter's path as from a 5-step window's, at half the cost).
+pub const BATCH_PASS_WINDOW: usize = 1;
 
 /// An estimation run's settings.
 #[derive(Debug, Clone, PartialEq)]
