@@ -398,6 +398,9 @@ impl Batch<'_> {
             Marginals::Every,
             &mut covariances,
         )?;
+        // The solver holds the whole record's normal equations: freed before a
+        // stage builds its own.
+        drop(first);
         let params = est.graph().parameters_at();
         // The covariance at the first σ (its parameters' block).
         let at_first = params.map(|_| covariances[steps - 1].clone());
