@@ -344,11 +344,81 @@ const MAX_CUT: f64 = 10.0;
 /// The lowest σ, as a fraction of the default: below it the dynamics' weight
 /// swamps the readings' in double precision long before the estimate could gain.
 const LOWEST: f64 = 1e-3;
-/// Matched: the residuals use at least this share of their expected χ².
+/// Matched: the residuals use at least this share of their expected χ², and at
+/// most its inverse.
 const MATCHED: f64 = 0.8;
 /// The degrees of freedom of the dynamics residuals below which their χ² says
 /// nothing of the process σ.
 const SEEN_DOF: f64 = 1.0;
+
+/// The choice of each stage's σ: covariance matching's fixed point σ² = σ²·χ²/dof,
+/// approached from above.
+///
+/// The first stage takes matching's step, σ·√(χ²/dof). The next ones take the
+/// secant's root of ln ratio in ln σ through the last two stages, which reaches the
+/// fixed point in a few stages where matching's steps shrink (the estimate
+/// absorbing its residuals as σ falls, the ratio barely rising); where the ratio
+/// does not rise as σ falls, the fixed point lies far below, and the stage cuts by
+/// [`MAX_CUT`], as it does at most. A stage past the fixed point (too much of the
+/// χ² used) is followed by the root between it and the last stage short of it.
+///
+/// Where the estimate absorbs all but a fraction of one degree of freedom of the
+/// residuals, the readings do not see the process noise at that σ, and their ratio
+/// says little: the stage cuts by MAX_CUT², the estimate hardly moving from one
+/// such σ to the next, unless the ratio is already matched.
+#[derive(Debug, Default)]
+struct Lowering {
+    /// (ln σ, ln ratio) of the last stage whose residuals the readings saw.
+    last: Option<(f64, f64)>,
+    /// The last such stage short of the fixed point, and the last one past it.
+    under: Option<(f64, f64)>,
+    over: Option<(f64, f64)>,
+}
+
+impl Lowering {
+    /// The next stage's σ from this stage's (σ and what its residuals used), or
+    /// `None` where σ is matched (or was too small at the start: never raised).
+    fn next(&mut self, sigma: f64, used: DynamicsUse) -> Option<f64> {
+        let ratio = used.ratio().max(f64::MIN_POSITIVE);
+        let seen = used.dof >= SEEN_DOF;
+        if (seen && (MATCHED..=1.0 / MATCHED).contains(&ratio)) || (!seen && ratio >= MATCHED) {
+            return None;
+        }
+        if !seen {
+            self.last = None;
+            return Some(sigma / (MAX_CUT * MAX_CUT));
+        }
+        let here = (sigma.ln(), ratio.ln());
+        if ratio > 1.0 {
+            self.over = Some(here);
+        } else {
+            self.under = Some(here);
+        }
+        let next = match (self.under, self.over) {
+            (Some(a), Some(b)) => (a.0 + (b.0 - a.0) * a.1 / (a.1 - b.1)).exp(),
+            (None, _) => return None,
+            (Some(_), None) => {
+                let cut = match self.last {
+                    None => ratio.sqrt(),
+                    Some((u0, v0)) => {
+                        let slope = (here.1 - v0) / (here.0 - u0);
+                        if slope < -RISING {
+                            (-here.1 / slope).exp()
+                        } else {
+                            0.0
+                        }
+                    }
+                };
+                sigma * cut.clamp(1.0 / MAX_CUT, 1.0)
+            }
+        };
+        self.last = Some(here);
+        Some(next)
+    }
+}
+
+/// The least rise of ln ratio per unit fall of ln σ that the secant follows.
+const RISING: f64 = 0.05;
 
 /// Where a batch lowered the process σ: the σ it ended at, the share of their
 /// expected χ² the dynamics residuals used at the first σ, and the identified
@@ -409,24 +479,18 @@ impl Batch<'_> {
         let mut first_use = None;
         let mut ws = est.graph().graph.workspace();
         let lowest = LOWEST * sigma;
+        let mut lowering = Lowering::default();
         for _ in 0..if self.lower { MAX_STAGES } else { 0 } {
             let eg = own.as_ref().unwrap_or(est.graph());
             let Some(used) = DynamicsUse::of(eg, &values, &covariances, &mut ws) else {
                 break;
             };
             first_use.get_or_insert(used.ratio());
-            // σ² ← σ²·χ²/dof, the σ the residuals show (never raised here). Where
-            // the estimate absorbs all but a fraction of one degree of freedom of the
-            // residuals, the readings do not see the process noise at this σ, and
-            // their ratio says nothing: the stage cuts by MAX_CUT², the estimate
-            // hardly moving from one such σ to the next.
-            let cut = if used.dof < SEEN_DOF {
-                1.0 / (MAX_CUT * MAX_CUT)
-            } else {
-                used.ratio().sqrt().max(1.0 / MAX_CUT)
+            let Some(next) = lowering.next(sigma, used) else {
+                break;
             };
-            let next = (sigma * cut).max(lowest);
-            if used.ratio() >= MATCHED || next >= sigma {
+            let next = next.max(lowest);
+            if (next - sigma).abs() <= 1e-3 * sigma {
                 break;
             }
             let eg = self.graph_at(next)?;
@@ -514,6 +578,71 @@ fn solve(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The stages `Lowering` takes from σ = 0.3 where the residuals use `ratio(σ)`
+    /// of their χ² (dof 5), and the σ it stops at.
+    fn stages(ratio: impl Fn(f64) -> f64) -> (Vec<f64>, f64) {
+        let (mut lowering, mut sigma, mut taken) = (Lowering::default(), 0.3, Vec::new());
+        for _ in 0..MAX_STAGES {
+            let used = DynamicsUse {
+                chi2: 5.0 * ratio(sigma),
+                dof: 5.0,
+            };
+            let Some(next) = lowering.next(sigma, used) else {
+                break;
+            };
+            sigma = next;
+            taken.push(next);
+        }
+        (taken, sigma)
+    }
+
+    #[test]
+    fn the_lowering_reaches_the_fixed_point_in_few_stages_and_never_ends_past_it() {
+        // A power law (the estimate absorbing half its residuals' growth): matching
+        // takes one step, the secant lands on the fixed point 0.05.
+        let (taken, end) = stages(|s| (0.05f64 / s).powf(0.5));
+        assert_eq!(taken.len(), 2, "{taken:?}");
+        assert!((end / 0.05 - 1.0).abs() < 1e-9, "{taken:?}");
+        // Matching's own steps would take many: σ·√ratio from 0.3 is still 40 %
+        // above the fixed point after 3 steps.
+        let mut s = 0.3f64;
+        for _ in 0..3 {
+            s *= (0.05 / s).powf(0.25);
+        }
+        assert!(s > 1.4 * 0.05, "{s}");
+        // A ratio that does not rise as σ falls: 10× a stage after the first.
+        let (taken, _) = stages(|_| 0.3);
+        assert!(
+            (taken[0] / (0.3 * 0.3f64.sqrt()) - 1.0).abs() < 1e-12,
+            "{taken:?}"
+        );
+        assert!((taken[1] / taken[0] - 0.1).abs() < 1e-12, "{taken:?}");
+        // A ratio that shoots past its fixed point (0.05) from a secant step: the
+        // next stage raises σ back between the two, and the end is matched.
+        let steep = |s: f64| {
+            if s > 0.06 {
+                (0.05f64 / s).powf(0.3)
+            } else {
+                (0.05f64 / s).powi(4)
+            }
+        };
+        let (taken, end) = stages(steep);
+        assert!(taken.iter().any(|&s| s < 0.05), "{taken:?}");
+        assert!(
+            (MATCHED..=1.0 / MATCHED).contains(&steep(end)),
+            "{taken:?} {end}"
+        );
+        // Too much used at the first σ: no stage.
+        assert!(stages(|_| 2.0).0.is_empty());
+        // Residuals the readings do not see (dof < 1): 100× cuts.
+        let mut lowering = Lowering::default();
+        let unseen = DynamicsUse {
+            chi2: 0.1,
+            dof: 0.5,
+        };
+        assert_eq!(lowering.next(0.3, unseen), Some(0.3 / 100.0));
+    }
 
     #[test]
     fn a_finer_step_is_advised_for_a_failed_step_at_the_readings_period_only() {
