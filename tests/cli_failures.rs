@@ -1247,3 +1247,55 @@ fn a_load_that_grows_without_bound_in_time_ends_the_run_where_it_outruns_the_ste
     }
     assert!((last_t[0] - last_t[1]).abs() <= 0.05, "{last_t:?}");
 }
+
+#[test]
+fn a_batch_estimate_beyond_the_memory_is_refused_and_names_the_window() {
+    let dir = scratch("batch-memory");
+    let scene = "scenes/identification/pendulum-friction-bad.yaml";
+    let truth = dir.join("truth.csv");
+    let readings = dir.join("readings.csv");
+    common::simulate(
+        "scenes/identification/pendulum-friction.yaml",
+        "2",
+        &truth,
+        &[],
+    );
+    let measured = mbfg(&[
+        "measure",
+        "scenes/identification/pendulum-friction.yaml",
+        "--trajectory",
+        truth.to_str().unwrap(),
+        "--seed",
+        "1",
+        "--out",
+        readings.to_str().unwrap(),
+    ]);
+    assert!(measured.status.success(), "{}", common::stderr(&measured));
+    let out = dir.join("estimate.csv");
+    let run = |how: &[&str], limit: &str| {
+        let mut args = vec![
+            "estimate",
+            scene,
+            "--measurements",
+            readings.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend(how);
+        mbfg_in(&args, &[("MBFG_MEMORY_LIMIT", limit)])
+    };
+    // 401 steps of 11 unknowns: about 5.8 MB.
+    let line = error_line(&run(&["--batch"], "2e6"), 2);
+    assert!(
+        line.contains("a batch estimate of 401 steps of 11 unknowns needs about")
+            && line.contains("more than the 2.0 MB available")
+            && line.contains("--window N"),
+        "{line}"
+    );
+    assert!(!out.exists());
+    // The window the message names runs in that memory; the batch in more.
+    let window = run(&["--window", "20"], "2e6");
+    assert!(window.status.success(), "{}", common::stderr(&window));
+    let batch = run(&["--batch"], "1e8");
+    assert!(batch.status.success(), "{}", common::stderr(&batch));
+}

@@ -161,3 +161,16 @@ def test_a_motion_too_fast_for_the_readings_period(tmp_path):
         mbfg.estimate(str(scene), readings)
     out = mbfg.estimate(str(scene), readings, dt=0.001)
     assert np.all(np.isfinite(out["q:a3"]))
+
+
+def test_a_batch_beyond_the_memory_is_refused_naming_the_window(tmp_path, monkeypatch):
+    text = SPIN + "effects:\n  - {type: gravity, vector: [0, -9.81]}\n"
+    scene = tmp_path / "spin.yaml"
+    scene.write_text(text)
+    run = mbfg.simulate(str(scene), dt=0.01, t_end=3.0)
+    readings = {"t": list(run.column("t")), "gyro": list(run.column("dq:th"))}
+    monkeypatch.setenv("MBFG_MEMORY_LIMIT", "1e5")
+    with pytest.raises(mbfg.InvalidArgument, match=r"a batch estimate of 301 steps .* window=N in Python"):
+        mbfg.estimate(str(scene), readings, batch=True)
+    # The fixed-lag estimate the error names runs in that memory.
+    assert mbfg.estimate(str(scene), readings)["summary"]["steps"] == 301

@@ -188,6 +188,9 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
         }
         Err(e) => {
             let advice = mbfg::estimate::finer_step_advice(&e, &options, record.dt);
+            // Input the run cannot take (no sensors, a batch beyond the memory) exits
+            // as bad input; a run that failed, as a failure.
+            let input = matches!(e, mbfg::Error::InvalidArgument(_));
             let why = plain(e);
             let kept = if table.rows == 0 || options.smoothing == Smoothing::Batch {
                 output.discard();
@@ -197,10 +200,14 @@ pub fn run(args: EstimateArgs) -> Result<(), Failure> {
                     .keep_partial_with(&|w| table.write_csv(w), table.rows, &why)
                     .map_err(Failure::Run)?
             };
-            Err(Failure::Run(match advice {
+            let message = match advice {
                 Some(a) => format!("{why}; {kept}; {a}"),
                 None => format!("{why}; {kept}"),
-            }))
+            };
+            Err(match input {
+                true => Failure::Input(message),
+                false => Failure::Run(message),
+            })
         }
     }
 }
