@@ -4,7 +4,7 @@
 //! line naming what is wrong).
 
 mod common;
-use common::{mbfg, one_error_line, scratch, stderr};
+use common::{mbfg, measured, one_error_line, scratch, stderr};
 use std::path::{Path, PathBuf};
 
 fn scene(name: &str) -> PathBuf {
@@ -15,38 +15,6 @@ fn scene(name: &str) -> PathBuf {
 
 fn run(args: &[&str]) -> std::process::Output {
     mbfg(args)
-}
-
-/// `mbfg simulate` of `scene` over 2 s (`--dt`, sampled every 5 ms) and `mbfg measure`
-/// of its sensors (`seed`): the readings' file in `dir`.
-fn measured(dir: &Path, scene: &Path, dt: &str, seed: &str) -> PathBuf {
-    let truth = dir.join("truth.csv");
-    let out = run(&[
-        "simulate",
-        scene.to_str().unwrap(),
-        "--dt",
-        dt,
-        "--t-end",
-        "2",
-        "--sample-dt",
-        "0.005",
-        "--out",
-        truth.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    let all = dir.join("all.csv");
-    let out = run(&[
-        "measure",
-        scene.to_str().unwrap(),
-        "--trajectory",
-        truth.to_str().unwrap(),
-        "--seed",
-        seed,
-        "--out",
-        all.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", stderr(&out));
-    all
 }
 
 /// The true motion over 2 s at 5 ms and the encoder's readings of it (seed 3).

@@ -1252,25 +1252,12 @@ fn a_load_that_grows_without_bound_in_time_ends_the_run_where_it_outruns_the_ste
 fn a_batch_estimate_beyond_the_memory_is_refused_and_names_the_window() {
     let dir = scratch("batch-memory");
     let scene = "scenes/identification/pendulum-friction-bad.yaml";
-    let truth = dir.join("truth.csv");
-    let readings = dir.join("readings.csv");
-    common::simulate(
-        "scenes/identification/pendulum-friction.yaml",
-        "2",
-        &truth,
-        &[],
-    );
-    let measured = mbfg(&[
-        "measure",
-        "scenes/identification/pendulum-friction.yaml",
-        "--trajectory",
-        truth.to_str().unwrap(),
-        "--seed",
+    let readings = common::measured(
+        &dir,
+        Path::new("scenes/identification/pendulum-friction.yaml"),
+        "0.001",
         "1",
-        "--out",
-        readings.to_str().unwrap(),
-    ]);
-    assert!(measured.status.success(), "{}", common::stderr(&measured));
+    );
     let out = dir.join("estimate.csv");
     let run = |how: &[&str], limit: &str| {
         let mut args = vec![

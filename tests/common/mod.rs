@@ -201,3 +201,35 @@ pub fn estimate_with(
     .unwrap();
     (table, summary)
 }
+
+/// `mbfg simulate` of `scene` over 2 s (`--dt`, sampled every 5 ms) and `mbfg measure`
+/// of its sensors (`seed`): the readings' file in `dir`.
+pub fn measured(dir: &Path, scene: &Path, dt: &str, seed: &str) -> PathBuf {
+    let truth = dir.join("truth.csv");
+    let out = mbfg(&[
+        "simulate",
+        scene.to_str().unwrap(),
+        "--dt",
+        dt,
+        "--t-end",
+        "2",
+        "--sample-dt",
+        "0.005",
+        "--out",
+        truth.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let all = dir.join("all.csv");
+    let out = mbfg(&[
+        "measure",
+        scene.to_str().unwrap(),
+        "--trajectory",
+        truth.to_str().unwrap(),
+        "--seed",
+        seed,
+        "--out",
+        all.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    all
+}
