@@ -1105,3 +1105,39 @@ fn rows_that_share_a_time_are_one_row() {
     assert_eq!(row, Some(5));
     assert!(why.contains("does not increase"), "{why}");
 }
+
+/// A record with a long gap: the benchmark four-bar's crank encoder read for 0.25 s,
+/// then for nothing over 100 s, then for 0.5 s. Over the gap the σ's grow until the
+/// information along the motion reaches the round-off of the marginal priors (before,
+/// the window's system stopped being positive definite at t = 37.8 s), and the first
+/// readings after it lie 1.4 rad from the prediction (a solve from there did not
+/// converge). The run goes on, and the readings bring the estimate back to the motion.
+#[test]
+fn a_long_gap_without_readings_is_crossed_and_the_motion_found_again() {
+    let truth = truth(100.75);
+    let (columns, rows) = readings_of("fourbar.yaml", &truth, 1, &["enc"]);
+    let rows: Vec<_> = rows
+        .into_iter()
+        .filter(|(t, _)| *t < 0.25 || *t > 100.25)
+        .collect();
+    let m = model("fourbar.yaml");
+    let record = Record::from_rows(&m, &columns, &rows, Some(0.005)).unwrap();
+    let (est, summary) = common::estimate_record(m, &record, Smoothing::Window(20));
+    assert_eq!(summary.steps, truth.len());
+    let theta = est.column("q:theta").unwrap();
+    let sd = est.column("sd:q:theta").unwrap();
+    let c = truth.names.iter().position(|n| n == "theta").unwrap();
+    // The last 0.25 s: within the encoder's σ (1°) of the truth, and of its own σ.
+    let from = truth.len() - 50;
+    for k in from..truth.len() {
+        let off = theta[k] - truth.q_at(k)[c];
+        let off = off - std::f64::consts::TAU * (off / std::f64::consts::TAU).round();
+        assert!(off.abs() < 0.0175, "t = {}: θ off by {off}", truth.t[k]);
+        assert!(
+            off.abs() < 3.0 * sd[k],
+            "t = {}: θ off by {off}, σ {}",
+            truth.t[k],
+            sd[k]
+        );
+    }
+}

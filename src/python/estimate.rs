@@ -422,6 +422,7 @@ impl PyEstimator {
                     .update(Vec::new())
                     .map_err(|e| run_error(py, e, None))?;
             }
+            self.est.near_after_gap(&record.steps[0]);
             let u = self
                 .est
                 .update(factors)

@@ -479,6 +479,12 @@ impl WindowSolver {
             }
             eta[i] = g01[s + i] - eta[i];
         }
+        if self.prior_floor > 0.0 {
+            let largest = (0..s).map(|i| information[i * s + i]).fold(0.0, f64::max);
+            for i in 0..s {
+                information[i * s + i] += self.prior_floor * largest;
+            }
+        }
         // ≥ 0 in exact arithmetic (the least value of a sum of squares); round-off
         // near singular configurations can push it below.
         let constant = (cost - 0.5 * w[..d0].iter().map(|v| v * v).sum::<f64>()).max(0.0);

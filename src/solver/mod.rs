@@ -52,6 +52,10 @@ pub const HARD_SIGMA: f64 = 1e-6;
 /// A reusable solver for windows of up to `capacity` steps; it allocates once.
 pub struct WindowSolver {
     settings: Settings,
+    /// The least information a marginal prior keeps in any direction, as a share
+    /// of its largest diagonal entry (0: none added; see
+    /// [`WindowSolver::set_prior_floor`]).
+    prior_floor: f64,
     s: usize,
     /// Which factor instances the current window holds (the structure stage).
     structure: Structure,
@@ -181,6 +185,7 @@ impl WindowSolver {
             correction: vec![0.0; s],
             marginal: Marginalization::new(s),
             scratch: vec![0.0; 4 * s * s + 4 * s],
+            prior_floor: 0.0,
             observer: settings.trace.then(|| Box::new(Trace) as Box<dyn Observer>),
             tangent_form_from: TANGENT_FORM_FROM,
             reuse: reuse::Reuse::default(),
@@ -241,6 +246,16 @@ impl WindowSolver {
         for block in &mut self.lin.hard {
             block.reduction.set_segments(&segment);
         }
+    }
+
+    /// From now on, each marginal prior keeps at least `share` of its largest
+    /// diagonal entry of information in every direction (0: as the factors leave it).
+    /// Over a long stretch without readings the information along the motion decays
+    /// to the round-off of the Schur complement, where the prior stops being
+    /// positive definite on the tangent space; the floor holds it there, at σ's
+    /// far beyond any the motion allows.
+    pub fn set_prior_floor(&mut self, share: f64) {
+        self.prior_floor = share;
     }
 
     /// Whether marginalization conditions on the leaving step (see [`Past`]).

@@ -10,9 +10,11 @@ use super::determination::watched_coordinates;
 use super::graph::EstimationGraph;
 use crate::error::{Error, Result};
 use crate::graph::{Factor, Noise, Workspace};
-use crate::model::Model;
+use crate::model::{Model, State};
+use crate::sensors::SensorKind;
 use crate::solver::{LinearPrior, Marginals, Settings, SolveReport, Termination, WindowSolver};
 use crate::trajectory::round_time;
+use nalgebra::DVector;
 use std::sync::Arc;
 
 /// One step's estimate: its variables (the graph's block: q, q̇, q̈, inputs) and
@@ -78,6 +80,19 @@ pub const LONGEST_FACTOR: usize = 4;
 /// Steps the buffer holds before it moves, past the window.
 const BUFFER: usize = 1024;
 
+/// Steps without readings from which the estimate is in a gap: its marginal priors
+/// keep a floor of information ([`PRIOR_FLOOR`]), and the readings that end it
+/// move the window's guess to them where they lie far from its prediction.
+pub const GAP_STEPS: usize = 20;
+
+/// The floor of a marginal prior's information in a gap, as a share of its largest
+/// diagonal entry ([`WindowSolver::set_prior_floor`]).
+const PRIOR_FLOOR: f64 = 1e-9;
+
+/// The σ (rad or m) given the prediction where readings end a gap: far wider than
+/// any sensor's, so the guess moves to the readings.
+const GAP_SIGMA: f64 = 1e3;
+
 /// The fixed-lag estimator over a growing record.
 pub struct Estimator {
     model: Arc<Model>,
@@ -114,6 +129,11 @@ pub struct Estimator {
     covariances: Vec<Vec<f64>>,
     /// The newest step's prediction, kept while its conditional solve runs.
     guess: Vec<f64>,
+    /// The run step of the latest update with readings.
+    last_read: Option<usize>,
+    /// The readings of the update under way where they end a gap
+    /// ([`Estimator::near_after_gap`]).
+    reacquire: Vec<super::record::StepReading>,
     ws: Workspace,
     pub nis: Nis,
     pub iterations: usize,
@@ -163,6 +183,8 @@ impl Estimator {
             finalized: 0,
             covariances: Vec::new(),
             guess: Vec::new(),
+            last_read: None,
+            reacquire: Vec::new(),
             ws,
             eg,
             nis: Nis::default(),
@@ -201,6 +223,61 @@ impl Estimator {
         }
     }
 
+    /// Before an update: where its readings end a gap of [`GAP_STEPS`] steps or more
+    /// without any and an encoder reads a coordinate far from the prediction, the
+    /// window's guess moves to them ([`super::start`]), every step of it by the same
+    /// shift of the read coordinates. Over a long gap the prediction drifts from the
+    /// motion (a four-bar left 100 s without readings came back 1.4 rad off its crank
+    /// reading), and a solve from there does not converge.
+    pub fn near_after_gap(&mut self, readings: &[super::record::StepReading]) {
+        let gap = self.last_read.map_or(0, |k| self.next.saturating_sub(k));
+        if !readings.is_empty() && gap >= GAP_STEPS && self.eg.independent.is_empty() {
+            self.reacquire = readings.to_vec();
+        }
+    }
+
+    /// The window's guess moved toward `self.reacquire` (see
+    /// [`Estimator::near_after_gap`]), buffer steps k0..=k.
+    fn reacquire(&mut self, k: usize) {
+        let readings = std::mem::take(&mut self.reacquire);
+        let (n, s) = (self.eg.n, self.eg.size());
+        let state = |values: &[f64], j: usize| State {
+            q: DVector::from_column_slice(&values[j * s..j * s + n]),
+            dq: DVector::from_column_slice(&values[j * s + n..j * s + 2 * n]),
+        };
+        let loose = vec![GAP_SIGMA; n];
+        let newest = state(&self.values, k);
+        let Some(near) = super::start::toward_readings(&self.model, &newest, &readings, &loose)
+        else {
+            return;
+        };
+        let shift: Vec<f64> = (0..n).map(|c| near.q[c] - newest.q[c]).collect();
+        for j in self.k0..=k {
+            let at = state(&self.values, j);
+            let moved = if j == k {
+                Some(near.clone())
+            } else {
+                // The same shift of the read coordinates, as readings of step j.
+                let shifted: Vec<_> = readings
+                    .iter()
+                    .filter_map(|r| match self.model.sensors[r.sensor].kind {
+                        SensorKind::Encoder { coordinate: c } => Some(super::record::StepReading {
+                            sensor: r.sensor,
+                            values: vec![at.q[c] + shift[c]],
+                            before: r.before,
+                        }),
+                        _ => None,
+                    })
+                    .collect();
+                super::start::toward_readings(&self.model, &at, &shifted, &loose)
+            };
+            if let Some(m) = moved {
+                self.values[j * s..j * s + n].copy_from_slice(m.q.as_slice());
+                self.values[j * s + n..j * s + 2 * n].copy_from_slice(m.dq.as_slice());
+            }
+        }
+    }
+
     /// The run step the next update makes.
     pub fn next_step(&self) -> usize {
         self.next
@@ -236,9 +313,13 @@ impl Estimator {
             // The readings of the steps that left the window no solve reads again.
             self.eg.graph.drop_at_before(self.solver.base() + self.k0);
         }
+        let has_readings = !readings.is_empty();
         for (factor, noise) in readings {
             self.eg.graph.add_soft_at(run_k, factor, noise)?;
         }
+        let gap = self.last_read.map_or(0, |r| run_k - r);
+        self.solver
+            .set_prior_floor(if gap >= GAP_STEPS { PRIOR_FLOOR } else { 0.0 });
         if k == 0 {
             let block = self.eg.initial_block(&self.model)?;
             self.values.extend_from_slice(&block);
@@ -254,6 +335,9 @@ impl Estimator {
                 .map_err(|e| self.located(e, run_k - (k - self.k0)))?;
             self.prior = Some(prior);
             self.k0 += 1;
+        }
+        if !self.reacquire.is_empty() {
+            self.reacquire(k);
         }
         self.held_most = self.held_most.max(k + 1 - self.k0);
         self.held_sum += k + 1 - self.k0;
@@ -384,6 +468,9 @@ impl Estimator {
             .map(|b| self.estimate_of(b))
             .collect();
         self.finalized = self.solver.base() + self.k0 + self.leaving;
+        if has_readings {
+            self.last_read = Some(run_k);
+        }
         self.next += 1;
         Ok(Update {
             newest,

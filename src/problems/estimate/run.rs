@@ -189,6 +189,7 @@ pub fn estimate_with_progress(
     let mut divergence = Divergence::default();
     for (k, readings) in record.steps.iter().enumerate() {
         let before = (est.nis.sum, est.nis.dof);
+        est.near_after_gap(readings);
         let update = est.update(reading_factors(&model, readings)?)?;
         divergence
             .add(est.nis.sum - before.0, est.nis.dof - before.1)
