@@ -174,3 +174,24 @@ def test_a_batch_beyond_the_memory_is_refused_naming_the_window(tmp_path, monkey
         mbfg.estimate(str(scene), readings, batch=True)
     # The fixed-lag estimate the error names runs in that memory.
     assert mbfg.estimate(str(scene), readings)["summary"]["steps"] == 301
+
+
+def test_the_online_estimator_finds_the_motion_again_after_a_long_gap():
+    # The benchmark four-bar's crank encoder read for 0.25 s, then for nothing over
+    # 100 s, then again: the online estimator crosses the gap (its priors keep a floor
+    # of information) and its first update after it begins at the readings.
+    import math
+    import pathlib
+    scene = pathlib.Path(__file__).resolve().parents[2] / "scenes" / "estimation" / "fourbar.yaml"
+    truth = mbfg.simulate(str(scene), dt=1e-3, t_end=100.75)
+    readings = mbfg.measure(str(scene), truth, seed=1, rate=200)
+    online = mbfg.Estimator(str(scene), 0.005)
+    theta = list(online.names).index("theta")
+    last = None
+    for t, enc in zip(readings["t"], readings["enc"]):
+        if 0.25 <= t <= 100.25:
+            continue
+        last = online.update(float(t), {"enc": float(enc)})
+    true_theta = truth.column("q:theta")[-1]
+    off = math.remainder(last["q"][theta] - true_theta, 2 * math.pi)
+    assert abs(off) < math.radians(1), off
