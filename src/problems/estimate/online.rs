@@ -133,7 +133,7 @@ pub struct Estimator {
     last_read: Option<usize>,
     /// The readings of the update under way where they end a gap
     /// ([`Estimator::near_after_gap`]).
-    reacquire: Vec<super::record::StepReading>,
+    gap_readings: Vec<super::record::StepReading>,
     ws: Workspace,
     pub nis: Nis,
     pub iterations: usize,
@@ -184,7 +184,7 @@ impl Estimator {
             covariances: Vec::new(),
             guess: Vec::new(),
             last_read: None,
-            reacquire: Vec::new(),
+            gap_readings: Vec::new(),
             ws,
             eg,
             nis: Nis::default(),
@@ -232,14 +232,14 @@ impl Estimator {
     pub fn near_after_gap(&mut self, readings: &[super::record::StepReading]) {
         let gap = self.last_read.map_or(0, |k| self.next.saturating_sub(k));
         if !readings.is_empty() && gap >= GAP_STEPS && self.eg.independent.is_empty() {
-            self.reacquire = readings.to_vec();
+            self.gap_readings = readings.to_vec();
         }
     }
 
-    /// The window's guess moved toward `self.reacquire` (see
+    /// The window's guess moved toward `self.gap_readings` (see
     /// [`Estimator::near_after_gap`]), buffer steps k0..=k.
-    fn reacquire(&mut self, k: usize) {
-        let readings = std::mem::take(&mut self.reacquire);
+    fn guess_near_gap_readings(&mut self, k: usize) {
+        let readings = std::mem::take(&mut self.gap_readings);
         let (n, s) = (self.eg.n, self.eg.size());
         let state = |values: &[f64], j: usize| State {
             q: DVector::from_column_slice(&values[j * s..j * s + n]),
@@ -336,8 +336,8 @@ impl Estimator {
             self.prior = Some(prior);
             self.k0 += 1;
         }
-        if !self.reacquire.is_empty() {
-            self.reacquire(k);
+        if !self.gap_readings.is_empty() {
+            self.guess_near_gap_readings(k);
         }
         self.held_most = self.held_most.max(k + 1 - self.k0);
         self.held_sum += k + 1 - self.k0;
