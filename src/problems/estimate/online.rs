@@ -11,7 +11,6 @@ use super::graph::EstimationGraph;
 use crate::error::{Error, Result};
 use crate::graph::{Factor, Noise, Workspace};
 use crate::model::{Model, State};
-use crate::sensors::SensorKind;
 use crate::solver::{LinearPrior, Marginals, Settings, SolveReport, Termination, WindowSolver};
 use crate::trajectory::round_time;
 use nalgebra::DVector;
@@ -247,31 +246,12 @@ impl Estimator {
         };
         let loose = vec![GAP_SIGMA; n];
         let newest = state(&self.values, k);
-        let Some(near) = super::start::toward_readings(&self.model, &newest, &readings, &loose)
+        let Some(moves) = super::start::moves_toward(&self.model, &newest, &readings, &loose)
         else {
             return;
         };
-        let shift: Vec<f64> = (0..n).map(|c| near.q[c] - newest.q[c]).collect();
         for j in self.k0..=k {
-            let at = state(&self.values, j);
-            let moved = if j == k {
-                Some(near.clone())
-            } else {
-                // The same shift of the read coordinates, as readings of step j.
-                let shifted: Vec<_> = readings
-                    .iter()
-                    .filter_map(|r| match self.model.sensors[r.sensor].kind {
-                        SensorKind::Encoder { coordinate: c } => Some(super::record::StepReading {
-                            sensor: r.sensor,
-                            values: vec![at.q[c] + shift[c]],
-                            before: r.before,
-                        }),
-                        _ => None,
-                    })
-                    .collect();
-                super::start::toward_readings(&self.model, &at, &shifted, &loose)
-            };
-            if let Some(m) = moved {
+            if let Some(m) = super::start::moved(&self.model, &state(&self.values, j), &moves) {
                 self.values[j * s..j * s + n].copy_from_slice(m.q.as_slice());
                 self.values[j * s + n..j * s + 2 * n].copy_from_slice(m.dq.as_slice());
             }

@@ -32,6 +32,21 @@ pub fn toward_readings(
     readings: &[StepReading],
     initial_q: &[f64],
 ) -> Option<State> {
+    moved(
+        model,
+        start,
+        &moves_toward(model, start, readings, initial_q)?,
+    )
+}
+
+/// The moves of [`toward_readings`]: each read coordinate and its shift from
+/// `start`, None where none is farther than [`FAR`].
+pub fn moves_toward(
+    model: &Model,
+    start: &State,
+    readings: &[StepReading],
+    initial_q: &[f64],
+) -> Option<Vec<(usize, f64)>> {
     let mut moves: Vec<(usize, f64)> = Vec::new();
     for reading in readings {
         let sensor = &model.sensors[reading.sensor];
@@ -55,15 +70,21 @@ pub fn toward_readings(
         }
     }
     let largest = moves.iter().fold(0.0f64, |m, &(_, d)| m.max(d.abs()));
-    if !(largest > FAR) {
-        return None;
-    }
+    (largest > FAR).then_some(moves)
+}
+
+/// `start` with each coordinate of `moves` shifted by its amount, reached by position
+/// solves in strides of at most [`STRIDE`] with the moved coordinates held, their
+/// velocities the start's and the others' the velocity problem's. None where the way
+/// there fails.
+pub fn moved(model: &Model, start: &State, moves: &[(usize, f64)]) -> Option<State> {
+    let largest = moves.iter().fold(0.0f64, |m, &(_, d)| m.max(d.abs()));
     let held: Vec<usize> = moves.iter().map(|&(c, _)| c).collect();
     let strides = (largest / STRIDE).ceil() as usize;
     let mut q = start.q.clone();
     for j in 1..=strides {
         let f = j as f64 / strides as f64;
-        for &(c, shift) in &moves {
+        for &(c, shift) in moves {
             q[c] = start.q[c] + f * shift;
         }
         kinematics::solve_position(model, &mut q, &held).ok()?;
